@@ -1,0 +1,32 @@
+# `make demo` and `make test` each set up everything on a fresh machine, then run.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test setup clean bench
+
+$(BIN)/python:
+	$(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+
+$(STAMP): $(BIN)/python pyproject.toml
+	@# torch first, and exactly this version when missing: any other spec pulls CUDA wheels here.
+	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e ".[test,video]"
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: setup
+	$(BIN)/omnirecon synth --out outputs/demo/scene --num-scenes 1 --seed 7 --rig object --views 24 --resolution 128
+	$(BIN)/omnirecon inspect outputs/demo/scene/scene_00007 --out outputs/demo/inspect
+
+test: setup
+	$(BIN)/python -m pytest -q -ra tests
+
+bench: setup
+	$(BIN)/python bench/synth_speed.py
+
+clean:
+	rm -rf $(VENV) outputs

@@ -1,0 +1,3 @@
+"""omnirecon: generalizable image-based reconstruction and rendering."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,59 @@
+"""``omnirecon`` command line: one tyro subcommand per task.
+
+Each subcommand is a dataclass config with a ``main()`` method, registered in ``COMMANDS`` as
+``"name": "module:ClassName"`` and imported only when chosen. Bad input exits with code 2 and a
+one-line message; ``--verbose`` (anywhere on the line) shows the traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from omnirecon.errors import EXIT_BAD_INPUT, InputError
+
+COMMANDS: dict[str, tuple[str, str]] = {
+    "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
+    "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
+}
+
+
+def _load(spec: str):
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    verbose = any(a in ("--verbose", "-v") for a in argv)
+    argv = [a for a in argv if a not in ("--verbose", "-v")]
+    try:
+        # Import only the chosen subcommand (fast start, no heavy optional imports).
+        chosen = next((a for a in argv if not a.startswith("-")), None)
+        names = [chosen] if chosen in COMMANDS else list(COMMANDS)
+        configs = {n: _load(COMMANDS[n][0]) for n in names}
+        config = tyro.extras.subcommand_cli_from_dict(
+            configs, args=argv, prog="omnirecon",
+            description="Generalizable image-based reconstruction and rendering. "
+            "Add --verbose anywhere for full tracebacks.",
+        )
+        config.main()
+    except InputError as e:
+        print(f"omnirecon: error: {e.one_line()}", file=sys.stderr)
+        if verbose:
+            raise
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("omnirecon: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,114 @@
+"""File helpers shared by readers and writers: every failure becomes a one-line InputError."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from omnirecon.errors import InputError
+
+
+def read_image(path: Path, mode: str | None = None, size: tuple[int, int] | None = None) -> np.ndarray:
+    """Read an image as float32 in [0, 1], ``# [H, W, C]`` (C = 1, 3 or 4; ``mode`` forces one).
+
+    ``size = (width, height)`` resizes with area averaging (alpha premultiplied first) when the
+    file's size differs.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("image file is missing", path, "check the path, or remove the view from the pose file")
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if mode is not None and im.mode != mode:
+                im = im.convert(mode)
+            elif im.mode not in ("L", "RGB", "RGBA", "I;16", "I"):
+                im = im.convert("RGBA" if "A" in im.mode else "RGB")
+            if size is not None and im.size != tuple(size):
+                im = _resize(im, size)
+            arr = np.asarray(im)
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+        raise InputError(f"cannot read image ({type(e).__name__}: {e})", path,
+                         "the file is corrupt or not an image; replace it") from e
+    if arr.dtype == np.uint8:
+        out = arr.astype(np.float32) / 255.0
+    elif arr.dtype in (np.uint16, np.int32, np.uint32):
+        out = arr.astype(np.float32) / 65535.0
+    else:
+        out = arr.astype(np.float32)
+    return out[..., None] if out.ndim == 2 else out
+
+
+def _resize(im, size):
+    from PIL import Image
+
+    if im.mode == "RGBA":  # premultiply so that transparent pixels do not bleed colour
+        im = im.convert("RGBa").resize(size, Image.BOX).convert("RGBA")
+        return im
+    return im.resize(size, Image.BOX if im.mode in ("RGB", "L") else Image.NEAREST)
+
+
+def read_json(path: Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file is missing", path)
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"invalid JSON ({e})", path, "fix or regenerate the file") from e
+
+
+def read_npy(path: Path, allow_pickle: bool = False):
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("file is missing", path)
+    try:
+        return np.load(path, allow_pickle=allow_pickle)
+    except (ValueError, OSError, EOFError) as e:
+        raise InputError(f"cannot read NumPy file ({e})", path, "the file is corrupt; regenerate it") from e
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files in ``folder`` in sorted filename order."""
+    exts = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".exr", ".webp"}
+    return sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in exts and not p.name.startswith("."))
+
+
+@contextmanager
+def atomic_path(path: Path):
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_json(path: Path, obj) -> None:
+    with atomic_path(path) as tmp:
+        Path(tmp).write_text(json.dumps(obj, indent=1))
+
+
+def write_image(path: Path, array: np.ndarray) -> None:
+    """Write ``# [H, W, C]`` float in [0, 1] (or uint8/uint16) as PNG/JPEG, atomically."""
+    from PIL import Image
+
+    a = np.asarray(array)
+    if a.dtype != np.uint8 and a.dtype != np.uint16:
+        a = (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    with atomic_path(path) as tmp:
+        Image.fromarray(a).save(tmp, format=Path(path).suffix.lstrip(".").upper().replace("JPG", "JPEG"))
