@@ -187,3 +187,23 @@ def test_rescale_keeps_rays():
     o1, d1 = cams.rays(torch.zeros(len(cams), 1, 2))
     o2, d2 = half.rays(torch.zeros(len(cams), 1, 2))
     assert torch.allclose(d1, d2)
+
+
+def test_scene_normalized_round_trip():
+    from omnirecon.data.scene import Scene
+
+    cams = ring(n=4, radius=40.0)
+    n = len(cams)
+    scene = Scene(images=torch.zeros(n, cams.height, cams.width, 3), cameras=cams,
+                  near=torch.full((n,), 20.0), far=torch.full((n,), 60.0),
+                  bounds=torch.tensor([[-10.0, -10, -5], [10, 10, 15]]), splits={},
+                  depths=torch.full((n, cams.height, cams.width), 30.0))
+    norm = scene.normalized()
+    assert torch.allclose(norm.bounds.mean(0), torch.zeros(3), atol=1e-9)
+    assert abs(float((norm.bounds[1] - norm.bounds[0]).norm()) - 2) < 1e-9
+    # a world point, projected in both frames, lands on the same pixel
+    p = torch.tensor([[1.0, 2.0, 3.0]])
+    p_norm = (p - scene.bounds.mean(0)) * (2 / float((scene.bounds[1] - scene.bounds[0]).norm()))
+    assert torch.allclose(scene.cameras.project(p).uv, norm.cameras.project(p_norm).uv, atol=1e-9)
+    assert torch.allclose(norm.points_to_input(p_norm), p, atol=1e-9)
+    check_poses(norm.cameras.c2w)

@@ -54,7 +54,9 @@ class Scene:
     background: tuple[float, float, float] | None = None
     """Colour the images were composited on, when the input had alpha."""
     mesh_path: Path | None = None
-    """Exact ground-truth mesh (scene frame), when the scene has one (procedural scenes)."""
+    """Exact ground-truth mesh file, when the scene has one (procedural scenes)."""
+    mesh_to_scene: Tensor = field(default_factory=lambda: torch.eye(4, dtype=torch.float64))
+    """Similarity from the mesh file's coordinates to the scene frame. ``# [4, 4]``"""
     meta: dict = field(default_factory=dict)
     """Reader-specific extras (JSON-serialisable)."""
 
@@ -99,6 +101,30 @@ class Scene:
             raise InputError(f"scene has no split {name!r} (it has {sorted(self.splits)})", self.path,
                              "pick one of the listed splits")
         return self.subset(self.splits[name])
+
+    def normalized(self, radius: float = 1.0) -> Scene:
+        """The same scene in a frame where ``bounds`` is centred at 0 and fits a sphere of ``radius``.
+
+        Cameras, near/far, depths, bounds and the mesh transform follow; ``to_input`` absorbs the
+        inverse, so exports still land in the input frame.
+        """
+        centre = self.bounds.double().mean(0)
+        half_diag = float((self.bounds[1] - self.bounds[0]).double().norm() / 2)
+        s = radius / max(half_diag, 1e-12)
+        S = torch.eye(4, dtype=torch.float64)
+        S[:3, :3] *= s
+        S[:3, 3] = -s * centre
+        S_inv = torch.linalg.inv(S)
+        bounds = (self.bounds.double() - centre) * s
+        return replace(
+            self,
+            cameras=self.cameras.transformed(S),
+            near=self.near * s, far=self.far * s,
+            depths=None if self.depths is None else self.depths * s,
+            bounds=bounds.to(self.bounds.dtype),
+            to_input=self.to_input.double() @ S_inv,
+            mesh_to_scene=S @ self.mesh_to_scene.double(),
+        )
 
     def points_to_input(self, points: Tensor) -> Tensor:
         """Map scene-frame points ``# [P, 3]`` to the input frame."""
