@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import tyro
 from torch import Tensor
 
 from omnirecon.cameras import Cameras, nearest_views
@@ -35,7 +36,7 @@ class InspectConfig:
     """Validate a scene, print a summary, write pictures of its cameras and epipolar lines, and
     print numeric pose-consistency scores."""
 
-    path: Path
+    path: tyro.conf.Positional[Path]
     """Scene folder (any supported format)."""
     format: Format = "auto"
     """Force a reader instead of detecting the format."""
