@@ -1,0 +1,1 @@
+"""Generalizable renderers: ``encode(sources) -> SourceFeatures``, ``render_rays(features, rays) -> dict``."""

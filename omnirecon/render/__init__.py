@@ -1,0 +1,1 @@
+"""Rendering operators that take callbacks and never own a network."""

@@ -1,0 +1,34 @@
+import torch
+
+from omnirecon.render.volume import alpha_from_density, composite, sample_along_rays, sample_pdf, weights_from_alpha
+
+
+def test_samples_span_range_and_inverse_depth():
+    near, far = torch.tensor([1.0, 2.0]), torch.tensor([5.0, 10.0])
+    t = sample_along_rays(near, far, 9)
+    assert torch.allclose(t[:, 0], near) and torch.allclose(t[:, -1], far)
+    ti = sample_along_rays(near, far, 9, inverse_depth=True)
+    assert torch.allclose(1 / ti, torch.stack([torch.linspace(1 / a, 1 / b, 9) for a, b in zip(near, far)]))
+    tj = sample_along_rays(near, far, 9, jitter=True, generator=torch.Generator().manual_seed(0))
+    assert (tj.diff(dim=1) >= 0).all() and (tj >= near[:, None]).all() and (tj <= far[:, None]).all()
+
+
+def test_weights_of_an_opaque_wall():
+    t = torch.linspace(0, 1, 11).expand(3, 11)
+    sigma = torch.zeros(3, 11)
+    sigma[:, 6:] = 1e4  # wall from t = 0.6
+    w, trans = weights_from_alpha(alpha_from_density(sigma, t))
+    assert torch.allclose(w.sum(-1), torch.ones(3), atol=1e-4)
+    assert (w.argmax(-1) == 6).all()
+    assert torch.allclose(composite(w, t[..., None])[:, 0], torch.full((3,), 0.6), atol=1e-3)
+    assert (trans[:, :7] > 0.999).all()
+
+
+def test_sample_pdf_concentrates_on_heavy_bin():
+    bins = torch.linspace(0, 1, 11).expand(2, 11)
+    weights = torch.zeros(2, 10)
+    weights[:, 3] = 1
+    s = sample_pdf(bins, weights, 64)
+    assert ((s >= 0.3) & (s <= 0.4)).float().mean() > 0.9
+    s2 = sample_pdf(bins, weights, 64, deterministic=False, generator=torch.Generator().manual_seed(0))
+    assert ((s2 >= 0.3) & (s2 <= 0.4)).float().mean() > 0.9
