@@ -1,0 +1,256 @@
+"""GPNR: generalizable patch-based neural rendering (Suhail et al., ECCV 2022).
+
+Faithful to the authors' code (``shared/docs/gpnr_ibrnet.md`` Part A) with three fixes, each a
+documented departure: the canonical frame is a proper rigid transform (the reference divides by
+the squared norm); invalid projections (outside the image or behind the camera) are masked in all
+attention and pooling steps (the reference clamps them to the border and never masks); the
+relative pose is the true pose of each source camera in the canonical frame (the reference
+subtracts a world-space centre from a camera-space translation). Sampling is bilinear at the
+exact projection (the reference rounds to the nearest pixel).
+
+Pipeline per target ray (``R`` rays, ``K`` source views, ``M`` samples, width ``D``):
+
+1. ``M`` points at z-depths linear in ``[near, far]``; each is projected into every source view.
+2. Key token per (view, point): Fourier(canonical source ray) ‖ Fourier(canonical point) ‖
+   patch feature (a linear ``P x P`` convolution + ReLU, bilinearly sampled) ‖ centre RGB ‖
+   relative pose (12) -> Linear -> ``D``. The query token is Fourier(canonical target ray),
+   a constant (0, 0, 1, 0, 0, 0) once canonicalised, so it acts as a learned token.
+3. Stage 1 attends across the ``K`` views at each depth; stage 2 along each epipolar line
+   (``M`` points + query) per view -> ``alpha`` over points; stage 3 across the views (+ query)
+   -> ``beta`` over views.
+4. ``rgb = sigmoid(Linear(sum_k beta_k g_k))`` (feature head) and
+   ``rgb_aux = sum_k beta_k sum_m alpha_km rgb_km`` (blended source colours); train on both.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from omnirecon.cameras import canonical_transform, plucker
+from omnirecon.models.base import GeneralizableModel, Rays, Sources
+
+
+@dataclass
+class GPNRConfig:
+    """GPNR hyper-parameters and the seed's ablation switches."""
+
+    num_views: int = 10
+    """Source views K used per target ray."""
+    num_samples: int = 127
+    """Points M along each target ray (linear in z-depth between near and far)."""
+    patch_size: int = 11
+    """Side P of the square patch that is linearly projected (a P x P convolution)."""
+    patch_channels: int = 32
+    """Output channels of the patch projection."""
+    dim: int = 256
+    """Token width D."""
+    mlp_dim: int = 256
+    """Hidden width of each transformer MLP."""
+    heads: int = 1
+    """Attention heads."""
+    layers: tuple[int, int, int] = (8, 8, 8)
+    """Layers of the visual (across views), epipolar (along the ray) and view transformers."""
+    ray_freqs: int = 4
+    """Fourier frequencies for the ray encoding (2^0 .. 2^(n-1))."""
+    point_freqs: int = 10
+    """Fourier frequencies for the point encoding."""
+    ray_param: Literal["plucker", "lightslab", "twosphere"] = "plucker"
+    """Ray parameterisation: Plücker (default), light slab (two planes z = near, z = far of the
+    target ray; forward-facing scenes) or two-sphere (the two intersections with the bounding sphere)."""
+    visual_transformer: bool = True
+    """Ablation: stage 1 (attention across views at each depth) on/off."""
+    canonical_rays: bool = True
+    """Ablation: express source/target rays in the target ray's canonical frame (else world)."""
+    canonical_coords: bool = True
+    """Ablation: express sample points and relative poses in the canonical frame (else world)."""
+    output: Literal["features", "colors"] = "features"
+    """Which prediction is ``rgb``: the feature head (GPNR) or the blended source colours."""
+    mask_invalid: bool = True
+    """Mask projections outside the image or behind the camera (the reference code does not)."""
+    scene_radius: float = 1.0
+    """Radius of the bounding sphere for the two-sphere parameterisation (scene units)."""
+
+
+PRESETS = {
+    "gpnr-paper": GPNRConfig(),
+    "gpnr-tiny": GPNRConfig(num_views=5, num_samples=32, patch_size=7, patch_channels=16, dim=64, mlp_dim=128,
+                            heads=2, layers=(2, 2, 2), ray_freqs=4, point_freqs=6),
+}
+
+
+def fourier(x: Tensor, freqs: int) -> Tensor:
+    """``[x, sin(2^l x), cos(2^l x)]`` for ``l < freqs``. ``# [..., C] -> [..., C (1 + 2 freqs)]``"""
+    if freqs == 0:
+        return x
+    scales = 2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)
+    xs = (x[..., None, :] * scales[:, None]).flatten(-2)
+    return torch.cat([x, torch.sin(xs), torch.cos(xs)], dim=-1)
+
+
+@dataclass
+class GPNRFeatures:
+    """Encoded sources: what ``render_rays`` needs, computed once per scene."""
+
+    sources: Sources
+    patches: Tensor
+    """Patch projections of every source image. ``# [V, C, H, W]``"""
+
+
+def _transformer(dim: int, mlp: int, heads: int, layers: int) -> nn.Module:
+    if layers == 0:
+        return nn.Identity()
+    layer = nn.TransformerEncoderLayer(dim, heads, mlp, dropout=0.0, activation="gelu", batch_first=True,
+                                       norm_first=False)  # post-LN, as the reference
+    return nn.TransformerEncoder(layer, layers, enable_nested_tensor=False)
+
+
+def _run(block: nn.Module, x: Tensor, pad: Tensor | None) -> Tensor:
+    """Apply a transformer with key padding ``pad # [B, L]`` (True = ignore); rows never all-masked."""
+    if isinstance(block, nn.Identity):
+        return x
+    if pad is not None:
+        pad = pad & ~pad.all(dim=1, keepdim=True)  # nothing to attend to: attend to everything
+    return block(x, src_key_padding_mask=pad)
+
+
+class GPNR(GeneralizableModel):
+    def __init__(self, cfg: GPNRConfig):
+        super().__init__()
+        self.cfg = cfg
+        ray_dim = {"plucker": 6, "lightslab": 4, "twosphere": 6}[cfg.ray_param] * (1 + 2 * cfg.ray_freqs)
+        point_dim = 3 * (1 + 2 * cfg.point_freqs)
+        self.patch = nn.Conv2d(3, cfg.patch_channels, cfg.patch_size, padding=cfg.patch_size // 2)
+        self.key_proj = nn.Linear(ray_dim + point_dim + cfg.patch_channels + 3 + 12, cfg.dim)
+        self.query_proj = nn.Linear(ray_dim, cfg.dim)
+        self.query_proj2 = nn.Linear(ray_dim, cfg.dim)
+        self.view_proj = nn.Linear(cfg.dim, cfg.dim)
+        self.visual = _transformer(cfg.dim, cfg.mlp_dim, cfg.heads, cfg.layers[0] if cfg.visual_transformer else 0)
+        self.epipolar = _transformer(cfg.dim, cfg.mlp_dim, cfg.heads, cfg.layers[1])
+        self.view = _transformer(cfg.dim, cfg.mlp_dim, cfg.heads, cfg.layers[2])
+        self.alpha_score = nn.Linear(2 * cfg.dim, 1)
+        self.beta_score = nn.Linear(2 * cfg.dim, 1)
+        self.rgb_head = nn.Linear(cfg.dim, 3)
+
+    # ------------------------------------------------------------------ encode
+    def encode(self, sources: Sources) -> GPNRFeatures:
+        images = sources.images.permute(0, 3, 1, 2)  # [V, 3, H, W]
+        return GPNRFeatures(sources, F.relu(self.patch(images)))
+
+    # ------------------------------------------------------------------ encodings
+    def _ray_code(self, o: Tensor, d: Tensor, near: float, far: float) -> Tensor:
+        """Encode rays ``o, d # [..., 3]`` (already in the frame they should be described in)."""
+        cfg = self.cfg
+        if cfg.ray_param == "plucker":
+            code = plucker(o, d)
+        elif cfg.ray_param == "lightslab":
+            dz = torch.where(d[..., 2:].abs() < 1e-6, torch.full_like(d[..., 2:], 1e-6), d[..., 2:])
+            a = o[..., :2] + d[..., :2] * (near - o[..., 2:]) / dz
+            b = o[..., :2] + d[..., :2] * (far - o[..., 2:]) / dz
+            code = torch.cat([a, b], -1) / max(far, 1e-6)
+        else:  # two-sphere: entry and exit points of the bounding sphere (closest points if missed)
+            r = cfg.scene_radius
+            b = (o * d).sum(-1, keepdim=True)
+            c = (o * o).sum(-1, keepdim=True) - r * r
+            disc = (b * b - c).clamp_min(0).sqrt()
+            code = torch.cat([o + d * (-b - disc), o + d * (-b + disc)], -1) / r
+        return fourier(code, cfg.ray_freqs)
+
+    # ------------------------------------------------------------------ render
+    def render_rays(self, features: GPNRFeatures, rays: Rays) -> dict[str, Tensor]:
+        cfg = self.cfg
+        src = features.sources
+        cams = src.cameras
+        K, R, M = len(cams), len(rays), cfg.num_samples
+        dtype = features.patches.dtype
+
+        # 1. samples along the target rays, linear in z-depth
+        z = torch.linspace(src.near, src.far, M, dtype=dtype, device=rays.origins.device)  # [M]
+        dist = z[None, :] / rays.z_scale[:, None].clamp_min(1e-6)  # [R, M]
+        pts = rays.origins[:, None] + rays.directions[:, None] * dist[..., None]  # [R, M, 3]
+
+        # 2. project into every source view and sample patch features and colours
+        proj = cams.project(pts.reshape(1, -1, 3).expand(K, -1, -1))
+        valid = proj.in_image.reshape(K, R, M) if cfg.mask_invalid else torch.ones(K, R, M, dtype=torch.bool,
+                                                                                   device=pts.device)
+        H, W = src.images.shape[1:3]
+        grid = proj.uv / torch.tensor([W, H], dtype=dtype, device=pts.device) * 2 - 1  # align_corners=False
+        grid = grid.reshape(K, 1, R * M, 2).to(dtype)
+        feat = F.grid_sample(features.patches, grid, align_corners=False, padding_mode="zeros")
+        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid, align_corners=False, padding_mode="border")
+        feat = feat.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
+        rgb = rgb.reshape(K, 3, R, M).permute(2, 0, 3, 1)  # [R, K, M, 3]
+        valid = valid.permute(1, 0, 2)  # [R, K, M]
+
+        # 3. canonical frame per target ray; source rays through each point, points, relative poses
+        T = canonical_transform(rays.origins, rays.directions, rays.up)  # [R, 4, 4]
+        Rc, tc = T[:, :3, :3], T[:, :3, 3]  # [R, 3, 3], [R, 3]
+        centres = cams.centers  # [K, 3]
+        src_d = F.normalize(pts[:, None] - centres[None, :, None], dim=-1)  # [R, K, M, 3]
+        src_o = centres[None, :, None].expand_as(src_d)
+        if cfg.canonical_rays:
+            src_o_c = torch.einsum("rij,rkmj->rkmi", Rc, src_o) + tc[:, None, None]
+            src_d_c = torch.einsum("rij,rkmj->rkmi", Rc, src_d)
+            tgt_o, tgt_d = torch.zeros_like(rays.origins), torch.zeros_like(rays.directions)
+            tgt_d[:, 2] = 1
+        else:
+            src_o_c, src_d_c, tgt_o, tgt_d = src_o, src_d, rays.origins, rays.directions
+        if cfg.canonical_coords:
+            pts_c = torch.zeros_like(pts)
+            pts_c[..., 2] = dist  # the target ray is the z axis
+            rel_R = torch.einsum("rij,kjl->rkil", Rc, cams.R)  # [R, K, 3, 3]
+            rel_t = torch.einsum("rij,kj->rki", Rc, centres) + tc[:, None]  # [R, K, 3]
+        else:
+            pts_c = pts
+            rel_R = cams.R[None].expand(R, -1, -1, -1)
+            rel_t = centres[None].expand(R, -1, -1)
+        rel = torch.cat([rel_R.flatten(-2), rel_t], -1)  # [R, K, 12]
+
+        # 4. tokens
+        ray_code = self._ray_code(src_o_c, src_d_c, src.near, src.far)  # [R, K, M, Dr]
+        keys = torch.cat([
+            ray_code, fourier(pts_c, cfg.point_freqs)[:, None].expand(-1, K, -1, -1),
+            feat, rgb, rel[:, :, None].expand(-1, -1, M, -1),
+        ], -1)
+        keys = self.key_proj(keys.to(dtype))  # [R, K, M, D]
+        q_code = self._ray_code(tgt_o, tgt_d, src.near, src.far)  # [R, Dr]
+        query = self.query_proj(q_code)[:, None, None].expand(-1, K, 1, -1)  # [R, K, 1, D]
+        x = torch.cat([query, keys], 2)  # [R, K, M+1, D]
+        pad = torch.cat([torch.zeros_like(valid[..., :1]), ~valid], 2)  # [R, K, M+1] True = ignore
+        D = cfg.dim
+
+        # stage 1: across views at each depth
+        x = x.transpose(1, 2).reshape(R * (M + 1), K, D)
+        x = _run(self.visual, x, pad.transpose(1, 2).reshape(R * (M + 1), K))
+        x = x.reshape(R, M + 1, K, D).transpose(1, 2)  # [R, K, M+1, D]
+        # stage 2: along each epipolar line (query + M points), per view
+        x = _run(self.epipolar, x.reshape(R * K, M + 1, D), pad.reshape(R * K, M + 1)).reshape(R, K, M + 1, D)
+        q_k, h = x[:, :, :1], x[:, :, 1:]  # [R, K, 1, D], [R, K, M, D]
+        a_logit = self.alpha_score(torch.cat([q_k.expand_as(h), h], -1))[..., 0]  # [R, K, M]
+        alpha = _masked_softmax(a_logit, valid, dim=-1)
+        f = (alpha[..., None] * h).sum(2)  # [R, K, D]
+        # stage 3: across views with the query
+        view_ok = valid.any(-1)  # [R, K]
+        y = torch.cat([self.query_proj2(q_code)[:, None], self.view_proj(f)], 1)  # [R, 1+K, D]
+        y = _run(self.view, y, torch.cat([torch.zeros_like(view_ok[:, :1]), ~view_ok], 1))
+        q_s, g = y[:, :1], y[:, 1:]
+        beta = _masked_softmax(self.beta_score(torch.cat([q_s.expand_as(g), g], -1))[..., 0], view_ok, dim=-1)  # [R, K]
+
+        rgb_feat = torch.sigmoid(self.rgb_head((beta[..., None] * g).sum(1)))  # [R, 3]
+        rgb_aux = (beta[..., None] * (alpha[..., None] * rgb).sum(2)).sum(1)  # [R, 3]
+        depth = (beta * (alpha * z).sum(-1)).sum(-1)  # [R] expected z-depth
+        main, aux = (rgb_feat, rgb_aux) if cfg.output == "features" else (rgb_aux, rgb_feat)
+        return {"rgb": main, "rgb_aux": aux, "depth": depth, "alpha": alpha, "blend": beta,
+                "valid": view_ok.any(-1)}
+
+
+def _masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:
+    """Softmax over entries where ``mask``; all-masked rows give zeros."""
+    logits = logits.masked_fill(~mask, -math.inf)
+    out = torch.softmax(logits, dim=dim)
+    return torch.nan_to_num(out, nan=0.0)
