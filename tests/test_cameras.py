@@ -9,7 +9,15 @@ from omnirecon.cameras import (
 )
 from omnirecon.errors import InputError
 
-torch.set_default_dtype(torch.float64)
+
+
+@pytest.fixture(autouse=True)
+def float64_default():
+    """These tests compare to 1e-9: run them in float64 without leaking the setting."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 def random_rotation(g):

@@ -27,9 +27,11 @@ class Sources:
     """Near z-depth bound of the scene."""
     far: float
     """Far z-depth bound of the scene."""
+    rig: str = "unknown"
+    """``"forward"`` (forward-facing: models may sample in inverse depth), ``"object"`` or ``"unknown"``."""
 
     def to(self, device) -> Sources:
-        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far)
+        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig)
 
 
 @dataclass

@@ -1,0 +1,237 @@
+"""IBRNet (Wang et al., CVPR 2021), the baseline both seed papers beat.
+
+Faithful to ``shared/docs/gpnr_ibrnet.md`` Part B: a residual U-Net gives per-view features;
+each sample along a target ray gathers bilinearly sampled features and raw colours from every
+source view plus the ``ray_diff`` direction code; mean/variance pooling with anti-alias weights,
+two-step visibility, a density feature, a one-layer ray transformer over the samples, density
+``sigma`` and colour as a softmax blend of the *source colours*; ``alpha = 1 - exp(-sigma)``
+(no interval, as the reference). Coarse + fine passes (importance sampling from the coarse
+weights). Departures: sampling at exact pixel centres (``align_corners=False`` with our +0.5
+convention); the ray transformer masks *keys* of samples no view sees (the reference masks
+query rows, see pitfall 13); the sample-index position code is computed for any sample count.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.render.volume import alpha_from_density, composite, sample_along_rays, sample_pdf, weights_from_alpha
+
+
+@dataclass
+class IBRNetConfig:
+    """IBRNet hyper-parameters."""
+
+    num_views: int = 10
+    """Source views used per target."""
+    coarse_samples: int = 64
+    """Samples per ray of the coarse pass."""
+    fine_samples: int = 64
+    """Extra importance samples of the fine pass (0 disables the fine pass)."""
+    channels: tuple[int, int, int] = (64, 128, 256)
+    """Encoder widths of the three residual stages."""
+    blocks: tuple[int, int, int] = (3, 4, 6)
+    """Residual blocks per stage (ResNet34 layers 1-3)."""
+    stem_stride: int = 2
+    """Stride of the 7x7 stem: 2 gives features at 1/4 resolution (paper), 1 at 1/2."""
+    feature_dim: int = 32
+    """Feature channels per pass (the U-Net outputs twice this: coarse + fine halves)."""
+
+
+PRESETS = {
+    "ibrnet-paper": IBRNetConfig(),
+    "ibrnet-tiny": IBRNetConfig(num_views=5, coarse_samples=32, fine_samples=16, channels=(16, 32, 64),
+                                blocks=(1, 1, 1), stem_stride=1, feature_dim=16),
+}
+
+
+# ---------------------------------------------------------------------- feature network
+class _Block(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride, 1, padding_mode="reflect", bias=False)
+        self.conv2 = nn.Conv2d(cout, cout, 3, 1, 1, padding_mode="reflect", bias=False)
+        self.n1, self.n2 = nn.InstanceNorm2d(cout, affine=True), nn.InstanceNorm2d(cout, affine=True)
+        self.skip = None if stride == 1 and cin == cout else nn.Sequential(
+            nn.Conv2d(cin, cout, 1, stride, bias=False), nn.InstanceNorm2d(cout, affine=True))
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = self.n2(self.conv2(F.relu(self.n1(self.conv1(x)))))
+        return F.relu(y + (x if self.skip is None else self.skip(x)))
+
+
+def _up_conv(cin: int, cout: int) -> nn.Module:
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, 1, 1, padding_mode="reflect"), nn.InstanceNorm2d(cout, affine=True),
+                         nn.ELU())
+
+
+class ResUNet(nn.Module):
+    """Residual encoder (stem + 3 stages) and a 2-step decoder back to the stage-1 resolution."""
+
+    def __init__(self, cfg: IBRNetConfig):
+        super().__init__()
+        c1, c2, c3 = cfg.channels
+        self.stem = nn.Sequential(nn.Conv2d(3, c1, 7, cfg.stem_stride, 3, padding_mode="reflect", bias=False),
+                                  nn.InstanceNorm2d(c1, affine=True), nn.ReLU())
+
+        def stage(cin, cout, n):
+            return nn.Sequential(_Block(cin, cout, 2), *[_Block(cout, cout, 1) for _ in range(n - 1)])
+
+        self.layer1, self.layer2, self.layer3 = stage(c1, c1, cfg.blocks[0]), stage(c1, c2, cfg.blocks[1]), \
+            stage(c2, c3, cfg.blocks[2])
+        self.up3, self.fuse2 = _up_conv(c3, c2), _up_conv(2 * c2, c2)
+        self.up2, self.fuse1 = _up_conv(c2, c1), _up_conv(2 * c1, c1)
+        self.out = nn.Conv2d(c1, 2 * cfg.feature_dim, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x1 = self.layer1(self.stem(x))
+        x2 = self.layer2(x1)
+        x3 = self.layer3(x2)
+        y = self.up3(F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False))
+        y = self.fuse2(torch.cat([y, x2], 1))
+        y = self.up2(F.interpolate(y, size=x1.shape[-2:], mode="bilinear", align_corners=False))
+        y = self.fuse1(torch.cat([y, x1], 1))
+        return self.out(y)
+
+
+# ---------------------------------------------------------------------- per-sample aggregation
+def _mlp(*dims: int) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(dims[:-1], dims[1:]):
+        layers += [nn.Linear(a, b), nn.ELU()]
+    return nn.Sequential(*layers[:-1])
+
+
+def _weighted_stats(x: Tensor, w: Tensor) -> Tensor:
+    """Weighted mean and variance over views: ``x # [..., V, C]``, ``w # [..., V, 1]`` -> ``# [..., 1, 2C]``."""
+    mean = (x * w).sum(-2, keepdim=True)
+    var = (w * (x - mean) ** 2).sum(-2, keepdim=True)
+    return torch.cat([mean, var], -1)
+
+
+def sample_index_code(num: int, dim: int, device=None) -> Tensor:
+    """Sinusoidal position code of sample indices ``0..num-1``. ``# [num, dim]``"""
+    pos = torch.arange(num, dtype=torch.float32, device=device)[:, None]
+    div = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32, device=device) * (-math.log(10000.0) / dim))
+    code = torch.zeros(num, dim, device=device)
+    code[:, 0::2], code[:, 1::2] = torch.sin(pos * div), torch.cos(pos * div)
+    return code
+
+
+class Aggregator(nn.Module):
+    """The "IBRNet MLP": multi-view features of each sample -> density and colour blend weights."""
+
+    def __init__(self, feature_dim: int):
+        super().__init__()
+        c = feature_dim + 3
+        self.dir_mlp = nn.Sequential(nn.Linear(4, 16), nn.ELU(), nn.Linear(16, c), nn.ELU())
+        self.sharpness = nn.Parameter(torch.tensor(0.2))
+        self.base = nn.Sequential(_mlp(3 * c, 64, 32), nn.ELU())
+        self.vis = _mlp(32, 32, 33)
+        self.vis2 = _mlp(32, 32, 1)
+        self.density_feat = nn.Sequential(_mlp(65, 64, 16), nn.ELU())
+        self.attn = nn.MultiheadAttention(16, 4, bias=False, batch_first=True)
+        self.attn_norm = nn.LayerNorm(16)
+        self.sigma = nn.Sequential(nn.Linear(16, 16), nn.ELU(), nn.Linear(16, 1), nn.ReLU())
+        self.rgb = _mlp(37, 16, 8, 1)
+
+    def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+        """``rgb_feat # [R, S, V, 3+C]``, ``ray_diff # [R, S, V, 4]``, ``mask # [R, S, V]`` ->
+        ``sigma # [R, S]`` and view blend weights ``# [R, S, V]``."""
+        m = mask[..., None].to(rgb_feat.dtype)  # [R, S, V, 1]
+        f = rgb_feat + self.dir_mlp(ray_diff)
+        e = torch.exp(self.sharpness.abs() * (ray_diff[..., 3:] - 1))  # [R, S, V, 1]
+        e_min = torch.where(m > 0, e, torch.full_like(e, math.inf)).amin(-2, keepdim=True)
+        w = (e - torch.where(torch.isinf(e_min), torch.zeros_like(e_min), e_min)) * m
+        w = w / (w.sum(-2, keepdim=True) + 1e-8)
+        stats = _weighted_stats(f, w)  # [R, S, 1, 2C]
+        x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
+        rv = self.vis(x * w)
+        r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
+        x = x + r
+        v = torch.sigmoid(self.vis2(x * v)) * m  # [R, S, V, 1]
+        vw = v / (v.sum(-2, keepdim=True) + 1e-8)
+        dens = torch.cat([_weighted_stats(x, vw)[..., 0, :], v.mean(-2)], -1)  # [R, S, 65]
+        h = self.density_feat(dens)  # [R, S, 16]
+        h = h + sample_index_code(h.shape[1], 16, h.device).to(h.dtype)
+        seen = mask.any(-1)  # [R, S]
+        pad = ~seen & ~(~seen).all(-1, keepdim=True)
+        a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
+        h = self.attn_norm(h + a)
+        sigma = self.sigma(h)[..., 0] * seen  # [R, S]
+        logit = self.rgb(torch.cat([x, v, ray_diff], -1))[..., 0].masked_fill(~mask, -1e9)  # [R, S, V]
+        return sigma, torch.softmax(logit, -1)
+
+
+# ---------------------------------------------------------------------- the model
+@dataclass
+class IBRNetFeatures:
+    sources: Sources
+    maps: Tensor
+    """U-Net feature maps, coarse then fine halves. ``# [V, 2C, H', W']``"""
+
+
+class IBRNet(GeneralizableModel):
+    def __init__(self, cfg: IBRNetConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.unet = ResUNet(cfg)
+        self.coarse = Aggregator(cfg.feature_dim)
+        self.fine = Aggregator(cfg.feature_dim) if cfg.fine_samples > 0 else None
+
+    def encode(self, sources: Sources) -> IBRNetFeatures:
+        return IBRNetFeatures(sources, self.unet(sources.images.permute(0, 3, 1, 2)))
+
+    def _gather(self, feats: IBRNetFeatures, rays: Rays, z: Tensor, half: int):
+        """Per-sample inputs at z-depths ``z # [R, S]``: rgb+features, ray_diff, valid mask."""
+        src = feats.sources
+        cams = src.cameras
+        V, (R, S) = len(cams), z.shape
+        d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)  # z = 1 directions
+        pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
+        proj = cams.project(pts.reshape(1, -1, 3).expand(V, -1, -1))
+        H, W = src.images.shape[1:3]
+        grid = (proj.uv / torch.tensor([W, H], dtype=pts.dtype, device=pts.device) * 2 - 1).reshape(V, 1, R * S, 2)
+        C = self.cfg.feature_dim
+        maps = feats.maps[:, half * C:(half + 1) * C]
+        feat = F.grid_sample(maps, grid, align_corners=False).reshape(V, C, R, S)
+        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid, align_corners=False, padding_mode="border")
+        rgb_feat = torch.cat([rgb.reshape(V, 3, R, S), feat], 1).permute(2, 3, 0, 1)  # [R, S, V, 3+C]
+        a = F.normalize(rays.origins[:, None, None] - pts[:, :, None], dim=-1)  # to target  [R, S, 1, 3]
+        b = F.normalize(cams.centers[None, None] - pts[:, :, None], dim=-1)  # to sources [R, S, V, 3]
+        ray_diff = torch.cat([F.normalize(a - b, dim=-1), (a * b).sum(-1, keepdim=True)], -1)
+        mask = proj.in_image.reshape(V, R, S).permute(1, 2, 0)  # [R, S, V]
+        return rgb_feat, ray_diff, mask
+
+    def _pass(self, net: Aggregator, feats, rays, z, half):
+        rgb_feat, ray_diff, mask = self._gather(feats, rays, z, half)
+        sigma, blend = net(rgb_feat, ray_diff, mask)
+        w, _ = weights_from_alpha(alpha_from_density(sigma))
+        sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]
+        enough = (mask.sum(-1) >= 2).sum(-1) > min(8, z.shape[1] // 4)  # reference: > 8 samples seen twice
+        return {"rgb": composite(w, sample_rgb), "depth": (w * z).sum(-1), "weights": w, "z": z,
+                "valid": enough, "acc": w.sum(-1)}
+
+    def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False) -> dict[str, Tensor]:
+        src = features.sources
+        R = len(rays)
+        near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
+        far = torch.full_like(near, src.far)
+        z = sample_along_rays(near, far, self.cfg.coarse_samples, inverse_depth=src.rig == "forward", jitter=jitter)
+        coarse = self._pass(self.coarse, features, rays, z, 0)
+        out = {f"{k}_coarse": v for k, v in coarse.items()}
+        if self.fine is None:
+            return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
+        mid = 0.5 * (z[:, 1:] + z[:, :-1])
+        z_imp = sample_pdf(mid, coarse["weights"][:, 1:-1].detach(), self.cfg.fine_samples, deterministic=not jitter)
+        z_all = torch.cat([z, z_imp.detach()], -1).sort(-1).values
+        fine = self._pass(self.fine, features, rays, z_all, 1)
+        out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
+        out["valid"] = fine["valid"] & coarse["valid"]
+        return out
