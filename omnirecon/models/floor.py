@@ -1,0 +1,67 @@
+"""The non-learned floor every learned model must beat: plane-sweep photo-consistency.
+
+For each target ray, ``num_depths`` candidate z-depths are projected into every source view; the
+depth whose reprojected source colours agree best (lowest colour variance over the views that see
+it, needing at least ``min_views``) wins, and the colour is the mean of those source colours.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.render.volume import sample_along_rays
+
+
+@dataclass
+class PlaneSweepConfig:
+    num_views: int = 5
+    """Source views used per target."""
+    num_depths: int = 64
+    """Depth candidates per ray."""
+    min_views: int = 2
+    """A candidate needs this many views that see it."""
+
+
+PRESETS = {"floor": PlaneSweepConfig()}
+
+
+@dataclass
+class PlaneSweepFeatures:
+    sources: Sources
+
+
+class PlaneSweep(GeneralizableModel):
+    def __init__(self, cfg: PlaneSweepConfig):
+        super().__init__()
+        self.cfg = cfg
+
+    def encode(self, sources: Sources) -> PlaneSweepFeatures:
+        return PlaneSweepFeatures(sources)
+
+    def render_rays(self, features: PlaneSweepFeatures, rays: Rays) -> dict[str, Tensor]:
+        src = features.sources
+        cams = src.cameras
+        V, R, S = len(cams), len(rays), self.cfg.num_depths
+        near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
+        z = sample_along_rays(near, torch.full_like(near, src.far), S, inverse_depth=src.rig == "forward")  # [R, S]
+        d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)
+        pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
+        proj = cams.project(pts.reshape(1, -1, 3).expand(V, -1, -1))
+        H, W = src.images.shape[1:3]
+        grid = (proj.uv / torch.tensor([W, H], dtype=pts.dtype, device=pts.device) * 2 - 1).reshape(V, 1, R * S, 2)
+        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid.to(src.images.dtype), align_corners=False)
+        rgb = rgb.reshape(V, 3, R, S).permute(2, 3, 0, 1)  # [R, S, V, 3]
+        m = proj.in_image.reshape(V, R, S).permute(1, 2, 0)[..., None].to(rgb.dtype)  # [R, S, V, 1]
+        count = m.sum(2)  # [R, S, 1]
+        mean = (rgb * m).sum(2) / count.clamp_min(1)  # [R, S, 3]
+        var = (((rgb - mean[:, :, None]) ** 2) * m).sum(2).sum(-1) / count[..., 0].clamp_min(1)  # [R, S]
+        var = torch.where(count[..., 0] >= self.cfg.min_views, var, torch.full_like(var, float("inf")))
+        best = var.argmin(-1)  # [R]
+        ok = torch.isfinite(var.gather(1, best[:, None]))[:, 0]
+        colour = mean.gather(1, best[:, None, None].expand(-1, 1, 3))[:, 0]
+        return {"rgb": colour, "depth": z.gather(1, best[:, None])[:, 0], "valid": ok}
