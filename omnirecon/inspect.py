@@ -2,7 +2,7 @@
 
 Consistency scores (all computed from the data, nothing assumed):
 
-* ``epipolar_px`` — every scene: ORB features matched between neighbouring views; median distance
+* ``epipolar_px`` — every scene: SIFT features matched between neighbouring views; median distance
   (pixels) of each match from the epipolar line the poses predict (symmetric). A few pixels or less
   means poses and intrinsics agree with the images; mirrored or mis-scaled poses give tens.
 * ``depth_reproj_px`` — scenes with depth: pixels of view A lifted with A's depth, projected into a
@@ -72,7 +72,8 @@ def run_inspect(cfg: InspectConfig) -> dict:
 
     g = torch.Generator().manual_seed(cfg.seed)
     pairs = neighbour_pairs(scene, cfg.num_pairs)
-    scores: dict[str, float | None] = {"epipolar_px": epipolar_score(scene, pairs)}
+    epi, matches = epipolar_score(scene, pairs)
+    scores: dict[str, float | int | None] = {"epipolar_px": epi, "epipolar_matches": matches}
     if scene.depths is not None:
         scores["depth_reproj_px"] = depth_reprojection_score(scene, pairs, g)
     if scene.masks is not None:
@@ -127,33 +128,35 @@ def _line_distance(F: Tensor, xa: Tensor, xb: Tensor) -> Tensor:
     return 0.5 * (num / lb[:, :2].norm(dim=1).clamp_min(1e-12) + num / la[:, :2].norm(dim=1).clamp_min(1e-12))
 
 
-def epipolar_score(scene: Scene, pairs: list[tuple[int, int]]) -> float | None:
-    """Median symmetric epipolar distance (px) of cross-checked ORB matches over ``pairs``."""
+def epipolar_score(scene: Scene, pairs: list[tuple[int, int]], min_matches: int = 8) -> tuple[float | None, int]:
+    """Median symmetric epipolar distance (px) of cross-checked SIFT matches over ``pairs``, and the
+    number of matches (``None`` when fewer than ``min_matches``). Images under 300 px are upsampled
+    2x for detection; distances are in the scene's own pixels."""
     from skimage.color import rgb2gray
-    from skimage.feature import ORB, match_descriptors
+    from skimage.feature import SIFT, match_descriptors
+    from skimage.transform import rescale
 
+    up = 2 if max(scene.width, scene.height) < 300 else 1
+    cams = scene.cameras.to(dtype=torch.float64)
     dists = []
     for a, b in pairs:
         feats = []
         for i in (a, b):
-            orb = ORB(n_keypoints=400, fast_threshold=0.05)
+            gray = rgb2gray(scene.images[i].numpy())
+            sift = SIFT()
             try:
-                orb.detect_and_extract(rgb2gray(scene.images[i].numpy()))
-            except RuntimeError:  # too few keypoints (e.g. flat image)
-                feats = []
+                sift.detect_and_extract(rescale(gray, up, order=1) if up > 1 else gray)
+            except RuntimeError:  # no keypoints (e.g. a flat image)
                 break
-            # skimage gives (row, col) of pixel indices; our pixel centres are at +0.5
-            feats.append((torch.from_numpy(orb.keypoints[:, ::-1].copy()) + 0.5, orb.descriptors))
+            # skimage gives (row, col) of pixel indices at the detection scale; ours are centres at +0.5
+            feats.append(((torch.from_numpy(sift.keypoints[:, ::-1].copy()).double() + 0.5) / up, sift.descriptors))
         if len(feats) < 2:
             continue
         m = match_descriptors(feats[0][1], feats[1][1], cross_check=True, max_ratio=0.8)
-        if len(m) < 8:
-            continue
-        F = fundamental(scene.cameras.to(dtype=torch.float64), a, b)
-        dists.append(_line_distance(F, feats[0][0][m[:, 0]].double(), feats[1][0][m[:, 1]].double()))
-    if not dists:
-        return None
-    return float(torch.cat(dists).median())
+        if len(m):
+            dists.append(_line_distance(fundamental(cams, a, b), feats[0][0][m[:, 0]], feats[1][0][m[:, 1]]))
+    d = torch.cat(dists) if dists else torch.zeros(0)
+    return (float(d.median()) if len(d) >= min_matches else None), len(d)
 
 
 def _sample_nearest(image: Tensor, uv: Tensor) -> Tensor:
@@ -190,10 +193,19 @@ def depth_reprojection_score(scene: Scene, pairs, g: torch.Generator, samples: i
 
 
 def visual_hull_score(scene: Scene, g: torch.Generator, views: int = 8, rays: int = 400,
-                      samples: int = 192) -> float | None:
-    """Fraction of foreground rays of up to ``views`` views that meet the other views' visual hull."""
+                      samples: int = 384, tolerance_px: int = 1) -> float | None:
+    """Fraction of foreground rays of up to ``views`` views that meet the other views' visual hull.
+
+    Samples ``samples`` points per ray between near and far; a point is carved when it projects
+    inside another view's image but outside its mask dilated by ``tolerance_px`` (silhouettes are
+    uncertain by about a pixel, and a grazing ray's sample rarely falls exactly on the surface).
+    """
+    import torch.nn.functional as F
+
     cams = scene.cameras
     n = len(scene)
+    k = 2 * tolerance_px + 1
+    masks = F.max_pool2d(scene.masks[:, None].float(), k, stride=1, padding=tolerance_px)[:, 0] > 0  # [N, H, W]
     hits, total = 0, 0
     for i in np.linspace(0, n - 1, min(views, n)).round().astype(int).tolist():
         rows, cols = torch.nonzero(scene.masks[i], as_tuple=True)
@@ -203,13 +215,13 @@ def visual_hull_score(scene: Scene, g: torch.Generator, views: int = 8, rays: in
         uv = torch.stack([cols[pick], rows[pick]], 1).to(cams.c2w) + 0.5
         o, d = cams[[i]].rays(uv[None], normalize=False)  # z-depth parameterisation
         z = torch.linspace(float(scene.near[i]), float(scene.far[i]), samples, dtype=d.dtype)
-        pts = (o[0, :, None] + d[0, :, None] * z[:, None]).reshape(-1, 3)  # [R*S, 3]
-        inside = torch.ones(pts.shape[0], dtype=torch.bool)
-        others = [j for j in range(n) if j != i]
-        proj = cams[others].project(pts)
-        for k, j in enumerate(others):
-            m = _sample_nearest(scene.masks[j], proj.uv[k])
-            inside &= ~proj.in_image[k] | m  # carved only where seen and outside the mask
+        pts = (o[0, :, None] + d[0, :, None] * z[:, None]).reshape(-1, 3)  # [P*S, 3]
+        others = torch.tensor([j for j in range(n) if j != i])
+        proj = cams[others].project(pts)  # [N-1, P*S]
+        col = proj.uv[..., 0].floor().long().clamp(0, scene.width - 1)
+        row = proj.uv[..., 1].floor().long().clamp(0, scene.height - 1)
+        seen_in_mask = masks[others[:, None], row, col]  # [N-1, P*S]
+        inside = (~proj.in_image | seen_in_mask).all(0)  # [P*S]
         hits += int(inside.reshape(len(pick), samples).any(1).sum())
         total += len(pick)
     return hits / total if total else None
