@@ -49,7 +49,8 @@ def main(argv: list[str] | None = None) -> dict:
     result = {
         "provenance": provenance(seed=args.seed),
         "config": {"scenes": args.scenes, "views": args.views, "resolution": args.resolution, "rig": args.rig,
-                   "workers": timing["workers"], "antialias": cfg.antialias, "detail": cfg.detail},
+                   "workers": timing["workers"], "torch_threads_per_worker": 1, "antialias": cfg.antialias,
+                   "detail": cfg.detail},
         "seconds": round(timing["seconds"], 2),
         "ms_per_view": round(1000 * timing["seconds"] / views, 2),
         "ms_per_view_per_worker": round(1000 * timing["seconds"] * timing["workers"] / views, 2),

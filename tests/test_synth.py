@@ -182,6 +182,7 @@ def test_normals_match_mesh_and_depth_gradient(scenes, rig):
     # the file holds 0,0,0 exactly where there is no surface
     raw = np.asarray(Image.open(scenes[rig] / f"{scene.names[view][:-4]}_normal.png"))
     assert np.array_equal(raw.any(-1), scene.depths[view].numpy() > 0)
+    assert torch.equal(normals.norm(dim=-1) > 0, scene.depths[view] > 0)
     assert (normals.norm(dim=-1)[scene.depths[view] > 0] - 1).abs().max() < 1e-5
     # normals face the camera
     uv = scene.cameras.pixel_centers()[None]
