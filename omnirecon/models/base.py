@@ -33,6 +33,13 @@ class Sources:
     def to(self, device) -> Sources:
         return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig)
 
+    @staticmethod
+    def from_scene(scene, indices) -> Sources:
+        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far span the scene."""
+        idx = torch.as_tensor(list(indices), dtype=torch.long)
+        return Sources(scene.images[idx], scene.cameras[idx].to(dtype=scene.images.dtype),
+                       float(scene.near.min()), float(scene.far.max()), scene.rig)
+
 
 @dataclass
 class Rays:

@@ -1,0 +1,93 @@
+"""Checkpoints: a folder with safetensors weights, JSON metadata and optimizer state.
+
+Layout of ``DIR`` (each file written to a temporary name, then renamed; ``meta.json`` last, so a
+folder with ``meta.json`` is complete)::
+
+    model.safetensors        weights
+    optimizer.safetensors    optimizer tensors (training checkpoints only)
+    meta.json                {"preset", "model_config", "step", "train_config", "optimizer": {param_groups,
+                              state keys}, "extra": {...}, "provenance": {...}}
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+
+from omnirecon.data.io import atomic_path, read_json, write_json
+from omnirecon.errors import InputError
+
+
+def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: torch.optim.Optimizer | None = None,
+                    train_config: dict | None = None, extra: dict | None = None, provenance: dict | None = None) -> None:
+    from omnirecon.models.registry import model_config_dict
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    module = model.module if hasattr(model, "module") else model  # unwrap DDP
+    state = {k: v.detach().contiguous().cpu() for k, v in module.state_dict().items()}
+    with atomic_path(folder / "model.safetensors") as tmp:
+        save_file(state, str(tmp))
+    opt_meta = None
+    if optimizer is not None:
+        sd = optimizer.state_dict()
+        tensors, keys = {}, {}
+        for pid, st in sd["state"].items():
+            for name, value in st.items():
+                t = value if torch.is_tensor(value) else torch.tensor(value)
+                tensors[f"{pid}.{name}"] = t.detach().contiguous().cpu()
+                keys.setdefault(str(pid), []).append(name)
+        with atomic_path(folder / "optimizer.safetensors") as tmp:
+            save_file(tensors, str(tmp))
+        opt_meta = {"param_groups": sd["param_groups"], "state_keys": keys}
+    write_json(folder / "meta.json", {
+        "preset": preset, "model_config": model_config_dict(module), "step": step,
+        "train_config": train_config or {}, "optimizer": opt_meta, "extra": extra or {},
+        "provenance": provenance or {},
+    })
+
+
+def read_meta(folder: Path) -> dict:
+    folder = Path(folder)
+    if not (folder / "meta.json").is_file():
+        raise InputError("not a checkpoint folder (no meta.json)", folder,
+                         "pass a folder written by `omnirecon train` (e.g. outputs/train/run/checkpoints/latest)")
+    return read_json(folder / "meta.json")
+
+
+def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
+    """Rebuild the model from ``folder``. Returns ``(model, meta)``."""
+    from omnirecon.models.registry import build_model
+
+    folder = Path(folder)
+    meta = read_meta(folder)
+    model = build_model(meta["preset"], meta["model_config"])
+    try:
+        state = load_file(str(folder / "model.safetensors"), device=str(device))
+    except (SafetensorError, OSError, FileNotFoundError) as e:
+        raise InputError(f"cannot read weights ({e})", folder / "model.safetensors", "the checkpoint is corrupt") from e
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise InputError(f"weights do not match {meta['preset']} (missing {missing[:3]}, unexpected {unexpected[:3]})",
+                         folder / "model.safetensors", "use the code version that wrote the checkpoint")
+    return model.to(device), meta
+
+
+def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:
+    """Restore optimizer state saved by :func:`save_checkpoint` into ``optimizer``."""
+    meta = read_meta(folder)["optimizer"]
+    if meta is None:
+        raise InputError("checkpoint has no optimizer state", folder, "resume from a training checkpoint")
+    tensors = load_file(str(Path(folder) / "optimizer.safetensors"))
+    state = {}
+    for pid, names in meta["state_keys"].items():
+        state[int(pid)] = {n: tensors[f"{pid}.{n}"] for n in names}
+    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def dumps(obj) -> str:
+    return json.dumps(obj, indent=1, default=str)
