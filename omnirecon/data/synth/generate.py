@@ -82,7 +82,7 @@ class SynthOptions:
     antialias: int = 2
     """RGB samples per pixel side (1 = off); depth, normals and labels use the pixel centre only."""
     detail: int = 1
-    """Tessellation of curved primitives: 0 coarse, 1 (sphere facets of about 3.5 degrees), 2 fine."""
+    """Tessellation of curved primitives: 0 coarse, 1 (3 degrees between sphere facets), 2 fine."""
 
     def check(self) -> None:
         """Raise :class:`InputError` for out-of-range options."""
