@@ -27,7 +27,7 @@ test: setup
 	$(BIN)/python -m pytest -q -ra tests
 
 bench: setup
-	$(BIN)/python bench/synth_speed.py
+	$(BIN)/python bench/run_all.py
 
 clean:
 	rm -rf $(VENV) outputs

@@ -10,13 +10,14 @@ provenance header (commit, versions, CPU, seed) to ``--out`` as JSON.
 from __future__ import annotations
 
 import argparse
-import json
+import os
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
 from omnirecon.data.synth.cli import SynthConfig, run_batch
+from omnirecon.data.io import write_json
 from omnirecon.provenance import provenance
 
 TARGET_SECONDS = 600.0
@@ -31,7 +32,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--workers", type=int, default=None, help="default: all CPU cores")
     parser.add_argument("--rig", default="object", choices=["object", "frontal", "forward"])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=Path("outputs/bench/synth_speed.json"))
+    parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "synth_speed.json")
     parser.add_argument("--keep", type=Path, default=None, help="write the scenes here and keep them")
     args = parser.parse_args(argv)
 
@@ -60,8 +61,8 @@ def main(argv: list[str] | None = None) -> dict:
         "megabytes_written": round(size / 2**20, 1),
     }
     result["meets_target"] = result["projected_seconds_200x40"] <= TARGET_SECONDS
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    result["provenance"]["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
+    write_json(args.out, result)
     print(f"{args.scenes} scenes x {args.views} views at {args.resolution}^2 ({args.rig}, {timing['workers']} "
           f"workers): {result['seconds']:.1f} s, {result['ms_per_view']:.1f} ms/view, "
           f"{result['scenes_per_minute']:.1f} scenes/min, {result['megabytes_written']} MB; "

@@ -53,11 +53,12 @@ def provenance(seed: int | None = None, **extra) -> dict:
         "torch_threads": torch.get_num_threads(),
         "seed": seed,
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "loadavg_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None,
         **extra,
     }
 
 
 def markdown_header(prov: dict) -> str:
     """One line for a Markdown page."""
-    keys = ("commit", "omnirecon", "python", "torch", "numpy", "device", "cpu", "cores", "seed", "date")
+    keys = ("commit", "omnirecon", "python", "torch", "numpy", "device", "cpu", "cores", "seed", "date", "loadavg_1min")
     return "Provenance: " + "; ".join(f"{k} `{prov.get(k)}`" for k in keys if k in prov)
