@@ -69,9 +69,13 @@ def run_inspect(cfg: InspectConfig) -> dict:
         raise InputError(f"scene has {len(scene)} view(s); inspection needs at least 2", cfg.path)
     out = cfg.out or Path("outputs/inspect") / Path(cfg.path).resolve().name
     summary = scene.summary()
+    pairs = neighbour_pairs(scene, cfg.num_pairs)
+    a, b = cfg.pair if cfg.pair is not None else pairs[0]
+    if not (0 <= a < len(scene) and 0 <= b < len(scene)) or a == b:
+        raise InputError(f"--pair {a} {b} is not two different views in 0..{len(scene) - 1}", cfg.path,
+                         "pass two distinct view indices")
 
     g = torch.Generator().manual_seed(cfg.seed)
-    pairs = neighbour_pairs(scene, cfg.num_pairs)
     epi, matches = epipolar_score(scene, pairs)
     scores: dict[str, float | int | None] = {"epipolar_px": epi, "epipolar_matches": matches}
     if scene.depths is not None:
@@ -80,9 +84,6 @@ def run_inspect(cfg: InspectConfig) -> dict:
         scores["hull_fraction"] = visual_hull_score(scene, g)
     summary["consistency"] = scores
 
-    a, b = cfg.pair if cfg.pair is not None else pairs[0]
-    if not (0 <= a < len(scene) and 0 <= b < len(scene)) or a == b:
-        raise InputError(f"--pair {a} {b} is not two different views in 0..{len(scene) - 1}", cfg.path)
     draw_cameras(scene, out / "cameras.png")
     draw_epipolar(scene, a, b, out / "epipolar.png")
     write_json(out / "summary.json", summary)

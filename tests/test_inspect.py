@@ -83,3 +83,13 @@ def test_scores_detect_broken_poses(shared_data):
     bad_hull = visual_hull_score(rotated(1, 8.0), torch.Generator().manual_seed(0))  # 8 degree yaw
     assert good_epi < 1.0 and bad_epi > 3 * good_epi, (good_epi, bad_epi)
     assert good_hull > 0.98 and bad_hull < good_hull - 0.05, (good_hull, bad_hull)
+
+
+@pytest.mark.parametrize("args", [["--downscale", "0"], ["--pair", "0", "0"], ["--no-such-flag"], ["--format", "nerf"]])
+def test_inspect_bad_flags_exit_2(args, tmp_path, shared_data):
+    path = shared_data("llff/fern")
+    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "inspect", str(path), *args, "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, (proc.returncode, proc.stderr[-500:])
+    assert "Traceback" not in proc.stderr
+    assert not list(tmp_path.glob("*.png"))  # nothing half-written
