@@ -15,6 +15,7 @@ from omnirecon.errors import EXIT_BAD_INPUT, InputError
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
     "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
+    "train": ("omnirecon.train:TrainConfig", "Train GPNR or IBRNet on procedural and real scenes (torchrun for DDP)."),
 }
 
 
