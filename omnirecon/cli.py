@@ -15,6 +15,8 @@ from omnirecon.errors import EXIT_BAD_INPUT, InputError
 COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
     "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
+    "eval": ("omnirecon.eval:EvalConfig", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
+    "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
     "train": ("omnirecon.train:TrainConfig", "Train GPNR or IBRNet on procedural and real scenes (torchrun for DDP)."),
 }
 

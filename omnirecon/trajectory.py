@@ -1,0 +1,168 @@
+"""Camera paths for ``omnirecon render``: orbit, LLFF-style spiral and keyframe interpolation.
+
+Every path is built from a scene's cameras and returns OpenCV camera-to-world matrices
+``# [F, 4, 4]`` (rigid, ``det R = +1``), in float64; :func:`path_cameras` adds intrinsics.
+
+* :func:`orbit` circles the scene centre at the mean distance and mean elevation of the cameras
+  (elevation measured from the plane orthogonal to the cameras' mean up direction).
+* :func:`spiral` is the NeRF/LLFF render path: around the mean pose, radii = 90th percentile of
+  the camera offsets in the mean camera's frame, looking at a focus point at the harmonic blend
+  of near and far depths (``1 / (0.25 / (0.9 near) + 0.75 / (5 far))``), two turns.
+* :func:`interpolate` moves through keyframe cameras in order: rotations slerped (quaternions),
+  centres and intrinsics linearly interpolated; frame ``i`` sits at keyframe time
+  ``i (V - 1) / (F - 1)``, so the first and last frames are the first and last keyframes and
+  every keyframe is hit exactly when ``F - 1`` is a multiple of ``V - 1``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omnirecon.cameras import Cameras, closest_point_to_axes, look_at
+
+
+def mean_up(cams: Cameras) -> Tensor:
+    """Unit world direction that the cameras show as up on average (mean of their ``-y`` axes). ``# [3]``"""
+    up = -cams.R[:, :, 1].double().mean(0)
+    return up / up.norm().clamp_min(1e-12)
+
+
+def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float = 360.0) -> Tensor:
+    """``frames`` cameras circling ``center`` (default: the point closest to all optical axes).
+
+    The circle lies at the cameras' mean distance and mean elevation and starts at the azimuth of
+    camera 0. A full turn (360 degrees) leaves out the end point, so the video loops; a partial
+    arc includes both ends. ``# [F, 4, 4]``
+    """
+    center = (closest_point_to_axes(cams) if center is None else center).double()
+    up = mean_up(cams)
+    off = cams.centers.double() - center  # [N, 3]
+    radius = off.norm(dim=-1).mean()
+    unit = off / off.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    elevation = torch.asin((unit @ up).clamp(-1, 1)).mean()
+    e1 = off[0] - (off[0] @ up) * up
+    if e1.norm() < 1e-9:  # camera 0 looks straight down the up axis: any horizontal start
+        e1 = torch.linalg.svd(up[None]).Vh[1]
+    e1 = e1 / e1.norm()
+    e2 = torch.linalg.cross(up, e1)
+    full = abs(arc_degrees - 360.0) < 1e-9
+    phi = torch.linspace(0, math.radians(arc_degrees), frames + 1 if full else frames, dtype=torch.float64)
+    phi = phi[:frames]
+    horiz = torch.cos(phi)[:, None] * e1 + torch.sin(phi)[:, None] * e2  # [F, 3]
+    eye = center + radius * (torch.cos(elevation) * horiz + torch.sin(elevation) * up)
+    return look_at(eye, center.expand_as(eye), up)
+
+
+def mean_pose(cams: Cameras) -> Tensor:
+    """The average camera (NeRF's ``poses_avg``): mean centre, mean forward, mean up. ``# [4, 4]``"""
+    c = cams.centers.double().mean(0)
+    fwd = cams.forward.double().mean(0)
+    return look_at(c[None], (c + fwd / fwd.norm())[None], mean_up(cams))[0]
+
+
+def spiral(cams: Cameras, near: float, far: float, frames: int, rots: float = 2.0, zrate: float = 0.5,
+           percentile: float = 90.0) -> Tensor:
+    """LLFF-style spiral around the mean pose of a forward-facing capture. ``# [F, 4, 4]``
+
+    Args:
+        cams: The scene's cameras.
+        near: Closest scene depth (scene units); the focus depth blends it with ``far``.
+        far: Farthest scene depth.
+        frames: Number of poses.
+        rots: Turns of the spiral.
+        zrate: Forward/backward oscillations per turn.
+        percentile: Percentile of the absolute camera offsets (in the mean camera's frame) used as radii.
+    """
+    avg = mean_pose(cams)
+    R, c = avg[:3, :3], avg[:3, 3]
+    local = (cams.centers.double() - c) @ R  # [N, 3] offsets in the mean camera frame
+    radii = torch.from_numpy(np.percentile(local.abs().numpy(), percentile, axis=0))  # [3]
+    focus = 1.0 / (0.25 / (0.9 * near) + 0.75 / (5.0 * far))
+    theta = torch.linspace(0, 2 * math.pi * rots, frames + 1, dtype=torch.float64)[:frames]
+    # OpenCV frame: x right, y down, z forward (NeRF's GL path [cos, -sin, -sin(z t)] with y, z flipped).
+    p = torch.stack([torch.cos(theta), torch.sin(theta), torch.sin(theta * zrate)], -1) * radii  # [F, 3]
+    eye = c + p @ R.T
+    target = (c + focus * R[:, 2]).expand_as(eye)
+    return look_at(eye, target, -R[:, 1])
+
+
+# ---------------------------------------------------------------------- keyframe interpolation
+def matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Unit quaternions ``(w, x, y, z)`` of rotations ``R # [..., 3, 3]`` (Shepperd's method). ``# [..., 4]``"""
+    m = R.double()
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    diag = torch.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], -1)
+    s = 2 * diag.clamp_min(1e-12).sqrt()  # [..., 4]: 4 * the largest component for each case
+    a, b, c = m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
+    d, e, f = m[..., 0, 1] + m[..., 1, 0], m[..., 0, 2] + m[..., 2, 0], m[..., 1, 2] + m[..., 2, 1]
+    cand = torch.stack([
+        torch.stack([s[..., 0] / 4, a / s[..., 0], b / s[..., 0], c / s[..., 0]], -1),
+        torch.stack([a / s[..., 1], s[..., 1] / 4, d / s[..., 1], e / s[..., 1]], -1),
+        torch.stack([b / s[..., 2], d / s[..., 2], s[..., 2] / 4, f / s[..., 2]], -1),
+        torch.stack([c / s[..., 3], e / s[..., 3], f / s[..., 3], s[..., 3] / 4], -1),
+    ], -2)  # [..., 4 cases, 4]
+    best = diag.argmax(-1)[..., None, None].expand(*diag.shape[:-1], 1, 4)
+    q = cand.gather(-2, best)[..., 0, :]
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def quaternion_to_matrix(q: Tensor) -> Tensor:
+    """Rotation matrices of quaternions ``(w, x, y, z) # [..., 4]``. ``# [..., 3, 3]``"""
+    q = q / q.norm(dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1).reshape(*q.shape[:-1], 3, 3)
+
+
+def slerp(q0: Tensor, q1: Tensor, t: Tensor) -> Tensor:
+    """Shortest-arc spherical interpolation of unit quaternions ``# [..., 4]`` at ``t # [...]``."""
+    dot = (q0 * q1).sum(-1, keepdim=True)
+    q1 = torch.where(dot < 0, -q1, q1)
+    dot = dot.abs().clamp(max=1.0)
+    t = t[..., None]
+    theta = torch.acos(dot)
+    sin = torch.sin(theta)
+    near = sin < 1e-6  # (almost) the same rotation: linear blend, renormalised
+    w0 = torch.where(near, 1 - t, torch.sin((1 - t) * theta) / sin.clamp_min(1e-12))
+    w1 = torch.where(near, t, torch.sin(t * theta) / sin.clamp_min(1e-12))
+    q = w0 * q0 + w1 * q1
+    return q / q.norm(dim=-1, keepdim=True)
+
+
+def keyframe_times(keys: int, frames: int) -> Tensor:
+    """Keyframe time of each frame: ``frames`` evenly spaced values from 0 to ``keys - 1``. ``# [F]``"""
+    return torch.linspace(0, keys - 1, frames, dtype=torch.float64) if frames > 1 else torch.zeros(1, dtype=torch.float64)
+
+
+def interpolate(cams: Cameras, frames: int) -> Cameras:
+    """``frames`` cameras moving through ``cams`` in order (slerp rotations, lerp centres and intrinsics)."""
+    if len(cams) < 2:
+        raise ValueError("interpolation needs at least 2 keyframe cameras")
+    t = keyframe_times(len(cams), frames)
+    seg = t.floor().long().clamp(max=len(cams) - 2)  # [F]
+    u = t - seg  # [F] in [0, 1]
+    q = matrix_to_quaternion(cams.R.double())  # [V, 4]
+    R = quaternion_to_matrix(slerp(q[seg], q[seg + 1], u))  # [F, 3, 3]
+    def lerp(v: Tensor) -> Tensor:  # [V, ...] -> [F, ...]
+        w = u.reshape(-1, *[1] * (v.dim() - 1))
+        return v[seg] * (1 - w) + v[seg + 1] * w
+
+    c2w = torch.eye(4, dtype=torch.float64).repeat(len(t), 1, 1)
+    c2w[:, :3, :3] = R
+    c2w[:, :3, 3] = lerp(cams.centers.double())
+    return Cameras(*(lerp(getattr(cams, k).double()) for k in ("fx", "fy", "cx", "cy")), c2w,
+                   cams.width, cams.height)
+
+
+def path_cameras(c2w: Tensor, like: Cameras) -> Cameras:
+    """Cameras at poses ``c2w # [F, 4, 4]`` with the intrinsics of camera 0 of ``like``."""
+    n = c2w.shape[0]
+    pick = lambda v: v[:1].double().expand(n)  # noqa: E731
+    return Cameras(pick(like.fx), pick(like.fy), pick(like.cx), pick(like.cy), c2w.double(), like.width, like.height)
