@@ -20,9 +20,11 @@ ROOT = HERE.parent
 
 def run_benchmarks(results: Path, tiny: bool) -> None:
     import synth_speed
+    import throughput
 
     args = ["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []
     synth_speed.main([*args, "--out", str(results / "synth_speed.json")])
+    throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")])
 
 
 def _prov(p: dict) -> str:
@@ -52,7 +54,26 @@ def section_synth(r: dict) -> str:
     ])
 
 
-SECTIONS = {"synth_speed.json": section_synth}
+def section_throughput(r: dict) -> str:
+    lines = [
+        "## Throughput (`bench/throughput.py`)",
+        "",
+        f"Device: {r['device']}. A training step = encode the source views + render the ray batch + MSE + "
+        f"backward + AdamW step. Rendering = `render_view` of a full image (paper presets: a batch of rays) "
+        f"with features encoded once. Median of {r['repeats']} timed repeats after a warm-up.",
+        "",
+        "| preset | parameters | source views | train rays / step | train step (s) | train rays/s | "
+        "render rays/s | render FPS |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in r["rows"]:
+        lines.append(f"| {row['preset']} | {row['params']:,} | {row['source_views']} | {row['rays_per_step']} | "
+                     f"{row.get('train_step_s', '–')} | {row.get('train_rays_per_s', '–')} | "
+                     f"{row['render_rays_per_s']} | {row['render_fps_at_resolution']} at {row['resolution']}² |")
+    return "\n".join([*lines, "", _prov(r["provenance"])])
+
+
+SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput}
 
 
 def write_page(results: Path, out: Path) -> str:
