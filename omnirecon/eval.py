@@ -196,7 +196,7 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
 
     parts = spec.split(":")
     rig = parts[2] if len(parts) > 2 else "object"
-    if len(parts) > 3 or rig not in ("object", "frontal", "forward"):
+    if parts[:2] != ["synth", "eval"] or len(parts) > 3 or rig not in ("object", "frontal", "forward"):
         raise InputError(f"bad scene spec {spec!r}", None, "use synth:eval, synth:eval:object, synth:eval:frontal "
                          "or synth:eval:forward")
     if not 1 <= count <= len(EVAL_SEEDS):
@@ -236,9 +236,11 @@ def prepare_scenes(specs, count: int = 10, cache: Path = Path("outputs/cache"), 
             fmt = detect_format(item)
             proto = protocol_for(item, fmt)
             scene, path = load_at_resolution(item, proto.long_side, proto.background, fmt), item
-        name = Path(path).name if path is not None else f"scene{len(out)}"
-        while name in names:
-            name += "_"
+        base = Path(path).name if path is not None else "scene"
+        name, i = base, 1
+        while name in names:  # e.g. the same seed from two synth:eval rigs
+            i += 1
+            name = f"{base}_{i}"
         names.add(name)
         out.append(EvalScene(name, scene, proto, path))
     return out
@@ -333,6 +335,8 @@ def evaluate(
     ks = [int(k) for k in num_views]
     if not ks or min(ks) < 1:
         raise InputError(f"--num-views must be positive integers, got {list(num_views)}", None, "use e.g. 3 10")
+    if chunk < 1:
+        raise InputError(f"--chunk must be at least 1, got {chunk}", None, "use e.g. 4096")
     if max_targets is not None and max_targets < 1:
         raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
     torch.manual_seed(seed)
@@ -413,6 +417,14 @@ def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, t
 
 
 # ---------------------------------------------------------------------- CLI
+def default_name(ckpt: Path | None, model_name: str) -> str:
+    """Output name: ``<run>_<checkpoint>`` for ``.../<run>/checkpoints/<checkpoint>``, else the folder or model name."""
+    if ckpt is None:
+        return model_name
+    ckpt = Path(ckpt).resolve()
+    return f"{ckpt.parent.parent.name}_{ckpt.name}" if ckpt.parent.name == "checkpoints" else ckpt.name
+
+
 @dataclass
 class EvalConfig:
     """Evaluate a checkpoint (or the non-learned plane-sweep floor) on held-out views: PSNR, SSIM,
@@ -448,7 +460,7 @@ class EvalConfig:
     def main(self) -> None:
         device = pick_device(self.device)
         net, info = load_model(self.ckpt, self.model, device)
-        out = self.out or Path("outputs/eval") / (Path(self.ckpt).name if self.ckpt else info["name"])
+        out = self.out or Path("outputs/eval") / default_name(self.ckpt, info["name"])
         if out.exists() and not out.is_dir():
             raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
         result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,

@@ -77,6 +77,8 @@ class RenderConfig:
             raise InputError(f"--frames must be at least 1, got {self.frames}", None, "use e.g. 60")
         if self.num_views < 1:
             raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 10")
+        if self.chunk < 1:
+            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
         if self.fps < 1:
             raise InputError(f"--fps must be at least 1, got {self.fps}", None, "use e.g. 24")
         if not 0 < self.arc <= 360:

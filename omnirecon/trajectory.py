@@ -138,7 +138,9 @@ def slerp(q0: Tensor, q1: Tensor, t: Tensor) -> Tensor:
 
 def keyframe_times(keys: int, frames: int) -> Tensor:
     """Keyframe time of each frame: ``frames`` evenly spaced values from 0 to ``keys - 1``. ``# [F]``"""
-    return torch.linspace(0, keys - 1, frames, dtype=torch.float64) if frames > 1 else torch.zeros(1, dtype=torch.float64)
+    if frames == 1:
+        return torch.zeros(1, dtype=torch.float64)
+    return torch.linspace(0, keys - 1, frames, dtype=torch.float64)
 
 
 def interpolate(cams: Cameras, frames: int) -> Cameras:
