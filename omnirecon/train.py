@@ -56,8 +56,9 @@ class TrainConfig:
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the
     newest), checkpoints/final, metrics.jsonl, config.json, val/step_XXXXXXX.png (GT | render |
-    error) and TensorBoard events when tensorboard is installed. Multi-process: launch with
-    ``torchrun --standalone --nproc_per_node=2 -m omnirecon.cli train ...``.
+    error) and TensorBoard events when tensorboard is installed. Scenes are moved so that their content
+    fits the unit sphere (GPNR's Fourier encodings and IBRNet's sampling depend on the scene scale).
+    Multi-process: ``torchrun --standalone --nproc_per_node=2 -m omnirecon.cli train ...``.
     """
 
     model: str = "gpnr-tiny"
@@ -69,7 +70,7 @@ class TrainConfig:
     """Training sources: synth:RIG (RIG = object, frontal, forward; synth:RIG:N for N scenes,
     synth:RIG:seeds=A,B for named seeds), a scene folder (any format) or a folder of scene folders."""
     data_weights: tuple[float, ...] | None = None
-    """Mixing weight of each --data source (default: equal)."""
+    """Mixing weight of each --data source (None: equal)."""
     synth_scenes: int = 32
     """Procedural scenes per synth:RIG source without a count."""
     synth_views: int = 40
@@ -83,11 +84,11 @@ class TrainConfig:
     steps: int = 1000
     """Optimisation steps (the learning-rate schedule spans them)."""
     rays: int | None = None
-    """Target rays per step and process (default: gpnr 256, ibrnet 512)."""
+    """Target rays per step and process (None: gpnr 256, ibrnet 512)."""
     lr: float | None = None
-    """Peak learning rate (default 5e-4)."""
+    """Peak learning rate (None: 5e-4)."""
     encoder_lr_scale: float | None = None
-    """Learning-rate multiplier of the image encoder (default: ibrnet 2, i.e. 1e-3 for the U-Net; gpnr 1)."""
+    """Learning-rate multiplier of the image encoder (None: ibrnet 2, i.e. 1e-3 for the U-Net; gpnr 1)."""
     warmup: int = 100
     """Linear warm-up steps from 0 to the peak learning rate."""
     schedule: Literal["cosine", "linear", "constant"] = "cosine"
@@ -101,9 +102,9 @@ class TrainConfig:
     aux_weight: float = 1.0
     """Weight of the auxiliary colour loss (GPNR rgb_aux, IBRNet coarse pass)."""
     num_views: int | None = None
-    """Source views K per step (default: the model's num_views)."""
+    """Source views K per step (None: the model's num_views)."""
     pool: int | None = None
-    """Draw the K sources from the target's n nearest training views (default 2K); angle around the
+    """Draw the K sources from the target's n nearest training views (None: 2K); angle around the
     centre for object rigs, camera distance for forward-facing ones."""
     foreground: float = 0.5
     """Fraction of the rays drawn on the foreground mask, for scenes that have masks (procedural ones)."""
@@ -117,7 +118,7 @@ class TrainConfig:
     """Steps between validations, plus one at the end (0: never)."""
     val_scenes: tuple[str, ...] | None = None
     """Held-out validation scenes: synth:RIG[:N] (first N evaluation seeds) and/or scene folders
-    (default: synth:RIG:2 for the first procedural rig of --data)."""
+    (None: synth:RIG:2 for the first procedural rig of --data)."""
     val_views: int = 1
     """Views rendered per validation scene (its first test views)."""
     ckpt_every: int = 250
@@ -125,7 +126,7 @@ class TrainConfig:
     keep: int = 2
     """Periodic checkpoints kept (plus checkpoints/final)."""
     out: Path | None = None
-    """Run folder (default outputs/train/<model>)."""
+    """Run folder (None: outputs/train/<model>)."""
     resume: bool = False
     """Continue exactly from the latest checkpoint in --out."""
     stop_at: int | None = None
@@ -139,7 +140,7 @@ class TrainConfig:
     time_budget: float | None = None
     """Seconds of training (summed over resumed runs) after which to checkpoint and stop."""
     threads: int | None = None
-    """Torch CPU threads per process (default: torch's choice; torchrun sets 1)."""
+    """Torch CPU threads per process (None: torch's choice; torchrun sets 1)."""
     progress: bool = True
     """Show the progress bar."""
 
@@ -308,8 +309,11 @@ class Trainer:
         from omnirecon.data.bank import SceneBank, parse_sources
         from omnirecon.models.registry import _families, family_of
 
+        from rich.console import Console
+
         self.cfg, self.env = cfg, env
         self.threads_before = torch.get_num_threads()
+        self.console = Console(stderr=True)
         self.writer = self.metrics = self.pg = None
         self.notes: list[str] = []
         family = family_of(cfg.model)
@@ -320,11 +324,11 @@ class Trainer:
         _, cfg_cls, presets = _families()[family]
         self.overrides = parse_overrides(cfg.model_overrides, cfg_cls)
         model_cfg = dataclasses.replace(presets[cfg.model], **self.overrides)
-        self.K = cfg.num_views or model_cfg.num_views
-        self.pool = cfg.pool or 2 * self.K
-        self.rays = cfg.rays or self.fam["rays"]
-        self.lr = cfg.lr or self.fam["lr"]
-        self.out = cfg.out or Path("outputs/train") / cfg.model
+        self.K = model_cfg.num_views if cfg.num_views is None else cfg.num_views
+        self.pool = 2 * self.K if cfg.pool is None else cfg.pool
+        self.rays = self.fam["rays"] if cfg.rays is None else cfg.rays
+        self.lr = self.fam["lr"] if cfg.lr is None else cfg.lr
+        self.out = Path("outputs/train") / cfg.model if cfg.out is None else cfg.out
         self.check()
         self.device = self.pick_device()
 
@@ -377,7 +381,8 @@ class Trainer:
         need(c.keep >= 1, "--keep must be at least 1", "use e.g. --keep 2")
         need(len(c.data) >= 1, "--data needs at least one source", "use e.g. --data synth:object")
         need(c.data_weights is None or (len(c.data_weights) == len(c.data) and all(w > 0 for w in c.data_weights)),
-             f"--data-weights needs one positive weight per --data source ({len(c.data)})", "e.g. --data-weights 0.7 0.3")
+             f"--data-weights needs one positive weight per --data source ({len(c.data)})",
+             "e.g. --data-weights 0.7 0.3")
         need(c.stop_at is None or c.stop_at >= 1, "--stop-at must be at least 1", "use a step number")
         need(c.time_budget is None or c.time_budget > 0, "--time-budget must be positive (seconds)", "e.g. 2700")
         need(c.threads is None or c.threads >= 1, "--threads must be at least 1", "use e.g. --threads 2")
@@ -469,6 +474,9 @@ class Trainer:
                 f"model {meta.get('preset')} -> {self.cfg.model}"
             raise InputError(f"--resume with a different setup ({what})", self.out,
                              "pass the same flags as the original run (see config.json), or a new --out")
+        if meta.get("extra", {}).get("world_size", self.env.world) != self.env.world:
+            self.notes.append(f"the checkpoint was written by {meta['extra']['world_size']} process(es), this run has "
+                              f"{self.env.world}: per-rank random draws differ from an uninterrupted run")
         if saved.get("steps") != now["steps"]:
             self.notes.append(f"--steps changed {saved.get('steps')} -> {now['steps']}: the learning-rate schedule "
                               "changes, so the run is no longer the one a single invocation would give")
@@ -511,9 +519,9 @@ class Trainer:
         for note in self.notes:
             self.say(f"note: {note}")
         last = min(c.steps, c.stop_at or c.steps)
-        if self.step >= last:
-            self.say(f"nothing to do: the checkpoint is at step {self.step} (--steps {c.steps})")
-            self.finish(last)
+        if self.step >= last or (c.time_budget is not None and self.elapsed >= c.time_budget):
+            self.say(f"nothing to do: the checkpoint in {self.out} is at step {self.step} after {self.elapsed:.0f} s "
+                     "(raise --steps or --time-budget to train on)")
             return
         self.start_progress(last)
         window = torch.zeros(4, dtype=torch.float64)  # loss, mse, steps, step seconds since the last log line
@@ -624,10 +632,9 @@ class Trainer:
 
     # ------------------------------------------------------------------ outputs (rank 0)
     def say(self, text: str) -> None:
+        """Print on rank 0 (stderr, above the progress bar when it is shown)."""
         if self.env.main:
-            from rich.console import Console
-
-            (self.pg.console if self.pg is not None else Console(stderr=True)).print(text)
+            self.console.print(text)
 
     def start_progress(self, last: int) -> None:
         if not (self.env.main and self.cfg.progress):
@@ -635,9 +642,9 @@ class Trainer:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
         from rich.progress import TimeRemainingColumn
 
-        self.pg = Progress(TextColumn(f"train {self.cfg.model}"), BarColumn(), MofNCompleteColumn(),
+        self.pg = Progress(TextColumn(f"train {self.cfg.model}"), BarColumn(bar_width=24), MofNCompleteColumn(),
                            TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                           TextColumn("{task.fields[info]}"), transient=False)
+                           TextColumn("{task.fields[info]}"), console=self.console, transient=False)
         self.pg.start()
         self.task = self.pg.add_task("train", total=last, completed=self.step, info="")
 
@@ -698,8 +705,8 @@ class Trainer:
 
             ckdir = self.out / "checkpoints"
             folder = ckdir / f"step_{step:07d}"
-            extra = {"elapsed_s": self.elapsed, "scaler": self.scaler.state_dict() if self.scaler.is_enabled() else None,
-                     "world_size": self.env.world}
+            scaler = self.scaler.state_dict() if self.scaler.is_enabled() else None
+            extra = {"elapsed_s": self.elapsed, "scaler": scaler, "world_size": self.env.world}
             save_checkpoint(folder, self.model, self.cfg.model, step, self.opt, self.config_dict(), extra, self.prov)
             point_latest(ckdir, folder.name)
             steps = sorted(p for p in ckdir.glob("step_*") if p.is_dir())

@@ -46,11 +46,11 @@ def weights(folder: Path) -> dict[str, torch.Tensor]:
     return load_checkpoint(folder)[0].state_dict()
 
 
-@pytest.mark.parametrize("model, factor", [("gpnr-tiny", 2.0), ("ibrnet-tiny", 2.0)])
+@pytest.mark.parametrize("model, factor", [("gpnr-tiny", 2.0), ("ibrnet-tiny", 1.8)])
 def test_overfits_one_scene(tmp_path, scene, model, factor):
-    """50 steps on one scene cut the loss (mean of the first 5 steps vs the last 5) by >= 2x.
+    """50 steps on one scene cut the loss (mean of the first 5 steps vs the last 5) by >= 2x (gpnr), 1.8x (ibrnet).
 
-    Measured on this scene (seed 0): gpnr 2.7x, ibrnet 2.3x. Over seeds 0-7 the 50-step factor spans
+    Measured on this scene (seed 0): gpnr 2.7x, ibrnet 2.2x. Over seeds 0-7 the 50-step factor spans
     1.2x-3.5x: it is largest where the untrained output (about grey) is far from the scene's colours."""
     run = tmp_path / "run"
     assert main(train_args(run, str(scene), model, 50, "--lr", "3e-3", "--warmup", "5", "--switch-every", "50")) == 0
@@ -130,6 +130,7 @@ def test_ddp_two_processes(tmp_path, scene):
     (["--model-overrides", "dim=wide"], "wrong type"),
     (["--model-overrides", "ray_param=sphere"], "must be one of"),
     (["--steps", "0"], "--steps"),
+    (["--lr", "0"], "--lr"),
     (["--pool", "2"], "--pool"),
     (["--data-weights", "1", "2"], "--data-weights"),
     (["--amp", "bf16", "--device", "cpu"], "needs CUDA"),
@@ -149,6 +150,38 @@ def test_refuses_eval_only_scene_folders(tmp_path, scene, capsys):
     held = generate_scene(tmp_path / "gen", 900_001, SynthOptions(views=2, resolution=8, min_objects=1, max_objects=1))
     assert main(train_args(tmp_path / "run", str(held))) == 2
     assert "seed 900001" in capsys.readouterr().err
+
+
+def test_time_budget_stops_with_a_checkpoint(tmp_path, scene, capsys):
+    run = tmp_path / "run"
+    assert main(train_args(run, str(scene), "gpnr-tiny", 100_000, "--time-budget", "1", "--log-every", "100")) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert 1 <= summary["step"] < 100_000 and summary["time"] >= 1
+    assert json.loads((run / "checkpoints" / "final" / "meta.json").read_text())["step"] == summary["step"]
+    assert "time budget" in capsys.readouterr().err
+    assert main(train_args(run, str(scene), "gpnr-tiny", 100_000, "--time-budget", "1", "--resume")) == 0
+    assert "nothing to do" in capsys.readouterr().err
+
+
+def test_folder_of_scenes_skips_evaluation_scenes(tmp_path, scene, capsys):
+    coll = tmp_path / "coll"
+    coll.mkdir()
+    (coll / "fern").symlink_to(scene, target_is_directory=True)
+    (coll / "mine").symlink_to(scene, target_is_directory=True)
+    assert main(train_args(tmp_path / "run", str(coll), "gpnr-tiny", 2)) == 0
+    assert "skipped" in capsys.readouterr().err
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["resolved"]["train_scenes"] == 1
+
+
+def test_real_scene_is_downscaled_to_the_training_resolution(tmp_path, shared_data):
+    lego = shared_data("blender/lego")
+    run = tmp_path / "run"
+    assert main(train_args(run, str(lego), "ibrnet-tiny", 2, "--max-views", "12", "--val-every", "2",
+                           "--val-scenes", str(lego))) == 0
+    from PIL import Image
+
+    with Image.open(run / "val" / "step_0000002.png") as im:
+        assert im.height == 32 + 2  # one 32-pixel row of GT | render | error (+ 2 px separator)
 
 
 def test_overrides_and_schedule():

@@ -152,12 +152,12 @@ class Aggregator(nn.Module):
         w = w / (w.sum(-2, keepdim=True) + 1e-8)
         stats = _weighted_stats(f, w)  # [R, S, 1, 2C]
         x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
-        rv = self.vis(x * w)
+        rv = F.elu(self.vis(x * w))  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
         r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
         x = x + r
         v = torch.sigmoid(self.vis2(x * v)) * m  # [R, S, V, 1]
         vw = v / (v.sum(-2, keepdim=True) + 1e-8)
-        dens = torch.cat([_weighted_stats(x, vw)[..., 0, :], v.mean(-2)], -1)  # [R, S, 65]
+        dens = torch.cat([_weighted_stats(x, vw)[..., 0, :], vw.mean(-2)], -1)  # [R, S, 65] (reference: weight.mean)
         h = self.density_feat(dens)  # [R, S, 16]
         h = h + sample_index_code(h.shape[1], 16, h.device).to(h.dtype)
         seen = mask.any(-1)  # [R, S]
