@@ -46,7 +46,7 @@ FAMILY_DEFAULTS = {
                "encoder": "unet"},
 }
 # Fields that may change on --resume without breaking the run's arithmetic.
-OPERATIONAL = {"steps", "stop_at", "time_budget", "resume", "threads", "device", "val_every", "val_scenes",
+OPERATIONAL = {"steps", "stop_at", "time_budget", "cpu_budget", "resume", "threads", "device", "val_every", "val_scenes",
                "val_views", "ckpt_every", "keep", "log_every", "out", "cache", "scenes_in_memory", "progress"}
 
 
@@ -139,6 +139,9 @@ class TrainConfig:
     """Mixed precision autocast (CUDA only)."""
     time_budget: float | None = None
     """Seconds of training (summed over resumed runs) after which to checkpoint and stop."""
+    cpu_budget: float | None = None
+    """CPU seconds of this process (all its threads, summed over resumed runs) after which to checkpoint and
+    stop: a budget that other jobs on the machine do not shrink (2 cores x 20 min = 2400)."""
     threads: int | None = None
     """Torch CPU threads per process (None: torch's choice; torchrun sets 1)."""
     progress: bool = True
@@ -385,6 +388,7 @@ class Trainer:
              "e.g. --data-weights 0.7 0.3")
         need(c.stop_at is None or c.stop_at >= 1, "--stop-at must be at least 1", "use a step number")
         need(c.time_budget is None or c.time_budget > 0, "--time-budget must be positive (seconds)", "e.g. 2700")
+        need(c.cpu_budget is None or c.cpu_budget > 0, "--cpu-budget must be positive (CPU seconds)", "e.g. 2400")
         need(c.threads is None or c.threads >= 1, "--threads must be at least 1", "use e.g. --threads 2")
         if self.out.exists() and not self.out.is_dir():
             raise InputError("run folder path is a file", self.out, "pass a folder for --out")
@@ -445,7 +449,7 @@ class Trainer:
         self.opt = torch.optim.AdamW([g for g in groups if g["params"]], lr=self.lr, betas=self.fam["betas"],
                                      eps=self.fam["eps"], weight_decay=c.weight_decay)
         self.scaler = torch.amp.GradScaler("cuda", enabled=c.amp == "fp16")
-        self.step, self.elapsed = 0, 0.0
+        self.step, self.elapsed, self.cpu_used = 0, 0.0, 0.0
         self.prov = provenance(c.seed, world_size=env.world)
         ckdir = self.out / "checkpoints"
         if c.resume:
@@ -459,6 +463,7 @@ class Trainer:
             load_optimizer_state(latest, self.opt)
             self.step = int(meta["step"])
             self.elapsed = float(meta["extra"].get("elapsed_s", 0.0))
+            self.cpu_used = float(meta["extra"].get("cpu_s", 0.0))
             if meta["extra"].get("scaler"):
                 self.scaler.load_state_dict(meta["extra"]["scaler"])
         self.model_config = model_config_dict(self.model)
@@ -519,13 +524,14 @@ class Trainer:
         for note in self.notes:
             self.say(f"note: {note}")
         last = min(c.steps, c.stop_at or c.steps)
-        if self.step >= last or (c.time_budget is not None and self.elapsed >= c.time_budget):
+        if self.step >= last or self.over_budget():
             self.say(f"nothing to do: the checkpoint in {self.out} is at step {self.step} after {self.elapsed:.0f} s "
                      "(raise --steps or --time-budget to train on)")
             return
         self.start_progress(last)
         window = torch.zeros(4, dtype=torch.float64)  # loss, mse, steps, step seconds since the last log line
         t0 = time.perf_counter() - self.elapsed
+        cpu0 = time.process_time() - self.cpu_used
         while self.step < last:
             s = self.step + 1
             t_step = time.perf_counter()
@@ -538,14 +544,15 @@ class Trainer:
             window += torch.tensor([loss, mse, 1.0, time.perf_counter() - t_step], dtype=torch.float64)
             self.step = s
             self.elapsed = time.perf_counter() - t0
-            stop = self.agree(c.time_budget is not None and self.elapsed >= c.time_budget)
+            self.cpu_used = time.process_time() - cpu0
+            stop = self.agree(self.over_budget())
             end = stop or s == last
             if s % c.log_every == 0 or end:
                 loss_sum, mse_sum, n, secs = self.reduce(window)  # sums over ranks
                 secs = max(secs / env.world, 1e-9)  # ranks run side by side
                 row = {"step": s, "loss": loss_sum / n, "psnr": psnr(mse_sum / n), "lr": self.opt.param_groups[0]["lr"],
                        "rays_per_s": n * self.rays / secs, "steps_per_s": n / env.world / secs,
-                       "time": self.elapsed, "scene": ref.name}
+                       "time": self.elapsed, "cpu_time": self.cpu_used, "scene": ref.name}
                 self.log(row)
                 window.zero_()
             if c.val_every and s % c.val_every == 0 and not end:
@@ -553,7 +560,7 @@ class Trainer:
             if c.ckpt_every and s % c.ckpt_every == 0 and not end:
                 self.checkpoint(s)
             if stop:
-                self.say(f"time budget of {c.time_budget:g} s reached at step {s}")
+                self.say(f"budget reached at step {s} ({self.elapsed:.0f} s wall, {self.cpu_used:.0f} CPU s)")
                 break
         self.finish(self.step)
 
@@ -595,10 +602,15 @@ class Trainer:
                      f"  metrics: {self.out / 'metrics.jsonl'}\n  config: {self.out / 'config.json'}"
                      + (f"\n  validation pictures: {self.out / 'val'}" if self.val_bank is not None else ""))
 
+    def over_budget(self) -> bool:
+        c = self.cfg
+        return (c.time_budget is not None and self.elapsed >= c.time_budget) or \
+            (c.cpu_budget is not None and self.cpu_used >= c.cpu_budget)
+
     # ------------------------------------------------------------------ distributed helpers
     def agree(self, flag: bool) -> bool:
         """Whether any rank raised ``flag`` (every rank gets the same answer)."""
-        if self.env.world == 1 or self.cfg.time_budget is None:
+        if self.env.world == 1 or (self.cfg.time_budget is None and self.cfg.cpu_budget is None):
             return flag
         import torch.distributed as dist
 
@@ -706,7 +718,7 @@ class Trainer:
             ckdir = self.out / "checkpoints"
             folder = ckdir / f"step_{step:07d}"
             scaler = self.scaler.state_dict() if self.scaler.is_enabled() else None
-            extra = {"elapsed_s": self.elapsed, "scaler": scaler, "world_size": self.env.world}
+            extra = {"elapsed_s": self.elapsed, "cpu_s": self.cpu_used, "scaler": scaler, "world_size": self.env.world}
             save_checkpoint(folder, self.model, self.cfg.model, step, self.opt, self.config_dict(), extra, self.prov)
             point_latest(ckdir, folder.name)
             steps = sorted(p for p in ckdir.glob("step_*") if p.is_dir())

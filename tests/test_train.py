@@ -158,9 +158,17 @@ def test_time_budget_stops_with_a_checkpoint(tmp_path, scene, capsys):
     summary = json.loads((run / "summary.json").read_text())
     assert 1 <= summary["step"] < 100_000 and summary["time"] >= 1
     assert json.loads((run / "checkpoints" / "final" / "meta.json").read_text())["step"] == summary["step"]
-    assert "time budget" in capsys.readouterr().err
+    assert "budget reached" in capsys.readouterr().err
     assert main(train_args(run, str(scene), "gpnr-tiny", 100_000, "--time-budget", "1", "--resume")) == 0
     assert "nothing to do" in capsys.readouterr().err
+
+
+def test_cpu_budget_counts_process_cpu_seconds(tmp_path, scene, capsys):
+    run = tmp_path / "run"
+    assert main(train_args(run, str(scene), "gpnr-tiny", 100_000, "--cpu-budget", "1.5", "--log-every", "100")) == 0
+    meta = json.loads((run / "checkpoints" / "final" / "meta.json").read_text())
+    assert 1 <= meta["step"] < 100_000 and meta["extra"]["cpu_s"] >= 1.5
+    assert "budget reached" in capsys.readouterr().err
 
 
 def test_folder_of_scenes_skips_evaluation_scenes(tmp_path, scene, capsys):
