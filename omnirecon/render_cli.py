@@ -24,7 +24,7 @@ from omnirecon import trajectory
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.errors import InputError
-from omnirecon.eval import load_at_resolution, load_model, pick_device, select_sources, view_metric
+from omnirecon.eval import load_at_resolution, load_model, pick_device, select_sources, set_threads, view_metric
 from omnirecon.models.base import Sources
 
 MAX_DEFAULT_KEYFRAMES = 8
@@ -67,6 +67,8 @@ class RenderConfig:
     """cpu, cuda or auto (cuda when available)."""
     video: bool = True
     """Also write video.mp4 (or video.gif)."""
+    threads: int | None = None
+    """torch CPU threads (default: torch's choice; use 1 when other jobs share the cores)."""
 
     def main(self) -> None:
         out, video = run_render(self)
@@ -117,6 +119,7 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     from rich.progress import TimeRemainingColumn
 
     cfg.check()
+    set_threads(cfg.threads)
     device = pick_device(cfg.device)
     net, info = load_model(cfg.ckpt, cfg.model, device)
     scene = load_at_resolution(cfg.scene, cfg.resolution)

@@ -114,6 +114,7 @@ def test_evaluate_api_is_deterministic_without_output(synth_scene):
     (["--scenes", "{scene}"], "exactly one of --ckpt or --model"),
     (["--model", "floor", "--scenes", "synth:eval:sideways"], "bad scene spec"),
     (["--model", "floor", "--scenes", "{scene}", "--num-views", "0"], "--num-views"),
+    (["--model", "floor", "--scenes", "{scene}", "--threads", "0"], "--threads"),
 ])
 def test_eval_bad_input_exit_2(args, message, synth_scene, tmp_path, capsys):
     args = [a.format(tmp=tmp_path, scene=synth_scene) for a in args]
