@@ -30,3 +30,16 @@ def test_plane_sweep_recovers_a_textured_plane():
     assert (out["depth"][centre] - 3.0).abs().median() < 0.03
     # bilinear resampling of the finest (3.5 px period) texture term costs ~0.02
     assert (out["rgb"][centre] - images[2][centre]).abs().mean() < 0.04
+
+
+def test_rays_without_agreement_fall_back_to_the_source_mean():
+    """A ray only one source sees gets that source's mean colour along it, not black."""
+    n, w, h = 2, 16, 16
+    eye = torch.tensor([[0.0, 0, -3], [40.0, 0, -3]])  # the second camera sees nothing the first does
+    c2w = look_at(eye, eye + torch.tensor([0, 0, 1.0]), torch.tensor([0, -1.0, 0]))
+    cams = Cameras(torch.full((n,), 16.0), torch.full((n,), 16.0), torch.full((n,), 8.0), torch.full((n,), 8.0), c2w, w, h)
+    images = torch.full((1, h, w, 3), 0.7)
+    model = PlaneSweep(PlaneSweepConfig(num_depths=16))
+    out = model.render_view(model.encode(Sources(images, cams[[0]], 2.0, 4.0)), cams[[0]])
+    assert not out["valid"].any()
+    assert torch.allclose(out["rgb"], torch.full_like(out["rgb"], 0.7), atol=1e-5)

@@ -3,6 +3,8 @@
 For each target ray, ``num_depths`` candidate z-depths are projected into every source view; the
 depth whose reprojected source colours agree best (lowest colour variance over the views that see
 it, needing at least ``min_views``) wins, and the colour is the mean of those source colours.
+Rays with no such candidate get the mean of every source colour seen along them (or grey), so
+the floor never scores below a blur of the sources.
 """
 
 from __future__ import annotations
@@ -64,4 +66,7 @@ class PlaneSweep(GeneralizableModel):
         best = var.argmin(-1)  # [R]
         ok = torch.isfinite(var.gather(1, best[:, None]))[:, 0]
         colour = mean.gather(1, best[:, None, None].expand(-1, 1, 3))[:, 0]
+        seen = m.sum((1, 2))  # [R, 1]
+        blur = torch.where(seen > 0, (rgb * m).sum((1, 2)) / seen.clamp_min(1), torch.full_like(colour, 0.5))
+        colour = torch.where(ok[:, None], colour, blur)
         return {"rgb": colour, "depth": z.gather(1, best[:, None])[:, 0], "valid": ok}
