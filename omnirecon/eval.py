@@ -19,7 +19,7 @@ Python use (benchmark scripts)::
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -80,6 +80,16 @@ PROTOCOLS: dict[str, Protocol] = {
 }
 """The one protocol per dataset; ``docs/evaluation.md`` has the same table in words."""
 
+CPU_TARGETS = {"blender": 3, "dtu": 4, "llff": 3, "ngp": 3, "colmap": 3, "synth": 2}
+"""Targets per scene of the ``cpu`` protocol set (evenly spaced over the full protocol's candidates)."""
+PROTOCOL_SETS: dict[str, dict[str, Protocol]] = {
+    "full": PROTOCOLS,
+    "cpu": {k: replace(p, long_side=64, max_targets=CPU_TARGETS[k], pick="even") for k, p in PROTOCOLS.items()},
+}
+"""``full``: the published protocols. ``cpu``: the same rules at a 64-px long side (the tiny presets'
+training resolution) with fewer targets, so a CPU can score GPNR and IBRNet in minutes; its numbers
+are labelled with the set's name and are not comparable with ``full`` numbers."""
+
 FORMAT_PROTOCOL = {"blender": "blender", "ngp": "ngp", "llff": "llff", "dtu_neus": "dtu", "dtu_mvsnet": "dtu",
                    "colmap": "colmap"}
 """Reader name -> protocol (a Blender-layout folder written by ``omnirecon synth`` uses ``synth``)."""
@@ -96,11 +106,12 @@ def is_synth(path: Path) -> bool:
     return str(read_json(meta).get("generator_version", "")).startswith("omnirecon-synth")
 
 
-def protocol_for(path: Path, fmt: str) -> Protocol:
-    """The protocol of the scene at ``path`` read by reader ``fmt``."""
-    if fmt == "blender" and is_synth(path):
-        return PROTOCOLS["synth"]
-    return PROTOCOLS[FORMAT_PROTOCOL[fmt]]
+def protocol_for(path: Path, fmt: str, protocol_set: str = "full") -> Protocol:
+    """The protocol of the scene at ``path`` read by reader ``fmt``, from set ``protocol_set``."""
+    table = PROTOCOL_SETS[protocol_set]
+    if fmt == "blender" and path is not None and is_synth(path):
+        return table["synth"]
+    return table[FORMAT_PROTOCOL[fmt]]
 
 
 def load_at_resolution(path: Path, long_side: int, background: str = "white", fmt: str = "auto") -> Scene:
@@ -215,8 +226,12 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
     return paths
 
 
-def prepare_scenes(specs, count: int = 10, cache: Path = Path("outputs/cache"), progress=None) -> list[EvalScene]:
-    """Load every scene of ``specs`` (paths, ``synth:eval[:rig]`` or :class:`Scene` objects)."""
+def prepare_scenes(specs, count: int = 10, cache: Path = Path("outputs/cache"), progress=None,
+                   protocol_set: str = "full") -> list[EvalScene]:
+    """Load every scene of ``specs`` (paths, ``synth:eval[:rig]`` or :class:`Scene` objects) under the
+    protocols of ``protocol_set``."""
+    if protocol_set not in PROTOCOL_SETS:
+        raise InputError(f"unknown protocol set {protocol_set!r}", None, f"use one of {', '.join(PROTOCOL_SETS)}")
     paths: list = []
     for spec in specs:
         if isinstance(spec, Scene):
@@ -230,11 +245,11 @@ def prepare_scenes(specs, count: int = 10, cache: Path = Path("outputs/cache"), 
     for item in paths:
         if isinstance(item, Scene):
             fmt = item.format if item.format in FORMAT_PROTOCOL else "colmap"
-            proto = protocol_for(item.path, fmt) if item.path is not None else PROTOCOLS[FORMAT_PROTOCOL[fmt]]
+            proto = protocol_for(item.path, fmt, protocol_set)
             scene, path = item.normalized(), item.path
         else:
             fmt = detect_format(item)
-            proto = protocol_for(item, fmt)
+            proto = protocol_for(item, fmt, protocol_set)
             scene, path = load_at_resolution(item, proto.long_side, proto.background, fmt), item
         base = Path(path).name if path is not None else "scene"
         name, i = base, 1
@@ -313,6 +328,7 @@ def evaluate(
     save_images: bool = True,
     progress: bool = True,
     seed: int = 0,
+    protocol_set: str = "full",
 ) -> dict:
     """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
 
@@ -330,6 +346,7 @@ def evaluate(
         save_images: Write a ``GT | render | error`` panel per target.
         progress: Show a progress bar with ETA.
         seed: Seeds torch before rendering (models are deterministic at test time; recorded).
+        protocol_set: ``"full"`` (the published protocols) or ``"cpu"`` (64 px, fewer targets).
 
     Returns:
         ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
@@ -354,7 +371,8 @@ def evaluate(
                TextColumn("eta"), TimeRemainingColumn())
     with Progress(*columns, disable=not progress, transient=False) as bar:
         prepared = [s for s in scenes if isinstance(s, EvalScene)]
-        prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar)
+        prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
+                                   protocol_set)
         jobs, results = _plan(prepared, ks, max_targets)
         total = sum(len(job["targets"]) for job in jobs)
         task = bar.add_task("eval", total=total)
@@ -363,6 +381,7 @@ def evaluate(
     result = eval_report.collect(results, jobs, ks, {
         "provenance": provenance(seed=seed, chunk=chunk, eval_device=device),
         "model": model_info or {"name": type(model).__name__},
+        "protocol_set": protocol_set,
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
         "unavailable": {k: r for k, r in (("st_lpips_alex", metrics.unavailable("st_lpips")),
@@ -468,6 +487,9 @@ class EvalConfig:
     threads: int | None = None
     """torch CPU threads (default: torch's choice). Use 1 when other jobs share the cores: on a busy
     2-core machine 2 threads ran the floor 6x slower than 1."""
+    protocol_set: Literal["full", "cpu"] = "full"
+    """``full``: the published protocols (128 px); ``cpu``: the same rules at 64 px with fewer targets
+    (the CPU benchmark of the tiny presets; not comparable with ``full``)."""
 
     def main(self) -> None:
         set_threads(self.threads)
@@ -478,7 +500,7 @@ class EvalConfig:
             raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
         result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
                           device=device, max_targets=self.max_targets, synth_count=self.synth_count,
-                          cache=self.cache, save_images=self.save_images)
+                          cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set)
         from omnirecon.eval_report import summary_lines
 
         for line in summary_lines(result):

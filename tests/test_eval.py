@@ -134,3 +134,15 @@ def test_real_scene_protocols(rel, protocol, size, targets, shared_data):
     t, pool = targets_and_pool(es.protocol, es.scene)
     assert t == targets and not set(t) & set(pool)
     assert es.scene.bounds.abs().max() <= 1.0  # normalised as training does
+
+
+def test_cpu_protocol_set_is_the_full_rules_at_64_px(shared_data):
+    from omnirecon.eval import PROTOCOL_SETS, prepare_scenes, targets_and_pool
+
+    full = prepare_scenes([shared_data("llff/fern")], protocol_set="full")[0]
+    cpu = prepare_scenes([shared_data("llff/fern")], protocol_set="cpu")[0]
+    assert max(cpu.scene.width, cpu.scene.height) == 64 and max(full.scene.width, full.scene.height) == 128
+    t_full, pool_full = targets_and_pool(full.protocol, full.scene)
+    t_cpu, pool_cpu = targets_and_pool(cpu.protocol, cpu.scene)
+    assert set(t_cpu) <= set(t_full) and len(t_cpu) <= PROTOCOL_SETS["cpu"]["llff"].max_targets
+    assert pool_cpu == pool_full  # the same rule picks the same source pool
