@@ -19,12 +19,15 @@ ROOT = HERE.parent
 
 
 def run_benchmarks(results: Path, tiny: bool) -> None:
+    import quality
     import synth_speed
     import throughput
 
     args = ["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []
     synth_speed.main([*args, "--out", str(results / "synth_speed.json")])
     throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")])
+    models = ["floor"] + [m for m in ("gpnr-tiny", "ibrnet-tiny") if (ROOT / "checkpoints" / m).is_dir()]
+    quality.main(["--models", *(["floor"] if tiny else models), *(["--tiny"] if tiny else []), "--out", str(results)])
 
 
 def _prov(p: dict) -> str:
@@ -73,6 +76,92 @@ def section_throughput(r: dict) -> str:
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
 
+QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny")
+
+
+def _scene_rows(r: dict) -> dict[str, dict[str, dict]]:
+    """``{row name: {K: mean metrics}}``: the procedural set averaged, real scenes one row each."""
+    rows: dict[str, dict[str, dict]] = {}
+    synth = [s for s in r["scenes"] if s["protocol"] == "synth"]
+    if synth:
+        rows[f"synth:eval ({len(synth)} scenes)"] = {k: v for k, v in r["means"].get("synth", {}).items()}
+    for s in r["scenes"]:
+        if s["protocol"] != "synth":
+            rows[s["name"]] = {k: v["mean"] for k, v in s["settings"].items()}
+    return rows
+
+
+def section_quality(results: Path) -> str | None:
+    data = {m: json.loads((results / f"quality_{m}.json").read_text()) for m in QUALITY_MODELS
+            if (results / f"quality_{m}.json").is_file()}
+    if not data:
+        return None
+    models = list(data)
+    rows = {m: _scene_rows(r) for m, r in data.items()}
+    names = list(dict.fromkeys(n for m in models for n in rows[m]))
+    ks = sorted({k for m in models for n in rows[m] for k in rows[m][n]}, key=int)
+    first = next(iter(data.values()))
+    out = ["## Novel-view quality (`bench/quality.py`)", "",
+           f"Protocol set `{first.get('protocol_set', 'full')}` of `omnirecon eval` (docs/evaluation.md): images at a "
+           "64-px long side, targets and source pools fixed per dataset, K nearest sources. dtu_scan24, dtu_scan37 and "
+           "fern are never trained on; fox and lego are training scenes (their rows measure fitting). GPNR's "
+           "`aux` is its blended-source-colour output (`rgb_aux`).", ""]
+    for metric, label, better in (("psnr", "PSNR (dB)", max), ("ssim", "SSIM", max), ("st_lpips_alex", "ST-LPIPS (alex; not LPIPS)", min)):
+        cols = [(m, k) for m in models for k in ks]
+        out += [f"**{label}**", "", "| scene | " + " | ".join(f"{m} K={k}" for m, k in cols) + " |",
+                "|---|" + "---|" * len(cols)]
+        for n in names:
+            cells = []
+            for m, k in cols:
+                v = rows[m].get(n, {}).get(k, {}).get(metric)
+                aux = rows[m].get(n, {}).get(k, {}).get(f"{metric}_aux")
+                cells.append("–" if v is None else f"{v:.3f}" if metric != "psnr" else
+                             f"{v:.2f}" + (f" (aux {aux:.2f})" if aux is not None else ""))
+            out.append(f"| {n} | " + " | ".join(cells) + " |")
+        out.append("")
+    if "gpnr-tiny" in rows and "ibrnet-tiny" in rows:
+        out += ["**Goal GPNR >= IBRNet + 1 dB** (PSNR difference gpnr-tiny minus ibrnet-tiny):", ""]
+        for n in names:
+            diffs = [f"K={k}: {rows['gpnr-tiny'][n][k]['psnr'] - rows['ibrnet-tiny'][n][k]['psnr']:+.2f}"
+                     for k in ks if k in rows["gpnr-tiny"].get(n, {}) and k in rows["ibrnet-tiny"].get(n, {})]
+            out.append(f"- {n}: " + ", ".join(diffs))
+        out.append("")
+    if "floor" in rows:
+        out += ["**Against the non-learned floor** (PSNR above the plane-sweep floor; negative = below it):", ""]
+        for m in models:
+            if m == "floor":
+                continue
+            diffs = [f"{n} K={k}: {rows[m][n][k]['psnr'] - rows['floor'][n][k]['psnr']:+.2f}"
+                     for n in names for k in ks if k in rows[m].get(n, {}) and k in rows["floor"].get(n, {})]
+            out.append(f"- {m}: " + "; ".join(diffs))
+        out.append("")
+    for m, r in data.items():
+        out.append(f"{m}: " + _prov(r["provenance"]) + (f"; checkpoint `{r['model'].get('checkpoint')}` at step "
+                                                       f"{r['model'].get('step')}" if r["model"].get("checkpoint") else ""))
+        out.append("")
+    return "\n".join(out)
+
+
+def section_training() -> str | None:
+    cards = [json.loads(p.read_text()) for p in sorted((ROOT / "checkpoints").glob("*/card.json"))]
+    if not cards:
+        return None
+    out = ["## Training of the shipped checkpoints (`bench/train_tiny.py`)", "",
+           "The same data, resolution, seed and CPU budget for every preset (process CPU seconds, so other jobs on "
+           "the machine do not shrink it). Training PSNR is over the sampled rays (half on foreground masks).", "",
+           "| preset | budget (CPU s) | steps reached | CPU s used | wall s | threads | resolution | "
+           "train PSNR first -> last log |", "|---|---|---|---|---|---|---|---|"]
+    for c in cards:
+        out.append(f"| {c['model']} | {c['cpu_budget_s']:.0f} | {c['steps']} | {c['cpu_seconds']:.0f} | "
+                   f"{c['wall_seconds']:.0f} | {c['threads']} | {c['resolution']}² | "
+                   f"{c['train_psnr_first']:.2f} -> {c['train_psnr_last']:.2f} |")
+    out += ["", "Data: " + ", ".join(cards[0]["data"]["procedural"] + cards[0]["data"]["real"])
+            + f" (weights {cards[0]['data']['weights']}); held out: {cards[0]['held_out']}.", ""]
+    for c in cards:
+        out += [f"{c['model']}: " + _prov(c["provenance"]), ""]
+    return "\n".join(out)
+
+
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput}
 
 
@@ -89,6 +178,9 @@ def write_page(results: Path, out: Path) -> str:
             parts += [render(json.loads(f.read_text())), ""]
         else:
             parts += [f"*{name}: not measured yet (run `python bench/run_all.py`).*", ""]
+    for text in (section_training(), section_quality(results)):
+        if text:
+            parts += [text, ""]
     text = "\n".join(parts)
     with atomic_path(out) as tmp:
         tmp.write_text(text)

@@ -13,3 +13,15 @@ def test_run_all_tiny_writes_page_with_measured_numbers(tmp_path):
     text = out.read_text()
     assert "2 x 8" in text and "32²" in text and "Provenance: commit" in text
     assert (tmp_path / "results" / "synth_speed.json").is_file()
+
+
+def test_quality_tiny_scores_the_floor(tmp_path):
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "quality.py"), "--models", "floor", "--tiny",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    import json
+
+    r = json.loads((tmp_path / "quality_floor.json").read_text())
+    assert r["protocol_set"] == "cpu" and r["non_protocol"] == {"max_targets": 1}
+    psnr = r["means"]["synth"]["3"]["psnr"]
+    assert 10 < psnr < 40  # a real measurement on the held-out procedural scene
