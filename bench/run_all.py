@@ -142,6 +142,22 @@ def section_quality(results: Path) -> str | None:
     return "\n".join(out)
 
 
+def section_ablation(r: dict) -> str:
+    out = ["## GPNR ablations at the tiny budget (`bench/ablation_gpnr.py`)", "",
+           f"Each row: gpnr-tiny trained with the same data and seed for at most {r['cpu_budget_s']:.0f} CPU seconds "
+           f"({r['steps']}-step schedule), scored on the 10 held-out procedural scenes (`cpu` protocol set) with "
+           f"K = {r['num_views']} source views. *features* = GPNR's output head, *colours* = its blend of source "
+           "colours (`rgb_aux`); both heads are trained in every row.", "",
+           "| row | steps | PSNR features | PSNR colours | SSIM features | SSIM colours | ST-LPIPS features | ST-LPIPS colours |",
+           "|---|---|---|---|---|---|---|---|"]
+    for name, row in r["rows"].items():
+        m = row["metrics"]
+        out.append(f"| {name} | {row['steps']} | {m['psnr']:.2f} | {m.get('psnr_aux', float('nan')):.2f} | "
+                   f"{m['ssim']:.3f} | {m.get('ssim_aux', float('nan')):.3f} | {m.get('st_lpips_alex', float('nan')):.3f} | "
+                   f"{m.get('st_lpips_alex_aux', float('nan')):.3f} |")
+    return "\n".join([*out, "", _prov(r["provenance"])])
+
+
 def section_training() -> str | None:
     cards = [json.loads(p.read_text()) for p in sorted((ROOT / "checkpoints").glob("*/card.json"))]
     if not cards:
@@ -162,7 +178,8 @@ def section_training() -> str | None:
     return "\n".join(out)
 
 
-SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput}
+SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
+            "ablation_gpnr.json": section_ablation}
 
 
 def write_page(results: Path, out: Path) -> str:

@@ -58,9 +58,12 @@ def prepare(synth_scenes: int) -> None:
     print(f"prepared {len(tasks)} procedural scenes in {CACHE}")
 
 
-def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps: int) -> Path:
-    out = ROOT / "outputs" / "train" / f"{model}_bench"
-    cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model, *data_args(),
+def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps: int, overrides: list[str] = (),
+          name: str | None = None, data: list[str] | None = None) -> Path:
+    """Run ``omnirecon train`` (resuming an interrupted run) and return its run folder."""
+    out = ROOT / "outputs" / "train" / (name or f"{model}_bench")
+    cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model, *(data or data_args()),
+           *(["--model-overrides", *overrides] if overrides else []),
            "--synth-scenes", str(synth_scenes), "--resolution", str(RESOLUTION), "--steps", str(steps),
            "--cpu-budget", str(cpu_budget), "--threads", str(threads), "--seed", str(SEED), "--cache", str(CACHE),
            "--val-every", "500", "--ckpt-every", "250", "--out", str(out), "--no-progress"]

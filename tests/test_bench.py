@@ -25,3 +25,16 @@ def test_quality_tiny_scores_the_floor(tmp_path):
     assert r["protocol_set"] == "cpu" and r["non_protocol"] == {"max_targets": 1}
     psnr = r["means"]["synth"]["3"]["psnr"]
     assert 10 < psnr < 40  # a real measurement on the held-out procedural scene
+
+
+def test_ablation_tiny_trains_and_scores_each_row(tmp_path):
+    out = tmp_path / "ablation.json"
+    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "ablation_gpnr.py"), "--tiny", "--rows", "full",
+                           "no ray canonicalization", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    import json
+
+    r = json.loads(out.read_text())
+    assert set(r["rows"]) == {"full", "no ray canonicalization"}
+    for row in r["rows"].values():
+        assert row["steps"] >= 1 and 0 < row["metrics"]["psnr"] < 60 and "psnr_aux" in row["metrics"]
