@@ -2,8 +2,9 @@
 
 One step = one scene, one random target view, ``K`` sources drawn from the target's ``n`` nearest
 training views, ``--rays`` random target pixels; the sources are encoded once per step and the loss
-is the MSE of the main colour plus the auxiliary one (GPNR's blended source colours, IBRNet's
-coarse pass), over the rays the model marks ``valid``.
+is the MSE of the main colour plus the auxiliary one (GPNR's blended source colours, IBRNet's and
+Omni-Recon's coarse pass), over the rays the model marks ``valid``, plus ``--depth-weight`` x the L1
+error of the rendered z-depth (both passes) on rays whose ground-truth depth is known (Omni-Recon).
 
 Exact resume: every random choice of step ``s`` on rank ``r`` (scene, target, sources, pixels,
 IBRNet's stratified samples) comes from generators seeded by ``(seed, s, r)`` (the scene by
@@ -38,12 +39,17 @@ from torch import Tensor, nn
 from omnirecon.errors import InputError
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
-# (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), and the image encoder's lr multiplier
-# (IBRNet: 1e-3 for the U-Net vs 5e-4 for the MLPs).
+# (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
+# (IBRNet: 1e-3 for the U-Net vs 5e-4 for the MLPs) and the depth-loss weight. Omni-Recon
+# (docs/omnirecon.md §5, §11.2): the CPU recipe's 256 rays and Adam 5e-4 (the reference: 1024 rays,
+# 1e-3 for both groups), L1 depth on both passes (the reference weighs it 1; 0.1 here, see --depth-weight).
 FAMILY_DEFAULTS = {
-    "gpnr": {"rays": 256, "lr": 5e-4, "betas": (0.9, 0.98), "eps": 1e-9, "encoder_lr_scale": 1.0, "encoder": "patch"},
+    "gpnr": {"rays": 256, "lr": 5e-4, "betas": (0.9, 0.98), "eps": 1e-9, "encoder_lr_scale": 1.0, "encoder": "patch",
+             "depth_weight": 0.0},
     "ibrnet": {"rays": 512, "lr": 5e-4, "betas": (0.9, 0.999), "eps": 1e-8, "encoder_lr_scale": 2.0,
-               "encoder": "unet"},
+               "encoder": "unet", "depth_weight": 0.0},
+    "omnirecon": {"rays": 256, "lr": 5e-4, "betas": (0.9, 0.999), "eps": 1e-8, "encoder_lr_scale": 1.0,
+                  "encoder": "encoder", "depth_weight": 0.1},
 }
 # Fields that may change on --resume without breaking the run's arithmetic.
 OPERATIONAL = {"steps", "stop_at", "time_budget", "cpu_budget", "resume", "threads", "device", "val_every", "val_scenes",
@@ -52,7 +58,7 @@ OPERATIONAL = {"steps", "stop_at", "time_budget", "cpu_budget", "resume", "threa
 
 @dataclass
 class TrainConfig:
-    """Train a generalizable renderer (GPNR or IBRNet) on procedural and/or real scenes.
+    """Train a generalizable renderer (GPNR, IBRNet or Omni-Recon) on procedural and/or real scenes.
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the
     newest), checkpoints/final, metrics.jsonl, config.json, val/step_XXXXXXX.png (GT | render |
@@ -62,7 +68,7 @@ class TrainConfig:
     """
 
     model: str = "gpnr-tiny"
-    """Model preset: gpnr-tiny, gpnr-paper, ibrnet-tiny or ibrnet-paper."""
+    """Model preset: gpnr-tiny, gpnr-paper, ibrnet-tiny, ibrnet-paper, omnirecon-tiny or omnirecon-paper."""
     model_overrides: tuple[str, ...] = ()
     """Model config changes: key=value items (values parsed as JSON, e.g. visual_transformer=false,
     layers=[1,1,1], ray_param=lightslab) or one JSON object."""
@@ -84,7 +90,7 @@ class TrainConfig:
     steps: int = 1000
     """Optimisation steps (the learning-rate schedule spans them)."""
     rays: int | None = None
-    """Target rays per step and process (None: gpnr 256, ibrnet 512)."""
+    """Target rays per step and process (None: gpnr 256, ibrnet 512, omnirecon 256)."""
     lr: float | None = None
     """Peak learning rate (None: 5e-4)."""
     encoder_lr_scale: float | None = None
@@ -100,7 +106,10 @@ class TrainConfig:
     clip: float = 1.0
     """Gradient-norm clipping threshold (0 disables)."""
     aux_weight: float = 1.0
-    """Weight of the auxiliary colour loss (GPNR rgb_aux, IBRNet coarse pass)."""
+    """Weight of the auxiliary colour loss (GPNR rgb_aux, IBRNet and Omni-Recon coarse pass)."""
+    depth_weight: float | None = None
+    """Weight of the L1 z-depth loss (both passes) on rays with known ground-truth depth in [near, far]
+    (procedural scenes have depths; None: omnirecon 0.1, gpnr/ibrnet 0)."""
     num_views: int | None = None
     """Source views K per step (None: the model's num_views)."""
     pool: int | None = None
@@ -270,16 +279,32 @@ def masked_mse(pred: Tensor, target: Tensor, weight: Tensor) -> Tensor:
     return (err * weight).sum() / weight.sum().clamp_min(1.0)
 
 
+def masked_l1(pred: Tensor, target: Tensor, weight: Tensor) -> Tensor:
+    """Mean absolute error over rays ``# [R]`` weighted by ``weight # [R]`` (0 where no weight, graph kept)."""
+    return ((pred.float() - target.float()).abs() * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def depth_loss(out: dict[str, Tensor], depth: Tensor, valid: Tensor, near: float, far: float) -> Tensor:
+    """L1 of the rendered z-depth (fine and coarse passes, where rendered) on valid rays whose
+    ground-truth ``depth # [R]`` lies in ``[near, far]`` (0 = unknown)."""
+    known = valid * ((depth >= near) & (depth <= far)).float()  # [R]
+    loss = masked_l1(out["depth"], depth, known)
+    if "depth_coarse" in out and out["depth_coarse"] is not out["depth"]:
+        loss = loss + masked_l1(out["depth_coarse"], depth, known)
+    return loss
+
+
 class LossModule(nn.Module):
     """encode + render_rays + loss in one ``forward``, the module DDP wraps."""
 
-    def __init__(self, model: nn.Module, aux_weight: float):
+    def __init__(self, model: nn.Module, aux_weight: float, depth_weight: float = 0.0):
         super().__init__()
         self.model = model
         self.aux_weight = aux_weight
+        self.depth_weight = depth_weight
         self.jitter = "jitter" in inspect.signature(model.render_rays).parameters  # IBRNet: stratified samples
 
-    def forward(self, sources, rays, rgb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(self, sources, rays, rgb: Tensor, depth: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """-> loss, main-colour MSE (detached) and the fraction of valid rays."""
         out = self.model.render_rays(self.model.encode(sources), rays, **({"jitter": True} if self.jitter else {}))
         valid = out["valid"].float() if "valid" in out else torch.ones_like(rgb[:, 0])  # [R]
@@ -288,6 +313,8 @@ class LossModule(nn.Module):
         aux = out.get("rgb_aux", out.get("rgb_coarse"))
         if aux is not None and aux is not out["rgb"] and self.aux_weight > 0:
             loss = loss + self.aux_weight * masked_mse(aux, rgb, valid)
+        if self.depth_weight > 0 and depth is not None and "depth" in out:
+            loss = loss + self.depth_weight * depth_loss(out, depth, valid, sources.near, sources.far)
         return loss, mse.detach(), valid.mean().detach()
 
 
@@ -322,7 +349,8 @@ class Trainer:
         family = family_of(cfg.model)
         if family not in FAMILY_DEFAULTS:
             raise InputError(f"model {cfg.model!r} has no trainable parameters (a non-learned floor)", None,
-                             "train gpnr-tiny, gpnr-paper, ibrnet-tiny or ibrnet-paper")
+                             "train gpnr-tiny, gpnr-paper, ibrnet-tiny, ibrnet-paper, omnirecon-tiny or "
+                             "omnirecon-paper")
         self.family, self.fam = family, FAMILY_DEFAULTS[family]
         _, cfg_cls, presets = _families()[family]
         self.overrides = parse_overrides(cfg.model_overrides, cfg_cls)
@@ -331,6 +359,7 @@ class Trainer:
         self.pool = 2 * self.K if cfg.pool is None else cfg.pool
         self.rays = self.fam["rays"] if cfg.rays is None else cfg.rays
         self.lr = self.fam["lr"] if cfg.lr is None else cfg.lr
+        self.depth_weight = self.fam["depth_weight"] if cfg.depth_weight is None else cfg.depth_weight
         self.out = Path("outputs/train") / cfg.model if cfg.out is None else cfg.out
         self.check()
         self.device = self.pick_device()
@@ -369,6 +398,7 @@ class Trainer:
         need(c.weight_decay >= 0, "--weight-decay must be >= 0", "use 0 (the reference) or e.g. 0.01")
         need(c.clip >= 0, "--clip must be >= 0 (0 disables)", "use e.g. --clip 1")
         need(c.aux_weight >= 0, "--aux-weight must be >= 0", "use e.g. 1")
+        need(self.depth_weight >= 0, "--depth-weight must be >= 0", "use e.g. 0.1 (0 disables)")
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
         need(self.pool >= self.K, f"--pool ({self.pool}) must be at least --num-views ({self.K})",
              "pass --pool >= --num-views")
@@ -434,7 +464,7 @@ class Trainer:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         torch.manual_seed(c.seed)
         self.model = build_model(c.model, self.overrides).to(self.device)
-        self.loss_module = LossModule(self.model, c.aux_weight)
+        self.loss_module = LossModule(self.model, c.aux_weight, self.depth_weight)
         self.ddp = self.loss_module
         if env.world > 1:
             from torch.nn.parallel import DistributedDataParallel
@@ -504,7 +534,8 @@ class Trainer:
 
         write_json(self.out / "config.json", {
             "train": self.config_dict(), "model_config": self.model_config, "resolved": {
-                "num_views": self.K, "pool": self.pool, "rays": self.rays, "lr": self.lr, "family": self.family,
+                "num_views": self.K, "pool": self.pool, "rays": self.rays, "lr": self.lr,
+                "depth_weight": self.depth_weight, "family": self.family,
                 "world_size": self.env.world, "device": str(self.device), "train_scenes": len(self.bank),
                 "val_scenes": [r.name for r in self.val_refs]},
             "provenance": self.prov})
@@ -573,7 +604,7 @@ class Trainer:
         amp = torch.autocast("cuda", dtype=torch.bfloat16 if c.amp == "bf16" else torch.float16) \
             if c.amp != "none" else nullcontext()
         with amp:
-            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb)
+            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb, batch.depth)
         self.opt.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         if c.clip > 0:

@@ -287,7 +287,7 @@ def ensure_generated(ref: SceneRef, resolution: int) -> Path:
 # ---------------------------------------------------------------------- batches
 @dataclass
 class Batch:
-    """One training step's input: sources, target rays and their ground-truth colours."""
+    """One training step's input: sources, target rays and their ground-truth colours (and depths)."""
 
     sources: Sources
     rays: Rays
@@ -297,16 +297,22 @@ class Batch:
     """Target view index in the scene."""
     source_ids: list[int]
     """Source view indices in the scene."""
+    depth: Tensor | None = None
+    """Ground-truth z-depth of each ray in (normalised) scene units, 0 where unknown; ``None`` when the
+    scene has no depths. ``# [R]``"""
 
     def to(self, device) -> Batch:
-        return Batch(self.sources.to(device), self.rays.to(device), self.rgb.to(device), self.target, self.source_ids)
+        depth = None if self.depth is None else self.depth.to(device)
+        return Batch(self.sources.to(device), self.rays.to(device), self.rgb.to(device), self.target, self.source_ids,
+                     depth)
 
 
 def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: torch.Generator,
                foreground: float = 0.0) -> Batch:
     """A random target of ``ps.targets``, ``num_views`` sources drawn from its ``pool`` nearest other
     targets, and ``rays`` random pixels of the target (a ``foreground`` fraction of them on the
-    foreground mask, when the scene has masks)."""
+    foreground mask, when the scene has masks), with their colours and, when the scene has depths,
+    their z-depths (already in the normalised frame: :meth:`Scene.normalized` scales them)."""
     t = int(torch.randint(len(ps.targets), (1,), generator=gen))
     near = ps.neighbours[t, :max(pool, num_views)]  # [n]
     pick = near[torch.randperm(len(near), generator=gen)[:num_views]]
@@ -328,7 +334,8 @@ def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: tor
     cam = scene.cameras[[target]]
     ray_batch = Rays.from_pixels(cam, torch.zeros(rays, dtype=torch.long), uv)
     rgb = scene.images[target].reshape(-1, 3)[pix]
-    return Batch(ps.sources(source_ids), ray_batch, rgb, target, source_ids)
+    depth = None if scene.depths is None else scene.depths[target].reshape(-1)[pix].to(rgb.dtype)
+    return Batch(ps.sources(source_ids), ray_batch, rgb, target, source_ids, depth)
 
 
 def val_views(ps: PreparedScene, count: int, num_views: int) -> list[tuple[int, list[int]]]:

@@ -29,16 +29,20 @@ class Sources:
     """Far z-depth bound of the scene."""
     rig: str = "unknown"
     """``"forward"`` (forward-facing: models may sample in inverse depth), ``"object"`` or ``"unknown"``."""
+    bounds: Tensor | None = None
+    """Axis-aligned box holding the content, ``[min, max]`` (Omni-Recon's feature volume). ``# [2, 3]``"""
 
     def to(self, device) -> Sources:
-        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig)
+        bounds = None if self.bounds is None else self.bounds.to(device)
+        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig, bounds)
 
     @staticmethod
     def from_scene(scene, indices) -> Sources:
-        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far span the scene."""
+        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far and bounds span the scene."""
         idx = torch.as_tensor(list(indices), dtype=torch.long)
         return Sources(scene.images[idx], scene.cameras[idx].to(dtype=scene.images.dtype),
-                       float(scene.near.min()), float(scene.far.max()), scene.rig)
+                       float(scene.near.min()), float(scene.far.max()), scene.rig,
+                       scene.bounds.to(dtype=scene.images.dtype))
 
 
 @dataclass

@@ -8,12 +8,13 @@ from omnirecon.errors import InputError
 
 
 def _families():
-    from omnirecon.models import floor, gpnr, ibrnet
+    from omnirecon.models import floor, gpnr, ibrnet, omnirecon
 
     return {
         "gpnr": (gpnr.GPNR, gpnr.GPNRConfig, gpnr.PRESETS),
         "ibrnet": (ibrnet.IBRNet, ibrnet.IBRNetConfig, ibrnet.PRESETS),
         "floor": (floor.PlaneSweep, floor.PlaneSweepConfig, floor.PRESETS),
+        "omnirecon": (omnirecon.OmniRecon, omnirecon.OmniReconConfig, omnirecon.PRESETS),
     }
 
 

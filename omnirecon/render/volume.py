@@ -40,9 +40,32 @@ def alpha_from_density(sigma: Tensor, t: Tensor | None = None) -> Tensor:
     return 1.0 - torch.exp(-sigma * delta)
 
 
-def weights_from_alpha(alpha: Tensor) -> tuple[Tensor, Tensor]:
-    """Compositing weights ``w_i = alpha_i prod_{j<i} (1 - alpha_j)`` and transmittance. ``# [R, S]`` each."""
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1] + 1e-10], -1), -1)
+def sample_intervals(t: Tensor) -> Tensor:
+    """Interval of each sample: the mean of its two neighbouring spacings, end spacings replicated. ``# [R, S]``"""
+    gaps = t[..., 1:] - t[..., :-1]  # [R, S-1]
+    gaps = torch.cat([gaps[..., :1], gaps, gaps[..., -1:]], -1)  # [R, S+1]
+    return 0.5 * (gaps[..., 1:] + gaps[..., :-1])
+
+
+def alpha_from_sdf(sdf: Tensor, t: Tensor, sharpness: Tensor | float) -> Tensor:
+    """NeuS-style opacity of signed ray distances (VolRecon's variant, the slope fixed to -1). ``# [R, S]``
+
+    ``sdf # [R, S]`` is positive in front of the surface and negative behind it, sampled at ray
+    distances ``t # [R, S]`` (increasing). With ``Phi(x) = sigmoid(sharpness * x)`` and the interval
+    ``delta`` of :func:`sample_intervals`, the SDF at the two ends of the sample's section is
+    ``s +- delta / 2`` and ``alpha = clip((Phi(s + delta/2) - Phi(s - delta/2) + 1e-5) / (Phi(s + delta/2) + 1e-5), 0, 1)``:
+    the fraction of the remaining "outside" mass lost across the section. A ray crossing
+    ``sdf = t0 - t`` gets its weight peak at ``t0``.
+    """
+    half = 0.5 * sample_intervals(t)
+    prev = torch.sigmoid((sdf + half) * sharpness)
+    nxt = torch.sigmoid((sdf - half) * sharpness)
+    return ((prev - nxt + 1e-5) / (prev + 1e-5)).clamp(0.0, 1.0)
+
+
+def weights_from_alpha(alpha: Tensor, eps: float = 1e-10) -> tuple[Tensor, Tensor]:
+    """Compositing weights ``w_i = alpha_i prod_{j<i} (1 - alpha_j + eps)`` and transmittance. ``# [R, S]`` each."""
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1] + eps], -1), -1)
     return alpha * trans, trans
 
 
