@@ -282,14 +282,25 @@ def evaluate_mesh(mesh: trimesh.Trimesh, scene, held_out, objects_only: bool = F
     return out
 
 
+def rendered_depth_errors(scene, cameras: Cameras, depths) -> dict:
+    """:func:`depth_errors` of a model's depth maps ``# [N, H, W]`` at ``cameras`` against the exact
+    mesh of a procedural scene rasterised there (ground included); ``{}`` without a mesh."""
+    gt_mesh = ground_truth_mesh(scene)
+    if gt_mesh is None:
+        return {}
+    gt = np.stack([mesh_depth(gt_mesh, cameras[i]) for i in range(len(cameras))])
+    return {"rendered_depth": depth_errors(np.asarray(depths, dtype=np.float64), gt)}
+
+
 def in_input_units(metrics: dict, scale: float) -> dict:
     """A copy of :func:`evaluate_mesh`'s result with lengths multiplied by ``scale`` (``Scene.scale_to_input``)."""
     out = {**metrics, "units": "input", "scale_to_input": scale}
     for k in ("diagonal", "threshold", "max_dist"):
         if k in out:
             out[k] = out[k] * scale
-    if "depth" in out:
-        out["depth"] = {**out["depth"], "rmse": out["depth"]["rmse"] * scale}
+    for k in ("depth", "rendered_depth"):
+        if k in out:
+            out[k] = {**out[k], "rmse": out[k]["rmse"] * scale}
     if "chamfer" in out:
         out["chamfer"] = {k: (v * scale if k in ("accuracy", "completeness", "chamfer", "threshold", "max_dist") else v)
                           for k, v in out["chamfer"].items()}

@@ -65,8 +65,8 @@ class MeshConfig:
     """Clean with the source views' object masks when the scene has them."""
     min_views: int = 2
     """Keep vertices inside the masks of at least this many source views."""
-    min_component: float = 0.01
-    """Drop connected components smaller than this fraction of the largest."""
+    min_component: float = 0.001
+    """Drop connected components smaller than this fraction of the largest (by faces)."""
     cull_hidden: bool = True
     """Drop faces no source pixel ray (inside the masks) hits first."""
     metrics: bool = True
@@ -152,7 +152,8 @@ def run_mesh(cfg: MeshConfig) -> dict:
     columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
     with Progress(*columns, transient=False) as bar:
-        mesh, record = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+    mesh, record = made.mesh, made.info
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
                          "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
@@ -169,6 +170,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
         start = time.perf_counter()
         held = held_out_views(scene, views)
         scored = geometry.evaluate_mesh(mesh, scene, held, objects_only=record["masks"])
+        scored.update(geometry.rendered_depth_errors(scene, made.cameras, made.depths))
         record["metrics"] = geometry.in_input_units(scored, scene.scale_to_input)
         record["seconds"]["metrics"] = time.perf_counter() - start
         write_json(Path(f"{stem}_metrics.json"), record)
@@ -190,10 +192,11 @@ def summary_lines(record: dict) -> list[str]:
     m = record.get("metrics", {})
     if "mask_iou" in m:
         lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
-    if "depth" in m:
-        d = m["depth"]
-        lines.append(f"held-out depth: abs rel {d['abs_rel']:.3f}, RMSE {d['rmse']:.4g}, delta<1.25 {d['delta1']:.3f}, "
-                     f"coverage {d['coverage']:.2f}")
+    for key, what in (("rendered_depth", "model depth maps vs GT mesh"), ("depth", "mesh depth at held-out views")):
+        if key in m:
+            d = m[key]
+            lines.append(f"{what}: abs rel {d['abs_rel']:.3f}, RMSE {d['rmse']:.4g}, delta<1.25 {d['delta1']:.3f}, "
+                         f"coverage {d['coverage']:.2f}")
     if "chamfer" in m:
         c = m["chamfer"]
         lines.append(f"Chamfer {c['chamfer']:.4g} (accuracy {c['accuracy']:.4g}, "

@@ -161,6 +161,7 @@ def test_mesh_cli_floor(synth_scene, tmp_path, capsys):
     m = record["metrics"]
     assert m["units"] == "input" and m["held_out"] == [14, 15]
     assert 0 < m["mask_iou"]["mean"] <= 1 and 0 <= m["chamfer"]["fscore"] <= 1 and "abs_rel" in m["depth"]
+    assert m["rendered_depth"]["coverage"] > 0.5  # the floor's depth maps against the exact mesh
     assert len(trimesh.load(out, process=False).vertices) == record["vertices"] > 0
     assert "silhouette IoU" in cap.out and "Chamfer" in cap.out
 
