@@ -38,7 +38,8 @@ class Sources:
 
     @staticmethod
     def from_scene(scene, indices) -> Sources:
-        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far and bounds span the scene."""
+        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far and bounds span
+        the scene."""
         idx = torch.as_tensor(list(indices), dtype=torch.long)
         return Sources(scene.images[idx], scene.cameras[idx].to(dtype=scene.images.dtype),
                        float(scene.near.min()), float(scene.far.max()), scene.rig,

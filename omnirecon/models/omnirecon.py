@@ -41,8 +41,11 @@ Departures (documented choices, each a config field where it matters):
 * **Validity** of a sample is "in front of the camera and inside the image", with our pixel-centre
   convention (``align_corners=False`` everywhere, so no half-pixel shift); a ray is valid with more
   than ``min(8, S/4)`` samples seen by ``min(3, K)`` views (the reference: 3 of its 4 views).
-* **Views no sample sees** get the reference's ``-1e9`` logits (so an all-invalid sample blends
-  uniformly); source colours are sampled with border padding.
+* **Views that do not see a sample** get the reference's ``-1e9`` logits in both the appearance
+  softmax and the subtraction attention (so a sample no view sees blends all views uniformly);
+  source colours are sampled with border padding.
+* **Training defaults** (``omnirecon train``): §11.2's 256 rays and Adam 5e-4 (the reference: 1024
+  rays, 1e-3) and ``--depth-weight 0.1`` on the L1 depth terms (the reference weighs them 1).
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 """
@@ -58,6 +61,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
 from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.models.gpnr import fourier
 from omnirecon.render.volume import alpha_from_sdf, composite, sample_along_rays, sample_pdf, weights_from_alpha
 
 
@@ -230,13 +234,6 @@ class VolumeDecoder(nn.Module):
 
 
 # ---------------------------------------------------------------------- geometry branch (§3)
-def positional_encoding(x: Tensor, freqs: int) -> Tensor:
-    """``[x, sin(2^l x), cos(2^l x)]`` for ``l < freqs`` (no pi). ``# [..., 3] -> [..., 3 (1 + 2 freqs)]``"""
-    scales = 2.0 ** torch.arange(freqs, dtype=x.dtype, device=x.device)
-    xs = (x[..., None, :] * scales[:, None]).flatten(-2)
-    return torch.cat([x, torch.sin(xs), torch.cos(xs)], -1)
-
-
 class SubtractionAttention(nn.Module):
     """GNT's view transformer attention (§3.3): per-channel softmax over views of ``MLP_a(k'_i - q' + p_i)``.
 
@@ -322,7 +319,7 @@ class GeometryBranch(nn.Module):
         views = torch.cat([feat, vol[:, :, None].expand(-1, -1, feat.shape[2], -1)], -1)  # [R, S, K, D]
         h = views.amax(2)  # [R, S, D]
         tokens = self.tokens(vol)
-        pe = positional_encoding(points, self.cfg.pe_freqs)
+        pe = fourier(points, self.cfg.pe_freqs)  # gamma(x): identity + sin/cos at 2^0..2^(L-1), no pi
         S = h.shape[1]
         causal = torch.ones(S, S, dtype=torch.bool, device=h.device).triu(1) if self.cfg.causal else None
         for block in self.blocks:
@@ -418,7 +415,7 @@ class OmniRecon(GeneralizableModel):
         feat = feat.reshape(K, -1, R, S).permute(2, 3, 0, 1) * mask[..., None]  # [R, S, K, C]
         rgb = rgb.reshape(K, 3, R, S).permute(2, 3, 0, 1)  # [R, S, K, 3]
         u = F.normalize(points - origins[:, None], dim=-1)[:, :, None]  # target -> point  [R, S, 1, 3]
-        u_src = F.normalize(points[:, :, None] - cams.centers.to(points.dtype), dim=-1)  # sources -> point  [R, S, K, 3]
+        u_src = F.normalize(points[:, :, None] - cams.centers.to(points.dtype), dim=-1)  # sources -> point [R, S, K, 3]
         dirs = torch.cat([u - u_src, (u * u_src).sum(-1, keepdim=True)], -1)
         return PointSamples(points, feat, rgb, mask, dirs)
 
@@ -435,7 +432,8 @@ class OmniRecon(GeneralizableModel):
 
     def shade(self, features: OmniReconFeatures, points: Tensor, origins: Tensor) -> dict[str, Tensor]:
         """Colour surface ``points # [P, 3]`` seen from ``origins # [P, 3]`` with the appearance branch only
-        (§7: one point per pixel, no geometry branch). Returns ``rgb # [P, 3]``, ``blend # [P, K]``, ``valid # [P]``."""
+        (§7: one point per pixel, no geometry branch). Returns ``rgb # [P, 3]``, ``blend # [P, K]`` and
+        ``valid # [P]`` (some view sees the point)."""
         samples = self.gather(features, points[:, None], origins)
         omega = self.blend_weights(samples)  # [P, 1, K]
         rgb = (omega[..., None] * samples.rgb).sum(-2)[:, 0]

@@ -53,9 +53,10 @@ def alpha_from_sdf(sdf: Tensor, t: Tensor, sharpness: Tensor | float) -> Tensor:
     ``sdf # [R, S]`` is positive in front of the surface and negative behind it, sampled at ray
     distances ``t # [R, S]`` (increasing). With ``Phi(x) = sigmoid(sharpness * x)`` and the interval
     ``delta`` of :func:`sample_intervals`, the SDF at the two ends of the sample's section is
-    ``s +- delta / 2`` and ``alpha = clip((Phi(s + delta/2) - Phi(s - delta/2) + 1e-5) / (Phi(s + delta/2) + 1e-5), 0, 1)``:
+    ``s +- delta / 2`` and
+    ``alpha = clip((Phi(s + delta/2) - Phi(s - delta/2) + 1e-5) / (Phi(s + delta/2) + 1e-5), 0, 1)``:
     the fraction of the remaining "outside" mass lost across the section. A ray crossing
-    ``sdf = t0 - t`` gets its weight peak at ``t0``.
+    ``sdf = t0 - t`` gets its weight peak at ``t0``. Use ``weights_from_alpha(alpha, eps=1e-7)`` as the reference.
     """
     half = 0.5 * sample_intervals(t)
     prev = torch.sigmoid((sdf + half) * sharpness)
