@@ -158,6 +158,8 @@ def run_mesh(cfg: MeshConfig) -> dict:
         raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
                          "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
     record["seconds"]["load"] = load_seconds
+    record["seconds"]["images_to_mesh"] = sum(record["seconds"][k] for k in ("load", "render", "fuse",
+                                                                               "marching_cubes", "clean"))
     record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
                    "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
     files = export_mesh(to_input_frame(mesh, scene.to_input), outs)
@@ -175,8 +177,6 @@ def run_mesh(cfg: MeshConfig) -> dict:
         record["seconds"]["metrics"] = time.perf_counter() - start
         write_json(Path(f"{stem}_metrics.json"), record)
         files.append(Path(f"{stem}_metrics.json"))
-    record["seconds"]["images_to_mesh"] = sum(record["seconds"][k] for k in ("load", "render", "fuse",
-                                                                               "marching_cubes", "clean"))
     record["files"] = [str(p) for p in files]
     return record
 

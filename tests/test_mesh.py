@@ -158,6 +158,7 @@ def test_mesh_cli_floor(synth_scene, tmp_path, capsys):
     assert out.is_file() and (tmp_path / "floor.glb").is_file() and (tmp_path / "floor_preview.png").is_file()
     record = json.loads((tmp_path / "floor_metrics.json").read_text())
     assert record["views"] == [0, 6, 11] and record["depth_maps"] == 3 and record["masks"]
+    assert record["seconds"]["images_to_mesh"] >= record["seconds"]["render"] > 0
     m = record["metrics"]
     assert m["units"] == "input" and m["held_out"] == [14, 15]
     assert 0 < m["mask_iou"]["mean"] <= 1 and 0 <= m["chamfer"]["fscore"] <= 1 and "abs_rel" in m["depth"]
