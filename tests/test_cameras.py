@@ -215,3 +215,15 @@ def test_scene_normalized_round_trip():
     assert torch.allclose(scene.cameras.project(p).uv, norm.cameras.project(p_norm).uv, atol=1e-9)
     assert torch.allclose(norm.points_to_input(p_norm), p, atol=1e-9)
     check_poses(norm.cameras.c2w)
+
+
+def test_atomic_writes_get_normal_permissions(tmp_path):
+    import os
+
+    from omnirecon.data.io import write_json
+
+    write_json(tmp_path / "a.json", {"x": 1})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "a.json").stat().st_mode & 0o777 == 0o666 & ~umask
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
