@@ -69,6 +69,19 @@ def test_outputs_and_shapes():
     assert out0["weights"].shape == (R, 8) and out0["rgb_coarse"] is out0["rgb"]
 
 
+def test_batchnorm_normalises_each_scene_alike_in_train_and_eval():
+    """``bn_running_stats=False``: eval mode uses the scene's own statistics, as training does."""
+    model, src, rays, _ = setup(small_cfg())
+    a = model.eval().render_rays(model.encode(src), rays)
+    b = model.train().render_rays(model.encode(src), rays)
+    assert torch.allclose(a["rgb"], b["rgb"], atol=1e-12) and torch.allclose(a["depth"], b["depth"], atol=1e-12)
+    assert not any("running" in k for k in model.state_dict())
+    ref = OmniRecon(small_cfg(bn_running_stats=True)).double()
+    assert any("running_mean" in k for k in ref.state_dict())
+    with pytest.raises(ValueError, match="volume_resolution"):
+        OmniRecon(small_cfg(volume_resolution=4))
+
+
 def test_volume_box_modes():
     model, src, _, _ = setup(small_cfg(volume_margin=0.1))
     box = model.encode(src).box

@@ -46,6 +46,12 @@ Departures (documented choices, each a config field where it matters):
   source colours are sampled with border padding.
 * **Training defaults** (``omnirecon train``): §11.2's 256 rays and Adam 5e-4 (the reference: 1024
   rays, 1e-3) and ``--depth-weight 0.1`` on the L1 depth terms (the reference weighs them 1).
+* **BatchNorm without running averages** (``bn_running_stats=False``, both presets): every BN
+  layer normalises with the current batch in eval mode too. A batch is one scene (its K source
+  views in the 2-D encoder, its one volume in the 3-D decoder), so running averages mix scenes:
+  in eval mode they shifted scenes whose colours differ from the training mean (tiny preset after
+  15 CPU-minutes: held-out procedural seed 900000, median depth error 0.16 -> 0.016 and PSNR
+  11.8 -> 15.3 dB with batch statistics).
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 """
@@ -82,7 +88,7 @@ class OmniReconConfig:
     pyramid_channels: tuple[int, int, int] = (16, 16, 24)
     """Channels of the pyramid maps p1, p2, p3; the volume levels get twice as many (mean ‖ variance)."""
     volume_resolution: int = 144
-    """Finest lattice side N (the others are N/2 and N/4; a multiple of 4)."""
+    """Finest lattice side N (the others are N/2 and N/4; a multiple of 4, at least 8)."""
     volume_bounds: Literal["unit", "scene"] = "unit"
     """Volume box: ``[-1, 1]^3`` (reference) or the sources' content box plus ``volume_margin``
     (``unit`` when the sources carry no bounds)."""
@@ -108,6 +114,9 @@ class OmniReconConfig:
     """A sample counts towards ray validity when at least min(this, K) views see it."""
     valid_samples: int = 8
     """A ray is valid when more than min(this, S/4) of its samples are seen by enough views."""
+    bn_running_stats: bool = False
+    """BatchNorm keeps running averages for eval mode (the reference). False: it always normalises with
+    the current batch (one scene's K source views; its one volume), so training and test agree."""
 
     @property
     def volume_dim(self) -> int:
@@ -129,18 +138,19 @@ PRESETS = {
 
 
 # ---------------------------------------------------------------------- 2-D encoder (§2.1)
-def _conv_bn(cin: int, cout: int, stride: int, relu: bool) -> nn.Sequential:
-    layers: list[nn.Module] = [nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout)]
+def _conv_bn(cin: int, cout: int, stride: int, relu: bool, running: bool) -> nn.Sequential:
+    layers: list[nn.Module] = [nn.Conv2d(cin, cout, 3, stride, 1, bias=False),
+                               nn.BatchNorm2d(cout, track_running_stats=running)]
     return nn.Sequential(*layers, nn.ReLU()) if relu else nn.Sequential(*layers)
 
 
 class ResBlock(nn.Module):
     """ConvBnReLU(3x3, stride) -> ConvBn(3x3) plus a shortcut (strided ConvBn when the shape changes), ReLU."""
 
-    def __init__(self, cin: int, cout: int, stride: int):
+    def __init__(self, cin: int, cout: int, stride: int, running: bool):
         super().__init__()
-        self.body = nn.Sequential(_conv_bn(cin, cout, stride, True), _conv_bn(cout, cout, 1, False))
-        self.skip = None if stride == 1 and cin == cout else _conv_bn(cin, cout, stride, False)
+        self.body = nn.Sequential(_conv_bn(cin, cout, stride, True, running), _conv_bn(cout, cout, 1, False, running))
+        self.skip = None if stride == 1 and cin == cout else _conv_bn(cin, cout, stride, False, running)
 
     def forward(self, x: Tensor) -> Tensor:
         return F.relu(self.body(x) + (x if self.skip is None else self.skip(x)))
@@ -152,10 +162,11 @@ class FPNEncoder(nn.Module):
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
         c0, c1, c2, c3 = cfg.cnn_channels
-        self.stem = _conv_bn(3, c0, 1, True)
-        self.layer1 = nn.Sequential(ResBlock(c0, c1, 2), ResBlock(c1, c1, 1))
-        self.layer2 = nn.Sequential(ResBlock(c1, c2, 2), ResBlock(c2, c2, 1))
-        self.layer3 = nn.Sequential(ResBlock(c2, c3, 2), ResBlock(c3, c3, 1))
+        run = cfg.bn_running_stats
+        self.stem = _conv_bn(3, c0, 1, True, run)
+        self.layer1 = nn.Sequential(ResBlock(c0, c1, 2, run), ResBlock(c1, c1, 1, run))
+        self.layer2 = nn.Sequential(ResBlock(c1, c2, 2, run), ResBlock(c2, c2, 1, run))
+        self.layer3 = nn.Sequential(ResBlock(c2, c3, 2, run), ResBlock(c3, c3, 1, run))
         self.lateral = nn.Conv2d(c2, c3, 1)
         self.out = nn.Conv2d(c3, cfg.feature_dim, 3, padding=1)
         p1, p2, p3 = cfg.pyramid_channels
@@ -207,13 +218,14 @@ def mean_var_volume(maps: Tensor, cameras: Cameras, points: Tensor, res: int) ->
     return torch.cat([mean, var], 0).reshape(1, -1, res, res, res)
 
 
-def _cbr3(cin: int, cout: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm3d(cout), nn.ReLU())
+def _cbr3(cin: int, cout: int, running: bool) -> nn.Sequential:
+    return nn.Sequential(nn.Conv3d(cin, cout, 3, padding=1, bias=False),
+                         nn.BatchNorm3d(cout, track_running_stats=running), nn.ReLU())
 
 
-def _tcbr3(cin: int, cout: int) -> nn.Sequential:
+def _tcbr3(cin: int, cout: int, running: bool) -> nn.Sequential:
     return nn.Sequential(nn.ConvTranspose3d(cin, cout, 3, stride=2, padding=1, output_padding=1, bias=False),
-                         nn.BatchNorm3d(cout), nn.ReLU())
+                         nn.BatchNorm3d(cout, track_running_stats=running), nn.ReLU())
 
 
 class VolumeDecoder(nn.Module):
@@ -222,9 +234,10 @@ class VolumeDecoder(nn.Module):
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
         c0, c1, c2 = (2 * c for c in cfg.pyramid_channels)
-        self.a2, self.up1 = _cbr3(c2, c2), nn.Sequential(_cbr3(c2, c2), _tcbr3(c2, c1))
-        self.a1, self.up0 = _cbr3(c1, c1), nn.Sequential(_cbr3(c1, c1), _tcbr3(c1, c0))
-        self.a0, self.out = _cbr3(c0, c0), nn.Conv3d(c0, c0, 3, padding=1)
+        run = cfg.bn_running_stats
+        self.a2, self.up1 = _cbr3(c2, c2, run), nn.Sequential(_cbr3(c2, c2, run), _tcbr3(c2, c1, run))
+        self.a1, self.up0 = _cbr3(c1, c1, run), nn.Sequential(_cbr3(c1, c1, run), _tcbr3(c1, c0, run))
+        self.a0, self.out = _cbr3(c0, c0, run), nn.Conv3d(c0, c0, 3, padding=1)
 
     def forward(self, levels: list[Tensor]) -> Tensor:
         l0, l1, l2 = levels
@@ -376,8 +389,8 @@ class PointSamples(NamedTuple):
 class OmniRecon(GeneralizableModel):
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
-        if cfg.volume_resolution % 4 or cfg.volume_resolution < 4:
-            raise ValueError(f"volume_resolution must be a positive multiple of 4, got {cfg.volume_resolution}")
+        if cfg.volume_resolution % 4 or cfg.volume_resolution < 8:
+            raise ValueError(f"volume_resolution must be a multiple of 4, at least 8, got {cfg.volume_resolution}")
         self.cfg = cfg
         self.encoder = FPNEncoder(cfg)
         self.volume = VolumeDecoder(cfg)
