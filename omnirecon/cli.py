@@ -17,7 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
     "eval": ("omnirecon.eval:EvalConfig", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
     "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
-    "train": ("omnirecon.train:TrainConfig", "Train GPNR or IBRNet on procedural and real scenes (torchrun for DDP)."),
+    "train": ("omnirecon.train:TrainConfig", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
     "mesh": ("omnirecon.mesh_cli:MeshConfig", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
 }
 

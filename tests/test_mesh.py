@@ -23,15 +23,6 @@ from omnirecon.render.mesh import (MeshOptions, clean_mesh, export_mesh, extract
 TINY_IBRNET = {"coarse_samples": 8, "fine_samples": 4, "channels": [8, 8, 16], "feature_dim": 8}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Fusion runs many small tensor ops: on a shared 2-core machine 2 threads ran it 25x slower than 1."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.fixture(scope="module")
 def synth_scene(tmp_path_factory) -> Path:
     """A 40 x 40 procedural scene of 16 views, loaded as 12 train views (0-11), val 12-13, test 14-15."""

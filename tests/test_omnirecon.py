@@ -15,15 +15,6 @@ SMALL = dict(coarse_samples=8, fine_samples=4, cnn_channels=(4, 8, 8, 8), featur
              volume_resolution=8, heads=2, ffn_mult=2, pe_freqs=4)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """These models are small: one thread is as fast, and much faster than two on a shared machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def small_cfg(**kw) -> OmniReconConfig:
     return OmniReconConfig(**{**PRESETS["omnirecon-tiny"].__dict__, **SMALL, **kw})
 
