@@ -1,6 +1,6 @@
 """Novel-view quality of the shipped tiny checkpoints and the non-learned floor.
 
-    python bench/quality.py                         # floor, gpnr-tiny, ibrnet-tiny on every evaluation scene
+    python bench/quality.py                         # floor and the shipped tiny checkpoints, every evaluation scene
     python bench/quality.py --models floor --tiny   # a fast subset (tests)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+) and the real scenes dtu_scan24,
@@ -51,7 +51,7 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--models", nargs="+", default=["floor", "gpnr-tiny", "ibrnet-tiny"])
+    p.add_argument("--models", nargs="+", default=["floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny"])
     p.add_argument("--tiny", action="store_true", help="one procedural scene, one target, K=3 (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")

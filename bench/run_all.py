@@ -19,6 +19,7 @@ ROOT = HERE.parent
 
 
 def run_benchmarks(results: Path, tiny: bool) -> None:
+    import geometry
     import quality
     import synth_speed
     import throughput
@@ -26,8 +27,10 @@ def run_benchmarks(results: Path, tiny: bool) -> None:
     args = ["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []
     synth_speed.main([*args, "--out", str(results / "synth_speed.json")])
     throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")])
-    models = ["floor"] + [m for m in ("gpnr-tiny", "ibrnet-tiny") if (ROOT / "checkpoints" / m).is_dir()]
+    models = ["floor"] + [m for m in QUALITY_MODELS[1:] if (ROOT / "checkpoints" / m).is_dir()]
     quality.main(["--models", *(["floor"] if tiny else models), *(["--tiny"] if tiny else []), "--out", str(results)])
+    models = ["floor"] + [m for m in ("ibrnet-tiny", "omnirecon-tiny") if (ROOT / "checkpoints" / m).is_dir()]
+    geometry.main(["--models", *(["floor"] if tiny else models), *(["--tiny"] if tiny else []), "--out", str(results)])
 
 
 def _prov(p: dict) -> str:
@@ -76,7 +79,8 @@ def section_throughput(r: dict) -> str:
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
 
-QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny")
+QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
+GEOMETRY_MODELS = ("floor", "ibrnet-tiny", "omnirecon-tiny")
 
 
 def _scene_rows(r: dict) -> dict[str, dict[str, dict]]:
@@ -178,6 +182,87 @@ def section_training() -> str | None:
     return "\n".join(out)
 
 
+def _f(v, digits: int = 4) -> str:
+    return "–" if v is None or v != v else f"{v:.{digits}f}"
+
+
+def section_geometry(results: Path) -> str | None:
+    data = {m: json.loads((results / f"geometry_{m}.json").read_text()) for m in GEOMETRY_MODELS
+            if (results / f"geometry_{m}.json").is_file()}
+    if not data:
+        return None
+    first = next(iter(data.values()))
+    n_synth = len(first["synth"]["scenes"])
+    out = ["## Geometry from 3 source views (`bench/geometry.py`)", "",
+           "`omnirecon eval --geometry`, K = 3, `full` protocols (128-px long side). A mesh per scene by `omnirecon "
+           "mesh`'s protocol (z-depth at the 3 virtually shifted source views, TSDF at 1/256 of the bounds diagonal, "
+           "marching cubes, mask + visibility cleaning). Procedural: Chamfer distance (mean of accuracy and "
+           "completeness, DTU-style sampling, outliers capped) against the exact mesh's observed object surface; "
+           "`Chamfer / extent` divides by the diagonal of that surface's bounding box; F-score at 1 % of the bounds "
+           f"diagonal; silhouette IoU on {first.get('synth_targets', 2)} held-out views per scene. Seconds: images "
+           "to mesh (encode, render depth, fuse, marching cubes, clean) on this CPU, 1 thread.", "",
+           f"**Held-out procedural scenes** (mean of {n_synth}; lengths in the generator's units):", "",
+           "| model | Chamfer | accuracy | completeness | Chamfer / extent | F-score | silhouette IoU | "
+           f"depth abs rel (targets) | images -> mesh (s) | PSNR ({first.get('synth_targets', 2)} targets) |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    means = {m: r["synth"]["means"].get("synth", {}).get("3", {}) for m, r in data.items()}
+    for m, mean in means.items():
+        g = mean.get("geometry", {})
+        out.append(f"| {m} | {_f(g.get('chamfer'))} | {_f(g.get('accuracy'))} | {_f(g.get('completeness'))} | "
+                   f"{_f(100 * g['chamfer_rel'], 2) + ' %' if 'chamfer_rel' in g else '–'} | {_f(g.get('fscore'), 3)} | "
+                   f"{_f(g.get('mask_iou'), 3)} | {_f(mean.get('depth_abs_rel'))} | {_f(g.get('seconds'), 1)} | "
+                   f"{_f(mean.get('psnr'), 2)} |")
+    names = [s["name"] for s in first["synth"]["scenes"]]
+    per = {m: {s["name"]: s["settings"].get("3", {}).get("geometry", {}) for s in r["synth"]["scenes"]}
+           for m, r in data.items()}
+    out += ["", "Per scene, Chamfer / extent (%):", "", "| scene | " + " | ".join(data) + " |",
+            "|---|" + "---|" * len(data)]
+    for n in names:
+        out.append(f"| {n} | " + " | ".join(_f(100 * per[m].get(n, {}).get("chamfer_rel", float("nan")), 2)
+                                             for m in data) + " |")
+    goals = []
+    if "omnirecon-tiny" in means and "ibrnet-tiny" in means:
+        o, i = means["omnirecon-tiny"].get("geometry", {}), means["ibrnet-tiny"].get("geometry", {})
+        if o.get("chamfer") and i.get("chamfer"):
+            ratio = o["chamfer"] / i["chamfer"]
+            goals.append(f"- Goal omnirecon-tiny Chamfer <= 0.7 x the IBRNet-density mesh's: measured "
+                         f"{ratio:.2f} x ({'met' if ratio <= 0.7 else 'not met'}).")
+            wins = sum(per["omnirecon-tiny"].get(n, {}).get("chamfer", 1e9) < per["ibrnet-tiny"].get(n, {}).get(
+                "chamfer", 1e9) for n in names)
+            goals.append(f"- omnirecon-tiny has the lower Chamfer on {wins} of {len(names)} scenes.")
+    for m, mean in means.items():
+        g = mean.get("geometry", {})
+        if "chamfer_rel" in g:
+            goals.append(f"- Goal Chamfer <= 1 % of the extent, {m}: {100 * g['chamfer_rel']:.2f} % "
+                         f"({'met' if g['chamfer_rel'] <= 0.01 else 'not met'}).")
+    out += ["", *goals]
+    dtu_models = [m for m, r in data.items() if r.get("dtu")]
+    if dtu_models:
+        out += ["", "**DTU, sources 23 24 33** (8 held-out targets: PSNR and the mesh silhouette's IoU against their "
+                "masks; no DTU ground-truth point cloud here):", "",
+                "| scene | model | PSNR | PSNR masked | silhouette IoU | images -> mesh (s) | mesh faces | picture |",
+                "|---|---|---|---|---|---|---|---|"]
+        for s_name in [s["name"] for s in data[dtu_models[0]]["dtu"]["scenes"]]:
+            for m in dtu_models:
+                s = next(x for x in data[m]["dtu"]["scenes"] if x["name"] == s_name)
+                st = s["settings"].get("3", {})
+                g, mean = st.get("geometry", {}), st.get("mean", {})
+                pic = data[m].get("pictures", {}).get(s_name)
+                out.append(f"| {s_name} | {m} | {_f(mean.get('psnr'), 2)} | {_f(mean.get('psnr_masked'), 2)} | "
+                           f"{_f(g.get('mask_iou'), 3)} | {_f(g.get('seconds'), 1)} | {g.get('faces', '–')} | "
+                           + (f"[mesh](bench/results/{pic})" if pic else "–") + " |")
+        pics = [(m, n, p) for m in dtu_models for n, p in data[m].get("pictures", {}).items()]
+        if pics:
+            out += ["", " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" in n), "",
+                    " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" not in n),
+                    "", "Pictures: the meshes seen from source view 23 (flat shading), left to right: "
+                    + ", ".join(dtu_models) + "."]
+    out.append("")
+    for m, r in data.items():
+        out += [f"{m}: " + _prov(r["synth"]["provenance"]), ""]
+    return "\n".join(out)
+
+
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
             "ablation_gpnr.json": section_ablation}
 
@@ -195,7 +280,7 @@ def write_page(results: Path, out: Path) -> str:
             parts += [render(json.loads(f.read_text())), ""]
         else:
             parts += [f"*{name}: not measured yet (run `python bench/run_all.py`).*", ""]
-    for text in (section_training(), section_quality(results)):
+    for text in (section_training(), section_quality(results), section_geometry(results)):
         if text:
             parts += [text, ""]
     text = "\n".join(parts)

@@ -26,7 +26,8 @@ from omnirecon.provenance import provenance
 
 # (preset, rays per training step, image side for rendering, rays rendered for paper presets)
 CASES = [("floor", 4096, 64, None), ("gpnr-tiny", 256, 64, None), ("ibrnet-tiny", 512, 64, None),
-         ("gpnr-paper", 4, 64, 16), ("ibrnet-paper", 32, 64, 256)]
+         ("omnirecon-tiny", 256, 64, None), ("gpnr-paper", 4, 64, 16), ("ibrnet-paper", 32, 64, 256),
+         ("omnirecon-paper", 32, 64, 256)]
 """Paper presets cost ~16 GFLOP (GPNR) per ray forward: a CPU times them on a handful of rays."""
 
 
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "throughput.json")
     args = parser.parse_args(argv)
-    cases = [(p, min(r, 64), 16, x) for p, r, _, x in CASES[:3]] if args.quick else CASES
+    cases = [(p, min(r, 64), 16, x) for p, r, _, x in CASES[:4]] if args.quick else CASES
     repeats = 1 if args.quick else args.repeats
     rows = []
     for preset, rays, side, render_rays in cases:

@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
     "train": ("omnirecon.train:TrainConfig", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
     "mesh": ("omnirecon.mesh_cli:MeshConfig", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
+    "doctor": ("omnirecon.doctor:DoctorConfig", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
 }
 
 

@@ -33,7 +33,9 @@ from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.geometry import depth_errors
 from omnirecon.models.base import Sources
+from omnirecon.render.mesh import depth_from_outputs
 from omnirecon.splits import EVAL_SEEDS
 
 SYNTH_PREFIX = "synth:eval"
@@ -329,6 +331,7 @@ def evaluate(
     progress: bool = True,
     seed: int = 0,
     protocol_set: str = "full",
+    geometry: bool = False,
 ) -> dict:
     """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
 
@@ -347,6 +350,11 @@ def evaluate(
         progress: Show a progress bar with ETA.
         seed: Seeds torch before rendering (models are deterministic at test time; recorded).
         protocol_set: ``"full"`` (the published protocols) or ``"cpu"`` (64 px, fewer targets).
+        geometry: Also mesh each (scene, K) with :func:`geometry_sources` as the sources
+            (``omnirecon mesh``'s protocol) and score the mesh on the targets: Chamfer / F-score
+            against a procedural scene's exact mesh, silhouette IoU against the targets' masks.
+            Per-target depth errors are reported whenever the model renders depth and the scene
+            has ground-truth depth, with or without this flag.
 
     Returns:
         ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
@@ -378,10 +386,13 @@ def evaluate(
         task = bar.add_task("eval", total=total)
         for job in jobs:
             _run_job(model, job, chunk, device, out if save_images else None, bar, task)
+            if geometry:
+                _mesh_job(model, job, chunk, device, out)
     result = eval_report.collect(results, jobs, ks, {
         "provenance": provenance(seed=seed, chunk=chunk, eval_device=device),
         "model": model_info or {"name": type(model).__name__},
         "protocol_set": protocol_set,
+        "geometry": geometry,
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
         "unavailable": {k: r for k, r in (("st_lpips_alex", metrics.unavailable("st_lpips")),
@@ -432,6 +443,10 @@ def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, t
         gt = scene.images[t]
         mask = scene.masks[t] if es.protocol.masked and scene.masks is not None else None
         row = {"index": t, "name": scene.names[t], "sources": src, "seconds": seconds}
+        if "depth" in rendered and scene.depths is not None:
+            depth, _ = depth_from_outputs(rendered)
+            err = depth_errors(depth, scene.depths[t], None if mask is None else mask.bool())
+            row.update({"depth_abs_rel": err["abs_rel"], "depth_delta1": err["delta1"]})
         preds = {"": rendered["rgb"]} | ({"_aux": rendered["rgb_aux"]} if "rgb_aux" in rendered else {})
         for suffix, pred in preds.items():
             pred = pred.detach().float().cpu().clamp(0, 1)
@@ -442,6 +457,52 @@ def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, t
         views.append(row)
         bar.advance(task)
     job["views"] = views
+
+
+def geometry_sources(es: EvalScene, k: int) -> list[int]:
+    """Source views of the mesh scored for (scene, ``k``): the protocol's fixed sources when it has
+    them (DTU 23, 24, 33), else ``omnirecon mesh``'s default (``k`` evenly spaced pool views)."""
+    fixed = dict(es.protocol.fixed_sources)
+    if k in fixed:
+        return list(fixed[k])
+    _, pool = targets_and_pool(es.protocol, es.scene)
+    pick = np.unique(np.linspace(0, len(pool) - 1, k).round().astype(int))
+    return [pool[i] for i in pick]
+
+
+def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> None:
+    """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
+    fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and ``mesh.png``, the mesh
+    seen from the first source view at a 512-px long side)."""
+    from omnirecon import geometry as geo
+    from omnirecon.render.mesh import MeshOptions, mesh_from_model
+
+    es: EvalScene = job["scene"]
+    views = geometry_sources(es, job["k"])
+    start = time.perf_counter()
+    made = mesh_from_model(model, es.scene, views, MeshOptions(chunk=chunk), device)
+    seconds = time.perf_counter() - start
+    if len(made.mesh.faces) == 0:
+        job["geometry"] = {"views": views, "empty": True, "seconds": seconds}
+        return
+    scored = geo.score_mesh(made, es.scene, job["targets"])
+    row = {"views": views, "faces": len(made.mesh.faces), "seconds": seconds}
+    if "chamfer" in scored:
+        c = scored["chamfer"]
+        row.update({"chamfer": c["chamfer"], "accuracy": c["accuracy"], "completeness": c["completeness"],
+                    "fscore": c["fscore"], "threshold": c["threshold"], "chamfer_rel": scored["chamfer_rel"]})
+    if "mask_iou" in scored:
+        row["mask_iou"] = scored["mask_iou"]["mean"]
+    if "rendered_depth" in scored:
+        row["fused_depth_abs_rel"] = scored["rendered_depth"]["abs_rel"]
+    if out is not None:
+        folder = Path(out) / es.name / f"k{job['k']}"
+        from omnirecon.render.mesh import export_mesh, to_input_frame
+
+        export_mesh(to_input_frame(made.mesh, es.scene.to_input), [folder / "mesh.ply"])
+        cam = es.scene.cameras[views[0]]
+        geo.save_picture(folder / "mesh.png", made.mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
+    job["geometry"] = row
 
 
 # ---------------------------------------------------------------------- CLI
@@ -490,6 +551,10 @@ class EvalConfig:
     protocol_set: Literal["full", "cpu"] = "full"
     """``full``: the published protocols (128 px); ``cpu``: the same rules at 64 px with fewer targets
     (the CPU benchmark of the tiny presets; not comparable with ``full``)."""
+    geometry: bool = False
+    """Also extract a mesh per scene and K (`omnirecon mesh`'s protocol; sources: DTU's 23 24 33 or K
+    evenly spaced pool views) and score it: Chamfer / F-score against a procedural scene's exact
+    mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
 
     def main(self) -> None:
         set_threads(self.threads)
@@ -500,7 +565,8 @@ class EvalConfig:
             raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
         result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
                           device=device, max_targets=self.max_targets, synth_count=self.synth_count,
-                          cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set)
+                          cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
+                          geometry=self.geometry)
         from omnirecon.eval_report import summary_lines
 
         for line in summary_lines(result):

@@ -15,11 +15,15 @@ from torch import Tensor
 
 from omnirecon.data.io import atomic_path, write_image, write_json
 
-METRIC_ORDER = ("psnr", "ssim", "st_lpips_alex", "lpips_alex", "psnr_masked")
+METRIC_ORDER = ("psnr", "ssim", "st_lpips_alex", "lpips_alex", "psnr_masked", "depth_abs_rel", "depth_delta1")
 """Column order of the tables; each metric is followed by its ``_aux`` variant when present."""
 ERROR_VMAX = 0.25
 """Mean absolute RGB error mapped to the top of the error colour scale (fixed, so maps compare)."""
-DIGITS = {"psnr": 2, "psnr_masked": 2, "ssim": 4, "st_lpips_alex": 4, "lpips_alex": 4}
+DIGITS = {"psnr": 2, "psnr_masked": 2, "ssim": 4, "st_lpips_alex": 4, "lpips_alex": 4, "depth_abs_rel": 4,
+          "depth_delta1": 3}
+GEOMETRY_KEYS = ("chamfer", "accuracy", "completeness", "chamfer_rel", "fscore", "mask_iou", "fused_depth_abs_rel",
+                 "seconds")
+"""Columns of the geometry table (``omnirecon eval --geometry``), lengths in input units."""
 
 
 def metric_keys(rows: list[dict]) -> list[str]:
@@ -44,6 +48,8 @@ def collect(records: list[dict], jobs: list[dict], ks: list[int], header: dict) 
             "mean": {k: _mean([v[k] for v in views if k in v]) for k in keys},
             "seconds_per_view": _mean([v["seconds"] for v in views]),
         }
+        if "geometry" in job:
+            job["record"]["settings"][str(job["k"])]["geometry"] = job["geometry"]
     means: dict[str, dict[str, dict]] = {}
     for proto in dict.fromkeys(r["protocol"] for r in records):
         recs = [r for r in records if r["protocol"] == proto]
@@ -57,6 +63,10 @@ def collect(records: list[dict], jobs: list[dict], ks: list[int], header: dict) 
                 "seconds_per_view": _mean([s["seconds_per_view"] for s in done]),
                 "scenes": len(done),
             }
+            geo = [s["geometry"] for s in done if "geometry" in s]
+            if geo:
+                means[proto][k]["geometry"] = {g: _mean([r[g] for r in geo if g in r]) for g in GEOMETRY_KEYS
+                                               if any(g in r for r in geo)}
     all_seconds = [v["seconds"] for job in jobs for v in job["views"]]
     return {**header, "num_views": ks, "scenes": records, "means": means,
             "seconds_per_view": _mean(all_seconds) if all_seconds else None}
@@ -78,7 +88,7 @@ def _fmt(key: str, value) -> str:
         return "–"
     if isinstance(value, float) and math.isinf(value):
         return "inf"
-    return f"{value:.{DIGITS.get(key.removesuffix('_aux'), 3)}f}"
+    return f"{value:.{DIGITS.get(key.removesuffix('_aux'), 4)}f}"
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -107,6 +117,14 @@ def markdown(result: dict) -> str:
             rows.append([r["name"], r["protocol"], k, str(len(s["views"])), *(_fmt(c, s["mean"].get(c)) for c in keys),
                          f"{s['seconds_per_view']:.2f}"])
     lines += ["", "## Per scene", ""] + _table(["scene", "protocol", "K", "targets", *keys, "s/view"], rows)
+    geo = [(r["name"], k, s["geometry"]) for r in result["scenes"] for k, s in r["settings"].items() if "geometry" in s]
+    if geo:
+        cols = [g for g in GEOMETRY_KEYS if any(g in row for _, _, row in geo)]
+        lines += ["", "## Geometry (meshes; lengths in input units; chamfer_rel = Chamfer / extent of the scored GT "
+                  "surface)", ""]
+        lines += _table(["scene", "K", "views", *cols],
+                        [[name, k, " ".join(map(str, row["views"])), *(_fmt(c, row.get(c)) for c in cols)]
+                         for name, k, row in geo])
     notes = [f"- {r['name']}: K={k} skipped: {why}" for r in result["scenes"] for k, why in r["skipped"].items()]
     notes += [f"- `{m}` not reported: {why}" for m, why in result.get("unavailable", {}).items()]
     if notes:
@@ -132,6 +150,8 @@ def summary_lines(result: dict) -> list[str]:
         for k, m in per_k.items():
             vals = ", ".join(f"{c} {_fmt(c, m[c])}" for c in metric_keys([m]))
             lines.append(f"{proto} K={k} ({m['scenes']} scenes): {vals}; {m['seconds_per_view']:.2f} s/view")
+            if "geometry" in m:
+                lines.append(f"{proto} K={k} mesh: " + ", ".join(f"{g} {_fmt(g, v)}" for g, v in m["geometry"].items()))
     for r in result["scenes"]:
         for k, why in r["skipped"].items():
             lines.append(f"{r['name']}: K={k} skipped ({why})")

@@ -278,6 +278,7 @@ def evaluate_mesh(mesh: trimesh.Trimesh, scene, held_out, objects_only: bool = F
         pred_pts = pred_pts[((pred_pts >= lo) & (pred_pts <= hi)).all(1)]
         out["chamfer"] = chamfer_fscore(pred_pts, gt_pts, scales["threshold"], scales["max_dist"])
         out["chamfer"]["gt_points"] = len(gt_pts)
+        out["chamfer"]["gt_extent"] = float(np.linalg.norm(np.ptp(gt_pts, axis=0))) if len(gt_pts) else float("nan")
         out["chamfer"]["objects_only"] = objects_only
     return out
 
@@ -292,6 +293,19 @@ def rendered_depth_errors(scene, cameras: Cameras, depths) -> dict:
     return {"rendered_depth": depth_errors(np.asarray(depths, dtype=np.float64), gt)}
 
 
+def score_mesh(made, scene, held_out) -> dict:
+    """Every metric of a :class:`~omnirecon.render.mesh.MeshResult` on ``scene`` (its frame), lengths in
+    input units: :func:`evaluate_mesh` on the ``held_out`` views (objects only when the mesh was
+    cleaned with masks), the fused depth maps against the exact mesh, and ``chamfer_rel`` = Chamfer
+    distance over the extent of the scored ground truth (the diagonal of the bounding box of its
+    observed surface points: the objects, not the whole bounds, when objects only)."""
+    scored = evaluate_mesh(made.mesh, scene, held_out, objects_only=made.info["masks"])
+    scored.update(rendered_depth_errors(scene, made.cameras, made.depths))
+    if "chamfer" in scored:
+        scored["chamfer_rel"] = scored["chamfer"]["chamfer"] / scored["chamfer"]["gt_extent"]
+    return in_input_units(scored, scene.scale_to_input)
+
+
 def in_input_units(metrics: dict, scale: float) -> dict:
     """A copy of :func:`evaluate_mesh`'s result with lengths multiplied by ``scale`` (``Scene.scale_to_input``)."""
     out = {**metrics, "units": "input", "scale_to_input": scale}
@@ -302,6 +316,7 @@ def in_input_units(metrics: dict, scale: float) -> dict:
         if k in out:
             out[k] = {**out[k], "rmse": out[k]["rmse"] * scale}
     if "chamfer" in out:
-        out["chamfer"] = {k: (v * scale if k in ("accuracy", "completeness", "chamfer", "threshold", "max_dist") else v)
+        out["chamfer"] = {k: (v * scale if k in ("accuracy", "completeness", "chamfer", "threshold", "max_dist",
+                                                 "gt_extent") else v)
                           for k, v in out["chamfer"].items()}
     return out

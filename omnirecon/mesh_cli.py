@@ -170,10 +170,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
         files.append(geometry.save_picture(Path(f"{stem}_preview.png"), mesh, cam))
     if cfg.metrics:
         start = time.perf_counter()
-        held = held_out_views(scene, views)
-        scored = geometry.evaluate_mesh(mesh, scene, held, objects_only=record["masks"])
-        scored.update(geometry.rendered_depth_errors(scene, made.cameras, made.depths))
-        record["metrics"] = geometry.in_input_units(scored, scene.scale_to_input)
+        record["metrics"] = geometry.score_mesh(made, scene, held_out_views(scene, views))
         record["seconds"]["metrics"] = time.perf_counter() - start
         write_json(Path(f"{stem}_metrics.json"), record)
         files.append(Path(f"{stem}_metrics.json"))

@@ -13,6 +13,7 @@ def test_run_all_tiny_writes_page_with_measured_numbers(tmp_path):
     text = out.read_text()
     assert "2 x 8" in text and "32²" in text and "Provenance: commit" in text
     assert (tmp_path / "results" / "synth_speed.json").is_file()
+    assert "## Geometry from 3 source views" in text and "| floor |" in text  # bench/geometry.py ran and scored
 
 
 def test_quality_tiny_scores_the_floor(tmp_path):

@@ -146,3 +146,19 @@ def test_cpu_protocol_set_is_the_full_rules_at_64_px(shared_data):
     t_cpu, pool_cpu = targets_and_pool(cpu.protocol, cpu.scene)
     assert set(t_cpu) <= set(t_full) and len(t_cpu) <= PROTOCOL_SETS["cpu"]["llff"].max_targets
     assert pool_cpu == pool_full  # the same rule picks the same source pool
+
+
+def test_eval_geometry_scores_a_mesh_and_depth(synth_scene, tmp_path):
+    out = tmp_path / "geo"
+    result = evaluate(build_model("floor"), [synth_scene], num_views=(3,), out=out, progress=False, geometry=True)
+    setting = result["scenes"][0]["settings"]["3"]
+    geo = setting["geometry"]
+    assert len(geo["views"]) == 3 and not set(geo["views"]) & set(result["scenes"][0]["targets"])
+    assert geo["faces"] > 0 and 0 < geo["chamfer"] < geo["threshold"] * 20
+    assert math.isclose(geo["chamfer"], (geo["accuracy"] + geo["completeness"]) / 2, rel_tol=1e-6)
+    assert 0 <= geo["fscore"] <= 1 and 0 < geo["mask_iou"] <= 1
+    assert result["means"]["synth"]["3"]["geometry"]["chamfer"] == geo["chamfer"]
+    # The floor renders depth and procedural scenes have GT depth: every target is depth-scored.
+    assert all(0 <= v["depth_abs_rel"] < 1 and 0 < v["depth_delta1"] <= 1 for v in setting["views"])
+    assert (out / result["scenes"][0]["name"] / "k3" / "mesh.ply").is_file()
+    assert "## Geometry" in (out / "results.md").read_text()
