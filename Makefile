@@ -20,8 +20,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 setup: $(STAMP)
 
 demo: setup
-	$(BIN)/omnirecon synth --out outputs/demo/scene --num-scenes 1 --seed 7 --rig object --views 24 --resolution 128
-	$(BIN)/omnirecon inspect outputs/demo/scene/scene_00007 --out outputs/demo/inspect
+	$(BIN)/omnirecon demo --out outputs/demo
 
 test: setup
 	$(BIN)/python -m pytest -q -ra tests

@@ -13,6 +13,7 @@ import sys
 from omnirecon.errors import EXIT_BAD_INPUT, InputError
 
 COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("omnirecon.demo:DemoConfig", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
     "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
     "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
     "eval": ("omnirecon.eval:EvalConfig", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
