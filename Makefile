@@ -14,7 +14,7 @@ $(STAMP): $(BIN)/python pyproject.toml
 	bash scripts/setup_system.sh
 	@# torch first, and exactly this version when missing: any other spec pulls CUDA wheels here.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[test,video]"
+	$(BIN)/python -m pip install -q -e ".[test,video,raster]"
 	touch $(STAMP)
 
 setup: $(STAMP)
