@@ -263,6 +263,56 @@ def section_geometry(results: Path) -> str | None:
     return "\n".join(out)
 
 
+def section_mesh_path(results: Path) -> str | None:
+    fps_file, q_file = results / "mesh_fps.json", results / "mesh_path.json"
+    if not fps_file.is_file() and not q_file.is_file():
+        return None
+    out = ["## Real-time mesh path (`bench/mesh_fps.py`, `bench/mesh_path.py`)", ""]
+    if fps_file.is_file():
+        r = json.loads(fps_file.read_text())
+        c, m, v = r["config"], r["mesh"], r["volumetric"]
+        w, h = m["resolution"]
+        out += [f"Speed: one model ({r['model']['preset']}; {r['model']['weights']}), a procedural scene with "
+                f"{r['scene']['faces']:,} faces, {c['source_views']} source views at {c['source_resolution'][0]}², "
+                f"device {c['device']}, {c['torch_threads']} torch thread(s), rasterizer `{c['rasterizer']}`. Mesh path: "
+                f"median of {c['frames']} full frames after {c['warmup']} warm-up frames, camera moving. Volumetric: "
+                f"`render_rays` on {v['rays_per_batch']}-ray batches of the same view, FPS extrapolated from rays/s.", "",
+                "| path | resolution | FPS (wall) | FPS from CPU time | ms / frame | notes |", "|---|---|---|---|---|---|",
+                f"| mesh (rasterize + appearance branch) | {w}x{h} | {m['fps']:.1f} | {m['fps_from_cpu_time']:.1f} | "
+                f"{m['median_ms']:.1f} | G-buffer surface pass {m['surface_pass_ms']:.1f} ms |",
+                f"| mesh + visibility test | {w}x{h} | {m['visibility_fps']:.1f} | – | {m['visibility_median_ms']:.1f} | |",
+                f"| volumetric (coarse + fine, geometry branch) | {w}x{h} | {v['fps_equivalent']:.4f} | – | "
+                f"{1000 / v['fps_equivalent']:.0f} | {v['rays_per_s']:.0f} rays/s |", "",
+                f"Ratio mesh / volumetric: **{r['ratio']:.0f}x** (goal >= {r['goals']['ratio']:.0f}x: "
+                f"{'met' if r['ratio'] >= r['goals']['ratio'] else 'not met'}). Goal >= {r['goals']['cpu_fps_512']:.0f} FPS "
+                f"at 512x512 on this CPU: {m['fps']:.1f} FPS wall, {m['fps_from_cpu_time']:.1f} from CPU time "
+                f"({'met' if m['fps'] >= r['goals']['cpu_fps_512'] else 'not met'}). No GPU was lent: the 800x600 GPU goal "
+                "is unmeasured.", "", _prov(r["provenance"]), ""]
+    if q_file.is_file():
+        r = json.loads(q_file.read_text())
+        times = sorted({t for row in r["rows"] for t in row["curve"]}, key=float)
+        out += [f"Quality: held-out PSNR of the mesh path (images at {r['resolution']} px, at most 4 targets per scene, "
+                "3 source views, the mesh of `bench/geometry.py`), before fine-tuning and after `omnirecon finetune` "
+                f"for the given seconds of optimisation ({r['rows'][0]['clock'] if r['rows'] else 'cpu'} clock: this "
+                "process's CPU time, 1 thread). Visibility: the same mesh path before tuning without / with the "
+                "per-source occlusion test.", "",
+                "| scene | " + " | ".join(f"{t} s" for t in times) + " | gain at 60 s | no visibility test | "
+                "visibility test | curve |", "|---|" + "---|" * (len(times) + 4)]
+        gains = []
+        for row in r["rows"]:
+            c = row["curve"]
+            gain = c.get("60", float("nan")) - c["0"]
+            gains.append(gain)
+            out.append(f"| {row['name']} | " + " | ".join(_f(c.get(t), 2) for t in times)
+                       + f" | {gain:+.2f} | {row['visibility']['without']:.2f} | {row['visibility']['with']:.2f} | "
+                       f"[png](bench/results/{row['pictures']['curve']}) |")
+        if gains:
+            mean_gain = sum(gains) / len(gains)
+            out += ["", f"Mean gain after 60 s: {mean_gain:+.2f} dB (goal +{r['goal_gain_db_60s']:.0f} dB: "
+                    f"{'met' if mean_gain >= r['goal_gain_db_60s'] else 'not met'}).", "", _prov(r["provenance"]), ""]
+    return "\n".join(out)
+
+
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
             "ablation_gpnr.json": section_ablation}
 
@@ -280,7 +330,7 @@ def write_page(results: Path, out: Path) -> str:
             parts += [render(json.loads(f.read_text())), ""]
         else:
             parts += [f"*{name}: not measured yet (run `python bench/run_all.py`).*", ""]
-    for text in (section_training(), section_quality(results), section_geometry(results)):
+    for text in (section_training(), section_quality(results), section_geometry(results), section_mesh_path(results)):
         if text:
             parts += [text, ""]
     text = "\n".join(parts)
