@@ -10,11 +10,18 @@ $(BIN)/python:
 	$(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 
-$(STAMP): $(BIN)/python pyproject.toml
+$(STAMP): $(BIN)/python pyproject.toml omnirecon/viewer/package.json
 	bash scripts/setup_system.sh
 	@# torch first, and exactly this version when missing: any other spec pulls CUDA wheels here.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -e ".[test,video,raster]"
+	@# three.js for the web viewer (omnirecon export / view): omnirecon/viewer/package.json, node_modules git-ignored
+	@if command -v npm >/dev/null 2>&1; then \
+	  (cd omnirecon/viewer && npm install --no-audit --no-fund --loglevel=error) \
+	    || echo "warning: npm install failed in omnirecon/viewer; omnirecon export --no-viewer still works"; \
+	else \
+	  echo "note: npm not found: skipping three.js for the web viewer (install Node.js + npm, then run npm install in omnirecon/viewer); the browser test skips"; \
+	fi
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -94,6 +94,20 @@ def check_chromium() -> Check:
                  "" if code == 0 else "the browser cannot start; the web-viewer test skips")
 
 
+def check_three() -> Check:
+    from omnirecon.viewer.bundle import find_three, three_unavailable_reason
+
+    three = find_three()
+    if three is None:
+        return Check("three.js (web viewer)", "missing", three_unavailable_reason(),
+                     "omnirecon export needs --no-viewer and the browser test skips; npm install in omnirecon/viewer")
+    try:
+        version = json.loads((three / "package.json").read_text()).get("version", "?")
+    except (OSError, ValueError):
+        version = "?"
+    return Check("three.js (web viewer)", "ok", f"three {version} in {three}")
+
+
 def check_module(name: str, module: str, consequence: str) -> Check:
     if importlib.util.find_spec(module) is None:
         return Check(name, "missing", f"`{module}` not importable", consequence)
@@ -143,6 +157,7 @@ def run_checks() -> list[Check]:
     rows = check_torch()
     rows.append(check_egl())
     rows.append(check_chromium())
+    rows.append(check_three())
     rows.append(check_video())
     rows += check_metrics()
     rows.append(check_module("TensorBoard event files", "tensorboard", "metrics.jsonl only; pip install tensorboard"))

@@ -1,0 +1,154 @@
+"""A static file server for viewer bundles, bound to 127.0.0.1, that never serves outside its folder.
+
+:class:`BundleRequestHandler` (an ``http.server.SimpleHTTPRequestHandler``) answers ``GET`` / ``HEAD``
+only, for regular files under its root. It refuses, with 403, any request whose path is not a plain
+``/``-rooted path (absolute-form ``http://...`` targets, backslashes, NUL bytes), has a ``..`` or
+``.`` segment (also percent-encoded), or resolves (symbolic links followed) to a file outside the
+root; it answers 404 for missing files and does not list folders. Responses are not cached, so a
+re-exported bundle shows at once.
+"""
+
+from __future__ import annotations
+
+import http.server
+import os
+import posixpath
+import threading
+import urllib.parse
+from functools import partial
+from pathlib import Path
+
+from omnirecon.errors import InputError
+
+HOST = "127.0.0.1"
+TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
+         ".glb": "model/gltf-binary", ".bin": "application/octet-stream", ".ply": "application/octet-stream",
+         ".png": "image/png", ".html": "text/html; charset=utf-8", ".css": "text/css", "": "application/octet-stream"}
+
+
+class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
+    """Serves the regular files under ``directory`` (keyword argument) and nothing else."""
+
+    extensions_map = TYPES
+    server_version = "omnirecon-view"
+    sys_version = ""
+
+    def __init__(self, *args, directory: str, quiet: bool = False, **kwargs):
+        self.quiet = quiet
+        super().__init__(*args, directory=str(Path(directory).resolve()), **kwargs)
+
+    def resolve(self) -> tuple[int, Path | None]:
+        """``(status, file)``: 200 and the file to send, or the error status (403, 404)."""
+        target = self.path
+        if not target.startswith("/") or target.startswith("//"):
+            return 403, None  # absolute-form (http://host/...) or network-path targets
+        path = urllib.parse.urlsplit(target).path
+        try:
+            path = urllib.parse.unquote(path, errors="strict")
+        except UnicodeDecodeError:
+            return 403, None
+        if "\\" in path or "\0" in path:
+            return 403, None
+        parts = path.split("/")[1:]
+        if any(p in (".", "..") for p in parts):
+            return 403, None
+        if path.endswith("/"):
+            parts = [*parts[:-1], "index.html"]
+        root = Path(self.directory)
+        file = root.joinpath(*[p for p in parts if p])
+        try:
+            real = file.resolve(strict=True)
+        except (FileNotFoundError, NotADirectoryError, OSError, RuntimeError):
+            return 404, None
+        if real != root and root not in real.parents:
+            return 403, None  # e.g. a symbolic link out of the folder
+        if not real.is_file():
+            return 404, None
+        return 200, real
+
+    def send_head(self):
+        status, file = self.resolve()
+        if status != 200:
+            self.send_error(status, "Forbidden: outside the served folder" if status == 403 else "Not found")
+            return None
+        try:
+            f = open(file, "rb")  # noqa: SIM115 - closed by copyfile's caller
+        except OSError:
+            self.send_error(404, "Not found")
+            return None
+        try:
+            size = os.fstat(f.fileno()).st_size
+            self.send_response(200)
+            self.send_header("Content-Type", self.guess_type(str(file)))
+            self.send_header("Content-Length", str(size))
+            self.send_header("Cache-Control", "no-store")
+            self.send_header("X-Content-Type-Options", "nosniff")
+            self.end_headers()
+            return f
+        except BaseException:
+            f.close()
+            raise
+
+    def guess_type(self, path):
+        return TYPES.get(posixpath.splitext(path)[1].lower(), "application/octet-stream")
+
+    def list_directory(self, path):  # never reached (send_head is overridden); no listings
+        self.send_error(404, "Not found")
+        return None
+
+    def translate_path(self, path):  # unused by send_head; keep any other caller inside the root
+        status, file = self.resolve()
+        return str(file) if status == 200 else os.path.join(self.directory, "__refused__")
+
+    def do_POST(self):
+        self.send_error(405, "Method not allowed")
+
+    do_PUT = do_DELETE = do_PATCH = do_POST
+
+    def log_message(self, format, *args):
+        if not self.quiet:
+            super().log_message(format, *args)
+
+
+class ViewerServer(http.server.ThreadingHTTPServer):
+    """An HTTP server on 127.0.0.1 serving one folder (``port=0``: any free port)."""
+
+    daemon_threads = True
+
+    def __init__(self, folder: Path, port: int = 8765, quiet: bool = False):
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise InputError("not a folder", folder, "pass the folder written by `omnirecon export`")
+        if not 0 <= port <= 65535:
+            raise InputError(f"--port must be in 0..65535, got {port}", None, "use e.g. 8765, or 0 for any free port")
+        self.folder = folder.resolve()
+        try:
+            super().__init__((HOST, port), partial(BundleRequestHandler, directory=str(self.folder), quiet=quiet))
+        except OSError as e:
+            raise InputError(f"cannot listen on {HOST}:{port} ({e.strerror or e})", None,
+                             "pick another --port, or --port 0 for any free one") from e
+
+    @property
+    def url(self) -> str:
+        return f"http://{HOST}:{self.server_address[1]}/"
+
+    def start(self) -> threading.Thread:
+        """Serve in a daemon thread (tests, scripts); stop with :meth:`stop`."""
+        thread = threading.Thread(target=self.serve_forever, name="omnirecon-view", daemon=True)
+        thread.start()
+        return thread
+
+    def stop(self) -> None:
+        self.shutdown()
+        self.server_close()
+
+
+def bundle_folder(path: Path) -> Path:
+    """The viewer bundle in ``path``: ``path`` itself when it holds ``index.html`` and ``bundle.json``,
+    else its ``viewer/`` subfolder (an ``omnirecon export`` output folder)."""
+    path = Path(path)
+    for cand in (path, path / "viewer"):
+        if (cand / "index.html").is_file() and (cand / "bundle.json").is_file():
+            return cand
+    raise InputError("no viewer bundle here (index.html and bundle.json, or viewer/ holding them)", path,
+                     "pass the --out folder of `omnirecon export`")
