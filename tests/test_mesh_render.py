@@ -153,11 +153,22 @@ def test_reference_backend_renders_the_same_image(setup):
 
 def test_fps_benchmark_quick(tmp_path):
     out = tmp_path / "mesh_fps.json"
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "mesh_fps.py"), "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     r = json.loads(out.read_text())
     assert r["provenance"]["commit"] and r["config"]["quick"] is True
     assert r["mesh"]["fps"] > 0 and r["volumetric"]["fps_equivalent"] > 0
     assert r["ratio"] == pytest.approx(r["mesh"]["fps"] / r["volumetric"]["fps_equivalent"], rel=1e-3)
     assert r["mesh"]["resolution"] == r["volumetric"]["resolution"]
+
+
+def test_bench_refuses_a_non_omnirecon_checkpoint(tmp_path, capsys):
+    from omnirecon.checkpoint import save_checkpoint
+    from omnirecon.cli import main
+    from omnirecon.models.registry import build_model
+
+    save_checkpoint(tmp_path / "gpnr", build_model("gpnr-tiny"), "gpnr-tiny")
+    assert main(["bench", "--quick", "--ckpt", str(tmp_path / "gpnr"), "--out", str(tmp_path / "x.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs an Omni-Recon checkpoint" in err[0]
