@@ -20,6 +20,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
     "train": ("omnirecon.train:TrainConfig", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
     "mesh": ("omnirecon.mesh_cli:MeshConfig", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
+    "lift": ("omnirecon.lift.cli:LiftConfig", "Lift a 2-D predictor (labels, edges, keypoints) into novel views with a model's blend weights (predict-then-blend)."),
+    "finetune": ("omnirecon.finetune:FinetuneConfig", "Tune Omni-Recon's mesh path on one scene in seconds; PSNR-vs-time curve."),
+    "export": ("omnirecon.viewer.export:ExportConfig", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
+    "view": ("omnirecon.viewer.cli:ViewConfig", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),
+    "bench": ("omnirecon.speed:BenchConfig", "FPS of Omni-Recon's real-time mesh path vs its volumetric path, and their ratio."),
     "doctor": ("omnirecon.doctor:DoctorConfig", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
 }
 

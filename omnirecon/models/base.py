@@ -95,12 +95,17 @@ class GeneralizableModel(nn.Module):
         raise NotImplementedError
 
     @torch.no_grad()
-    def render_view(self, features, camera: Cameras, chunk: int = 4096) -> dict[str, Tensor]:
-        """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``."""
+    def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None
+                    ) -> dict[str, Tensor]:
+        """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
+
+        ``signals # [V, H, W, C]`` (per-source-view 2-D maps) is passed to ``render_rays`` when given
+        (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`)."""
         rays = Rays.from_image(camera)
+        extra = {} if signals is None else {"signals": signals}
         parts: dict[str, list[Tensor]] = {}
         for start in range(0, len(rays), chunk):
-            out = self.render_rays(features, rays[start:start + chunk])
+            out = self.render_rays(features, rays[start:start + chunk], **extra)
             for k, v in out.items():
                 if v.dim() >= 1 and v.shape[0] == min(chunk, len(rays) - start):
                     parts.setdefault(k, []).append(v)

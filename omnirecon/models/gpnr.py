@@ -162,7 +162,10 @@ class GPNR(GeneralizableModel):
         return fourier(code, cfg.ray_freqs)
 
     # ------------------------------------------------------------------ render
-    def render_rays(self, features: GPNRFeatures, rays: Rays) -> dict[str, Tensor]:
+    def render_rays(self, features: GPNRFeatures, rays: Rays, signals: Tensor | None = None) -> dict[str, Tensor]:
+        """Render rays. ``signals # [K, H, W, C]`` (optional, per-source-view 2-D maps): also return
+        ``signal # [R, C] = sum_k beta_k sum_m alpha_km s_km``, the maps sampled exactly as the colours
+        and blended with the weights of ``rgb_aux`` (predict-then-blend)."""
         cfg = self.cfg
         src = features.sources
         cams = src.cameras
@@ -245,8 +248,13 @@ class GPNR(GeneralizableModel):
         rgb_aux = (beta[..., None] * (alpha[..., None] * rgb).sum(2)).sum(1)  # [R, 3]
         depth = (beta * (alpha * z).sum(-1)).sum(-1)  # [R] expected z-depth
         main, aux = (rgb_feat, rgb_aux) if cfg.output == "features" else (rgb_aux, rgb_feat)
-        return {"rgb": main, "rgb_aux": aux, "depth": depth, "alpha": alpha, "blend": beta,
-                "valid": view_ok.any(-1)}
+        out = {"rgb": main, "rgb_aux": aux, "depth": depth, "alpha": alpha, "blend": beta,
+               "valid": view_ok.any(-1)}
+        if signals is not None:  # predict-then-blend with the colour weights: beta over views, alpha along rays
+            sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(dtype), grid, align_corners=False, padding_mode="border")
+            sig = sig.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
+            out["signal"] = (beta[..., None] * (alpha[..., None] * sig).sum(2)).sum(1)
+        return out
 
 
 def _masked_softmax(logits: Tensor, mask: Tensor, dim: int) -> Tensor:

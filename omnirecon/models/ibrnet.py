@@ -188,8 +188,10 @@ class IBRNet(GeneralizableModel):
     def encode(self, sources: Sources) -> IBRNetFeatures:
         return IBRNetFeatures(sources, self.unet(sources.images.permute(0, 3, 1, 2)))
 
-    def _gather(self, feats: IBRNetFeatures, rays: Rays, z: Tensor, half: int):
-        """Per-sample inputs at z-depths ``z # [R, S]``: rgb+features, ray_diff, valid mask."""
+    def _gather(self, feats: IBRNetFeatures, rays: Rays, z: Tensor, half: int, signals: Tensor | None = None):
+        """Per-sample inputs at z-depths ``z # [R, S]``: rgb+features, ray_diff, valid mask; with
+        ``signals # [V, H, W, C]`` also the per-view maps at each sample (sampled exactly as the colours)
+        ``# [R, S, V, C]``, else None."""
         src = feats.sources
         cams = src.cameras
         V, (R, S) = len(cams), z.shape
@@ -207,31 +209,43 @@ class IBRNet(GeneralizableModel):
         b = F.normalize(cams.centers[None, None] - pts[:, :, None], dim=-1)  # to sources [R, S, V, 3]
         ray_diff = torch.cat([F.normalize(a - b, dim=-1), (a * b).sum(-1, keepdim=True)], -1)
         mask = proj.in_image.reshape(V, R, S).permute(1, 2, 0)  # [R, S, V]
-        return rgb_feat, ray_diff, mask
+        sig = None
+        if signals is not None:
+            sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(grid.dtype), grid, align_corners=False,
+                                padding_mode="border").reshape(V, -1, R, S).permute(2, 3, 0, 1)  # [R, S, V, C]
+        return rgb_feat, ray_diff, mask, sig
 
-    def _pass(self, net: Aggregator, feats, rays, z, half):
-        rgb_feat, ray_diff, mask = self._gather(feats, rays, z, half)
+    def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None):
+        rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
         sigma, blend = net(rgb_feat, ray_diff, mask)
         w, _ = weights_from_alpha(alpha_from_density(sigma))
         sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]
         enough = (mask.sum(-1) >= 2).sum(-1) > min(8, z.shape[1] // 4)  # reference: > 8 samples seen twice
-        return {"rgb": composite(w, sample_rgb), "depth": (w * z).sum(-1), "weights": w, "z": z,
-                "valid": enough, "acc": w.sum(-1)}
+        out = {"rgb": composite(w, sample_rgb), "depth": (w * z).sum(-1), "weights": w, "z": z,
+               "valid": enough, "acc": w.sum(-1)}
+        if sig is not None:  # predict-then-blend: the colour blend weights, then the volume weights
+            out["signal"] = composite(w, (blend[..., None] * sig).sum(-2))
+        return out
 
-    def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False) -> dict[str, Tensor]:
+    def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False,
+                    signals: Tensor | None = None) -> dict[str, Tensor]:
+        """Coarse then fine pass. ``signals # [V, H, W, C]`` (optional, per-source-view 2-D maps): also
+        return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
+        composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
+        ``acc``, see :mod:`omnirecon.lift.blend`)."""
         src = features.sources
         R = len(rays)
         near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
         far = torch.full_like(near, src.far)
         z = sample_along_rays(near, far, self.cfg.coarse_samples, inverse_depth=src.rig == "forward", jitter=jitter)
-        coarse = self._pass(self.coarse, features, rays, z, 0)
+        coarse = self._pass(self.coarse, features, rays, z, 0, signals if self.fine is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
         if self.fine is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
         mid = 0.5 * (z[:, 1:] + z[:, :-1])
         z_imp = sample_pdf(mid, coarse["weights"][:, 1:-1].detach(), self.cfg.fine_samples, deterministic=not jitter)
         z_all = torch.cat([z, z_imp.detach()], -1).sort(-1).values
-        fine = self._pass(self.fine, features, rays, z_all, 1)
+        fine = self._pass(self.fine, features, rays, z_all, 1, signals)
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out

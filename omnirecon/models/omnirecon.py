@@ -443,18 +443,39 @@ class OmniRecon(GeneralizableModel):
         """The appearance branch alone: ``omega # [R, S, K]`` from ``F_i`` and the viewing directions."""
         return self.appearance(samples.feat, samples.dirs[..., :3], samples.mask)
 
-    def shade(self, features: OmniReconFeatures, points: Tensor, origins: Tensor) -> dict[str, Tensor]:
+    def shade(self, features: OmniReconFeatures, points: Tensor, origins: Tensor,
+              visible: Tensor | None = None) -> dict[str, Tensor]:
         """Colour surface ``points # [P, 3]`` seen from ``origins # [P, 3]`` with the appearance branch only
         (§7: one point per pixel, no geometry branch). Returns ``rgb # [P, 3]``, ``blend # [P, K]`` and
-        ``valid # [P]`` (some view sees the point)."""
+        ``valid # [P]`` (some view sees the point).
+
+        ``visible # [P, K]`` bool (optional, e.g. a depth test against each source's rasterized depth):
+        views where it is False are masked out of the blend like views the point projects outside of."""
         samples = self.gather(features, points[:, None], origins)
+        if visible is not None:
+            mask = samples.mask & visible[:, None].to(samples.mask.device)  # [P, 1, K]
+            samples = samples._replace(mask=mask, feat=samples.feat * mask[..., None])
         omega = self.blend_weights(samples)  # [P, 1, K]
         rgb = (omega[..., None] * samples.rgb).sum(-2)[:, 0]
         return {"rgb": rgb, "blend": omega[:, 0], "valid": samples.mask[:, 0].any(-1)}
 
     # ------------------------------------------------------------------ render
-    def _pass(self, features: OmniReconFeatures, rays: Rays, z: Tensor) -> tuple[dict[str, Tensor], Tensor]:
-        """One pass at sample z-depths ``z # [R, S]``: outputs and the per-sample ``omega # [R, S, K]``."""
+    def sample_signals(self, features: OmniReconFeatures, points: Tensor, signals: Tensor) -> Tensor:
+        """Per-view 2-D maps ``signals # [K, H, W, C]`` at ``points # [R, S, 3]``, projected and sampled exactly
+        as :meth:`gather` samples the source colours (bilinear, border padding). ``# [R, S, K, C]``"""
+        cams = features.sources.cameras
+        K, (R, S) = len(cams), points.shape[:2]
+        proj = cams.project(points.reshape(-1, 3))  # [K, R*S]
+        grid = image_grid(proj.uv, cams.width, cams.height).to(points.dtype)[:, None]  # [K, 1, R*S, 2]
+        sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(points.dtype), grid, align_corners=False,
+                            padding_mode="border")
+        return sig.reshape(K, -1, R, S).permute(2, 3, 0, 1)
+
+    def _pass(self, features: OmniReconFeatures, rays: Rays, z: Tensor,
+              signals: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
+        """One pass at sample z-depths ``z # [R, S]``: outputs and the per-sample ``omega # [R, S, K]``.
+        With ``signals # [K, H, W, C]`` the outputs add ``signal # [R, C]``: the maps blended with ``omega``
+        and composited with ``w``, exactly as ``rgb`` (predict-then-blend)."""
         cos = rays.z_scale.clamp_min(1e-6)[:, None]  # [R, 1]
         t = z / cos  # ray distances
         points = rays.origins[:, None] + rays.directions[:, None] * t[..., None]  # [R, S, 3]
@@ -469,24 +490,29 @@ class OmniRecon(GeneralizableModel):
         valid = seen.sum(-1) > min(self.cfg.valid_samples, S // 4)
         out = {"rgb": composite(w, colour), "depth": (w * z).sum(-1), "weights": w, "z": z, "sdf": sdf,
                "blend": (w[..., None] * omega).sum(1), "acc": w.sum(-1), "valid": valid}
+        if signals is not None:
+            out["signal"] = composite(w, (omega[..., None] * self.sample_signals(features, points, signals)).sum(-2))
         return out, omega
 
     def render_rays(self, features: OmniReconFeatures, rays: Rays, jitter: bool = False,
-                    return_samples: bool = False) -> dict[str, Tensor]:
+                    return_samples: bool = False, signals: Tensor | None = None) -> dict[str, Tensor]:
         """Coarse pass, then the fine pass on the coarse + importance samples (see the module docstring for
-        the outputs). ``jitter``: stratified coarse samples and random importance samples (training)."""
+        the outputs). ``jitter``: stratified coarse samples and random importance samples (training).
+        ``signals # [K, H, W, C]`` (per-source-view 2-D maps, optional) adds ``signal # [R, C]`` from the
+        final pass: predict-then-blend with the RGB weights (not normalised by ``acc``; see
+        :mod:`omnirecon.lift.blend`)."""
         cfg, src = self.cfg, features.sources
         near = torch.full((len(rays),), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
         z = sample_along_rays(near, torch.full_like(near, src.far), cfg.coarse_samples,
                               inverse_depth=src.rig == "forward", jitter=jitter)  # [R, S]
-        coarse, omega = self._pass(features, rays, z)
+        coarse, omega = self._pass(features, rays, z, signals if cfg.fine_samples == 0 else None)
         if cfg.fine_samples == 0:
             out = dict(coarse)
         else:
             mid = 0.5 * (z[:, 1:] + z[:, :-1])
             z_imp = sample_pdf(mid, coarse["weights"][:, 1:-1].detach(), cfg.fine_samples, deterministic=not jitter)
             z_all = torch.cat([z, z_imp.detach()], -1).sort(-1).values
-            out, omega = self._pass(features, rays, z_all)
+            out, omega = self._pass(features, rays, z_all, signals)
             out["valid"] = out["valid"] & coarse["valid"]
         out["rgb_coarse"], out["depth_coarse"] = coarse["rgb"], coarse["depth"]
         if return_samples:
