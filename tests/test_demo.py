@@ -24,6 +24,11 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     for ref in [p.split('"')[0] for p in page.split('src="')[1:]]:
         assert (out / ref).is_file(), ref  # every picture the page shows exists
     assert "report:" in capsys.readouterr().out
+    assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
+    if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
+        assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0
+        for name in ("mesh_path/orbit", "finetune/curve.png", "orbit_omnirecon-tiny/video"):
+            assert name in page, name
 
 
 def test_demo_bad_data_exit_2(tmp_path, capsys):
