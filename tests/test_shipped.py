@@ -16,7 +16,7 @@ SHIPPED = sorted(p.name for p in (ROOT / "checkpoints").iterdir() if (p / "meta.
 
 
 def test_tiny_presets_are_shipped():
-    assert {"gpnr-tiny", "ibrnet-tiny"} <= set(SHIPPED)
+    assert {"gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny"} <= set(SHIPPED)
 
 
 @pytest.mark.parametrize("name", SHIPPED)
