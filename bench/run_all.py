@@ -177,6 +177,12 @@ def section_training() -> str | None:
                    f"{c['train_psnr_first']:.2f} -> {c['train_psnr_last']:.2f} |")
     out += ["", "Data: " + ", ".join(cards[0]["data"]["procedural"] + cards[0]["data"]["real"])
             + f" (weights {cards[0]['data']['weights']}); held out: {cards[0]['held_out']}.", ""]
+    curves = [c["model"] for c in cards if (ROOT / "checkpoints" / c["model"] / "training_curve.png").is_file()]
+    if curves:
+        out += [" ".join(f"![{m} training curve](checkpoints/{m}/training_curve.png)" for m in curves), "",
+                "Training curves (from each run's metrics.jsonl, drawn by `bench/train_tiny.py`): " + ", ".join(curves)
+                + ". Validation uses held-out procedural scenes 900000 and 900001 for monitoring only; the final "
+                "step is shipped, never a selected one.", ""]
     for c in cards:
         out += [f"{c['model']}: " + _prov(c["provenance"]), ""]
     return "\n".join(out)

@@ -74,6 +74,35 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
     return out
 
 
+def plot_curve(rows: list[dict], path: Path, title: str) -> None:
+    """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    train = [(r["step"], r["psnr"]) for r in rows if "psnr" in r and "loss" in r]
+    val = [(r["step"], r["val_psnr"]) for r in rows if "val_psnr" in r]
+    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+    if train:
+        steps, psnr = np.array(train).T
+        k = min(50, len(psnr))
+        smooth = np.convolve(psnr, np.ones(k) / k, mode="valid")
+        ax.plot(steps, psnr, color="0.8", lw=0.6, label="train (sampled rays)")
+        ax.plot(steps[k - 1:], smooth, color="C0", lw=1.2, label=f"train, mean of {k}")
+    if val:
+        ax.plot(*np.array(val).T, "o-", color="C3", label="validation (held-out scenes)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, format="png")
+    plt.close(fig)
+
+
 def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
     """Copy the final checkpoint to checkpoints/<model>/ and write its model card."""
     dest = ROOT / "checkpoints" / model
@@ -98,6 +127,9 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
         "validation": val_rows[-1] if val_rows else None,
         "model_config": meta["model_config"], "provenance": meta.get("provenance", {}),
     }
+    card["curve"] = {"train": [[r["step"], round(r["psnr"], 3)] for r in train_rows[::10]],
+                     "validation": [[r["step"], round(r["val_psnr"], 3)] for r in rows if "val_psnr" in r]}
+    plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {cpu_budget:g} CPU-s budget")
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
     (tmp / "MODEL_CARD.md").write_text("\n".join([
         f"# {model}", "",
@@ -108,7 +140,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
         f"{card['train_psnr_last']:.2f} dB at the last. Last validation: {json.dumps(card['validation'])}.", "",
         "Evaluation numbers are in BENCHMARKS.md (`bench/quality.py`). Files: model.safetensors (weights), "
-        "meta.json (preset, config, step), card.json (this card as data).", ""]))
+        "meta.json (preset, config, step), card.json (this card as data, with the training curve), "
+        "training_curve.png.", "", "![training curve](training_curve.png)", ""]))
     shutil.rmtree(dest, ignore_errors=True)
     tmp.rename(dest)
     return dest
@@ -122,7 +155,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--synth-scenes", type=int, default=32)
     p.add_argument("--steps", type=int, default=3000, help="length of the learning-rate schedule")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
+    p.add_argument("--reship", action="store_true",
+                   help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
     a = p.parse_args(argv)
+    if a.reship:
+        print(f"shipped {ship(a.model, ROOT / 'outputs' / 'train' / f'{a.model}_bench', a.cpu_budget, a.threads)}")
+        return
     prepare(a.synth_scenes)
     if a.prepare:
         return
