@@ -1,7 +1,7 @@
 """Quality of Omni-Recon's mesh path: held-out PSNR before and after seconds of fine-tuning, and what
 the per-source visibility test buys.
 
-    python bench/mesh_path.py                    # 5 held-out procedural scenes + dtu_scan24/37
+    python bench/mesh_path.py                    # 3 held-out procedural scenes + dtu_scan24/37
     python bench/mesh_path.py --tiny             # one small procedural scene, 2 s (tests)
 
 Per scene: the mesh of ``checkpoints/omnirecon-tiny`` from 3 source views (``omnirecon mesh``'s
@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--synth-scenes", type=int, default=5)
+    p.add_argument("--synth-scenes", type=int, default=3)
     p.add_argument("--tiny", action="store_true", help="one procedural scene at 48 px, 2 s (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
