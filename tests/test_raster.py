@@ -127,3 +127,19 @@ def test_gl_backend_unavailable_gives_one_line_error(monkeypatch):
     assert torch.equal(surf.pixels, g.mask.reshape(-1).nonzero()[:, 0]) and torch.equal(surf.points, g.points[g.mask])
     with pytest.raises(InputError, match="vertices that do not exist"):
         MeshRasterizer(tri[0], np.array([[0, 1, 5]]), backend="reference")
+
+
+@needs_gl
+def test_two_rasterizers_each_draw_their_own_mesh(scene):
+    """Each rasterizer makes its own GL context current: with two alive, the older one must not draw
+    the newer one's mesh (it did before the fix)."""
+    mesh = scene_mesh(scene)
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[: len(mesh.faces) // 2], process=False)
+    cam = scene.cameras[0]
+    with MeshRasterizer.from_trimesh(mesh, backend="gl") as a:
+        full_alone = a.rasterize(cam, normals="none").face.clone()
+        with MeshRasterizer.from_trimesh(half, backend="gl") as b:
+            half_b = b.rasterize(cam, normals="none").face
+            full_a = a.rasterize(cam, normals="none").face  # after b was created and used
+            assert torch.equal(full_a, full_alone)
+            assert (half_b >= 0).sum() < (full_a >= 0).sum()

@@ -317,7 +317,14 @@ class MeshRasterizer:
     def _draw(self, K, w2c, width, height, near, far, surface: bool = False):
         """Draw with GL into reused host buffers (valid until the next draw): ``face + 1 # [H, W]``
         int32 (0 = background), ``(bary, depth) # [H, W, 4]`` and ``(world, 1) # [H, W, 4]`` float32;
-        with ``surface``, only ``(world, depth) # [H, W, 4]`` (depth 0 = background)."""
+        with ``surface``, only ``(world, depth) # [H, W, 4]`` (depth 0 = background).
+
+        This rasterizer's context is made current first: with several rasterizers alive, the last
+        created context would otherwise receive the draw calls (and draw the wrong mesh)."""
+        with self._ctx:
+            return self._draw_current(K, w2c, width, height, near, far, surface)
+
+    def _draw_current(self, K, w2c, width, height, near, far, surface: bool = False):
         kind = "surface" if surface else "gbuffer"
         auto_near, auto_far = self.depth_range(w2c)
         near = auto_near if near is None else near
