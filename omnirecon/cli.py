@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("omnirecon.train:TrainConfig", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
     "mesh": ("omnirecon.mesh_cli:MeshConfig", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
     "lift": ("omnirecon.lift.cli:LiftConfig", "Lift a 2-D predictor (labels, edges, keypoints) into novel views with a model's blend weights (predict-then-blend)."),
+    "edit": ("omnirecon.lift.edit_cli:EditConfig", "Recolour or remove an object (by label or click) consistently in novel views by editing the sources and re-blending; delete/recolour its mesh faces (GLB)."),
+    "pet": ("omnirecon.lift.pet_cli:PETConfig", "Parameter-efficient tuning (LoRA or bias-only) of Omni-Recon's appearance branch on lifted semantic labels; mIoU before/after."),
     "finetune": ("omnirecon.finetune:FinetuneConfig", "Tune Omni-Recon's mesh path on one scene in seconds; PSNR-vs-time curve."),
     "export": ("omnirecon.viewer.export:ExportConfig", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
     "view": ("omnirecon.viewer.cli:ViewConfig", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),

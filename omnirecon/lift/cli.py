@@ -1,7 +1,8 @@
 """``omnirecon lift``: zero-shot 3-D understanding by predict-then-blend (Omni-Recon §8).
 
 For every target view of each scene: run the 2-D predictor on the K nearest source views, blend the
-maps with the model's RGB weights into the target (predict-then-blend), render the target RGB and
+maps with the model's RGB weights into the target (predict-then-blend; `--path mesh`: through a mesh, one
+surface point per pixel, Omni-Recon only), render the target RGB and
 run the predictor on it (render-then-predict, for predictors that can run on a render), and score
 both where ground truth exists (:mod:`omnirecon.lift.experiment`). Writes per target
 ``<view>_lift.png`` (the lifted map), ``<view>_overlay.png`` (over the true image),
@@ -45,6 +46,17 @@ class LiftConfig:
     """--predictor torchscript: what its output is (probabilities: softmax over the logits it returns)."""
     num_views: int = 3
     """Source views K per target (the K nearest of the protocol's pool)."""
+    path: Literal["volumetric", "mesh"] = "volumetric"
+    """volumetric: blend with the model's ray weights; mesh: one surface point per pixel of a mesh (Omni-Recon
+    only; the render-then-predict baseline then runs on the mesh path's render)."""
+    mesh: str = "auto"
+    """--path mesh: gt (a procedural scene's exact mesh), model (baked from the model's depth at all the
+    targets' sources, `omnirecon mesh`'s protocol), auto (gt if any, else model) or a mesh file in the
+    scene's input frame."""
+    visibility: bool = True
+    """--path mesh: mask out of each surface point's blend the sources in which it is occluded (a depth test
+    against each source's rasterized mesh; not in the paper). Without it an occluded source blends the
+    occluder's prediction in."""
     targets: tuple[int, ...] = ()
     """Target view indices (default: the protocol's targets)."""
     out: Path | None = None
@@ -84,11 +96,18 @@ class LiftConfig:
         if not supports_lifting(model):
             raise InputError(f"model {info['name']} cannot lift 2-D predictions", self.ckpt,
                              "use an Omni-Recon, IBRNet or GPNR checkpoint")
+        if self.path == "mesh":
+            from omnirecon.models.omnirecon import OmniRecon
+
+            if not isinstance(model, OmniRecon):
+                raise InputError(f"--path mesh needs an Omni-Recon checkpoint, got {info['name']}", self.ckpt,
+                                 "use --path volumetric, or an omnirecon checkpoint")
         out = self.out or Path("outputs/lift") / f"{Path(self.ckpt).name}_{self.predictor}"
         if out.exists() and not out.is_dir():
             raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
         scenes = prepare_scenes([self.scene], self.synth_count, self.cache, protocol_set=self.protocol_set)
-        result = {"model": info, "predictor": self.predictor, "num_views": self.num_views, "scenes": []}
+        result = {"model": info, "predictor": self.predictor, "num_views": self.num_views, "path": self.path,
+                  "scenes": []}
         for es in scenes:
             result["scenes"].append(self._scene(model, es, out / es.name, device))
         _write(result, out)
@@ -147,13 +166,28 @@ class LiftConfig:
                              es.path, "lower --num-views")
         sources = {t: select_sources(scene, scene.cameras[t], pool, self.num_views) for t in targets}
         pred = self._predictor(es, pool, {v for s in sources.values() for v in s})
+        mesh_info = None
+        if self.path == "mesh":
+            from omnirecon.lift.surface import scene_mesh
+
+            mesh, mesh_source = scene_mesh(model, scene, sorted({v for s in sources.values() for v in s}), self.mesh)
+            mesh_info = {"source": mesh_source, "faces": len(mesh.faces), "visibility": self.visibility}
         rows = []
         for t in targets:
             src = sources[t]
-            with torch.no_grad():
-                feats = model.encode(Sources.from_scene(scene, src).to(device))
             maps = pred.predict_views(scene.images[src], src)
-            lifted = render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
+            if self.path == "mesh":
+                from omnirecon.lift.blend import render_lifted_mesh
+                from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
+
+                bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+                opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
+                with MeshRenderer(model, mesh, Sources.from_scene(scene, src).to(device), opts) as renderer:
+                    lifted = render_lifted_mesh(renderer, scene.cameras[t], {"p": (maps, pred.kind)})
+            else:
+                with torch.no_grad():
+                    feats = model.encode(Sources.from_scene(scene, src).to(device))
+                lifted = render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
             lift_map = lifted.maps["p"]
             rtp = None if pred.needs_view else pred(lifted.rgb)
             metrics = X.score_target(pred, lift_map, rtp, scene, t)
@@ -180,7 +214,7 @@ class LiftConfig:
                 tiles.append(clean)
             write_image(folder / f"{stem}_panel.png", X.panel(tiles))
         return {"name": es.name, "path": None if es.path is None else str(es.path), "predictor": pred.description,
-                "targets": rows, "mean": X.mean_rows(rows)}
+                "mesh": mesh_info, "targets": rows, "mean": X.mean_rows(rows)}
 
 
 def _classes(scene, t, pred):
@@ -190,7 +224,8 @@ def _classes(scene, t, pred):
 
 
 def _summary(result: dict) -> list[str]:
-    lines = [f"{result['model']['name']} + {result['predictor']}, K={result['num_views']}:"]
+    lines = [f"{result['model']['name']} + {result['predictor']}, K={result['num_views']}, "
+             f"{result.get('path', 'volumetric')} path:"]
     for s in result["scenes"]:
         m = s["mean"]
         for part in ("lift", "render", "input"):
@@ -210,7 +245,8 @@ def _write(result: dict, out: Path) -> None:
 
     result = {"provenance": provenance(seed=0), **result}
     write_json(out / "metrics.json", result)
-    lines = [f"# omnirecon lift: {result['model']['name']}, {result['predictor']}, K={result['num_views']}", "",
+    lines = [f"# omnirecon lift: {result['model']['name']}, {result['predictor']}, K={result['num_views']}, "
+             f"{result.get('path', 'volumetric')} path", "",
              "| scene | target | strategy | metrics |", "|---|---|---|---|"]
     names = {"lift": "predict-then-blend", "render": "render-then-predict", "input": "predictor on true image"}
     for s in result["scenes"]:
