@@ -28,6 +28,7 @@ Writes ``bench/results/lift.json`` (+ ``lift.md``) and ``bench/results/figures/l
 from __future__ import annotations
 
 import argparse
+import json
 import functools
 import time
 from pathlib import Path
@@ -145,6 +146,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scenes", type=int, default=10)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--keep-existing", action="store_true",
+                   help="keep the other models' results already in lift.json (same scenes and mode)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     count = 1 if a.tiny else a.scenes
@@ -152,6 +155,12 @@ def main(argv: list[str] | None = None) -> None:
     result = {"provenance": provenance(seed=0, threads=a.threads), "mode": "tiny" if a.tiny else "full",
               "scenes": [s.name for s in scenes], "protocol_set": "cpu", "num_views": K, "noise": NOISE,
               "predictors": PREDICTORS + (["hed"] if hed_ok() else []), "figure_tiles": FIGURE_TILES, "models": {}, "skipped": {}}
+    old_file = a.out / "lift.json"
+    if a.keep_existing and old_file.is_file():
+        old = json.loads(old_file.read_text())
+        if old.get("scenes") == result["scenes"] and old.get("mode") == result["mode"]:
+            result["models"] = {k: v for k, v in old["models"].items() if k not in a.models}
+            result["kept_from"] = {k: old["provenance"] for k in result["models"]}
     for name in a.models:
         ckpt = ROOT / "checkpoints" / name
         if not (ckpt / "meta.json").is_file():
