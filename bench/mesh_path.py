@@ -8,7 +8,9 @@ Per scene: the mesh of ``checkpoints/omnirecon-tiny`` from 3 source views (``omn
 protocol; the mesh ``bench/geometry.py`` wrote is reused when present), then
 
 * the mesh path's held-out PSNR without and with the visibility test (:class:`MeshRenderer`), on the
-  protocol's targets (at most 4), images at the ``full`` protocol's 128-px long side;
+  protocol's targets (at most 4), images at the ``full`` protocol's 128-px long side; over the whole
+  image and over the ground-truth object masks (the meshes are cleaned with the masks, so they hold
+  the objects only: procedural ground and DTU's table are not in them);
 * ``omnirecon finetune`` of the 2-D encoder and the appearance branch on the scene's training views,
   scored at 0, 10, 30 and 60 s (and 180, 300 s on the DTU scans) of optimisation. The clock is this
   process's CPU time (``--clock cpu``), so other jobs on the machine do not shrink the budget; the
@@ -36,7 +38,7 @@ LONG = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 
 
 def visibility_psnr(model, scene, views, targets, mesh) -> dict:
-    """Mesh-path PSNR on ``targets`` without and with the visibility test."""
+    """Mesh-path PSNR on ``targets`` without and with the visibility test (``*_masked``: object pixels)."""
     from omnirecon import metrics
     from omnirecon.models.base import Sources
     from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
@@ -46,9 +48,12 @@ def visibility_psnr(model, scene, views, targets, mesh) -> dict:
     for vis in (False, True):
         opts = MeshRenderOptions(background=bg, visibility=vis, cull_back_faces=False)
         with MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts) as r:
-            out["with" if vis else "without"] = float(np.mean(
-                [metrics.psnr(r.render(scene.cameras[t], extras=False)["rgb"].float().clamp(0, 1),
-                              scene.images[t].float()) for t in targets]))
+            renders = {t: r.render(scene.cameras[t], extras=False)["rgb"].float().clamp(0, 1) for t in targets}
+            key = "with" if vis else "without"
+            out[key] = float(np.mean([metrics.psnr(renders[t], scene.images[t].float()) for t in targets]))
+            if scene.masks is not None:
+                out[key + "_masked"] = float(np.mean([metrics.psnr(renders[t], scene.images[t].float(), scene.masks[t])
+                                                      for t in targets]))
     return out
 
 
@@ -89,8 +94,9 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
     for f in ("curve.png", "before_after.png"):
         shutil.copy2(out / f, figures / f"mesh_path_{name}_{f}")
     curve = {str(int(c["seconds"])): c["psnr"] for c in ft["curve"]}
+    curve_masked = {str(int(c["seconds"])): c["psnr_masked"] for c in ft["curve"] if "psnr_masked" in c}
     return {"name": name, "sources": ft["sources"], "held_out": ft["held_out"], "faces": ft["faces"],
-            "mesh": "geometry bench mesh" if cached else "extracted here", "curve": curve,
+            "mesh": "geometry bench mesh" if cached else "extracted here", "curve": curve, "curve_masked": curve_masked,
             "steps": {str(int(c["seconds"])): c["steps"] for c in ft["curve"]}, "visibility": vis,
             "tuned_parameters": ft["tuned_parameters"], "clock": ft["clock"],
             "pictures": {"curve": f"figures/mesh_path_{name}_curve.png",

@@ -12,6 +12,7 @@ warm-up; CUDA is synchronised when used. Writes ``bench/results/throughput.json`
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
 from pathlib import Path
@@ -101,13 +102,24 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "throughput.json")
+    parser.add_argument("--presets", nargs="+", default=None,
+                        help="measure only these presets and keep the other rows of --out (same device)")
     args = parser.parse_args(argv)
     cases = [(p, min(r, 64), 16, x) for p, r, _, x in CASES[:4]] if args.quick else CASES
+    kept = []
+    if args.presets:
+        cases = [c for c in cases if c[0] in args.presets]
+        if args.out.is_file():
+            old = json.loads(args.out.read_text())
+            if old.get("device") == args.device:
+                kept = [dict(r, provenance=old["provenance"]) for r in old["rows"] if r["preset"] not in args.presets]
     repeats = 1 if args.quick else args.repeats
-    rows = []
+    rows = list(kept)
     for preset, rays, side, render_rays in cases:
         rows.append(measure(preset, rays, side, render_rays, repeats, args.device))
         print(rows[-1])
+    order = [c[0] for c in CASES]
+    rows.sort(key=lambda r: order.index(r["preset"]) if r["preset"] in order else len(order))
     result = {"provenance": provenance(seed=0), "device": args.device, "repeats": repeats, "rows": rows}
     write_json(args.out, result)
     return result

@@ -11,7 +11,7 @@ The budget is ``--seconds`` of optimisation (``--clock wall``: wall time; ``cpu`
 CPU time, which other jobs on the machine do not shrink). Evaluations do not count against it: at
 each of ``--eval-at`` (seconds of optimisation) the held-out views are rendered through the mesh
 (pixels the mesh misses get the scene's background colour: the generator's for procedural
-scenes, else the protocol's white or black) and their PSNR goes into the curve.
+scenes, else the protocol's white or black); with masks, ``psnr_masked`` scores the object pixels only and their PSNR goes into the curve.
 
 Outputs in ``--out``: ``curve.json`` (every evaluation: seconds, steps, PSNR per view and mean),
 ``curve.png`` (PSNR against seconds), ``before_after.png`` (GT | before | after for the first
@@ -227,7 +227,11 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
             renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
         model.train()
         scores = [metrics.psnr(r, scene.images[v.index].float()) for r, v in zip(renders, held_px)]
-        return {"psnr": float(np.mean(scores)), "per_view": scores, "renders": renders}
+        out = {"psnr": float(np.mean(scores)), "per_view": scores, "renders": renders}
+        if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
+            out["psnr_masked"] = float(np.mean([metrics.psnr(r, scene.images[v.index].float(), scene.masks[v.index])
+                                                for r, v in zip(renders, held_px)]))
+        return out
 
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     curve, before, step = [], None, 0
@@ -253,7 +257,8 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
             clock.stop()
             r = evaluate_now()
             before = before or r
-            curve.append({"seconds": t_eval, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"]})
+            curve.append({"seconds": t_eval, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
+                          **({"psnr_masked": r["psnr_masked"]} if "psnr_masked" in r else {})})
             bar.update(task, completed=min(t_eval, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
     after = r
 
