@@ -95,8 +95,10 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
         shutil.copy2(out / f, figures / f"mesh_path_{name}_{f}")
     curve = {str(int(c["seconds"])): c["psnr"] for c in ft["curve"]}
     curve_masked = {str(int(c["seconds"])): c["psnr_masked"] for c in ft["curve"] if "psnr_masked" in c}
+    curve_covered = {str(int(c["seconds"])): c["psnr_covered"] for c in ft["curve"] if "psnr_covered" in c}
     return {"name": name, "sources": ft["sources"], "held_out": ft["held_out"], "faces": ft["faces"],
             "mesh": "geometry bench mesh" if cached else "extracted here", "curve": curve, "curve_masked": curve_masked,
+            "curve_covered": curve_covered,
             "steps": {str(int(c["seconds"])): c["steps"] for c in ft["curve"]}, "visibility": vis,
             "tuned_parameters": ft["tuned_parameters"], "clock": ft["clock"],
             "pictures": {"curve": f"figures/mesh_path_{name}_curve.png",

@@ -163,6 +163,11 @@ def section_ablation(r: dict) -> str:
         out.append(f"| {name} | {row['steps']} | {m['psnr']:.2f} | {m.get('psnr_aux', float('nan')):.2f} | "
                    f"{m['ssim']:.3f} | {m.get('ssim_aux', float('nan')):.3f} | {m.get('st_lpips_alex', float('nan')):.3f} | "
                    f"{m.get('st_lpips_alex_aux', float('nan')):.3f} |")
+    steps = {row["steps"] for row in r["rows"].values()}
+    if len(steps) > 1:
+        out += ["", f"Rows stop at the {r['steps']}-step schedule or at the CPU budget, whichever comes first: here "
+                f"{min(steps)}-{max(steps)} steps (rows that ran while other jobs shared the cores used more CPU "
+                "time per step), so the rows differ in steps as well as in architecture."]
     return "\n".join([*out, "", _prov(r["provenance"])])
 
 

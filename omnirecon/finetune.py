@@ -11,7 +11,8 @@ The budget is ``--seconds`` of optimisation (``--clock wall``: wall time; ``cpu`
 CPU time, which other jobs on the machine do not shrink). Evaluations do not count against it: at
 each of ``--eval-at`` (seconds of optimisation) the held-out views are rendered through the mesh
 (pixels the mesh misses get the scene's background colour: the generator's for procedural
-scenes, else the protocol's white or black); with masks, ``psnr_masked`` scores the object pixels only and their PSNR goes into the curve.
+scenes, else the protocol's white or black); with masks, ``psnr_masked`` scores the object pixels only, and ``psnr_covered`` the pixels the mesh covers
+(inside the masks): appearance without the mesh's missing parts and their PSNR goes into the curve.
 
 Outputs in ``--out``: ``curve.json`` (every evaluation: seconds, steps, PSNR per view and mean),
 ``curve.png`` (PSNR against seconds), ``before_after.png`` (GT | before | after for the first
@@ -231,6 +232,17 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
         if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
             out["psnr_masked"] = float(np.mean([metrics.psnr(r, scene.images[v.index].float(), scene.masks[v.index])
                                                 for r, v in zip(renders, held_px)]))
+        covered = []  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
+        for r, v in zip(renders, held_px):
+            m = torch.zeros(scene.height * scene.width, dtype=torch.bool)
+            m[v.pixels] = True
+            m = m.reshape(scene.height, scene.width)
+            if scene.masks is not None:
+                m &= scene.masks[v.index].bool()
+            if m.any():
+                covered.append(metrics.psnr(r, scene.images[v.index].float(), m))
+        if covered:
+            out["psnr_covered"] = float(np.mean(covered))
         return out
 
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
@@ -258,7 +270,7 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
             r = evaluate_now()
             before = before or r
             curve.append({"seconds": t_eval, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
-                          **({"psnr_masked": r["psnr_masked"]} if "psnr_masked" in r else {})})
+                          **{k: r[k] for k in ("psnr_masked", "psnr_covered") if k in r}})
             bar.update(task, completed=min(t_eval, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
     after = r
 
