@@ -46,12 +46,12 @@ class DemoConfig:
     """Output folder (index.html, demo.json, videos, meshes, pictures)."""
     checkpoints: Path = ROOT / "checkpoints"
     """Folder of the shipped checkpoints (one sub-folder per preset)."""
-    frames: int = 24
+    frames: int = 20
     """Frames of each novel-view orbit."""
-    resolution: int = 96
-    """Long side of the rendered frames, in pixels."""
-    num_views: int = 5
-    """Source views K for rendering, scoring and meshing."""
+    resolution: int = 80
+    """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
+    num_views: int = 3
+    """Source views K for rendering, scoring and meshing (the papers' sparse setting)."""
     quick: bool = False
     """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
     threads: int | None = None
