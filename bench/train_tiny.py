@@ -67,11 +67,36 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
            "--synth-scenes", str(synth_scenes), "--resolution", str(RESOLUTION), "--steps", str(steps),
            "--cpu-budget", str(cpu_budget), "--threads", str(threads), "--seed", str(SEED), "--cache", str(CACHE),
            "--val-every", "500", "--ckpt-every", "250", "--out", str(out), "--no-progress"]
+    start = 0
     if (out / "checkpoints" / "latest").exists():
         cmd.append("--resume")
+        start = json.loads((out / "checkpoints" / "latest" / "meta.json").read_text())["step"]
+    record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start})
     print(" ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     return out
+
+
+def record_stage(run: Path, stage: dict) -> None:
+    """Append one invocation to ``run/stages.json`` (a run continued with a larger budget or a longer
+    schedule has several; the model card lists them so the checkpoint can be regenerated)."""
+    path = run / "stages.json"
+    stages = json.loads(path.read_text()) if path.is_file() else []
+    if stages and stages[-1] == stage:
+        return  # an interrupted invocation resumed with the same flags
+    run.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(stages + [stage], indent=1))
+    tmp.replace(path)
+
+
+def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads: int) -> list[str]:
+    """The ``train_tiny.py`` invocations that produced the run, in order."""
+    path = run / "stages.json"
+    stages = json.loads(path.read_text()) if path.is_file() else \
+        [{"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": 0}]
+    return [f"python bench/train_tiny.py --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
+            f"--threads {st['threads']}" for st in stages]
 
 
 def plot_curve(rows: list[dict], path: Path, title: str) -> None:
@@ -103,7 +128,7 @@ def plot_curve(rows: list[dict], path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
+def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> Path:
     """Copy the final checkpoint to checkpoints/<model>/ and write its model card."""
     dest = ROOT / "checkpoints" / model
     final = run / "checkpoints" / "final"
@@ -121,7 +146,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
         "wall_seconds": meta["extra"].get("elapsed_s"), "cpu_budget_s": cpu_budget, "threads": threads,
         "resolution": RESOLUTION, "seed": SEED, "data": {"procedural": SYNTH, "real": REAL, "weights": WEIGHTS},
         "held_out": "procedural seeds 900000-900999, dtu_scan24, dtu_scan37, fern (never trained on)",
-        "command": f"python bench/train_tiny.py --model {model} --cpu-budget {cpu_budget:g} --threads {threads}",
+        "command": " && ".join(stage_commands(model, run, cpu_budget, steps, threads)),
+        "stages": stage_commands(model, run, cpu_budget, steps, threads),
         "train_psnr_last": train_rows[-1]["psnr"] if train_rows else None,
         "train_psnr_first": train_rows[0]["psnr"] if train_rows else None,
         "validation": val_rows[-1] if val_rows else None,
@@ -133,8 +159,12 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int) -> Path:
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
     (tmp / "MODEL_CARD.md").write_text("\n".join([
         f"# {model}", "",
-        f"Trained by `{card['command']}` (seed {SEED}): {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
-        f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION}.", "",
+        f"Trained (seed {SEED}) for {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
+        f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION} by", "",
+        *[f"{i + 1}. `{c}`" for i, c in enumerate(card["stages"])], "",
+        *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state) with a larger CPU budget "
+           "and a longer cosine learning-rate schedule, so the learning rate rises again where it starts (a warm "
+           "restart)."] if len(card["stages"]) > 1 else []), "",
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
         "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
@@ -159,13 +189,13 @@ def main(argv: list[str] | None = None) -> None:
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
     a = p.parse_args(argv)
     if a.reship:
-        print(f"shipped {ship(a.model, ROOT / 'outputs' / 'train' / f'{a.model}_bench', a.cpu_budget, a.threads)}")
+        print(f"shipped {ship(a.model, ROOT / 'outputs' / 'train' / f'{a.model}_bench', a.cpu_budget, a.threads, a.steps)}")
         return
     prepare(a.synth_scenes)
     if a.prepare:
         return
     run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps)
-    print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads)}")
+    print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
 
 if __name__ == "__main__":

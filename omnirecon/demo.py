@@ -225,6 +225,9 @@ def run_demo(cfg: DemoConfig) -> dict:
         sections.append(lift_section(cfg, path, scene, lifter, out, numbers, lines))
         numbers["seconds"]["lift"] = time.perf_counter() - t
 
+    overview = overview_figure(out)
+    if overview is not None:
+        sections.insert(0, Section("Overview").figure(overview, out, "one held-out scene: what the demo produced", 900))
     numbers["seconds"]["total"] = time.perf_counter() - start_all
     numbers["provenance"] = provenance(seed=0)
     write_json(out / "demo.json", numbers)
@@ -257,6 +260,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     import torch
 
     from omnirecon.checkpoint import load_checkpoint
+    from omnirecon.data.io import write_image
     from omnirecon.mesh_cli import default_views
     from omnirecon.models.base import Sources
     from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
@@ -281,6 +285,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
             images.append((rgb.float().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
     fps = 1.0 / statistics.median(times)
     video = write_video(out / "mesh_path" / "orbit.mp4", images, 24)
+    write_image(out / "mesh_path" / "frame_0000.png", images[0])
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": views}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads)")
@@ -351,3 +356,42 @@ def lift_section(cfg: DemoConfig, path: Path, scene, ckpt: Path, out: Path, numb
                      f"{rtp_v if rtp_v is None else round(rtp_v, 3)} (render-then-predict)")
     section.table(["predictor", "metric", "predict-then-blend", "render-then-predict"], rows)
     return section
+
+
+def overview_figure(out: Path) -> Path | None:
+    """One strip of the demo's pictures (first orbit frames, meshes, lifted maps) as ``overview.png``.
+
+    Tiles whose files a run did not produce (a missing checkpoint, no labels) are left out; returns
+    None when there is nothing to show. The README's picture is this file.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from omnirecon.data.io import atomic_path, read_image
+
+    def first(pattern: str) -> Path | None:
+        found = sorted(out.glob(pattern))
+        return found[0] if found else None
+
+    tiles = [(first("orbit_gpnr-tiny/frames/*.png"), "GPNR novel view"),
+             (first("orbit_omnirecon-tiny/frames/*.png"), "Omni-Recon novel view"),
+             (out / "mesh_omnirecon-tiny_preview.png", "Omni-Recon mesh"),
+             (out / "mesh_path" / "frame_0000.png", "real-time mesh path"),
+             (first("lift_sobel/*/*_lift.png"), "lifted edges"),
+             (first("lift_oracle-labels/*/*_lift.png"), "lifted labels")]
+    tiles = [(p, t) for p, t in tiles if p is not None and p.is_file()]
+    if not tiles:
+        return None
+    fig, axes = plt.subplots(1, len(tiles), figsize=(2.2 * len(tiles), 2.5), dpi=110, squeeze=False)
+    for ax, (p, title) in zip(axes[0], tiles):
+        ax.imshow(read_image(p))
+        ax.set_title(title, fontsize=8)
+        ax.axis("off")
+    fig.tight_layout()
+    path = out / "overview.png"
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path

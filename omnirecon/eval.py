@@ -203,9 +203,9 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
     """Generate (or reuse) the held-out procedural scenes of ``spec`` (``synth:eval[:rig]``).
 
     Scene ``i`` uses seed ``EVAL_SEEDS[i]`` and is written to ``cache/synth_eval/<rig>_<res>``.
-    A cached scene written by another generator version is regenerated.
+    A cached scene written with other options or by another generator version is regenerated.
     """
-    from omnirecon.data.synth.generate import GENERATOR_VERSION, SynthOptions, generate_scene, scene_name
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
 
     parts = spec.split(":")
     rig = parts[2] if len(parts) > 2 else "object"
@@ -220,9 +220,7 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
     task = progress.add_task(f"synth {rig}", total=count) if progress is not None else None
     paths = []
     for seed in EVAL_SEEDS[:count]:
-        folder = out / scene_name(seed)
-        stale = folder.is_dir() and read_json(folder / "scene.json").get("generator_version") != GENERATOR_VERSION
-        paths.append(generate_scene(out, seed, options, overwrite=stale))
+        paths.append(generate_scene(out, seed, options))  # regenerated when its options or version differ
         if task is not None:
             progress.advance(task)
     return paths

@@ -87,6 +87,18 @@ def test_same_seed_gives_identical_files(tmp_path):
     assert not list(tmp_path.glob("*/.scene_*")), "temporary folders left behind"
 
 
+def test_cached_scene_is_reused_only_with_the_same_options(tmp_path):
+    options = SynthOptions(rig="object", views=4, resolution=32, max_objects=3)
+    path = generate_scene(tmp_path, 5, options)
+    stamp = (path / "scene.json").stat().st_mtime_ns
+    assert generate_scene(tmp_path, 5, options) == path
+    assert (path / "scene.json").stat().st_mtime_ns == stamp, "an identical cached scene was rewritten"
+    generate_scene(tmp_path, 5, replace(options, resolution=24, views=5))  # same folder, other options
+    scene = load_scene(path)
+    assert (scene.width, scene.height) == (24, 24) and len(scene) == 5
+    assert json.loads((path / "scene.json").read_text())["options"]["resolution"] == 24
+
+
 @pytest.mark.parametrize("rig", RIGS)
 def test_depth_lies_on_the_mesh(scenes, rig):
     scene = load_scene(scenes[rig])

@@ -37,7 +37,7 @@ from omnirecon.cameras import closest_point_to_axes, nearest_views, view_distanc
 from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
-from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
+from omnirecon.data.synth.generate import SynthOptions, generate_scene, same_scene, scene_name
 from omnirecon.errors import InputError
 from omnirecon.models.base import Rays, Sources
 from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS
@@ -271,14 +271,16 @@ class SceneBank:
 
 
 def ensure_generated(ref: SceneRef, resolution: int) -> Path:
-    """Generate the procedural scene ``ref`` unless present; safe when several processes ask at once."""
-    if ref.path.is_dir():
+    """Generate the procedural scene ``ref`` unless present with the same options; safe when several
+    processes ask at once."""
+    options = SynthOptions(rig=ref.rig, views=ref.views, resolution=resolution)
+    if ref.path.is_dir() and same_scene(ref.path, ref.seed, options):
         return ref.path
     ref.path.parent.mkdir(parents=True, exist_ok=True)
     with open(ref.path.parent / f".{ref.path.name}.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         try:
-            generate_scene(ref.path.parent, ref.seed, SynthOptions(rig=ref.rig, views=ref.views, resolution=resolution))
+            generate_scene(ref.path.parent, ref.seed, options)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
     return ref.path

@@ -33,6 +33,7 @@ normals, labels and masks are the single sample at each pixel centre, so they st
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -117,11 +118,12 @@ def generate_scene(out: Path, seed: int, options: SynthOptions, overwrite: bool 
     """Generate the scene of ``seed`` into ``out/scene_{seed:05d}`` and return that folder.
 
     The same seed and options always give byte-identical files. An existing complete scene is
-    kept unless ``overwrite``.
+    kept when its ``scene.json`` records the same seed, options and generator version (a cache);
+    it is regenerated when any differs, or when ``overwrite``.
     """
     options.check()
     final = Path(out) / scene_name(seed)
-    if final.exists() and not overwrite:
+    if final.exists() and not overwrite and same_scene(final, seed, options):
         return final
     tmp = Path(out) / f".{final.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
@@ -133,6 +135,16 @@ def generate_scene(out: Path, seed: int, options: SynthOptions, overwrite: bool 
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return final
+
+
+def same_scene(folder: Path, seed: int, options: SynthOptions) -> bool:
+    """Whether ``folder`` holds the scene of ``seed`` and ``options`` from this generator version."""
+    try:
+        meta = json.loads((folder / "scene.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return (meta.get("seed") == seed and meta.get("generator_version") == GENERATOR_VERSION
+            and meta.get("options") == json.loads(json.dumps(asdict(options))))
 
 
 def build_mesh(layout: Layout, texture_size: int) -> Mesh:
