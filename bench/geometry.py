@@ -34,7 +34,7 @@ and its Chamfer distance do not depend on it."""
 
 
 def load(model_name: str):
-    from omnirecon.checkpoint import load_checkpoint
+    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.models.registry import build_model
 
     if model_name == "floor":
@@ -42,7 +42,7 @@ def load(model_name: str):
     ckpt = ROOT / "checkpoints" / model_name
     model, meta = load_checkpoint(ckpt)
     return model, {"name": model_name, "preset": meta["preset"], "checkpoint": str(ckpt.relative_to(ROOT)),
-                   "step": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s")}
+                   "step": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s"), "sha256": fingerprint(ckpt)["sha256"]}
 
 
 def run(model_name: str, results: Path, tiny: bool, threads: int) -> dict:

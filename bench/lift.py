@@ -135,7 +135,7 @@ def summary(result: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from omnirecon.checkpoint import load_checkpoint
+    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.data.io import write_json
     from omnirecon.eval import prepare_scenes
     from omnirecon.provenance import provenance
@@ -171,7 +171,7 @@ def main(argv: list[str] | None = None) -> None:
         model.eval()
         fig = a.out / "figures" / f"lift_{name}.png"
         r = run_model(model, scenes, 1 if a.tiny else None, fig)
-        r["checkpoint"] = {"path": str(ckpt.relative_to(ROOT)), "step": meta.get("step")}
+        r["checkpoint"] = {**fingerprint(ckpt), "path": str(ckpt.relative_to(ROOT))}
         result["models"][name] = r
         m = r["means"]
         print(f"{name}: {len(r['targets'])} targets, {r['seconds_per_target']:.1f} s/target; "

@@ -231,8 +231,15 @@ def mean_of(rows, path):
     return float(np.mean(vals)) if vals else None
 
 
+def _relative(path: Path) -> str:
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def main(argv: list[str] | None = None) -> None:
-    from omnirecon.checkpoint import load_checkpoint
+    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.data.io import write_json
     from omnirecon.eval import prepare_scenes, select_sources, targets_and_pool
     from omnirecon.geometry import ground_truth_mesh
@@ -293,7 +300,7 @@ def main(argv: list[str] | None = None) -> None:
         pm["before"] = mean_of(pets, ("before",))
         pet_means[mode] = pm
     result = {"provenance": provenance(seed=0, threads=a.threads), "mode": "tiny" if a.tiny else "full",
-              "checkpoint": {"path": str(a.ckpt), "step": meta.get("step")}, "scenes": [s.name for s in scenes],
+              "checkpoint": {**fingerprint(a.ckpt), "path": _relative(a.ckpt)}, "scenes": [s.name for s in scenes],
               "protocol_set": "cpu", "num_views": K, "pet_steps": steps, "hed_features": None if hed is None else hed.description,
               "means": means, "pet_means": pet_means, "targets": rows, "pet": pets, "edits": edit,
               "edit_figures": {"lift_edit_recolour.png / lift_edit_remove.png": "true target | first edited source | "

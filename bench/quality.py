@@ -30,7 +30,7 @@ def scenes(tiny: bool) -> list[str]:
 
 
 def run(model_name: str, out_dir: Path, tiny: bool, threads: int) -> dict:
-    from omnirecon.checkpoint import load_checkpoint
+    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.eval import evaluate
     from omnirecon.models.registry import build_model
 
@@ -41,7 +41,7 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int) -> dict:
         ckpt = ROOT / "checkpoints" / model_name
         model, meta = load_checkpoint(ckpt)
         info = {"name": model_name, "preset": meta["preset"], "checkpoint": str(ckpt.relative_to(ROOT)),
-                "step": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s")}
+                "step": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s"), "sha256": fingerprint(ckpt)["sha256"]}
     result = evaluate(model, scenes(tiny), (3,) if tiny else (3, 10), ROOT / "outputs" / "bench" / f"eval_{model_name}",
                       model_info=info, synth_count=1 if tiny else 10, protocol_set="cpu",
                       max_targets=1 if tiny else None, cache=ROOT / "outputs" / "cache", progress=not tiny)

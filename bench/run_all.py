@@ -114,6 +114,9 @@ def section_quality(results: Path) -> str | None:
            "64-px long side, targets and source pools fixed per dataset, K nearest sources. dtu_scan24, dtu_scan37 and "
            "fern are never trained on; fox and lego are training scenes (their rows measure fitting). GPNR's "
            "`aux` is its blended-source-colour output (`rgb_aux`).", ""]
+    for m, r in data.items():
+        if m != "floor":
+            out += stale_note(m, r["model"], "quality.py")
     for metric, label, better in (("psnr", "PSNR (dB)", max), ("ssim", "SSIM", max), ("st_lpips_alex", "ST-LPIPS (alex; not LPIPS)", min)):
         cols = [(m, k) for m in models for k in ks]
         out += [f"**{label}**", "", "| scene | " + " | ".join(f"{m} K={k}" for m, k in cols) + " |",
@@ -197,6 +200,31 @@ def section_training() -> str | None:
     return "\n".join(out)
 
 
+_SHIPPED: dict = {}
+
+
+def shipped_fingerprint(model: str) -> dict | None:
+    """The fingerprint of ``checkpoints/<model>`` as it ships now (None when absent)."""
+    from omnirecon.checkpoint import fingerprint
+
+    if model not in _SHIPPED:
+        folder = ROOT / "checkpoints" / model
+        _SHIPPED[model] = fingerprint(folder) if (folder / "model.safetensors").is_file() else None
+    return _SHIPPED[model]
+
+
+def stale_note(model: str, recorded: dict | None, script: str) -> list[str]:
+    """A warning line when stored results were not measured with the checkpoint that ships now."""
+    now = shipped_fingerprint(model)
+    recorded = recorded or {}
+    if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
+        return []
+    used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
+        f", weights {recorded['sha256']}" if recorded.get("sha256") else "")
+    return [f"> **Stale:** the {model} numbers here were measured with {used}; `checkpoints/{model}` is now step "
+            f"{now['step']} (weights {now['sha256']}). Rerun `python bench/{script}`.", ""]
+
+
 def _f(v, digits: int = 4) -> str:
     return "–" if v is None or v != v else f"{v:.{digits}f}"
 
@@ -220,6 +248,9 @@ def section_geometry(results: Path) -> str | None:
            "| model | Chamfer | accuracy | completeness | Chamfer / extent | F-score | silhouette IoU | "
            f"depth abs rel (targets) | images -> mesh (s) | PSNR ({first.get('synth_targets', 2)} targets) |",
            "|---|---|---|---|---|---|---|---|---|---|"]
+    notes = [line for m, r in data.items() if m != "floor" for line in stale_note(m, r.get("model"), "geometry.py")]
+    if notes:
+        out[2:2] = notes
     means = {m: r["synth"]["means"].get("synth", {}).get("3", {}) for m, r in data.items()}
     for m, mean in means.items():
         g = mean.get("geometry", {})
@@ -305,6 +336,7 @@ def section_mesh_path(results: Path) -> str | None:
                 "is unmeasured.", "", _prov(r["provenance"]), ""]
     if q_file.is_file():
         r = json.loads(q_file.read_text())
+        out += stale_note("omnirecon-tiny", r.get("checkpoint"), "mesh_path.py")
         times = sorted({t for row in r["rows"] for t in row["curve"]}, key=float)
         out += [f"Quality: held-out PSNR of the mesh path (images at {r['resolution']} px, at most 4 targets per scene, "
                 "3 source views, the mesh of `bench/geometry.py`, cleaned with the source masks so it holds the objects "
@@ -348,6 +380,8 @@ def section_lift(results: Path) -> str | None:
            "wrong class); k-NN labels are a pixel classifier fitted on 6 labelled views that are no target's source "
            "(the semantic comparison: an oracle cannot run on a render); edge and keypoint references are the same "
            "predictor on the true target image. mIoU in %.", ""]
+    for m, mr in r["models"].items():
+        out += stale_note(m, mr.get("checkpoint"), "lift.py")
     out += r["table"]
     models = list(r["models"])
     gains = []
@@ -369,6 +403,8 @@ def section_lift(results: Path) -> str | None:
                 "with the exact mesh and with the model's own baked mesh; LoRA / bias-only tuning of the appearance "
                 "branch with a leave-one-out semantic cross-entropy on 6 labelled views of the same scene; HED VGG "
                 "features lifted as embeddings and classified by cosine similarity to label prototypes.", ""]
+        ck = e.get("checkpoint") or {}
+        out += stale_note(ck.get("preset") or "omnirecon-tiny", ck, "lift_extra.py")
         out += e["table"]
         edits = sorted((results / "figures").glob("lift_edit_*.png"))
         if edits:

@@ -77,6 +77,18 @@ def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     return model.to(device), meta
 
 
+def fingerprint(folder: Path) -> dict:
+    """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}`` (the first 16
+    hex digits of the weights file's SHA-256), so a page built from stored results can tell whether
+    they were measured with the checkpoint that ships now."""
+    import hashlib
+
+    folder = Path(folder)
+    meta = read_meta(folder)
+    digest = hashlib.sha256((folder / "model.safetensors").read_bytes()).hexdigest()[:16]
+    return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": digest}
+
+
 def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:
     """Restore optimizer state saved by :func:`save_checkpoint` into ``optimizer``."""
     meta = read_meta(folder)["optimizer"]

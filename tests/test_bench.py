@@ -39,3 +39,20 @@ def test_ablation_tiny_trains_and_scores_each_row(tmp_path):
     assert set(r["rows"]) == {"full", "no ray canonicalization"}
     for row in r["rows"].values():
         assert row["steps"] >= 1 and 0 < row["metrics"]["psnr"] < 60 and "psnr_aux" in row["metrics"]
+
+
+def test_page_flags_results_measured_with_another_checkpoint(monkeypatch):
+    """run_all marks a section stale when its stored results name other weights than the shipped ones."""
+    monkeypatch.syspath_prepend(str(ROOT / "bench"))
+    import run_all
+
+    if run_all.shipped_fingerprint("omnirecon-tiny") is None:
+        import pytest
+
+        pytest.skip("checkpoints/omnirecon-tiny is not in this clone")
+    now = run_all.shipped_fingerprint("omnirecon-tiny")
+    assert len(now["sha256"]) == 16 and now["step"] > 0
+    assert run_all.stale_note("omnirecon-tiny", dict(now), "quality.py") == []
+    old = run_all.stale_note("omnirecon-tiny", {"step": 5, "sha256": "0" * 16}, "quality.py")
+    assert "step 5" in old[0] and now["sha256"] in old[0] and "bench/quality.py" in old[0]
+    assert "unrecorded" in run_all.stale_note("omnirecon-tiny", None, "lift.py")[0]
