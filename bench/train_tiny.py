@@ -168,7 +168,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
         "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
-        f"{card['train_psnr_last']:.2f} dB at the last. Last validation: {json.dumps(card['validation'])}.", "",
+        f"{card['train_psnr_last']:.2f} dB at the last. Last validation (monitoring only: the final checkpoint "
+        f"ships, none is selected by validation): {json.dumps(card['validation'])}.", "",
         "Evaluation numbers are in BENCHMARKS.md (`bench/quality.py`). Files: model.safetensors (weights), "
         "meta.json (preset, config, step), card.json (this card as data, with the training curve), "
         "training_curve.png.", "", "![training curve](training_curve.png)", ""]))

@@ -123,6 +123,7 @@ def test_ddp_two_processes(tmp_path, scene):
 
 @pytest.mark.parametrize("argv, message", [
     (["--data", "synth:object:seeds=900003"], "reserved for evaluation"),
+    (["--data", "synth:object:seeds=901000"], "reserved for evaluation and validation"),
     (["--data", "synth:moon"], "bad procedural source"),
     (["--model", "floor"], "no trainable parameters"),
     (["--model", "gpnr-huge"], "unknown model"),
@@ -201,3 +202,14 @@ def test_overrides_and_schedule():
     assert lr_factor(10, 100, 10, "cosine", 0.1) == 1.0
     assert abs(lr_factor(100, 100, 10, "cosine", 0.1) - 0.1) < 1e-12
     assert abs(lr_factor(55, 100, 10, "linear", 0.0) - 0.5) < 1e-12
+
+
+def test_validation_scenes_are_neither_training_nor_evaluation_seeds():
+    from omnirecon.data.bank import parse_sources
+    from omnirecon.splits import EVAL_SEEDS, TRAIN_SEEDS, VAL_SEEDS
+
+    (refs,) = parse_sources(["synth:object:2"], "val", seed=0, synth_scenes=2, cache=Path("unused"), resolution=32,
+                            synth_views=8)
+    seeds = [r.seed for r in refs]
+    assert seeds == list(VAL_SEEDS[:2])
+    assert not any(s in EVAL_SEEDS or s in TRAIN_SEEDS for s in seeds)

@@ -5,8 +5,8 @@ Sources (``--data`` / ``--val-scenes`` of ``omnirecon train``):
 * ``synth:RIG`` or ``synth:RIG:N`` (RIG = ``object``, ``frontal`` or ``forward``): ``N`` procedural
   scenes, generated on first use into ``CACHE/<rig>_<res>`` (``_v<views>`` appended when not the
   default 40 views). Training scene ``i`` gets the seed drawn from :data:`TRAIN_SEEDS` by
-  ``(seed, i)``; validation uses the first ``N`` seeds of :data:`EVAL_SEEDS`.
-  ``synth:RIG:seeds=A,B`` names the seeds; training refuses seeds in :data:`EVAL_SEEDS`.
+  ``(seed, i)``; validation uses the first ``N`` seeds of :data:`VAL_SEEDS`.
+  ``synth:RIG:seeds=A,B`` names the seeds; training refuses seeds in :data:`EVAL_SEEDS` and :data:`VAL_SEEDS`.
 * a scene folder in any format :func:`~omnirecon.data.load_scene` reads, or a folder of scene
   folders. Training refuses a scene folder named in :data:`EVAL_ONLY_SCENES` (or holding a
   procedural scene of an evaluation seed); inside a folder of scenes such scenes are skipped with a note.
@@ -40,7 +40,7 @@ from omnirecon.data.scene import Scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, same_scene, scene_name
 from omnirecon.errors import InputError
 from omnirecon.models.base import Rays, Sources
-from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS
+from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS, VAL_SEEDS
 
 RIGS = ("object", "frontal", "forward")
 DEFAULT_SYNTH_VIEWS = SynthOptions().views
@@ -105,12 +105,12 @@ def _parse_synth(spec: str, role: str, seed: int, count: int, cache: Path, resol
                 seeds += [] if s in seeds else [s]
                 i += 1
         else:
-            seeds = list(EVAL_SEEDS[:n])
+            seeds = list(VAL_SEEDS[:n])
     if role == "train":
-        bad = [s for s in seeds if s in EVAL_SEEDS]
+        bad = [s for s in seeds if s in EVAL_SEEDS or s in VAL_SEEDS]
         if bad:
-            raise InputError(f"procedural seed {bad[0]} is reserved for evaluation "
-                             f"({EVAL_SEEDS.start}..{EVAL_SEEDS.stop - 1})", None,
+            raise InputError(f"procedural seed {bad[0]} is reserved for evaluation and validation "
+                             f"({EVAL_SEEDS.start}..{VAL_SEEDS.stop - 1})", None,
                              f"train on seeds below {EVAL_SEEDS.start}")
         if any(s < 0 for s in seeds):
             raise InputError("procedural seeds must be non-negative", None, "use seeds >= 0")
@@ -137,8 +137,8 @@ def _reserved(folder: Path) -> str | None:
     if name in EVAL_ONLY_SCENES:
         return f"scene {name!r} is reserved for evaluation (EVAL_ONLY_SCENES)"
     seed = _procedural_seed(folder)
-    if seed is not None and seed in EVAL_SEEDS:
-        return f"procedural scene of seed {seed} is reserved for evaluation"
+    if seed is not None and (seed in EVAL_SEEDS or seed in VAL_SEEDS):
+        return f"procedural scene of seed {seed} is reserved for evaluation and validation"
     return None
 
 
