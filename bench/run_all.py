@@ -1,6 +1,8 @@
 """Regenerate BENCHMARKS.md: run the benchmarks (or reuse their stored results) and write the page.
 
-    python bench/run_all.py                 # run every benchmark, then write BENCHMARKS.md
+    python bench/run_all.py                 # run every benchmark (hours on 2 CPU cores), then write BENCHMARKS.md
+    python bench/run_all.py --skip ablation # all but the GPNR ablation (which retrains four models)
+    python bench/run_all.py --only quality geometry   # rerun some (e.g. the ones the page marks stale)
     python bench/run_all.py --reuse         # only rewrite BENCHMARKS.md from bench/results/*.json
     python bench/run_all.py --tiny --out /tmp/B.md --results /tmp/r   # a fast subset (used by the tests)
 
@@ -18,19 +20,48 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
 
-def run_benchmarks(results: Path, tiny: bool) -> None:
+# Every benchmark behind the page, in the order they run (mesh_path reuses geometry's meshes).
+# The first four make up --tiny (the test); "ablation" retrains four GPNR rows (about 1 h of CPU).
+STEPS = ("synth", "throughput", "quality", "geometry", "mesh_fps", "mesh_path", "lift", "lift_extra", "ablation")
+TINY_STEPS = STEPS[:4]
+
+
+def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, threads: int = 1) -> None:
+    """Run the benchmark scripts of ``steps``; each writes its JSON into ``results``."""
+    import ablation_gpnr
     import geometry
+    import lift
+    import lift_extra
+    import mesh_path
     import quality
     import synth_speed
     import throughput
 
-    args = ["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []
-    synth_speed.main([*args, "--out", str(results / "synth_speed.json")])
-    throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")])
-    models = ["floor"] + [m for m in QUALITY_MODELS[1:] if (ROOT / "checkpoints" / m).is_dir()]
-    quality.main(["--models", *(["floor"] if tiny else models), *(["--tiny"] if tiny else []), "--out", str(results)])
-    models = ["floor"] + [m for m in ("ibrnet-tiny", "omnirecon-tiny") if (ROOT / "checkpoints" / m).is_dir()]
-    geometry.main(["--models", *(["floor"] if tiny else models), *(["--tiny"] if tiny else []), "--out", str(results)])
+    from omnirecon import speed
+
+    results.mkdir(parents=True, exist_ok=True)
+    t = ["--tiny"] if tiny else []
+    shipped = [m for m in QUALITY_MODELS[1:] if (ROOT / "checkpoints" / m).is_dir()]
+    runs = {
+        "synth": lambda: synth_speed.main([*(["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []),
+                                           "--out", str(results / "synth_speed.json")]),
+        "throughput": lambda: throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")]),
+        "quality": lambda: quality.main(["--models", "floor", *([] if tiny else shipped), *t, "--threads", str(threads),
+                                         "--out", str(results)]),
+        "geometry": lambda: geometry.main(["--models", "floor", *([] if tiny else [m for m in GEOMETRY_MODELS[1:]
+                                                                                  if m in shipped]),
+                                           *t, "--threads", str(threads), "--out", str(results)]),
+        "mesh_fps": lambda: speed.main([*(["--quick"] if tiny else []), "--threads", "2",
+                                        "--out", str(results / "mesh_fps.json")]),
+        "mesh_path": lambda: mesh_path.main([*t, "--threads", str(threads), "--out", str(results)]),
+        "lift": lambda: lift.main([*t, "--threads", str(threads), "--out", str(results)]),
+        "lift_extra": lambda: lift_extra.main([*t, "--threads", str(threads), "--out", str(results)]),
+        "ablation": lambda: ablation_gpnr.main([*t, "--threads", str(threads),
+                                                "--out", str(results / "ablation_gpnr.json")]),
+    }
+    for step in steps:
+        print(f"== bench step {step}", flush=True)
+        runs[step]()
 
 
 def _prov(p: dict) -> str:
@@ -423,8 +454,9 @@ def write_page(results: Path, out: Path) -> str:
     from omnirecon.data.io import atomic_path
 
     parts = ["# Benchmarks", "",
-             "Every number below is produced by `python bench/run_all.py` from the JSON results in "
-             "`bench/results/`; each table carries the provenance of the run that measured it. "
+             "Every number below is produced by `python bench/run_all.py` (which runs the scripts in `bench/`) from "
+             "the JSON results in `bench/results/`; each table carries the provenance of the run that measured it, and "
+             "a section measured with other weights than the shipped checkpoint's is marked **Stale**. "
              "Numbers are what we measured, including where they fall short of a goal.", ""]
     for name, render in SECTIONS.items():
         f = results / name
@@ -446,6 +478,10 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reuse", action="store_true", help="do not run benchmarks; rewrite the page only")
     parser.add_argument("--tiny", action="store_true", help="a fast subset (for tests)")
+    parser.add_argument("--only", nargs="+", choices=STEPS, default=None,
+                        help="run only these benchmarks (default: all; with --tiny: " + " ".join(TINY_STEPS) + ")")
+    parser.add_argument("--skip", nargs="+", choices=STEPS, default=(), help="benchmarks not to run")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of the quality/geometry/lift runs")
     parser.add_argument("--results", type=Path, default=HERE / "results")
     parser.add_argument("--out", type=Path, default=ROOT / "BENCHMARKS.md")
     args = parser.parse_args(argv)
@@ -453,7 +489,8 @@ def main(argv: list[str] | None = None) -> None:
 
     sys.path.insert(0, str(HERE))
     if not args.reuse:
-        run_benchmarks(args.results, args.tiny)
+        steps = tuple(x for x in (args.only or (TINY_STEPS if args.tiny else STEPS)) if x not in args.skip)
+        run_benchmarks(args.results, args.tiny, tuple(x for x in STEPS if x in steps), args.threads)
     write_page(args.results, args.out)
     print(f"wrote {args.out}")
 
