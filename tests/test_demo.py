@@ -27,7 +27,7 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
     if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
         assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0
-        for name in ("mesh_path/orbit", "finetune/curve.png", "orbit_omnirecon-tiny/video"):
+        for name in ("mesh_path/orbit", "finetune/curve.png", "orbit_omnirecon-tiny/video", "overview.png"):
             assert name in page, name
 
 
