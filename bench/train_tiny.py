@@ -59,19 +59,21 @@ def prepare(synth_scenes: int) -> None:
 
 
 def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps: int, overrides: list[str] = (),
-          name: str | None = None, data: list[str] | None = None) -> Path:
+          name: str | None = None, data: list[str] | None = None, stop_at: int | None = None) -> Path:
     """Run ``omnirecon train`` (resuming an interrupted run) and return its run folder."""
     out = ROOT / "outputs" / "train" / (name or f"{model}_bench")
     cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model, *(data or data_args()),
            *(["--model-overrides", *overrides] if overrides else []),
            "--synth-scenes", str(synth_scenes), "--resolution", str(RESOLUTION), "--steps", str(steps),
            "--cpu-budget", str(cpu_budget), "--threads", str(threads), "--seed", str(SEED), "--cache", str(CACHE),
-           "--val-every", "500", "--ckpt-every", "250", "--out", str(out), "--no-progress"]
+           "--val-every", "500", "--ckpt-every", "250", "--out", str(out), "--no-progress",
+           *(["--stop-at", str(stop_at)] if stop_at else [])]
     start = 0
     if (out / "checkpoints" / "latest").exists():
         cmd.append("--resume")
         start = json.loads((out / "checkpoints" / "latest" / "meta.json").read_text())["step"]
-    record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start})
+    record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
+                       **({"stop_at": stop_at} if stop_at else {})})
     print(" ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     return out
@@ -96,7 +98,7 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
     stages = json.loads(path.read_text()) if path.is_file() else \
         [{"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": 0}]
     return [f"python bench/train_tiny.py --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
-            f"--threads {st['threads']}" for st in stages]
+            f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "") for st in stages]
 
 
 def plot_curve(rows: list[dict], path: Path, title: str) -> None:
@@ -185,6 +187,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--synth-scenes", type=int, default=32)
     p.add_argument("--steps", type=int, default=3000, help="length of the learning-rate schedule")
+    p.add_argument("--stop-at", type=int, default=None,
+                   help="end the run at this step (the schedule stays --steps long); resumes a longer run's checkpoint")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
     p.add_argument("--reship", action="store_true",
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
@@ -195,7 +199,7 @@ def main(argv: list[str] | None = None) -> None:
     prepare(a.synth_scenes)
     if a.prepare:
         return
-    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps)
+    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, stop_at=a.stop_at)
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
 
