@@ -101,7 +101,7 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
             f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "") for st in stages]
 
 
-def plot_curve(rows: list[dict], path: Path, title: str) -> None:
+def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = ()) -> None:
     """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG."""
     import matplotlib
 
@@ -119,7 +119,9 @@ def plot_curve(rows: list[dict], path: Path, title: str) -> None:
         ax.plot(steps, psnr, color="0.8", lw=0.6, label="train (sampled rays)")
         ax.plot(steps[k - 1:], smooth, color="C0", lw=1.2, label=f"train, mean of {k}")
     if val:
-        ax.plot(*np.array(val).T, "o-", color="C3", label="validation (held-out scenes)")
+        ax.plot(*np.array(val).T, "o-", color="C3", label="validation (scenes: metrics.jsonl)")
+    for i, step in enumerate(restarts):
+        ax.axvline(step, color="0.4", ls="--", lw=0.8, label="resumed, longer schedule" if i == 0 else None)
     ax.set_xlabel("step")
     ax.set_ylabel("PSNR (dB)")
     ax.set_title(title, fontsize=9)
@@ -157,7 +159,10 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
     }
     card["curve"] = {"train": [[r["step"], round(r["psnr"], 3)] for r in train_rows[::10]],
                      "validation": [[r["step"], round(r["val_psnr"], 3)] for r in rows if "val_psnr" in r]}
-    plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {cpu_budget:g} CPU-s budget")
+    stages_file = run / "stages.json"
+    restarts = [st["from_step"] for st in json.loads(stages_file.read_text())[1:]] if stages_file.is_file() else []
+    plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {card['cpu_seconds']:.0f} CPU-s",
+               restarts)
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
     (tmp / "MODEL_CARD.md").write_text("\n".join([
         f"# {model}", "",
