@@ -46,8 +46,9 @@ class DemoConfig:
     """Output folder (index.html, demo.json, videos, meshes, pictures)."""
     checkpoints: Path = ROOT / "checkpoints"
     """Folder of the shipped checkpoints (one sub-folder per preset)."""
-    frames: int = 20
-    """Frames of each novel-view orbit."""
+    frames: int = 12
+    """Frames of each novel-view orbit (GPNR's volumetric frames cost about 10 s each at 80 px on 2 CPU
+    cores, so the default keeps the whole demo under 10 minutes there; raise it on a GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
     num_views: int = 3
