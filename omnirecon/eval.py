@@ -274,6 +274,8 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
             raise InputError(f"--model {model} has no weights", None, "only the non-learned --model floor runs "
                              "without a checkpoint; pass --ckpt for a trained model")
         return build_model("floor").to(device).eval(), {"name": "floor", "preset": "floor", "checkpoint": None}
+    if not Path(ckpt).exists():
+        raise InputError("checkpoint folder not found", ckpt, "pass e.g. --ckpt checkpoints/omnirecon-tiny")
     net, meta = load_checkpoint(Path(ckpt), device)
     info = {"name": meta["preset"], "preset": meta["preset"], "checkpoint": str(ckpt), "step": meta.get("step")}
     return net.eval(), info

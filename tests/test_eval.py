@@ -108,7 +108,8 @@ def test_evaluate_api_is_deterministic_without_output(synth_scene):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--ckpt", "{tmp}/nope", "--scenes", "{scene}"], "not a checkpoint folder"),
+    (["--ckpt", "{tmp}/nope", "--scenes", "{scene}"], "checkpoint folder not found"),
+    (["--ckpt", "{tmp}", "--scenes", "{scene}"], "not a checkpoint folder"),
     (["--model", "floor", "--scenes", "{tmp}/missing_scene"], "path does not exist"),
     (["--model", "floor", "--scenes", "{tmp}"], "no supported scene format"),
     (["--scenes", "{scene}"], "exactly one of --ckpt or --model"),

@@ -170,7 +170,8 @@ def test_mesh_cli_random_ibrnet_checkpoint(synth_scene, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--ckpt", "{tmp}/nope"], "not a checkpoint folder"),
+    (["--ckpt", "{tmp}/nope"], "checkpoint folder not found"),
+    (["--ckpt", "{tmp}"], "not a checkpoint folder"),
     (["--model", "floor", "--views", "1", "99"], "--views must name views in 0..15"),
     (["--model", "floor", "--out", "{tmp}/mesh.stl"], "cannot write a mesh as .stl"),
     (["--model", "floor", "--voxel", "0"], "--voxel"),

@@ -90,8 +90,6 @@ class LiftConfig:
             raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
         set_threads(self.threads)
         device = pick_device(self.device)
-        if not Path(self.ckpt).exists():
-            raise InputError("checkpoint folder not found", self.ckpt, "pass e.g. --ckpt checkpoints/ibrnet-tiny")
         model, info = load_model(self.ckpt, None, device)
         if not supports_lifting(model):
             raise InputError(f"model {info['name']} cannot lift 2-D predictions", self.ckpt,

@@ -90,8 +90,6 @@ class EditConfig:
         if self.dilation < 0:
             raise InputError(f"--dilation must be >= 0, got {self.dilation}", None, "use e.g. 1")
         set_threads(self.threads)
-        if not Path(self.ckpt).exists():
-            raise InputError("checkpoint folder not found", self.ckpt, "pass e.g. --ckpt checkpoints/omnirecon-tiny")
         model, info = load_model(self.ckpt, None, "cpu")
         if not supports_lifting(model):
             raise InputError(f"model {info['name']} cannot re-blend signals", self.ckpt,

@@ -58,8 +58,6 @@ class PETConfig:
         if self.labelled < 2:
             raise InputError(f"--labelled must be at least 2, got {self.labelled}", None, "use e.g. 6")
         set_threads(self.threads)
-        if not Path(self.ckpt).exists():
-            raise InputError("checkpoint folder not found", self.ckpt, "pass e.g. --ckpt checkpoints/omnirecon-tiny")
         base, info = load_model(self.ckpt, None, "cpu")
         if not isinstance(base, OmniRecon):
             raise InputError(f"PET tunes Omni-Recon's decoupled appearance branch, got {info['name']}", self.ckpt,
