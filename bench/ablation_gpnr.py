@@ -58,8 +58,12 @@ def main(argv: list[str] | None = None) -> dict:
         torch.set_num_threads(a.threads)
         r = evaluate(model, ["synth:eval"], (K,), None, synth_count=1 if a.tiny else 10, protocol_set="cpu",
                      max_targets=1 if a.tiny else None, cache=train_tiny.ROOT / "outputs" / "cache", progress=not a.tiny)
+        metrics = r["means"]["synth"][str(K)]
+        if meta["model_config"].get("output") == "colors":  # rows report the feature head as rgb, colours as aux
+            metrics = {(k[:-4] if k.endswith("_aux") else f"{k}_aux" if f"{k}_aux" in metrics else k): v
+                       for k, v in metrics.items()}
         result["rows"][row] = {"overrides": ROWS[row], "steps": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s"),
-                               "metrics": r["means"]["synth"][str(K)]}
+                               "metrics": metrics}
         print(row, json.dumps(result["rows"][row]["metrics"]))
     write_json(a.out, result)
     return result

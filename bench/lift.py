@@ -7,7 +7,7 @@ Held-out procedural scenes (``synth:eval``, seeds 900000+, never trained on) und
 protocol set of ``omnirecon.eval`` (64 px, 2 targets per scene), K = 3 nearest pool views as
 sources. For every (model, target) one render lifts all predictors at once
 (:func:`omnirecon.lift.blend.render_lifted`); render-then-predict runs the predictor on the same
-render's RGB (GPNR: ``rgb_aux``, made with the same weights). Scored as in
+render's RGB (GPNR: ``rgb_blend``, made with the same weights). Scored as in
 :mod:`omnirecon.lift.experiment`:
 
 * ``oracle-labels``: GT object labels of the sources lifted; mIoU against the target's GT labels

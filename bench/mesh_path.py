@@ -128,7 +128,8 @@ def main(argv: list[str] | None = None) -> dict:
         print(name, {k: round(v, 2) for k, v in rows[-1]["curve"].items()}, rows[-1]["visibility"])
     from omnirecon.checkpoint import fingerprint
 
-    result = {"provenance": provenance(seed=0), "checkpoint": fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
+    result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
+                                                                 "path": "checkpoints/omnirecon-tiny"},
               "rows": rows, "tiny": a.tiny,
               "resolution": 48 if a.tiny else 128, "goal_gain_db_60s": 3.0}
     write_json(a.out / "mesh_path.json", result)

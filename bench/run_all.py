@@ -16,6 +16,8 @@ import argparse
 import json
 from pathlib import Path
 
+from omnirecon.splits import EVAL_ONLY_SCENES
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
@@ -144,20 +146,24 @@ def section_quality(results: Path) -> str | None:
            f"Protocol set `{first.get('protocol_set', 'full')}` of `omnirecon eval` (docs/evaluation.md): images at a "
            "64-px long side, targets and source pools fixed per dataset, K nearest sources. dtu_scan24, dtu_scan37 and "
            "fern are never trained on; fox and lego are training scenes (their rows measure fitting). GPNR's "
-           "`aux` is its blended-source-colour output (`rgb_aux`).", ""]
+           "`aux` is its other head (`rgb_aux`): gpnr-tiny renders the blended source colours (`output=colors`), "
+           "so its `aux` is the feature head.", ""]
     for m, r in data.items():
         if m != "floor":
             out += stale_note(m, r["model"], "quality.py")
-    for metric, label, better in (("psnr", "PSNR (dB)", max), ("ssim", "SSIM", max), ("st_lpips_alex", "ST-LPIPS (alex; not LPIPS)", min)):
+    masked = [n for n in names if any("psnr_masked" in rows[m].get(n, {}).get(k, {}) for m in models for k in ks)]
+    for metric, label in (("psnr", "PSNR (dB), whole image", ), ("psnr_masked", "PSNR (dB) over the object mask: the "
+                                                                 "metric of the masked protocols (DTU, Blender)"),
+                          ("ssim", "SSIM"), ("st_lpips_alex", "ST-LPIPS (alex; not LPIPS)")):
         cols = [(m, k) for m in models for k in ks]
         out += [f"**{label}**", "", "| scene | " + " | ".join(f"{m} K={k}" for m, k in cols) + " |",
                 "|---|" + "---|" * len(cols)]
-        for n in names:
+        for n in (masked if metric == "psnr_masked" else names):
             cells = []
             for m, k in cols:
                 v = rows[m].get(n, {}).get(k, {}).get(metric)
                 aux = rows[m].get(n, {}).get(k, {}).get(f"{metric}_aux")
-                cells.append("–" if v is None else f"{v:.3f}" if metric != "psnr" else
+                cells.append("–" if v is None else f"{v:.3f}" if not metric.startswith("psnr") else
                              f"{v:.2f}" + (f" (aux {aux:.2f})" if aux is not None else ""))
             out.append(f"| {n} | " + " | ".join(cells) + " |")
         out.append("")
@@ -169,13 +175,34 @@ def section_quality(results: Path) -> str | None:
             out.append(f"- {n}: " + ", ".join(diffs))
         out.append("")
     if "floor" in rows:
-        out += ["**Against the non-learned floor** (PSNR above the plane-sweep floor; negative = below it):", ""]
+        out += ["**Against the non-learned floor** (whole-image PSNR above the plane-sweep floor, the headline metric "
+                "of docs/evaluation.md; over the object mask in brackets for the masked protocols, DTU and Blender; "
+                "negative = below it):", ""]
         for m in models:
             if m == "floor":
                 continue
-            diffs = [f"{n} K={k}: {rows[m][n][k]['psnr'] - rows['floor'][n][k]['psnr']:+.2f}"
-                     for n in names for k in ks if k in rows[m].get(n, {}) and k in rows["floor"].get(n, {})]
+            diffs = []
+            for n in names:
+                for k in ks:
+                    a, f = rows[m].get(n, {}).get(k), rows["floor"].get(n, {}).get(k)
+                    if a is None or f is None:
+                        continue
+                    masked = f" (mask {a['psnr_masked'] - f['psnr_masked']:+.2f})" \
+                        if "psnr_masked" in a and "psnr_masked" in f else ""
+                    diffs.append(f"{n} K={k}: {a['psnr'] - f['psnr']:+.2f}{masked}")
             out.append(f"- {m}: " + "; ".join(diffs))
+        held_out = [n for n in names if n.startswith("synth:eval") or n in EVAL_ONLY_SCENES]
+        for key, what in (("psnr", f"Held-out scenes (synth:eval, {', '.join(sorted(EVAL_ONLY_SCENES))}) where a "
+                                   "model is below the floor in whole-image PSNR:"),
+                          ("psnr_masked", "The same for the masked held-out scenes (DTU) in PSNR over the object mask:")):
+            out += ["", what, ""]
+            for m in models:
+                if m == "floor":
+                    continue
+                below = [f"{n} K={k}" for n in held_out for k in ks
+                         if key in rows[m].get(n, {}).get(k, {}) and key in rows["floor"].get(n, {}).get(k, {})
+                         and rows[m][n][k][key] < rows["floor"][n][k][key]]
+                out.append(f"- {m}: " + (", ".join(below) if below else "none"))
         out.append("")
     for m, r in data.items():
         out.append(f"{m}: " + _prov(r["provenance"]) + (f"; checkpoint `{r['model'].get('checkpoint')}` at step "
@@ -228,7 +255,9 @@ def section_training() -> str | None:
                 + ". Validation is for monitoring only (the final step ships, never a selected one); its scenes are "
                 "named in each metrics row: procedural seeds 901000 and 901001 (`VAL_SEEDS`) in rows the current code logs, "
                 "900000 and 900001 (the first two synth:eval scenes) in rows logged by earlier code. Dashed line: a "
-                "run resumed on a longer schedule.", ""]
+                "run resumed on a longer schedule. Whether a continued run's final checkpoint replaces the one shipped "
+                "before is decided on validation seeds 901000-901007 (K = 3 and 10), never on held-out scenes; the "
+                "model cards give those numbers.", ""]
     for c in cards:
         out += [f"{c['model']}: " + _prov(c["provenance"]), ""]
     return "\n".join(out)
@@ -254,9 +283,9 @@ def stale_note(model: str, recorded: dict | None, script: str) -> list[str]:
     if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
         return []
     used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
-        f", weights {recorded['sha256']}" if recorded.get("sha256") else "")
+        f", fingerprint {recorded['sha256']}" if recorded.get("sha256") else "")
     return [f"> **Stale:** the {model} numbers here were measured with {used}; `checkpoints/{model}` is now step "
-            f"{now['step']} (weights {now['sha256']}). Rerun `python bench/{script}`.", ""]
+            f"{now['step']} (fingerprint {now['sha256']}). Rerun `python bench/{script}`.", ""]
 
 
 def _f(v, digits: int = 4) -> str:
@@ -459,7 +488,8 @@ def write_page(results: Path, out: Path) -> str:
     parts = ["# Benchmarks", "",
              "Every number below is produced by `python bench/run_all.py` (which runs the scripts in `bench/`) from "
              "the JSON results in `bench/results/`; each table carries the provenance of the run that measured it, and "
-             "a section measured with other weights than the shipped checkpoint's is marked **Stale**. "
+             "a section measured with another checkpoint (weights or model config) than the shipped one is marked "
+             "**Stale**. "
              "Numbers are what we measured, including where they fall short of a goal.", ""]
     for name, render in SECTIONS.items():
         f = results / name

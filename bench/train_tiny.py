@@ -133,7 +133,8 @@ def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (
 
 
 def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> Path:
-    """Copy the final checkpoint to checkpoints/<model>/ and write its model card."""
+    """Copy the final checkpoint to checkpoints/<model>/ and write its model card (with the run's
+    ``notes.md``, when it has one, as a paragraph)."""
     dest = ROOT / "checkpoints" / model
     final = run / "checkpoints" / "final"
     meta = json.loads((final / "meta.json").read_text())
@@ -160,7 +161,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
     card["curve"] = {"train": [[r["step"], round(r["psnr"], 3)] for r in train_rows[::10]],
                      "validation": [[r["step"], round(r["val_psnr"], 3)] for r in rows if "val_psnr" in r]}
     stages_file = run / "stages.json"
-    restarts = [st["from_step"] for st in json.loads(stages_file.read_text())[1:]] if stages_file.is_file() else []
+    stages = json.loads(stages_file.read_text()) if stages_file.is_file() else []
+    restarts = [st["from_step"] for prev, st in zip(stages, stages[1:]) if st["steps"] != prev["steps"]]
     plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {card['cpu_seconds']:.0f} CPU-s",
                restarts)
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
@@ -169,14 +171,16 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         f"Trained (seed {SEED}) for {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
         f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION} by", "",
         *[f"{i + 1}. `{c}`" for i, c in enumerate(card["stages"])], "",
-        *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state) with a larger CPU budget "
-           "and a longer cosine learning-rate schedule, so the learning rate rises again where it starts (a warm "
-           "restart)."] if len(card["stages"]) > 1 else []), "",
+        *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a longer "
+           "`--steps` cosine schedule the learning rate rises again where it starts (a warm restart, marked on the "
+           "curve); with the same `--steps` it finishes the schedule an earlier `--stop-at` cut short."]
+          if len(card["stages"]) > 1 else []), "",
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
         "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
-        f"{card['train_psnr_last']:.2f} dB at the last. Last validation (monitoring only: the final checkpoint "
-        f"ships, none is selected by validation): {json.dumps(card['validation'])}.", "",
+        f"{card['train_psnr_last']:.2f} dB at the last. Last validation (monitoring only: a run ships its final "
+        f"checkpoint, never an intermediate one picked by validation): {json.dumps(card['validation'])}.", "",
+        *([(run / "notes.md").read_text().strip(), ""] if (run / "notes.md").is_file() else []),
         "Evaluation numbers are in BENCHMARKS.md (`bench/quality.py`). Files: model.safetensors (weights), "
         "meta.json (preset, config, step), card.json (this card as data, with the training curve), "
         "training_curve.png.", "", "![training curve](training_curve.png)", ""]))

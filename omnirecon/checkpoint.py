@@ -78,15 +78,17 @@ def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
 
 
 def fingerprint(folder: Path) -> dict:
-    """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}`` (the first 16
-    hex digits of the weights file's SHA-256), so a page built from stored results can tell whether
-    they were measured with the checkpoint that ships now."""
+    """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}``, where ``sha256``
+    is the first 16 hex digits of the SHA-256 of the weights file followed by the model config (sorted
+    JSON), so a page built from stored results can tell whether they were measured with the checkpoint
+    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count."""
     import hashlib
 
     folder = Path(folder)
     meta = read_meta(folder)
-    digest = hashlib.sha256((folder / "model.safetensors").read_bytes()).hexdigest()[:16]
-    return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": digest}
+    h = hashlib.sha256((folder / "model.safetensors").read_bytes())
+    h.update(json.dumps(meta.get("model_config", {}), sort_keys=True).encode())
+    return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": h.hexdigest()[:16]}
 
 
 def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:

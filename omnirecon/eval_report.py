@@ -131,7 +131,8 @@ def markdown(result: dict) -> str:
         lines += ["", "## Notes", ""] + notes
     lines += ["", "Protocols: docs/evaluation.md. PSNR in dB over [0, 1] images (mean of per-view values); SSIM "
               "11x11 Gaussian, sigma 1.5; `st_lpips_alex` is shift-tolerant LPIPS, not comparable with LPIPS; "
-              "`_aux` columns score GPNR's blended-source colour `rgb_aux`.", ""]
+              "`_aux` columns score GPNR's other head `rgb_aux` (the feature head where `rgb` is the blended "
+              "source colours, `output=colors` as in gpnr-tiny; the blend otherwise).", ""]
     return "\n".join(lines)
 
 

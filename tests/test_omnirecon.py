@@ -1,6 +1,7 @@
 """Omni-Recon: shapes, subtraction attention against a slow loop, appearance/geometry decoupling,
 source-permutation invariance, a one-batch overfit and the training CLI (small overrides, CPU)."""
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -58,6 +59,29 @@ def test_outputs_and_shapes():
     coarse_only = OmniRecon(small_cfg(fine_samples=0)).double().eval()
     out0 = coarse_only.render_rays(coarse_only.encode(src), rays)
     assert out0["weights"].shape == (R, 8) and out0["rgb_coarse"] is out0["rgb"]
+
+
+@pytest.mark.parametrize("leftover", ["far", "renormalize"])
+def test_leftover_transmittance(leftover):
+    """``leftover`` only moves the transmittance left after the last sample: with ``far`` the last sample
+    takes it, with ``renormalize`` every weight is scaled by 1 / acc; either way each ray's opacity is 1."""
+    # renormalize: the coarse pass only, since importance sampling adds 1e-5 to the (rescaled) coarse weights
+    model, src, rays, _ = setup(small_cfg(leftover="black", fine_samples=4 if leftover == "far" else 0))
+    feats = model.encode(src)
+    black = model.render_rays(feats, rays)
+    assert (black["acc"] < 0.99).any()  # random weights leave rays that find no surface
+    model.cfg = dataclasses.replace(model.cfg, leftover=leftover)  # the same weights, the other rule
+    out = model.render_rays(feats, rays)
+    ones = torch.ones(30, dtype=torch.float64)
+    assert torch.allclose(out["acc"], ones) and torch.allclose(out["blend"].sum(-1), ones)
+    wb, w = black["weights"], out["weights"]
+    if leftover == "far":  # importance samples ignore the end samples' weights: the same z in both passes
+        assert torch.equal(out["z"], black["z"])
+        assert torch.allclose(w[:, :-1], wb[:, :-1]) and torch.allclose(w[:, -1], 1 - wb[:, :-1].sum(-1))
+    else:
+        assert torch.allclose(w, wb / wb.sum(-1, keepdim=True))
+        assert torch.allclose(out["rgb"], black["rgb"] / black["acc"][:, None])
+        assert torch.allclose(out["depth"], black["depth"] / black["acc"])
 
 
 def test_batchnorm_normalises_each_scene_alike_in_train_and_eval():

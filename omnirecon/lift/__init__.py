@@ -15,7 +15,8 @@ colour blend weights and ray weights (Omni-Recon's predict-then-blend, ``omnirec
 * :mod:`omnirecon.lift.cli`: ``omnirecon lift``.
 
 Models take ``signals # [K, H, W, C]`` in ``render_rays`` / ``render_view`` and return ``signal``: the maps
-blended exactly as their RGB (Omni-Recon, IBRNet: final pass; GPNR: the weights of ``rgb_aux``).
+blended exactly as their RGB (Omni-Recon, IBRNet: final pass; GPNR: the weights of ``rgb_blend``, its
+blended source colours).
 """
 
 from omnirecon.lift.blend import (lift_mesh_view, lift_points, lift_view, predict_then_blend, render_lifted,

@@ -7,7 +7,7 @@ weights, exactly as the model renders RGB (``render_rays(..., signals=p)``):
 
 * Omni-Recon: ``omega`` of the appearance branch, then the SRDF volume weights ``w`` (final pass);
 * IBRNet: the colour blend weights of the aggregator, then its volume weights (final pass);
-* GPNR: ``beta_k alpha_km`` over views and epipolar samples (the weights of ``rgb_aux``).
+* GPNR: ``beta_k alpha_km`` over views and epipolar samples (the weights of ``rgb_blend``, the blended source colours).
 
 The composite of a map is ``sum_s w_s sum_i omega_si p_i``; its total weight ``sum_s w_s`` (the ray's
 opacity; 1 for GPNR wherever a view sees the ray) is measured by lifting a constant-one channel
@@ -22,8 +22,8 @@ and a pixel no triangle covers weight 0. :func:`lift_points` blends at arbitrary
 centroids, for labelling a mesh's faces).
 
 Render-then-predict: render the target's RGB with the same model and features, then run the
-predictor on the render (GPNR: on ``rgb_aux``, the image made with the same weights; the feature head
-``rgb`` is another option, ``rgb_key``).
+predictor on the render (GPNR: on ``rgb_blend``, the image made with the same weights, whichever head
+its ``output`` makes ``rgb``; the feature head is another option, ``rgb_key``).
 """
 
 from __future__ import annotations
@@ -96,7 +96,7 @@ def render_lifted(model, features, camera, signals: dict[str, tuple[Tensor, str]
     for n, p in zip(names, parts):
         maps[n] = normalise(sig[..., c:c + p.shape[-1]], weight, signals[n][1], min_weight)
         c += p.shape[-1]
-    key = rgb_key or ("rgb_aux" if "rgb_aux" in out else "rgb")
+    key = rgb_key or ("rgb_blend" if "rgb_blend" in out else "rgb")
     rgb = out[key].float().cpu().clamp(0, 1)
     return Lifted(maps, weight, rgb, {k: v.cpu() for k, v in out.items()})
 
@@ -121,7 +121,7 @@ def render_then_predict(model, features, camera, predictor: Predictor, chunk: in
     if rgb is None:
         src = features.sources.images
         out = model.render_view(features, camera.to(device=src.device, dtype=src.dtype), chunk=chunk)
-        rgb = out["rgb_aux" if "rgb_aux" in out else "rgb"]
+        rgb = out["rgb_blend" if "rgb_blend" in out else "rgb"]
     return predictor(rgb.float().cpu().clamp(0, 1))
 
 
