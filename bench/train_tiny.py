@@ -59,7 +59,8 @@ def prepare(synth_scenes: int) -> None:
 
 
 def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps: int, overrides: list[str] = (),
-          name: str | None = None, data: list[str] | None = None, stop_at: int | None = None) -> Path:
+          name: str | None = None, data: list[str] | None = None, stop_at: int | None = None,
+          views: tuple[int, int] | None = None) -> Path:
     """Run ``omnirecon train`` (resuming an interrupted run) and return its run folder."""
     out = ROOT / "outputs" / "train" / (name or f"{model}_bench")
     cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model, *(data or data_args()),
@@ -67,13 +68,15 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
            "--synth-scenes", str(synth_scenes), "--resolution", str(RESOLUTION), "--steps", str(steps),
            "--cpu-budget", str(cpu_budget), "--threads", str(threads), "--seed", str(SEED), "--cache", str(CACHE),
            "--val-every", "500", "--ckpt-every", "250", "--out", str(out), "--no-progress",
-           *(["--stop-at", str(stop_at)] if stop_at else [])]
+           *(["--stop-at", str(stop_at)] if stop_at else []),
+           *(["--num-views-range", str(views[0]), str(views[1])] if views else [])]
     start = 0
     if (out / "checkpoints" / "latest").exists():
         cmd.append("--resume")
         start = json.loads((out / "checkpoints" / "latest" / "meta.json").read_text())["step"]
     record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
-                       **({"stop_at": stop_at} if stop_at else {})})
+                       **({"stop_at": stop_at} if stop_at else {}),
+                       **({"num_views_range": list(views)} if views else {})})
     print(" ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     return out
@@ -98,10 +101,13 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
     stages = json.loads(path.read_text()) if path.is_file() else \
         [{"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": 0}]
     return [f"python bench/train_tiny.py --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
-            f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "") for st in stages]
+            f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "")
+            + (" --num-views-range {} {}".format(*st["num_views_range"]) if st.get("num_views_range") else "")
+            for st in stages]
 
 
-def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = ()) -> None:
+def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (),
+               view_changes: list[tuple[int, list[int] | None]] = ()) -> None:
     """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG."""
     import matplotlib
 
@@ -122,6 +128,9 @@ def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (
         ax.plot(*np.array(val).T, "o-", color="C3", label="validation (scenes: metrics.jsonl)")
     for i, step in enumerate(restarts):
         ax.axvline(step, color="0.4", ls="--", lw=0.8, label="resumed, longer schedule" if i == 0 else None)
+    for step, views in view_changes:
+        ax.axvline(step, color="C2", ls=":", lw=1.0,
+                   label=f"from here K drawn from [{views[0]}, {views[1]}]" if views else "from here the preset's K")
     ax.set_xlabel("step")
     ax.set_ylabel("PSNR (dB)")
     ax.set_title(title, fontsize=9)
@@ -163,8 +172,10 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
     stages_file = run / "stages.json"
     stages = json.loads(stages_file.read_text()) if stages_file.is_file() else []
     restarts = [st["from_step"] for prev, st in zip(stages, stages[1:]) if st["steps"] != prev["steps"]]
+    view_changes = [(st["from_step"], st.get("num_views_range")) for prev, st in zip(stages, stages[1:])
+                    if st.get("num_views_range") != prev.get("num_views_range")]
     plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {card['cpu_seconds']:.0f} CPU-s",
-               restarts)
+               restarts, view_changes)
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
     (tmp / "MODEL_CARD.md").write_text("\n".join([
         f"# {model}", "",
@@ -173,7 +184,10 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         *[f"{i + 1}. `{c}`" for i, c in enumerate(card["stages"])], "",
         *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a longer "
            "`--steps` cosine schedule the learning rate rises again where it starts (a warm restart, marked on the "
-           "curve); with the same `--steps` it finishes the schedule an earlier `--stop-at` cut short."]
+           "curve); with the same `--steps` it finishes the schedule an earlier `--stop-at` cut short."
+           + (" A command with `--num-views-range LO HI` draws the number of source views K from [LO, HI] at every "
+              "step from there on (dotted line on the curve); the others use the preset's K = "
+              f"{meta['model_config'].get('num_views')}." if view_changes else "")]
           if len(card["stages"]) > 1 else []), "",
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
         "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
@@ -198,6 +212,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=3000, help="length of the learning-rate schedule")
     p.add_argument("--stop-at", type=int, default=None,
                    help="end the run at this step (the schedule stays --steps long); resumes a longer run's checkpoint")
+    p.add_argument("--num-views-range", type=int, nargs=2, default=None, metavar=("LO", "HI"),
+                   help="draw the source-view count K uniformly from [LO, HI] at every step (default: the preset's)")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
     p.add_argument("--reship", action="store_true",
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
@@ -208,7 +224,8 @@ def main(argv: list[str] | None = None) -> None:
     prepare(a.synth_scenes)
     if a.prepare:
         return
-    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, stop_at=a.stop_at)
+    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, stop_at=a.stop_at,
+                views=tuple(a.num_views_range) if a.num_views_range else None)
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
 

@@ -111,7 +111,10 @@ class TrainConfig:
     """Weight of the L1 z-depth loss (both passes) on rays with known ground-truth depth in [near, far]
     (procedural scenes have depths; None: omnirecon 0.1, gpnr/ibrnet 0)."""
     num_views: int | None = None
-    """Source views K per step (None: the model's num_views)."""
+    """Source views K per step (None: the model's num_views); validation always uses it."""
+    num_views_range: tuple[int, int] | None = None
+    """Draw K uniformly from ``[lo, hi]`` at every step instead (as IBRNet's reference trains), so a model
+    evaluated with K = 3 and K = 10 has seen both; the draw is seeded by the step, so resume stays exact."""
     pool: int | None = None
     """Draw the K sources from the target's n nearest training views (None: 2K); angle around the
     centre for object rigs, camera distance for forward-facing ones."""
@@ -402,6 +405,12 @@ class Trainer:
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
         need(self.pool >= self.K, f"--pool ({self.pool}) must be at least --num-views ({self.K})",
              "pass --pool >= --num-views")
+        if c.num_views_range is not None:
+            lo, hi = c.num_views_range
+            need(1 <= lo <= hi, f"--num-views-range needs 1 <= lo <= hi, got {lo} {hi}",
+                 "use e.g. --num-views-range 3 10")
+            need(c.pool is None or c.pool >= hi, f"--pool ({c.pool}) must be at least the range's top ({hi})",
+                 "pass --pool >= hi or leave it out (2K)")
         need(0 <= c.foreground <= 1, f"--foreground must be in [0, 1], got {c.foreground}", "use e.g. 0.5")
         need(c.switch_every >= 1, "--switch-every must be at least 1", "use e.g. --switch-every 10")
         need(c.scenes_in_memory >= 1, "--scenes-in-memory must be at least 1", "use e.g. 8")
@@ -429,6 +438,16 @@ class Trainer:
         if not c.resume and (self.out / "checkpoints").is_dir() and any((self.out / "checkpoints").iterdir()):
             raise InputError("run folder already has checkpoints", self.out,
                              "pass --resume to continue it, or choose a new --out")
+
+    def views_at(self, step: int) -> tuple[int, int]:
+        """Source views K and pool size of 1-based ``step`` (fixed unless ``num_views_range`` is set)."""
+        c = self.cfg
+        if c.num_views_range is None:
+            return self.K, self.pool
+        lo, hi = c.num_views_range
+        gen = torch.Generator().manual_seed(step_seed(c.seed, step, self.env.rank, 3))
+        K = int(torch.randint(lo, hi + 1, (1,), generator=gen))
+        return K, (2 * K if c.pool is None else c.pool)
 
     def pick_device(self) -> torch.device:
         c = self.cfg
@@ -503,7 +522,7 @@ class Trainer:
     def check_resume(self, meta: dict) -> None:
         saved = meta.get("train_config", {})
         now = self.config_dict()
-        diff = [k for k in now if k not in OPERATIONAL and k in saved and saved[k] != now[k]]
+        diff = [k for k in now if k not in OPERATIONAL | {"num_views_range"} and k in saved and saved[k] != now[k]]
         if meta.get("preset") != self.cfg.model or diff:
             what = ", ".join(f"--{k.replace('_', '-')} {saved[k]} -> {now[k]}" for k in diff) or \
                 f"model {meta.get('preset')} -> {self.cfg.model}"
@@ -515,6 +534,9 @@ class Trainer:
         if saved.get("steps") != now["steps"]:
             self.notes.append(f"--steps changed {saved.get('steps')} -> {now['steps']}: the learning-rate schedule "
                               "changes, so the run is no longer the one a single invocation would give")
+        if saved.get("num_views_range") != now["num_views_range"]:
+            self.notes.append(f"--num-views-range changed {saved.get('num_views_range')} -> {now['num_views_range']}: "
+                              "the run continues on a different view-count distribution")
 
     def config_dict(self) -> dict:
         d = json.loads(json.dumps(dataclasses.asdict(self.cfg), default=str))
@@ -570,7 +592,8 @@ class Trainer:
             torch.manual_seed(step_seed(c.seed, s, env.rank, 1))  # model-internal draws (IBRNet jitter)
             ref = self.bank.choose(torch.Generator().manual_seed(step_seed(c.seed, (s - 1) // c.switch_every,
                                                                            env.rank, 2)))
-            batch = draw_batch(self.bank.get(ref), self.K, self.pool, self.rays, gen, c.foreground).to(self.device)
+            K, pool = self.views_at(s)
+            batch = draw_batch(self.bank.get(ref), K, pool, self.rays, gen, c.foreground).to(self.device)
             loss, mse = self.optimise(s, batch)
             window += torch.tensor([loss, mse, 1.0, time.perf_counter() - t_step], dtype=torch.float64)
             self.step = s

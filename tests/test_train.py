@@ -213,3 +213,28 @@ def test_validation_scenes_are_neither_training_nor_evaluation_seeds():
     seeds = [r.seed for r in refs]
     assert seeds == list(VAL_SEEDS[:2])
     assert not any(s in EVAL_SEEDS or s in TRAIN_SEEDS for s in seeds)
+
+
+def test_view_count_range_is_drawn_per_step_and_resumes_exactly(tmp_path, scene):
+    """--num-views-range draws K per step within [lo, hi] (both ends occur), seeded by the step, so a run
+    stopped and resumed gives the same losses; validation keeps the preset's K."""
+    from omnirecon.train import DistEnv, TrainConfig, Trainer
+
+    cfg = TrainConfig(model="gpnr-tiny", data=(str(scene),), resolution=32, steps=4, num_views_range=(2, 6),
+                      out=tmp_path / "probe", cache=tmp_path / "cache", progress=False)
+    trainer = Trainer(cfg, DistEnv.from_env())
+    try:
+        drawn = [trainer.views_at(s) for s in range(1, 201)]
+        assert drawn == [trainer.views_at(s) for s in range(1, 201)]
+        assert {k for k, _ in drawn} == {2, 3, 4, 5, 6} and all(pool == 2 * k for k, pool in drawn)
+        assert trainer.K == 5
+    finally:
+        trainer.close()
+    n, extra = 3, ("--num-views-range", "2", "6")
+    straight, split = tmp_path / "straight", tmp_path / "split"
+    assert main(train_args(straight, str(scene), "gpnr-tiny", 2 * n, *extra)) == 0
+    assert main(train_args(split, str(scene), "gpnr-tiny", 2 * n, "--stop-at", str(n), *extra)) == 0
+    assert main(train_args(split, str(scene), "gpnr-tiny", 2 * n, "--resume", *extra)) == 0
+    a, b = losses(straight), losses(split)
+    assert all(a[s] == b[s] for s in range(1, 2 * n + 1)), (a, b)
+    assert main(train_args(tmp_path / "bad", str(scene), "gpnr-tiny", 2, "--num-views-range", "6", "2")) == 2
