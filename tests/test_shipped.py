@@ -29,5 +29,10 @@ def test_shipped_checkpoint_renders(name):
     cams = rig(n=4, w=16, h=16, dtype=torch.float32)
     images = torch.rand(3, 16, 16, 3, generator=torch.Generator().manual_seed(0))
     model.eval()
-    out = model.render_view(model.encode(Sources(images, cams[[0, 1, 3]], 2.0, 4.0, "object")), cams[[2]])
+    features = model.encode(Sources(images, cams[[0, 1, 3]], 2.0, 4.0, "object"))
+    out = model.render_view(features, cams[[2]])
     assert out["rgb"].shape == (16, 16, 3) and torch.isfinite(out["rgb"]).all()
+    # a float64 target camera (what a Scene holds) is cast to the sources' dtype, same image
+    out64 = model.render_view(features, cams[[2]].to(dtype=torch.float64))
+    assert out64["rgb"].dtype == torch.float32
+    torch.testing.assert_close(out64["rgb"], out["rgb"], atol=1e-5, rtol=0)

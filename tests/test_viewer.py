@@ -20,7 +20,7 @@ from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.eval import load_at_resolution
 from omnirecon.models.base import Sources
 from omnirecon.models.registry import build_model
-from omnirecon.render.mesh import to_input_frame
+from omnirecon.render.mesh import linear_to_srgb, srgb_to_linear, to_input_frame
 from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.render.raster import MeshRasterizer
 from omnirecon.viewer.bundle import three_unavailable_reason
@@ -75,7 +75,11 @@ def test_export_writes_ply_and_glb_with_vertex_colours(exported):
         np.testing.assert_allclose(m.vertices, mesh.vertices, atol=1e-5)  # input frame, vertex order kept
         np.testing.assert_array_equal(m.faces, mesh.faces)
         loaded[name] = colours
-    np.testing.assert_array_equal(loaded["mesh.ply"], loaded["mesh.glb"])
+    # PLY keeps sRGB bytes; glTF's COLOR_0 is linear
+    lin = np.round(srgb_to_linear(loaded["mesh.ply"][:, :3] / 255.0) * 255)
+    np.testing.assert_array_equal(loaded["mesh.glb"][:, :3], lin)
+    np.testing.assert_array_equal(loaded["mesh.glb"][:, 3], loaded["mesh.ply"][:, 3])
+    assert (loaded["mesh.glb"][:, :3] <= loaded["mesh.ply"][:, :3]).all()
     assert (loaded["mesh.ply"][:, 3] == 255).all() and loaded["mesh.ply"][:, :3].std() > 10
     record = json.loads((out / "export.json").read_text())
     assert record["vertices"] == len(mesh.vertices) and record["frame"] == "input"
@@ -98,16 +102,16 @@ def test_baked_colours_follow_the_images(exported):
 
 
 def baked_reference(out: Path, scene, cam) -> np.ndarray:
-    """The exported vertex colours interpolated per pixel (perspective-correct barycentrics), as the
-    viewer's baked mode draws them. ``# [H, W, 3]``"""
+    """The exported (linear) vertex colours interpolated per pixel (perspective-correct barycentrics) and
+    encoded to sRGB, as the viewer's baked mode draws them. ``# [H, W, 3]``"""
     glb = trimesh.load(out / "mesh.glb", process=False, force="mesh")
     mm = to_input_frame(glb, torch.linalg.inv(scene.to_input.double()))
-    colours = torch.from_numpy(np.asarray(glb.visual.vertex_colors)[:, :3] / 255.0)
+    colours = torch.from_numpy(np.asarray(glb.visual.vertex_colors)[:, :3] / 255.0)  # linear
     g = MeshRasterizer.from_trimesh(mm).rasterize(cam, normals="none")
     img = torch.tensor(scene.background, dtype=torch.float64).expand(cam.height, cam.width, 3).clone()
     hit = g.mask
     faces = torch.from_numpy(np.asarray(mm.faces))[g.face[hit]]  # [P, 3]
-    img[hit] = (g.bary[hit].double()[:, :, None] * colours[faces]).sum(1)
+    img[hit] = torch.from_numpy(linear_to_srgb((g.bary[hit].double()[:, :, None] * colours[faces]).sum(1).numpy()))
     return img.numpy()
 
 

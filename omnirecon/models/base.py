@@ -100,7 +100,12 @@ class GeneralizableModel(nn.Module):
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
 
         ``signals # [V, H, W, C]`` (per-source-view 2-D maps) is passed to ``render_rays`` when given
-        (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`)."""
+        (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`).
+        ``camera`` may be in any float dtype and on any device (a :class:`~omnirecon.data.scene.Scene`'s
+        cameras are float64): it is moved to the sources' dtype and device first."""
+        src = getattr(features, "sources", None)
+        if src is not None:
+            camera = camera.to(device=src.images.device, dtype=src.images.dtype)
         rays = Rays.from_image(camera)
         extra = {} if signals is None else {"signals": signals}
         parts: dict[str, list[Tensor]] = {}

@@ -482,13 +482,40 @@ def check_mesh_paths(paths) -> list[Path]:
     return out
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function inverted (IEC 61966-2-1), ``c`` in [0, 1]."""
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(c: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function (IEC 61966-2-1), ``c`` in [0, 1]."""
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.clip(c, 0.0031308, None) ** (1 / 2.4) - 0.055)
+
+
+def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """``mesh`` as glTF wants it: vertex colours (sRGB bytes, as in our images and PLY files) converted
+    to *linear* RGB, since glTF defines ``COLOR_0`` as linear and viewers encode it to sRGB for display
+    (sRGB bytes stored as-is show washed out). 8-bit linear keeps about 5 bits in the darkest tenth."""
+    if mesh.visual.kind != "vertex":
+        return mesh
+    rgba = np.asarray(mesh.visual.vertex_colors)
+    lin = np.round(srgb_to_linear(rgba[:, :3] / 255.0) * 255).astype(np.uint8)
+    out = mesh.copy()
+    out.visual = trimesh.visual.ColorVisuals(out, vertex_colors=np.concatenate([lin, rgba[:, 3:]], 1))
+    return out
+
+
 def export_mesh(mesh: trimesh.Trimesh, paths) -> list[Path]:
-    """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically."""
+    """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically. Vertex colours are sRGB
+    bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`)."""
     written = []
     for p in check_mesh_paths(paths):
         kind = p.suffix.lower().lstrip(".")
         with atomic_path(p) as tmp:
-            data = mesh.export(file_type=kind, **({"include_normals": False} if kind == "obj" else {}))
+            m = gltf_mesh(mesh) if kind == "glb" else mesh
+            data = m.export(file_type=kind, **({"include_normals": False} if kind == "obj" else {}))
             Path(tmp).write_bytes(data if isinstance(data, bytes) else data.encode())
         written.append(p)
     return written

@@ -168,7 +168,12 @@ precision highp float;
 in vec3 vModel;
 in vec3 vColor;
 out vec4 fragColor;
-void main() { fragColor = vec4(vColor, 1.0); }`;
+// mesh.glb's COLOR_0 is linear (glTF); the canvas is written without colour management, so encode sRGB here
+vec3 toSrgb(vec3 c) {
+  c = clamp(c, 0.0, 1.0);
+  return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));
+}
+void main() { fragColor = vec4(toSrgb(vColor), 1.0); }`;
 
 function ibrFragmentShader(bundle) {
   const K = bundle.sources.count, C4 = Math.ceil(bundle.mlp.feature_dim / 4);
