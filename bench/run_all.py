@@ -255,7 +255,7 @@ def section_training() -> str | None:
                 + ". Validation is for monitoring only (the final step ships, never a selected one); its scenes are "
                 "named in each metrics row: procedural seeds 901000 and 901001 (`VAL_SEEDS`) in rows the current code logs, "
                 "900000 and 900001 (the first two synth:eval scenes) in rows logged by earlier code. Dashed line: a "
-                "run resumed on a longer schedule. Whether a continued run's final checkpoint replaces the one shipped "
+                "run resumed on a new (usually longer) schedule. Whether a continued run's final checkpoint replaces the one shipped "
                 "before is decided on validation seeds 901000-901007 (K = 3 and 10), never on held-out scenes; the "
                 "model cards give those numbers.", ""]
     for c in cards:

@@ -127,7 +127,7 @@ def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (
     if val:
         ax.plot(*np.array(val).T, "o-", color="C3", label="validation (scenes: metrics.jsonl)")
     for i, step in enumerate(restarts):
-        ax.axvline(step, color="0.4", ls="--", lw=0.8, label="resumed, longer schedule" if i == 0 else None)
+        ax.axvline(step, color="0.4", ls="--", lw=0.8, label="resumed, new schedule" if i == 0 else None)
     for step, views in view_changes:
         ax.axvline(step, color="C2", ls=":", lw=1.0,
                    label=f"from here K drawn from [{views[0]}, {views[1]}]" if views else "from here the preset's K")
@@ -182,9 +182,10 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         f"Trained (seed {SEED}) for {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
         f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION} by", "",
         *[f"{i + 1}. `{c}`" for i, c in enumerate(card["stages"])], "",
-        *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a longer "
-           "`--steps` cosine schedule the learning rate rises again where it starts (a warm restart, marked on the "
-           "curve); with the same `--steps` it finishes the schedule an earlier `--stop-at` cut short."
+        *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a different "
+           "`--steps` the cosine schedule is recomputed for the new length from where it starts (the learning rate "
+           "rises again after an annealed stage: a warm restart; each change is marked on the curve); with the same "
+           "`--steps` it finishes the schedule an earlier `--stop-at` cut short."
            + (" A command with `--num-views-range LO HI` draws the number of source views K from [LO, HI] at every "
               "step from there on (dotted line on the curve); the others use the preset's K = "
               f"{meta['model_config'].get('num_views')}." if view_changes else "")]

@@ -85,8 +85,8 @@ PRESETS = {
                             heads=2, layers=(2, 2, 2), ray_freqs=4, point_freqs=6, output="colors"),
 }
 """``gpnr-tiny`` renders the blended source colours: at the tiny CPU budget the feature head is far
-behind (validation seeds 901000-901007, K = 3 / 10, shipped checkpoint: 23.0 / 23.2 dB features,
-26.0 / 25.8 dB colours). Both heads train with equal weight, so the choice changes nothing in training
+behind (validation seeds 901000-901007, K = 3 / 10, shipped checkpoint: 24.1 / 24.4 dB features,
+26.3 / 26.2 dB colours). Both heads train with equal weight, so the choice changes nothing in training
 but which one is ``rgb`` (the reference code has the same switch, ``eval.return_coarse``)."""
 
 
