@@ -497,7 +497,8 @@ def linear_to_srgb(c: np.ndarray) -> np.ndarray:
 def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     """``mesh`` as glTF wants it: vertex colours (sRGB bytes, as in our images and PLY files) converted
     to *linear* RGB, since glTF defines ``COLOR_0`` as linear and viewers encode it to sRGB for display
-    (sRGB bytes stored as-is show washed out). 8-bit linear keeps about 5 bits in the darkest tenth."""
+    (sRGB bytes stored as-is show washed out). 8-bit linear is coarse in the shadows: sRGB values
+    0-0.1 get only 4 codes (0-3)."""
     if mesh.visual.kind != "vertex":
         return mesh
     rgba = np.asarray(mesh.visual.vertex_colors)
