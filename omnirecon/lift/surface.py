@@ -1,8 +1,8 @@
 """Meshes for the mesh path of lifting, and per-face labels lifted onto them.
 
 * :func:`scene_mesh`: the mesh of a scene in its (normalised) scene frame: a procedural scene's exact
-  mesh (``omnirecon.geometry.ground_truth_mesh``), the model's baked mesh (``omnirecon mesh``'s
-  protocol, :func:`omnirecon.render.mesh.mesh_from_model`) or a mesh file in the input frame.
+  mesh (``omnirecon.mesh.geometry.ground_truth_mesh``), the model's baked mesh (``omnirecon mesh``'s
+  protocol, :func:`omnirecon.mesh.build.mesh_from_model`) or a mesh file in the input frame.
 * :func:`lift_faces`: any per-view map blended at every face centroid, seen from a point in front of
   the face (``distance`` along its normal, both sides tried), with the sources in which the centroid
   is occluded masked out (the renderer's depth test); faces no source sees get weight 0.
@@ -29,7 +29,7 @@ def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tup
     """The mesh to lift through, in the scene frame, and where it came from (``"gt"``, ``"model"`` or the
     file). ``mesh``: ``"gt"`` (the procedural scene's exact mesh), ``"model"`` (baked from ``model``'s depth
     at ``views``), ``"auto"`` (gt when the scene has one, else model) or a mesh file in the input frame."""
-    from omnirecon.geometry import ground_truth_mesh
+    from omnirecon.mesh.geometry import ground_truth_mesh
 
     spec = str(mesh)
     if spec in ("auto", "gt"):
@@ -39,7 +39,7 @@ def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tup
         if spec == "gt":
             raise InputError("the scene has no exact mesh", scene.path, "use --mesh model or a mesh file")
     if spec in ("auto", "model"):
-        from omnirecon.render.mesh import mesh_from_model
+        from omnirecon.mesh.build import mesh_from_model
 
         made = mesh_from_model(model, scene, views, device=next(model.parameters()).device)
         if len(made.mesh.faces) == 0:
@@ -130,7 +130,7 @@ def face_maps(model, mesh: trimesh.Trimesh, sources, signals: dict[str, tuple[Te
     Returns ``{name: # [F, C]}`` (normalised by kind; faces still unknown: uniform / zero), ``seen # [F]``
     (lifted directly) and ``known # [F]`` (seen or filled)."""
     from omnirecon.lift.blend import normalise
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
     if distance is None:
         centre = torch.from_numpy(np.asarray(mesh.bounds, dtype=np.float64).mean(0))

@@ -73,7 +73,7 @@ class LoRALinear(nn.Module):
 
 def _appearance_linears(model) -> list[tuple[nn.Module, str]]:
     """(parent, attribute) of every Linear of the appearance branch: ``proj`` and the ``mlp`` entries."""
-    app = getattr(model, "appearance", None)
+    app = model.appearance if model.capabilities.appearance else None
     if app is None or not hasattr(app, "mlp"):
         raise ValueError(f"{type(model).__name__} has no decoupled appearance branch (Omni-Recon only)")
     return [(app, "proj")] + [(app.mlp, str(i)) for i, m in enumerate(app.mlp) if isinstance(m, (nn.Linear, LoRALinear))]
@@ -176,9 +176,9 @@ def one_hot_views(scene, views: list[int], table: np.ndarray) -> Tensor:
 
 def labelled_views(model, scene, labelled: list[int], table: np.ndarray, num_views: int) -> list[LabelledView]:
     """The leave-one-out setup of every labelled view (its ``num_views`` nearest other labelled views)."""
-    from omnirecon.eval import select_sources
+    from omnirecon.engine.views import select_sources
     from omnirecon.lift.predictors import labels_to_classes
-    from omnirecon.models.base import Rays
+    from omnirecon.rays import Rays
 
     if len(labelled) < 2:
         raise ValueError("leave-one-out supervision needs at least 2 labelled views")
@@ -198,7 +198,7 @@ def labelled_views(model, scene, labelled: list[int], table: np.ndarray, num_vie
 
 
 def _sources(scene, views, dtype):
-    from omnirecon.models.base import Sources
+    from omnirecon.rays import Sources
 
     s = Sources.from_scene(scene, views)
     b = None if s.bounds is None else s.bounds.to(dtype)
@@ -256,7 +256,7 @@ def lifted_miou(model, scene, targets: list[int], labelled: list[int], table: np
                 maps_of=None, chunk: int = 4096) -> dict:
     """mIoU (in %) of the labelled views' labels lifted to each of ``targets`` (its ``num_views`` nearest
     labelled views; ``maps_of(views) -> [K, H, W, C]``, default their one-hot ground truth), per target and mean."""
-    from omnirecon.eval import select_sources
+    from omnirecon.engine.views import select_sources
     from omnirecon.lift import metrics as M
     from omnirecon.lift.blend import render_lifted
     from omnirecon.lift.predictors import labels_to_classes
