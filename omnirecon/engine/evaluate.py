@@ -34,6 +34,7 @@ from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import depth_from_outputs
 from omnirecon.mesh.geometry import depth_errors
+from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 
 
@@ -99,14 +100,6 @@ def evaluate(
         ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
         "unavailable": {metric: reason}, "seconds_per_view"}`` (see ``docs/evaluation.md``).
     """
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
     from omnirecon.engine import eval_report
     from omnirecon.provenance import provenance
@@ -120,9 +113,7 @@ def evaluate(
         raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
     torch.manual_seed(seed)
     model = model.to(device).eval()
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-               TextColumn("eta"), TimeRemainingColumn())
-    with Progress(*columns, disable=not progress, transient=False) as bar:
+    with progress_bar(disable=not progress, transient=False) as bar:
         prepared = [s for s in scenes if isinstance(s, EvalScene)]
         prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
                                    protocol_set)

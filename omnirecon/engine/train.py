@@ -39,6 +39,7 @@ from omnirecon.engine.losses import LossModule, psnr
 from omnirecon.engine.report import save_val_picture
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
 
 
 def step_seed(*key: int) -> int:
@@ -429,18 +430,11 @@ class Trainer:
     def start_progress(self, last: int) -> None:
         if not (self.env.main and self.cfg.progress):
             return
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
 
-        self.pg = Progress(TextColumn(f"train {self.cfg.model}"), BarColumn(bar_width=24), MofNCompleteColumn(),
-                           TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                           TextColumn("{task.fields[info]}"), console=self.console, transient=False)
+        from rich.progress import TextColumn
+
+        self.pg = progress_bar(f"train {self.cfg.model}", "", TextColumn("{task.fields[info]}"), console=self.console,
+                               transient=False)
         self.pg.start()
         self.task = self.pg.add_task("train", total=last, completed=self.step, info="")
 

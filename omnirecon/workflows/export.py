@@ -9,6 +9,7 @@ from typing import Literal
 
 from omnirecon.engine.machine import MachineConfig
 from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
 
 
@@ -76,10 +77,7 @@ def run_export(cfg: ExportConfig) -> dict:
     if mesh is None:
         mesh_options.check()
     if mesh is None:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                      TimeElapsedColumn()) as bar:
+        with progress_bar() as bar:
             record = export_scene(net, scene, views, out, None, mesh_options, options, device, info, cfg.masks, bar)
     else:
         record = export_scene(net, scene, views, out, mesh, mesh_options, options, device, info, cfg.masks)

@@ -22,6 +22,7 @@ from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import DTU_SHIFT, MeshOptions
+from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
@@ -74,8 +75,6 @@ class MeshConfig(MachineConfig):
 
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
     from omnirecon.data import detect_format
     from omnirecon.engine.machine import load_model, pick_device, set_threads
     from omnirecon.engine.protocols import protocol_for
@@ -99,9 +98,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
-    columns = (TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-               TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
-    with Progress(*columns, transient=False) as bar:
+    with progress_bar(transient=False) as bar:
         made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
     mesh, record = made.mesh, made.info
     if len(mesh.faces) == 0:

@@ -27,6 +27,7 @@ from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 
 MAX_DEFAULT_KEYFRAMES = 8
@@ -106,14 +107,6 @@ def default_keyframes(n: int) -> list[int]:
 
 def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     """Render ``cfg``; returns the output folder and the video file (``None`` without ``cfg.video``)."""
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
     cfg.check()
     set_threads(cfg.threads)
@@ -128,10 +121,8 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     pool = list(range(len(scene)))
     center = closest_point_to_axes(scene.cameras) if view_metric(scene) == "angle" else None
     frames, records, key, features = [], [], None, None
-    columns = (TextColumn("render"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"), TimeElapsedColumn(),
-               TextColumn("eta"), TimeRemainingColumn())
     start = time.perf_counter()
-    with Progress(*columns) as bar, torch.no_grad():
+    with progress_bar("render", "frames") as bar, torch.no_grad():
         task = bar.add_task("render", total=len(cams))
         for i in range(len(cams)):
             src = select_sources(scene, cams[i], pool, cfg.num_views, center)

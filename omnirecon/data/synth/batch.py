@@ -12,6 +12,7 @@ from pathlib import Path
 
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
 from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
 
 
 @dataclass
@@ -65,14 +66,6 @@ def run_batch(cfg: SynthConfig, quiet: bool = True) -> dict:
     On Ctrl-C or an error the workers are stopped at once and their unfinished (temporary) scene
     folders removed; finished scenes stay, so running the same command again resumes.
     """
-    from rich.progress import (
-        BarColumn,
-        MofNCompleteColumn,
-        Progress,
-        TextColumn,
-        TimeElapsedColumn,
-        TimeRemainingColumn,
-    )
 
     cfg.out.mkdir(parents=True, exist_ok=True)
     options = cfg.options()
@@ -81,9 +74,7 @@ def run_batch(cfg: SynthConfig, quiet: bool = True) -> dict:
     workers = min(cfg.workers or os.cpu_count() or 1, max(len(todo), 1))
     tasks = [(cfg.out, s, options, cfg.overwrite) for s in todo]
     start = time.perf_counter()
-    columns = (TextColumn("synth"), BarColumn(), MofNCompleteColumn(), TextColumn("scenes"), TimeElapsedColumn(),
-               TextColumn("eta"), TimeRemainingColumn())
-    with Progress(*columns, disable=quiet) as progress:
+    with progress_bar("synth", "scenes", disable=quiet) as progress:
         task = progress.add_task("synth", total=len(todo))
         if workers == 1:
             torch_threads = _torch_threads(1)
