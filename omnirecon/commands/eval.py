@@ -66,7 +66,7 @@ class EvalCommand(MachineConfig):
                           device=device, max_targets=self.max_targets, synth_count=self.synth_count,
                           cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
                           geometry=self.geometry)
-        from omnirecon.engine.eval_report import summary_lines
+        from omnirecon.engine.eval_report import summary_lines  # lazy: the report module loads only after a run
 
         for line in summary_lines(result):
             print(line)

@@ -25,7 +25,7 @@ class ViewCommand:
     """Do not log requests."""
 
     def main(self) -> None:
-        from omnirecon.viewer.server import ViewerServer, bundle_folder
+        from omnirecon.viewer.server import ViewerServer, bundle_folder  # lazy: the HTTP server loads only when serving
 
         folder = bundle_folder(self.folder)
         server = ViewerServer(folder, self.port, quiet=self.quiet)

@@ -24,11 +24,11 @@ from torch import nn
 
 from omnirecon.data.io import atomic_path, read_json, write_json
 from omnirecon.errors import InputError
+from omnirecon.models.registry import build_model, model_config_dict
 
 
 def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: torch.optim.Optimizer | None = None,
                     train_config: dict | None = None, extra: dict | None = None, provenance: dict | None = None) -> None:
-    from omnirecon.models.registry import model_config_dict
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -65,7 +65,6 @@ def read_meta(folder: Path) -> dict:
 
 def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     """Rebuild the model from ``folder``. Returns ``(model, meta)``."""
-    from omnirecon.models.registry import build_model
 
     folder = Path(folder)
     meta = read_meta(folder)

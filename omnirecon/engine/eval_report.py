@@ -14,6 +14,7 @@ import numpy as np
 from torch import Tensor
 
 from omnirecon.data.io import atomic_path, write_image, write_json
+from omnirecon.provenance import markdown_header
 
 METRIC_ORDER = ("psnr", "ssim", "st_lpips_alex", "lpips_alex", "psnr_masked", "depth_abs_rel", "depth_delta1")
 """Column order of the tables; each metric is followed by its ``_aux`` variant when present."""
@@ -97,7 +98,6 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 def markdown(result: dict) -> str:
     """The Markdown page: provenance, per-protocol means, per-scene table, notes."""
-    from omnirecon.provenance import markdown_header
 
     model = result["model"]
     lines = [f"# Evaluation: {model.get('name')}", "", markdown_header(result["provenance"]), "",

@@ -28,13 +28,16 @@ from torch import Tensor
 
 from omnirecon import metrics
 from omnirecon.cameras import closest_point_to_axes
+from omnirecon.engine import eval_report
 from omnirecon.engine.protocols import targets_and_pool
 from omnirecon.engine.scenes import EvalScene, prepare_scenes
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import depth_from_outputs
+from omnirecon.mesh import geometry as geo
+from omnirecon.mesh.build import MeshOptions, depth_from_outputs, export_mesh, mesh_from_model, to_input_frame
 from omnirecon.mesh.geometry import depth_errors
 from omnirecon.progress import progress_bar
+from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 
 
@@ -101,9 +104,6 @@ def evaluate(
         "unavailable": {metric: reason}, "seconds_per_view"}`` (see ``docs/evaluation.md``).
     """
 
-    from omnirecon.engine import eval_report
-    from omnirecon.provenance import provenance
-
     ks = [int(k) for k in num_views]
     if not ks or min(ks) < 1:
         raise InputError(f"--num-views must be positive integers, got {list(num_views)}", None, "use e.g. 3 10")
@@ -162,7 +162,6 @@ def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tu
 
 def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, task) -> None:
     """Render and score every target of one (scene, K) job; fills ``job["views"]``."""
-    from omnirecon.engine import eval_report
 
     es: EvalScene = job["scene"]
     scene, k = es.scene, job["k"]
@@ -210,8 +209,6 @@ def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> No
     """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
     fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and ``mesh.png``, the mesh
     seen from the first source view at a 512-px long side)."""
-    from omnirecon.mesh import geometry as geo
-    from omnirecon.mesh.build import MeshOptions, mesh_from_model
 
     es: EvalScene = job["scene"]
     views = geometry_sources(es, job["k"])
@@ -233,7 +230,6 @@ def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> No
         row["fused_depth_abs_rel"] = scored["rendered_depth"]["abs_rel"]
     if out is not None:
         folder = Path(out) / es.name / f"k{job['k']}"
-        from omnirecon.mesh.build import export_mesh, to_input_frame
 
         export_mesh(to_input_frame(made.mesh, es.scene.to_input), [folder / "mesh.ply"])
         cam = es.scene.cameras[views[0]]

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import torch
 
+from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.errors import InputError
+from omnirecon.models.registry import build_model
 
 
 def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
     """The model of ``--ckpt`` or ``--model floor`` (exactly one). Returns ``(model, info)``."""
-    from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.models.registry import build_model
 
     if (ckpt is None) == (model is None):
         raise InputError("give exactly one of --ckpt or --model", None,

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from torch import Tensor
 
-from omnirecon.data.io import atomic_path
+from omnirecon.data.io import atomic_path, write_image
 
 STYLE = """
 body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto; padding: 0 1em; color: #222; }
@@ -85,8 +85,6 @@ def write_report(folder: Path, title: str, sections: list[Section], footer: str 
 def save_val_picture(path: Path, rows: list[tuple[Tensor, Tensor]], max_err: float = 0.25) -> None:
     """One row per view: ground truth | render | absolute error (mean over RGB, inferno, 0..``max_err``)."""
     from matplotlib import colormaps
-
-    from omnirecon.data.io import write_image
 
     cmap = colormaps["inferno"]
     lines = []

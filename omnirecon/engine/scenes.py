@@ -8,6 +8,7 @@ from pathlib import Path
 
 from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.scene import Scene
+from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.protocols import (
     FORMAT_PROTOCOL,
     PROTOCOL_SETS,
@@ -53,7 +54,6 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
     Scene ``i`` uses seed ``EVAL_SEEDS[i]`` and is written to ``cache/synth_eval/<rig>_<res>``.
     A cached scene written with other options or by another generator version is regenerated.
     """
-    from omnirecon.data.synth.generate import SynthOptions, generate_scene
 
     parts = spec.split(":")
     rig = parts[2] if len(parts) > 2 else "object"

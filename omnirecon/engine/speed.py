@@ -37,8 +37,17 @@ import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+from omnirecon.cameras import nearest_views
+from omnirecon.data import load_scene
+from omnirecon.data.io import write_json
+from omnirecon.data.synth.generate import SynthOptions, generate_scene
+from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import DeviceConfig, pick_device
 from omnirecon.errors import InputError
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.models.registry import build_model
+from omnirecon.provenance import provenance
+from omnirecon.rays import Rays, Sources
 
 ROOT = Path(__file__).resolve().parents[2]
 CHECKPOINT = ROOT / "checkpoints" / "omnirecon-tiny"
@@ -91,16 +100,6 @@ def measure(cfg: BenchConfig) -> dict:
     if args.threads is not None:  # llvmpipe reads it when the driver loads: before any GL context
         os.environ["LP_NUM_THREADS"] = str(args.threads)
     import torch
-
-    from omnirecon.cameras import nearest_views
-    from omnirecon.data import load_scene
-    from omnirecon.data.io import write_json
-    from omnirecon.data.synth.generate import SynthOptions, generate_scene
-    from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
-    from omnirecon.models.registry import build_model
-    from omnirecon.provenance import provenance
-    from omnirecon.rays import Rays, Sources
 
     if args.threads is not None:
         torch.set_num_threads(args.threads)

@@ -33,13 +33,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from omnirecon.engine.checkpoint import param_digest, point_latest
+from omnirecon.data.bank import SceneBank, draw_batch, parse_sources, val_views
+from omnirecon.data.io import write_json
+from omnirecon.engine.checkpoint import load_optimizer_state, param_digest, point_latest, read_meta, save_checkpoint
 from omnirecon.engine.distributed import DistEnv
 from omnirecon.engine.losses import LossModule, psnr
 from omnirecon.engine.report import save_val_picture
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
+from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
 from omnirecon.progress import progress_bar
+from omnirecon.provenance import provenance
 
 
 def step_seed(*key: int) -> int:
@@ -65,9 +69,6 @@ class Trainer:
 
     def __init__(self, cfg: TrainConfig, env: DistEnv):
         from rich.console import Console
-
-        from omnirecon.data.bank import SceneBank, parse_sources
-        from omnirecon.models.registry import _families, family_of
 
         self.cfg, self.env = cfg, env
         self.threads_before = torch.get_num_threads()
@@ -193,9 +194,6 @@ class Trainer:
         return dev
 
     def setup(self) -> None:
-        from omnirecon.engine.checkpoint import load_optimizer_state, read_meta
-        from omnirecon.models.registry import build_model, model_config_dict
-        from omnirecon.provenance import provenance
 
         c, env = self.cfg, self.env
         if c.threads:
@@ -277,7 +275,6 @@ class Trainer:
         elif metrics.exists():
             metrics.unlink()
         self.metrics = open(metrics, "a")
-        from omnirecon.data.io import write_json
 
         write_json(self.out / "config.json", {
             "train": self.config_dict(), "model_config": self.model_config, "resolved": {
@@ -295,7 +292,6 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> None:
-        from omnirecon.data.bank import draw_batch
 
         self.setup()
         c, env = self.cfg, self.env
@@ -371,7 +367,6 @@ class Trainer:
             in_sync = len(set(digests)) == 1
             summary = {"step": step, "time": self.elapsed, "world_size": self.env.world, "params_in_sync": in_sync,
                        "param_sha256": digests}
-            from omnirecon.data.io import write_json
 
             write_json(self.out / "summary.json", summary)
             if not in_sync:
@@ -461,7 +456,6 @@ class Trainer:
         if self.val_bank is None:
             return
         if self.env.main:
-            from omnirecon.data.bank import val_views
 
             self.model.eval()
             rows, per_scene = [], {}
@@ -491,7 +485,6 @@ class Trainer:
 
     def checkpoint(self, step: int, final: bool = False) -> None:
         if self.env.main:
-            from omnirecon.engine.checkpoint import save_checkpoint
 
             ckdir = self.out / "checkpoints"
             folder = ckdir / f"step_{step:07d}"

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from omnirecon.lift.predictors import KINDS, Predictor
+from omnirecon.mesh.ibr import ShadeResult
 
 
 def supports_lifting(model) -> bool:
@@ -178,7 +179,6 @@ def lift_points(renderer, points: Tensor, origins: Tensor, signals: Tensor, kind
     pixel (the renderer's own test takes the farthest of four, so it keeps points just behind an
     occluder's silhouette). Returns the normalised maps ``# [P, C]`` and ``seen # [P]`` (some source sees
     the point; the others get weight 0)."""
-    from omnirecon.mesh.ibr import ShadeResult
 
     _check_mesh_signal(renderer, "signals", signals)
     cams = renderer.sources.cameras

@@ -31,6 +31,8 @@ import torch
 import trimesh
 from torch import Tensor
 
+from omnirecon.errors import InputError
+from omnirecon.mesh.build import to_input_frame
 from omnirecon.render.raster import vertex_normals
 
 
@@ -44,7 +46,6 @@ class BakeOptions:
     """Vertices shaded at once."""
 
     def check(self) -> None:
-        from omnirecon.errors import InputError
 
         if self.views < 1:
             raise InputError(f"--bake-views must be at least 1, got {self.views}", None, "use e.g. 3")
@@ -136,7 +137,6 @@ def colored_mesh(vertices, faces, colors: Tensor | np.ndarray, to_input: Tensor 
     """A ``trimesh.Trimesh`` with per-vertex RGBA colours (uint8, alpha 255), moved to the input frame by the
     similarity ``to_input # [4, 4]`` when given (:func:`omnirecon.mesh.build.to_input_frame`: winding
     flipped if it mirrors; the vertex order, hence the colours, is kept)."""
-    from omnirecon.mesh.build import to_input_frame
 
     mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), process=False)
     if to_input is not None:

@@ -39,6 +39,8 @@ from torch import Tensor
 from omnirecon.cameras import Cameras
 from omnirecon.data.io import atomic_path
 from omnirecon.errors import InputError
+from omnirecon.mesh.geometry import rasterize_mesh
+from omnirecon.rays import Sources
 
 DTU_SHIFT = 25.0 / 684.0
 """VolRecon's virtual-view shift (25 mm along the camera x axis) over DTU's camera distance to the
@@ -329,7 +331,6 @@ def visible_faces(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray | N
     F-score 0.61 vs 0.64 with ground-truth depth), and a sample counts when the pixel it falls in
     is inside the mask.
     """
-    from omnirecon.mesh.geometry import rasterize_mesh
 
     seen = np.zeros(len(mesh.faces), dtype=bool)
     verts = np.asarray(mesh.vertices, dtype=np.float64)
@@ -417,7 +418,6 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
         A :class:`MeshResult`: the cleaned mesh in the scene frame, a JSON-serialisable record of
         the settings, face counts and seconds per stage, and the depth maps that were fused.
     """
-    from omnirecon.rays import Sources
 
     options = options or MeshOptions()
     options.check()

@@ -30,6 +30,7 @@ import trimesh
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
+from omnirecon.data.io import write_image
 from omnirecon.render.zbuffer import Fragments, rasterize
 
 FSCORE_THRESHOLD = 0.01
@@ -189,7 +190,6 @@ def shaded_image(mesh: trimesh.Trimesh, camera: Cameras, supersample: int = 2,
 
 def save_picture(path: Path, mesh: trimesh.Trimesh, camera: Cameras, supersample: int = 2) -> Path:
     """Write :func:`shaded_image` as a PNG (atomically)."""
-    from omnirecon.data.io import write_image
 
     write_image(Path(path), shaded_image(mesh, camera, supersample))
     return Path(path)

@@ -438,7 +438,9 @@ class MeshRasterizer:
                        torch.from_numpy(world[:, 3].copy()), camera.height, camera.width)
 
     def _rasterize_reference(self, K, w2c, width, height, near):
-        from omnirecon.render.zbuffer import rasterize
+        from omnirecon.render.zbuffer import (
+            rasterize,  # lazy: the NumPy reference runs only when the GL backend is not used
+        )
 
         near = 1e-6 if near is None else near
         F = len(self.faces)

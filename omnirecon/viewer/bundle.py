@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omnirecon.data.io import write_image
 from omnirecon.errors import InputError
 
 FORMAT = "omnirecon-viewer"
@@ -148,7 +149,6 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     Returns:
         ``folder``.
     """
-    from omnirecon.data.io import write_image
 
     three = find_three()
     if three is None:

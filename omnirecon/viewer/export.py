@@ -23,7 +23,13 @@ import numpy as np
 import torch
 import trimesh
 
+from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
+from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
+from omnirecon.mesh.build import export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.rays import Sources
+from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
 
 @dataclass
@@ -102,12 +108,6 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
     Returns:
         The record written to ``export.json`` (plus ``files``).
     """
-    from omnirecon.data.io import write_json
-    from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
-    from omnirecon.mesh.build import export_mesh, mesh_from_model, to_input_frame
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
-    from omnirecon.rays import Sources
-    from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
     options = options or ExportOptions()
     options.check()

@@ -18,6 +18,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+from omnirecon import metrics
+from omnirecon.viewer.bundle import find_three, three_unavailable_reason
+
 ROOT = Path(__file__).resolve().parents[2]
 
 EGL_PROBE = ("import moderngl; c = moderngl.create_standalone_context(backend='egl'); "
@@ -95,7 +98,6 @@ def check_chromium() -> Check:
 
 
 def check_three() -> Check:
-    from omnirecon.viewer.bundle import find_three, three_unavailable_reason
 
     three = find_three()
     if three is None:
@@ -120,7 +122,6 @@ def check_module(name: str, module: str, consequence: str) -> Check:
 
 
 def check_metrics() -> list[Check]:
-    from omnirecon import metrics
 
     rows = []
     for key, name, consequence in (("st_lpips", "ST-LPIPS (stlpips-pytorch)", "the st_lpips column is left out"),

@@ -17,8 +17,24 @@ from typing import Literal
 
 import numpy as np
 
-from omnirecon.engine.machine import ThreadsConfig
+from omnirecon.data.io import write_image, write_json
+from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.scenes import prepare_scenes
+from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.lift import edit as E
+from omnirecon.lift import experiment as X
+from omnirecon.lift import predictors as P
+from omnirecon.lift.blend import supports_lifting
+from omnirecon.lift.experiment import knn_train_views
+from omnirecon.lift.predictors import labels_to_classes
+from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs, scene_mesh
+from omnirecon.mesh.build import export_mesh
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
 
 
 @dataclass
@@ -78,10 +94,6 @@ class EditConfig(ThreadsConfig):
     def run(self) -> list[str]:
         """Run the command; returns the lines to print."""
         lines: list[str] = []
-        from omnirecon.engine.machine import load_model, set_threads
-        from omnirecon.engine.scenes import prepare_scenes
-        from omnirecon.lift.blend import supports_lifting
-        from omnirecon.models.omnirecon import OmniRecon
 
         if self.num_views < 1:
             raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
@@ -107,8 +119,6 @@ class EditConfig(ThreadsConfig):
             raise InputError("the scene has no label maps", es.path, "use a procedural scene (synth:eval or "
                              "`omnirecon synth`)")
         result = {"model": info, **run_edit(self, model, es, out / es.name)}
-        from omnirecon.data.io import write_json
-        from omnirecon.provenance import provenance
 
         write_json(out / "edit.json", {"provenance": provenance(seed=0), **result})
         r = result
@@ -129,9 +139,6 @@ def label_maps(cfg: EditConfig, scene, pool: list[int], used: set[int], table: n
     ground truth and must not be read)."""
     import torch
 
-    from omnirecon.lift import predictors as P
-    from omnirecon.lift.experiment import knn_train_views
-
     if cfg.labels == "oracle":
         return scene.labels.clone()
     train = knn_train_views(pool, used)
@@ -149,14 +156,6 @@ def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
     import functools
 
     import torch
-
-    from omnirecon.data.io import write_image
-    from omnirecon.engine.protocols import targets_and_pool
-    from omnirecon.engine.views import select_sources
-    from omnirecon.lift import edit as E
-    from omnirecon.lift import experiment as X
-    from omnirecon.lift import predictors as P
-    from omnirecon.rays import Sources
 
     scene = es.scene
     targets, pool = targets_and_pool(es.protocol, scene)
@@ -215,7 +214,6 @@ def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
                 r = E.reblend_volumetric(model, feats, scene.cameras[t], scene.images[src], edited[src], onehot[src],
                                          after_feats, cfg.chunk)
         else:
-            from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
             opts = MeshRenderOptions(background=background, visibility=cfg.visibility, cull_back_faces=False)
             changed_mesh = cfg.action == "remove"  # the after view lacks the object's faces
@@ -253,10 +251,6 @@ def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
 
 def _mesh_edit(cfg: EditConfig, model, scene, used, views, onehot, cls: int, table, out: Path) -> dict:
     """Face labels and colours lifted from ``views``; delete/recolour ``cls``; export GLBs."""
-    from omnirecon.lift import edit as E
-    from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs, scene_mesh
-    from omnirecon.mesh.build import export_mesh
-    from omnirecon.rays import Sources
 
     mesh, source = scene_mesh(model, scene, used, cfg.mesh)
     maps, seen, known = face_maps(model, mesh, Sources.from_scene(scene, views),
@@ -268,7 +262,6 @@ def _mesh_edit(cfg: EditConfig, model, scene, used, views, onehot, cls: int, tab
            "faces_seen": float(seen.mean()), "faces_kept": len(keep), "_mesh": mesh, "_after_mesh": edited_mesh}
     gt = gt_face_labels(scene) if source == "gt" else None
     if gt is not None:
-        from omnirecon.lift.predictors import labels_to_classes
 
         g = labels_to_classes(gt, table)
         area = np.asarray(mesh.area_faces)

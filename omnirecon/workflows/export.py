@@ -7,8 +7,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from omnirecon.engine.machine import MachineConfig
+from omnirecon.data import detect_format
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import protocol_for
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
+from omnirecon.mesh.build import MeshOptions
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
 
@@ -53,12 +58,6 @@ class ExportConfig(MachineConfig):
 
 def run_export(cfg: ExportConfig) -> dict:
     """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``)."""
-    from omnirecon.data import detect_format
-    from omnirecon.engine.machine import load_model, pick_device, set_threads
-    from omnirecon.engine.protocols import protocol_for
-    from omnirecon.engine.scenes import load_at_resolution
-    from omnirecon.engine.views import check_views, default_views
-    from omnirecon.mesh.build import MeshOptions
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()

@@ -29,8 +29,20 @@ from typing import Literal
 import numpy as np
 import torch
 
-from omnirecon.engine.machine import ThreadsConfig
+from omnirecon import metrics
+from omnirecon.data import detect_format
+from omnirecon.data.io import atomic_path, write_image, write_json
+from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
+from omnirecon.engine.machine import ThreadsConfig, set_threads
+from omnirecon.engine.protocols import protocol_for, targets_and_pool
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
+from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.models.omnirecon import OmniReconFeatures
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
+from omnirecon.render.raster import MeshRasterizer
 
 EVAL_AT = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 """Default evaluation points (seconds of optimisation; 0 = before tuning)."""
@@ -91,7 +103,6 @@ class ViewPixels:
 
 def rasterize_views(mesh, scene, indices) -> list[ViewPixels]:
     """Rasterize ``mesh`` (scene frame) at each of ``indices`` once."""
-    from omnirecon.render.raster import MeshRasterizer
 
     out = []
     with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
@@ -106,7 +117,6 @@ def rasterize_views(mesh, scene, indices) -> list[ViewPixels]:
 
 def encode_maps(model, sources):
     """The mesh path's features: the 2-D encoder only (no feature volume). Differentiable."""
-    from omnirecon.models.omnirecon import OmniReconFeatures
 
     maps, _ = model.encoder(sources.images.permute(0, 3, 1, 2))
     return OmniReconFeatures(sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
@@ -152,18 +162,6 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``."""
     import trimesh
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
-    from omnirecon import metrics
-    from omnirecon.data import detect_format
-    from omnirecon.data.io import write_image, write_json
-    from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
-    from omnirecon.engine.machine import set_threads
-    from omnirecon.engine.protocols import protocol_for, targets_and_pool
-    from omnirecon.engine.scenes import load_at_resolution
-    from omnirecon.engine.views import check_views, default_views
-    from omnirecon.mesh.build import MeshOptions, mesh_from_model
-    from omnirecon.provenance import provenance
-    from omnirecon.rays import Sources
 
     if not cfg.seconds > 0:
         raise InputError(f"--seconds must be positive, got {cfg.seconds}", None, "use e.g. 60")
@@ -271,8 +269,6 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from omnirecon.data.io import atomic_path
 
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
     ax.plot([c["seconds"] for c in curve], [c["psnr"] for c in curve], "o-")

@@ -18,8 +18,21 @@ from typing import Literal
 
 import numpy as np
 
-from omnirecon.engine.machine import MachineConfig
+from omnirecon.data.io import write_image, write_json
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.scenes import prepare_scenes
+from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.lift import experiment as X
+from omnirecon.lift.blend import render_lifted, render_lifted_mesh, supports_lifting
+from omnirecon.lift.experiment import knn_train_views
+from omnirecon.lift.predictors import builtin, from_torchscript, labels_to_classes
+from omnirecon.lift.surface import scene_mesh
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
                         "oracle-normals", "oracle-depth", "torchscript"]
@@ -76,9 +89,6 @@ class LiftConfig(MachineConfig):
     def run(self) -> list[str]:
         """Run the command; returns the lines to print."""
         lines: list[str] = []
-        from omnirecon.engine.machine import load_model, pick_device, set_threads
-        from omnirecon.engine.scenes import prepare_scenes
-        from omnirecon.lift.blend import supports_lifting
 
         if self.num_views < 1:
             raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
@@ -93,7 +103,6 @@ class LiftConfig(MachineConfig):
             raise InputError(f"model {info['name']} cannot lift 2-D predictions", self.ckpt,
                              "use an Omni-Recon, IBRNet or GPNR checkpoint")
         if self.path == "mesh":
-            from omnirecon.models.omnirecon import OmniRecon
 
             if not isinstance(model, OmniRecon):
                 raise InputError(f"--path mesh needs an Omni-Recon checkpoint, got {info['name']}", self.ckpt,
@@ -112,8 +121,6 @@ class LiftConfig(MachineConfig):
         return lines
 
     def _predictor(self, es, pool: list[int], used: set[int]):
-        from omnirecon.lift.experiment import knn_train_views
-        from omnirecon.lift.predictors import builtin
 
         needs = {"oracle-labels": "labels", "noisy-labels": "labels", "knn-labels": "labels",
                  "oracle-normals": "normals", "oracle-depth": "depths"}.get(self.predictor)
@@ -122,7 +129,6 @@ class LiftConfig(MachineConfig):
                              es.path, "use a procedural scene (synth:eval or `omnirecon synth`) or a predictor "
                              "that runs on any image: sobel, canny, hed, harris, slic")
         if self.predictor == "torchscript":
-            from omnirecon.lift.predictors import from_torchscript
 
             if self.user_model is None:
                 raise InputError("--predictor torchscript needs --user-model", None, "pass a TorchScript file")
@@ -142,13 +148,6 @@ class LiftConfig(MachineConfig):
     def _scene(self, model, es, folder: Path, device: str) -> dict:
         import torch
 
-        from omnirecon.data.io import write_image
-        from omnirecon.engine.protocols import targets_and_pool
-        from omnirecon.engine.views import select_sources
-        from omnirecon.lift import experiment as X
-        from omnirecon.lift.blend import render_lifted
-        from omnirecon.rays import Sources
-
         scene = es.scene
         targets, pool = targets_and_pool(es.protocol, scene)
         if self.targets:
@@ -165,7 +164,6 @@ class LiftConfig(MachineConfig):
         pred = self._predictor(es, pool, {v for s in sources.values() for v in s})
         mesh_info = None
         if self.path == "mesh":
-            from omnirecon.lift.surface import scene_mesh
 
             mesh, mesh_source = scene_mesh(model, scene, sorted({v for s in sources.values() for v in s}), self.mesh)
             mesh_info = {"source": mesh_source, "faces": len(mesh.faces), "visibility": self.visibility}
@@ -174,8 +172,6 @@ class LiftConfig(MachineConfig):
             src = sources[t]
             maps = pred.predict_views(scene.images[src], src)
             if self.path == "mesh":
-                from omnirecon.lift.blend import render_lifted_mesh
-                from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
                 bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
                 opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
@@ -215,7 +211,6 @@ class LiftConfig(MachineConfig):
 
 
 def _classes(scene, t, pred):
-    from omnirecon.lift.predictors import labels_to_classes
 
     return labels_to_classes(scene.labels[t], np.asarray(pred.meta["class_ids"])).clip(0)
 
@@ -237,8 +232,6 @@ def _summary(result: dict) -> list[str]:
 
 
 def _write(result: dict, out: Path) -> None:
-    from omnirecon.data.io import write_json
-    from omnirecon.provenance import provenance
 
     result = {"provenance": provenance(seed=0), **result}
     write_json(out / "metrics.json", result)

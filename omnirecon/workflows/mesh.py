@@ -17,11 +17,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
-from omnirecon.engine.machine import MachineConfig
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import protocol_for
+from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import DTU_SHIFT, MeshOptions
+from omnirecon.mesh import geometry
+from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
@@ -75,12 +79,6 @@ class MeshConfig(MachineConfig):
 
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
-    from omnirecon.data import detect_format
-    from omnirecon.engine.machine import load_model, pick_device, set_threads
-    from omnirecon.engine.protocols import protocol_for
-    from omnirecon.engine.scenes import load_at_resolution
-    from omnirecon.mesh import geometry
-    from omnirecon.mesh.build import check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
 
     options = cfg.mesh_options()
     options.check()

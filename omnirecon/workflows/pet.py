@@ -15,9 +15,16 @@ from typing import Literal
 
 import numpy as np
 
-from omnirecon.engine.machine import ThreadsConfig
+from omnirecon.data.io import write_json
+from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.errors import InputError
+from omnirecon.lift import tune as T
+from omnirecon.lift.predictors import class_table
 from omnirecon.lift.tune import PETOptions
+from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.provenance import provenance
 
 
 @dataclass
@@ -46,12 +53,6 @@ class PETConfig(ThreadsConfig):
         """Run the command; returns the lines to print."""
         lines: list[str] = []
         import copy
-
-        from omnirecon.data.io import write_json
-        from omnirecon.engine.machine import load_model, set_threads
-        from omnirecon.engine.scenes import prepare_scenes
-        from omnirecon.models.omnirecon import OmniRecon
-        from omnirecon.provenance import provenance
 
         o = self.options
         if o.steps < 0 or o.rays < 1 or o.rank < 1 or o.lr <= 0 or o.num_views < 1:
@@ -86,9 +87,6 @@ class PETConfig(ThreadsConfig):
 
 def run_pet(model, es, options: PETOptions, labelled_count: int, folder: Path) -> dict:
     """Tune ``model`` (a copy) on one scene; returns its JSON row and saves the adapters."""
-    from omnirecon.engine.protocols import targets_and_pool
-    from omnirecon.lift import tune as T
-    from omnirecon.lift.predictors import class_table
 
     scene = es.scene
     targets, pool = targets_and_pool(es.protocol, scene)

@@ -1,9 +1,11 @@
 import subprocess
 import sys
 
+import pytest
 from conftest import ROOT
 
 
+@pytest.mark.slow
 def test_run_all_tiny_writes_page_with_measured_numbers(tmp_path):
     out = tmp_path / "BENCHMARKS.md"
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run_all.py"), "--tiny", "--out", str(out),
@@ -27,6 +29,7 @@ def test_quality_tiny_scores_the_floor(tmp_path):
     assert 10 < psnr < 40  # a real measurement on the held-out procedural scene
 
 
+@pytest.mark.slow
 def test_ablation_tiny_trains_and_scores_each_row(tmp_path):
     out = tmp_path / "ablation.json"
     proc = subprocess.run([sys.executable, str(ROOT / "bench" / "ablation_gpnr.py"), "--tiny", "--rows", "full",

@@ -321,6 +321,7 @@ def test_user_torchscript_predictor(tmp_path, scene):
         P.from_torchscript(tmp_path / "bad.pt", "regression")
 
 
+@pytest.mark.slow
 def test_bench_tiny(tmp_path):
     """bench/lift.py --tiny: one held-out scene, one target, measured numbers and a figure."""
     import json

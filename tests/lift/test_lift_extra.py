@@ -308,6 +308,7 @@ def test_cli_bad_input_one_line(args, needle, capsys, tmp_path, run_cli):
     assert rc == 2 and len(lines) == 1 and needle in lines[0], err
 
 
+@pytest.mark.slow
 def test_cli_pet(setup, ckpt, tmp_path, capsys, run_cli):
     scene = setup[0]
     rc, _, err = run_cli(["pet", "--ckpt", ckpt, "--scene", scene.path, "--labelled", 4, "--options.steps", 2,

@@ -149,6 +149,7 @@ def test_reference_backend_renders_the_same_image(setup):
     assert close.float().mean() > 0.99
 
 
+@pytest.mark.slow
 def test_fps_benchmark_quick(tmp_path):
     out = tmp_path / "mesh_fps.json"
     start = time.perf_counter()

@@ -198,6 +198,7 @@ def test_export_cli(exported, tmp_path, capsys):
 
 
 # ---------------------------------------------------------------------- the browser
+@pytest.mark.slow
 def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     """Headless Chromium (software WebGL2) draws the exported bundle at a fixed held-out camera, given in
     the input frame; the screenshot matches MeshRenderer.render for the same camera (visibility test

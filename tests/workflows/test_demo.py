@@ -8,6 +8,7 @@ from omnirecon.cli import main
 from omnirecon.workflows.demo import ROOT
 
 
+@pytest.mark.slow
 def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     shipped = [m for m in ("gpnr-tiny", "ibrnet-tiny") if (ROOT / "checkpoints" / m / "model.safetensors").is_file()]
     if len(shipped) < 2:

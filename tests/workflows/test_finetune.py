@@ -21,6 +21,7 @@ def setup(tmp_path_factory):
     return root, scene
 
 
+@pytest.mark.slow
 def test_finetune_raises_held_out_psnr_and_writes_curve(setup, capsys):
     root, scene = setup
     out = root / "out"

@@ -45,6 +45,7 @@ def run_inspect(args, tmp_path):
     return json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rel,fmt,downscale", SHARED, ids=[s[0] for s in SHARED])
 def test_inspect_real_scenes(rel, fmt, downscale, shared_data, tmp_path):
     path = shared_data(rel)
