@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("omnirecon.commands.export:ExportCommand", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
     "view": ("omnirecon.commands.view:ViewCommand", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),
     "bench": ("omnirecon.commands.bench:BenchCommand", "FPS of Omni-Recon's real-time mesh path vs its volumetric path, and their ratio."),
+    "reconstruct": ("omnirecon.commands.reconstruct:ReconstructCommand", "Photos or a video in: camera poses, a mesh from every view, a tuned real-time mesh path, an export and a report."),
     "doctor": ("omnirecon.commands.doctor:DoctorCommand", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
 }
 

@@ -65,6 +65,9 @@ class BenchConfig(DeviceConfig):
     """Omni-Recon checkpoint (default: the shipped omnirecon-tiny; random weights when it is missing)."""
     resolution: int = 512
     """Target width = height in pixels."""
+    size: tuple[int, int] | None = None
+    """Target width and height instead of --resolution, e.g. a capture's own photo size (fern: 504 378,
+    DTU: 400 300); the procedural sources are then rendered at the larger side too."""
     source_resolution: int = 128
     """Procedural scene image size (the sources)."""
     views: int = 3
@@ -86,12 +89,22 @@ class BenchConfig(DeviceConfig):
 
     def check(self) -> BenchConfig:
         """Validated settings, with ``--quick`` applied."""
-        if self.resolution < 16 or self.views < 1 or self.frames < 1:
-            raise InputError("--resolution must be >= 16, --views and --frames >= 1", None,
-                             "use e.g. --resolution 512 --views 3 --frames 30")
+        if self.resolution < 16 or self.views < 1 or self.frames < 1 or (self.size and min(self.size) < 16):
+            raise InputError("--resolution and --size must be >= 16, --views and --frames >= 1", None,
+                             "use e.g. --resolution 512 --views 3 --frames 30, or --size 504 378")
+        if self.size and not self.quick:
+            return replace(self, source_resolution=max(self.size))
         if self.quick:
             return replace(self, resolution=128, source_resolution=64, frames=3, warmup=1, rays=64, volume_repeats=1)
         return self
+
+
+def target_camera(camera, width: int, height: int):
+    """``camera`` (square) scaled to ``max(width, height)`` and centre-cropped to ``width x height``: the
+    same view at a photo's aspect ratio."""
+    side = max(width, height)
+    c = camera.rescaled(side / camera.width)
+    return replace(c, cx=c.cx - (side - width) / 2, cy=c.cy - (side - height) / 2, width=width, height=height)
 
 
 def measure(cfg: BenchConfig) -> dict:
@@ -157,8 +170,8 @@ def measure(cfg: BenchConfig) -> dict:
 
     held_out = scene.splits.get("test", []) + scene.splits.get("val", [])
     train = scene.splits["train"]
-    scale = args.resolution / scene.width
-    targets = [scene.cameras[i].rescaled(scale).to(device=device, dtype=torch.float32) for i in held_out]
+    width, height = args.size or (args.resolution, args.resolution)
+    targets = [target_camera(scene.cameras[i], width, height).to(device=device, dtype=torch.float32) for i in held_out]
     pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], args.views, by="angle")[0]
     views = [train[i] for i in pick.tolist()]
     sources = Sources.from_scene(scene, views).to(device)
@@ -194,7 +207,7 @@ def measure(cfg: BenchConfig) -> dict:
     with torch.no_grad():
         volume_times = timed(lambda: model.render_rays(features, rays), args.volume_repeats, 1)
 
-    pixels = args.resolution * args.resolution
+    pixels = width * height
     mesh_s = statistics.median(mesh_times)
     volume_s = statistics.median(volume_times)
     rays_per_s = args.rays / volume_s
@@ -204,7 +217,7 @@ def measure(cfg: BenchConfig) -> dict:
         "provenance": provenance(seed=args.seed, lp_num_threads=os.environ.get("LP_NUM_THREADS")),
         "config": {"quick": args.quick, "device": device, "torch_threads": torch.get_num_threads(),
                    "llvmpipe_threads": os.environ.get("LP_NUM_THREADS", "default (all cores)"),
-                   "rasterizer": backend, "resolution": [args.resolution, args.resolution],
+                   "rasterizer": backend, "resolution": [width, height],
                    "source_views": args.views, "source_resolution": [scene.width, scene.height],
                    "frames": args.frames, "warmup": args.warmup},
         "model": {"preset": "omnirecon-tiny", "weights": weights,
@@ -212,7 +225,7 @@ def measure(cfg: BenchConfig) -> dict:
         "scene": {"kind": "procedural", "seed": args.seed, "rig": "object", "frame": "normalised (training frame)",
                   "mesh": "exact procedural mesh", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
-        "mesh": {"resolution": [args.resolution, args.resolution], "fps": round(mesh_fps, 3),
+        "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),
                  "median_ms": round(1000 * mesh_s, 2), "min_ms": round(1000 * min(mesh_times), 2),
                  "cpu_ms": cpu_ms(mesh_times), "fps_from_cpu_time": round(1000 / cpu_ms(mesh_times), 3),
                  "surface_pass_ms": round(1000 * statistics.median(surface_times), 2),
@@ -228,7 +241,7 @@ def measure(cfg: BenchConfig) -> dict:
                          "the full G-buffer (ids, barycentrics, depth, points, face normals). *_ms are wall-clock "
                          "medians; *_cpu_ms the process CPU time per call (all threads, llvmpipe's included), "
                          "which other processes on the same cores do not inflate"},
-        "volumetric": {"resolution": [args.resolution, args.resolution], "rays_per_batch": args.rays,
+        "volumetric": {"resolution": [width, height], "rays_per_batch": args.rays,
                        "batches": args.volume_repeats, "median_batch_s": round(volume_s, 4),
                        "rays_per_s": round(rays_per_s, 2), "fps_equivalent": round(volume_fps, 6),
                        "cpu_s_per_batch": round(statistics.median(cpu_times[id(volume_times)]), 4),
@@ -239,7 +252,7 @@ def measure(cfg: BenchConfig) -> dict:
     }
     result["provenance"]["loadavg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     write_json(args.out, result)
-    print(f"mesh path {args.resolution}^2, {args.views} sources ({backend}, {device}, "
+    print(f"mesh path {width}x{height}, {args.views} sources ({backend}, {device}, "
           f"{torch.get_num_threads()} torch threads): {mesh_fps:.1f} FPS ({1000 * mesh_s:.1f} ms wall, "
           f"{result['mesh']['cpu_ms']:.1f} ms CPU; surface pass "
           f"{result['mesh']['surface_pass_ms']:.1f} ms, full G-buffer {result['mesh']['gbuffer_ms']:.1f} ms; "

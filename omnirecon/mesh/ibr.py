@@ -36,8 +36,10 @@ layers), and the source colours are sampled exactly as the model does. ``fused=F
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -365,3 +367,16 @@ def render_signal(model, mesh, sources: Sources, camera: Cameras, signal: Tensor
     """
     with MeshRenderer(model, mesh, sources, options) as renderer:
         return renderer.render_signal(camera, signal, background)["signal"]
+
+
+def render_frames(renderer: MeshRenderer, cameras: Cameras) -> tuple[list[np.ndarray], list[float]]:
+    """Render every camera of ``cameras`` with ``renderer`` (one warm-up frame first, untimed): 8-bit
+    frames ``# [H, W, 3]`` and the wall seconds of each render."""
+    renderer.render(cameras[0].to(dtype=torch.float32), extras=False)
+    images, seconds = [], []
+    for i in range(len(cameras)):
+        start = time.perf_counter()
+        rgb = renderer.render(cameras[i].to(dtype=torch.float32), extras=False)["rgb"]
+        seconds.append(time.perf_counter() - start)
+        images.append((rgb.float().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+    return images, seconds

@@ -250,25 +250,11 @@ def run_demo(cfg: DemoConfig) -> dict:
     return {"report": str(report), "lines": lines, "numbers": numbers}
 
 
-def _scene_frame_mesh(path: Path, mesh_file: Path, long_side: int):
-    """The scene at ``long_side`` (normalised, as models see it) and ``mesh_file`` moved from the input frame into it."""
-    import numpy as np
-    import trimesh
-
-    from omnirecon.engine.scenes import load_at_resolution  # lazy: the demo composes every workflow; --help stays fast
-
-    scene = load_at_resolution(path, long_side)
-    mesh = trimesh.load(mesh_file, force="mesh", process=False)
-    T = np.linalg.inv(scene.to_input.double().numpy())
-    return scene, trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
-
-
 def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, out: Path, numbers: dict,
                       lines: list[str]):
     """Render an orbit through the mesh with the appearance branch (source features cached) and time it."""
     import statistics
 
-    import numpy as np
     import torch
 
     from omnirecon.data.io import write_image  # lazy: the demo composes every workflow; --help stays fast
@@ -278,8 +264,10 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     from omnirecon.mesh.ibr import (  # lazy: the demo composes every workflow; --help stays fast
         MeshRenderer,
         MeshRenderOptions,
+        render_frames,
     )
     from omnirecon.rays import Sources  # lazy: the demo composes every workflow; --help stays fast
+    from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: the demo composes every workflow; --help stays fast
     from omnirecon.workflows.render import (  # lazy: the demo composes every workflow; --help stays fast
         RenderConfig,
         camera_path,
@@ -287,21 +275,15 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     )
 
     side = 128 if cfg.quick else 256
-    scene, mesh = _scene_frame_mesh(path, mesh_file, 128)
+    scene, mesh = scene_frame_mesh(path, mesh_file, 128)
     views = default_views(scene, min(cfg.num_views, 3))
     model, _ = load_checkpoint(ckpt)
     frames = 8 if cfg.quick else 48
     cams = camera_path(RenderConfig(scene=path, frames=frames, path="orbit"), scene)
     cams = cams.rescaled(side / max(cams.width, cams.height))
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    times, images = [], []
     with MeshRenderer(model, mesh, Sources.from_scene(scene, views), MeshRenderOptions(background=bg)) as r:
-        r.render(cams[0], extras=False)  # warm-up
-        for i in range(len(cams)):
-            start = time.perf_counter()
-            rgb = r.render(cams[i].to(dtype=torch.float32), extras=False)["rgb"]
-            times.append(time.perf_counter() - start)
-            images.append((rgb.float().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+        images, times = render_frames(r, cams)
     fps = 1.0 / statistics.median(times)
     video = write_video(out / "mesh_path" / "orbit.mp4", images, 24)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
@@ -145,3 +147,14 @@ def summary_lines(record: dict) -> list[str]:
                      f"completeness {c['completeness']:.4g}), "
                      f"F-score {c['fscore']:.3f} at {c['threshold']:.3g} (input units; diagonal {m['diagonal']:.3g})")
     return lines
+
+
+def scene_frame_mesh(path: Path, mesh_file: Path, long_side: int):
+    """The scene at ``long_side`` (normalised, as models see it) and ``mesh_file`` (input frame, as
+    ``omnirecon mesh`` writes it) moved into that frame. Returns ``(scene, trimesh.Trimesh)``."""
+    import trimesh
+
+    scene = load_at_resolution(path, long_side)
+    mesh = trimesh.load(mesh_file, force="mesh", process=False)
+    T = np.linalg.inv(scene.to_input.double().numpy())
+    return scene, trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)

@@ -1,0 +1,17 @@
+"""``omnirecon reconstruct``: photos or a video in; a mesh, a tuned real-time mesh path, an export and a
+report out."""
+
+from __future__ import annotations
+
+from omnirecon.workflows.reconstruct import ReconstructConfig, run_reconstruct
+
+
+class ReconstructCommand(ReconstructConfig):
+    __doc__ = ReconstructConfig.__doc__  # the options' description is the command's help
+
+    def main(self) -> None:
+        record = run_reconstruct(self)
+        for line in record["lines"]:
+            print(line)
+        print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in record["seconds"].items()))
+        print(f"report: {record['report']}; viewer: omnirecon view {self.out / 'export'}")

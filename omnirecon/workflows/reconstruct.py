@@ -1,0 +1,213 @@
+"""What ``omnirecon reconstruct`` does: a capture in, a mesh, a tuned real-time mesh path, an export and
+a report out, with one command.
+
+Stages (each timed; the report lists them)::
+
+    process     photos or a video -> a COLMAP scene (pycolmap; skipped when PATH already is a scene)
+    mesh        depth from every view, each rendered from its own nearest sources, fused into a mesh
+    finetune    Omni-Recon's mesh path tuned on the scene's training views (a time budget)
+    export      mesh.ply / mesh.glb with baked colours and the web-viewer bundle (`omnirecon view DIR`)
+    path        a smooth camera path rendered by the tuned mesh path at the photos' own resolution (MP4)
+    report      index.html: the camera rig, the mesh, the video, held-out scores and timings
+
+Outputs in ``--out DIR``: ``scene/`` (when processed), ``mesh.ply`` (+ metrics and preview),
+``finetune/`` (curve, tuned checkpoint), ``export/`` (PLY, GLB, ``viewer/``), ``path.mp4``,
+``cameras.png``, ``reconstruct.json`` and ``index.html``. The folder is built beside its final place
+and renamed at the end, so a failed run leaves no half-written result.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from omnirecon.data import detect_format
+from omnirecon.data.io import write_image, write_json
+from omnirecon.engine.checkpoint import load_checkpoint
+from omnirecon.engine.machine import MachineConfig
+from omnirecon.engine.report import Section, write_report
+from omnirecon.engine.views import select_sources
+from omnirecon.errors import InputError
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
+from omnirecon.workflows.export import ExportConfig, run_export
+from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+from omnirecon.workflows.inspect import draw_cameras
+from omnirecon.workflows.mesh import MeshConfig, run_mesh, scene_frame_mesh
+from omnirecon.workflows.render import RenderConfig, camera_path, write_video
+
+CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
+"""The shipped Omni-Recon checkpoint (the default model)."""
+
+
+@dataclass
+class ReconstructConfig(MachineConfig):
+    """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
+    from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
+    camera-path video at the photos' resolution and a report page (open DIR/index.html, or
+    `omnirecon view DIR/export`)."""
+
+    path: tyro.conf.Positional[Path]
+    """A folder of photos, a video, or a scene folder in any supported format."""
+    out: Path = Path("outputs/reconstruct")
+    """Output folder (replaced only with --overwrite)."""
+    ckpt: Path = CHECKPOINT
+    """Omni-Recon checkpoint (default: the shipped omnirecon-tiny)."""
+    num_views: int = 3
+    """Sources per depth map and per rendered pixel."""
+    mesh_resolution: int | None = None
+    """Long side of the images the depth maps are rendered at (default: the eval protocol's, 128)."""
+    resolution: int | None = None
+    """Long side for fine-tuning, the held-out scores and the video (default: the photos' own, at most 512)."""
+    seconds: float = 60.0
+    """Fine-tuning budget (wall seconds)."""
+    frames: int = 48
+    """Frames of the camera-path video."""
+    fps: float = 2.0
+    """Frames sampled per second when PATH is a video."""
+    overwrite: bool = False
+    """Replace an existing --out folder."""
+
+
+def photo_side(scene_path: Path, cap: int = 512) -> int:
+    """The long side of the scene's photos in pixels, at most ``cap``."""
+    from omnirecon.data import ReadOptions, load_scene
+
+    probe = load_scene(scene_path, "auto", ReadOptions(max_views=1))
+    return min(cap, max(probe.width, probe.height))
+
+
+def run_reconstruct(cfg: ReconstructConfig) -> dict:
+    """Run every stage; returns the record written to ``reconstruct.json`` (plus ``lines``)."""
+    if cfg.seconds < 0 or cfg.frames < 2 or cfg.num_views < 1:
+        raise InputError("--seconds must be >= 0, --frames >= 2 and --num-views >= 1", None,
+                         "use e.g. --seconds 60 --frames 48 --num-views 3")
+    if not Path(cfg.path).exists():
+        raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
+    if not (Path(cfg.ckpt) / "meta.json").is_file():
+        raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. checkpoints/omnirecon-tiny")
+    out = Path(cfg.out)
+    if out.exists() and not cfg.overwrite:
+        raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        record = _stages(cfg, tmp)
+        if out.exists():
+            shutil.rmtree(out)
+        tmp.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    record["report"] = str(out / "index.html")
+    return record
+
+
+def _stages(cfg: ReconstructConfig, out: Path) -> dict:
+    seconds: dict[str, float] = {}
+    lines: list[str] = []
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[name] = round(now - clock, 2)
+        clock = now
+
+    # ---------------------------------------------------------------- process
+    try:
+        detect_format(Path(cfg.path))
+        scene_path, processed = Path(cfg.path), None
+    except InputError:
+        from omnirecon.capture.process import process, summary_lines  # lazy: pycolmap is the optional `capture` extra
+
+        scene_path = out / "scene"
+        processed = process(Path(cfg.path), scene_path, fps=cfg.fps, quiet=False)
+        lines += summary_lines(processed)
+    lap("process")
+
+    # ---------------------------------------------------------------- mesh from every view
+    mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
+                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution, device=cfg.device,
+                          threads=cfg.threads, chunk=cfg.chunk)
+    meshed = run_mesh(mesh_cfg)
+    lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
+    lap("mesh")
+
+    # ---------------------------------------------------------------- fine-tune at the photos' resolution
+    side = cfg.resolution or photo_side(scene_path)
+    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=cfg.seconds,
+                                        eval_at=(0.0, cfg.seconds), num_views=cfg.num_views, mesh=out / "mesh.ply",
+                                        resolution=side, out=out / "finetune", save=True, threads=cfg.threads))
+    curve = tuned["curve"]
+    lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
+                 f"{curve[-1]['seconds']:g} s of fine-tuning")
+    lap("finetune")
+
+    # ---------------------------------------------------------------- export
+    exported = run_export(ExportConfig(scene=scene_path, ckpt=out / "finetune" / "checkpoint", mesh=out / "mesh.ply",
+                                       out=out / "export", resolution=side, num_views=cfg.num_views,
+                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk))
+    lap("export")
+
+    # ---------------------------------------------------------------- camera path through the tuned mesh path
+    scene, mesh = scene_frame_mesh(scene_path, out / "mesh.ply", side)
+    model, _ = load_checkpoint(out / "finetune" / "checkpoint")
+    kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
+    cams = camera_path(RenderConfig(scene=scene_path, frames=cfg.frames, path=kind), scene)
+    train = scene.splits.get("train") or list(range(len(scene)))
+    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    picks = [tuple(sorted(select_sources(scene, cams[i], train, cfg.num_views))) for i in range(len(cams))]
+    images, times = [], []
+    start = 0
+    while start < len(cams):  # consecutive frames with the same nearest sources share one encoding
+        end = start + 1
+        while end < len(cams) and picks[end] == picks[start]:
+            end += 1
+        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(picks[start])),
+                          MeshRenderOptions(background=bg)) as r:
+            frame, frame_s = render_frames(r, cams[start:end])
+        images += frame
+        times += frame_s
+        start = end
+    video = write_video(out / "path.mp4", images, 24)
+    write_image(out / "path_first_frame.png", images[0])
+    fps = 1.0 / statistics.median(times)
+    lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, mesh path {fps:.1f} FPS "
+                 f"(median frame, source features encoded once per source set)")
+    lap("path")
+
+    # ---------------------------------------------------------------- report
+    draw_cameras(scene, out / "cameras.png")
+    record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
+              "processed": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
+                                                                         ("vertices", "depth_maps", "views")},
+              "finetune": {"resolution": side, "curve": curve}, "export": exported["files"],
+              "path": {"frames": len(cams), "resolution": [cams.width, cams.height], "fps": fps},
+              "seconds": seconds}
+    lap("report")
+    record["seconds"]["total"] = round(sum(seconds.values()), 2)
+    write_json(out / "reconstruct.json", record)
+    sections = [
+        Section("Capture").text(f"{len(scene)} views of {scene_path.name} ({scene.rig} rig)")
+        .figure(out / "cameras.png", out, "camera rig", 480),
+        Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
+                             f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
+        Section("Real-time mesh path").text(lines[-1]).figure(video, out, "camera path", 480),
+        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)"],
+                                        [[p["seconds"], round(p["psnr"], 2)] for p in curve])
+        .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
+        Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
+    ]
+    write_report(out, f"omnirecon reconstruct: {Path(cfg.path).name}", sections)
+    record["lines"] = lines
+    return record
+
