@@ -15,6 +15,7 @@ from omnirecon.errors import EXIT_BAD_INPUT, InputError
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("omnirecon.demo:DemoConfig", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
     "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
+    "process": ("omnirecon.commands.process:ProcessConfig", "Camera poses for a folder of photos or a video (COLMAP via pycolmap): a scene every command reads."),
     "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
     "eval": ("omnirecon.eval:EvalConfig", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
     "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
