@@ -151,16 +151,18 @@ def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]
 def _quiet_colmap() -> None:
     import pycolmap
 
-    pycolmap.logging.minloglevel = 2  # errors only; progress comes from our bars
-    pycolmap.logging.stderrthreshold = 2
+    pycolmap.logging.minloglevel = 3  # fatal only: failures come back as InputError, progress from our bars
+    pycolmap.logging.stderrthreshold = 3
 
 
 def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, stages: Stages,
-            video: bool = False) -> SfmResult:
+            video: bool = False, source: Path | None = None) -> SfmResult:
     """Features, matches and incremental mapping of ``names`` in ``image_dir``; files go to ``work``.
 
-    Raises :class:`InputError` when no model comes out or too few images are registered.
+    Raises :class:`InputError` (naming ``source``, the user's input) when no model comes out or too
+    few images are registered.
     """
+    source = image_dir if source is None else source
     import pycolmap
 
     _quiet_colmap()
@@ -221,7 +223,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                                               initial_image_pair_callback=lambda: advance(2),
                                               next_image_callback=lambda: advance(1))
     if not models:
-        raise InputError(f"no camera poses found: 0 of {n} images registered", image_dir.parent,
+        raise InputError(f"no camera poses found: 0 of {n} images registered", source,
                          "take more overlapping photos (each spot seen from 3+ viewpoints, 60-80% overlap), "
                          "with texture and without motion blur")
     best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
@@ -233,7 +235,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
         missing = result.unregistered
         shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")
         raise InputError(f"only {len(registered)} of {n} images registered (need {need}); not registered: {shown}",
-                         image_dir.parent, "add photos that overlap those views, or remove them; "
+                         source, "add photos that overlap those views, or remove them; "
                          "lower --min-registered to accept a partial model")
     return result
 

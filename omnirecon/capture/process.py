@@ -59,7 +59,7 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
                 with stages.stage("check", None):
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras)
-            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video)
+            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source)
             info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
             seconds = dict(stages.seconds)
         summary = {
