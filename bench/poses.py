@@ -14,6 +14,7 @@ seconds. Writes JSON with a provenance header to ``--out``.
 from __future__ import annotations
 
 import argparse
+from dataclasses import asdict
 import os
 import shutil
 import tempfile
@@ -37,9 +38,8 @@ def pick_views(scene, count: int, split: str = "train") -> list[int]:
     return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
 
 
-def run_scene(path: Path, count: int, threads: int, seed: int, work: Path, split: str = "train") -> dict:
+def run_scene(path: Path, count: int, options, work: Path, split: str = "train") -> dict:
     from omnirecon.capture.align import pose_errors
-    from omnirecon.capture.colmap_sfm import SfmOptions
     from omnirecon.capture.process import process
     from omnirecon.data import load_scene
     from omnirecon.errors import InputError
@@ -63,7 +63,7 @@ def run_scene(path: Path, count: int, threads: int, seed: int, work: Path, split
            "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig}
     t0 = time.perf_counter()
     try:
-        summary = process(folder, out, SfmOptions(threads=threads, seed=seed, min_registered=0.0), quiet=True)
+        summary = process(folder, out, options, quiet=True)
     except InputError as e:
         row.update(error=e.one_line(), registered=0, registered_fraction=0.0,
                    seconds=round(time.perf_counter() - t0, 2))
@@ -93,6 +93,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--images", type=int, default=20, help="images per scene (evenly spaced)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--affine-sift", action="store_true")
+    parser.add_argument("--no-guided", action="store_true")
+    parser.add_argument("--peak-threshold", type=float, default=0.0067)
     parser.add_argument("--tiny", action="store_true", help="one 12-view procedural scene instead of the real ones")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
@@ -103,6 +106,10 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.provenance import provenance
 
     torch.set_num_threads(args.threads)
+    from omnirecon.capture.colmap_sfm import SfmOptions
+
+    options = SfmOptions(threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
+                         guided_matching=not args.no_guided, peak_threshold=args.peak_threshold)
     rows = []
     with tempfile.TemporaryDirectory(prefix="poses_") as tmp:
         tmp = Path(tmp)
@@ -113,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
         else:
             paths = [SHARED / s for s in args.scenes if (SHARED / s).is_dir()]
         for p in paths:
-            row = run_scene(p, args.images, args.threads, args.seed, tmp / "work", "all" if args.tiny else "train")
+            row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train")
             print({k: v for k, v in row.items() if k != "stage_seconds"}, flush=True)
             rows.append(row)
     import pycolmap
@@ -122,7 +129,7 @@ def main(argv: list[str] | None = None) -> dict:
         "provenance": provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads),
         "config": {"images_per_scene": args.images, "threads": args.threads, "tiny": args.tiny,
                    "size": "each scene's stored image size (long side <= 400 px)",
-                   "camera_model": "SIMPLE_RADIAL, one shared camera", "alignment": "Umeyama similarity on camera centres",
+                   "camera_model": "SIMPLE_RADIAL, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",
                    "extent": "diagonal of the reference scene's bounds box"},
         "goals": GOALS,
         "scenes": rows,

@@ -3,9 +3,10 @@
 Structure from motion returns poses in whatever frame its first image pair defined: any rotation,
 any scale. :func:`upright_frame` picks the similarity ``T`` (scene frame <- input frame) that makes
 
-* **up** the +z axis: the mean of the cameras' up vectors (``-y`` in the OpenCV frame, people hold
-  cameras level), replaced by the normal of the plane through the camera centres when the centres
-  are close to planar (an orbit) and that normal is within 30 degrees of the mean up vector;
+* **up** the +z axis. People (and robot arms, and Blender's look-at) hold cameras level: the right
+  axis (``x``) of every camera is horizontal whatever its pitch. When the right axes spread in yaw,
+  up is the normal of the plane they span (signed like the cameras' mean up vector, ``-y``);
+  when they are all parallel (a forward-facing rig) up is the mean of the cameras' up vectors;
 * **yaw** such that the cameras' mean viewing direction, made horizontal, is +y;
 * **centre and scale** such that the robust box of the 3-D points (per-axis 1st to 99th percentile,
   in the upright frame) is centred at 0 and its half-diagonal is 1.
@@ -19,19 +20,19 @@ from __future__ import annotations
 import numpy as np
 
 PCT = (1.0, 99.0)
+SPREAD = 0.03
+"""Second eigenvalue of the right axes' scatter above which they span a plane (yaw spread > ~10 degrees)."""
 
 
 def up_vector(c2w: np.ndarray) -> np.ndarray:
     """Unit up direction of cameras ``c2w # [N, 4, 4]`` (OpenCV), in their frame (see the module docstring)."""
     up = -c2w[:, :3, 1].mean(0)
     up /= max(np.linalg.norm(up), 1e-12)
-    centres = c2w[:, :3, 3]
-    if len(centres) >= 4:
-        evals, evecs = np.linalg.eigh(np.cov((centres - centres.mean(0)).T))  # ascending
-        normal = evecs[:, 0] * (1 if evecs[:, 0] @ up >= 0 else -1)
-        planar = evals[0] < 0.1 * evals[1]
-        if planar and normal @ up > np.cos(np.radians(30)):
-            return normal
+    x = c2w[:, :3, 0]  # [N, 3] camera right axes: horizontal when the camera is held level
+    evals, evecs = np.linalg.eigh(x.T @ x / len(x))  # ascending
+    if evals[1] > SPREAD:  # the right axes span a plane: up is its normal, whatever the cameras' pitch
+        normal = evecs[:, 0]
+        return normal if normal @ up >= 0 else -normal
     return up
 
 
