@@ -22,11 +22,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 SCENES = ("blender/lego", "blender/chair", "instant_ngp/fox", "llff/fern", "llff/ethiopianHead",
           "neus_dtu/dtu_scan24", "neus_dtu/dtu_scan37")
+MASKED = ("llff/ethiopianHead",)  # a turntable: the background stays still while the object turns
 GOALS = {"registered": 0.95, "rotation_deg_median": 1.0, "centre_pct_median": 1.0, "seconds_20": 60.0}
 
 
@@ -38,7 +40,7 @@ def pick_views(scene, count: int, split: str = "train") -> list[int]:
     return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
 
 
-def run_scene(path: Path, count: int, options, work: Path, split: str = "train") -> dict:
+def run_scene(path: Path, count: int, options, work: Path, split: str = "train", masks: bool = False) -> dict:
     from omnirecon.capture.align import pose_errors
     from omnirecon.capture.process import process
     from omnirecon.data import load_scene
@@ -50,6 +52,12 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train")
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     names = {}
+    mask_dir = work / "masks"
+    shutil.rmtree(mask_dir, ignore_errors=True)
+    if masks:
+        if ref.masks is None:
+            raise SystemExit(f"{path} has no masks")
+        mask_dir.mkdir(parents=True)
     for i in views:
         src = Path(ref.path) / ref.names[i]
         name = src.name
@@ -57,13 +65,15 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train")
             name = f"{src.parent.name}_{src.name}"
         shutil.copyfile(src, folder / name)
         names[name] = i
+        if masks:  # the reader's mask at the stored size (LLFF masks_<N> matched by stem)
+            Image.fromarray(ref.masks[i].numpy().astype(np.uint8) * 255).save(mask_dir / f"{Path(name).stem}.png")
     out = work / "scene"
     shutil.rmtree(out, ignore_errors=True)
     row = {"scene": path.name, "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
-           "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig}
+           "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks}
     t0 = time.perf_counter()
     try:
-        summary = process(folder, out, options, quiet=True)
+        summary = process(folder, out, options, quiet=True, masks=mask_dir if masks else None)
     except InputError as e:
         row.update(error=e.one_line(), registered=0, registered_fraction=0.0,
                    seconds=round(time.perf_counter() - t0, 2))
@@ -89,7 +99,9 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train")
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), help="paths under the shared data folder")
+    parser.add_argument("--scenes", nargs="*", default=list(SCENES), help="paths under the shared data folder")
+    parser.add_argument("--masked", nargs="*", default=list(MASKED),
+                        help="scenes also run with their masks given to process (turntable captures)")
     parser.add_argument("--images", type=int, default=20, help="images per scene (evenly spaced)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
@@ -119,8 +131,11 @@ def main(argv: list[str] | None = None) -> dict:
             paths = [generate_scene(tmp / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))]
         else:
             paths = [SHARED / s for s in args.scenes if (SHARED / s).is_dir()]
-        for p in paths:
-            row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train")
+        jobs = [(p, False) for p in paths]
+        if not args.tiny:
+            jobs += [(SHARED / s, True) for s in args.masked if (SHARED / s).is_dir()]
+        for p, masked in jobs:
+            row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train", masked)
             print({k: v for k, v in row.items() if k != "stage_seconds"}, flush=True)
             rows.append(row)
     import pycolmap

@@ -168,11 +168,12 @@ def _quiet_colmap() -> None:
 
 
 def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, stages: Stages,
-            video: bool = False, source: Path | None = None) -> SfmResult:
+            video: bool = False, source: Path | None = None, mask_dir: Path | None = None) -> SfmResult:
     """Features, matches and incremental mapping of ``names`` in ``image_dir``; files go to ``work``.
 
     Raises :class:`InputError` (naming ``source``, the user's input) when no model comes out or too
-    few images are registered.
+    few images are registered. ``mask_dir`` holds COLMAP masks (``<name>.png``, features only where
+    non-zero), e.g. to ignore a static background behind an object on a turntable.
     """
     source = image_dir if source is None else source
     import pycolmap
@@ -194,6 +195,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
         extract.sift.domain_size_pooling = True
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = options.camera_model
+    if mask_dir is not None:
+        reader.mask_path = str(mask_dir)
     mode = pycolmap.CameraMode.PER_IMAGE if options.per_image_cameras else pycolmap.CameraMode.SINGLE
     chunk = max(1, min(8, n // 10))
     with stages.stage("features", n) as advance:

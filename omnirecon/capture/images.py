@@ -108,3 +108,35 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
         raise InputError(f"image is {sizes[odd][0]}x{sizes[odd][1]} but {first} is {sizes[first][0]}x{sizes[first][1]}",
                          sources[odd], "use --per-image-cameras for photos from different cameras or sizes")
     return StagedImages(dest, sorted(names), sources, sizes, rotated)
+
+
+def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
+    """Masks for the staged images, as COLMAP wants them: ``dest/<image name>.png``, 255 where features
+    may be detected (the mask's non-zero pixels), 0 elsewhere. Masks are matched to the photos by file
+    stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size."""
+    from PIL import Image, ImageOps, UnidentifiedImageError
+
+    mask_dir, dest = Path(mask_dir), Path(dest)
+    if not mask_dir.is_dir():
+        raise InputError("mask folder does not exist", mask_dir, "pass the folder that holds one mask per photo")
+    by_stem: dict[str, Path] = {}
+    for p in _visible_files(mask_dir):
+        if p.suffix.lower() in IMAGE_EXTS:
+            by_stem.setdefault(Path(p.stem).stem if p.stem.lower().endswith(IMAGE_EXTS) else p.stem, p)
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in staged.names:
+        stem = staged.sources[name].stem
+        src = by_stem.get(stem)
+        if src is None:
+            raise InputError(f"no mask for {staged.sources[name].name} (looked for {stem}.png)", mask_dir,
+                             "give one mask per photo, named like the photo")
+        try:
+            with Image.open(src) as m:
+                m = ImageOps.exif_transpose(m).convert("L")
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+            raise InputError(f"cannot read the mask ({type(e).__name__})", src, "replace the file") from e
+        if m.size != staged.sizes[name]:
+            raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
+                             f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")
+        m.point(lambda v: 255 if v > 0 else 0).save(dest / f"{name}.png")
+    return dest

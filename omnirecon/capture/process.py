@@ -19,15 +19,17 @@ from dataclasses import asdict
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scene
-from omnirecon.capture.images import VIDEO_EXTS, stage_images
+from omnirecon.capture.images import VIDEO_EXTS, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
 from omnirecon.errors import InputError
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
-            overwrite: bool = False, quiet: bool = False, keep_work: bool = False) -> dict:
+            overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None) -> dict:
     """Run structure from motion on the photos in folder ``source`` (or the frames of video ``source``)
-    and write the scene ``out``. Returns the summary that is also saved as ``out/process.json``."""
+    and write the scene ``out``. ``masks``: a folder of masks matched to the photos by name; features
+    are detected only inside them (objects on a turntable). Returns the summary that is also saved
+    as ``out/process.json``."""
     options = options or SfmOptions()
     options.check()
     source, out = Path(source), Path(out)
@@ -59,13 +61,16 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
                 with stages.stage("check", None):
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras)
-            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source)
+            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks")
+            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
+                             mask_dir=mask_dir)
             info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
             seconds = dict(stages.seconds)
         summary = {
             "input": str(source), "kind": "video" if is_video else "images", **result.stats(),
             "image_size": info["size"], "cropped_to_common_size": info["crop"], "exif_rotated": staged.rotated,
-            "options": asdict(options), **({"fps": fps} if is_video else {}),
+            "options": asdict(options), "masks": None if masks is None else str(masks),
+            **({"fps": fps} if is_video else {}),
             "seconds": {**seconds, "total": round(time.perf_counter() - t0, 3)},
         }
         (scene / "process.json").write_text(json.dumps(summary, indent=1))

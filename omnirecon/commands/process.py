@@ -22,6 +22,9 @@ class ProcessConfig(SfmOptions):
     """Folder of photos (JPEG/PNG; EXIF orientation honoured) or a video file."""
     out: Path = Path("outputs/scene")
     """Scene folder to write (built in a temporary folder, renamed at the end)."""
+    masks: Path | None = None
+    """Folder of masks named like the photos: features only where a mask is non-zero (use it for an
+    object on a turntable, whose background does not move with it)."""
     fps: float = 2.0
     """Video input: frames sampled per second of video."""
     max_frames: int = 300
@@ -45,7 +48,8 @@ class ProcessConfig(SfmOptions):
             raise InputError(f"--max-frames must be at least 3, got {self.max_frames}", None, "use e.g. 300")
         options = SfmOptions(**{f.name: getattr(self, f.name) for f in fields(SfmOptions)})
         summary = process(self.source, self.out, options, fps=self.fps, max_frames=self.max_frames,
-                          overwrite=self.overwrite, quiet=self.quiet, keep_work=self.keep_work)
+                          overwrite=self.overwrite, quiet=self.quiet, keep_work=self.keep_work,
+                          masks=self.masks)
         for line in summary_lines(summary):
             print(line)
         print(f"wrote {self.out} (read it with any omnirecon command, e.g. omnirecon inspect {self.out})")
