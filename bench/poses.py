@@ -105,6 +105,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--images", type=int, default=20, help="images per scene (evenly spaced)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--camera-model", default="SIMPLE_RADIAL")
     parser.add_argument("--affine-sift", action="store_true")
     parser.add_argument("--no-guided", action="store_true")
     parser.add_argument("--peak-threshold", type=float, default=0.0067)
@@ -120,7 +121,7 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     from omnirecon.capture.colmap_sfm import SfmOptions
 
-    options = SfmOptions(threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
+    options = SfmOptions(camera_model=args.camera_model, threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
                          guided_matching=not args.no_guided, peak_threshold=args.peak_threshold)
     rows = []
     with tempfile.TemporaryDirectory(prefix="poses_") as tmp:
@@ -144,7 +145,7 @@ def main(argv: list[str] | None = None) -> dict:
         "provenance": provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads),
         "config": {"images_per_scene": args.images, "threads": args.threads, "tiny": args.tiny,
                    "size": "each scene's stored image size (long side <= 400 px)",
-                   "camera_model": "SIMPLE_RADIAL, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",
+                   "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",
                    "extent": "diagonal of the reference scene's bounds box"},
         "goals": GOALS,
         "scenes": rows,
