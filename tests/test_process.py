@@ -266,3 +266,16 @@ def test_align_poses_exact():
     est[3, :3, :3] = est[3, :3, :3] @ np.array([[c, -s_, 0], [s_, c, 0], [0, 0, 1]])
     e = pose_errors(est, ref, extent=1.0)
     assert 1.0 < e["rotation_deg"][3] < 2.0 and e["rotation_deg_median"] < 0.5
+
+
+def test_per_image_cameras(capture, tmp_path):
+    """One camera per photo: undistorted sizes differ, so every image is centre-cropped to one size."""
+    photos, ref = capture
+    out = tmp_path / "scene"
+    summary = process(photos, out, SfmOptions(per_image_cameras=True), quiet=True)
+    rec = pycolmap.Reconstruction(out / "sparse" / "0")
+    assert rec.num_cameras() == VIEWS and len({(c.width, c.height) for c in rec.cameras.values()}) == 1
+    assert summary["images_registered"] == VIEWS
+    scene = load_scene(out)
+    e = errors_against(scene, ref)
+    assert e["rotation_deg_median"] < 2.0 and e["centre_pct_median"] < 2.0, e  # measured 0.96 deg, 0.68%

@@ -43,8 +43,16 @@ def _visible_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.is_file())
 
 
-def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: bool = True) -> StagedImages:
-    """Check the photos in ``folder`` and stage them into ``dest`` (see the module docstring)."""
+def count_files(folder: Path) -> int | None:
+    """Visible files in ``folder`` (what :func:`stage_images` reads), or None when it is not a folder."""
+    folder = Path(folder)
+    return len(_visible_files(folder)) if folder.is_dir() else None
+
+
+def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: bool = True,
+                 on_file=None) -> StagedImages:
+    """Check the photos in ``folder`` and stage them into ``dest`` (see the module docstring).
+    ``on_file()`` is called after each file is read."""
     from PIL import Image, ImageOps, UnidentifiedImageError
 
     folder = Path(folder)
@@ -96,6 +104,8 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
                              "the file is corrupt or not an image; replace or remove it") from e
         names.append(name)
         sources[name] = p
+        if on_file is not None:
+            on_file()
     if len(names) < min_images:
         raise InputError(f"only {len(names)} image{'s' * (len(names) != 1)}; structure from motion needs at least "
                          f"{min_images}", folder, "add more photos of the scene from different viewpoints")

@@ -19,7 +19,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scene
-from omnirecon.capture.images import VIDEO_EXTS, stage_images, stage_masks
+from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
 from omnirecon.errors import InputError
 
@@ -58,9 +58,9 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
                                   on_frame=lambda i, expected: advance(1, expected))
                 staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
             else:
-                with stages.stage("check", None):
+                with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
-                                          shared_camera=not options.per_image_cameras)
+                                          shared_camera=not options.per_image_cameras, on_file=advance)
             mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks")
             result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
                              mask_dir=mask_dir)

@@ -18,7 +18,7 @@ class ProcessConfig(SfmOptions):
     images_4, process.json) that every omnirecon command reads. Needs `pip install pycolmap`
     (the `capture` extra)."""
 
-    source: tyro.conf.Positional[Path] = Path(".")
+    source: tyro.conf.Positional[Path | None] = None
     """Folder of photos (JPEG/PNG; EXIF orientation honoured) or a video file."""
     out: Path = Path("outputs/scene")
     """Scene folder to write (built in a temporary folder, renamed at the end)."""
@@ -44,6 +44,8 @@ class ProcessConfig(SfmOptions):
                              "pip install pycolmap (or pip install -e '.[capture]')") from e
         from omnirecon.capture.process import process, summary_lines
 
+        if self.source is None:
+            raise InputError("no input given", None, "pass a folder of photos or a video: omnirecon process PATH --out SCENE")
         if self.max_frames < 3:
             raise InputError(f"--max-frames must be at least 3, got {self.max_frames}", None, "use e.g. 300")
         options = SfmOptions(**{f.name: getattr(self, f.name) for f in fields(SfmOptions)})
