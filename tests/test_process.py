@@ -279,3 +279,25 @@ def test_per_image_cameras(capture, tmp_path):
     scene = load_scene(out)
     e = errors_against(scene, ref)
     assert e["rotation_deg_median"] < 2.0 and e["centre_pct_median"] < 2.0, e  # measured 0.96 deg, 0.68%
+
+
+def test_stage_masks(capture, tmp_path):
+    """Masks are matched by stem and written as COLMAP wants (<image name>.png, 0/255); a missing one is named."""
+    from PIL import Image
+
+    from omnirecon.capture.images import stage_masks
+
+    photos, _ = capture
+    staged = stage_images(photos, tmp_path / "staged")
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for n in staged.names[:-1]:
+        a = np.zeros((256, 256), np.uint8)
+        a[64:192, 64:192] = 7
+        Image.fromarray(a).save(masks / n)
+    with pytest.raises(InputError, match=f"no mask for {staged.names[-1]}"):
+        stage_masks(masks, staged, tmp_path / "m")
+    Image.fromarray(np.full((256, 256), 255, np.uint8)).save(masks / staged.names[-1])
+    out = stage_masks(masks, staged, tmp_path / "m")
+    m = np.asarray(Image.open(out / f"{staged.names[0]}.png"))
+    assert set(np.unique(m)) == {0, 255} and m[128, 128] == 255 and m[0, 0] == 0
