@@ -119,6 +119,9 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.provenance import provenance
 
     torch.set_num_threads(args.threads)
+    import pycolmap
+
+    prov = provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads)  # at the start
     from omnirecon.capture.colmap_sfm import SfmOptions
 
     options = SfmOptions(camera_model=args.camera_model, threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
@@ -139,10 +142,9 @@ def main(argv: list[str] | None = None) -> dict:
             row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train", masked)
             print({k: v for k, v in row.items() if k != "stage_seconds"}, flush=True)
             rows.append(row)
-    import pycolmap
-
+    prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
     result = {
-        "provenance": provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads),
+        "provenance": prov,
         "config": {"images_per_scene": args.images, "threads": args.threads, "tiny": args.tiny,
                    "size": "each scene's stored image size (long side <= 400 px)",
                    "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",

@@ -301,3 +301,24 @@ def test_stage_masks(capture, tmp_path):
     out = stage_masks(masks, staged, tmp_path / "m")
     m = np.asarray(Image.open(out / f"{staged.names[0]}.png"))
     assert set(np.unique(m)) == {0, 255} and m[128, 128] == 255 and m[0, 0] == 0
+
+
+def test_bench_poses_tiny_and_section(tmp_path):
+    """bench/poses.py --tiny measures one procedural scene; run_all renders its "Pose recovery" table."""
+    import json
+    import sys
+    from pathlib import Path
+
+    bench = Path(__file__).resolve().parents[1] / "bench"
+    sys.path.insert(0, str(bench))
+    try:
+        import poses
+        import run_all
+    finally:
+        sys.path.remove(str(bench))
+    poses.main(["--tiny", "--out", str(tmp_path / "poses.json")])
+    r = json.loads((tmp_path / "poses.json").read_text())
+    row = r["scenes"][0]
+    assert row["registered"] == VIEWS and row["rotation_deg_median"] < 1.0 and "commit" in r["provenance"]
+    text = run_all.section_poses(r)
+    assert "## Pose recovery" in text and f"| {VIEWS} / {VIEWS} (100%) |" in text and "Provenance: commit" in text
