@@ -33,7 +33,9 @@ demo: setup
 	$(BIN)/omnirecon demo --out outputs/demo
 
 test: setup
-	$(BIN)/python -m pytest -q -ra tests
+	$(BIN)/ruff check .
+	$(BIN)/lint-imports
+	$(BIN)/python -m pytest -q -ra --durations=15 tests
 
 bench: setup
 	$(BIN)/python bench/run_all.py

@@ -17,8 +17,8 @@ import json
 from pathlib import Path
 
 import torch
-
 import train_tiny
+
 from omnirecon.data.io import write_json
 from omnirecon.provenance import provenance
 
@@ -41,8 +41,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--tiny", action="store_true")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ablation_gpnr.json")
     a = p.parse_args(argv)
-    from omnirecon.checkpoint import load_checkpoint
-    from omnirecon.eval import evaluate
+    from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.engine.evaluate import evaluate
 
     if not a.tiny:
         train_tiny.prepare(32)

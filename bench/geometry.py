@@ -34,7 +34,7 @@ and its Chamfer distance do not depend on it."""
 
 
 def load(model_name: str):
-    from omnirecon.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
     from omnirecon.models.registry import build_model
 
     if model_name == "floor":
@@ -46,7 +46,7 @@ def load(model_name: str):
 
 
 def run(model_name: str, results: Path, tiny: bool, threads: int) -> dict:
-    from omnirecon.eval import evaluate
+    from omnirecon.engine.evaluate import evaluate
 
     torch.set_num_threads(threads)
     model, info = load(model_name)

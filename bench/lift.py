@@ -4,7 +4,7 @@
     python bench/lift.py --tiny     # one scene, one target (a smoke run)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+, never trained on) under the ``cpu``
-protocol set of ``omnirecon.eval`` (64 px, 2 targets per scene), K = 3 nearest pool views as
+protocol set of ``omnirecon.engine.evaluate`` (64 px, 2 targets per scene), K = 3 nearest pool views as
 sources. For every (model, target) one render lifts all predictors at once
 (:func:`omnirecon.lift.blend.render_lifted`); render-then-predict runs the predictor on the same
 render's RGB (GPNR: ``rgb_blend``, made with the same weights). Scored as in
@@ -28,12 +28,11 @@ Writes ``bench/results/lift.json`` (+ ``lift.md``) and ``bench/results/figures/l
 from __future__ import annotations
 
 import argparse
-import json
 import functools
+import json
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,11 +58,12 @@ def _hed():
 
 def run_model(model, scenes, max_targets: int | None, figure: Path | None) -> dict:
     from omnirecon.data.io import write_image
-    from omnirecon.eval import select_sources, targets_and_pool
+    from omnirecon.engine.protocols import targets_and_pool
+    from omnirecon.engine.views import select_sources
     from omnirecon.lift import experiment as X
     from omnirecon.lift import predictors as P
     from omnirecon.lift.blend import render_lifted
-    from omnirecon.models.base import Sources
+    from omnirecon.rays import Sources
 
     rows: dict[str, list[dict]] = {p: [] for p in PREDICTORS + (["hed"] if hed_ok() else [])}
     per_target = []
@@ -135,9 +135,9 @@ def summary(result: dict) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.data.io import write_json
-    from omnirecon.eval import prepare_scenes
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.engine.scenes import prepare_scenes
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

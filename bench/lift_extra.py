@@ -50,8 +50,8 @@ def miou(probs, gt, C) -> float:
 
 
 def mesh_renderer(model, mesh, scene, views, visibility=False):
-    from omnirecon.models.base import Sources
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.rays import Sources
 
     opts = MeshRenderOptions(background=tuple(scene.background), visibility=visibility, cull_back_faces=False)
     return MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts)
@@ -62,8 +62,8 @@ def lift_target(model, scene, t, src, preds, table, hed, gt_mesh) -> dict:
     from omnirecon.lift import embed as EM
     from omnirecon.lift.blend import render_lifted, render_lifted_mesh
     from omnirecon.lift.predictors import labels_to_classes
-    from omnirecon.models.base import Sources
-    from omnirecon.render.mesh import mesh_from_model
+    from omnirecon.mesh.build import mesh_from_model
+    from omnirecon.rays import Sources
 
     C = len(table)
     gt = labels_to_classes(scene.labels[t], table)
@@ -144,14 +144,14 @@ def edits(model, scene, targets, pool, table, gt_mesh, figures: Path) -> dict:
     import functools
 
     from omnirecon.data.io import write_image
-    from omnirecon.eval import select_sources
+    from omnirecon.engine.views import select_sources
     from omnirecon.lift import edit as E
     from omnirecon.lift import experiment as X
     from omnirecon.lift import tune as T
     from omnirecon.lift.predictors import labels_to_classes
     from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs
-    from omnirecon.models.base import Sources
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.rays import Sources
 
     t = targets[0]
     src = select_sources(scene, scene.cameras[t], pool, K)
@@ -239,13 +239,15 @@ def _relative(path: Path) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from omnirecon.checkpoint import fingerprint, load_checkpoint
     from omnirecon.data.io import write_json
-    from omnirecon.eval import prepare_scenes, select_sources, targets_and_pool
-    from omnirecon.geometry import ground_truth_mesh
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.engine.protocols import targets_and_pool
+    from omnirecon.engine.scenes import prepare_scenes
+    from omnirecon.engine.views import select_sources
     from omnirecon.lift import experiment as X
     from omnirecon.lift import predictors as P
     from omnirecon.lift.hed import available
+    from omnirecon.mesh.geometry import ground_truth_mesh
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

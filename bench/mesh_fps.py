@@ -1,15 +1,13 @@
 """Mesh-path vs volumetric FPS for BENCHMARKS.md: ``omnirecon bench`` writing ``bench/results/mesh_fps.json``.
 
-    python bench/mesh_fps.py --threads 2     # see omnirecon/speed.py for every option
+    python bench/mesh_fps.py --threads 2     # every option: omnirecon/engine/speed.py (BenchConfig)
 """
 
-import sys
 from pathlib import Path
 
-from omnirecon.speed import main
+import tyro
+
+from omnirecon.engine.speed import BenchConfig, measure
 
 if __name__ == "__main__":
-    argv = sys.argv[1:]
-    if "--out" not in argv:
-        argv += ["--out", str(Path(__file__).parent / "results" / "mesh_fps.json")]
-    main(argv)
+    measure(tyro.cli(BenchConfig, default=BenchConfig(out=Path(__file__).parent / "results" / "mesh_fps.json")))

@@ -40,8 +40,8 @@ LONG = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 def visibility_psnr(model, scene, views, targets, mesh) -> dict:
     """Mesh-path PSNR on ``targets`` without and with the visibility test (``*_masked``: object pixels)."""
     from omnirecon import metrics
-    from omnirecon.models.base import Sources
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+    from omnirecon.rays import Sources
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     out = {}
@@ -60,11 +60,12 @@ def visibility_psnr(model, scene, views, targets, mesh) -> dict:
 def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: int) -> dict:
     import trimesh
 
-    from omnirecon.checkpoint import load_checkpoint
     from omnirecon.data import detect_format
-    from omnirecon.eval import load_at_resolution, protocol_for
-    from omnirecon.finetune import FinetuneConfig, run_finetune
-    from omnirecon.mesh_cli import default_views
+    from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.engine.protocols import protocol_for
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.engine.views import default_views
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     res = 48 if tiny else 128
@@ -85,7 +86,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
         T = np.linalg.inv(scene.to_input.double().numpy())
         mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
     else:
-        from omnirecon.render.mesh import MeshOptions, mesh_from_model
+        from omnirecon.mesh.build import MeshOptions, mesh_from_model
 
         mesh = mesh_from_model(model, scene, default_views(scene, 3), MeshOptions()).mesh
     vis = visibility_psnr(model, scene, ft["sources"], ft["held_out"], mesh)
@@ -106,7 +107,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from omnirecon.eval import synth_eval_paths
+    from omnirecon.engine.scenes import synth_eval_paths
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     for path, name, times in jobs:
         rows.append(run_scene(Path(path), name, times, a.tiny, a.out, a.threads))
         print(name, {k: round(v, 2) for k, v in rows[-1]["curve"].items()}, rows[-1]["visibility"])
-    from omnirecon.checkpoint import fingerprint
+    from omnirecon.engine.checkpoint import fingerprint
 
     result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
                                                                  "path": "checkpoints/omnirecon-tiny"},

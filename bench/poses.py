@@ -14,11 +14,11 @@ seconds. Writes JSON with a provenance header to ``--out``.
 from __future__ import annotations
 
 import argparse
-from dataclasses import asdict
 import os
 import shutil
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np

@@ -5,7 +5,7 @@
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+) and the real scenes dtu_scan24,
 dtu_scan37, fern (never trained on), fox and lego (training scenes: fitting, not generalisation),
-with 3 and 10 source views, under the ``cpu`` protocol set of ``omnirecon.eval`` (64 px long side,
+with 3 and 10 source views, under the ``cpu`` protocol set of ``omnirecon.engine.evaluate`` (64 px long side,
 fewer targets; docs/evaluation.md). Writes ``bench/results/quality_<model>.json``.
 """
 
@@ -30,8 +30,8 @@ def scenes(tiny: bool) -> list[str]:
 
 
 def run(model_name: str, out_dir: Path, tiny: bool, threads: int) -> dict:
-    from omnirecon.checkpoint import fingerprint, load_checkpoint
-    from omnirecon.eval import evaluate
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.engine.evaluate import evaluate
     from omnirecon.models.registry import build_model
 
     torch.set_num_threads(threads)

@@ -40,7 +40,7 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
     import synth_speed
     import throughput
 
-    from omnirecon import speed
+    from omnirecon.engine.speed import BenchConfig, measure
 
     results.mkdir(parents=True, exist_ok=True)
     t = ["--tiny"] if tiny else []
@@ -54,8 +54,7 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         "geometry": lambda: geometry.main(["--models", "floor", *([] if tiny else [m for m in GEOMETRY_MODELS[1:]
                                                                                   if m in shipped]),
                                            *t, "--threads", str(threads), "--out", str(results)]),
-        "mesh_fps": lambda: speed.main([*(["--quick"] if tiny else []), "--threads", "2",
-                                        "--out", str(results / "mesh_fps.json")]),
+        "mesh_fps": lambda: measure(BenchConfig(quick=tiny, threads=2, out=results / "mesh_fps.json")),
         "mesh_path": lambda: mesh_path.main([*t, "--threads", str(threads), "--out", str(results)]),
         "lift": lambda: lift.main([*t, "--threads", str(threads), "--out", str(results)]),
         "lift_extra": lambda: lift_extra.main([*t, "--threads", str(threads), "--out", str(results)]),
@@ -282,7 +281,7 @@ _SHIPPED: dict = {}
 
 def shipped_fingerprint(model: str) -> dict | None:
     """The fingerprint of ``checkpoints/<model>`` as it ships now (None when absent)."""
-    from omnirecon.checkpoint import fingerprint
+    from omnirecon.engine.checkpoint import fingerprint
 
     if model not in _SHIPPED:
         folder = ROOT / "checkpoints" / model

@@ -16,8 +16,8 @@ import sys
 import tempfile
 from pathlib import Path
 
-from omnirecon.data.synth.cli import SynthConfig, run_batch
 from omnirecon.data.io import write_json
+from omnirecon.data.synth.batch import SynthConfig, run_batch
 from omnirecon.provenance import provenance
 
 TARGET_SECONDS = 600.0

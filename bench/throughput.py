@@ -21,9 +21,9 @@ import torch
 
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.data.io import write_json
-from omnirecon.models.base import Rays, Sources
 from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
+from omnirecon.rays import Rays, Sources
 
 # (preset, rays per training step, image side for rendering, rays rendered for paper presets)
 CASES = [("floor", 4096, 64, None), ("gpnr-tiny", 256, 64, None), ("ibrnet-tiny", 512, 64, None),

@@ -13,6 +13,9 @@ Conventions (see ``docs/conventions.md``):
   along a unit-length ray).
 
 Every function works on a batch of ``N`` cameras; shapes are noted as ``# [N, ...]``.
+
+Size: one camera type and every conversion to and from it (OpenCV, OpenGL, NeRF, LLFF, COLMAP, DTU):
+splitting it would scatter the one convention readers and exports must agree on.
 """
 
 from __future__ import annotations

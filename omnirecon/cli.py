@@ -1,7 +1,7 @@
 """``omnirecon`` command line: one tyro subcommand per task.
 
-Each subcommand is a dataclass config with a ``main()`` method, registered in ``COMMANDS`` as
-``"name": "module:ClassName"`` and imported only when chosen. Bad input exits with code 2 and a
+Each subcommand is a dataclass config with a ``main()`` method in :mod:`omnirecon.commands`, registered
+in ``COMMANDS`` as ``"name": "module:ClassName"`` and imported only when chosen. Bad input exits with code 2 and a
 one-line message; ``--verbose`` (anywhere on the line) shows the traceback.
 """
 
@@ -13,22 +13,22 @@ import sys
 from omnirecon.errors import EXIT_BAD_INPUT, InputError
 
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("omnirecon.demo:DemoConfig", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
-    "synth": ("omnirecon.data.synth.cli:SynthConfig", "Generate procedural scenes with exact ground truth."),
-    "process": ("omnirecon.commands.process:ProcessConfig", "Camera poses for a folder of photos or a video (COLMAP via pycolmap): a scene every command reads."),
-    "inspect": ("omnirecon.inspect:InspectConfig", "Validate a scene, print a summary, draw cameras and epipolar lines."),
-    "eval": ("omnirecon.eval:EvalConfig", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
-    "render": ("omnirecon.render_cli:RenderConfig", "Render a camera path (orbit, spiral, interp) to frames and a video."),
-    "train": ("omnirecon.train:TrainConfig", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
-    "mesh": ("omnirecon.mesh_cli:MeshConfig", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
-    "lift": ("omnirecon.lift.cli:LiftConfig", "Lift a 2-D predictor (labels, edges, keypoints) into novel views with a model's blend weights (predict-then-blend)."),
-    "edit": ("omnirecon.lift.edit_cli:EditConfig", "Recolour or remove an object (by label or click) consistently in novel views by editing the sources and re-blending; delete/recolour its mesh faces (GLB)."),
-    "pet": ("omnirecon.lift.pet_cli:PETConfig", "Parameter-efficient tuning (LoRA or bias-only) of Omni-Recon's appearance branch on lifted semantic labels; mIoU before/after."),
-    "finetune": ("omnirecon.finetune:FinetuneConfig", "Tune Omni-Recon's mesh path on one scene in seconds; PSNR-vs-time curve."),
-    "export": ("omnirecon.viewer.export:ExportConfig", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
-    "view": ("omnirecon.viewer.cli:ViewConfig", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),
-    "bench": ("omnirecon.speed:BenchConfig", "FPS of Omni-Recon's real-time mesh path vs its volumetric path, and their ratio."),
-    "doctor": ("omnirecon.doctor:DoctorConfig", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
+    "demo": ("omnirecon.commands.demo:DemoCommand", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
+    "synth": ("omnirecon.commands.synth:SynthCommand", "Generate procedural scenes with exact ground truth."),
+    "process": ("omnirecon.commands.process:ProcessCommand", "Camera poses for a folder of photos or a video (COLMAP via pycolmap): a scene every command reads."),
+    "inspect": ("omnirecon.commands.inspect:InspectCommand", "Validate a scene, print a summary, draw cameras and epipolar lines."),
+    "eval": ("omnirecon.commands.eval:EvalCommand", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
+    "render": ("omnirecon.commands.render:RenderCommand", "Render a camera path (orbit, spiral, interp) to frames and a video."),
+    "train": ("omnirecon.commands.train:TrainCommand", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
+    "mesh": ("omnirecon.commands.mesh:MeshCommand", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
+    "lift": ("omnirecon.commands.lift:LiftCommand", "Lift a 2-D predictor (labels, edges, keypoints) into novel views with a model's blend weights (predict-then-blend)."),
+    "edit": ("omnirecon.commands.edit:EditCommand", "Recolour or remove an object (by label or click) consistently in novel views by editing the sources and re-blending; delete/recolour its mesh faces (GLB)."),
+    "pet": ("omnirecon.commands.pet:PETCommand", "Parameter-efficient tuning (LoRA or bias-only) of Omni-Recon's appearance branch on lifted semantic labels; mIoU before/after."),
+    "finetune": ("omnirecon.commands.finetune:FinetuneCommand", "Tune Omni-Recon's mesh path on one scene in seconds; PSNR-vs-time curve."),
+    "export": ("omnirecon.commands.export:ExportCommand", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
+    "view": ("omnirecon.commands.view:ViewCommand", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),
+    "bench": ("omnirecon.commands.bench:BenchCommand", "FPS of Omni-Recon's real-time mesh path vs its volumetric path, and their ratio."),
+    "doctor": ("omnirecon.commands.doctor:DoctorCommand", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
 }
 
 

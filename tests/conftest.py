@@ -10,7 +10,9 @@ import torch
 # TSDF fusion 25x and the Omni-Recon overfit 17x slower than one.
 torch.set_num_threads(1)
 
-SHARED_DATA = Path(os.environ.get("OMNIRECON_SHARED_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository root (tests mirror the package in subfolders; import ROOT from here)."""
+SHARED_DATA = Path(os.environ.get("OMNIRECON_SHARED_DATA", ROOT.parent / "shared" / "data"))
 
 
 def shared_scene(rel: str) -> Path:
@@ -27,3 +29,35 @@ def shared_scene(rel: str) -> Path:
 @pytest.fixture
 def shared_data():
     return shared_scene
+
+
+def require(available: bool, reason: str) -> None:
+    """Skip the calling test when an optional system component is missing, or fail under ``CI=true``
+    (CI installs it: `make setup` runs scripts/setup_system.sh)."""
+    if available:
+        return
+    if os.environ.get("CI") == "true":
+        pytest.fail(f"CI must have it: {reason}")
+    pytest.skip(reason)
+
+
+@pytest.fixture(scope="session")
+def gl():
+    """A headless EGL context (moderngl): skip without one, fail under ``CI=true``."""
+    from omnirecon.render import raster
+
+    require(raster.gl_available(), f"no headless EGL context: {raster.gl_unavailable_reason()}")
+
+
+@pytest.fixture
+def run_cli(capsys):
+    """``omnirecon ARGS`` in-process: returns ``(exit code, stdout, stderr)``. Unexpected exceptions propagate."""
+    from omnirecon.cli import main
+
+    def run(args):
+        capsys.readouterr()
+        code = main([str(a) for a in args])
+        cap = capsys.readouterr()
+        return code, cap.out, cap.err
+
+    return run

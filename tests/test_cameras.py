@@ -4,11 +4,20 @@ import pytest
 import torch
 
 from omnirecon.cameras import (
-    Cameras, canonical_transform, apply_transform, check_poses, closest_point_to_axes, look_at,
-    nearest_views, opengl_to_opencv, orthonormalize, plucker, rigid_inverse, sample_views,
+    Cameras,
+    apply_transform,
+    canonical_transform,
+    check_poses,
+    closest_point_to_axes,
+    look_at,
+    nearest_views,
+    opengl_to_opencv,
+    orthonormalize,
+    plucker,
+    rigid_inverse,
+    sample_views,
 )
 from omnirecon.errors import InputError
-
 
 
 @pytest.fixture(autouse=True)

@@ -19,7 +19,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from PIL import Image
+
 from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 MIN_POINTS = 8  # the COLMAP reader needs this many to bound depths
@@ -113,11 +116,7 @@ class Stages:
 
     def __enter__(self):
         if not self.quiet:
-            from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                                       TimeRemainingColumn)
-
-            self.progress = Progress(TextColumn("{task.description:<10}"), BarColumn(), MofNCompleteColumn(),
-                                     TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
+            self.progress = progress_bar("{task.description:<10}")
             self.progress.__enter__()
         return self
 
@@ -161,7 +160,7 @@ def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]
 
 
 def _quiet_colmap() -> None:
-    import pycolmap
+    import pycolmap  # lazy: the optional 'capture' extra
 
     pycolmap.logging.minloglevel = 3  # fatal only: failures come back as InputError, progress from our bars
     pycolmap.logging.stderrthreshold = 3
@@ -176,7 +175,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     non-zero), e.g. to ignore a static background behind an object on a turntable.
     """
     source = image_dir if source is None else source
-    import pycolmap
+    import pycolmap  # lazy: the optional 'capture' extra
 
     _quiet_colmap()
     work.mkdir(parents=True, exist_ok=True)
@@ -273,8 +272,7 @@ def write_scene(result: SfmResult, image_dir: Path, work: Path, scene: Path, sta
     smallest size (principal points shifted), since the reader wants one image size. Returns
     ``{"size": [W, H], "crop": bool}``.
     """
-    import pycolmap
-    from PIL import Image
+    import pycolmap  # lazy: the optional 'capture' extra
 
     _quiet_colmap()
     model_dir = work / "chosen"

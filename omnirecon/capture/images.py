@@ -16,6 +16,8 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from PIL import Image, ImageOps, UnidentifiedImageError
+
 from omnirecon.errors import InputError
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -53,7 +55,6 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
                  on_file=None) -> StagedImages:
     """Check the photos in ``folder`` and stage them into ``dest`` (see the module docstring).
     ``on_file()`` is called after each file is read."""
-    from PIL import Image, ImageOps, UnidentifiedImageError
 
     folder = Path(folder)
     if not folder.exists():
@@ -124,7 +125,6 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
     """Masks for the staged images, as COLMAP wants them: ``dest/<image name>.png``, 255 where features
     may be detected (the mask's non-zero pixels), 0 elsewhere. Masks are matched to the photos by file
     stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size."""
-    from PIL import Image, ImageOps, UnidentifiedImageError
 
     mask_dir, dest = Path(mask_dir), Path(dest)
     if not mask_dir.is_dir():

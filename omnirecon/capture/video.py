@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from omnirecon.errors import InputError
 
@@ -17,8 +18,7 @@ def sample_frames(video: Path, dest: Path, fps: float, max_frames: int = 300, on
     (``expected``: the count estimated from the duration, or None). A file ffmpeg cannot decode, or
     one that gives no frame, raises :class:`InputError`.
     """
-    import imageio_ffmpeg
-    from PIL import Image
+    import imageio_ffmpeg  # lazy: the optional 'video' extra
 
     video, dest = Path(video), Path(dest)
     if not video.is_file():

@@ -1,1 +1,2 @@
-"""The CLI verbs: thin tyro dataclass configs whose ``main()`` parses and calls the library."""
+"""One thin module per CLI verb: a tyro dataclass config whose ``main()`` calls the library.
+No command imports another command."""

@@ -8,11 +8,12 @@ from pathlib import Path
 import tyro
 
 from omnirecon.capture.colmap_sfm import SfmOptions
+from omnirecon.capture.process import process, summary_lines
 from omnirecon.errors import InputError
 
 
 @dataclass
-class ProcessConfig(SfmOptions):
+class ProcessCommand(SfmOptions):
     """Find camera poses for photos (or a video's frames) with COLMAP: SIFT features, matching,
     incremental mapping, undistortion to PINHOLE. Writes a COLMAP scene (sparse/0, images, images_2,
     images_4, process.json) that every omnirecon command reads. Needs `pip install pycolmap`
@@ -38,12 +39,10 @@ class ProcessConfig(SfmOptions):
 
     def main(self) -> None:
         try:
-            import pycolmap  # noqa: F401
+            import pycolmap  # noqa: F401  # lazy: the optional 'capture' extra, checked before any work
         except ImportError as e:
             raise InputError("pycolmap is not installed", None,
                              "pip install pycolmap (or pip install -e '.[capture]')") from e
-        from omnirecon.capture.process import process, summary_lines
-
         if self.source is None:
             raise InputError("no input given", None, "pass a folder of photos or a video: omnirecon process PATH --out SCENE")
         if self.max_frames < 3:

@@ -39,7 +39,7 @@ from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, same_scene, scene_name
 from omnirecon.errors import InputError
-from omnirecon.models.base import Rays, Sources
+from omnirecon.rays import Rays, Sources
 from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS, VAL_SEEDS
 
 RIGS = ("object", "frontal", "forward")

@@ -30,7 +30,11 @@ import torch
 
 from omnirecon.cameras import Cameras, nearest_views, rigid_inverse
 from omnirecon.data._common import (
-    assemble, common_size, detect_rig, frustum_box, rigid_poses,
+    assemble,
+    common_size,
+    detect_rig,
+    frustum_box,
+    rigid_poses,
 )
 from omnirecon.data.io import write_image
 from omnirecon.data.scene import Scene

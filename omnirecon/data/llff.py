@@ -30,7 +30,13 @@ import torch
 
 from omnirecon.cameras import Cameras
 from omnirecon.data._common import (
-    IMAGE_EXTS, assemble, common_size, detect_rig, frustum_box, holdout_splits, rigid_poses,
+    IMAGE_EXTS,
+    assemble,
+    common_size,
+    detect_rig,
+    frustum_box,
+    holdout_splits,
+    rigid_poses,
 )
 from omnirecon.data.io import list_images, read_npy
 from omnirecon.data.scene import Scene

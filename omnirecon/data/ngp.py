@@ -27,7 +27,12 @@ from pathlib import Path
 import torch
 
 from omnirecon.data._common import (
-    assemble, common_size, detect_rig, frustum_box, holdout_splits, near_far_from_box,
+    assemble,
+    common_size,
+    detect_rig,
+    frustum_box,
+    holdout_splits,
+    near_far_from_box,
 )
 from omnirecon.data._transforms import Frames, _num
 from omnirecon.data.io import read_json

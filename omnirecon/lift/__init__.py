@@ -12,15 +12,23 @@ colour blend weights and ray weights (Omni-Recon's predict-then-blend, ``omnirec
 * :mod:`omnirecon.lift.edit`: recolour / remove an object in the sources and re-blend; face edits, GLB;
 * :mod:`omnirecon.lift.embed`: dense embeddings (HED VGG features, CLIP/LSeg) classified by cosine;
 * :mod:`omnirecon.lift.metrics`: mIoU, edge F-score, keypoint heat-map error, normal error;
-* :mod:`omnirecon.lift.cli`: ``omnirecon lift``.
+* :mod:`omnirecon.workflows.lift`: ``omnirecon lift``.
 
 Models take ``signals # [K, H, W, C]`` in ``render_rays`` / ``render_view`` and return ``signal``: the maps
 blended exactly as their RGB (Omni-Recon, IBRNet: final pass; GPNR: the weights of ``rgb_blend``, its
 blended source colours).
 """
 
-from omnirecon.lift.blend import (lift_mesh_view, lift_points, lift_view, predict_then_blend, render_lifted,
-                                  render_lifted_mesh, render_then_predict, supports_lifting)
+from omnirecon.lift.blend import (
+                                  lift_mesh_view,
+                                  lift_points,
+                                  lift_view,
+                                  predict_then_blend,
+                                  render_lifted,
+                                  render_lifted_mesh,
+                                  render_then_predict,
+                                  supports_lifting,
+)
 from omnirecon.lift.predictors import Predictor, builtin
 
 __all__ = ["Predictor", "builtin", "lift_mesh_view", "lift_points", "lift_view", "predict_then_blend", "render_lifted",

@@ -16,7 +16,7 @@ probabilities still sum to 1. Embeddings are blended, then L2-normalised. Pixels
 is below ``min_weight`` get uniform probabilities / zeros.
 
 **Mesh path** (Omni-Recon only, :func:`render_lifted_mesh`, :func:`lift_mesh_view`): rasterize a baked
-mesh at the target (``omnirecon.render.mesh_ibr.MeshRenderer``), one surface point per pixel, and blend
+mesh at the target (``omnirecon.mesh.ibr.MeshRenderer``), one surface point per pixel, and blend
 the maps there with the appearance branch's ``omega``: no ray weights, so a covered pixel has weight 1
 and a pixel no triangle covers weight 0. :func:`lift_points` blends at arbitrary surface points (face
 centroids, for labelling a mesh's faces).
@@ -34,13 +34,12 @@ import torch
 from torch import Tensor
 
 from omnirecon.lift.predictors import KINDS, Predictor
+from omnirecon.mesh.ibr import ShadeResult
 
 
 def supports_lifting(model) -> bool:
     """Whether ``model.render_rays`` takes ``signals`` (Omni-Recon, IBRNet, GPNR; not the plane-sweep floor)."""
-    import inspect
-
-    return "signals" in inspect.signature(model.render_rays).parameters
+    return model.capabilities.signals
 
 
 def normalise(lifted: Tensor, weight: Tensor, kind: str, min_weight: float = 1e-4) -> Tensor:
@@ -140,7 +139,7 @@ def render_lifted_mesh(renderer, camera, signals: dict[str, tuple[Tensor, str]],
     """Predict-then-blend through a baked mesh: one surface point per pixel (rasterized at ``camera``), each
     map ``# [K, H', W', C]`` (any resolution covering the sources) sampled at the point's projection into
     every source and blended with the appearance branch's ``omega`` (``renderer``: a
-    :class:`~omnirecon.render.mesh_ibr.MeshRenderer`). There is no ray weight: a covered pixel has weight
+    :class:`~omnirecon.mesh.ibr.MeshRenderer`). There is no ray weight: a covered pixel has weight
     1, a pixel no triangle covers weight 0 (uniform probabilities, zero embeddings and regression, as
     :func:`normalise`). ``rgb`` is the mesh path's render (the renderer's background where uncovered);
     ``outputs`` hold ``depth``, ``mask`` (covered) and ``seen`` (some source sees the point)."""
@@ -180,7 +179,6 @@ def lift_points(renderer, points: Tensor, origins: Tensor, signals: Tensor, kind
     pixel (the renderer's own test takes the farthest of four, so it keeps points just behind an
     occluder's silhouette). Returns the normalised maps ``# [P, C]`` and ``seen # [P]`` (some source sees
     the point; the others get weight 0)."""
-    from omnirecon.render.mesh_ibr import ShadeResult
 
     _check_mesh_signal(renderer, "signals", signals)
     cams = renderer.sources.cameras

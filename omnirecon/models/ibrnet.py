@@ -20,8 +20,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from omnirecon.models.base import GeneralizableModel, Rays, Sources
-from omnirecon.render.volume import alpha_from_density, composite, sample_along_rays, sample_pdf, weights_from_alpha
+from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.projector import project, sample
+from omnirecon.models.sampler import coarse_depths, fine_depths
+from omnirecon.rays import Rays, Sources
+from omnirecon.render.volume import alpha_from_density, composite, weights_from_alpha
 
 
 @dataclass
@@ -178,6 +181,8 @@ class IBRNetFeatures:
 
 
 class IBRNet(GeneralizableModel):
+    capabilities = Capabilities(depth=True, signals=True, jitter=True)
+
     def __init__(self, cfg: IBRNetConfig):
         super().__init__()
         self.cfg = cfg
@@ -197,13 +202,11 @@ class IBRNet(GeneralizableModel):
         V, (R, S) = len(cams), z.shape
         d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)  # z = 1 directions
         pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
-        proj = cams.project(pts.reshape(1, -1, 3).expand(V, -1, -1))
-        H, W = src.images.shape[1:3]
-        grid = (proj.uv / torch.tensor([W, H], dtype=pts.dtype, device=pts.device) * 2 - 1).reshape(V, 1, R * S, 2)
+        proj = project(cams, pts.reshape(-1, 3))
         C = self.cfg.feature_dim
         maps = feats.maps[:, half * C:(half + 1) * C]
-        feat = F.grid_sample(maps, grid, align_corners=False).reshape(V, C, R, S)
-        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid, align_corners=False, padding_mode="border")
+        feat = sample(maps, proj, "zeros").reshape(V, C, R, S)
+        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [V, 3, R*S]
         rgb_feat = torch.cat([rgb.reshape(V, 3, R, S), feat], 1).permute(2, 3, 0, 1)  # [R, S, V, 3+C]
         a = F.normalize(rays.origins[:, None, None] - pts[:, :, None], dim=-1)  # to target  [R, S, 1, 3]
         b = F.normalize(cams.centers[None, None] - pts[:, :, None], dim=-1)  # to sources [R, S, V, 3]
@@ -211,8 +214,8 @@ class IBRNet(GeneralizableModel):
         mask = proj.in_image.reshape(V, R, S).permute(1, 2, 0)  # [R, S, V]
         sig = None
         if signals is not None:
-            sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(grid.dtype), grid, align_corners=False,
-                                padding_mode="border").reshape(V, -1, R, S).permute(2, 3, 0, 1)  # [R, S, V, C]
+            sig = sample(signals.permute(0, 3, 1, 2).to(pts.dtype), proj, "border")
+            sig = sig.reshape(V, -1, R, S).permute(2, 3, 0, 1)  # [R, S, V, C]
         return rgb_feat, ray_diff, mask, sig
 
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None):
@@ -233,19 +236,13 @@ class IBRNet(GeneralizableModel):
         return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
         ``acc``, see :mod:`omnirecon.lift.blend`)."""
-        src = features.sources
-        R = len(rays)
-        near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
-        far = torch.full_like(near, src.far)
-        z = sample_along_rays(near, far, self.cfg.coarse_samples, inverse_depth=src.rig == "forward", jitter=jitter)
+        z = coarse_depths(features.sources, rays, self.cfg.coarse_samples, jitter)
         coarse = self._pass(self.coarse, features, rays, z, 0, signals if self.fine is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
         if self.fine is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
-        mid = 0.5 * (z[:, 1:] + z[:, :-1])
-        z_imp = sample_pdf(mid, coarse["weights"][:, 1:-1].detach(), self.cfg.fine_samples, deterministic=not jitter)
-        z_all = torch.cat([z, z_imp.detach()], -1).sort(-1).values
-        fine = self._pass(self.fine, features, rays, z_all, 1, signals)
+        fine = self._pass(self.fine, features, rays, fine_depths(z, coarse["weights"], self.cfg.fine_samples, jitter),
+                          1, signals)
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out

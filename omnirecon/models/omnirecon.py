@@ -59,6 +59,9 @@ Departures (documented choices, each a config field where it matters):
   within 0.02 dB mean of ``black`` with either, so ``black`` stays.
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
+
+Size: the model's two branches, its feature volume and its SDF renderer share one config and one state-
+dict layout that the shipped checkpoints depend on.
 """
 
 from __future__ import annotations
@@ -71,9 +74,12 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
-from omnirecon.models.base import GeneralizableModel, Rays, Sources
+from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.gpnr import fourier
-from omnirecon.render.volume import alpha_from_sdf, composite, sample_along_rays, sample_pdf, weights_from_alpha
+from omnirecon.models.projector import project, sample
+from omnirecon.models.sampler import coarse_depths, fine_depths
+from omnirecon.rays import Rays, Sources
+from omnirecon.render.volume import alpha_from_sdf, composite, weights_from_alpha
 
 
 @dataclass
@@ -210,17 +216,11 @@ def lattice(box: Tensor, res: int) -> Tensor:
     return torch.stack([xx, yy, zz], -1).reshape(-1, 3)
 
 
-def image_grid(uv: Tensor, width: int, height: int) -> Tensor:
-    """Pixel coordinates ``# [..., 2]`` -> ``grid_sample`` coordinates (``align_corners=False``)."""
-    return uv / torch.tensor([width, height], dtype=uv.dtype, device=uv.device) * 2 - 1
-
-
 def mean_var_volume(maps: Tensor, cameras: Cameras, points: Tensor, res: int) -> Tensor:
     """Masked mean and variance over views of ``maps # [V, C, h, w]`` at the voxel centres
     ``points # [res^3, 3]`` (invalid views: outside the image or behind the camera). ``# [1, 2C, res, res, res]``"""
-    proj = cameras.project(points)  # [V, P]
-    grid = image_grid(proj.uv, cameras.width, cameras.height).to(maps.dtype)[:, None]  # [V, 1, P, 2]
-    f = F.grid_sample(maps, grid, align_corners=False, padding_mode="zeros")[:, :, 0]  # [V, C, P]
+    proj = project(cameras, points, maps.dtype)
+    f = sample(maps, proj, "zeros")  # [V, C, P]
     m = proj.in_image.to(maps.dtype)[:, None]  # [V, 1, P]
     w = m / (m.sum(0, keepdim=True) + 1e-8)
     mean = (w * f).sum(0)  # [C, P]
@@ -397,6 +397,8 @@ class PointSamples(NamedTuple):
 
 
 class OmniRecon(GeneralizableModel):
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True)
+
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
         if cfg.volume_resolution % 4 or cfg.volume_resolution < 8:
@@ -430,10 +432,9 @@ class OmniRecon(GeneralizableModel):
         src = features.sources
         cams = src.cameras
         K, (R, S) = len(cams), points.shape[:2]
-        proj = cams.project(points.reshape(-1, 3))  # [K, R*S]
-        grid = image_grid(proj.uv, cams.width, cams.height).to(points.dtype)[:, None]  # [K, 1, R*S, 2]
-        feat = F.grid_sample(features.maps, grid, align_corners=False, padding_mode="zeros")
-        rgb = F.grid_sample(src.images.permute(0, 3, 1, 2), grid, align_corners=False, padding_mode="border")
+        proj = project(cams, points.reshape(-1, 3))
+        feat = sample(features.maps, proj, "zeros")  # [K, C, R*S]
+        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [K, 3, R*S]
         mask = proj.in_image.reshape(K, R, S).permute(1, 2, 0)  # [R, S, K]
         feat = feat.reshape(K, -1, R, S).permute(2, 3, 0, 1) * mask[..., None]  # [R, S, K, C]
         rgb = rgb.reshape(K, 3, R, S).permute(2, 3, 0, 1)  # [R, S, K, 3]
@@ -475,10 +476,7 @@ class OmniRecon(GeneralizableModel):
         as :meth:`gather` samples the source colours (bilinear, border padding). ``# [R, S, K, C]``"""
         cams = features.sources.cameras
         K, (R, S) = len(cams), points.shape[:2]
-        proj = cams.project(points.reshape(-1, 3))  # [K, R*S]
-        grid = image_grid(proj.uv, cams.width, cams.height).to(points.dtype)[:, None]  # [K, 1, R*S, 2]
-        sig = F.grid_sample(signals.permute(0, 3, 1, 2).to(points.dtype), grid, align_corners=False,
-                            padding_mode="border")
+        sig = sample(signals.permute(0, 3, 1, 2).to(points.dtype), project(cams, points.reshape(-1, 3)), "border")
         return sig.reshape(K, -1, R, S).permute(2, 3, 0, 1)
 
     def _pass(self, features: OmniReconFeatures, rays: Rays, z: Tensor,
@@ -516,18 +514,13 @@ class OmniRecon(GeneralizableModel):
         ``signals # [K, H, W, C]`` (per-source-view 2-D maps, optional) adds ``signal # [R, C]`` from the
         final pass: predict-then-blend with the RGB weights (not normalised by ``acc``; see
         :mod:`omnirecon.lift.blend`)."""
-        cfg, src = self.cfg, features.sources
-        near = torch.full((len(rays),), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
-        z = sample_along_rays(near, torch.full_like(near, src.far), cfg.coarse_samples,
-                              inverse_depth=src.rig == "forward", jitter=jitter)  # [R, S]
+        cfg = self.cfg
+        z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter)  # [R, S]
         coarse, omega = self._pass(features, rays, z, signals if cfg.fine_samples == 0 else None)
         if cfg.fine_samples == 0:
             out = dict(coarse)
         else:
-            mid = 0.5 * (z[:, 1:] + z[:, :-1])
-            z_imp = sample_pdf(mid, coarse["weights"][:, 1:-1].detach(), cfg.fine_samples, deterministic=not jitter)
-            z_all = torch.cat([z, z_imp.detach()], -1).sort(-1).values
-            out, omega = self._pass(features, rays, z_all, signals)
+            out, omega = self._pass(features, rays, fine_depths(z, coarse["weights"], cfg.fine_samples, jitter), signals)
             out["valid"] = out["valid"] & coarse["valid"]
         out["rgb_coarse"], out["depth_coarse"] = coarse["rgb"], coarse["depth"]
         if return_samples:

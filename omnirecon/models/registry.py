@@ -8,7 +8,12 @@ from omnirecon.errors import InputError
 
 
 def _families():
-    from omnirecon.models import floor, gpnr, ibrnet, omnirecon
+    from omnirecon.models import (  # lazy: the model families import torch.nn and their configs; the registry is read by --help
+        floor,
+        gpnr,
+        ibrnet,
+        omnirecon,
+    )
 
     return {
         "gpnr": (gpnr.GPNR, gpnr.GPNRConfig, gpnr.PRESETS),

@@ -33,7 +33,7 @@ coordinates; back-face culling uses that. Near/far planes default to the z-range
 bounding box in the camera (tight, for the 24-bit depth buffer); triangles crossing the near plane
 are clipped by GL.
 
-**Reference backend** (``backend="reference"``): :func:`omnirecon.data.synth.render.rasterize`, the
+**Reference backend** (``backend="reference"``): :func:`omnirecon.render.zbuffer.rasterize`, the
 vectorised float64 z-buffer the procedural scenes were rendered with. It is the test oracle and the
 no-GL fallback (``backend="auto"`` picks it when EGL cannot start). It always culls back faces, so
 ``cull_back_faces=False`` rasterizes the mesh plus its flipped copy; triangles with a vertex at or
@@ -41,6 +41,9 @@ behind the near plane are dropped (no clipping). It is ~30x slower (0.3 s of CPU
 18k-triangle procedural scene, against ~10 ms).
 
 Threads: llvmpipe reads ``LP_NUM_THREADS`` when the driver loads (the first context in a process).
+
+Size: the GL rasterizer and its context handling, the projection matrix and the reference backend are
+one interface with two twins; they are kept together so that they stay interchangeable.
 """
 
 from __future__ import annotations
@@ -435,7 +438,9 @@ class MeshRasterizer:
                        torch.from_numpy(world[:, 3].copy()), camera.height, camera.width)
 
     def _rasterize_reference(self, K, w2c, width, height, near):
-        from omnirecon.data.synth.render import rasterize
+        from omnirecon.render.zbuffer import (
+            rasterize,  # lazy: the NumPy reference runs only when the GL backend is not used
+        )
 
         near = 1e-6 if near is None else near
         F = len(self.faces)

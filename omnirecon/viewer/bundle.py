@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from omnirecon.data.io import write_image
 from omnirecon.errors import InputError
 
 FORMAT = "omnirecon-viewer"
@@ -77,11 +78,11 @@ def three_unavailable_reason() -> str | None:
 
 # ---------------------------------------------------------------------- appearance tables
 def appearance_tables(renderer) -> dict:
-    """What the WebGL shader needs of the model, from a :class:`~omnirecon.render.mesh_ibr.MeshRenderer`
+    """What the WebGL shader needs of the model, from a :class:`~omnirecon.mesh.ibr.MeshRenderer`
     (Omni-Recon's appearance branch): the folded feature table, the MLP weights, the source projections.
     Returns NumPy arrays and plain lists."""
     model = renderer.model
-    app = getattr(model, "appearance", None)
+    app = model.appearance if model.capabilities.appearance else None
     linears = [m for m in getattr(app, "mlp", []) if isinstance(m, torch.nn.Linear)]
     if app is None or not hasattr(app, "proj") or len(linears) != 3:
         raise InputError(f"{type(model).__name__} has no Omni-Recon appearance branch (Linear + 3-layer MLP)", None,
@@ -135,7 +136,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     """Write a viewer bundle to ``folder`` (replaced as a whole: built beside it, then swapped in).
 
     Args:
-        renderer: The :class:`~omnirecon.render.mesh_ibr.MeshRenderer` of the mesh (model frame) with
+        renderer: The :class:`~omnirecon.mesh.ibr.MeshRenderer` of the mesh (model frame) with
             ``MeshRenderOptions(visibility=True)``: its encoded sources, model and source depths.
         glb: ``mesh.glb``'s bytes (input frame, baked vertex colours).
         vertices, faces: The mesh in the model frame (for the near/far box). ``# [V, 3]``, ``# [F, 3]``
@@ -148,7 +149,6 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     Returns:
         ``folder``.
     """
-    from omnirecon.data.io import write_image
 
     three = find_three()
     if three is None:

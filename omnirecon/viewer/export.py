@@ -1,15 +1,15 @@
-"""``omnirecon export``: a mesh with baked vertex colours (PLY, GLB) and a static web-viewer bundle.
+"""Export (``omnirecon export``): a mesh with baked vertex colours (PLY, GLB) and a static web-viewer bundle.
 
 Outputs in ``--out DIR``::
 
     mesh.ply, mesh.glb   the mesh in the input frame (``Scene.to_input``) with per-vertex RGBA colours
-                         baked by :mod:`omnirecon.render.bake` (uint8, the image values as they are:
+                         baked by :mod:`omnirecon.mesh.bake` (uint8, the image values as they are:
                          not converted to linear, so both files carry the same numbers)
     viewer/              the viewer bundle (:mod:`omnirecon.viewer.bundle`); ``omnirecon view DIR``
     export.json          what was done: scene, views, model, mesh source, counts, bake statistics, seconds
 
 The mesh comes from ``--mesh FILE`` (input frame, e.g. the output of ``omnirecon mesh``) or from
-:func:`omnirecon.render.mesh.mesh_from_model` at the source views. Every file is written atomically;
+:func:`omnirecon.mesh.build.mesh_from_model` at the source views. Every file is written atomically;
 the bundle folder is built beside its final place and swapped in.
 """
 
@@ -18,13 +18,18 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 import trimesh
 
+from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
+from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
+from omnirecon.mesh.build import export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.rays import Sources
+from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
 
 @dataclass
@@ -96,25 +101,19 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
         views: Source view indices.
         out: Output folder.
         mesh: The mesh in the **input** frame, or ``None`` to mesh the scene with the model
-            (:func:`~omnirecon.render.mesh.mesh_from_model`, ``mesh_options``).
-        info: The model's description for the records (``omnirecon.eval.load_model``'s ``info``).
+            (:func:`~omnirecon.mesh.build.mesh_from_model`, ``mesh_options``).
+        info: The model's description for the records (``omnirecon.engine.evaluate.load_model``'s ``info``).
         use_masks: Without ``mesh``: clean the mesh with the source views' object masks.
 
     Returns:
         The record written to ``export.json`` (plus ``files``).
     """
-    from omnirecon.data.io import write_json
-    from omnirecon.models.base import Sources
-    from omnirecon.render.bake import BakeOptions, bake_vertex_colors, colored_mesh
-    from omnirecon.render.mesh import export_mesh, mesh_from_model, to_input_frame
-    from omnirecon.render.mesh_ibr import MeshRenderer, MeshRenderOptions
-    from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
     options = options or ExportOptions()
     options.check()
     if options.viewer and three_unavailable_reason():
         raise InputError(three_unavailable_reason(), None, "or pass --no-viewer to write only mesh.ply and mesh.glb")
-    if not all(hasattr(model, a) for a in ("encode", "shade")):
+    if not model.capabilities.appearance:
         raise InputError(f"{type(model).__name__} cannot shade surface points (no appearance branch)", None,
                          "export a checkpoint of an omnirecon-* preset")
     out = Path(out)
@@ -168,91 +167,4 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
     write_json(out / "export.json", record)
     files.append(out / "export.json")
     record["files"] = [str(p) for p in files]
-    return record
-
-
-@dataclass
-class ExportConfig:
-    """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
-    renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
-
-    scene: Path
-    """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
-    ckpt: Path
-    """Checkpoint folder of an Omni-Recon model (`omnirecon train --model omnirecon-*`)."""
-    views: tuple[int, ...] | None = None
-    """Source view indices (default: 23 24 33 on DTU, else --num-views evenly spaced train views)."""
-    num_views: int = 3
-    """Source views K when --views is not given."""
-    mesh: Path | None = None
-    """Mesh file in the input frame (e.g. from `omnirecon mesh`); default: mesh the scene with the model."""
-    out: Path | None = None
-    """Output folder (default: outputs/export/<scene>)."""
-    resolution: int | None = None
-    """Long side of the source images in pixels (default: the scene's eval protocol, 128)."""
-    bake_views: int = 3
-    """Most frontal visible source views blended per vertex for the baked colours."""
-    visibility: bool = True
-    """The viewer starts with the per-source occlusion test on (toggle it in the viewer)."""
-    visibility_tol: float = 0.01
-    """Relative depth tolerance of the occlusion test."""
-    viewer: bool = True
-    """Write the viewer bundle (needs three.js: `npm install` in omnirecon/viewer, done by `make setup`)."""
-    max_edge: float = 0.0
-    """Subdivide triangles until no edge exceeds this fraction of the bounds diagonal before baking, so
-    the vertex colours can carry the texture of large triangles (0: keep the mesh; e.g. 0.005)."""
-    voxel: float = 1 / 256
-    """Without --mesh: TSDF voxel size as a fraction of the bounds diagonal."""
-    masks: bool = True
-    """Without --mesh: clean the mesh with the source views' object masks when the scene has them."""
-    device: str = "auto"
-    """cpu, cuda or auto."""
-    threads: int | None = None
-    """torch CPU threads (default: torch's choice; use 1 when other jobs share the cores)."""
-    background: Literal["white", "black"] = "white"
-    """Colour RGBA inputs are composited on."""
-
-    def main(self) -> None:
-        record = run_export(self)
-        for p in record["files"]:
-            print(f"wrote {p}")
-        b = record["bake"]
-        print(f"{record['vertices']:,} vertices, {record['faces']:,} faces; baked from {b['mean_views']:.2f} views per "
-              f"vertex on average ({b['fallback']} fallback, {b['unseen']} unseen)")
-        if self.viewer:
-            print(f"view it: omnirecon view {record['out']}")
-
-
-def run_export(cfg: ExportConfig) -> dict:
-    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``)."""
-    from omnirecon.data import detect_format
-    from omnirecon.eval import load_at_resolution, load_model, pick_device, protocol_for, set_threads
-    from omnirecon.mesh_cli import check_views, default_views
-    from omnirecon.render.mesh import MeshOptions
-
-    options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
-    options.check()
-    if cfg.num_views < 1:
-        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
-    mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None
-    set_threads(cfg.threads)
-    device = pick_device(cfg.device)
-    fmt = detect_format(cfg.scene)
-    net, info = load_model(cfg.ckpt, None, device)
-    proto = protocol_for(Path(cfg.scene), fmt)
-    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
-    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
-    out = cfg.out or Path("outputs/export") / Path(cfg.scene).name
-    mesh_options = MeshOptions(voxel=cfg.voxel)
-    if mesh is None:
-        mesh_options.check()
-    if mesh is None:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-        with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                      TimeElapsedColumn()) as bar:
-            record = export_scene(net, scene, views, out, None, mesh_options, options, device, info, cfg.masks, bar)
-    else:
-        record = export_scene(net, scene, views, out, mesh, mesh_options, options, device, info, cfg.masks)
-    record["out"] = str(out)
     return record

@@ -1,0 +1,16 @@
+"""``omnirecon demo``: novel views, scores and a mesh of one scene with the shipped checkpoints, as an
+HTML report."""
+
+from __future__ import annotations
+
+from omnirecon.workflows.demo import DemoConfig, run_demo
+
+
+class DemoCommand(DemoConfig):
+    __doc__ = DemoConfig.__doc__  # the options' description is the command's help
+
+    def main(self) -> None:
+        result = run_demo(self)
+        for line in result["lines"]:
+            print(line)
+        print(f"report: {result['report']}")

@@ -1,0 +1,73 @@
+"""``omnirecon eval``: score a model on held-out views under one fixed protocol per dataset."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from omnirecon.engine.evaluate import evaluate
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import SYNTH_PREFIX
+from omnirecon.errors import InputError
+
+
+def default_name(ckpt: Path | None, model_name: str) -> str:
+    """Output name: ``<run>_<checkpoint>`` for ``.../<run>/checkpoints/<checkpoint>``, else the folder or model name."""
+    if ckpt is None:
+        return model_name
+    ckpt = Path(ckpt).resolve()
+    return f"{ckpt.parent.parent.name}_{ckpt.name}" if ckpt.parent.name == "checkpoints" else ckpt.name
+
+
+@dataclass
+class EvalCommand(MachineConfig):
+    """Evaluate a checkpoint (or the non-learned plane-sweep floor) on held-out views: PSNR, SSIM,
+    ST-LPIPS (and LPIPS where its weights are on the machine), per scene and averaged, under the
+    fixed protocols of docs/evaluation.md. Writes results.json, results.md and one
+    GT | render | error panel per target view."""
+
+    scenes: tuple[str, ...] = (SYNTH_PREFIX,)
+    """Scene folders (any supported format) and/or synth:eval[:object|frontal|forward] (the held-out
+    procedural set, generated on first use)."""
+    ckpt: Path | None = None
+    """Checkpoint folder written by `omnirecon train` (holds meta.json and model.safetensors)."""
+    model: Literal["floor"] | None = None
+    """Evaluate a non-learned model instead of a checkpoint: `floor` is the plane-sweep baseline."""
+    num_views: tuple[int, ...] = (3, 10)
+    """Source-view counts K to evaluate (3 and 10 are the standard settings)."""
+    out: Path | None = None
+    """Output folder (default: outputs/eval/<model name>)."""
+    synth_count: int = 10
+    """Scenes in the synth:eval set (seeds 900000, 900001, ...)."""
+    max_targets: int | None = None
+    """Score at most this many targets per scene instead of the protocol's choice (quick checks;
+    results are marked as not following the protocol)."""
+    save_images: bool = True
+    """Write a GT | render | |error| panel per target."""
+    cache: Path = Path("outputs/cache")
+    """Where the synth:eval scenes are generated."""
+    protocol_set: Literal["full", "cpu"] = "full"
+    """``full``: the published protocols (128 px); ``cpu``: the same rules at 64 px with fewer targets
+    (the CPU benchmark of the tiny presets; not comparable with ``full``)."""
+    geometry: bool = False
+    """Also extract a mesh per scene and K (`omnirecon mesh`'s protocol; sources: DTU's 23 24 33 or K
+    evenly spaced pool views) and score it: Chamfer / F-score against a procedural scene's exact
+    mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
+
+    def main(self) -> None:
+        set_threads(self.threads)
+        device = pick_device(self.device)
+        net, info = load_model(self.ckpt, self.model, device)
+        out = self.out or Path("outputs/eval") / default_name(self.ckpt, info["name"])
+        if out.exists() and not out.is_dir():
+            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+        result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
+                          device=device, max_targets=self.max_targets, synth_count=self.synth_count,
+                          cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
+                          geometry=self.geometry)
+        from omnirecon.engine.eval_report import summary_lines  # lazy: the report module loads only after a run
+
+        for line in summary_lines(result):
+            print(line)
+        print(f"wrote {out / 'results.json'} and {out / 'results.md'}")

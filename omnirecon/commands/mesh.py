@@ -1,0 +1,16 @@
+"""``omnirecon mesh``: a mesh from a model's rendered depth (TSDF fusion), in the input frame."""
+
+from __future__ import annotations
+
+from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines
+
+
+class MeshCommand(MeshConfig):
+    __doc__ = MeshConfig.__doc__  # the options' description is the command's help
+
+    def main(self) -> None:
+        result = run_mesh(self)
+        for p in result["files"]:
+            print(f"wrote {p}")
+        for line in summary_lines(result):
+            print(line)

@@ -1,0 +1,13 @@
+"""``omnirecon synth``: generate a batch of procedural scenes in parallel."""
+
+from __future__ import annotations
+
+from omnirecon.data.synth.batch import SynthConfig, run_batch
+
+
+class SynthCommand(SynthConfig):
+    __doc__ = SynthConfig.__doc__  # the options' description is the command's help
+
+    def main(self) -> None:
+        self.check()
+        run_batch(self, quiet=False)

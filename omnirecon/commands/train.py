@@ -1,0 +1,30 @@
+"""``omnirecon train``: train a generalizable model on procedural and real scenes (torchrun for DDP)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from omnirecon.engine.distributed import DistEnv
+from omnirecon.engine.train import Trainer
+from omnirecon.engine.train_config import TrainConfig
+
+
+class TrainCommand(TrainConfig):
+    __doc__ = TrainConfig.__doc__  # the options' description is the command's help
+
+    def main(self) -> None:
+        env = DistEnv.from_env()
+        trainer = Trainer(self, env)
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        if env.world > 1:  # clean exit recipe (docs/deps.md §7): avoids a teardown abort in gloo
+            import torch.distributed as dist
+
+            dist.barrier()
+            dist.destroy_process_group()
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(0)

@@ -1,0 +1,2 @@
+"""The runtime every command shares: machine settings, model loading, scene preparation, source choice,
+evaluation protocols, training, checkpoints and reports."""

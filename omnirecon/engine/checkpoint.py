@@ -1,0 +1,137 @@
+"""Checkpoints: a folder with safetensors weights, JSON metadata and optimizer state.
+
+Layout of ``DIR`` (each file written to a temporary name, then renamed; ``meta.json`` last, so a
+folder with ``meta.json`` is complete)::
+
+    model.safetensors        weights
+    optimizer.safetensors    optimizer tensors (training checkpoints only)
+    meta.json                {"preset", "model_config", "step", "train_config", "optimizer": {param_groups,
+                              state keys}, "extra": {...}, "provenance": {...}}
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from omnirecon.data.io import atomic_path, read_json, write_json
+from omnirecon.errors import InputError
+from omnirecon.models.registry import build_model, model_config_dict
+
+
+def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: torch.optim.Optimizer | None = None,
+                    train_config: dict | None = None, extra: dict | None = None, provenance: dict | None = None) -> None:
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    module = model.module if hasattr(model, "module") else model  # unwrap DDP
+    state = {k: v.detach().contiguous().cpu() for k, v in module.state_dict().items()}
+    with atomic_path(folder / "model.safetensors") as tmp:
+        save_file(state, str(tmp))
+    opt_meta = None
+    if optimizer is not None:
+        sd = optimizer.state_dict()
+        tensors, keys = {}, {}
+        for pid, st in sd["state"].items():
+            for name, value in st.items():
+                t = value if torch.is_tensor(value) else torch.tensor(value)
+                tensors[f"{pid}.{name}"] = t.detach().contiguous().cpu()
+                keys.setdefault(str(pid), []).append(name)
+        with atomic_path(folder / "optimizer.safetensors") as tmp:
+            save_file(tensors, str(tmp))
+        opt_meta = {"param_groups": sd["param_groups"], "state_keys": keys}
+    write_json(folder / "meta.json", {
+        "preset": preset, "model_config": model_config_dict(module), "step": step,
+        "train_config": train_config or {}, "optimizer": opt_meta, "extra": extra or {},
+        "provenance": provenance or {},
+    })
+
+
+def read_meta(folder: Path) -> dict:
+    folder = Path(folder)
+    if not (folder / "meta.json").is_file():
+        raise InputError("not a checkpoint folder (no meta.json)", folder,
+                         "pass a folder written by `omnirecon train` (e.g. outputs/train/run/checkpoints/latest)")
+    return read_json(folder / "meta.json")
+
+
+def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
+    """Rebuild the model from ``folder``. Returns ``(model, meta)``."""
+
+    folder = Path(folder)
+    meta = read_meta(folder)
+    model = build_model(meta["preset"], meta["model_config"])
+    try:
+        state = load_file(str(folder / "model.safetensors"), device=str(device))
+    except (SafetensorError, OSError, FileNotFoundError) as e:
+        raise InputError(f"cannot read weights ({e})", folder / "model.safetensors", "the checkpoint is corrupt") from e
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    if missing or unexpected:
+        raise InputError(f"weights do not match {meta['preset']} (missing {missing[:3]}, unexpected {unexpected[:3]})",
+                         folder / "model.safetensors", "use the code version that wrote the checkpoint")
+    return model.to(device), meta
+
+
+def fingerprint(folder: Path) -> dict:
+    """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}``, where ``sha256``
+    is the first 16 hex digits of the SHA-256 of the weights file followed by the model config (sorted
+    JSON), so a page built from stored results can tell whether they were measured with the checkpoint
+    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count."""
+    import hashlib
+
+    folder = Path(folder)
+    meta = read_meta(folder)
+    h = hashlib.sha256((folder / "model.safetensors").read_bytes())
+    h.update(json.dumps(meta.get("model_config", {}), sort_keys=True).encode())
+    return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": h.hexdigest()[:16]}
+
+
+def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:
+    """Restore optimizer state saved by :func:`save_checkpoint` into ``optimizer``."""
+    meta = read_meta(folder)["optimizer"]
+    if meta is None:
+        raise InputError("checkpoint has no optimizer state", folder, "resume from a training checkpoint")
+    tensors = load_file(str(Path(folder) / "optimizer.safetensors"))
+    state = {}
+    for pid, names in meta["state_keys"].items():
+        state[int(pid)] = {n: tensors[f"{pid}.{n}"] for n in names}
+    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+
+
+def dumps(obj) -> str:
+    return json.dumps(obj, indent=1, default=str)
+
+
+def param_digest(model: nn.Module) -> str:
+    """SHA-256 of every parameter's bytes, in state-dict order."""
+    h = hashlib.sha256()
+    for k, v in model.state_dict().items():
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def point_latest(ckdir: Path, name: str) -> None:
+    """Make ``ckdir/latest`` a relative link to ``name``, replaced atomically (a copy where links fail)."""
+    tmp = ckdir / ".latest.tmp"
+    if tmp.is_symlink() or tmp.exists():
+        tmp.unlink() if tmp.is_symlink() or tmp.is_file() else shutil.rmtree(tmp)
+    try:
+        os.symlink(name, tmp, target_is_directory=True)
+        if (ckdir / "latest").is_dir() and not (ckdir / "latest").is_symlink():
+            shutil.rmtree(ckdir / "latest")
+        os.replace(tmp, ckdir / "latest")
+    except OSError:
+        shutil.copytree(ckdir / name, tmp)
+        if (ckdir / "latest").is_symlink():
+            (ckdir / "latest").unlink()
+        shutil.rmtree(ckdir / "latest", ignore_errors=True)
+        os.replace(tmp, ckdir / "latest")

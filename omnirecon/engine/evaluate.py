@@ -1,0 +1,237 @@
+"""Evaluation (``omnirecon eval``): score a model on held-out views under one fixed protocol per dataset.
+
+The protocols (which views are targets, which form the source pool, resolution, background,
+masks, crops) live in :mod:`omnirecon.engine.protocols` and are documented in ``docs/evaluation.md``. For every
+scene, every source-view count ``K`` (3 and 10 by default) and every target view, the model
+encodes the ``K`` sources chosen by :func:`select_sources` (the K nearest pool views; DTU's
+3-view setting uses the fixed views 23, 24, 33), renders the target in chunks, and the render
+is scored against the ground truth with :mod:`omnirecon.metrics`.
+
+Python use (benchmark scripts)::
+
+    from omnirecon.engine.evaluate import evaluate
+    from omnirecon.models.registry import build_model
+    result = evaluate(build_model("floor"), ["synth:eval", "../shared/data/llff/fern"], num_views=(3, 10),
+                      out=Path("outputs/eval/floor"))
+    result["means"]["synth"]["3"]["psnr"]
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from omnirecon import metrics
+from omnirecon.cameras import closest_point_to_axes
+from omnirecon.engine import eval_report
+from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.scenes import EvalScene, prepare_scenes
+from omnirecon.engine.views import select_sources, view_metric
+from omnirecon.errors import InputError
+from omnirecon.mesh import geometry as geo
+from omnirecon.mesh.build import MeshOptions, depth_from_outputs, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.geometry import depth_errors
+from omnirecon.progress import progress_bar
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
+
+
+def score(pred: Tensor, gt: Tensor, mask: Tensor | None = None, crop: float = 0.0) -> dict[str, float]:
+    """All metrics of one render ``pred # [H, W, 3]`` against ``gt`` (after cropping ``crop`` of each border)."""
+    if crop > 0:
+        h, w = gt.shape[:2]
+        dy, dx = round(h * crop), round(w * crop)
+        pred, gt = pred[dy:h - dy, dx:w - dx], gt[dy:h - dy, dx:w - dx]
+        mask = None if mask is None else mask[dy:h - dy, dx:w - dx]
+    out = {"psnr": metrics.psnr(pred, gt), "ssim": metrics.ssim(pred, gt)}
+    for key, fn in (("st_lpips_alex", metrics.st_lpips), ("lpips_alex", metrics.lpips)):
+        value = fn(pred, gt)
+        if value is not None:
+            out[key] = value
+    if mask is not None:
+        out["psnr_masked"] = metrics.psnr(pred, gt, mask)
+    return out
+
+
+def evaluate(
+    model,
+    scenes,
+    num_views=(3, 10),
+    out: Path | None = None,
+    *,
+    model_info: dict | None = None,
+    chunk: int = 4096,
+    device: str = "cpu",
+    max_targets: int | None = None,
+    synth_count: int = 10,
+    cache: Path = Path("outputs/cache"),
+    save_images: bool = True,
+    progress: bool = True,
+    seed: int = 0,
+    protocol_set: str = "full",
+    geometry: bool = False,
+) -> dict:
+    """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
+
+    Args:
+        model: A :class:`~omnirecon.models.base.GeneralizableModel` (put in eval mode, moved to ``device``).
+        scenes: Scene folders (read at protocol resolution), ``"synth:eval[:rig]"`` specs,
+            :class:`Scene` objects (used at their own resolution, normalised) or prepared
+            :class:`EvalScene` objects (used as they are).
+        num_views: Source-view counts ``K``; a scene whose pool is smaller than ``K`` skips that K.
+        out: Folder for ``results.json``, ``results.md`` and per-target panels; ``None`` writes nothing.
+        model_info: Name/preset/checkpoint recorded in the results.
+        chunk: Rays per rendering chunk.
+        max_targets: Override the protocols' target caps (the results say so: not protocol numbers).
+        synth_count: Scenes in a ``synth:eval`` set.
+        save_images: Write a ``GT | render | error`` panel per target.
+        progress: Show a progress bar with ETA.
+        seed: Seeds torch before rendering (models are deterministic at test time; recorded).
+        protocol_set: ``"full"`` (the published protocols) or ``"cpu"`` (64 px, fewer targets).
+        geometry: Also mesh each (scene, K) with :func:`geometry_sources` as the sources
+            (``omnirecon mesh``'s protocol) and score the mesh on the targets: Chamfer / F-score
+            against a procedural scene's exact mesh, silhouette IoU against the targets' masks.
+            Per-target depth errors are reported whenever the model renders depth and the scene
+            has ground-truth depth, with or without this flag.
+
+    Returns:
+        ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
+        "unavailable": {metric: reason}, "seconds_per_view"}`` (see ``docs/evaluation.md``).
+    """
+
+    ks = [int(k) for k in num_views]
+    if not ks or min(ks) < 1:
+        raise InputError(f"--num-views must be positive integers, got {list(num_views)}", None, "use e.g. 3 10")
+    if chunk < 1:
+        raise InputError(f"--chunk must be at least 1, got {chunk}", None, "use e.g. 4096")
+    if max_targets is not None and max_targets < 1:
+        raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
+    torch.manual_seed(seed)
+    model = model.to(device).eval()
+    with progress_bar(disable=not progress, transient=False) as bar:
+        prepared = [s for s in scenes if isinstance(s, EvalScene)]
+        prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
+                                   protocol_set)
+        jobs, results = _plan(prepared, ks, max_targets)
+        total = sum(len(job["targets"]) for job in jobs)
+        task = bar.add_task("eval", total=total)
+        for job in jobs:
+            _run_job(model, job, chunk, device, out if save_images else None, bar, task)
+            if geometry:
+                _mesh_job(model, job, chunk, device, out)
+    result = eval_report.collect(results, jobs, ks, {
+        "provenance": provenance(seed=seed, chunk=chunk, eval_device=device),
+        "model": model_info or {"name": type(model).__name__},
+        "protocol_set": protocol_set,
+        "geometry": geometry,
+        "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
+        "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
+        "unavailable": {k: r for k, r in (("st_lpips_alex", metrics.unavailable("st_lpips")),
+                                          ("lpips_alex", metrics.unavailable("lpips"))) if r},
+    })
+    if out is not None:
+        eval_report.write(result, Path(out))
+    return result
+
+
+def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tuple[list[dict], list[dict]]:
+    """One job per (scene, K) that can run, and one result record per scene (skips noted there)."""
+    jobs, records = [], []
+    for es in scenes:
+        targets, pool = targets_and_pool(es.protocol, es.scene, max_targets)
+        rec = {"name": es.name, "path": None if es.path is None else str(es.path), "protocol": es.protocol.name,
+               "rig": es.scene.rig, "resolution": [es.scene.width, es.scene.height], "targets": targets,
+               "pool": pool, "settings": {}, "skipped": {}}
+        records.append(rec)
+        fixed = dict(es.protocol.fixed_sources)
+        center = closest_point_to_axes(es.scene.cameras) if view_metric(es.scene) == "angle" else None
+        for k in ks:
+            if k not in fixed and len(pool) < k:
+                rec["skipped"][str(k)] = f"the source pool has {len(pool)} views, fewer than {k}"
+                continue
+            sources = [list(fixed[k]) if k in fixed else select_sources(es.scene, es.scene.cameras[t], pool, k, center)
+                       for t in targets]
+            jobs.append({"scene": es, "k": k, "targets": targets, "sources": sources, "record": rec})
+    return jobs, records
+
+
+def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, task) -> None:
+    """Render and score every target of one (scene, K) job; fills ``job["views"]``."""
+
+    es: EvalScene = job["scene"]
+    scene, k = es.scene, job["k"]
+    bar.update(task, description=f"{es.name} K={k}")
+    features, key = None, None
+    views = []
+    for t, src in zip(job["targets"], job["sources"]):
+        start = time.perf_counter()
+        if tuple(src) != key:  # DTU's fixed sources are encoded once
+            features, key = model.encode(Sources.from_scene(scene, src).to(device)), tuple(src)
+        camera = scene.cameras[t].to(device=device, dtype=scene.images.dtype)
+        rendered = model.render_view(features, camera, chunk=chunk)
+        seconds = time.perf_counter() - start
+        gt = scene.images[t]
+        mask = scene.masks[t] if es.protocol.masked and scene.masks is not None else None
+        row = {"index": t, "name": scene.names[t], "sources": src, "seconds": seconds}
+        if "depth" in rendered and scene.depths is not None:
+            depth, _ = depth_from_outputs(rendered)
+            err = depth_errors(depth, scene.depths[t], None if mask is None else mask.bool())
+            row.update({"depth_abs_rel": err["abs_rel"], "depth_delta1": err["delta1"]})
+        preds = {"": rendered["rgb"]} | ({"_aux": rendered["rgb_aux"]} if "rgb_aux" in rendered else {})
+        for suffix, pred in preds.items():
+            pred = pred.detach().float().cpu().clamp(0, 1)
+            row.update({f"{m}{suffix}": v for m, v in score(pred, gt, mask, es.protocol.crop).items()})
+            if out is not None:
+                name = f"{t:03d}_{Path(scene.names[t]).stem}{suffix}.png"
+                eval_report.write_panel(Path(out) / es.name / f"k{k}" / name, gt, pred)
+        views.append(row)
+        bar.advance(task)
+    job["views"] = views
+
+
+def geometry_sources(es: EvalScene, k: int) -> list[int]:
+    """Source views of the mesh scored for (scene, ``k``): the protocol's fixed sources when it has
+    them (DTU 23, 24, 33), else ``omnirecon mesh``'s default (``k`` evenly spaced pool views)."""
+    fixed = dict(es.protocol.fixed_sources)
+    if k in fixed:
+        return list(fixed[k])
+    _, pool = targets_and_pool(es.protocol, es.scene)
+    pick = np.unique(np.linspace(0, len(pool) - 1, k).round().astype(int))
+    return [pool[i] for i in pick]
+
+
+def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> None:
+    """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
+    fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and ``mesh.png``, the mesh
+    seen from the first source view at a 512-px long side)."""
+
+    es: EvalScene = job["scene"]
+    views = geometry_sources(es, job["k"])
+    start = time.perf_counter()
+    made = mesh_from_model(model, es.scene, views, MeshOptions(chunk=chunk), device)
+    seconds = time.perf_counter() - start
+    if len(made.mesh.faces) == 0:
+        job["geometry"] = {"views": views, "empty": True, "seconds": seconds}
+        return
+    scored = geo.score_mesh(made, es.scene, job["targets"])
+    row = {"views": views, "faces": len(made.mesh.faces), "seconds": seconds}
+    if "chamfer" in scored:
+        c = scored["chamfer"]
+        row.update({"chamfer": c["chamfer"], "accuracy": c["accuracy"], "completeness": c["completeness"],
+                    "fscore": c["fscore"], "threshold": c["threshold"], "chamfer_rel": scored["chamfer_rel"]})
+    if "mask_iou" in scored:
+        row["mask_iou"] = scored["mask_iou"]["mean"]
+    if "rendered_depth" in scored:
+        row["fused_depth_abs_rel"] = scored["rendered_depth"]["abs_rel"]
+    if out is not None:
+        folder = Path(out) / es.name / f"k{job['k']}"
+
+        export_mesh(to_input_frame(made.mesh, es.scene.to_input), [folder / "mesh.ply"])
+        cam = es.scene.cameras[views[0]]
+        geo.save_picture(folder / "mesh.png", made.mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
+    job["geometry"] = row

@@ -1,0 +1,127 @@
+"""The evaluation protocols: one fixed rule per dataset for which views are targets, which form the
+source pool, at what resolution and background, with which masks and crops (``docs/evaluation.md``
+has the same table in words)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from omnirecon.data.io import read_json
+from omnirecon.data.scene import Scene
+from omnirecon.errors import InputError
+
+SYNTH_PREFIX = "synth:eval"
+"""Scene spec of the held-out procedural set (``synth:eval`` or ``synth:eval:<rig>``)."""
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """How one dataset is evaluated. Every field is part of the published protocol."""
+
+    name: str
+    """Protocol key, used in result tables."""
+    datasets: str
+    """Which scenes it applies to."""
+    rule: Literal["test_split", "every_8th", "dtu"]
+    """Target/pool rule: the reader's test split vs train split; every 8th view vs the rest; DTU's
+    targets = views other than the 3 fixed sources, pool = every non-target view."""
+    max_targets: int | None = None
+    """Cap on target views (picked by ``pick``), for CPU cost."""
+    pick: Literal["first", "even"] = "first"
+    """How the cap picks targets: the first ones, or evenly spaced over the candidates."""
+    fixed_sources: tuple[tuple[int, tuple[int, ...]], ...] = ()
+    """``(K, views)`` pairs: for these K every target uses exactly these source views."""
+    long_side: int = 128
+    """Images are area-downscaled so the long side is at most this many pixels (never upscaled)."""
+    background: Literal["white", "black"] = "white"
+    """Colour RGBA inputs are composited on (for sources and ground truth alike)."""
+    masked: bool = False
+    """Also report ``psnr_masked``: PSNR over the foreground-mask pixels of the ground truth."""
+    crop: float = 0.0
+    """Fraction of each border cropped before scoring (0 = the full image)."""
+
+
+PROTOCOLS: dict[str, Protocol] = {
+    "blender": Protocol("blender", "Blender / NeRF-synthetic (lego, chair)", "test_split", max_targets=8,
+                        pick="first", masked=True),
+    "dtu": Protocol("dtu", "DTU (NeuS or MVSNet layout; dtu_scan24, dtu_scan37)", "dtu", max_targets=8, pick="even",
+                    fixed_sources=((3, (23, 24, 33)),), masked=True),
+    "llff": Protocol("llff", "LLFF poses_bounds.npy captures (fern; ethiopianHead)", "every_8th"),
+    "ngp": Protocol("ngp", "instant-ngp transforms.json captures (fox)", "every_8th"),
+    "colmap": Protocol("colmap", "COLMAP sparse models", "every_8th"),
+    "synth": Protocol("synth", "omnirecon procedural scenes (synth:eval, seeds 900000+)", "test_split"),
+}
+"""The one protocol per dataset; ``docs/evaluation.md`` has the same table in words."""
+
+CPU_TARGETS = {"blender": 3, "dtu": 4, "llff": 3, "ngp": 3, "colmap": 3, "synth": 2}
+"""Targets per scene of the ``cpu`` protocol set (evenly spaced over the full protocol's candidates)."""
+PROTOCOL_SETS: dict[str, dict[str, Protocol]] = {
+    "full": PROTOCOLS,
+    "cpu": {k: replace(p, long_side=64, max_targets=CPU_TARGETS[k], pick="even") for k, p in PROTOCOLS.items()},
+}
+"""``full``: the published protocols. ``cpu``: the same rules at a 64-px long side (the tiny presets'
+training resolution) with fewer targets, so a CPU can score GPNR and IBRNet in minutes; its numbers
+are labelled with the set's name and are not comparable with ``full`` numbers."""
+
+FORMAT_PROTOCOL = {"blender": "blender", "ngp": "ngp", "llff": "llff", "dtu_neus": "dtu", "dtu_mvsnet": "dtu",
+                   "colmap": "colmap"}
+"""Reader name -> protocol (a Blender-layout folder written by ``omnirecon synth`` uses ``synth``)."""
+
+SYNTH_VIEWS = 40
+"""Views per held-out procedural scene (5 test targets, 30 train views in the pool)."""
+
+
+def is_synth(path: Path) -> bool:
+    """``path`` holds a scene written by ``omnirecon synth`` (its ``scene.json`` names the generator)."""
+    meta = Path(path) / "scene.json"
+    if not meta.is_file():
+        return False
+    return str(read_json(meta).get("generator_version", "")).startswith("omnirecon-synth")
+
+
+def protocol_for(path: Path, fmt: str, protocol_set: str = "full") -> Protocol:
+    """The protocol of the scene at ``path`` read by reader ``fmt``, from set ``protocol_set``."""
+    table = PROTOCOL_SETS[protocol_set]
+    if fmt == "blender" and path is not None and is_synth(path):
+        return table["synth"]
+    return table[FORMAT_PROTOCOL[fmt]]
+
+
+def targets_and_pool(protocol: Protocol, scene: Scene, max_targets: int | None = None) -> tuple[list[int], list[int]]:
+    """Target views and the source pool of ``scene`` under ``protocol`` (disjoint, sorted).
+
+    ``max_targets`` overrides the protocol's cap (results then say they are not the protocol's).
+    """
+    n = len(scene)
+    cap = protocol.max_targets if max_targets is None else max_targets
+    if protocol.rule == "test_split":
+        test = scene.splits.get("test", [])
+        if not test:
+            raise InputError("scene has no test split", scene.path, f"the {protocol.name} protocol scores the "
+                             "test split; give a scene with transforms_test.json")
+        candidates = sorted(test)
+        pool_from = sorted(scene.splits.get("train") or [i for i in range(n) if i not in set(test)])
+    elif protocol.rule == "every_8th":
+        candidates = list(range(0, n, 8))
+        pool_from = [i for i in range(n) if i % 8]
+    else:  # dtu
+        fixed = dict(protocol.fixed_sources)[3]
+        if n <= max(fixed):
+            raise InputError(f"DTU protocol needs views {fixed} but the scene has {n} views", scene.path,
+                             "give the full 49-view DTU scan")
+        candidates = [i for i in range(n) if i not in fixed]
+        pool_from = None
+    if cap is not None and len(candidates) > cap:
+        if protocol.pick == "first":
+            candidates = candidates[:cap]
+        else:
+            pick = np.unique(np.linspace(0, len(candidates) - 1, cap).round().astype(int))
+            candidates = [candidates[i] for i in pick]
+    targets = candidates
+    pool = [i for i in range(n) if i not in set(targets)] if pool_from is None else pool_from
+    pool = [i for i in pool if i not in set(targets)]
+    return targets, pool

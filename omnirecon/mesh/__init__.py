@@ -1,0 +1,3 @@
+"""Meshes: depth fusion and extraction, the real-time mesh IBR path, colour baking, mesh scoring.
+
+Above models (it renders depth with them), below the engine."""

@@ -1,0 +1,367 @@
+"""Real-time image-based mesh rendering with Omni-Recon's appearance branch (``shared/docs/omnirecon.md`` §7).
+
+Per frame: rasterize the mesh at the target camera (:mod:`omnirecon.render.raster`) -> one surface
+point per covered pixel -> the appearance branch blends the source views there
+(``omega = softmax_i MLP([ReLU(Linear(F_i(x))); u - u_i])``, colour ``sum_i omega_i c_i``) ->
+background colour elsewhere. The geometry branch and the feature volume are not used, and the
+source features are encoded once per scene by :class:`MeshRenderer`, not per frame.
+
+**Visibility** (not in the paper). With ``MeshRenderOptions.visibility`` the mesh is rasterized at
+every source camera once, and source ``i`` is masked out of a point's blend when the point is
+*occluded* there: its z-depth in source ``i`` exceeds ``(1 + visibility_tol)`` times the largest of
+the four rasterized depths around its projection (the bilinear footprint; background and outside
+the image count as infinitely far). Taking the largest of the four makes the test one-sided and
+safe on the point's own surface: on a plane covering the four pixel centres z is convex in the
+image, so the largest corner depth is at least the point's own depth; being one-sided, it also keeps
+points seen just past an occluder's silhouette. Masked views are treated exactly like views the point
+projects outside of (``OmniRecon.shade``'s ``visible`` argument): a point no view sees blends all
+views uniformly, as in the volumetric path.
+
+**Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
+:func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
+like the source RGB (bilinear, border padding, at any resolution covering the source images) and
+blended with ``omega``.
+
+**Fused shader** (``MeshRenderOptions.fused``, the default): the same function as
+``OmniRecon.shade`` with less work per frame (tests: equal to float tolerance). Per scene, the
+appearance projection is applied to the feature maps (``W F_i + b``; bilinear sampling is linear and
+its weights sum to 1, so sampling that map equals ``W f + b``; the map's zero padding becomes a
+border of ``b``), and the ``K`` maps become one texel table sampled with ``embedding_bag`` (a
+weighted sum of 4 rows: about 6x faster than ``grid_sample`` for 16 channels on the CPU). Per frame,
+points go through in cache-sized chunks, every MLP layer is one matrix product over all ``K x n``
+point-view pairs (layers 2 and 3 column-major: several times faster than row-major for these narrow
+layers), and the source colours are sampled exactly as the model does. ``fused=False`` calls
+``model.shade`` (any model with ``encode`` and ``shade``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omnirecon.cameras import Cameras
+from omnirecon.rays import Sources
+from omnirecon.render.raster import Backend, MeshRasterizer, Surface
+
+
+@dataclass
+class MeshRenderOptions:
+    """Settings of :class:`MeshRenderer`."""
+
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Colour of pixels no triangle covers (DTU: white; procedural scenes: ``Scene.background``)."""
+    visibility: bool = False
+    """Mask out sources in which the surface point is occluded (a depth test against each source's
+    rasterized depth map, computed once per scene). The paper has no such test."""
+    visibility_tol: float = 0.01
+    """Relative depth tolerance of the occlusion test: occluded when ``z > (1 + tol) * max(4 depths)``."""
+    cull_back_faces: bool = True
+    """Back-face culling in every rasterization (closed, outward-facing meshes; faster)."""
+    backend: Backend = "auto"
+    """Rasterizer backend: ``"gl"``, ``"reference"`` (NumPy) or ``"auto"`` (GL when EGL starts)."""
+    fused: bool = True
+    """Fused appearance branch (same function, faster; Omni-Recon only) instead of ``model.shade``."""
+    chunk: int = 8192
+    """Surface points per chunk (``K x chunk`` point-view pairs; a cache-sized working set)."""
+
+
+@dataclass
+class ShadeResult:
+    """Blend weights of the covered pixels of one frame (``P`` pixels, ``K`` sources)."""
+
+    surface: Surface
+    """The covered pixels, their surface points and depths (CPU)."""
+    omega: Tensor
+    """Blend weight of each source at each covered pixel (sums to 1 over sources). ``# [K, P]``"""
+    mask: Tensor
+    """Source ``k`` sees the point: in front, inside its image and (with the visibility test) not
+    occluded. ``# [K, P]`` bool"""
+    coords: Tensor | None
+    """Projection of each point into each source as a fraction of the image size, ``(u / W, v / H)``
+    (inside the image: ``[0, 1)``); what :meth:`MeshRenderer.blend` samples signals at (``None`` when
+    only the colour was asked for). ``# [K, 2, P]``"""
+    rgb: Tensor | None = None
+    """Blended source colour, when the shader computed it on the way. ``# [P, 3]``"""
+
+
+class TexelAtlas:
+    """``K`` channel-first maps ``# [K, C, h, w]`` as one row table for bilinear sampling with
+    :func:`torch.nn.functional.embedding_bag` (a weighted sum of 4 rows per sample, one call for all
+    ``K`` maps).
+
+    ``padding="zeros"`` adds a one-texel border of ``pad_value # [C]`` (default 0) around each map:
+    taps outside a map read it, as ``grid_sample(padding_mode="zeros")`` does for 0 (samples must lie
+    inside the image or be masked out). ``"border"`` clamps texel coordinates to the map, as
+    ``padding_mode="border"``. Both match ``grid_sample(..., align_corners=False)`` up to the float
+    rounding of the coordinates. The bilinear weights of a sample sum to 1; masked samples read 0.
+    """
+
+    def __init__(self, maps: Tensor, padding: str = "zeros", pad_value: Tensor | None = None):
+        if padding not in ("zeros", "border"):
+            raise ValueError(f"padding must be 'zeros' or 'border', got {padding!r}")
+        self.padding = padding
+        """``"zeros"`` or ``"border"``."""
+        self.K, self.C, self.h, self.w = maps.shape
+        p = 1 if padding == "zeros" else 0
+        if p and pad_value is not None:
+            value = pad_value.to(maps).reshape(1, -1, 1, 1)
+            maps = F.pad(maps - value, (p, p, p, p)) + value
+        else:
+            maps = F.pad(maps, (p, p, p, p))
+        self._row_len = self.w + 2 * p
+        self._zero_row = self.K * (self.h + 2 * p) * self._row_len
+        rows = maps.permute(0, 2, 3, 1).reshape(-1, self.C)
+        # zero tail: taps one past a map's last texel (weight 0), and masked samples, stay in the table
+        self.rows = torch.cat([rows, rows.new_zeros(self._row_len + 2, self.C)]).contiguous()
+        """The texels, map-major then row-major, then a zero tail. ``# [K (h + 2p) (w + 2p) + w + 2p + 2, C]``"""
+        self._map_len = (self.h + 2 * p) * self._row_len
+        self._pad = p
+        self._index_dtype = torch.float32 if len(self.rows) < 2**24 else torch.float64  # exact integers
+        self._scale = torch.tensor([self.w, self.h], dtype=self._index_dtype, device=maps.device)[None, :, None]
+        self._hi = self._scale - 1  # largest texel-centre coordinate per axis (border mode)
+        self._offsets = torch.tensor([0, 1, self._row_len, self._row_len + 1], device=maps.device)
+
+    def taps(self, coords: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Rows and weights of the bilinear samples at image fractions ``coords # [K, 2, n]``
+        (``u / W, v / H``; map ``k`` for row ``k``). Samples where ``mask # [K, n]`` is False read 0.
+        Returns ``index # [K n, 4]`` int64 and ``weight # [K n, 4]``, map-major."""
+        K, _, n = coords.shape
+        xy = coords.to(self._index_dtype) * self._scale  # [K, 2, n]
+        xy += self._pad - 0.5  # texel-centre coordinates in the padded map
+        if self.padding == "border":
+            xy.clamp_(min=0)
+            xy = torch.minimum(xy, self._hi, out=xy)
+        corner = xy.floor()
+        frac = (xy - corner).to(coords.dtype)  # [K, 2, n]
+        k = torch.arange(K, dtype=xy.dtype, device=xy.device)[:, None] * self._map_len
+        base = torch.add(corner[:, 0], corner[:, 1], alpha=self._row_len).add_(k).long()  # [K, n]
+        if mask is not None:
+            base.masked_fill_(~mask, self._zero_row)
+        index = base[..., None] + self._offsets  # [K, n, 4]
+        rest = 1 - frac
+        weight = torch.empty(K, n, 4, dtype=frac.dtype, device=frac.device)  # (y0 x0, y0 x1, y1 x0, y1 x1)
+        fx, fy, gx, gy = frac[:, 0], frac[:, 1], rest[:, 0], rest[:, 1]
+        torch.mul(gx, gy, out=weight[..., 0])  # strided writes: far faster than a broadcast outer product
+        torch.mul(fx, gy, out=weight[..., 1])
+        torch.mul(gx, fy, out=weight[..., 2])
+        torch.mul(fx, fy, out=weight[..., 3])
+        return index.reshape(-1, 4), weight.reshape(-1, 4)
+
+    def sample(self, index: Tensor, weight: Tensor) -> Tensor:
+        """Weighted sums of the tapped rows. ``# [K n, C]``"""
+        return F.embedding_bag(index, self.rows, per_sample_weights=weight, mode="sum")
+
+
+def _norm(d: Tensor) -> Tensor:
+    """Euclidean norm over the first axis of ``d # [3, ...]``, clamped like ``F.normalize``. ``# [1, ...]``"""
+    sq = d[0] * d[0]
+    sq.addcmul_(d[1], d[1]).addcmul_(d[2], d[2])
+    return sq.sqrt_().clamp_min_(1e-12)[None]
+
+
+class MeshRenderer:
+    """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
+
+    Args:
+        model: An :class:`~omnirecon.models.omnirecon.OmniRecon` (with ``options.fused=False``,
+            anything with ``encode`` and ``shade(features, points, origins, visible)``). It is put in
+            eval mode and run without gradients.
+        mesh: A ``trimesh.Trimesh`` or a ``(vertices # [V, 3], faces # [F, 3])`` pair, in the sources'
+            world frame.
+        sources: The source views (images, cameras, near/far, bounds), on the model's device.
+        options: :class:`MeshRenderOptions`.
+    """
+
+    def __init__(self, model, mesh, sources: Sources, options: MeshRenderOptions | None = None):
+        self.options = options or MeshRenderOptions()
+        self.model = model.eval()
+        vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+        self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
+                                         cull_back_faces=self.options.cull_back_faces)
+        """The rasterizer: one GL context and the uploaded mesh, reused by every frame."""
+        self.sources = sources
+        self.dtype = sources.images.dtype
+        self.device = sources.images.device
+        self.num_views = len(sources.cameras)
+        with torch.inference_mode():
+            self.features = model.encode(sources)
+            """The encoded sources (once per scene)."""
+            cams = sources.cameras.to(device=self.device, dtype=self.dtype)
+            self._centers = cams.centers.T[:, :, None].contiguous()  # [3, K, 1]
+            self._proj = (cams.K @ cams.w2c[:, :3, :]).reshape(-1, 4)  # [3K, 4]: world -> (u z, v z, z)
+            self._size = torch.tensor([cams.width, cams.height], dtype=self.dtype, device=self.device)[None, :, None]
+            self._images = sources.images.permute(0, 3, 1, 2)  # [K, 3, H, W]
+            self._rgb = TexelAtlas(self._images, "border")
+            if self.options.fused:
+                self._feat, self._mlp = self._fold(model.appearance)
+        self.source_depth_max: Tensor | None = None
+        """With ``options.visibility``: per source, the largest rasterized depth of each 2x2 block of
+        pixel centres (inf = background or outside), ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers
+        rows ``a - 1, a`` and columns ``b - 1, b``."""
+        if self.options.visibility:
+            depth = self.source_depths().to(self.device, self.dtype)  # [K, H, W]
+            d = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
+            d = F.pad(d[:, None], (1, 1, 1, 1), value=float("inf"))  # [K, 1, H + 2, W + 2]
+            self.source_depth_max = F.max_pool2d(d, 2, stride=1)[:, 0].contiguous()
+
+    def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
+        """The appearance branch prepared for :meth:`_fused` (module docstring): the texel table of
+        ``W F_i + b`` (border ``b``) and the MLP: ``W1`` split into its feature and direction columns
+        and transposed (``[C, h1]``, ``[3, h1]``), ``b1 # [h1]``, then ``W2``, ``b2``, ``W3``, ``b3`` as
+        ``[out, in]`` matrices and ``[out, 1]`` biases."""
+        dt = self.dtype
+        W, b = app.proj.weight.to(dt), app.proj.bias.to(dt)  # [C, C], [C]
+        maps = torch.einsum("dc,kchw->kdhw", W, self.features.maps) + b[:, None, None]  # [K, C, h, w]
+        (w1, b1), (w2, b2), (w3, b3) = [(m.weight.to(dt), m.bias.to(dt)[:, None]) for m in app.mlp
+                                        if isinstance(m, torch.nn.Linear)]
+        C = W.shape[0]
+        # layer 1 row-major ([K n, C] @ [C, h1]), the narrower layers 2 and 3 column-major
+        mlp = [t.contiguous() for t in (w1[:, :C].T, w1[:, C:].T, b1[:, 0], w2, b2, w3, b3)]
+        return TexelAtlas(maps, "zeros", pad_value=b), mlp
+
+    def source_depths(self) -> Tensor:
+        """Rasterized z-depth of the mesh at every source camera, 0 = background. ``# [K, H, W]``"""
+        cams = self.sources.cameras
+        return torch.stack([self.rasterizer.rasterize(cams[i], normals="none").depth for i in range(len(cams))])
+
+    # ------------------------------------------------------------------ per point
+    def project(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Project ``points # [3, n]`` (channel-first) into every source: pixel coordinates
+        ``uv # [K, 2, n]``, camera z-depth ``z # [K, n]`` and ``mask # [K, n]`` (in front, inside the
+        image and, with the visibility test on, not occluded)."""
+        K = self.num_views
+        uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
+        z = uvz[:, 2]
+        uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project
+        mask = (z > 1e-6) & ((uv >= 0) & (uv < self._size)).all(1)
+        if self.source_depth_max is not None:
+            mask &= self.visible(uv, z)
+        return uv, z, mask
+
+    def visible(self, uv: Tensor, z: Tensor) -> Tensor:
+        """Occlusion test (module docstring) of points at source pixel coordinates ``uv # [K, 2, n]``
+        with source z-depths ``z # [K, n]``. ``# [K, n]`` bool"""
+        dmax = self.source_depth_max
+        if dmax is None:
+            raise ValueError("the occlusion test needs MeshRenderOptions(visibility=True)")
+        K, Hp, Wp = dmax.shape
+        b = torch.floor(uv[:, 0] - 0.5).clamp(-1, Wp - 2).long() + 1  # [K, n] block column
+        a = torch.floor(uv[:, 1] - 0.5).clamp(-1, Hp - 2).long() + 1  # [K, n] block row
+        flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
+        return z <= dmax.reshape(-1)[flat] * (1 + self.options.visibility_tol)
+
+    def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True) -> ShadeResult:
+        """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels
+        (with ``with_rgb``, also their blended source colour; ``with_coords=False`` skips storing the
+        source coordinates that :meth:`blend` needs)."""
+        with torch.inference_mode():
+            surf = self.rasterizer.surface(camera)
+            points = surf.points.to(self.device, self.dtype)  # [P, 3]
+            origin = camera.centers[0].to(self.device, self.dtype)  # [3]
+            if self.options.fused:
+                return self._fused(surf, points, origin, with_rgb, with_coords)
+            uv, _, mask = self.project(points.T)
+            out = self.model.shade(self.features, points, origin.expand_as(points),
+                                   visible=mask.T if self.options.visibility else None)
+            return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None)
+
+    def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool) -> ShadeResult:
+        """``OmniRecon.shade`` for one point per pixel, fused (module docstring)."""
+        w1z, w1d, b1, w2, b2, w3, b3 = self._mlp
+        K, total = self.num_views, points.shape[0]
+        new = dict(dtype=self.dtype, device=self.device)
+        omega = torch.empty(K, total, **new)
+        coords = torch.empty(K, 2, total, **new) if with_coords else None
+        mask_all = torch.empty(K, total, dtype=torch.bool, device=self.device)
+        rgb = torch.empty(3, total, **new) if with_rgb else None
+        for s in range(0, total, self.options.chunk):
+            sl = slice(s, s + self.options.chunk)
+            p = points[sl].T.contiguous()  # [3, n]
+            n = p.shape[1]
+            uv, _, mask = self.project(p)  # [K, 2, n], [K, n]
+            st = uv / self._size  # [K, 2, n] image fractions
+            z = self._feat.sample(*self._feat.taps(st, mask)).relu_()  # [K n, C]: ReLU(W f + b)
+            d_t = p - origin[:, None]  # [3, n] target -> point
+            d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
+            rel = (d_t / _norm(d_t))[:, None] - d_s / _norm(d_s)  # [3, K, n]
+            hid = torch.addmm(b1, z, w1z).addmm_(rel.reshape(3, K * n).T, w1d).relu_()  # [K n, h1]
+            hid = torch.addmm(b2, w2, hid.T).relu_()  # [h2, K n]
+            logit = torch.addmm(b3, w3, hid).reshape(K, n).masked_fill_(~mask, -1e9)
+            om = torch.softmax(logit, dim=0)  # [K, n]
+            omega[:, sl], mask_all[:, sl] = om, mask
+            if with_coords:
+                coords[:, :, sl] = st
+            if with_rgb:  # the model's own sampling of the source colours
+                grid = (st * 2 - 1).transpose(1, 2)[:, None]  # [K, 1, n, 2]
+                c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]
+                rgb[:, sl] = (c * om[:, None]).sum(0)  # [3, n]
+        return ShadeResult(surf, omega, mask_all, coords, None if rgb is None else rgb.T)
+
+    # ------------------------------------------------------------------ images
+    def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:
+        """Blend a per-view ``signal # [K, C, H', W']`` (channel-first, or a border-padded
+        :class:`TexelAtlas`) at ``shaded``'s points with its weights (bilinear, border padding). ``# [P, C]``"""
+        atlas = signal if isinstance(signal, TexelAtlas) else TexelAtlas(signal.to(self.device, self.dtype), "border")
+        K, C = atlas.K, atlas.C
+        out = torch.empty(shaded.omega.shape[1], C, dtype=self.dtype, device=self.device)
+        for s in range(0, out.shape[0], self.options.chunk):
+            sl = slice(s, s + self.options.chunk)
+            values = atlas.sample(*atlas.taps(shaded.coords[:, :, sl])).reshape(K, -1, C)
+            out[sl] = (values * shaded.omega[:, sl, None]).sum(0)
+        return out
+
+    def render(self, camera: Cameras, extras: bool = True) -> dict[str, Tensor]:
+        """Render one view: ``rgb # [H, W, 3]`` (the options' background where no triangle) and, with
+        ``extras``, ``depth # [H, W]`` (z-depth, 0 = background), ``mask # [H, W]`` (covered by the
+        mesh), ``blend # [H, W, K]`` (omega, 0 on background) and ``seen # [H, W]`` (some source sees
+        the surface point)."""
+        with torch.inference_mode():
+            shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused)
+            rgb = shaded.rgb if shaded.rgb is not None else self.blend(shaded, self._rgb)
+            rgb = shaded.surface.image(rgb, self.options.background)
+            return self._outputs(shaded, rgb=rgb) if extras else {"rgb": rgb}
+
+    def render_signal(self, camera: Cameras, signal: Tensor, background: float | Tensor = 0.0) -> dict[str, Tensor]:
+        """Render a per-view signal ``# [K, H', W', C]`` (any resolution covering each source image)
+        with the colour's weights. Returns ``signal # [H, W, C]`` (``background`` where no triangle)
+        plus the extras of :meth:`render`."""
+        if signal.dim() != 4 or signal.shape[0] != self.num_views:
+            raise ValueError(f"signal must be [K={self.num_views}, H, W, C], got {tuple(signal.shape)}")
+        with torch.inference_mode():
+            shaded = self.weights(camera)
+            values = self.blend(shaded, signal.permute(0, 3, 1, 2))
+            return self._outputs(shaded, signal=shaded.surface.image(values, background))
+
+    def _outputs(self, shaded: ShadeResult, **images: Tensor) -> dict[str, Tensor]:
+        surf = shaded.surface
+        covered = torch.ones(len(surf.pixels), 1, dtype=self.dtype, device=self.device)
+        return {**images,
+                "depth": surf.image(surf.depth[:, None].to(self.device, self.dtype), 0.0)[..., 0],
+                "mask": surf.image(covered, 0.0)[..., 0] > 0,
+                "blend": surf.image(shaded.omega.T, 0.0),
+                "seen": surf.image(shaded.mask.any(0)[:, None].to(self.dtype), 0.0)[..., 0] > 0}
+
+    def close(self) -> None:
+        """Free the rasterizer's GL context."""
+        self.rasterizer.close()
+
+    def __enter__(self) -> MeshRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def render_signal(model, mesh, sources: Sources, camera: Cameras, signal: Tensor, background: float | Tensor = 0.0,
+                  options: MeshRenderOptions | None = None) -> Tensor:
+    """Blend a per-view ``signal # [K, H', W', C]`` (one map per source) at ``camera``'s surface points
+    with the appearance branch's weights, ``background`` where no triangle. ``# [H, W, C]``
+
+    One-shot :meth:`MeshRenderer.render_signal` (encodes the sources, builds and frees a renderer); keep
+    a :class:`MeshRenderer` for many frames or signals instead.
+    """
+    with MeshRenderer(model, mesh, sources, options) as renderer:
+        return renderer.render_signal(camera, signal, background)["signal"]

@@ -1,0 +1,48 @@
+"""The one projector every model uses: project 3-D points into the source views and bilinearly sample
+per-view 2-D maps (features, colours, lifted signals) there, for all views at once.
+
+Pixel centres sit at ``+0.5`` (docs/conventions.md), so a pixel coordinate ``u`` maps to the
+``grid_sample`` coordinate ``2 u / W - 1`` with ``align_corners=False``. Sampling outside the image
+reads zeros (``padding="zeros"``: features, whose absence the ``in_image`` mask also marks) or the
+nearest border pixel (``padding="border"``: colours and signals, so that blends stay finite).
+"""
+
+from __future__ import annotations
+
+from typing import Literal, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from omnirecon.cameras import Cameras
+
+
+class Projection(NamedTuple):
+    """Where points land in each of ``V`` views."""
+
+    grid: Tensor
+    """``grid_sample`` coordinates of each point in each view. ``# [V, 1, P, 2]``"""
+    in_image: Tensor
+    """The point lies in front of the camera and inside the image. ``# [V, P]`` bool"""
+
+
+def image_grid(uv: Tensor, width: int, height: int) -> Tensor:
+    """Pixel coordinates ``# [..., 2]`` -> ``grid_sample`` coordinates (``align_corners=False``)."""
+    return uv / torch.tensor([width, height], dtype=uv.dtype, device=uv.device) * 2 - 1
+
+
+def project(cameras: Cameras, points: Tensor, dtype: torch.dtype | None = None) -> Projection:
+    """Project ``points # [P, 3]`` (world) into every camera of ``cameras`` (``V`` views of one size).
+
+    ``dtype``: of the returned grid (default: the points'); the projection itself runs in the
+    points' dtype."""
+    proj = cameras.project(points)  # [V, P]
+    grid = image_grid(proj.uv, cameras.width, cameras.height)
+    return Projection(grid.to(dtype or points.dtype)[:, None], proj.in_image)
+
+
+def sample(maps: Tensor, projection: Projection, padding: Literal["zeros", "border"] = "zeros") -> Tensor:
+    """Bilinear samples of per-view ``maps # [V, C, H, W]`` at a :class:`Projection`. ``# [V, C, P]``"""
+    out = F.grid_sample(maps, projection.grid.to(maps.dtype), align_corners=False, padding_mode=padding)
+    return out[:, :, 0]

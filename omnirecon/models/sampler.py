@@ -1,0 +1,29 @@
+"""The hierarchical sampler of the models that render in two passes (IBRNet, Omni-Recon): coarse
+z-depths between the sources' near and far bounds, then importance samples drawn from the coarse
+pass's weights and merged with the coarse ones. The arithmetic lives in :mod:`omnirecon.render.volume`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from omnirecon.rays import Rays, Sources
+from omnirecon.render.volume import sample_along_rays, sample_pdf
+
+
+def coarse_depths(sources: Sources, rays: Rays, num: int, jitter: bool = False) -> Tensor:
+    """``num`` z-depths per ray in ``[near, far]`` of ``sources``, uniform in inverse depth for forward-facing
+    rigs; stratified when ``jitter``. ``# [R, num]``"""
+    near = rays.origins.new_full((len(rays),), sources.near)
+    far = rays.origins.new_full((len(rays),), sources.far)
+    return sample_along_rays(near, far, num, inverse_depth=sources.rig == "forward", jitter=jitter)
+
+
+def fine_depths(z: Tensor, weights: Tensor, num: int, jitter: bool = False) -> Tensor:
+    """The coarse depths ``z # [R, S]`` plus ``num`` samples of the piecewise-constant density of
+    ``weights # [R, S]`` between their midpoints (deterministic unless ``jitter``), sorted (the
+    importance samples detached from the graph). ``# [R, S + num]``"""
+    mid = 0.5 * (z[:, 1:] + z[:, :-1])
+    z_imp = sample_pdf(mid, weights[:, 1:-1].detach(), num, deterministic=not jitter)
+    return torch.cat([z, z_imp.detach()], -1).sort(-1).values

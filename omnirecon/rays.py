@@ -1,0 +1,80 @@
+"""The data types every layer passes around: the posed source views a model conditions on
+(:class:`Sources`) and a batch of target rays (:class:`Rays`). They sit below data, render and models,
+which all use them; they hold tensors and cameras, never a network."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+from torch import Tensor
+
+from omnirecon.cameras import Cameras
+
+
+@dataclass
+class Sources:
+    """The posed source views a model conditions on."""
+
+    images: Tensor
+    """Source RGB in [0, 1]. ``# [V, H, W, 3]``"""
+    cameras: Cameras
+    """Source cameras (``V``), OpenCV camera-to-world."""
+    near: float
+    """Near z-depth bound of the scene."""
+    far: float
+    """Far z-depth bound of the scene."""
+    rig: str = "unknown"
+    """``"forward"`` (forward-facing: models may sample in inverse depth), ``"object"`` or ``"unknown"``."""
+    bounds: Tensor | None = None
+    """Axis-aligned box holding the content, ``[min, max]`` (Omni-Recon's feature volume). ``# [2, 3]``"""
+
+    def to(self, device) -> Sources:
+        bounds = None if self.bounds is None else self.bounds.to(device)
+        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig, bounds)
+
+    @staticmethod
+    def from_scene(scene, indices) -> Sources:
+        """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far and bounds span
+        the scene."""
+        idx = torch.as_tensor(list(indices), dtype=torch.long)
+        return Sources(scene.images[idx], scene.cameras[idx].to(dtype=scene.images.dtype),
+                       float(scene.near.min()), float(scene.far.max()), scene.rig,
+                       scene.bounds.to(dtype=scene.images.dtype))
+
+
+@dataclass
+class Rays:
+    """A batch of target rays."""
+
+    origins: Tensor
+    """Ray origins (the target camera centre). ``# [R, 3]``"""
+    directions: Tensor
+    """Unit ray directions. ``# [R, 3]``"""
+    up: Tensor
+    """Target camera y axis in world, per ray (fixes the roll of GPNR's canonical frame). ``# [R, 3]``"""
+    z_scale: Tensor
+    """Cosine between each ray and its camera's optical axis: ``z_depth = distance * z_scale``. ``# [R]``"""
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def __getitem__(self, index) -> Rays:
+        return Rays(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    def to(self, device) -> Rays:
+        return Rays(*(getattr(self, f.name).to(device) for f in fields(self)))
+
+    @staticmethod
+    def from_pixels(cameras: Cameras, cam_index: Tensor, uv: Tensor) -> Rays:
+        """Rays through pixels ``uv # [R, 2]`` of cameras ``cam_index # [R]``."""
+        cams = cameras[cam_index]
+        o, d = cams.rays(uv[:, None, :])  # [R, 1, 3]
+        o, d = o[:, 0], d[:, 0]
+        return Rays(o, d, cams.R[:, :, 1], (d * cams.forward).sum(-1))
+
+    @staticmethod
+    def from_image(camera: Cameras) -> Rays:
+        """All pixel-centre rays of one camera, row-major (``R = H * W``)."""
+        uv = camera.pixel_centers().reshape(-1, 2)
+        return Rays.from_pixels(camera, torch.zeros(len(uv), dtype=torch.long, device=uv.device), uv)

@@ -1,0 +1,275 @@
+"""``omnirecon edit``: recolour or remove one object consistently in novel views, and on the baked mesh.
+
+Pick the object by label value (``--label``) or by a click (``--click X Y`` in ``--click-view``, read
+from the label maps); edit its pixels in every source image (:mod:`omnirecon.lift.edit`); re-blend
+every target before/after through the model (``--path volumetric`` or ``mesh``); with an Omni-Recon
+checkpoint also label the mesh's faces by lifting the labels to their centroids, delete or recolour
+that label's faces and export GLB. Writes per target ``<view>_before.png``, ``<view>_after.png``,
+``<view>_mask.png`` (pixels whose lifted label is the object) and ``<view>_panel.png``; the edited
+sources under ``sources/``; ``mesh_original.glb`` and ``mesh_edited.glb`` (input frame); ``edit.json``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from omnirecon.data.io import write_image, write_json
+from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.scenes import prepare_scenes
+from omnirecon.engine.views import select_sources
+from omnirecon.errors import InputError
+from omnirecon.lift import edit as E
+from omnirecon.lift import experiment as X
+from omnirecon.lift import predictors as P
+from omnirecon.lift.blend import supports_lifting
+from omnirecon.lift.experiment import knn_train_views
+from omnirecon.lift.predictors import labels_to_classes
+from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs, scene_mesh
+from omnirecon.mesh.build import export_mesh
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.provenance import provenance
+from omnirecon.rays import Sources
+
+
+@dataclass
+class EditConfig(ThreadsConfig):
+    """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
+    before/after, and delete or recolour its faces on the baked mesh (GLB)."""
+
+    ckpt: Path
+    """Checkpoint folder (Omni-Recon for --path mesh and the mesh edit; IBRNet/GPNR with --no-geometry)."""
+    scene: str = "synth:eval"
+    """A scene folder with label maps, or synth:eval[:rig] (held-out procedural scenes)."""
+    action: Literal["recolour", "remove"] = "recolour"
+    """recolour: new hue and saturation, shading kept; remove: background colour or inpainting."""
+    label: int | None = None
+    """Label value of the object (as in the scene's label maps: 1..254 objects, 255 ground)."""
+    click: tuple[int, int] | None = None
+    """Pick the object under pixel (x=column, y=row) of --click-view instead of --label."""
+    click_view: int | None = None
+    """View of --click (default: the first source of the first target)."""
+    labels: Literal["oracle", "knn"] = "oracle"
+    """Per-view label maps: oracle (the scene's ground truth) or knn (a 2-D pixel classifier fitted on
+    labelled views that are no target's source)."""
+    colour: tuple[float, float, float] = (0.9, 0.1, 0.8)
+    """--action recolour: RGB in [0, 1] whose hue and saturation the object takes."""
+    fill: Literal["background", "inpaint"] = "background"
+    """--action remove: paint with the scene's background colour, or biharmonic inpainting."""
+    dilation: int = 1
+    """--action remove: grow the object's pixels by this many px first (anti-aliased rims)."""
+    path: Literal["volumetric", "mesh"] = "volumetric"
+    """Re-blend through the model's ray weights, or through the mesh (Omni-Recon only)."""
+    visibility: bool = True
+    """--path mesh: mask out sources in which a surface point is occluded (a depth test; not in the paper)."""
+    reencode: bool = False
+    """Re-run the model on the edited sources (the paper's loop: new features and, volumetric, new
+    geometry) instead of blending the edited images with the original weights."""
+    geometry: bool = True
+    """Also edit the mesh (face labels lifted at the centroids) and export GLBs (Omni-Recon only)."""
+    face_views: int = 12
+    """Views whose label maps and images are lifted to the mesh's faces: the sources plus the nearest pool
+    views to the first target up to this many (faces hidden in every view take their neighbours' labels)."""
+    mesh: str = "auto"
+    """Mesh for --path mesh and the mesh edit: gt (procedural exact mesh), model (baked from the model at
+    the sources), auto (gt if any, else model) or a mesh file in the input frame."""
+    num_views: int = 3
+    """Source views K per target (the K nearest of the protocol's pool)."""
+    targets: tuple[int, ...] = ()
+    """Target view indices (default: the protocol's targets)."""
+    out: Path | None = None
+    """Output folder (default outputs/edit/<checkpoint>_<action>)."""
+    protocol_set: Literal["cpu", "full"] = "cpu"
+    """Resolution/targets: cpu (64 px) or full (128 px)."""
+    cache: Path = Path("outputs/cache")
+    """Where synth:eval scenes are generated."""
+    chunk: int = 4096
+    """Rays rendered per chunk (edits run on the CPU)."""
+
+    def run(self) -> list[str]:
+        """Run the command; returns the lines to print."""
+        lines: list[str] = []
+
+        if self.num_views < 1:
+            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
+        if (self.label is None) == (self.click is None):
+            raise InputError("give exactly one of --label or --click", None, "e.g. --label 2 or --click 30 20")
+        if not all(0.0 <= c <= 1.0 for c in self.colour):
+            raise InputError(f"--colour must be RGB in [0, 1], got {self.colour}", None, "e.g. --colour 0.9 0.1 0.8")
+        if self.dilation < 0:
+            raise InputError(f"--dilation must be >= 0, got {self.dilation}", None, "use e.g. 1")
+        set_threads(self.threads)
+        model, info = load_model(self.ckpt, None, "cpu")
+        if not supports_lifting(model):
+            raise InputError(f"model {info['name']} cannot re-blend signals", self.ckpt,
+                             "use an Omni-Recon, IBRNet or GPNR checkpoint")
+        if (self.path == "mesh" or self.geometry) and not isinstance(model, OmniRecon):
+            raise InputError(f"the mesh path and the mesh edit need Omni-Recon, got {info['name']}", self.ckpt,
+                             "use an omnirecon checkpoint, or --path volumetric --no-geometry")
+        out = self.out or Path("outputs/edit") / f"{Path(self.ckpt).name}_{self.action}"
+        if out.exists() and not out.is_dir():
+            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+        es = prepare_scenes([self.scene], 1, self.cache, protocol_set=self.protocol_set)[0]
+        if es.scene.labels is None:
+            raise InputError("the scene has no label maps", es.path, "use a procedural scene (synth:eval or "
+                             "`omnirecon synth`)")
+        result = {"model": info, **run_edit(self, model, es, out / es.name)}
+
+        write_json(out / "edit.json", {"provenance": provenance(seed=0), **result})
+        r = result
+        lines.append(f"{r['action']} label {r['label']} in {len(r['edited_views'])} source views; "
+              + ", ".join(f"view {t['target']}: mean change {t['mean_change_inside']:.3f} on the object's lifted pixels, "
+                          f"{t['mean_change_outside']:.4f} elsewhere" for t in r["targets"]))
+        if r.get("mesh"):
+            m = r["mesh"]
+            lines.append(f"mesh ({m['source']}): {m['faces_hit']} of {m['faces']} faces labelled {r['label']} "
+                  f"{'deleted' if r['action'] == 'remove' else 'recoloured'}")
+        lines.append(f"wrote {out / 'edit.json'} and pictures under {out}")
+        return lines
+
+
+def label_maps(cfg: EditConfig, scene, pool: list[int], used: set[int], table: np.ndarray, needed: list[int]):
+    """Per-view label values ``# [N, H, W]`` from the ground truth or, for the ``needed`` views, the k-NN
+    segmenter (fitted on pool views that are no target's source, ``used``; the other views keep their
+    ground truth and must not be read)."""
+    import torch
+
+    if cfg.labels == "oracle":
+        return scene.labels.clone()
+    train = knn_train_views(pool, used)
+    if not train:
+        raise InputError("knn labels need labelled views that are no target's source", scene.path, "lower --num-views")
+    knn = P.knn_labels(scene, train, table=table)
+    out = scene.labels.clone()
+    for v in sorted(set(needed)):
+        out[v] = torch.from_numpy(table[knn(scene.images[v]).argmax(-1).numpy()])
+    return out
+
+
+def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
+    """The edit of one scene (see the module docstring); returns the JSON record."""
+    import functools
+
+    import torch
+
+    scene = es.scene
+    targets, pool = targets_and_pool(es.protocol, scene)
+    if cfg.targets:
+        bad = [t for t in cfg.targets if not 0 <= t < len(scene)]
+        if bad:
+            raise InputError(f"--targets {bad} outside the views 0..{len(scene) - 1}", es.path, "pick view indices")
+        targets = list(cfg.targets)
+        pool = [v for v in range(len(scene)) if v not in set(targets)]
+    if len(pool) < cfg.num_views:
+        raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {cfg.num_views}", es.path,
+                         "lower --num-views")
+    sources = {t: select_sources(scene, scene.cameras[t], pool, cfg.num_views) for t in targets}
+    used = sorted({v for s in sources.values() for v in s})
+    mesh_needed = cfg.path == "mesh" or cfg.geometry
+    face_views = []  # the sources, then the pool views nearest the first target
+    if mesh_needed:
+        near = select_sources(scene, scene.cameras[targets[0]], pool, len(pool))
+        face_views = (used + [v for v in near if v not in used])[:max(cfg.face_views, len(used))]
+    table = P.class_table(scene)
+    labels = label_maps(cfg, scene, pool, set(used), table, used + face_views)  # [N, H, W] values
+    if cfg.click is not None:
+        view = sources[targets[0]][0] if cfg.click_view is None else cfg.click_view
+        target_label = E.label_at(labels, view, *cfg.click)
+    else:
+        target_label = int(cfg.label)
+    if target_label not in set(table.tolist()):
+        raise InputError(f"label {target_label} is not in the scene (labels: {table.tolist()})", es.path,
+                         "pick one of those values")
+    background = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    masks = labels[used] == target_label  # [U, H, W]
+    edited_used = E.edit_images(scene.images[used], masks, cfg.action, cfg.colour, cfg.fill, background, cfg.dilation)
+    edited = scene.images.clone()
+    edited[used] = edited_used.float()
+    for i, v in enumerate(used):
+        write_image(folder / "sources" / f"{v:03d}_edited.png", edited[v].numpy())
+    C = len(table)
+    onehot = torch.from_numpy(np.eye(C, dtype=np.float32)[np.clip(P.labels_to_classes(labels, table), 0, None)])
+    onehot[torch.from_numpy(P.labels_to_classes(labels, table) < 0)] = 0
+    cls = int(np.searchsorted(table, target_label))
+
+    mesh_rec, mesh_after = None, None
+    if mesh_needed:
+        mesh_rec = _mesh_edit(cfg, model, scene, used, face_views, onehot, cls, table, folder.parent)
+        mesh_after = mesh_rec.pop("_after_mesh")
+
+    rows = []
+    for t in targets:
+        src = sources[t]
+        s_orig = Sources.from_scene(scene, src)
+        s_edit = replace(s_orig, images=edited[src].to(s_orig.images.dtype))
+        if cfg.path == "volumetric":
+            with torch.no_grad():
+                feats = model.encode(s_orig)
+                after_feats = model.encode(s_edit) if cfg.reencode else None
+                r = E.reblend_volumetric(model, feats, scene.cameras[t], scene.images[src], edited[src], onehot[src],
+                                         after_feats, cfg.chunk)
+        else:
+
+            opts = MeshRenderOptions(background=background, visibility=cfg.visibility, cull_back_faces=False)
+            changed_mesh = cfg.action == "remove"  # the after view lacks the object's faces
+            after = None
+            if cfg.reencode or changed_mesh:
+                after = functools.partial(MeshRenderer, model, mesh_after if changed_mesh else mesh_rec["_mesh"],
+                                          s_edit if cfg.reencode else s_orig, opts)
+            with MeshRenderer(model, mesh_rec["_mesh"], s_orig, opts) as before:
+                r = E.reblend_mesh(before, scene.cameras[t], scene.images[src], edited[src], onehot[src], after)
+        lifted = r["labels"].argmax(-1) == cls  # [H, W]
+        delta = (r["after"] - r["before"]).abs().amax(-1)  # [H, W]
+        diff = delta > 1e-4
+
+        def frac(x, m):
+            return float(x[m].float().mean()) if m.any() else 0.0
+
+        rows.append({"target": t, "sources": src, "object_pixels": int(lifted.sum()),
+                     "changed_inside": frac(diff, lifted), "changed_outside": frac(diff, ~lifted),
+                     "mean_change_inside": frac(delta, lifted), "mean_change_outside": frac(delta, ~lifted)})
+        stem = folder / f"{t:03d}"
+        img = scene.images[t].numpy()
+        mask_pic = np.where(lifted.numpy()[..., None], 0.5 * img + 0.5 * np.array([1.0, 0.0, 0.0]), img)
+        write_image(Path(f"{stem}_before.png"), r["before"].clamp(0, 1).numpy())
+        write_image(Path(f"{stem}_after.png"), r["after"].clamp(0, 1).numpy())
+        write_image(Path(f"{stem}_mask.png"), mask_pic)
+        tiles = [img, mask_pic, r["before"].clamp(0, 1).numpy(), r["after"].clamp(0, 1).numpy(),
+                 edited[src[0]].numpy()]
+        write_image(Path(f"{stem}_panel.png"), X.panel(tiles))
+    if mesh_rec is not None:
+        mesh_rec.pop("_mesh")
+    return {"scene": es.name, "action": cfg.action, "label": target_label, "path": cfg.path, "reencode": cfg.reencode,
+            "labels": cfg.labels, "edited_views": used, "panel_tiles": "true image | lifted object mask | before | "
+            "after | first edited source", "targets": rows, "mesh": mesh_rec if cfg.geometry else None}
+
+
+def _mesh_edit(cfg: EditConfig, model, scene, used, views, onehot, cls: int, table, out: Path) -> dict:
+    """Face labels and colours lifted from ``views``; delete/recolour ``cls``; export GLBs."""
+
+    mesh, source = scene_mesh(model, scene, used, cfg.mesh)
+    maps, seen, known = face_maps(model, mesh, Sources.from_scene(scene, views),
+                                  {"labels": (onehot[views], "probabilities"), "rgb": (scene.images[views], "regression")})
+    labels = labels_from_probs(mesh, maps["labels"], seen)
+    colours = np.where(known[:, None], maps["rgb"], 0.5)
+    edited_mesh, edited_colours, keep = E.edit_faces(mesh, colours, labels, cls, cfg.action, cfg.colour)
+    rec = {"source": source, "face_views": views, "faces": len(mesh.faces), "faces_hit": int((labels == cls).sum()),
+           "faces_seen": float(seen.mean()), "faces_kept": len(keep), "_mesh": mesh, "_after_mesh": edited_mesh}
+    gt = gt_face_labels(scene) if source == "gt" else None
+    if gt is not None:
+
+        g = labels_to_classes(gt, table)
+        area = np.asarray(mesh.area_faces)
+        rec["face_label_accuracy"] = float((labels == g).mean())
+        rec["face_label_accuracy_area"] = float((area * (labels == g)).sum() / area.sum())
+    if cfg.geometry:
+        T = scene.to_input.double().numpy()
+        for name, m, c in (("mesh_original.glb", mesh, colours), ("mesh_edited.glb", edited_mesh, edited_colours)):
+            export_mesh(E.coloured_mesh(m, c).apply_transform(T), [out / name])
+        rec["files"] = ["mesh_original.glb", "mesh_edited.glb"]
+    return rec

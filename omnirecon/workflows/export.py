@@ -1,0 +1,84 @@
+"""What ``omnirecon export`` does, as a function of its options: read the scene and model, mesh it (or
+take ``--mesh``), bake vertex colours and write the viewer bundle (:func:`omnirecon.viewer.export.export_scene`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from omnirecon.data import detect_format
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import protocol_for
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.views import check_views, default_views
+from omnirecon.errors import InputError
+from omnirecon.mesh.build import MeshOptions
+from omnirecon.progress import progress_bar
+from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
+
+
+@dataclass
+class ExportConfig(MachineConfig):
+    """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
+    renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
+
+    scene: Path
+    """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
+    ckpt: Path
+    """Checkpoint folder of an Omni-Recon model (`omnirecon train --model omnirecon-*`)."""
+    views: tuple[int, ...] | None = None
+    """Source view indices (default: 23 24 33 on DTU, else --num-views evenly spaced train views)."""
+    num_views: int = 3
+    """Source views K when --views is not given."""
+    mesh: Path | None = None
+    """Mesh file in the input frame (e.g. from `omnirecon mesh`); default: mesh the scene with the model."""
+    out: Path | None = None
+    """Output folder (default: outputs/export/<scene>)."""
+    resolution: int | None = None
+    """Long side of the source images in pixels (default: the scene's eval protocol, 128)."""
+    bake_views: int = 3
+    """Most frontal visible source views blended per vertex for the baked colours."""
+    visibility: bool = True
+    """The viewer starts with the per-source occlusion test on (toggle it in the viewer)."""
+    visibility_tol: float = 0.01
+    """Relative depth tolerance of the occlusion test."""
+    viewer: bool = True
+    """Write the viewer bundle (needs three.js: `npm install` in omnirecon/viewer, done by `make setup`)."""
+    max_edge: float = 0.0
+    """Subdivide triangles until no edge exceeds this fraction of the bounds diagonal before baking, so
+    the vertex colours can carry the texture of large triangles (0: keep the mesh; e.g. 0.005)."""
+    voxel: float = 1 / 256
+    """Without --mesh: TSDF voxel size as a fraction of the bounds diagonal."""
+    masks: bool = True
+    """Without --mesh: clean the mesh with the source views' object masks when the scene has them."""
+    background: Literal["white", "black"] = "white"
+    """Colour RGBA inputs are composited on."""
+
+
+def run_export(cfg: ExportConfig) -> dict:
+    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``)."""
+
+    options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
+    options.check()
+    if cfg.num_views < 1:
+        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
+    mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None
+    set_threads(cfg.threads)
+    device = pick_device(cfg.device)
+    fmt = detect_format(cfg.scene)
+    net, info = load_model(cfg.ckpt, None, device)
+    proto = protocol_for(Path(cfg.scene), fmt)
+    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
+    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
+    out = cfg.out or Path("outputs/export") / Path(cfg.scene).name
+    mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
+    if mesh is None:
+        mesh_options.check()
+    if mesh is None:
+        with progress_bar() as bar:
+            record = export_scene(net, scene, views, out, None, mesh_options, options, device, info, cfg.masks, bar)
+    else:
+        record = export_scene(net, scene, views, out, mesh, mesh_options, options, device, info, cfg.masks)
+    record["out"] = str(out)
+    return record

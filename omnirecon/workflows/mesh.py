@@ -1,0 +1,147 @@
+"""``omnirecon mesh``: a mesh from a model's rendered depth (TSDF fusion), in the input frame.
+
+The protocol is :mod:`omnirecon.mesh.build`'s (VolRecon / Omni-Recon, ``docs`` of the Omni-Recon
+spec §6). Outputs, for ``--out mesh.ply`` (any of ``.ply .obj .glb``, several allowed)::
+
+    mesh.ply            the cleaned mesh in the input scene's frame (``Scene.to_input`` applied)
+    mesh_metrics.json   settings, face counts, seconds per stage and the geometry metrics the scene
+                        allows (silhouette IoU on held-out masks, depth errors, Chamfer / F-score
+                        against a procedural scene's exact mesh), lengths in input units
+    mesh_preview.png    the mesh drawn from the first source view (flat shading)
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from omnirecon.data import detect_format
+from omnirecon.data.io import write_json
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.protocols import protocol_for
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.views import check_views, default_views, held_out_views
+from omnirecon.errors import InputError
+from omnirecon.mesh import geometry
+from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.progress import progress_bar
+
+PREVIEW_SIDE = 512
+"""Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
+@dataclass
+class MeshConfig(MachineConfig):
+    """Extract a mesh from a checkpoint (or the plane-sweep floor): render z-depth at virtually
+    shifted source views, fuse it into a TSDF over the scene bounds, run marching cubes, clean the
+    result with the source masks, and write it in the input scene's frame with its metrics."""
+
+    scene: Path
+    """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
+    ckpt: Path | None = None
+    """Checkpoint folder written by `omnirecon train` (its model must render depth)."""
+    model: Literal["floor"] | None = None
+    """Mesh with a non-learned model instead: `floor` is the plane-sweep baseline."""
+    views: tuple[int, ...] | None = None
+    """Source view indices (default: 23 24 33 on DTU, else --num-views evenly spaced train views)."""
+    num_views: int = 3
+    """Source views K when --views is not given."""
+    out: tuple[Path, ...] = ()
+    """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
+    resolution: int | None = None
+    """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
+    shifts: tuple[float, ...] = (DTU_SHIFT,)
+    """Virtual views per source: shifts along the camera x axis as fractions of its distance to the
+    scene centre (default: VolRecon's 25 mm on DTU); add 0 to also render at the source itself."""
+    voxel: float = 1 / 256
+    """Voxel size as a fraction of the bounds diagonal."""
+    trunc: float = 3.0
+    """TSDF truncation in voxels."""
+    min_acc: float = 0.5
+    """Models that return accumulated opacity (IBRNet): pixels below it get no depth."""
+    masks: bool = True
+    """Clean with the source views' object masks when the scene has them."""
+    min_views: int = 2
+    """Keep vertices inside the masks of at least this many source views."""
+    min_component: float = 0.001
+    """Drop connected components smaller than this fraction of the largest (by faces)."""
+    cull_hidden: bool = True
+    """Drop faces no source pixel ray (inside the masks) hits first."""
+    metrics: bool = True
+    """Score the mesh and write <out>_metrics.json."""
+    preview: bool = True
+    """Write <out>_preview.png (the mesh seen from the first source view)."""
+    def mesh_options(self) -> MeshOptions:
+        return MeshOptions(shifts=tuple(self.shifts), voxel=self.voxel, trunc=self.trunc, min_acc=self.min_acc,
+                           min_views=self.min_views, cull_hidden=self.cull_hidden, min_component=self.min_component,
+                           chunk=self.chunk)
+
+
+def run_mesh(cfg: MeshConfig) -> dict:
+    """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
+
+    options = cfg.mesh_options()
+    options.check()
+    if cfg.num_views < 1:
+        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
+    outs = check_mesh_paths(cfg.out) if cfg.out else None
+    set_threads(cfg.threads)
+    device = pick_device(cfg.device)
+    fmt = detect_format(cfg.scene)
+    net, info = load_model(cfg.ckpt, cfg.model, device)
+    proto = protocol_for(Path(cfg.scene), fmt)
+    start = time.perf_counter()
+    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
+    load_seconds = time.perf_counter() - start
+    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
+    if outs is None:
+        outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
+    with progress_bar(transient=False) as bar:
+        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+    mesh, record = made.mesh, made.info
+    if len(mesh.faces) == 0:
+        raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
+                         "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
+    record["seconds"]["load"] = load_seconds
+    record["seconds"]["images_to_mesh"] = sum(record["seconds"][k] for k in ("load", "render", "fuse",
+                                                                               "marching_cubes", "clean"))
+    record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
+                   "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
+    files = export_mesh(to_input_frame(mesh, scene.to_input), outs)
+    stem = outs[0].with_suffix("")
+    if cfg.preview:
+        cam = scene.cameras[views[0]]
+        cam = cam.rescaled(max(1.0, PREVIEW_SIDE / max(cam.width, cam.height)))
+        files.append(geometry.save_picture(Path(f"{stem}_preview.png"), mesh, cam))
+    if cfg.metrics:
+        start = time.perf_counter()
+        record["metrics"] = geometry.score_mesh(made, scene, held_out_views(scene, views))
+        record["seconds"]["metrics"] = time.perf_counter() - start
+        write_json(Path(f"{stem}_metrics.json"), record)
+        files.append(Path(f"{stem}_metrics.json"))
+    record["files"] = [str(p) for p in files]
+    return record
+
+
+def summary_lines(record: dict) -> list[str]:
+    """Human-readable lines about a :func:`run_mesh` record."""
+    s = record["seconds"]
+    lines = [f"{record['vertices']:,} vertices, {record['faces']['components']:,} faces from "
+             f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
+             f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",
+             f"images to mesh {s['images_to_mesh']:.1f} s (load {s['load']:.1f}, render {s['render']:.1f}, "
+             f"fuse {s['fuse']:.1f}, marching cubes {s['marching_cubes']:.1f}, clean {s['clean']:.1f})"]
+    m = record.get("metrics", {})
+    if "mask_iou" in m:
+        lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
+    for key, what in (("rendered_depth", "model depth maps vs GT mesh"), ("depth", "mesh depth at held-out views")):
+        if key in m:
+            d = m[key]
+            lines.append(f"{what}: abs rel {d['abs_rel']:.3f}, RMSE {d['rmse']:.4g}, delta<1.25 {d['delta1']:.3f}, "
+                         f"coverage {d['coverage']:.2f}")
+    if "chamfer" in m:
+        c = m["chamfer"]
+        lines.append(f"Chamfer {c['chamfer']:.4g} (accuracy {c['accuracy']:.4g}, "
+                     f"completeness {c['completeness']:.4g}), "
+                     f"F-score {c['fscore']:.3f} at {c['threshold']:.3g} (input units; diagonal {m['diagonal']:.3g})")
+    return lines

@@ -1,0 +1,177 @@
+"""``omnirecon render``: render a camera path through a scene to PNG frames and a video.
+
+For each frame camera the model encodes the ``K`` scene views nearest to it (by angle around the
+look-at centre for object rigs, by camera-centre distance otherwise; the same rule as
+``omnirecon eval``) and renders the full frame in chunks. Outputs in ``--out``::
+
+    frames/0000.png ...   one PNG per frame
+    video.mp4             H.264 via imageio + imageio-ffmpeg (video.gif via Pillow when ffmpeg is missing)
+    cameras.json          per frame: c2w (OpenCV, in the normalised scene frame of ``Scene.normalized``),
+                          fx fy cx cy, and the source views used
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from omnirecon import trajectory
+from omnirecon.cameras import Cameras, closest_point_to_axes
+from omnirecon.data.io import atomic_path, write_image, write_json
+from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.views import select_sources, view_metric
+from omnirecon.errors import InputError
+from omnirecon.progress import progress_bar
+from omnirecon.rays import Sources
+
+MAX_DEFAULT_KEYFRAMES = 8
+"""``interp`` without ``--keyframes`` uses at most this many views, evenly spaced in index order."""
+
+
+@dataclass
+class RenderConfig(MachineConfig):
+    """Render a camera path (orbit, LLFF-style spiral, or interpolation between scene cameras)
+    through a scene with a checkpoint or the plane-sweep floor; writes PNG frames and a video."""
+
+    scene: Path
+    """Scene folder (any supported format)."""
+    ckpt: Path | None = None
+    """Checkpoint folder written by `omnirecon train`."""
+    model: Literal["floor"] | None = None
+    """Render with a non-learned model instead of a checkpoint: `floor` is the plane-sweep baseline."""
+    path: Literal["orbit", "spiral", "interp"] = "orbit"
+    """orbit: circle the scene centre at the cameras' mean distance/elevation; spiral: LLFF-style
+    around the mean pose (forward-facing scenes); interp: through the scene cameras in order."""
+    frames: int = 60
+    """Number of frames."""
+    resolution: int = 128
+    """Long side of the rendered frames and of the source images, in pixels (never upscaled)."""
+    num_views: int = 10
+    """Source views K per frame (the K nearest scene views)."""
+    keyframes: tuple[int, ...] | None = None
+    """interp: scene view indices to pass through, in order (default: up to 8 views evenly spaced)."""
+    arc: float = 360.0
+    """orbit: degrees of the arc (360 = a closed loop)."""
+    rots: float = 2.0
+    """spiral: number of turns."""
+    fps: int = 24
+    """Frames per second of the video."""
+    out: Path | None = None
+    """Output folder (default: outputs/render/<scene>_<path>)."""
+    video: bool = True
+    """Also write video.mp4 (or video.gif)."""
+    def check(self) -> None:
+        if self.frames < 1:
+            raise InputError(f"--frames must be at least 1, got {self.frames}", None, "use e.g. 60")
+        if self.num_views < 1:
+            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 10")
+        if self.chunk < 1:
+            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
+        if self.fps < 1:
+            raise InputError(f"--fps must be at least 1, got {self.fps}", None, "use e.g. 24")
+        if not 0 < self.arc <= 360:
+            raise InputError(f"--arc must be in (0, 360], got {self.arc}", None, "use e.g. 360")
+        if self.out is not None and self.out.exists() and not self.out.is_dir():
+            raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
+
+
+def camera_path(cfg: RenderConfig, scene) -> Cameras:
+    """The frame cameras of ``cfg.path`` through ``scene`` (its resolution and intrinsics)."""
+    cams = scene.cameras
+    if cfg.path == "orbit":
+        center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
+        return trajectory.path_cameras(trajectory.orbit(cams, cfg.frames, center, cfg.arc), cams)
+    if cfg.path == "spiral":
+        c2w = trajectory.spiral(cams, float(scene.near.min()), float(scene.far.max()), cfg.frames, cfg.rots)
+        return trajectory.path_cameras(c2w, cams)
+    keys = list(cfg.keyframes) if cfg.keyframes else default_keyframes(len(scene))
+    bad = [k for k in keys if not 0 <= k < len(scene)]
+    if bad or len(keys) < 2:
+        raise InputError(f"--keyframes must name at least 2 views in 0..{len(scene) - 1}, got {keys}", scene.path,
+                         "pass view indices as listed by `omnirecon inspect`")
+    return trajectory.interpolate(cams[keys], cfg.frames)
+
+
+def default_keyframes(n: int) -> list[int]:
+    """All ``n`` views when there are few, else ``MAX_DEFAULT_KEYFRAMES`` evenly spaced ones."""
+    if n <= MAX_DEFAULT_KEYFRAMES:
+        return list(range(n))
+    return np.unique(np.linspace(0, n - 1, MAX_DEFAULT_KEYFRAMES).round().astype(int)).tolist()
+
+
+def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
+    """Render ``cfg``; returns the output folder and the video file (``None`` without ``cfg.video``)."""
+
+    cfg.check()
+    set_threads(cfg.threads)
+    device = pick_device(cfg.device)
+    net, info = load_model(cfg.ckpt, cfg.model, device)
+    scene = load_at_resolution(cfg.scene, cfg.resolution)
+    if cfg.num_views > len(scene):
+        raise InputError(f"--num-views {cfg.num_views} but the scene has {len(scene)} views", cfg.scene,
+                         f"use --num-views {len(scene)} or fewer")
+    out = cfg.out or Path("outputs/render") / f"{Path(cfg.scene).name}_{cfg.path}"
+    cams = camera_path(cfg, scene)
+    pool = list(range(len(scene)))
+    center = closest_point_to_axes(scene.cameras) if view_metric(scene) == "angle" else None
+    frames, records, key, features = [], [], None, None
+    start = time.perf_counter()
+    with progress_bar("render", "frames") as bar, torch.no_grad():
+        task = bar.add_task("render", total=len(cams))
+        for i in range(len(cams)):
+            src = select_sources(scene, cams[i], pool, cfg.num_views, center)
+            if tuple(sorted(src)) != key:
+                key = tuple(sorted(src))
+                features = net.encode(Sources.from_scene(scene, sorted(src)).to(device))
+            rgb = net.render_view(features, cams[i].to(device=device, dtype=scene.images.dtype), chunk=cfg.chunk)["rgb"]
+            frame = (rgb.detach().float().cpu().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)  # [H, W, 3]
+            write_image(out / "frames" / f"{i:04d}.png", frame)
+            frames.append(frame)
+            c = cams[i]
+            records.append({"c2w": c.c2w[0].tolist(), "fx": float(c.fx[0]), "fy": float(c.fy[0]),
+                            "cx": float(c.cx[0]), "cy": float(c.cy[0]), "sources": src})
+            bar.advance(task)
+    seconds = time.perf_counter() - start
+    write_json(out / "cameras.json", {"path": cfg.path, "scene": str(cfg.scene), "model": info, "num_views":
+                                      cfg.num_views, "width": cams.width, "height": cams.height,
+                                      "seconds_per_frame": seconds / len(cams), "frames": records})
+    video = write_video(out / "video.mp4", frames, cfg.fps) if cfg.video else None
+    print(f"{seconds / len(cams):.2f} s per frame")
+    return out, video
+
+
+def write_video(path: Path, frames: list[np.ndarray], fps: int) -> Path:
+    """Write ``frames`` (``# [H, W, 3]`` uint8) as H.264 MP4 via imageio-ffmpeg; without ffmpeg, as a
+    GIF beside ``path`` via Pillow. Returns the file written."""
+    try:
+        import imageio.v2 as imageio
+        import imageio_ffmpeg  # noqa: F401  (the bundled ffmpeg binary)
+    except ImportError:
+        return _write_gif(path.with_suffix(".gif"), frames, fps)
+    # yuv420p needs even sides: pad by repeating the last row/column.
+    h, w = frames[0].shape[:2]
+    pad = ((0, h % 2), (0, w % 2), (0, 0))
+    with atomic_path(path) as tmp:
+        writer = imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", macro_block_size=1,
+                                    pixelformat="yuv420p", output_params=["-crf", "18"])
+        try:
+            for f in frames:
+                writer.append_data(np.pad(f, pad, mode="edge"))
+        finally:
+            writer.close()
+    return path
+
+
+def _write_gif(path: Path, frames: list[np.ndarray], fps: int) -> Path:
+    from PIL import Image
+
+    images = [Image.fromarray(f) for f in frames]
+    with atomic_path(path) as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
+    return path

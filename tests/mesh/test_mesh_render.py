@@ -1,0 +1,180 @@
+"""Mesh IBR rendering: the rasterized path equals the volumetric path's colour at the exact surface, the
+fused shader equals ``OmniRecon.shade``, the visibility test masks an occluded source, per-view signals
+blend like colours, and the FPS benchmark runs."""
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from conftest import ROOT
+
+from omnirecon.cameras import Cameras, look_at
+from omnirecon.data import load_scene
+from omnirecon.data.synth.generate import SynthOptions, generate_scene
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_signal
+from omnirecon.models.registry import build_model
+from omnirecon.rays import Rays, Sources
+from omnirecon.render.raster import MeshRasterizer
+
+pytestmark = pytest.mark.usefixtures("gl")  # skips without EGL, fails under CI=true (conftest)
+SOURCES = [1, 2, 3, 5]
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A procedural scene with its exact mesh, a random omnirecon-tiny, 4 sources and a held-out target."""
+    scene = load_scene(generate_scene(tmp_path_factory.mktemp("meshibr"), 5, SynthOptions(resolution=64, views=8)))
+    mesh = trimesh.load(scene.mesh_path, process=False, force="mesh")
+    torch.manual_seed(0)
+    model = build_model("omnirecon-tiny").eval()
+    return scene, mesh, model, Sources.from_scene(scene, SOURCES), scene.cameras[0].to(dtype=torch.float32)
+
+
+def test_mesh_path_equals_volumetric_colour_at_the_exact_surface(setup):
+    """On a scene whose mesh is exact, each pixel's colour is the volumetric path's colour for a ray whose
+    weight sits on its surface sample (what a converged SRDF gives): the same appearance branch at the
+    same point. The exact points come from the float64 reference rasterizer; the GL path interpolates
+    them in float32."""
+    scene, mesh, model, sources, target = setup
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background)) as renderer:
+        out = renderer.render(target)
+        feats = renderer.features
+    ref = MeshRasterizer.from_trimesh(mesh, backend="reference").rasterize(target)
+    gl = MeshRasterizer.from_trimesh(mesh, backend="gl").rasterize(target)
+    rays = Rays.from_image(target)
+    hit = ref.mask.reshape(-1)
+    t = ref.depth.reshape(-1)[hit] / rays.z_scale[hit]  # z-depth -> distance along the unit ray
+    points = rays.origins[hit] + rays.directions[hit] * t[:, None]  # [P, 3] on the exact surface
+    with torch.no_grad():
+        samples = model.gather(feats, points[:, None], rays.origins[hit])
+        omega = model.blend_weights(samples)  # [P, 1, K]
+        volumetric = (omega[..., None] * samples.rgb).sum(-2)[:, 0]  # [P, 3]
+    mesh_rgb = out["rgb"].reshape(-1, 3)[hit]
+    same = (gl.face == ref.face).reshape(-1)[hit]
+    assert same.float().mean() > 0.99
+    diff = (mesh_rgb - volumetric).abs().amax(-1)[same]
+    assert diff.max() < 1e-4 and diff.median() < 1e-5, (float(diff.max()), float(diff.median()))  # measured 9e-6, 2e-7
+    assert torch.allclose(out["blend"].reshape(-1, 4)[hit][same], omega[same, 0], atol=1e-3)
+    background = torch.tensor(scene.background)
+    assert torch.allclose(out["rgb"][~out["mask"]], background.expand(int((~out["mask"]).sum()), 3))
+    assert torch.equal(out["mask"], gl.mask) and torch.allclose(out["depth"], gl.depth)
+    assert torch.allclose(out["blend"].sum(-1)[out["mask"]], torch.ones(int(out["mask"].sum())), atol=1e-5)
+
+
+@pytest.mark.parametrize("visibility", [False, True])
+def test_fused_shader_equals_model_shade(setup, visibility):
+    scene, mesh, model, sources, target = setup
+    opts = dict(background=scene.background, visibility=visibility, chunk=500)  # several chunks
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts)) as fused, \
+            MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts, fused=False)) as plain:
+        a, b = fused.render(target), plain.render(target)
+        assert torch.equal(a["mask"], b["mask"]) and torch.equal(a["seen"], b["seen"])
+        assert (a["rgb"] - b["rgb"]).abs().max() < 1e-4
+        assert (a["blend"] - b["blend"]).abs().max() < 1e-5
+        signal = torch.rand(4, 20, 24, 5, generator=torch.Generator().manual_seed(0))  # another resolution
+        sa, sb = fused.render_signal(target, signal)["signal"], plain.render_signal(target, signal)["signal"]
+        assert (sa - sb).abs().max() < 1e-5
+
+
+def test_constant_signal_renders_the_constant(setup):
+    scene, mesh, model, sources, target = setup
+    with MeshRenderer(model, mesh, sources) as renderer:
+        const = torch.tensor([0.25, -3.0, 7.5])
+        out = renderer.render_signal(target, const.expand(4, 16, 16, 3).clone(), background=-1.0)
+        m = out["mask"]
+        assert torch.allclose(out["signal"][m], const.expand(int(m.sum()), 3), atol=1e-5)
+        assert (out["signal"][~m] == -1).all()
+        # per-view constants blend with the colour's weights: sum_k omega_k * k
+        ids = torch.arange(4.0)[:, None, None, None].expand(4, 8, 8, 1)
+        got = renderer.render_signal(target, ids)["signal"][..., 0]
+        assert torch.allclose(got[m], (out["blend"] * torch.arange(4.0)).sum(-1)[m], atol=1e-5)
+    one_shot = render_signal(model, mesh, sources, target, const.expand(4, 16, 16, 3).clone())
+    assert torch.allclose(one_shot[m], const.expand(int(m.sum()), 3), atol=1e-5)
+
+
+def quad(center, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """A square in the plane z = center[2], its normal towards -z (facing cameras at smaller z)."""
+    c = np.asarray(center, dtype=np.float64)
+    v = c + np.array([[-half, -half, 0], [half, -half, 0], [half, half, 0], [-half, half, 0]])
+    return v, np.array([[0, 2, 1], [0, 3, 2]])
+
+
+def test_visibility_masks_an_occluded_source():
+    """A back wall at z = 4 and a small occluder at z = 2 that hides the wall point X = (0, 0, 4) from
+    source 0 (at x = +1) but not from source 1 (x = -1) nor from the target (x = 0)."""
+    wall_v, wall_f = quad([0, 0, 4], 2.0)
+    occ_v, occ_f = quad([0.5, 0, 2], 0.2)
+    mesh = (np.concatenate([wall_v, occ_v]), np.concatenate([wall_f, occ_f + 4]))
+    W = H = 32
+    eye = torch.tensor([[1.0, 0, 0], [-1, 0, 0], [0, 0, 0]])
+    c2w = look_at(eye, eye + torch.tensor([0, 0, 1.0]), torch.tensor([0, -1.0, 0]))
+    f = torch.full((3,), 40.0)
+    cams = Cameras(f, f, f * 0 + W / 2, f * 0 + H / 2, c2w, W, H)
+    red, blue = torch.tensor([1.0, 0, 0]), torch.tensor([0, 0, 1.0])
+    images = torch.stack([red.expand(H, W, 3), blue.expand(H, W, 3)])
+    bounds = torch.tensor([[-2.0, -2, 1.5], [2, 2, 4.5]])
+    sources = Sources(images, cams[[0, 1]], 1.0, 6.0, "object", bounds)
+    torch.manual_seed(0)
+    model = build_model("omnirecon-tiny").eval()
+    target = cams[[2]]
+    x_pixel = (H // 2) * W + W // 2  # pixel (16, 16) sees X = (0, 0, 4) at its corner
+    for fused in (True, False):  # the fused shader and model.shade(..., visible=...)
+        results = {}
+        for vis in (False, True):
+            with MeshRenderer(model, mesh, sources, MeshRenderOptions(visibility=vis, fused=fused)) as r:
+                shaded = r.weights(target, with_rgb=True)
+                k = int((shaded.surface.pixels == x_pixel).nonzero()[0, 0])
+                assert abs(float(shaded.surface.depth[k]) - 4.0) < 1e-4  # the wall, not the occluder
+                results[vis] = (shaded.mask[:, k], shaded.omega[:, k], shaded.rgb[k])
+        (m0, w0, c0), (m1, w1, c1) = results[False], results[True]
+        assert m0.tolist() == [True, True] and m1.tolist() == [False, True]
+        assert 0 < w0[0] < 1 and w1[0] == 0 and w1[1] == 1
+        assert torch.allclose(c1, blue) and not torch.allclose(c0, blue)
+
+
+def test_reference_backend_renders_the_same_image(setup):
+    scene, mesh, model, sources, target = setup
+    small = target.rescaled(0.5)
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(backend="reference")) as ref, \
+            MeshRenderer(model, mesh, sources, MeshRenderOptions(backend="gl")) as gl:
+        assert ref.rasterizer.backend == "reference" and gl.rasterizer.backend == "gl"
+        a, b = ref.render(small), gl.render(small)
+    assert (a["mask"] == b["mask"]).float().mean() > 0.99
+    close = (a["rgb"] - b["rgb"]).abs().amax(-1) < 1e-3
+    assert close.float().mean() > 0.99
+
+
+@pytest.mark.slow
+def test_fps_benchmark_quick(tmp_path):
+    out = tmp_path / "mesh_fps.json"
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--out", str(out)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    wall = time.perf_counter() - start
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    r = json.loads(out.read_text())
+    assert r["provenance"]["commit"] and r["config"]["quick"] is True
+    # the FPS is the inverse of the median frame time, and 3 timed frames fit in the command's wall time
+    assert r["mesh"]["fps"] == pytest.approx(1000.0 / r["mesh"]["median_ms"], rel=1e-2)
+    assert r["mesh"]["min_ms"] <= r["mesh"]["median_ms"] and 3 * r["mesh"]["median_ms"] / 1000 < wall
+    # a quick volumetric batch is 64 rays: its extrapolated FPS is rays/s over the frame's pixels
+    px = r["volumetric"]["resolution"][0] * r["volumetric"]["resolution"][1]
+    assert r["volumetric"]["fps_equivalent"] == pytest.approx(r["volumetric"]["rays_per_s"] / px, rel=1e-2)
+    assert r["ratio"] == pytest.approx(r["mesh"]["fps"] / r["volumetric"]["fps_equivalent"], rel=1e-3)
+    assert r["mesh"]["resolution"] == r["volumetric"]["resolution"]
+
+
+def test_bench_refuses_a_non_omnirecon_checkpoint(tmp_path, capsys):
+    from omnirecon.cli import main
+    from omnirecon.engine.checkpoint import save_checkpoint
+    from omnirecon.models.registry import build_model
+
+    save_checkpoint(tmp_path / "gpnr", build_model("gpnr-tiny"), "gpnr-tiny")
+    assert main(["bench", "--quick", "--ckpt", str(tmp_path / "gpnr"), "--out", str(tmp_path / "x.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs an Omni-Recon checkpoint" in err[0]

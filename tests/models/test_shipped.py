@@ -1,0 +1,37 @@
+"""The checkpoints shipped in checkpoints/ load and render on a fresh clone, and carry a model card."""
+
+import json
+
+import pytest
+import torch
+from conftest import ROOT
+
+from omnirecon.engine.checkpoint import load_checkpoint
+from omnirecon.rays import Sources
+from tests.models.test_gpnr import rig
+
+SHIPPED = sorted(p.name for p in (ROOT / "checkpoints").iterdir() if (p / "meta.json").is_file()) \
+    if (ROOT / "checkpoints").is_dir() else []
+
+
+def test_tiny_presets_are_shipped():
+    assert {"gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny"} <= set(SHIPPED)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_checkpoint_renders(name):
+    model, meta = load_checkpoint(ROOT / "checkpoints" / name)
+    assert meta["preset"] == name
+    card = json.loads((ROOT / "checkpoints" / name / "card.json").read_text())
+    assert card["steps"] == meta["step"] and card["cpu_seconds"] <= card["cpu_budget_s"] * 1.05
+    assert (ROOT / "checkpoints" / name / "MODEL_CARD.md").is_file()
+    cams = rig(n=4, w=16, h=16, dtype=torch.float32)
+    images = torch.rand(3, 16, 16, 3, generator=torch.Generator().manual_seed(0))
+    model.eval()
+    features = model.encode(Sources(images, cams[[0, 1, 3]], 2.0, 4.0, "object"))
+    out = model.render_view(features, cams[[2]])
+    assert out["rgb"].shape == (16, 16, 3) and torch.isfinite(out["rgb"]).all()
+    # a float64 target camera (what a Scene holds) is cast to the sources' dtype, same image
+    out64 = model.render_view(features, cams[[2]].to(dtype=torch.float64))
+    assert out64["rgb"].dtype == torch.float32
+    torch.testing.assert_close(out64["rgb"], out["rgb"], atol=1e-5, rtol=0)

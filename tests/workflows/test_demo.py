@@ -1,0 +1,38 @@
+"""``omnirecon demo --quick``: the whole pipeline on the embedded scene, with the shipped checkpoints."""
+
+import json
+
+import pytest
+
+from omnirecon.cli import main
+from omnirecon.workflows.demo import ROOT
+
+
+@pytest.mark.slow
+def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
+    shipped = [m for m in ("gpnr-tiny", "ibrnet-tiny") if (ROOT / "checkpoints" / m / "model.safetensors").is_file()]
+    if len(shipped) < 2:
+        pytest.skip("the shipped gpnr-tiny / ibrnet-tiny checkpoints are not in this clone")
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out)]) == 0, capsys.readouterr().err
+    numbers = json.loads((out / "demo.json").read_text())
+    assert {"floor", "gpnr-tiny", "ibrnet-tiny"} <= set(numbers["scores"])
+    assert all(10 < s["psnr"] < 60 for s in numbers["scores"].values())  # measured, finite, not trivial
+    assert numbers["mesh"]["ibrnet-tiny"]["faces"] > 0 and numbers["mesh"]["ibrnet-tiny"]["chamfer"] > 0
+    page = (out / "index.html").read_text()
+    for name in ("cameras.png", "orbit_gpnr-tiny/video", "mesh_ibrnet-tiny.glb", "eval_floor/"):
+        assert name in page, name
+    for ref in [p.split('"')[0] for p in page.split('src="')[1:]]:
+        assert (out / ref).is_file(), ref  # every picture the page shows exists
+    assert "report:" in capsys.readouterr().out
+    assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
+    if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
+        assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0
+        for name in ("mesh_path/orbit", "finetune/curve.png", "orbit_omnirecon-tiny/video", "overview.png"):
+            assert name in page, name
+
+
+def test_demo_bad_data_exit_2(tmp_path, capsys):
+    assert main(["demo", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing" in err[0]

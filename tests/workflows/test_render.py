@@ -1,0 +1,139 @@
+"""Camera paths (orbit, spiral, interp) and ``omnirecon render`` end to end with the floor."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from omnirecon import trajectory
+from omnirecon.cameras import Cameras, look_at
+from omnirecon.cli import main
+from omnirecon.data.synth.generate import SynthOptions, generate_scene
+from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.workflows.render import _write_gif
+
+
+def assert_rigid(c2w: torch.Tensor) -> None:
+    R = c2w[:, :3, :3]
+    eye = torch.eye(3, dtype=R.dtype).expand_as(R)
+    assert torch.allclose(R.transpose(1, 2) @ R, eye, atol=1e-9)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(len(R), dtype=R.dtype), atol=1e-9)
+    assert torch.allclose(c2w[:, 3], torch.tensor([0, 0, 0, 1.0], dtype=c2w.dtype).expand(len(c2w), 4))
+
+
+def hemisphere_cameras(n=12, radius=3.0) -> Cameras:
+    """Cameras on a ring at 30 degrees elevation around the origin, z up, looking at it."""
+    a = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
+    el = math.radians(30)
+    eye = radius * torch.stack([math.cos(el) * torch.cos(a), math.cos(el) * torch.sin(a),
+                                torch.full_like(a, math.sin(el))], -1)
+    c2w = look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0, 0, 1.0], dtype=torch.float64))
+    return Cameras(torch.full((n,), 20.0), torch.full((n,), 20.0), 8.0, 8.0, c2w, 16, 16)
+
+
+def test_orbit_circles_at_mean_distance_and_elevation():
+    cams = hemisphere_cameras()
+    c2w = trajectory.orbit(cams, 10)
+    assert c2w.shape == (10, 4, 4)
+    assert_rigid(c2w)
+    c = c2w[:, :3, 3]
+    assert torch.allclose(c.norm(dim=-1), torch.full((10,), 3.0, dtype=torch.float64), atol=1e-6)
+    assert torch.allclose(c[:, 2], torch.full((10,), 1.5, dtype=torch.float64), atol=1e-6)  # 3 sin 30°
+    assert torch.allclose(c[0], cams.centers[0], atol=1e-6)  # starts at camera 0
+    fwd = torch.nn.functional.normalize(-c, dim=-1)
+    assert torch.allclose(c2w[:, :3, 2], fwd, atol=1e-6)  # looks at the centre
+    assert (c2w[:, 2, 1] < 0).all()  # image "down" (+y) points down in the world: upright
+    half = trajectory.orbit(cams, 5, arc_degrees=90)
+    assert torch.allclose(half[-1, :3, 3], cams.centers[3], atol=1e-6)  # a partial arc includes its end
+
+
+def test_spiral_around_mean_pose():
+    # Forward-facing grid: parallel cameras looking along +z.
+    xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 3), torch.linspace(-0.5, 0.5, 3), indexing="ij"), -1)
+    eye = torch.cat([xy.reshape(-1, 2), torch.zeros(9, 1)], -1).double()
+    c2w = look_at(eye, eye + torch.tensor([0, 0, 1.0], dtype=torch.float64), torch.tensor([0, -1.0, 0]).double())
+    cams = Cameras(torch.full((9,), 20.0), torch.full((9,), 20.0), 8.0, 8.0, c2w, 16, 16)
+    path = trajectory.spiral(cams, near=2.0, far=10.0, frames=12)
+    assert path.shape == (12, 4, 4)
+    assert_rigid(path)
+    c = path[:, :3, 3]
+    assert c[:, 0].abs().max() <= 1.0 + 1e-9 and c[:, 1].abs().max() <= 0.5 + 1e-9
+    assert (path[:, 2, 2] > 0.9).all()  # still facing forward
+    assert (path[:, 1, 1] > 0.9).all()  # and upright (+y down, as the inputs)
+
+
+def test_quaternion_round_trip_and_slerp():
+    g = torch.Generator().manual_seed(0)
+    q = torch.nn.functional.normalize(torch.randn(64, 4, generator=g, dtype=torch.float64), dim=-1)
+    R = trajectory.quaternion_to_matrix(q)
+    R = torch.cat([R, torch.diag(torch.tensor([1.0, -1, -1], dtype=torch.float64))[None]])  # a 180° turn
+    back = trajectory.quaternion_to_matrix(trajectory.matrix_to_quaternion(R))
+    assert torch.allclose(back, R, atol=1e-9)
+    q0 = torch.tensor([1.0, 0, 0, 0], dtype=torch.float64)
+    q1 = torch.tensor([math.cos(0.5), 0, 0, math.sin(0.5)], dtype=torch.float64)  # 1 rad about z
+    mid = trajectory.quaternion_to_matrix(trajectory.slerp(q0, q1, torch.tensor(0.5, dtype=torch.float64)))
+    assert torch.atan2(mid[1, 0], mid[0, 0]).item() == pytest.approx(0.5, abs=1e-9)
+
+
+def test_interp_passes_through_keyframes():
+    keys = hemisphere_cameras(5)
+    frames = 3 * (len(keys) - 1) + 1
+    cams = trajectory.interpolate(keys, frames)
+    assert len(cams) == frames
+    assert_rigid(cams.c2w)
+    for j in range(len(keys)):
+        assert torch.allclose(cams.c2w[3 * j], keys.c2w[j], atol=1e-9)
+    # in between: centres on the chord, rotations between the neighbours
+    assert torch.allclose(cams.centers[1], keys.centers[0] * 2 / 3 + keys.centers[1] / 3, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    return generate_scene(tmp_path_factory.mktemp("synth"), 900_321, SynthOptions(resolution=32, views=12))
+
+
+@pytest.mark.parametrize("path, extra, frames", [
+    ("orbit", [], 4),
+    ("spiral", [], 4),
+    ("interp", ["--keyframes", "0", "5", "11"], 5),  # frame times 0, .5, 1, 1.5, 2: frames 0, 2, 4 are keyframes
+])
+def test_render_cli(path, extra, frames, scene, tmp_path, capsys):
+    out = tmp_path / path
+    code = main(["render", "--model", "floor", "--scene", str(scene), "--path", path, "--frames", str(frames),
+                 "--num-views", "3", "--resolution", "24", "--out", str(out), *extra])
+    assert code == 0, capsys.readouterr().err
+    assert len(list((out / "frames").glob("*.png"))) == frames
+    video = [p for p in out.iterdir() if p.name in ("video.mp4", "video.gif")]
+    assert len(video) == 1 and video[0].stat().st_size > 0
+    meta = json.loads((out / "cameras.json").read_text())
+    assert len(meta["frames"]) == frames and meta["width"] == 24
+    assert all(len(f["sources"]) == 3 for f in meta["frames"])
+    c2w = torch.tensor([f["c2w"] for f in meta["frames"]], dtype=torch.float64)
+    assert_rigid(c2w)
+    if path == "interp":
+        keys = load_at_resolution(scene, 24).cameras.c2w[[0, 5, 11]]
+        assert torch.allclose(c2w[[0, 2, 4]], keys, atol=1e-9)
+        assert meta["frames"][0]["sources"][0] == 0  # a keyframe's nearest source is its own view
+
+
+def test_gif_fallback(tmp_path):
+    frames = [np.full((5, 7, 3), i * 40, np.uint8) for i in range(3)]
+    path = _write_gif(tmp_path / "video.gif", frames, fps=10)
+    from PIL import Image
+
+    with Image.open(path) as im:
+        assert im.n_frames == 3 and im.size == (7, 5)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--frames", "0"], "--frames"),
+    (["--path", "interp", "--keyframes", "0", "99"], "--keyframes"),
+    (["--num-views", "99"], "--num-views"),
+])
+def test_render_bad_input_exit_2(args, message, scene, tmp_path, capsys):
+    code = main(["render", "--model", "floor", "--scene", str(scene), "--out", str(tmp_path / "o"), *args])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0]
