@@ -7,7 +7,14 @@ when the folder is the model itself).
 Conventions:
 
 * Poses are world-to-camera, OpenCV frame, pixel centres at +0.5 (no shift needed). Images are
-  sorted by name. The scene frame is the model's frame.
+  sorted by name.
+* Scene frame: COLMAP's frame is arbitrary (rotation and scale come from the first image pair), so
+  the scene frame is the upright, unit-scaled one of :func:`omnirecon.data.frame.upright_frame`: +z
+  up (from the cameras), the robust box of the 3-D points centred at 0 with half-diagonal 1.
+  ``to_input`` maps back to the model's frame, so exports land in COLMAP's coordinates.
+* Images: ``images/`` holds them at the cameras' size; ``images_<N>/`` beside it (written by
+  ``omnirecon process``) the same at 1/N size. ``ReadOptions.downscale`` reads the folder with the
+  largest N not above it and does the rest of the downscale on load.
 * Camera models: ``SIMPLE_PINHOLE``, ``PINHOLE``; ``SIMPLE_RADIAL``, ``RADIAL`` and ``OPENCV`` are
   undistorted on load (images resampled onto the pinhole camera with the same K). Others (fisheye,
   ``FULL_OPENCV``, ...) are refused: run ``colmap image_undistorter`` first. All cameras must share
@@ -15,12 +22,14 @@ Conventions:
 * ``near``/``far`` per view: 1st / 99th percentile of the z-depth of the 3-D points the view
   observes, times 0.9 / 1.1 (at least 8 points; else the points that project into it; else the
   median range of the other views).
-* ``bounds``: per-axis 1st to 99th percentile of all 3-D points, padded by 5% of the extent.
+* ``bounds``: per-axis 1st to 99th percentile of all 3-D points in the scene frame, padded by 5%
+  of the extent.
 * ``rig`` from the spread of the optical axes; splits: every 8th view is ``test`` (``llffhold``).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +38,7 @@ import torch
 from omnirecon.cameras import Cameras, rigid_inverse
 from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, rigid_poses
 from omnirecon.data.colmap_io import find_model, qvec_to_rotmat, read_model
+from omnirecon.data.frame import upright_frame
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
 
@@ -89,28 +99,54 @@ def read(path: Path, options) -> Scene:
         w2c[i, :3, :3] = torch.from_numpy(qvec_to_rotmat(im.qvec))
         w2c[i, :3, 3] = torch.from_numpy(im.tvec)
     c2w = rigid_poses(rigid_inverse(w2c), img_file)
-    cameras = Cameras(K[:, 0], K[:, 1], K[:, 2], K[:, 3], c2w, width, height)
 
     pts_file = model.folder / f"points3D{model.ext}"
-    xyz = torch.from_numpy(model.points.xyz)  # [P, 3]
-    if xyz.shape[0] < MIN_POINTS:
-        raise InputError(f"only {xyz.shape[0]} 3-D points: cannot derive depth bounds", pts_file,
+    if model.points.xyz.shape[0] < MIN_POINTS:
+        raise InputError(f"only {model.points.xyz.shape[0]} 3-D points: cannot derive depth bounds", pts_file,
                          "triangulate the model (colmap point_triangulator) before reading it")
+    T, (lo, hi) = upright_frame(c2w.numpy(), model.points.xyz)  # scene <- model frame
+    T = torch.from_numpy(T)
+    xyz = torch.from_numpy(model.points.xyz) @ T[:3, :3].T + T[:3, 3]  # [P, 3] in the scene frame
+    cameras = Cameras(K[:, 0], K[:, 1], K[:, 2], K[:, 3], c2w, width, height).transformed(T)
     near, far = _near_far(cameras, images, model.points.ids, xyz, pts_file)
-    lo, hi = torch.from_numpy(np.percentile(model.points.xyz, [1, 99], axis=0))
+    lo, hi = torch.from_numpy(lo), torch.from_numpy(hi)
     pad = 0.05 * (hi - lo).clamp_min(1e-9)
     bounds = torch.stack([lo - pad, hi + pad])
 
     roots = [path, path.parent, path.parent.parent]
-    image_dir = next((r / "images" for r in roots if (r / "images").is_dir()), path / "images")
-    files = [image_dir / im.name for im in images]
+    root = next((r for r in roots if (r / "images").is_dir()), path)
+    files = [root / "images" / im.name for im in images]
     common_size(files, (width, height), f"{cam_file.name} gives")
+    factor, downscale = _image_folder(root, [im.name for im in images], cameras, float(options.downscale))
+    if factor > 1:
+        files = [root / f"images_{factor}" / im.name for im in images]
+        cameras = cameras.rescaled(1.0 / factor)
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=files, near=near, far=far, bounds=bounds,
-        splits=holdout_splits(len(images)), options=options, rig=detect_rig(cameras), source=img_file,
-        distortion=dist, meta={"model": str(model.folder.relative_to(path)) if model.folder != path else ".",
-                               "points": int(xyz.shape[0])},
+        splits=holdout_splits(len(images)), options=replace(options, downscale=downscale), rig=detect_rig(cameras),
+        source=img_file, distortion=dist, to_input=torch.linalg.inv(T),
+        meta={"model": str(model.folder.relative_to(path)) if model.folder != path else ".",
+              "points": int(xyz.shape[0]), "image_folder": "images" if factor == 1 else f"images_{factor}"},
     )
+
+
+def _image_folder(root: Path, names: list[str], cameras: Cameras, downscale: float) -> tuple[int, float]:
+    """``(N, remaining downscale)``: the ``images_<N>`` folder to read (1 = ``images``) for ``downscale``.
+
+    A folder counts only when it holds every image at exactly the cameras' size divided by N.
+    """
+    best = 1
+    for d in root.glob("images_*"):
+        n = d.name[len("images_"):]
+        if not (n.isdigit() and 1 < int(n) <= downscale * (1 + 1e-9) and int(n) > best):
+            continue
+        small = cameras.rescaled(1.0 / int(n))
+        try:
+            common_size([d / name for name in names], (small.width, small.height), "the cameras give")
+        except InputError:
+            continue  # incomplete or another size: read images/ instead
+        best = int(n)
+    return best, downscale / best
 
 
 def _near_far(cameras: Cameras, images, ids: np.ndarray, xyz: torch.Tensor, source: Path):

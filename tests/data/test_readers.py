@@ -316,17 +316,25 @@ def test_colmap_round_trip(tmp_path, ext):
     assert detect_format(tmp_path) == "colmap"
     c = load_scene(tmp_path)
     assert c.format == "colmap" and len(c) == 10
-    assert torch.allclose(c.cameras.c2w, s.cameras.c2w, atol=1e-6)
+    # the scene frame is upright and unit-scaled; to_input maps it back onto the model's frame exactly
+    back_cams = c.cameras.transformed(c.to_input)
+    assert torch.allclose(back_cams.c2w, s.cameras.c2w, atol=1e-6)
     assert torch.allclose(c.cameras.K, s.cameras.K, atol=1e-6)
     assert (c.images - s.images).abs().max() < 0.6 / 255
+    up = c.cameras.c2w[:, :3, 1].mean(0)  # OpenCV y is down: the mean points to -z
+    assert up[2] < -0.9 * up.norm()
     # points project onto their stored observations (the pose convention round-trips)
     for i, im in enumerate(model.images):
-        uv = c.cameras[i].project(torch.from_numpy(model.points.xyz[im.point3D_ids - 100])).uv[0]
+        uv = back_cams[i].project(torch.from_numpy(model.points.xyz[im.point3D_ids - 100])).uv[0]
         assert torch.allclose(uv, torch.from_numpy(im.xys), atol=1e-6)
     # depth bounds bracket the unit ball; the bounds box is about the ball
-    dist = c.cameras.centers.norm(dim=-1)
-    assert (c.near < dist - 0.5).all() and (c.far > dist + 0.5).all() and (c.near > 0.9 * (dist - 1) - 1e-9).all()
-    assert (c.bounds[0] > -1.1).all() and (c.bounds[1] < 1.1).all() and (c.bounds[0] < -0.8).all()
+    k = c.scale_to_input
+    dist = back_cams.centers.norm(dim=-1)
+    near, far = c.near * k, c.far * k
+    assert (near < dist - 0.5).all() and (far > dist + 0.5).all() and (near > 0.9 * (dist - 1) - 1e-9).all()
+    half = (c.bounds[1] - c.bounds[0]) * k / 2  # a box about the ball: half-sides near 1 (rotated frame)
+    assert (half > 0.8).all() and (half < 1.1).all()
+    assert torch.allclose(c.points_to_input(c.bounds.double().mean(0, keepdim=True)), torch.zeros(1, 3, dtype=torch.float64), atol=0.15)
     assert {k: len(v) for k, v in c.splits.items()} == {"all": 10, "train": 8, "test": 2}
 
 

@@ -1,0 +1,161 @@
+"""Pose recovery: `omnirecon process` on the real scenes with their poses thrown away.
+
+    python bench/poses.py                    # 7 real scenes, 20 images each at their stored size, 1 thread
+    python bench/poses.py --tiny             # one procedural scene (for tests)
+
+For each scene, ``--images`` views are taken evenly spaced over its views (the ``train`` split where
+the scene has one), their image files (only) are handed to :func:`omnirecon.capture.process.process`,
+and the recovered cameras are compared with the scene's own poses after a similarity (Umeyama)
+alignment of the camera centres: registered fraction, rotation error (degrees), camera-centre error
+(% of the scene extent = the diagonal of the reference scene's bounds box, as its reader gives it) and
+seconds. Writes JSON with a provenance header to ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+SCENES = ("blender/lego", "blender/chair", "instant_ngp/fox", "llff/fern", "llff/ethiopianHead",
+          "neus_dtu/dtu_scan24", "neus_dtu/dtu_scan37")
+MASKED = ("llff/ethiopianHead",)  # a turntable: the background stays still while the object turns
+GOALS = {"registered": 0.95, "rotation_deg_median": 1.0, "centre_pct_median": 1.0, "seconds_20": 60.0}
+
+
+def pick_views(scene, count: int, split: str = "train") -> list[int]:
+    """``count`` view indices evenly spaced over the ``split`` views (all views when it has none)."""
+    pool = scene.splits.get(split) or scene.splits["all"]
+    if len(pool) <= count:
+        return list(pool)
+    return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
+
+
+def run_scene(path: Path, count: int, options, work: Path, split: str = "train", masks: bool = False) -> dict:
+    from omnirecon.capture.align import pose_errors
+    from omnirecon.capture.process import process
+    from omnirecon.data import load_scene
+    from omnirecon.errors import InputError
+
+    ref = load_scene(path)
+    views = pick_views(ref, count, split)
+    folder = work / "photos"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    names = {}
+    mask_dir = work / "masks"
+    shutil.rmtree(mask_dir, ignore_errors=True)
+    if masks:
+        if ref.masks is None:
+            raise SystemExit(f"{path} has no masks")
+        mask_dir.mkdir(parents=True)
+    for i in views:
+        src = Path(ref.path) / ref.names[i]
+        name = src.name
+        if name in names:  # same file name in two split folders
+            name = f"{src.parent.name}_{src.name}"
+        shutil.copyfile(src, folder / name)
+        names[name] = i
+        if masks:  # the reader's mask at the stored size (LLFF masks_<N> matched by stem)
+            Image.fromarray(ref.masks[i].numpy().astype(np.uint8) * 255).save(mask_dir / f"{Path(name).stem}.png")
+    out = work / "scene"
+    shutil.rmtree(out, ignore_errors=True)
+    row = {"scene": path.name, "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
+           "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks}
+    t0 = time.perf_counter()
+    try:
+        summary = process(folder, out, options, quiet=True, masks=mask_dir if masks else None)
+    except InputError as e:
+        row.update(error=e.one_line(), registered=0, registered_fraction=0.0,
+                   seconds=round(time.perf_counter() - t0, 2))
+        return row
+    row["seconds"] = round(time.perf_counter() - t0, 2)
+    est = load_scene(out)
+    c2w_est = est.cameras.transformed(est.to_input).c2w.numpy()  # in COLMAP's own frame
+    idx = [names[Path(n).name] for n in est.names]
+    extent = float((ref.bounds[1] - ref.bounds[0]).double().norm())
+    err = pose_errors(c2w_est, ref.cameras.c2w[idx].numpy(), extent)
+    row.update(
+        registered=len(idx), registered_fraction=round(len(idx) / len(views), 4),
+        rotation_deg_median=round(err["rotation_deg_median"], 4), rotation_deg_mean=round(err["rotation_deg_mean"], 4),
+        rotation_deg_max=round(err["rotation_deg_max"], 4),
+        centre_pct_median=round(err["centre_pct_median"], 4), centre_pct_mean=round(err["centre_pct_mean"], 4),
+        centre_pct_max=round(err["centre_pct_max"], 4), extent=round(extent, 5),
+        points3D=summary["points3D"], reprojection_px=round(summary["mean_reprojection_error_px"], 4),
+        models=summary["models"], matcher=summary["matcher"], stage_seconds=summary["seconds"],
+        detected_rig=est.rig, focal_est=round(float(est.cameras.fx[0]), 2), focal_ref=round(float(ref.cameras.fx[0]), 2),
+    )
+    return row
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="*", default=list(SCENES), help="paths under the shared data folder")
+    parser.add_argument("--masked", nargs="*", default=list(MASKED),
+                        help="scenes also run with their masks given to process (turntable captures)")
+    parser.add_argument("--images", type=int, default=20, help="images per scene (evenly spaced)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--camera-model", default="SIMPLE_RADIAL")
+    parser.add_argument("--affine-sift", action="store_true")
+    parser.add_argument("--no-guided", action="store_true")
+    parser.add_argument("--peak-threshold", type=float, default=0.0067)
+    parser.add_argument("--tiny", action="store_true", help="one 12-view procedural scene instead of the real ones")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
+    args = parser.parse_args(argv)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    import torch
+
+    from omnirecon.data.io import write_json
+    from omnirecon.provenance import provenance
+
+    torch.set_num_threads(args.threads)
+    import pycolmap
+
+    prov = provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads)  # at the start
+    from omnirecon.capture.colmap_sfm import SfmOptions
+
+    options = SfmOptions(camera_model=args.camera_model, threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
+                         guided_matching=not args.no_guided, peak_threshold=args.peak_threshold)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="poses_") as tmp:
+        tmp = Path(tmp)
+        if args.tiny:
+            from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+            paths = [generate_scene(tmp / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))]
+        else:
+            paths = [SHARED / s for s in args.scenes if (SHARED / s).is_dir()]
+        jobs = [(p, False) for p in paths]
+        if not args.tiny:
+            jobs += [(SHARED / s, True) for s in args.masked if (SHARED / s).is_dir()]
+        for p, masked in jobs:
+            row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train", masked)
+            print({k: v for k, v in row.items() if k != "stage_seconds"}, flush=True)
+            rows.append(row)
+    prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
+    result = {
+        "provenance": prov,
+        "config": {"images_per_scene": args.images, "threads": args.threads, "tiny": args.tiny,
+                   "size": "each scene's stored image size (long side <= 400 px)",
+                   "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",
+                   "extent": "diagonal of the reference scene's bounds box"},
+        "goals": GOALS,
+        "scenes": rows,
+    }
+    write_json(args.out, result)
+    print(f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,152 @@
+"""A folder of photos, checked and staged for structure from motion.
+
+:func:`stage_images` reads every file of the folder once and raises :class:`InputError` (naming the
+file and the fix) for: a missing or empty folder, no images, fewer than ``min_images``, a file that is
+not a decodable image, all images identical, or different sizes under one shared camera. It writes
+what COLMAP reads into ``dest``: the file itself (hard link or copy) when it is an upright JPEG or
+PNG, otherwise the pixels turned upright by their EXIF orientation (``ImageOps.exif_transpose``) and
+saved as PNG. Hidden files (``.DS_Store``) and sub-folders are skipped.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+from PIL import Image, ImageOps, UnidentifiedImageError
+
+from omnirecon.errors import InputError
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg", ".gif")
+EXIF_ORIENTATION = 0x0112
+
+
+@dataclass
+class StagedImages:
+    """Images ready for COLMAP."""
+
+    folder: Path
+    """Folder holding the staged files."""
+    names: list[str]
+    """File names in ``folder``, sorted (the order of a video's frames)."""
+    sources: dict[str, Path]
+    """Original file of each staged name."""
+    sizes: dict[str, tuple[int, int]]
+    """``(width, height)`` of each staged image (after EXIF orientation)."""
+    rotated: int = 0
+    """How many images were turned upright by their EXIF orientation."""
+
+
+def _visible_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.is_file())
+
+
+def count_files(folder: Path) -> int | None:
+    """Visible files in ``folder`` (what :func:`stage_images` reads), or None when it is not a folder."""
+    folder = Path(folder)
+    return len(_visible_files(folder)) if folder.is_dir() else None
+
+
+def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: bool = True,
+                 on_file=None) -> StagedImages:
+    """Check the photos in ``folder`` and stage them into ``dest`` (see the module docstring).
+    ``on_file()`` is called after each file is read."""
+
+    folder = Path(folder)
+    if not folder.exists():
+        raise InputError("input does not exist", folder, "pass a folder of photos or a video file")
+    files = _visible_files(folder)
+    if not files:
+        raise InputError("the folder is empty", folder, "put the photos (JPEG or PNG) in it")
+    videos = [p for p in files if p.suffix.lower() in VIDEO_EXTS]
+    others = [p for p in files if p.suffix.lower() not in IMAGE_EXTS and p not in videos]
+    if not [p for p in files if p.suffix.lower() in IMAGE_EXTS]:
+        hint = f"pass the video itself: omnirecon process {videos[0]}" if videos else "put the photos (JPEG or PNG) in it"
+        raise InputError(f"no images in the folder ({len(files)} other file{'s' * (len(files) != 1)})", folder, hint)
+    if others:
+        raise InputError(f"not an image file ({len(others)} such file{'s' * (len(others) != 1)} in the folder)",
+                         others[0], "move non-image files out of the photo folder")
+    if videos:
+        raise InputError("a video among the photos", videos[0], "process the photos and the video separately")
+
+    dest = Path(dest)
+    dest.mkdir(parents=True, exist_ok=True)
+    names, sources, sizes, digests, rotated = [], {}, {}, set(), 0
+    for p in files:
+        try:
+            with Image.open(p) as im:
+                im.load()
+                orientation = im.getexif().get(EXIF_ORIENTATION, 1)
+                upright = ImageOps.exif_transpose(im)
+                fmt, mode = im.format, upright.mode
+                if mode not in ("RGB", "RGBA", "L"):
+                    upright = upright.convert("RGBA" if "A" in mode else "RGB")
+                digests.add(hashlib.sha1(upright.tobytes() + repr(upright.size).encode()).hexdigest())
+                copy_as_is = orientation in (None, 1) and fmt in ("JPEG", "PNG") and mode in ("RGB", "RGBA", "L")
+                name = p.name if copy_as_is or p.suffix.lower() == ".png" else p.stem + ".png"
+                if name in sources:
+                    raise InputError(f"two photos would both be staged as {name}", p, "rename one of them")
+                target = dest / name
+                if copy_as_is:
+                    try:
+                        os.link(p, target)
+                    except OSError:
+                        shutil.copyfile(p, target)
+                else:
+                    upright.save(target)
+                    rotated += orientation not in (None, 1)
+                sizes[name] = upright.size
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+            raise InputError(f"cannot read the image ({type(e).__name__}: {e})".replace(str(p), "").strip(), p,
+                             "the file is corrupt or not an image; replace or remove it") from e
+        names.append(name)
+        sources[name] = p
+        if on_file is not None:
+            on_file()
+    if len(names) < min_images:
+        raise InputError(f"only {len(names)} image{'s' * (len(names) != 1)}; structure from motion needs at least "
+                         f"{min_images}", folder, "add more photos of the scene from different viewpoints")
+    if len(digests) == 1:
+        raise InputError(f"all {len(names)} images are identical", folder,
+                         "take photos from different viewpoints (move the camera between shots)")
+    if shared_camera and len(set(sizes.values())) > 1:
+        first = names[0]
+        odd = next(n for n in names if sizes[n] != sizes[first])
+        raise InputError(f"image is {sizes[odd][0]}x{sizes[odd][1]} but {first} is {sizes[first][0]}x{sizes[first][1]}",
+                         sources[odd], "use --per-image-cameras for photos from different cameras or sizes")
+    return StagedImages(dest, sorted(names), sources, sizes, rotated)
+
+
+def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
+    """Masks for the staged images, as COLMAP wants them: ``dest/<image name>.png``, 255 where features
+    may be detected (the mask's non-zero pixels), 0 elsewhere. Masks are matched to the photos by file
+    stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size."""
+
+    mask_dir, dest = Path(mask_dir), Path(dest)
+    if not mask_dir.is_dir():
+        raise InputError("mask folder does not exist", mask_dir, "pass the folder that holds one mask per photo")
+    by_stem: dict[str, Path] = {}
+    for p in _visible_files(mask_dir):
+        if p.suffix.lower() in IMAGE_EXTS:
+            by_stem.setdefault(Path(p.stem).stem if p.stem.lower().endswith(IMAGE_EXTS) else p.stem, p)
+    dest.mkdir(parents=True, exist_ok=True)
+    for name in staged.names:
+        stem = staged.sources[name].stem
+        src = by_stem.get(stem)
+        if src is None:
+            raise InputError(f"no mask for {staged.sources[name].name} (looked for {stem}.png)", mask_dir,
+                             "give one mask per photo, named like the photo")
+        try:
+            with Image.open(src) as m:
+                m = ImageOps.exif_transpose(m).convert("L")
+        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
+            raise InputError(f"cannot read the mask ({type(e).__name__})", src, "replace the file") from e
+        if m.size != staged.sizes[name]:
+            raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
+                             f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")
+        m.point(lambda v: 255 if v > 0 else 0).save(dest / f"{name}.png")
+    return dest

@@ -1,0 +1,104 @@
+"""Photos or a video in, a posed COLMAP scene out (what ``omnirecon process`` runs).
+
+Everything is built in a hidden temporary folder beside ``out`` (``.<name>.tmp<pid>``) and renamed
+onto ``out`` at the very end, so a failure or Ctrl-C leaves no scene folder behind. The scene holds
+
+    images/            undistorted photos (PINHOLE cameras), at full size
+    images_2/, images_4/   the same, downscaled by 2 and 4 (area averaging)
+    sparse/0/          cameras.bin, images.bin, points3D.bin: the largest model COLMAP found
+    process.json       the summary: images registered / given, reprojection error, points, seconds per stage
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scene
+from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
+from omnirecon.capture.video import sample_frames
+from omnirecon.errors import InputError
+
+
+def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
+            overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None) -> dict:
+    """Run structure from motion on the photos in folder ``source`` (or the frames of video ``source``)
+    and write the scene ``out``. ``masks``: a folder of masks matched to the photos by name; features
+    are detected only inside them (objects on a turntable). Returns the summary that is also saved
+    as ``out/process.json``."""
+    options = options or SfmOptions()
+    options.check()
+    source, out = Path(source), Path(out)
+    if not source.exists():
+        raise InputError("input does not exist", source, "pass a folder of photos or a video file")
+    is_video = source.is_file()
+    if is_video and source.suffix.lower() not in VIDEO_EXTS:
+        raise InputError(f"not a folder or a video ({source.suffix or 'no extension'})", source,
+                         f"pass a folder of photos, or a video ({', '.join(VIDEO_EXTS)})")
+    if out.exists() and not overwrite:
+        raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
+    if out.resolve() == source.resolve() or source.resolve() in out.resolve().parents:
+        raise InputError("output folder is inside the input", out, "write the scene somewhere else")
+
+    t0 = time.perf_counter()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    work = tmp / "work"
+    scene = tmp / "scene"
+    try:
+        with Stages(quiet) as stages:
+            if is_video:
+                with stages.stage("frames", None) as advance:
+                    sample_frames(source, work / "frames_raw", fps, max_frames,
+                                  on_frame=lambda i, expected: advance(1, expected))
+                staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
+            else:
+                with stages.stage("check", count_files(source)) as advance:
+                    staged = stage_images(source, work / "input", min_images=3,
+                                          shared_camera=not options.per_image_cameras, on_file=advance)
+            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks")
+            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
+                             mask_dir=mask_dir)
+            info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
+            seconds = dict(stages.seconds)
+        summary = {
+            "input": str(source), "kind": "video" if is_video else "images", **result.stats(),
+            "image_size": info["size"], "cropped_to_common_size": info["crop"], "exif_rotated": staged.rotated,
+            "options": asdict(options), "masks": None if masks is None else str(masks),
+            **({"fps": fps} if is_video else {}),
+            "seconds": {**seconds, "total": round(time.perf_counter() - t0, 3)},
+        }
+        (scene / "process.json").write_text(json.dumps(summary, indent=1))
+        if keep_work:
+            shutil.move(str(work), str(scene / "colmap_work"))
+        if out.exists():
+            shutil.rmtree(out)
+        scene.rename(out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return summary
+
+
+def summary_lines(s: dict) -> list[str]:
+    """Human-readable lines of a :func:`process` summary."""
+    sec = s["seconds"]
+    lines = [
+        f"registered {s['images_registered']} / {s['images_given']} images; {s['points3D']} 3-D points; "
+        f"mean reprojection error {s['mean_reprojection_error_px']:.3f} px; {s['matcher']} matching "
+        f"({s['pairs']} pairs); undistorted to PINHOLE at {s['image_size'][0]}x{s['image_size'][1]}",
+        "seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in sec.items()),
+    ]
+    if s["models"] > 1:
+        lines.append(f"note: COLMAP found {s['models']} separate models; kept the largest "
+                     f"({s['images_registered']} images)")
+    if s["unregistered"]:
+        u = s["unregistered"]
+        lines.append(f"not registered ({len(u)}): " + ", ".join(u[:10]) + (" ..." if len(u) > 10 else ""))
+    if s.get("exif_rotated"):
+        lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
+    return lines
