@@ -63,11 +63,8 @@ def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
 
 def demo_scene(cfg: DemoConfig) -> Path:
     """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated once)."""
-    from omnirecon.data import detect_format  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.data.synth.generate import (  # lazy: the demo composes every workflow; --help stays fast
-        SynthOptions,
-        generate_scene,
-    )
+    from omnirecon.data import detect_format  # lazy: demo --help stays fast
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene  # lazy: demo --help stays fast
 
     if cfg.data is not None:
         detect_format(Path(cfg.data))  # one-line error for a missing or unsupported folder
@@ -78,31 +75,15 @@ def demo_scene(cfg: DemoConfig) -> Path:
 
 def run_demo(cfg: DemoConfig) -> dict:
     """Run the demo; returns ``{"report", "lines", "numbers"}`` (numbers are also in ``demo.json``)."""
-    from omnirecon.data import load_scene  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.data.io import write_json  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.engine.evaluate import evaluate  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.engine.machine import (  # lazy: the demo composes every workflow; --help stays fast
-        load_model,
-        set_threads,
-    )
-    from omnirecon.engine.report import (  # lazy: the demo composes every workflow; --help stays fast
-        Section,
-        write_report,
-    )
-    from omnirecon.provenance import (  # lazy: the demo composes every workflow; --help stays fast
-        markdown_header,
-        provenance,
-    )
-    from omnirecon.workflows.inspect import draw_cameras  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.workflows.mesh import (  # lazy: the demo composes every workflow; --help stays fast
-        MeshConfig,
-        run_mesh,
-        summary_lines,
-    )
-    from omnirecon.workflows.render import (  # lazy: the demo composes every workflow; --help stays fast
-        RenderConfig,
-        run_render,
-    )
+    from omnirecon.data import load_scene  # lazy: demo --help stays fast
+    from omnirecon.data.io import write_json  # lazy: demo --help stays fast
+    from omnirecon.engine.evaluate import evaluate  # lazy: demo --help stays fast
+    from omnirecon.engine.machine import load_model, set_threads  # lazy: demo --help stays fast
+    from omnirecon.engine.report import Section, write_report  # lazy: demo --help stays fast
+    from omnirecon.provenance import markdown_header, provenance  # lazy: demo --help stays fast
+    from omnirecon.workflows.inspect import draw_cameras  # lazy: demo --help stays fast
+    from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines  # lazy: demo --help stays fast
+    from omnirecon.workflows.render import RenderConfig, run_render  # lazy: demo --help stays fast
 
     if cfg.frames < 1 or cfg.resolution < 16 or cfg.num_views < 2:
         raise InputError("--frames must be >= 1, --resolution >= 16 and --num-views >= 2", None,
@@ -257,22 +238,14 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
 
     import torch
 
-    from omnirecon.data.io import write_image  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.engine.checkpoint import load_checkpoint  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.engine.report import Section  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.engine.views import default_views  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.mesh.ibr import (  # lazy: the demo composes every workflow; --help stays fast
-        MeshRenderer,
-        MeshRenderOptions,
-        render_frames,
-    )
-    from omnirecon.rays import Sources  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.workflows.render import (  # lazy: the demo composes every workflow; --help stays fast
-        RenderConfig,
-        camera_path,
-        write_video,
-    )
+    from omnirecon.data.io import write_image  # lazy: demo --help stays fast
+    from omnirecon.engine.checkpoint import load_checkpoint  # lazy: demo --help stays fast
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.engine.views import default_views  # lazy: demo --help stays fast
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames  # lazy: demo --help stays fast
+    from omnirecon.rays import Sources  # lazy: demo --help stays fast
+    from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: demo --help stays fast
+    from omnirecon.workflows.render import RenderConfig, camera_path, write_video  # lazy: demo --help stays fast
 
     side = 128 if cfg.quick else 256
     scene, mesh = scene_frame_mesh(path, mesh_file, 128)
@@ -301,11 +274,8 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
 def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, out: Path, numbers: dict,
                      lines: list[str]):
     """Fine-tune the mesh path for 30 s (quick: 3 s) and show the held-out gain."""
-    from omnirecon.engine.report import Section  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.workflows.finetune import (  # lazy: the demo composes every workflow; --help stays fast
-        FinetuneConfig,
-        run_finetune,
-    )
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune  # lazy: demo --help stays fast
 
     seconds = 3.0 if cfg.quick else 30.0
     r = run_finetune(FinetuneConfig(ckpt=ckpt, scene=path, seconds=seconds, eval_at=(0.0, seconds / 3),
@@ -332,8 +302,8 @@ def lift_section(cfg: DemoConfig, path: Path, scene, ckpt: Path, out: Path, numb
     """Lift edges (and, on procedural scenes, labels) into held-out views with the model's blend weights."""
     import json
 
-    from omnirecon.engine.report import Section  # lazy: the demo composes every workflow; --help stays fast
-    from omnirecon.workflows.lift import LiftConfig  # lazy: the demo composes every workflow; --help stays fast
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.workflows.lift import LiftConfig  # lazy: demo --help stays fast
 
     section = Section("Lifting 2-D predictions into 3-D").text(
         f"Predict-then-blend with {ckpt.name}: a 2-D predictor runs on the {min(cfg.num_views, 3)} source views and "
@@ -373,7 +343,7 @@ def overview_figure(out: Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from omnirecon.data.io import atomic_path, read_image  # lazy: the demo composes every workflow; --help stays fast
+    from omnirecon.data.io import atomic_path, read_image  # lazy: demo --help stays fast
 
     def first(pattern: str) -> Path | None:
         found = sorted(out.glob(pattern))
