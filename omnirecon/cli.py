@@ -16,6 +16,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("omnirecon.commands.demo:DemoCommand", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
     "synth": ("omnirecon.commands.synth:SynthCommand", "Generate procedural scenes with exact ground truth."),
     "process": ("omnirecon.commands.process:ProcessCommand", "Camera poses for a folder of photos or a video (COLMAP via pycolmap): a scene every command reads."),
+    "reconstruct": ("omnirecon.commands.reconstruct:ReconstructCommand", "Photos or a video to a mesh, a fine-tuned model, a web viewer and a report page (process, mesh, finetune, export)."),
     "inspect": ("omnirecon.commands.inspect:InspectCommand", "Validate a scene, print a summary, draw cameras and epipolar lines."),
     "eval": ("omnirecon.commands.eval:EvalCommand", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
     "render": ("omnirecon.commands.render:RenderCommand", "Render a camera path (orbit, spiral, interp) to frames and a video."),
