@@ -24,6 +24,7 @@ import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
@@ -66,12 +67,18 @@ class ReconstructConfig(MachineConfig):
     """Long side of the images the depth maps are rendered at (default: the eval protocol's, 128)."""
     resolution: int | None = None
     """Long side for fine-tuning, the held-out scores and the video (default: the photos' own, at most 512)."""
-    seconds: float = 60.0
-    """Fine-tuning budget (wall seconds)."""
+    finetune_seconds: float = 60.0
+    """Fine-tuning budget in wall seconds (0: export and render the checkpoint as it is)."""
     frames: int = 48
     """Frames of the camera-path video."""
     fps: float = 2.0
     """Frames sampled per second when PATH is a video."""
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
+    """COLMAP camera model when PATH holds photos or a video (see `omnirecon process`)."""
+    masks: Path | None = None
+    """Photos only: masks named like the photos; features only inside them (turntable captures)."""
+    viewer: bool = True
+    """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer)."""
     overwrite: bool = False
     """Replace an existing --out folder."""
 
@@ -86,9 +93,9 @@ def photo_side(scene_path: Path, cap: int = 512) -> int:
 
 def run_reconstruct(cfg: ReconstructConfig) -> dict:
     """Run every stage; returns the record written to ``reconstruct.json`` (plus ``lines``)."""
-    if cfg.seconds < 0 or cfg.frames < 2 or cfg.num_views < 1:
-        raise InputError("--seconds must be >= 0, --frames >= 2 and --num-views >= 1", None,
-                         "use e.g. --seconds 60 --frames 48 --num-views 3")
+    if cfg.finetune_seconds < 0 or cfg.frames < 2 or cfg.num_views < 1:
+        raise InputError("--finetune-seconds must be >= 0, --frames >= 2 and --num-views >= 1", None,
+                         "use e.g. --finetune-seconds 60 --frames 48 --num-views 3")
     if not Path(cfg.path).exists():
         raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
     if not (Path(cfg.ckpt) / "meta.json").is_file():
@@ -127,10 +134,12 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
         detect_format(Path(cfg.path))
         scene_path, processed = Path(cfg.path), None
     except InputError:
-        from omnirecon.capture.process import process, summary_lines  # lazy: pycolmap is the optional `capture` extra
+        from omnirecon.capture.colmap_sfm import SfmOptions  # lazy: pycolmap is the optional `capture` extra
+        from omnirecon.capture.process import process, summary_lines  # lazy: as above
 
         scene_path = out / "scene"
-        processed = process(Path(cfg.path), scene_path, fps=cfg.fps, quiet=False)
+        processed = process(Path(cfg.path), scene_path, SfmOptions(camera_model=cfg.camera_model), fps=cfg.fps,
+                            masks=cfg.masks)
         lines += summary_lines(processed)
     lap("process")
 
@@ -144,23 +153,25 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
 
     # ---------------------------------------------------------------- fine-tune at the photos' resolution
     side = cfg.resolution or photo_side(scene_path)
-    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=cfg.seconds,
-                                        eval_at=(0.0, cfg.seconds), num_views=cfg.num_views, mesh=out / "mesh.ply",
-                                        resolution=side, out=out / "finetune", save=True, threads=cfg.threads))
+    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(cfg.finetune_seconds, 1e-3),
+                                        eval_at=(0.0, cfg.finetune_seconds), num_views=cfg.num_views,
+                                        mesh=out / "mesh.ply", resolution=side, out=out / "finetune",
+                                        save=cfg.finetune_seconds > 0, threads=cfg.threads))
     curve = tuned["curve"]
     lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
                  f"{curve[-1]['seconds']:g} s of fine-tuning")
+    ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
     lap("finetune")
 
     # ---------------------------------------------------------------- export
-    exported = run_export(ExportConfig(scene=scene_path, ckpt=out / "finetune" / "checkpoint", mesh=out / "mesh.ply",
-                                       out=out / "export", resolution=side, num_views=cfg.num_views,
+    exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
+                                       resolution=side, num_views=cfg.num_views, viewer=cfg.viewer,
                                        device=cfg.device, threads=cfg.threads, chunk=cfg.chunk))
     lap("export")
 
     # ---------------------------------------------------------------- camera path through the tuned mesh path
     scene, mesh = scene_frame_mesh(scene_path, out / "mesh.ply", side)
-    model, _ = load_checkpoint(out / "finetune" / "checkpoint")
+    model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
     cams = camera_path(RenderConfig(scene=scene_path, frames=cfg.frames, path=kind), scene)
     train = scene.splits.get("train") or list(range(len(scene)))
@@ -188,7 +199,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     # ---------------------------------------------------------------- report
     draw_cameras(scene, out / "cameras.png")
     record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
-              "processed": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
+              "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
                                                                          ("vertices", "depth_maps", "views")},
               "finetune": {"resolution": side, "curve": curve}, "export": exported["files"],
               "path": {"frames": len(cams), "resolution": [cams.width, cams.height], "fps": fps},
@@ -204,6 +215,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
         Section("Real-time mesh path").text(lines[-1]).figure(video, out, "camera path", 480),
         Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)"],
                                         [[p["seconds"], round(p["psnr"], 2)] for p in curve])
+        .figure(out / "finetune" / "curve.png", out, "held-out PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
         Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
     ]

@@ -322,3 +322,27 @@ def test_bench_poses_tiny_and_section(tmp_path):
     assert row["registered"] == VIEWS and row["rotation_deg_median"] < 1.0 and "commit" in r["provenance"]
     text = run_all.section_poses(r)
     assert "## Pose recovery" in text and f"| {VIEWS} / {VIEWS} (100%) |" in text and "Provenance: commit" in text
+
+
+@pytest.mark.slow
+def test_reconstruct_writes_report(capture, tmp_path, run_cli):
+    """`omnirecon reconstruct PHOTOS`: process, mesh, finetune, export and a report whose pictures exist
+    (small: 48-pixel images, 2 s of fine-tuning; the numbers are not the point here)."""
+    import json
+    import re
+    from pathlib import Path
+
+    photos, _ = capture
+    ckpt = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
+    out = tmp_path / "rec"
+    code, _, err = run_cli(["reconstruct", photos, "--out", out, "--ckpt", ckpt, "--resolution", "48",
+                            "--finetune-seconds", "2", "--frames", "4", "--no-viewer", "--threads", "1"])
+    assert code == 0, err
+    page = (out / "index.html").read_text()
+    pictures = re.findall(r'src="([^"]+)"', page)
+    assert {"cameras.png", "mesh_preview.png", "finetune/curve.png", "finetune/before_after.png",
+            "path.mp4"} <= set(pictures)
+    assert all((out / p).is_file() and (out / p).stat().st_size > 1000 for p in pictures)
+    record = json.loads((out / "reconstruct.json").read_text())
+    assert record["process"]["images_registered"] == VIEWS and (out / "scene" / "sparse" / "0").is_dir()
+    assert (out / "export" / "mesh.glb").is_file() and (out / "finetune" / "checkpoint").is_dir()
