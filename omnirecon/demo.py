@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO_SEED = 900_999
@@ -59,6 +60,7 @@ class DemoConfig:
     """torch CPU threads (default: torch's choice)."""
 
     def main(self) -> None:
+        prepare_out(self.out, recursive=True)  # writable, stale temporaries gone: before any work
         result = run_demo(self)
         for line in result["lines"]:
             print(line)

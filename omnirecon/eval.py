@@ -33,6 +33,7 @@ from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 from omnirecon.geometry import depth_errors
 from omnirecon.models.base import Sources
 from omnirecon.render.mesh import depth_from_outputs
@@ -557,6 +558,7 @@ class EvalConfig:
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         set_threads(self.threads)
         device = pick_device(self.device)
         net, info = load_model(self.ckpt, self.model, device)

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 EVAL_AT = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 """Default evaluation points (seconds of optimisation; 0 = before tuning)."""
@@ -75,6 +76,7 @@ class FinetuneConfig:
     """torch CPU threads (default: torch's choice)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         result = run_finetune(self)
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(

@@ -29,6 +29,7 @@ from omnirecon.data import Format, ReadOptions, load_scene
 from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 @dataclass
@@ -54,6 +55,7 @@ class InspectConfig:
     """Seed for pixel sampling in the scores."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         run_inspect(self)
 
 

@@ -21,6 +21,7 @@ import numpy as np
 
 from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 from omnirecon.render.mesh import DTU_SHIFT, MeshOptions
 
 DTU_VIEWS = (23, 24, 33)
@@ -81,6 +82,7 @@ class MeshConfig:
     """torch CPU threads (default: torch's choice; use 1 when other jobs share the cores)."""
 
     def main(self) -> None:
+        prepare_out(*self.out, kind="file")  # writable, stale temporaries gone: before any work
         result = run_mesh(self)
         for p in result["files"]:
             print(f"wrote {p}")

@@ -24,6 +24,7 @@ from omnirecon import trajectory
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 from omnirecon.eval import load_at_resolution, load_model, pick_device, select_sources, set_threads, view_metric
 from omnirecon.models.base import Sources
 
@@ -71,6 +72,7 @@ class RenderConfig:
     """torch CPU threads (default: torch's choice; use 1 when other jobs share the cores)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         out, video = run_render(self)
         print(f"wrote {self.frames} frames to {out / 'frames'}" + (f" and {video}" if video else ""))
 

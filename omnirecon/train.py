@@ -37,6 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
 # (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
@@ -160,6 +161,7 @@ class TrainConfig:
     """Show the progress bar."""
 
     def main(self) -> None:
+        prepare_out(self.out or Path("outputs/train") / self.model, recursive=True)  # before any work
         env = DistEnv.from_env()
         trainer = Trainer(self, env)
         try:
@@ -431,10 +433,9 @@ class Trainer:
         need(c.threads is None or c.threads >= 1, "--threads must be at least 1", "use e.g. --threads 2")
         if self.out.exists() and not self.out.is_dir():
             raise InputError("run folder path is a file", self.out, "pass a folder for --out")
-        latest = self.out / "checkpoints" / "latest"
-        if c.resume and not (latest / "meta.json").is_file():
-            raise InputError("nothing to resume: no checkpoints/latest in the run folder", self.out,
-                             "drop --resume to start a new run, or point --out at an earlier run")
+        from omnirecon.checkpoint_check import resume_folder
+
+        self.resume_from = resume_folder(self.out, self.notes) if c.resume else None
         if not c.resume and (self.out / "checkpoints").is_dir() and any((self.out / "checkpoints").iterdir()):
             raise InputError("run folder already has checkpoints", self.out,
                              "pass --resume to continue it, or choose a new --out")
@@ -500,14 +501,13 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=c.amp == "fp16")
         self.step, self.elapsed, self.cpu_used = 0, 0.0, 0.0
         self.prov = provenance(c.seed, world_size=env.world)
-        ckdir = self.out / "checkpoints"
-        if c.resume:
-            latest = ckdir / "latest"
+        if c.resume:  # from checkpoints/latest, else the newest intact step_* (see check)
+            latest = self.resume_from
             meta = read_meta(latest)
             self.check_resume(meta)
-            from safetensors.torch import load_file
+            from omnirecon.checkpoint_check import read_weights
 
-            state = load_file(str(latest / "model.safetensors"), device=str(self.device))
+            state = read_weights(latest / "model.safetensors", str(self.device))
             self.model.load_state_dict(state)
             load_optimizer_state(latest, self.opt)
             self.step = int(meta["step"])

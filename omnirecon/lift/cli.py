@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
                         "oracle-normals", "oracle-depth", "torchscript"]
@@ -79,6 +80,7 @@ class LiftConfig:
     """torch CPU threads (use 1 on a shared machine)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         from omnirecon.eval import load_model, pick_device, prepare_scenes, set_threads
         from omnirecon.lift.blend import supports_lifting
 

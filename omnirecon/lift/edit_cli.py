@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 @dataclass
@@ -77,6 +78,7 @@ class EditConfig:
     """torch CPU threads (use 1 on a shared machine)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         from omnirecon.eval import load_model, prepare_scenes, set_threads
         from omnirecon.lift.blend import supports_lifting
         from omnirecon.models.omnirecon import OmniRecon

@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 from omnirecon.lift.tune import PETOptions
 
 
@@ -44,6 +45,7 @@ class PETConfig:
     """torch CPU threads (use 1 on a shared machine)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         import copy
 
         from omnirecon.data.io import write_json

@@ -25,6 +25,7 @@ import torch
 import trimesh
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 @dataclass
@@ -213,6 +214,7 @@ class ExportConfig:
     """Colour RGBA inputs are composited on."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         record = run_export(self)
         for p in record["files"]:
             print(f"wrote {p}")

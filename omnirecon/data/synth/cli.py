@@ -12,6 +12,7 @@ from pathlib import Path
 
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 @dataclass
@@ -32,6 +33,7 @@ class SynthConfig(SynthOptions):
     """Regenerate existing scene folders (by default they are kept: an interrupted run resumes)."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         self.check()
         run_batch(self, quiet=False)
 
