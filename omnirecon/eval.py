@@ -34,6 +34,7 @@ from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
 from omnirecon.outputs import prepare_out
+from omnirecon.preflight import check_planned
 from omnirecon.geometry import depth_errors
 from omnirecon.models.base import Sources
 from omnirecon.render.mesh import depth_from_outputs
@@ -383,6 +384,7 @@ def evaluate(
         prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
                                    protocol_set)
         jobs, results = _plan(prepared, ks, max_targets)
+        check_planned(jobs, results, ks)  # a K that runs nowhere: refused, not empty tables
         total = sum(len(job["targets"]) for job in jobs)
         task = bar.add_task("eval", total=total)
         for job in jobs:

@@ -31,6 +31,7 @@ import torch
 
 from omnirecon.errors import InputError
 from omnirecon.outputs import prepare_out
+from omnirecon.preflight import check_resolution
 
 EVAL_AT = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 """Default evaluation points (seconds of optimisation; 0 = before tuning)."""
@@ -77,6 +78,7 @@ class FinetuneConfig:
 
     def main(self) -> None:
         prepare_out(self.out)  # writable, stale temporaries gone: before any work
+        check_resolution(self.resolution)
         result = run_finetune(self)
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(

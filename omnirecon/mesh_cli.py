@@ -22,6 +22,7 @@ import numpy as np
 from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
 from omnirecon.outputs import prepare_out
+from omnirecon.preflight import check_resolution
 from omnirecon.render.mesh import DTU_SHIFT, MeshOptions
 
 DTU_VIEWS = (23, 24, 33)
@@ -137,6 +138,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
 
     options = cfg.mesh_options()
     options.check()
+    check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
     outs = check_mesh_paths(cfg.out) if cfg.out else None

@@ -38,6 +38,7 @@ from torch import Tensor, nn
 
 from omnirecon.errors import InputError
 from omnirecon.outputs import prepare_out
+from omnirecon.preflight import check_train_views
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
 # (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
@@ -516,6 +517,7 @@ class Trainer:
             if meta["extra"].get("scaler"):
                 self.scaler.load_state_dict(meta["extra"]["scaler"])
         self.model_config = model_config_dict(self.model)
+        check_train_views(self.bank, self.train_sources, max(self.cfg.num_views_range or (self.K,)))  # before any file
         if env.main:
             self.open_logs()
 

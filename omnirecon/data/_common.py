@@ -81,9 +81,21 @@ def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expe
     return int(ref[0]), int(ref[1])
 
 
-def resolve_image(folder: Path, rel: str) -> Path:
-    """``folder / rel``, appending ``.png`` when ``rel`` has no image extension (Blender ``file_path``)."""
-    p = (Path(folder) / rel)
+def inside(folder: Path, rel: str, source: Path | None = None) -> Path:
+    """``folder / rel`` when it stays inside ``folder`` (no absolute path, no ``..`` climbing out, no NUL);
+    InputError naming ``source`` (the pose file that lists ``rel``) otherwise."""
+    rel = str(rel)
+    target = os.path.normpath(os.path.join(os.path.abspath(folder), rel)) if "\0" not in rel else ""
+    if not rel or os.path.isabs(rel) or not target.startswith(os.path.abspath(folder) + os.sep):
+        raise InputError(f"image path {rel[:80]!r} points outside the scene folder", source or folder,
+                         "give image paths relative to the scene folder, without '..' (copy or link the images in)")
+    return Path(folder) / rel
+
+
+def resolve_image(folder: Path, rel: str, source: Path | None = None) -> Path:
+    """``folder / rel``, appending ``.png`` when ``rel`` has no image extension (Blender ``file_path``);
+    ``rel`` must stay inside ``folder`` (:func:`inside`)."""
+    p = inside(folder, rel, source)
     if p.suffix.lower() in IMAGE_EXTS or p.is_file():
         return p
     return p.with_name(p.name + ".png")
@@ -200,7 +212,8 @@ def select_views(n: int, splits: dict[str, list[int]], options, source: Path) ->
             keep = sorted(set().union(*(splits[s] for s in options.splits)))
     if options.max_views is not None:
         if options.max_views < 1:
-            raise InputError(f"max_views must be at least 1, got {options.max_views}", None)
+            raise InputError(f"--max-views must be at least 1, got {options.max_views}", None,
+                             "use e.g. --max-views 40, or leave it out for all views")
         if len(keep) > options.max_views:
             pick = np.unique(np.linspace(0, len(keep) - 1, options.max_views).round().astype(int))
             keep = [keep[i] for i in pick]

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from omnirecon.cameras import Cameras, rigid_inverse
-from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, rigid_poses
+from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, inside, rigid_poses
 from omnirecon.data.colmap_io import find_model, qvec_to_rotmat, read_model
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
@@ -103,7 +103,7 @@ def read(path: Path, options) -> Scene:
 
     roots = [path, path.parent, path.parent.parent]
     image_dir = next((r / "images" for r in roots if (r / "images").is_dir()), path / "images")
-    files = [image_dir / im.name for im in images]
+    files = [inside(image_dir, im.name, img_file) for im in images]  # names stay inside images/
     common_size(files, (width, height), f"{cam_file.name} gives")
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=files, near=near, far=far, bounds=bounds,

@@ -76,7 +76,8 @@ def read(path: Path, options) -> Scene:
         try:
             K, w2c = decompose_projection((world @ scale)[:3, :4])
         except (np.linalg.LinAlgError, ValueError) as e:
-            raise InputError(f"world_mat_{i} @ scale_mat_{i} is not a valid projection ({e})", source) from e
+            raise InputError(f"world_mat_{i} @ scale_mat_{i} is not a valid projection ({e})", source,
+                             "give full-rank 4x4 matrices (world_mat = K [R | t]); regenerate the file") from e
         if abs(K[0, 1]) > 1e-3 * K[0, 0]:
             raise InputError(f"world_mat_{i} has pixel skew {K[0, 1]:.3g} (not supported by the pinhole model)", source,
                              "resample the images to square, unskewed pixels")

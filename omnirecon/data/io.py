@@ -58,7 +58,7 @@ def _resize(im, size):
 def read_json(path: Path) -> dict:
     path = Path(path)
     if not path.is_file():
-        raise InputError("file is missing", path)
+        raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -68,7 +68,7 @@ def read_json(path: Path) -> dict:
 def read_npy(path: Path, allow_pickle: bool = False):
     path = Path(path)
     if not path.is_file():
-        raise InputError("file is missing", path)
+        raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return np.load(path, allow_pickle=allow_pickle)
     except (ValueError, OSError, EOFError) as e:

@@ -26,6 +26,7 @@ import trimesh
 
 from omnirecon.errors import InputError
 from omnirecon.outputs import prepare_out
+from omnirecon.preflight import check_resolution
 
 
 @dataclass
@@ -234,6 +235,7 @@ def run_export(cfg: ExportConfig) -> dict:
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()
+    check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
     mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None
