@@ -98,7 +98,7 @@ def checked_meta(folder: Path) -> dict:
         if not _type_ok(value, hints[key]):
             want = getattr(hints[key], "__name__", None) or str(hints[key]).replace("typing.", "")
             raise InputError(f"model_config.{key} = {json.dumps(value)[:40]} is not a valid {want}", source,
-                             f"give {key} a {want} value (the preset's is "
+                             f"give {key} a value of type {want} (the preset's is "
                              f"{getattr(_preset_config(preset), key)!r}) or {REWRITE}")
     step = meta.get("step", 0)
     if not isinstance(step, int) or isinstance(step, bool) or step < 0:
@@ -206,13 +206,12 @@ def checkpoint_problem(folder: Path, optimizer: bool = True) -> str | None:
         meta = checked_meta(folder)
     except InputError as e:
         return e.what
-    files = ["model.safetensors"] + (["optimizer.safetensors"] if optimizer else [])
-    if optimizer and not isinstance(meta.get("optimizer"), dict):
-        return "has no optimizer state in meta.json (not a training checkpoint)"
-    for name in files:
+    for name in ["model.safetensors"] + (["optimizer.safetensors"] if optimizer else []):
         problem = safetensors_problem(folder / name)
         if problem:
             return f"{name} {problem}"
+    if optimizer and not isinstance(meta.get("optimizer"), dict):
+        return "has no optimizer state in meta.json (not a training checkpoint)"
     return None
 
 

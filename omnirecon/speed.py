@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKPOINT = ROOT / "checkpoints" / "omnirecon-tiny"
@@ -258,6 +259,7 @@ class BenchConfig:
     """JSON result file."""
 
     def main(self) -> None:
+        prepare_out(self.out, kind="file")  # writable, stale temporaries gone: before any work
         if self.resolution < 16 or self.views < 1 or self.frames < 1:
             raise InputError("--resolution must be >= 16, --views and --frames >= 1", None,
                              "use e.g. --resolution 512 --views 3 --frames 30")
