@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import struct
 import types
 import typing
@@ -199,7 +200,7 @@ def checkpoint_problem(folder: Path, optimizer: bool = True) -> str | None:
     optimizer state, checked without loading tensors."""
     folder = Path(folder)
     if folder.is_symlink() and not folder.exists():
-        return f"is a dangling link (to {folder.readlink()})"
+        return "is a dangling link"
     if not folder.is_dir():
         return "is missing"
     try:
@@ -231,10 +232,16 @@ def resume_folder(run: Path, notes: list[str] | None = None) -> Path:
     for cand in steps:
         if checkpoint_problem(cand) is None:
             if notes is not None:
-                notes.append(f"checkpoints/latest {why}: resuming from the newest intact checkpoint, {cand.name}")
+                notes.append(f"checkpoints/latest{_points_to(latest)}: {why}; resuming from the newest intact "
+                             f"checkpoint, {cand.name}")
             return cand
-    raise InputError(f"checkpoints/latest {why}, and no step_* checkpoint beside it is intact", latest,
+    raise InputError(f"checkpoints/latest{_points_to(latest)}: {why}, and no step_* checkpoint beside it is intact",
+                     latest,
                      "restore the checkpoint files, or drop --resume and start a new run in a new --out")
+
+
+def _points_to(link: Path) -> str:
+    return f" (-> {os.readlink(link)})" if link.is_symlink() else ""
 
 
 def load_optimizer_checked(folder: Path, optimizer) -> None:
