@@ -23,7 +23,7 @@ from pathlib import Path
 
 from omnirecon.errors import InputError
 
-MAX_INT = 1 << 20  # no config field of any preset is near this; larger values only exhaust memory
+MAX_INT = 1 << 20  # above every cap of _int_cap; the per-field cap is checked after the types
 REWRITE = "rewrite the file from a training run (omnirecon train writes it), or restore it from a backup"
 
 
@@ -101,6 +101,14 @@ def checked_meta(folder: Path) -> dict:
             raise InputError(f"model_config.{key} = {json.dumps(value)[:40]} is not a valid {want}", source,
                              f"give {key} a value of type {want} (the preset's is "
                              f"{getattr(_preset_config(preset), key)!r}) or {REWRITE}")
+    for key, value in config.items():
+        cap = _int_cap(preset, key)
+        ints = [v for v in (value if isinstance(value, (list, tuple)) else [value])
+                if isinstance(v, int) and not isinstance(v, bool)]
+        if cap is not None and any(v > cap for v in ints):
+            raise InputError(f"model_config.{key} = {json.dumps(value)[:40]} is above {cap} (8x the largest preset "
+                             "value; it would only exhaust memory)", source,
+                             f"use the preset's {getattr(_preset_config(preset), key)!r} or {REWRITE}")
     step = meta.get("step", 0)
     if not isinstance(step, int) or isinstance(step, bool) or step < 0:
         raise InputError(f"\"step\" must be a non-negative integer, got {json.dumps(step)[:40]}", source, REWRITE)
@@ -108,6 +116,19 @@ def checked_meta(folder: Path) -> dict:
         if meta.get(key) is not None and not isinstance(meta[key], dict):
             raise InputError(f"\"{key}\" must be an object, got {type(meta[key]).__name__}", source, REWRITE)
     return meta
+
+
+def _int_cap(preset: str, key: str) -> int | None:
+    """8x the largest integer any preset of ``preset``'s family has in field ``key`` (at least 64);
+    ``None`` for fields without integers."""
+    from omnirecon.models.registry import _families
+
+    presets = next(p for _, _, p in _families().values() if preset in p)
+    values = []
+    for cfg in presets.values():
+        v = getattr(cfg, key, None)
+        values += [x for x in (v if isinstance(v, (list, tuple)) else [v]) if isinstance(x, int) and not isinstance(x, bool)]
+    return max(64, 8 * max(values)) if values else None
 
 
 def _preset_config(preset: str):
@@ -118,15 +139,38 @@ def _preset_config(preset: str):
 
 def build_checked(meta: dict, folder: Path):
     """The model of a :func:`checked_meta` dict; a config the model refuses becomes an InputError."""
+    import torch
+
     from omnirecon.models.registry import build_model
 
+    source = Path(folder) / "meta.json"
     try:
+        with torch.device("meta"):  # shapes only, no memory: a huge model_config is refused before allocating
+            probe = build_model(meta["preset"], meta["model_config"])
+        header = safetensors_header(Path(folder) / "model.safetensors")
+        if header is not None:
+            for key, t in probe.state_dict().items():
+                want = header.get(key, {}).get("shape") if isinstance(header.get(key), dict) else None
+                if want is not None and list(want) != list(t.shape):
+                    raise InputError(f"model_config does not match model.safetensors ({key}: {list(t.shape)} vs "
+                                     f"{list(want)} in the weights)", source,
+                                     f"restore the model_config that trained these weights, or {REWRITE}")
         return build_model(meta["preset"], meta["model_config"])
     except InputError:
         raise
-    except (ValueError, TypeError, RuntimeError, AssertionError, ZeroDivisionError, OverflowError) as e:
+    except (ValueError, TypeError, RuntimeError, AssertionError, ZeroDivisionError, OverflowError,
+            NotImplementedError, IndexError, KeyError) as e:
         raise InputError(f"model_config cannot build {meta['preset']} ({type(e).__name__}: {str(e)[:80]})",
-                         Path(folder) / "meta.json", REWRITE) from e
+                         source, REWRITE) from e
+
+
+def safetensors_header(path: Path) -> dict | None:
+    """The JSON header of an intact safetensors file (``None`` when :func:`safetensors_problem` finds one)."""
+    if safetensors_problem(path) is not None:
+        return None
+    with open(path, "rb") as f:
+        (n,) = struct.unpack("<Q", f.read(8))
+        return json.loads(f.read(n))
 
 
 def safetensors_problem(path: Path) -> str | None:

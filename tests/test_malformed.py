@@ -77,7 +77,7 @@ ROWS: list[tuple[list[str], str | None]] = [
     (["render", "--scene", "{blender}", "--ckpt", "{ck_nan}", "--out", "{out}", *RENDER], "{ck_nan}/model.safetensors"),
     (["render", "--scene", "{blender}", "--ckpt", "{ck_inf}", "--out", "{out}", *RENDER], "{ck_inf}/model.safetensors"),
     (["render", "--scene", "{blender}", "--ckpt", "{ck_shape}", "--out", "{out}", *RENDER],
-     "{ck_shape}/model.safetensors"),
+     "{ck_shape}/meta.json"),
     (["render", "--scene", "{blender}", "--ckpt", "{empty}", "--out", "{out}", *RENDER], "{empty}"),
     (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{a_file}/x", *RENDER], "{a_file}"),
     (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", "--frames", "0", "--no-video"], None),
