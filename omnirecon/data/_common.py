@@ -84,7 +84,16 @@ def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expe
 def inside(folder: Path, rel: str, source: Path | None = None) -> Path:
     """``folder / rel`` when it stays inside ``folder`` (no absolute path, no ``..`` climbing out, no NUL);
     InputError naming ``source`` (the pose file that lists ``rel``) otherwise."""
-    rel = str(rel)
+    if not isinstance(rel, str):
+        raise InputError(f"image path must be a string, got {type(rel).__name__}", source or folder,
+                         "give each image as a relative path string, e.g. \"images/0001.png\"")
+    try:
+        too_long = any(len(part.encode()) > 255 for part in rel.split("/"))
+    except UnicodeEncodeError:
+        too_long = True
+    if too_long:
+        raise InputError(f"image path {rel[:40]!r}... is not a valid file name (too long or not encodable)",
+                         source or folder, "give image paths as relative file names of at most 255 bytes each")
     target = os.path.normpath(os.path.join(os.path.abspath(folder), rel)) if "\0" not in rel else ""
     if not rel or os.path.isabs(rel) or not target.startswith(os.path.abspath(folder) + os.sep):
         raise InputError(f"image path {rel[:80]!r} points outside the scene folder", source or folder,

@@ -50,7 +50,7 @@ class Frames:
             if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
                 raise InputError(f"frame {i} lacks file_path or transform_matrix", source,
                                  "give both keys in every frame")
-            self.images.append(resolve_image(self.folder, str(fr["file_path"]), source))
+            self.images.append(resolve_image(self.folder, fr["file_path"], source))
             self.c2w_gl.append(pose_matrix(fr["transform_matrix"], source, f"frame {i} transform_matrix"))
             self.fields.append({k: fr.get(k, meta.get(k)) for k in INTRINSIC_KEYS})
             self.frames.append(fr)

@@ -20,6 +20,7 @@ Conventions:
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +114,7 @@ def _matrix(npz, key: str, source: Path, n: int) -> np.ndarray:
                          "give world_mat_i and scale_mat_i for every image")
     try:
         m = np.asarray(npz[key], dtype=np.float64)
-    except (ValueError, TypeError, OSError, zipfile.BadZipFile) as e:
+    except (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise InputError(f"cannot read {key} ({e})", source, "regenerate the file") from e
     if m.shape == (3, 4):
         m = np.concatenate([m, [[0, 0, 0, 1.0]]])

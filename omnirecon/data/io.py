@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import tokenize
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -71,7 +73,7 @@ def read_npy(path: Path, allow_pickle: bool = False):
         raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return np.load(path, allow_pickle=allow_pickle)
-    except (ValueError, OSError, EOFError) as e:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, SyntaxError, tokenize.TokenError) as e:  # corrupt header
         raise InputError(f"cannot read NumPy file ({e})", path, "the file is corrupt; regenerate it") from e
 
 
