@@ -33,6 +33,7 @@ from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.chunk import pick_chunk
 from omnirecon.outputs import prepare_out
 from omnirecon.preflight import check_planned
 from omnirecon.geometry import depth_errors
@@ -537,8 +538,8 @@ class EvalConfig:
     """Output folder (default: outputs/eval/<model name>)."""
     synth_count: int = 10
     """Scenes in the synth:eval set (seeds 900000, 900001, ...)."""
-    chunk: int = 4096
-    """Rays rendered per chunk (lower it if memory is short)."""
+    chunk: int | None = None
+    """Rays rendered per chunk (default: from the free memory, at most 4096; a note when above 25% of RAM)."""
     device: str = "auto"
     """cpu, cuda or auto (cuda when available)."""
     max_targets: int | None = None
@@ -561,6 +562,7 @@ class EvalConfig:
 
     def main(self) -> None:
         prepare_out(self.out)  # writable, stale temporaries gone: before any work
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
         set_threads(self.threads)
         device = pick_device(self.device)
         net, info = load_model(self.ckpt, self.model, device)

@@ -21,6 +21,7 @@ import numpy as np
 
 from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
+from omnirecon.chunk import pick_chunk
 from omnirecon.outputs import prepare_out
 from omnirecon.preflight import check_resolution
 from omnirecon.render.mesh import DTU_SHIFT, MeshOptions
@@ -75,8 +76,8 @@ class MeshConfig:
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    chunk: int = 4096
-    """Rays rendered per chunk."""
+    chunk: int | None = None
+    """Rays rendered per chunk (default: from the free memory, at most 4096; a note when above 25% of RAM)."""
     device: str = "auto"
     """cpu, cuda or auto."""
     threads: int | None = None
@@ -93,7 +94,7 @@ class MeshConfig:
     def mesh_options(self) -> MeshOptions:
         return MeshOptions(shifts=tuple(self.shifts), voxel=self.voxel, trunc=self.trunc, min_acc=self.min_acc,
                            min_views=self.min_views, cull_hidden=self.cull_hidden, min_component=self.min_component,
-                           chunk=self.chunk)
+                           chunk=pick_chunk(self.chunk))  # None: from the free memory
 
 
 def default_views(scene, num_views: int) -> list[int]:

@@ -24,6 +24,7 @@ from omnirecon import trajectory
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.errors import InputError
+from omnirecon.chunk import pick_chunk
 from omnirecon.outputs import prepare_out
 from omnirecon.eval import load_at_resolution, load_model, pick_device, select_sources, set_threads, view_metric
 from omnirecon.models.base import Sources
@@ -62,8 +63,8 @@ class RenderConfig:
     """Frames per second of the video."""
     out: Path | None = None
     """Output folder (default: outputs/render/<scene>_<path>)."""
-    chunk: int = 4096
-    """Rays rendered per chunk."""
+    chunk: int | None = None
+    """Rays rendered per chunk (default: from the free memory, at most 4096; a note when above 25% of RAM)."""
     device: str = "auto"
     """cpu, cuda or auto (cuda when available)."""
     video: bool = True
@@ -77,6 +78,7 @@ class RenderConfig:
         print(f"wrote {self.frames} frames to {out / 'frames'}" + (f" and {video}" if video else ""))
 
     def check(self) -> None:
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
         if self.frames < 1:
             raise InputError(f"--frames must be at least 1, got {self.frames}", None, "use e.g. 60")
         if self.num_views < 1:

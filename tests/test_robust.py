@@ -204,3 +204,34 @@ def test_unknown_flag_is_one_line_in_a_terminal_too():
     for box in (unicode_box, ascii_box):
         line = parse_error_line(box, "inspect")
         assert line == "Unrecognized options: --bogus (fix: see `omnirecon inspect --help` for the flags)", line
+
+
+# ---------------------------------------------------------------------- --chunk from memory
+def test_chunk_default_follows_available_memory():
+    from omnirecon.chunk import BYTES_PER_RAY, DEFAULT_MAX, MIN_CHUNK, ceiling, default_chunk
+
+    assert default_chunk(available=64 * 2**30) == DEFAULT_MAX  # plenty: the former default
+    assert default_chunk(available=2 * 2**30) == 2048  # 25% of 2 GiB / 140 kB = 3834 -> 2048
+    assert default_chunk(available=10**6) == MIN_CHUNK
+    for avail in (2**30, 3 * 2**30, 7 * 2**30):
+        c = default_chunk(available=avail)
+        assert c * BYTES_PER_RAY <= 0.25 * avail or c == MIN_CHUNK
+    assert ceiling(total=16 * 2**30) == int(0.25 * 16 * 2**30 / BYTES_PER_RAY)
+
+
+def test_chunk_above_the_ceiling_gets_a_one_line_note(capsys):
+    from omnirecon.chunk import ceiling, pick_chunk
+
+    assert pick_chunk(1024) == 1024 and capsys.readouterr().err == ""
+    big = ceiling() + 1
+    assert pick_chunk(big) == big  # the user's value is kept
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("omnirecon: note: --chunk") and "25%" in err, err
+
+
+def test_render_without_chunk_uses_the_memory_default(tmp_path, capsys):
+    scene = blender_scene(tmp_path / "s", mats=ring_gl(6).tolist())
+    out = tmp_path / "r"
+    assert main(["render", "--scene", str(scene), "--model", "floor", "--frames", "1", "--resolution", "8",
+                 "--num-views", "2", "--no-video", "--threads", "1", "--device", "cpu", "--out", str(out)]) == 0
+    assert len(list((out / "frames").glob("*.png"))) == 1

@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from omnirecon.errors import InputError
+from omnirecon.chunk import pick_chunk
 from omnirecon.outputs import prepare_out
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
@@ -72,8 +73,8 @@ class LiftConfig:
     """Resolution/targets: cpu (64 px, 2 targets per procedural scene) or full (128 px)."""
     cache: Path = Path("outputs/cache")
     """Where synth:eval scenes are generated."""
-    chunk: int = 4096
-    """Rays per rendering chunk."""
+    chunk: int | None = None
+    """Rays rendered per chunk (default: from the free memory, at most 4096; a note when above 25% of RAM)."""
     device: str = "auto"
     """cpu, cuda or auto."""
     threads: int | None = None
@@ -81,6 +82,7 @@ class LiftConfig:
 
     def main(self) -> None:
         prepare_out(self.out)  # writable, stale temporaries gone: before any work
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
         from omnirecon.eval import load_model, pick_device, prepare_scenes, set_threads
         from omnirecon.lift.blend import supports_lifting
 

@@ -18,6 +18,7 @@ from typing import Literal
 import numpy as np
 
 from omnirecon.errors import InputError
+from omnirecon.chunk import pick_chunk
 from omnirecon.outputs import prepare_out
 
 
@@ -72,13 +73,14 @@ class EditConfig:
     """Resolution/targets: cpu (64 px) or full (128 px)."""
     cache: Path = Path("outputs/cache")
     """Where synth:eval scenes are generated."""
-    chunk: int = 4096
-    """Rays per rendering chunk."""
+    chunk: int | None = None
+    """Rays rendered per chunk (default: from the free memory, at most 4096; a note when above 25% of RAM)."""
     threads: int | None = None
     """torch CPU threads (use 1 on a shared machine)."""
 
     def main(self) -> None:
         prepare_out(self.out)  # writable, stale temporaries gone: before any work
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
         from omnirecon.eval import load_model, prepare_scenes, set_threads
         from omnirecon.lift.blend import supports_lifting
         from omnirecon.models.omnirecon import OmniRecon
