@@ -119,8 +119,12 @@ def kill_runs(kills: int, seed: int = 0) -> dict:
                               "--out", str(out / "m.ply"), str(out / "m.obj"), str(out / "m.glb")], (1.0, 10.0)),
     }
     if ckpt.is_dir():
+        from omnirecon.viewer.bundle import three_unavailable_reason
+
+        viewer = ["--no-viewer"] if three_unavailable_reason() else []  # the mesh files only, without three.js
         commands["export"] = (lambda out: ["export", "--scene", str(scene), "--ckpt", str(ckpt), "--threads", "1",
-                                           "--device", "cpu", "--resolution", "32", "--out", str(out)], (1.0, 15.0))
+                                           "--device", "cpu", "--resolution", "32", *viewer, "--out", str(out)],
+                              (1.0, 15.0))
     results = {}
     for name, (make, (lo, hi)) in commands.items():
         out = work / name
@@ -138,6 +142,8 @@ def kill_runs(kills: int, seed: int = 0) -> dict:
                 argv.append("--overwrite")
             rerun = subprocess.run(_cli(argv), cwd=ROOT, env=env, capture_output=True, text=True)
             rec["rerun_failed"] += int(rerun.returncode != 0)
+            if rerun.returncode != 0:
+                rec.setdefault("rerun_errors", []).append(rerun.stderr.strip()[-300:])
             rec["leftovers_after_rerun"] += len(_hidden_leftovers(out))
             if name != "train":
                 import shutil

@@ -51,6 +51,8 @@ class Tally:
     input_errors: int = 0
     loaded: int = 0
     failures: list[str] = field(default_factory=list)
+    gaps: dict[str, int] = field(default_factory=dict)
+    """InputError messages without a file or without a fix clause (message -> count)."""
 
 
 TALLIES: dict[str, Tally] = {}
@@ -67,6 +69,9 @@ def run_case(target: str, load, what: str) -> None:
         t.input_errors += 1
         if "\n" in str(e):
             t.failures.append(f"multi-line InputError after {what}: {str(e)[:200]!r}")
+        if e.path is None or not e.fix:
+            key = e.what[:60]
+            t.gaps[key] = t.gaps.get(key, 0) + 1
     except Exception as e:  # noqa: BLE001 - the point of the test
         t.failures.append(f"{type(e).__name__} after {what}: {str(e)[:200]}")
 
@@ -74,15 +79,18 @@ def run_case(target: str, load, what: str) -> None:
 def finish(target: str) -> None:
     t = TALLIES.get(target, Tally())
     print(f"fuzz {target}: {t.cases} cases, {t.input_errors} InputError, {t.loaded} read fine, "
-          f"{len(t.failures)} failures")
+          f"{len(t.failures)} failures, {sum(t.gaps.values())} messages without a file or fix "
+          f"{sorted(t.gaps.items(), key=lambda kv: -kv[1])[:8]}")
     report = os.environ.get("OMNIRECON_FUZZ_REPORT")
     if report:
         path = Path(report)
         data = json.loads(path.read_text()) if path.is_file() else {}
         data[target] = {"cases": t.cases, "input_errors": t.input_errors, "loaded": t.loaded,
-                        "failures": len(t.failures), "examples": t.failures[:5]}
+                        "failures": len(t.failures), "examples": t.failures[:5],
+                        "without_file_or_fix": sum(t.gaps.values())}
         path.write_text(json.dumps(data, indent=1))
     assert not t.failures, "\n".join(t.failures[:10])
+    assert not t.gaps, f"InputErrors without a file or a fix clause: {t.gaps}"
 
 
 # ---------------------------------------------------------------------- mutations

@@ -78,9 +78,9 @@ def _num(value, source: Path, key: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError) as e:
-        raise InputError(f"{key} is not a number ({value!r})", source) from e
+        raise InputError(f"{key} is not a number ({str(value)[:40]!r})", source, f"give {key} as a number") from e
     if not math.isfinite(v):
-        raise InputError(f"{key} is not finite", source)
+        raise InputError(f"{key} is not finite", source, f"give {key} as a finite number")
     return v
 
 

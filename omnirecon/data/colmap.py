@@ -71,7 +71,8 @@ def read(path: Path, options) -> Scene:
     images = sorted(model.images, key=lambda im: im.name)
     missing = sorted({im.camera_id for im in images} - set(model.cameras))
     if missing:
-        raise InputError(f"images refer to camera {missing[0]}, which is not in the model", cam_file)
+        raise InputError(f"images refer to camera {missing[0]}, which is not in the model", cam_file,
+                         "re-export the model so that every image's camera id is listed in the cameras file")
     sizes = {(model.cameras[im.camera_id].width, model.cameras[im.camera_id].height) for im in images}
     if len(sizes) != 1:
         raise InputError(f"cameras have different image sizes {sorted(sizes)}", cam_file,

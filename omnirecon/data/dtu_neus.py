@@ -113,11 +113,16 @@ def _matrix(npz, key: str, source: Path, n: int) -> np.ndarray:
         raise InputError(f"missing key {key} ({n} images in image/)", source,
                          "give world_mat_i and scale_mat_i for every image")
     try:
-        m = np.asarray(npz[key], dtype=np.float64)
+        raw = np.asarray(npz[key])
+        if raw.dtype.kind not in "fiub":  # complex, strings, objects: not a camera matrix
+            raise ValueError(f"dtype {raw.dtype} is not real-valued")
+        m = raw.astype(np.float64)
     except (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise InputError(f"cannot read {key} ({e})", source, "regenerate the file") from e
     if m.shape == (3, 4):
         m = np.concatenate([m, [[0, 0, 0, 1.0]]])
     if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise InputError(f"{key} must be a finite 4x4 matrix, got shape {'x'.join(map(str, m.shape))}", source)
+        raise InputError(f"{key} must be a finite 4x4 matrix, got shape {'x'.join(map(str, m.shape))}"
+                         + ("" if m.shape != (4, 4) else " with NaN/Inf entries"), source,
+                         "regenerate the file with finite 4x4 (or 3x4) matrices")
     return m

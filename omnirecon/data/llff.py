@@ -88,7 +88,8 @@ def read(path: Path, options) -> Scene:
         bad = int((~torch.isfinite(arr)).any(1).nonzero()[0])
         raise InputError(f"row {bad} contains NaN or infinite values", source, "regenerate the poses")
     if (hwf <= 0).any() or ((hwf[:, :2] - hwf[0, :2]).abs() > 0.5).any():
-        raise InputError("hwf (height, width, focal) must be positive and the same size for all rows", source)
+        raise InputError("hwf (height, width, focal) must be positive and the same size for all rows", source,
+                         "regenerate poses_bounds.npy (LLFF imgs2poses) for images of one size")
     sx, sy = width / float(hwf[0, 1]), height / float(hwf[0, 0])
     if abs(sx - sy) > 0.01 * max(sx, sy):
         raise InputError(f"images are {width}x{height} but hwf says {hwf[0, 1]:.0f}x{hwf[0, 0]:.0f} (another aspect)",

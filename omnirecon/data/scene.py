@@ -150,9 +150,9 @@ class Scene:
             v = getattr(self.cameras, name)
             if not torch.isfinite(v).all() or (name in ("fx", "fy") and (v <= 0).any()):
                 raise InputError(f"intrinsic {name} must be finite{' and positive' if name[0] == 'f' else ''}",
-                                 where)
+                                 where, "fix the focal length / principal point in the camera file")
         if not (torch.isfinite(self.near).all() and torch.isfinite(self.far).all()):
-            raise InputError("near/far bounds are not finite", where)
+            raise InputError("near/far bounds are not finite", where, "fix the depth bounds in the camera file")
         if ((self.near <= 0) | (self.far <= self.near)).any():
             raise InputError("near/far bounds must satisfy 0 < near < far", where)
         for name, shape in (("masks", (n, h, w)), ("depths", (n, h, w)), ("normals", (n, h, w, 3)),
