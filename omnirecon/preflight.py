@@ -29,11 +29,11 @@ def check_resolution(value: int | None, flag: str = "--resolution") -> None:
 
 
 def check_planned(jobs: list[dict], records: list[dict], ks: list[int]) -> None:
-    """InputError when a requested source count K runs on no scene (every pool smaller than K), instead of
-    writing empty result tables."""
-    done = {job["k"] for job in jobs}
-    missing = [k for k in ks if k not in done]
-    if missing:
+    """InputError when no requested source count K runs on any scene (every pool smaller than every K),
+    instead of writing empty result tables. A K skipped beside others that run is reported in the results
+    (``skipped``) and in the printed summary."""
+    if not jobs:
+        missing = sorted(ks)
         pools = sorted({len(r["pool"]) for r in records})
         where = records[0]["path"] if len(records) == 1 and records[0]["path"] else None
         raise InputError(f"--num-views {missing[0]} exceeds the source pool of every scene (pool sizes {pools})",

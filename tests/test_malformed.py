@@ -156,6 +156,37 @@ ROWS: list[tuple[list[str], str | None]] = [
     (["render"], "--scene"),
 ]
 
+# Every command that loads a checkpoint, against every broken checkpoint (each command reads it its own way).
+BAD_CKPTS = {"ck_no_config": "meta.json", "ck_five": "meta.json", "ck_preset": "meta.json", "ck_option": "meta.json",
+             "ck_meta_list": "meta.json", "ck_meta_bad": "meta.json", "ck_shape": "meta.json",
+             "ck_trunc": "model.safetensors", "ck_garbage": "model.safetensors", "ck_missing": "model.safetensors",
+             "ck_nan": "model.safetensors", "ck_inf": "model.safetensors"}
+CKPT_COMMANDS = {
+    "eval": ["eval", "--scenes", "{with_test}", "--device", "cpu", "--out", "{out}", "--ckpt"],
+    "mesh": ["mesh", "--scene", "{blender}", "--out", "{out}.ply", "--ckpt"],
+    "export": ["export", "--scene", "{blender}", "--out", "{out}", "--ckpt"],
+    "finetune": ["finetune", "--scene", "{blender}", "--out", "{out}", "--ckpt"],
+    "lift": ["lift", "--scene", "{blender}", "--out", "{out}", "--ckpt"],
+    "edit": ["edit", "--scene", "{blender}", "--label", "1", "--out", "{out}", "--ckpt"],
+    "pet": ["pet", "--scene", "{blender}", "--out", "{out}", "--ckpt"],
+    "bench": ["bench", "--out", "{out}.json", "--ckpt"],
+}
+ROWS += [([*args, "{%s}" % ck], "{%s}/%s" % (ck, f)) for args in CKPT_COMMANDS.values() for ck, f in BAD_CKPTS.items()]
+
+# Every command that reads a scene, against broken scenes of each format.
+BAD_SCENES = {"missing_image": "train/r_1.png", "corrupt_image": "train/r_2.png", "bad_json": "transforms_train.json",
+              "nan_pose": "transforms_train.json", "outside_path": "transforms_train.json",
+              "llff_bounds": "poses_bounds.npy", "neus_singular": "cameras_sphere.npz",
+              "mvsnet_cam": "cams/00000001_cam.txt", "colmap_trunc": "sparse/0/images.bin"}
+SCENE_COMMANDS = {
+    "render": ["render", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--scene"],
+    "mesh": ["mesh", "--model", "floor", "--out", "{out}.ply", "--scene"],
+    "export": ["export", "--ckpt", "{ck_omni}", "--out", "{out}", "--scene"],
+    "finetune": ["finetune", "--ckpt", "{ck_omni}", "--out", "{out}", "--scene"],
+    "train": ["train", "--out", "{out}", *TRAIN, "--data"],
+}
+ROWS += [([*args, "{%s}" % s], "{%s}/%s" % (s, f)) for args in SCENE_COMMANDS.values() for s, f in BAD_SCENES.items()]
+
 
 def _fill(text: str, paths: dict, out: Path) -> str:
     return text.replace("{out}", str(out)).format(**{k: str(v) for k, v in paths.items()})
@@ -209,6 +240,9 @@ def _ckpt_variants(root: Path) -> dict[str, Path]:
     variant("ck_nan", weights=nonfinite(float("nan")))
     variant("ck_inf", weights=nonfinite(float("inf")))
     variant("ck_shape", lambda m: set_(m, "dim", 48))
+    save_checkpoint(root / "ck_omni", build_model("omnirecon-tiny", {"coarse_samples": 4, "fine_samples": 2,
+                                                                     "volume_resolution": 8}), "omnirecon-tiny")
+    out["ck_omni"] = root / "ck_omni"
     return out
 
 
