@@ -32,11 +32,11 @@ import torch
 from omnirecon.data import load_scene
 from omnirecon.errors import InputError
 
-from test_bad_input import blender_scene, colmap_scene, llff_scene, ring_gl, tiny_image  # noqa: I001
+from test_bad_input import blender_scene, colmap_scene, llff_scene, ring_gl, tiny_image
 
 hypothesis = pytest.importorskip("hypothesis", reason="hypothesis is in the test extra: pip install -e '.[test]'")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 EXAMPLES = int(os.environ.get("OMNIRECON_FUZZ_EXAMPLES", "40"))
 LONG = EXAMPLES > 200
@@ -72,7 +72,7 @@ def run_case(target: str, load, what: str) -> None:
         if e.path is None or not e.fix:
             key = e.what[:60]
             t.gaps[key] = t.gaps.get(key, 0) + 1
-    except Exception as e:  # noqa: BLE001 - the point of the test
+    except Exception as e:  # the point of the test: any other exception is a failure
         t.failures.append(f"{type(e).__name__} after {what}: {str(e)[:200]}")
 
 

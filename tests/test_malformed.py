@@ -21,7 +21,7 @@ import torch
 
 from omnirecon.cli import main
 
-from test_bad_input import blender_scene, colmap_scene, llff_scene, ring_gl, tiny_image  # noqa: I001
+from test_bad_input import blender_scene, colmap_scene, llff_scene, ring_gl, tiny_image
 
 TINY_GPNR = {"num_samples": 8, "dim": 32, "mlp_dim": 32, "heads": 1, "layers": [1, 1, 1], "point_freqs": 4}
 RENDER = ["--frames", "1", "--resolution", "8", "--no-video", "--device", "cpu", "--threads", "1"]
@@ -171,7 +171,7 @@ CKPT_COMMANDS = {
     "pet": ["pet", "--scene", "{blender}", "--out", "{out}", "--ckpt"],
     "bench": ["bench", "--out", "{out}.json", "--ckpt"],
 }
-ROWS += [([*args, "{%s}" % ck], "{%s}/%s" % (ck, f)) for args in CKPT_COMMANDS.values() for ck, f in BAD_CKPTS.items()]
+ROWS += [([*args, f"{{{ck}}}"], f"{{{ck}}}/{f}") for args in CKPT_COMMANDS.values() for ck, f in BAD_CKPTS.items()]
 
 # Every command that reads a scene, against broken scenes of each format.
 BAD_SCENES = {"missing_image": "train/r_1.png", "corrupt_image": "train/r_2.png", "bad_json": "transforms_train.json",
@@ -185,7 +185,7 @@ SCENE_COMMANDS = {
     "finetune": ["finetune", "--ckpt", "{ck_omni}", "--out", "{out}", "--scene"],
     "train": ["train", "--out", "{out}", *TRAIN, "--data"],
 }
-ROWS += [([*args, "{%s}" % s], "{%s}/%s" % (s, f)) for args in SCENE_COMMANDS.values() for s, f in BAD_SCENES.items()]
+ROWS += [([*args, f"{{{s}}}"], f"{{{s}}}/{f}") for args in SCENE_COMMANDS.values() for s, f in BAD_SCENES.items()]
 
 
 def _fill(text: str, paths: dict, out: Path) -> str:

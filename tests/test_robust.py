@@ -18,7 +18,7 @@ from omnirecon.cli import main
 from omnirecon.errors import InputError
 from omnirecon.outputs import atomic_files, check_writable, clean_stale
 
-from test_bad_input import blender_scene, ring_gl  # noqa: I001
+from test_bad_input import blender_scene, ring_gl
 
 TRAIN = ["--model", "gpnr-tiny", "--model-overrides", "num_samples=8", "dim=32", "mlp_dim=32", "heads=1",
          "layers=[1,1,1]", "point_freqs=4", "--num-views", "2", "--resolution", "8", "--rays", "16", "--warmup", "1",
@@ -164,11 +164,10 @@ def test_clean_stale_recursive(tmp_path):
 
 def test_multi_file_output_is_complete_or_absent(tmp_path):
     paths = [tmp_path / "m.ply", tmp_path / "m.obj", tmp_path / "m.glb"]
-    with pytest.raises(RuntimeError):
-        with atomic_files(paths) as tmps:
-            tmps[0].write_text("ply")
-            tmps[1].write_text("obj")
-            raise RuntimeError("killed while writing the third")
+    with pytest.raises(RuntimeError), atomic_files(paths) as tmps:
+        tmps[0].write_text("ply")
+        tmps[1].write_text("obj")
+        raise RuntimeError("killed while writing the third")
     assert list(tmp_path.iterdir()) == []  # nothing: no partial set, no temporaries
     with atomic_files(paths) as tmps:
         for t, p in zip(tmps, paths):
