@@ -127,7 +127,8 @@ def _int_cap(preset: str, key: str) -> int | None:
     values = []
     for cfg in presets.values():
         v = getattr(cfg, key, None)
-        values += [x for x in (v if isinstance(v, (list, tuple)) else [v]) if isinstance(x, int) and not isinstance(x, bool)]
+        items = v if isinstance(v, (list, tuple)) else [v]
+        values += [x for x in items if isinstance(x, int) and not isinstance(x, bool)]
     return max(64, 8 * max(values)) if values else None
 
 

@@ -69,7 +69,7 @@ def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expe
     The first image of a different size raises InputError naming it.
     """
     if not paths:
-        raise InputError("no images listed", None)
+        raise InputError("no images listed", None, "list at least one image in the pose file")
     ref = expected
     for p in paths:
         size = image_size(p)
@@ -335,7 +335,8 @@ def assemble(
     """
     ds = float(options.downscale)
     if not (math.isfinite(ds) and ds > 0):
-        raise InputError(f"downscale must be a positive number, got {options.downscale}", None)
+        raise InputError(f"downscale must be a positive number, got {options.downscale}", None,
+                         "use e.g. --downscale 2")
     keep, splits = select_views(len(cameras), splits, options, source)
     cams = cameras[keep]
     if ds != 1.0:

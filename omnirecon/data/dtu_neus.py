@@ -66,7 +66,8 @@ def read(path: Path, options) -> Scene:
         source = path / "cameras.npz"
     npz = read_npy(source)
     if not hasattr(npz, "files"):
-        raise InputError("expected an .npz archive of world_mat_i / scale_mat_i arrays", source)
+        raise InputError("expected an .npz archive of world_mat_i / scale_mat_i arrays", source,
+                         "regenerate the file with numpy.savez")
     if not (path / "image").is_dir() or not list_images(path / "image"):
         raise InputError("no images in image/", path / "image", "put the views in image/ as 000000.png, ...")
     images = list_images(path / "image")

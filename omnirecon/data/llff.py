@@ -104,7 +104,7 @@ def read(path: Path, options) -> Scene:
     if ((near <= 0) | (far <= near)).any():
         bad = int(((near <= 0) | (far <= near)).nonzero()[0])
         raise InputError(f"row {bad} has bounds near={near[bad]:.4g}, far={far[bad]:.4g}; need 0 < near < far", source,
-                         "fix that row's last two numbers (near, far), or regenerate poses_bounds.npy (LLFF imgs2poses)")
+                         "fix that row's last two numbers (near, far), or regenerate poses_bounds.npy")
 
     remaining = min(folders) * float(options.downscale) / factor
     return assemble(
