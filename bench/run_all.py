@@ -25,7 +25,7 @@ ROOT = HERE.parent
 # Every benchmark behind the page, in the order they run (mesh_path reuses geometry's meshes).
 # The first four make up --tiny (the test); "ablation" retrains four GPNR rows (about 1 h of CPU).
 STEPS = ("synth", "throughput", "quality", "geometry", "mesh_fps", "mesh_path", "lift", "lift_extra", "ablation",
-         "poses")
+         "poses", "reliability")
 TINY_STEPS = STEPS[:4]
 
 
@@ -37,6 +37,7 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
     import lift_extra
     import mesh_path
     import quality
+    import reliability
     import synth_speed
     import throughput
 
@@ -61,6 +62,8 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         "ablation": lambda: ablation_gpnr.main([*t, "--threads", str(threads),
                                                 "--out", str(results / "ablation_gpnr.json")]),
         "poses": lambda: _run_poses(results, tiny, threads),
+        "reliability": lambda: reliability.main([*(["--fuzz-examples", "50", "--kills", "1"] if tiny else []),
+                                                 "--out", str(results / "reliability.json")]),
     }
     for step in steps:
         print(f"== bench step {step}", flush=True)
@@ -528,8 +531,33 @@ def section_poses(r: dict) -> str:
     ])
 
 
+def section_reliability(r: dict) -> str:
+    """Malformed inputs per command, fuzz cases per reader, kill -9 recovery (bench/reliability.py)."""
+    m, f = r["malformed"], r["fuzz"]
+    out = ["## Reliability (`bench/reliability.py`)", "",
+           f"**Malformed inputs: {m['handled']} of {m['cases']} handled** (exit 2, one line naming the file with a "
+           "fix clause, no traceback, nothing written; the table is `tests/test_malformed.py`).", "",
+           "| command | cases | handled |", "|---|---:|---:|"]
+    out += [f"| {k} | {v['cases']} | {v['handled']} |" for k, v in m["per_command"].items()]
+    out += ["", f"**Fuzzing: {f['cases']:,} generated inputs, {f['failures']} failures** "
+            f"({f['examples_per_target']:,} per target; a failure is any exception other than a one-line "
+            "InputError; `tests/test_fuzz.py`).", "",
+            "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
+    out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
+            for k, v in f["targets"].items()]
+    if r.get("kill"):
+        out += ["", "**kill -9** at a random moment, then the same command again to completion:", "",
+                "| command | kills | finished first | partial result after the kill | hidden leftovers after the re-run "
+                "| re-run failed |", "|---|---:|---:|---:|---:|---:|"]
+        out += [f"| {k} | {v['kills']} | {v['finished_before_kill']} | {v['incomplete_after_kill']} | "
+                f"{v['leftovers_after_rerun']} | {v['rerun_failed']} |" for k, v in r["kill"].items()]
+    out += ["", _prov(r["provenance"])]
+    return "\n".join(out)
+
+
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
-            "ablation_gpnr.json": section_ablation, "poses.json": section_poses}
+            "ablation_gpnr.json": section_ablation, "poses.json": section_poses,
+            "reliability.json": section_reliability}
 
 
 def write_page(results: Path, out: Path) -> str:

@@ -7,8 +7,11 @@ one-line message; ``--verbose`` (anywhere on the line) shows the traceback.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import sys
+import traceback
 
 from omnirecon.errors import EXIT_BAD_INPUT, InputError
 
@@ -49,16 +52,28 @@ def main(argv: list[str] | None = None) -> int:
         chosen = next((a for a in argv if not a.startswith("-")), None)
         names = [chosen] if chosen in COMMANDS else list(COMMANDS)
         configs = {n: _load(COMMANDS[n][0]) for n in names}
-        config = tyro.extras.subcommand_cli_from_dict(
-            configs, args=argv, prog="omnirecon",
-            description="Generalizable image-based reconstruction and rendering. "
-            "Add --verbose anywhere for full tracebacks.",
-        )
+        box = io.StringIO()  # tyro's multi-line error box, turned into one line below
+        try:
+            with contextlib.redirect_stderr(box):
+                config = tyro.extras.subcommand_cli_from_dict(
+                    configs, args=argv, prog="omnirecon",
+                    description="Generalizable image-based reconstruction and rendering. "
+                    "Add --verbose anywhere for full tracebacks.",
+                )
+        except SystemExit as e:
+            if e.code in (0, None):
+                sys.stderr.write(box.getvalue())
+                raise
+            from omnirecon.cli_errors import parse_error_line
+
+            print(f"omnirecon: error: {parse_error_line(box.getvalue(), chosen if chosen in COMMANDS else None)}",
+                  file=sys.stderr)
+            return EXIT_BAD_INPUT
         config.main()
     except InputError as e:
         print(f"omnirecon: error: {e.one_line()}", file=sys.stderr)
         if verbose:
-            raise
+            traceback.print_exc()  # the traceback, and still the bad-input exit code
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("omnirecon: interrupted", file=sys.stderr)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from omnirecon.outputs import prepare_out
 from omnirecon.workflows.edit import EditConfig
 
 
@@ -9,5 +10,6 @@ class EditCommand(EditConfig):
     __doc__ = EditConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         for line in self.run():
             print(line)

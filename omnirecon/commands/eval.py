@@ -10,6 +10,7 @@ from omnirecon.engine.evaluate import evaluate
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 def default_name(ckpt: Path | None, model_name: str) -> str:
@@ -56,6 +57,7 @@ class EvalCommand(MachineConfig):
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         set_threads(self.threads)
         device = pick_device(self.device)
         net, info = load_model(self.ckpt, self.model, device)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from omnirecon.outputs import prepare_out
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
 
@@ -9,6 +10,7 @@ class FinetuneCommand(FinetuneConfig):
     __doc__ = FinetuneConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
+        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         result = run_finetune(self)
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from omnirecon.outputs import prepare_out
 from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines
 
 
@@ -9,6 +10,7 @@ class MeshCommand(MeshConfig):
     __doc__ = MeshConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
+        prepare_out(*self.out, kind="file")  # writable, stale temporaries gone: before any work
         result = run_mesh(self)
         for p in result["files"]:
             print(f"wrote {p}")

@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 from omnirecon.engine.distributed import DistEnv
 from omnirecon.engine.train import Trainer
 from omnirecon.engine.train_config import TrainConfig
+from omnirecon.outputs import prepare_out
 
 
 class TrainCommand(TrainConfig):
     __doc__ = TrainConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
+        prepare_out(self.out or Path("outputs/train") / self.model, recursive=True)  # before any work
         env = DistEnv.from_env()
         trainer = Trainer(self, env)
         try:

@@ -64,7 +64,11 @@ def load_scene(path: str | Path, format: Format = "auto", options: ReadOptions |
     elif format not in READERS:
         raise InputError(f"unknown format {format!r}", None, f"use one of {', '.join(READERS)}")
     if not path.is_dir():
-        raise InputError("scene folder does not exist" if not path.exists() else "expected a scene folder", path)
+        raise InputError("scene folder does not exist" if not path.exists() else "expected a scene folder", path,
+                         "pass the folder that holds the scene")
+    from omnirecon.preflight import check_format  # a forced --format that does not fit the folder: one line
+
+    check_format(path, format, READERS)
     scene = importlib.import_module(READERS[format]).read(path, options)
     scene.validate()
     return scene

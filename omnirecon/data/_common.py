@@ -69,7 +69,7 @@ def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expe
     The first image of a different size raises InputError naming it.
     """
     if not paths:
-        raise InputError("no images listed", None)
+        raise InputError("no images listed", None, "list at least one image in the pose file")
     ref = expected
     for p in paths:
         size = image_size(p)
@@ -81,9 +81,30 @@ def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expe
     return int(ref[0]), int(ref[1])
 
 
-def resolve_image(folder: Path, rel: str) -> Path:
-    """``folder / rel``, appending ``.png`` when ``rel`` has no image extension (Blender ``file_path``)."""
-    p = (Path(folder) / rel)
+def inside(folder: Path, rel: str, source: Path | None = None) -> Path:
+    """``folder / rel`` when it stays inside ``folder`` (no absolute path, no ``..`` climbing out, no NUL);
+    InputError naming ``source`` (the pose file that lists ``rel``) otherwise."""
+    if not isinstance(rel, str):
+        raise InputError(f"image path must be a string, got {type(rel).__name__}", source or folder,
+                         "give each image as a relative path string, e.g. \"images/0001.png\"")
+    try:
+        too_long = any(len(part.encode()) > 255 for part in rel.split("/"))
+    except UnicodeEncodeError:
+        too_long = True
+    if too_long:
+        raise InputError(f"image path {rel[:40]!r}... is not a valid file name (too long or not encodable)",
+                         source or folder, "give image paths as relative file names of at most 255 bytes each")
+    target = os.path.normpath(os.path.join(os.path.abspath(folder), rel)) if "\0" not in rel else ""
+    if not rel or os.path.isabs(rel) or not target.startswith(os.path.abspath(folder) + os.sep):
+        raise InputError(f"image path {rel[:80]!r} points outside the scene folder", source or folder,
+                         "give image paths relative to the scene folder, without '..' (copy or link the images in)")
+    return Path(folder) / rel
+
+
+def resolve_image(folder: Path, rel: str, source: Path | None = None) -> Path:
+    """``folder / rel``, appending ``.png`` when ``rel`` has no image extension (Blender ``file_path``);
+    ``rel`` must stay inside ``folder`` (:func:`inside`)."""
+    p = inside(folder, rel, source)
     if p.suffix.lower() in IMAGE_EXTS or p.is_file():
         return p
     return p.with_name(p.name + ".png")
@@ -200,7 +221,8 @@ def select_views(n: int, splits: dict[str, list[int]], options, source: Path) ->
             keep = sorted(set().union(*(splits[s] for s in options.splits)))
     if options.max_views is not None:
         if options.max_views < 1:
-            raise InputError(f"max_views must be at least 1, got {options.max_views}", None)
+            raise InputError(f"--max-views must be at least 1, got {options.max_views}", None,
+                             "use e.g. --max-views 40, or leave it out for all views")
         if len(keep) > options.max_views:
             pick = np.unique(np.linspace(0, len(keep) - 1, options.max_views).round().astype(int))
             keep = [keep[i] for i in pick]
@@ -313,7 +335,8 @@ def assemble(
     """
     ds = float(options.downscale)
     if not (math.isfinite(ds) and ds > 0):
-        raise InputError(f"downscale must be a positive number, got {options.downscale}", None)
+        raise InputError(f"downscale must be a positive number, got {options.downscale}", None,
+                         "use e.g. --downscale 2")
     keep, splits = select_views(len(cameras), splits, options, source)
     cams = cameras[keep]
     if ds != 1.0:

@@ -50,7 +50,7 @@ class Frames:
             if not isinstance(fr, dict) or "file_path" not in fr or "transform_matrix" not in fr:
                 raise InputError(f"frame {i} lacks file_path or transform_matrix", source,
                                  "give both keys in every frame")
-            self.images.append(resolve_image(self.folder, str(fr["file_path"])))
+            self.images.append(resolve_image(self.folder, fr["file_path"], source))
             self.c2w_gl.append(pose_matrix(fr["transform_matrix"], source, f"frame {i} transform_matrix"))
             self.fields.append({k: fr.get(k, meta.get(k)) for k in INTRINSIC_KEYS})
             self.frames.append(fr)
@@ -78,9 +78,9 @@ def _num(value, source: Path, key: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError) as e:
-        raise InputError(f"{key} is not a number ({value!r})", source) from e
+        raise InputError(f"{key} is not a number ({str(value)[:40]!r})", source, f"give {key} as a number") from e
     if not math.isfinite(v):
-        raise InputError(f"{key} is not finite", source)
+        raise InputError(f"{key} is not finite", source, f"give {key} as a finite number")
     return v
 
 

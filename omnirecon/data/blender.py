@@ -83,10 +83,12 @@ def read(path: Path, options) -> Scene:
     if "aabb" in top:
         bounds = _floats(*top["aabb"], "aabb", (2, 3))
         if (bounds[1] <= bounds[0]).any():
-            raise InputError("aabb max must exceed min on every axis", top["aabb"][1])
+            raise InputError("aabb max must exceed min on every axis", top["aabb"][1],
+                             "give aabb as [[min x, y, z], [max x, y, z]]")
     rig = str(top.get("rig", ("object",))[0])
     if rig not in ("object", "forward"):
-        raise InputError(f"rig must be \"object\" or \"forward\", got {rig!r}", top["rig"][1])
+        raise InputError(f"rig must be \"object\" or \"forward\", got {rig!r}", top["rig"][1],
+                         "set \"rig\" to object or forward")
     background = None
     if "background" in top:
         background = tuple(_floats(*top["background"], "background", (3,)).tolist())
@@ -115,7 +117,8 @@ def _floats(value, source: Path, key: str, shape: tuple[int, ...]) -> torch.Tens
     try:
         t = torch.tensor(value, dtype=torch.float64)
     except (TypeError, ValueError) as e:
-        raise InputError(f"{key} is not a list of numbers", source) from e
+        raise InputError(f"{key} is not a list of numbers", source, f"give {key} as a list of numbers") from e
     if tuple(t.shape) != shape or not torch.isfinite(t).all():
-        raise InputError(f"{key} must hold {'x'.join(map(str, shape))} finite numbers, got {value!r}", source)
+        raise InputError(f"{key} must hold {'x'.join(map(str, shape))} finite numbers, got {str(value)[:60]}", source,
+                         f"give {key} as {'x'.join(map(str, shape))} finite numbers")
     return t

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from omnirecon.cameras import Cameras, rigid_inverse
-from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, rigid_poses
+from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, inside, rigid_poses
 from omnirecon.data.colmap_io import find_model, qvec_to_rotmat, read_model
 from omnirecon.data.frame import upright_frame
 from omnirecon.data.scene import Scene
@@ -81,7 +81,8 @@ def read(path: Path, options) -> Scene:
     images = sorted(model.images, key=lambda im: im.name)
     missing = sorted({im.camera_id for im in images} - set(model.cameras))
     if missing:
-        raise InputError(f"images refer to camera {missing[0]}, which is not in the model", cam_file)
+        raise InputError(f"images refer to camera {missing[0]}, which is not in the model", cam_file,
+                         "re-export the model so that every image's camera id is listed in the cameras file")
     sizes = {(model.cameras[im.camera_id].width, model.cameras[im.camera_id].height) for im in images}
     if len(sizes) != 1:
         raise InputError(f"cameras have different image sizes {sorted(sizes)}", cam_file,
@@ -115,7 +116,7 @@ def read(path: Path, options) -> Scene:
 
     roots = [path, path.parent, path.parent.parent]
     root = next((r for r in roots if (r / "images").is_dir()), path)
-    files = [root / "images" / im.name for im in images]
+    files = [inside(root / "images", im.name, img_file) for im in images]  # names stay inside images/
     common_size(files, (width, height), f"{cam_file.name} gives")
     factor, downscale = _image_folder(root, [im.name for im in images], cameras, float(options.downscale))
     if factor > 1:

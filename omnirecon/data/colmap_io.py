@@ -136,8 +136,13 @@ class _TextReader:
                 name = tok[1]
                 if name not in MODEL_IDS:
                     raise InputError(f"unknown COLMAP camera model {name}", path, "re-export with a current COLMAP")
-                out[int(tok[0])] = Camera(int(tok[0]), name, int(tok[2]), int(tok[3]), np.array(tok[4:], np.float64))
-            except (ValueError, IndexError) as e:
+                params = np.array(tok[4:], np.float64)
+                if len(params) != MODEL_IDS[name][1]:
+                    raise ValueError(f"{name} takes {MODEL_IDS[name][1]} parameters, got {len(params)}")
+                if not (0 < int(tok[2]) < 2**31 and 0 < int(tok[3]) < 2**31):
+                    raise ValueError(f"image size {tok[2]}x{tok[3]} is not positive or too large")
+                out[int(tok[0])] = Camera(int(tok[0]), name, int(tok[2]), int(tok[3]), params)
+            except (ValueError, IndexError, OverflowError) as e:
                 raise _malformed(path, e) from e
         return out
 
@@ -154,7 +159,7 @@ class _TextReader:
                 out.append(Image(int(tok[0]), np.array(tok[1:5], np.float64), np.array(tok[5:8], np.float64),
                                  int(tok[8]), tok[9], pts[:, :2], pts[:, 2].astype(np.int64)))
                 i += 2
-        except (ValueError, IndexError) as e:
+        except (ValueError, IndexError, OverflowError) as e:
             raise _malformed(path, e) from e
         return out
 
@@ -171,10 +176,10 @@ class _TextReader:
                 rgb.append([int(t) for t in tok[4:7]])
                 err.append(float(tok[7]))
                 tracks.append(np.array(tok[8:], np.int64).reshape(-1, 2))
-        except (ValueError, IndexError) as e:
+            return Points(np.array(ids, np.int64), np.array(xyz, np.float64).reshape(-1, 3),
+                          np.array(rgb, np.uint8).reshape(-1, 3), np.array(err, np.float64), tracks)
+        except (ValueError, IndexError, OverflowError) as e:  # also ids/colours out of range
             raise _malformed(path, e) from e
-        return Points(np.array(ids, np.int64), np.array(xyz, np.float64).reshape(-1, 3),
-                      np.array(rgb, np.uint8).reshape(-1, 3), np.array(err, np.float64), tracks)
 
 
 class _BinReader:
@@ -193,10 +198,12 @@ class _BinReader:
             for _ in range(n):
                 cid, mid, w, h = struct.unpack_from("<iiQQ", data, pos)
                 name, k = _model_name(path, mid)
+                if not (0 < w < 2**31 and 0 < h < 2**31):
+                    raise ValueError(f"image size {w}x{h} is not positive or too large")
                 params = np.frombuffer(data, "<f8", k, pos + 24).copy()
                 out[cid] = Camera(cid, name, w, h, params)
                 pos += 24 + 8 * k
-        except (struct.error, ValueError) as e:
+        except (struct.error, ValueError, OverflowError) as e:
             raise _malformed(path, e) from e
         return out
 
@@ -216,7 +223,7 @@ class _BinReader:
                 pos += 24 * k
                 out.append(Image(vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name,
                                  np.stack([pts["x"], pts["y"]], -1), pts["id"].astype(np.int64)))
-        except (struct.error, ValueError, UnicodeDecodeError) as e:
+        except (struct.error, ValueError, OverflowError, UnicodeDecodeError) as e:
             raise _malformed(path, e) from e
         return out
 
@@ -235,10 +242,10 @@ class _BinReader:
                 err.append(v[7])
                 tracks.append(np.frombuffer(data, "<i4", 2 * v[8], pos).reshape(-1, 2).astype(np.int64))
                 pos += 8 * v[8]
-        except (struct.error, ValueError) as e:
+            return Points(np.array(ids, np.int64), np.array(xyz, np.float64).reshape(-1, 3),
+                          np.array(rgb, np.uint8).reshape(-1, 3), np.array(err, np.float64), tracks)
+        except (struct.error, ValueError, OverflowError) as e:  # also ids/colours out of range
             raise _malformed(path, e) from e
-        return Points(np.array(ids, np.int64), np.array(xyz, np.float64).reshape(-1, 3),
-                      np.array(rgb, np.uint8).reshape(-1, 3), np.array(err, np.float64), tracks)
 
 
 def write_model(model: Model, folder: Path, ext: str) -> None:

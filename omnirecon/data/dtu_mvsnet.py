@@ -137,7 +137,8 @@ def read(path: Path, options) -> Scene:
     far = torch.tensor([_far(d) for _, _, d in parsed], dtype=torch.float64)
     bad = ((near <= 0) | (far <= near)).nonzero()
     if len(bad):
-        raise InputError("depth range must satisfy 0 < depth_min < depth_max", files[int(bad[0])])
+        raise InputError("depth range must satisfy 0 < depth_min < depth_max", files[int(bad[0])],
+                         "fix the last line (depth_min depth_interval) so both are positive")
     pair_file = next((p for p in pair_files if p.is_file()), None)
     meta = {"view_ids": ids, **({"pairs": parse_pairs(pair_file)} if pair_file else {})}
     return assemble(

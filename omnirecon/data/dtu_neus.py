@@ -20,6 +20,7 @@ Conventions:
 from __future__ import annotations
 
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +66,8 @@ def read(path: Path, options) -> Scene:
         source = path / "cameras.npz"
     npz = read_npy(source)
     if not hasattr(npz, "files"):
-        raise InputError("expected an .npz archive of world_mat_i / scale_mat_i arrays", source)
+        raise InputError("expected an .npz archive of world_mat_i / scale_mat_i arrays", source,
+                         "regenerate the file with numpy.savez")
     if not (path / "image").is_dir() or not list_images(path / "image"):
         raise InputError("no images in image/", path / "image", "put the views in image/ as 000000.png, ...")
     images = list_images(path / "image")
@@ -76,7 +78,8 @@ def read(path: Path, options) -> Scene:
         try:
             K, w2c = decompose_projection((world @ scale)[:3, :4])
         except (np.linalg.LinAlgError, ValueError) as e:
-            raise InputError(f"world_mat_{i} @ scale_mat_{i} is not a valid projection ({e})", source) from e
+            raise InputError(f"world_mat_{i} @ scale_mat_{i} is not a valid projection ({e})", source,
+                             "give full-rank 4x4 matrices (world_mat = K [R | t]); regenerate the file") from e
         if abs(K[0, 1]) > 1e-3 * K[0, 0]:
             raise InputError(f"world_mat_{i} has pixel skew {K[0, 1]:.3g} (not supported by the pinhole model)", source,
                              "resample the images to square, unskewed pixels")
@@ -111,11 +114,16 @@ def _matrix(npz, key: str, source: Path, n: int) -> np.ndarray:
         raise InputError(f"missing key {key} ({n} images in image/)", source,
                          "give world_mat_i and scale_mat_i for every image")
     try:
-        m = np.asarray(npz[key], dtype=np.float64)
-    except (ValueError, TypeError, OSError, zipfile.BadZipFile) as e:
+        raw = np.asarray(npz[key])
+        if raw.dtype.kind not in "fiub":  # complex, strings, objects: not a camera matrix
+            raise ValueError(f"dtype {raw.dtype} is not real-valued")
+        m = raw.astype(np.float64)
+    except (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
         raise InputError(f"cannot read {key} ({e})", source, "regenerate the file") from e
     if m.shape == (3, 4):
         m = np.concatenate([m, [[0, 0, 0, 1.0]]])
     if m.shape != (4, 4) or not np.isfinite(m).all():
-        raise InputError(f"{key} must be a finite 4x4 matrix, got shape {'x'.join(map(str, m.shape))}", source)
+        raise InputError(f"{key} must be a finite 4x4 matrix, got shape {'x'.join(map(str, m.shape))}"
+                         + ("" if m.shape != (4, 4) else " with NaN/Inf entries"), source,
+                         "regenerate the file with finite 4x4 (or 3x4) matrices")
     return m

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import tokenize
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -58,7 +60,7 @@ def _resize(im, size):
 def read_json(path: Path) -> dict:
     path = Path(path)
     if not path.is_file():
-        raise InputError("file is missing", path)
+        raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -68,10 +70,10 @@ def read_json(path: Path) -> dict:
 def read_npy(path: Path, allow_pickle: bool = False):
     path = Path(path)
     if not path.is_file():
-        raise InputError("file is missing", path)
+        raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return np.load(path, allow_pickle=allow_pickle)
-    except (ValueError, OSError, EOFError) as e:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, SyntaxError, tokenize.TokenError) as e:  # corrupt header
         raise InputError(f"cannot read NumPy file ({e})", path, "the file is corrupt; regenerate it") from e
 
 
@@ -83,10 +85,11 @@ def list_images(folder: Path) -> list[Path]:
 
 @contextmanager
 def atomic_path(path: Path):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
+    """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds. The name
+    carries our PID, so :func:`omnirecon.outputs.clean_stale` can remove it after a crash."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.pid{os.getpid()}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)

@@ -94,7 +94,8 @@ def read(path: Path, options) -> Scene:
         bad = int((~torch.isfinite(arr)).any(1).nonzero()[0])
         raise InputError(f"row {bad} contains NaN or infinite values", source, "regenerate the poses")
     if (hwf <= 0).any() or ((hwf[:, :2] - hwf[0, :2]).abs() > 0.5).any():
-        raise InputError("hwf (height, width, focal) must be positive and the same size for all rows", source)
+        raise InputError("hwf (height, width, focal) must be positive and the same size for all rows", source,
+                         "regenerate poses_bounds.npy (LLFF imgs2poses) for images of one size")
     sx, sy = width / float(hwf[0, 1]), height / float(hwf[0, 0])
     if abs(sx - sy) > 0.01 * max(sx, sy):
         raise InputError(f"images are {width}x{height} but hwf says {hwf[0, 1]:.0f}x{hwf[0, 0]:.0f} (another aspect)",
@@ -108,7 +109,8 @@ def read(path: Path, options) -> Scene:
     near, far = arr[:, 15], arr[:, 16]
     if ((near <= 0) | (far <= near)).any():
         bad = int(((near <= 0) | (far <= near)).nonzero()[0])
-        raise InputError(f"row {bad} has bounds near={near[bad]:.4g}, far={far[bad]:.4g}; need 0 < near < far", source)
+        raise InputError(f"row {bad} has bounds near={near[bad]:.4g}, far={far[bad]:.4g}; need 0 < near < far", source,
+                         "fix that row's last two numbers (near, far), or regenerate poses_bounds.npy")
 
     remaining = min(folders) * float(options.downscale) / factor
     return assemble(

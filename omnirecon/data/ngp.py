@@ -59,10 +59,12 @@ def ngp_cube(meta: dict, source: Path) -> torch.Tensor:
     scale = _num(meta.get("scale", 0.33), source, "scale")
     offset = meta.get("offset", [0.5, 0.5, 0.5])
     if not isinstance(offset, list) or len(offset) != 3:
-        raise InputError("offset must be a list of 3 numbers", source)
+        raise InputError("offset must be a list of 3 numbers", source,
+                         "give offset as [x, y, z], or leave it out for [0.5, 0.5, 0.5]")
     off = torch.tensor([_num(o, source, "offset") for o in offset], dtype=torch.float64)
     if a <= 0 or scale <= 0:
-        raise InputError("aabb_scale and scale must be positive", source)
+        raise InputError("aabb_scale and scale must be positive", source,
+                         "give positive numbers, or leave them out for 1 and 0.33")
     return torch.stack([(0.5 - a / 2 - off) / scale, (0.5 + a / 2 - off) / scale])
 
 

@@ -136,7 +136,8 @@ class Scene:
         n, h, w = len(self), self.height, self.width
         where = self.path
         if self.images.shape != (n, h, w, 3):
-            raise InputError(f"images must be [N, H, W, 3], got {tuple(self.images.shape)}", where)
+            raise InputError(f"images must be [N, H, W, 3], got {tuple(self.images.shape)}", where,
+                             "give RGB(A) images of one size")
         if len(self.cameras) != n:
             raise InputError(f"{n} images but {len(self.cameras)} cameras", where,
                              "give exactly one pose per image")
@@ -145,24 +146,28 @@ class Scene:
                 f"intrinsics are for {self.cameras.width}x{self.cameras.height} but images are {w}x{h}",
                 where, "rescale the intrinsics to the image size")
         if not torch.isfinite(self.images).all():
-            raise InputError("images contain NaN or infinite values", where)
+            raise InputError("images contain NaN or infinite values", where,
+                             "re-export the images (e.g. EXR without NaN/Inf)")
         for name in ("fx", "fy", "cx", "cy"):
             v = getattr(self.cameras, name)
             if not torch.isfinite(v).all() or (name in ("fx", "fy") and (v <= 0).any()):
                 raise InputError(f"intrinsic {name} must be finite{' and positive' if name[0] == 'f' else ''}",
-                                 where)
+                                 where, "fix the focal length / principal point in the camera file")
         if not (torch.isfinite(self.near).all() and torch.isfinite(self.far).all()):
-            raise InputError("near/far bounds are not finite", where)
+            raise InputError("near/far bounds are not finite", where, "fix the depth bounds in the camera file")
         if ((self.near <= 0) | (self.far <= self.near)).any():
-            raise InputError("near/far bounds must satisfy 0 < near < far", where)
+            raise InputError("near/far bounds must satisfy 0 < near < far", where,
+                             "fix the depth bounds (or the scale/aabb that sets them) in the camera file")
         for name, shape in (("masks", (n, h, w)), ("depths", (n, h, w)), ("normals", (n, h, w, 3)),
                             ("labels", (n, h, w))):
             t = getattr(self, name)
             if t is not None and tuple(t.shape) != shape:
-                raise InputError(f"{name} must be {list(shape)}, got {list(t.shape)}", where)
+                raise InputError(f"{name} must be {list(shape)}, got {list(t.shape)}", where,
+                                 f"give {name} at the image size")
         for k, v in self.splits.items():
             if any(i < 0 or i >= n for i in v):
-                raise InputError(f"split {k!r} names views outside 0..{n - 1}", where)
+                raise InputError(f"split {k!r} names views outside 0..{n - 1}", where,
+                                 "list only existing views in the split")
 
     def summary(self) -> dict:
         """A JSON-serialisable description (what ``omnirecon inspect`` prints)."""

@@ -18,13 +18,12 @@ import shutil
 from pathlib import Path
 
 import torch
-from safetensors import SafetensorError
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 
-from omnirecon.data.io import atomic_path, read_json, write_json
+from omnirecon.data.io import atomic_path, write_json
 from omnirecon.errors import InputError
-from omnirecon.models.registry import build_model, model_config_dict
+from omnirecon.models.registry import model_config_dict
 
 
 def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: torch.optim.Optimizer | None = None,
@@ -56,24 +55,23 @@ def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: 
 
 
 def read_meta(folder: Path) -> dict:
-    folder = Path(folder)
-    if not (folder / "meta.json").is_file():
-        raise InputError("not a checkpoint folder (no meta.json)", folder,
-                         "pass a folder written by `omnirecon train` (e.g. outputs/train/run/checkpoints/latest)")
-    return read_json(folder / "meta.json")
+    from omnirecon.engine.checkpoint_check import checked_meta
+
+    return checked_meta(folder)
 
 
 def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     """Rebuild the model from ``folder``. Returns ``(model, meta)``."""
+    from omnirecon.engine.checkpoint_check import build_checked, read_weights
 
     folder = Path(folder)
     meta = read_meta(folder)
-    model = build_model(meta["preset"], meta["model_config"])
+    model = build_checked(meta, folder)
+    state = read_weights(folder / "model.safetensors", device)  # missing / unreadable / NaN: InputError
     try:
-        state = load_file(str(folder / "model.safetensors"), device=str(device))
-    except (SafetensorError, OSError, FileNotFoundError) as e:
-        raise InputError(f"cannot read weights ({e})", folder / "model.safetensors", "the checkpoint is corrupt") from e
-    missing, unexpected = model.load_state_dict(state, strict=False)
+        missing, unexpected = model.load_state_dict(state, strict=False)
+    except RuntimeError as e:  # shape mismatch
+        missing, unexpected = [str(e).split("\n")[1].strip()[:80] if "\n" in str(e) else str(e)[:80]], []
     if missing or unexpected:
         raise InputError(f"weights do not match {meta['preset']} (missing {missing[:3]}, unexpected {unexpected[:3]})",
                          folder / "model.safetensors", "use the code version that wrote the checkpoint")
@@ -96,14 +94,9 @@ def fingerprint(folder: Path) -> dict:
 
 def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:
     """Restore optimizer state saved by :func:`save_checkpoint` into ``optimizer``."""
-    meta = read_meta(folder)["optimizer"]
-    if meta is None:
-        raise InputError("checkpoint has no optimizer state", folder, "resume from a training checkpoint")
-    tensors = load_file(str(Path(folder) / "optimizer.safetensors"))
-    state = {}
-    for pid, names in meta["state_keys"].items():
-        state[int(pid)] = {n: tensors[f"{pid}.{n}"] for n in names}
-    optimizer.load_state_dict({"state": state, "param_groups": meta["param_groups"]})
+    from omnirecon.engine.checkpoint_check import load_optimizer_checked
+
+    load_optimizer_checked(folder, optimizer)
 
 
 def dumps(obj) -> str:

@@ -36,6 +36,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh import geometry as geo
 from omnirecon.mesh.build import MeshOptions, depth_from_outputs, export_mesh, mesh_from_model, to_input_frame
 from omnirecon.mesh.geometry import depth_errors
+from omnirecon.preflight import check_planned
 from omnirecon.progress import progress_bar
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
@@ -118,6 +119,7 @@ def evaluate(
         prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
                                    protocol_set)
         jobs, results = _plan(prepared, ks, max_targets)
+        check_planned(jobs, results, ks)  # a K that runs nowhere: refused, not empty tables
         total = sum(len(job["targets"]) for job in jobs)
         task = bar.add_task("eval", total=total)
         for job in jobs:

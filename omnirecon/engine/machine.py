@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from omnirecon.chunk import pick_chunk
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.errors import InputError
 from omnirecon.models.registry import build_model
@@ -73,5 +74,9 @@ class DeviceConfig(ThreadsConfig):
 class MachineConfig(DeviceConfig):
     """Threads, device and the rendering chunk of a command that renders images."""
 
-    chunk: int = 4096
-    """Rays rendered per chunk: bounds memory (lower it if memory is short)."""
+    chunk: int | None = None
+    """Rays rendered per chunk: bounds memory (default: from the free memory, at most 4096; a one-line note
+    when a given value would need more than 25% of the RAM)."""
+
+    def __post_init__(self) -> None:
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory

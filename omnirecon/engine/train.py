@@ -42,6 +42,7 @@ from omnirecon.engine.report import save_val_picture
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
 from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
+from omnirecon.preflight import check_train_views
 from omnirecon.progress import progress_bar
 from omnirecon.provenance import provenance
 
@@ -157,10 +158,9 @@ class Trainer:
         need(c.threads is None or c.threads >= 1, "--threads must be at least 1", "use e.g. --threads 2")
         if self.out.exists() and not self.out.is_dir():
             raise InputError("run folder path is a file", self.out, "pass a folder for --out")
-        latest = self.out / "checkpoints" / "latest"
-        if c.resume and not (latest / "meta.json").is_file():
-            raise InputError("nothing to resume: no checkpoints/latest in the run folder", self.out,
-                             "drop --resume to start a new run, or point --out at an earlier run")
+        from omnirecon.engine.checkpoint_check import resume_folder
+
+        self.resume_from = resume_folder(self.out, self.notes) if c.resume else None
         if not c.resume and (self.out / "checkpoints").is_dir() and any((self.out / "checkpoints").iterdir()):
             raise InputError("run folder already has checkpoints", self.out,
                              "pass --resume to continue it, or choose a new --out")
@@ -223,14 +223,13 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=c.amp == "fp16")
         self.step, self.elapsed, self.cpu_used = 0, 0.0, 0.0
         self.prov = provenance(c.seed, world_size=env.world)
-        ckdir = self.out / "checkpoints"
-        if c.resume:
-            latest = ckdir / "latest"
+        if c.resume:  # from checkpoints/latest, else the newest intact step_* (see check)
+            latest = self.resume_from
             meta = read_meta(latest)
             self.check_resume(meta)
-            from safetensors.torch import load_file
+            from omnirecon.engine.checkpoint_check import read_weights
 
-            state = load_file(str(latest / "model.safetensors"), device=str(self.device))
+            state = read_weights(latest / "model.safetensors", str(self.device))
             self.model.load_state_dict(state)
             load_optimizer_state(latest, self.opt)
             self.step = int(meta["step"])
@@ -239,6 +238,7 @@ class Trainer:
             if meta["extra"].get("scaler"):
                 self.scaler.load_state_dict(meta["extra"]["scaler"])
         self.model_config = model_config_dict(self.model)
+        check_train_views(self.bank, self.train_sources, max(self.cfg.num_views_range or (self.K,)))  # before any file
         if env.main:
             self.open_logs()
 

@@ -173,7 +173,8 @@ def _check_value(key: str, value, default, hint):
                      f"give a value like {json.dumps(default if not isinstance(default, tuple) else list(default))}")
     if typing.get_origin(hint) is Literal:
         if value not in typing.get_args(hint):
-            raise InputError(f"--model-overrides: {key} must be one of {list(typing.get_args(hint))}, got {value!r}")
+            raise InputError(f"--model-overrides: {key} must be one of {list(typing.get_args(hint))}, got {value!r}",
+                             None, f"pass {key}=<one of those>")
         return value
     if isinstance(default, bool):
         if not isinstance(value, bool):

@@ -37,7 +37,6 @@ import trimesh
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.data.io import atomic_path
 from omnirecon.errors import InputError
 from omnirecon.mesh.geometry import rasterize_mesh
 from omnirecon.rays import Sources
@@ -514,12 +513,13 @@ def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
 def export_mesh(mesh: trimesh.Trimesh, paths) -> list[Path]:
     """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically. Vertex colours are sRGB
     bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`)."""
-    written = []
-    for p in check_mesh_paths(paths):
-        kind = p.suffix.lower().lstrip(".")
-        with atomic_path(p) as tmp:
+    from omnirecon.outputs import atomic_files  # all written, then renamed: complete or absent
+
+    written = check_mesh_paths(paths)
+    with atomic_files(written) as tmps:
+        for p, tmp in zip(written, tmps):
+            kind = p.suffix.lower().lstrip(".")
             m = gltf_mesh(mesh) if kind == "glb" else mesh
             data = m.export(file_type=kind, **({"include_normals": False} if kind == "obj" else {}))
             Path(tmp).write_bytes(data if isinstance(data, bytes) else data.encode())
-        written.append(p)
     return written

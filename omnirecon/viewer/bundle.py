@@ -192,7 +192,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         **(extra or {}),
     }
     folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
+    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.pid{os.getpid()}.", dir=folder.parent))
     try:
         for name in ("index.html", "viewer.js"):
             shutil.copyfile(STATIC / name, tmp / name)

@@ -1,11 +1,14 @@
 """A static file server for viewer bundles, bound to 127.0.0.1, that never serves outside its folder.
 
 :class:`BundleRequestHandler` (an ``http.server.SimpleHTTPRequestHandler``) answers ``GET`` / ``HEAD``
-only, for regular files under its root. It refuses, with 403, any request whose path is not a plain
-``/``-rooted path (absolute-form ``http://...`` targets, backslashes, NUL bytes), has a ``..`` or
-``.`` segment (also percent-encoded), or resolves (symbolic links followed) to a file outside the
-root; it answers 404 for missing files and does not list folders. Responses are not cached, so a
-re-exported bundle shows at once.
+only, for regular files under its root. It answers one identical 404 (no 403 that would reveal what
+exists) to any request whose ``Host`` header is not the bound address (``127.0.0.1:PORT`` or
+``localhost:PORT``, the port optional: a DNS-rebinding page sends its own host name), whose path is not
+a plain ``/``-rooted path (absolute-form ``http://...`` targets, backslashes, NUL bytes), has a ``..``
+or ``.`` segment (also percent-encoded) or a dotfile / dot-folder segment, resolves (symbolic links
+followed) to anything outside the root or to a hidden name, is not a regular file, or has more than
+one hard link (a hard link can name an inode outside the bundle); it does not list folders.
+Responses are not cached, so a re-exported bundle shows at once.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import http.server
 import os
 import posixpath
+import stat
 import threading
 import urllib.parse
 from functools import partial
@@ -24,6 +28,15 @@ HOST = "127.0.0.1"
 TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
          ".glb": "model/gltf-binary", ".bin": "application/octet-stream", ".ply": "application/octet-stream",
          ".png": "image/png", ".html": "text/html; charset=utf-8", ".css": "text/css", "": "application/octet-stream"}
+
+
+def host_allowed(host: str | None, port: int) -> bool:
+    """Whether a ``Host`` header names the bound address: ``127.0.0.1`` or ``localhost``, with ``port``
+    or without a port."""
+    if not host:
+        return False
+    name, _, given = host.strip().lower().rpartition(":") if ":" in host else (host.strip().lower(), "", "")
+    return name in (HOST, "localhost") and given in ("", str(port))
 
 
 class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
@@ -38,20 +51,22 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
         super().__init__(*args, directory=str(Path(directory).resolve()), **kwargs)
 
     def resolve(self) -> tuple[int, Path | None]:
-        """``(status, file)``: 200 and the file to send, or the error status (403, 404)."""
+        """``(status, file)``: 200 and the file to send, or 404 for everything refused or missing."""
+        if not host_allowed(self.headers.get("Host"), self.server.server_address[1]):
+            return 404, None  # DNS rebinding: a foreign page reaching 127.0.0.1 under its own name
         target = self.path
         if not target.startswith("/") or target.startswith("//"):
-            return 403, None  # absolute-form (http://host/...) or network-path targets
+            return 404, None  # absolute-form (http://host/...) or network-path targets
         path = urllib.parse.urlsplit(target).path
         try:
             path = urllib.parse.unquote(path, errors="strict")
         except UnicodeDecodeError:
-            return 403, None
+            return 404, None
         if "\\" in path or "\0" in path:
-            return 403, None
+            return 404, None
         parts = path.split("/")[1:]
-        if any(p in (".", "..") for p in parts):
-            return 403, None
+        if any(p.startswith(".") for p in parts):
+            return 404, None  # ".", "..", dotfiles and dot-folders (e.g. a half-written .viewer.* folder)
         if path.endswith("/"):
             parts = [*parts[:-1], "index.html"]
         root = Path(self.directory)
@@ -61,15 +76,21 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
         except (FileNotFoundError, NotADirectoryError, OSError, RuntimeError):
             return 404, None
         if real != root and root not in real.parents:
-            return 403, None  # e.g. a symbolic link out of the folder
-        if not real.is_file():
+            return 404, None  # e.g. a symbolic link out of the folder
+        if any(p.startswith(".") for p in real.relative_to(root).parts):
+            return 404, None  # a link inside the bundle to a hidden name
+        try:
+            st = os.stat(real)
+        except OSError:
             return 404, None
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
+            return 404, None  # folders, devices, FIFOs; hard links (the inode may live outside the bundle)
         return 200, real
 
     def send_head(self):
         status, file = self.resolve()
         if status != 200:
-            self.send_error(status, "Forbidden: outside the served folder" if status == 403 else "Not found")
+            self.send_error(404, "Not found")
             return None
         try:
             f = open(file, "rb")  # noqa: SIM115 - closed by copyfile's caller

@@ -17,6 +17,7 @@ from typing import Literal
 
 import numpy as np
 
+from omnirecon.chunk import pick_chunk
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
 from omnirecon.engine.protocols import targets_and_pool
@@ -88,12 +89,14 @@ class EditConfig(ThreadsConfig):
     """Resolution/targets: cpu (64 px) or full (128 px)."""
     cache: Path = Path("outputs/cache")
     """Where synth:eval scenes are generated."""
-    chunk: int = 4096
-    """Rays rendered per chunk (edits run on the CPU)."""
+    chunk: int | None = None
+    """Rays rendered per chunk (edits run on the CPU; default: from the free memory, at most 4096; a note
+    when above 25% of RAM)."""
 
     def run(self) -> list[str]:
         """Run the command; returns the lines to print."""
         lines: list[str] = []
+        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
 
         if self.num_views < 1:
             raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")

@@ -14,6 +14,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
+from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
 
@@ -61,6 +62,7 @@ def run_export(cfg: ExportConfig) -> dict:
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()
+    check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
     mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None

@@ -40,6 +40,7 @@ from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.models.omnirecon import OmniReconFeatures
+from omnirecon.preflight import check_resolution
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.render.raster import MeshRasterizer
@@ -167,6 +168,7 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
         raise InputError(f"--seconds must be positive, got {cfg.seconds}", None, "use e.g. 60")
     if cfg.rays < 1 or not cfg.lr > 0:
         raise InputError("--rays must be >= 1 and --lr positive", None, "use e.g. --rays 2048 --lr 5e-4")
+    check_resolution(cfg.resolution)
     set_threads(cfg.threads)
     model, meta = load_checkpoint(cfg.ckpt)
     if not model.capabilities.appearance:

@@ -61,7 +61,8 @@ def run_inspect(cfg: InspectConfig) -> dict:
         raise InputError(f"--downscale must be positive, got {cfg.downscale}", fix="pass e.g. --downscale 2")
     scene = load_scene(cfg.path, cfg.format, ReadOptions(downscale=cfg.downscale, max_views=cfg.max_views))
     if len(scene) < 2:
-        raise InputError(f"scene has {len(scene)} view(s); inspection needs at least 2", cfg.path)
+        raise InputError(f"scene has {len(scene)} view(s); inspection needs at least 2", cfg.path,
+                         "add views, or raise --max-views")
     out = cfg.out or Path("outputs/inspect") / Path(cfg.path).resolve().name
     summary = scene.summary()
     pairs = neighbour_pairs(scene, cfg.num_pairs)

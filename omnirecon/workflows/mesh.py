@@ -28,6 +28,7 @@ from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
 from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
@@ -84,6 +85,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
 
     options = cfg.mesh_options()
     options.check()
+    check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
     outs = check_mesh_paths(cfg.out) if cfg.out else None

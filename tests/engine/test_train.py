@@ -186,7 +186,8 @@ def test_folder_of_scenes_skips_evaluation_scenes(tmp_path, scene, capsys):
 def test_real_scene_is_downscaled_to_the_training_resolution(tmp_path, shared_data):
     lego = shared_data("blender/lego")
     run = tmp_path / "run"
-    assert main(train_args(run, str(lego), "ibrnet-tiny", 2, "--max-views", "12", "--val-every", "2",
+    # --max-views 12 keeps 3 training views (the rest are val/test): K = 2 sources per target at most
+    assert main(train_args(run, str(lego), "ibrnet-tiny", 2, "--max-views", "12", "--num-views", "2", "--val-every", "2",
                            "--val-scenes", str(lego))) == 0
     from PIL import Image
 

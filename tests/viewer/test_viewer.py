@@ -150,9 +150,8 @@ def test_server_refuses_paths_outside_its_folder(tmp_path):
                    "/link.txt", "/up/secret.txt", "/etc/passwd", "/sub/"]
         for target in refused:
             status, body = raw_get(port, target)
-            assert status in (403, 404), (target, status)
+            assert status == 404, (target, status)  # one answer for refused and missing alike
             assert b"TOP SECRET" not in body, target
-        assert raw_get(port, "/../secret.txt")[0] == 403 and raw_get(port, "/link.txt")[0] == 403
         assert raw_get(port, "/index.html", "POST")[0] == 405
     finally:
         server.stop()

@@ -1,0 +1,199 @@
+"""Reliability counts for BENCHMARKS.md: the malformed-input table, the fuzz run and kill -9 recovery.
+
+    python bench/reliability.py                           # table + 10,000 fuzz cases per target + kills
+    python bench/reliability.py --fuzz-examples 200 --kills 2   # a quick run
+
+* **Malformed inputs**: runs ``tests/test_malformed.py`` (every command against a table of malformed
+  inputs: exit 2, one line naming the file with a fix clause, no traceback, nothing written) and
+  counts the rows per command and how many were handled.
+* **Fuzzing**: runs ``tests/test_fuzz.py`` with ``OMNIRECON_FUZZ_EXAMPLES`` cases per target (7 scene
+  readers, ``meta.json``, ``model.safetensors``) and records cases, InputErrors, successful reads and
+  failures (any other exception) per target.
+* **kill -9**: starts ``omnirecon synth``, ``train``, ``mesh`` and ``export`` (``--kills`` times each),
+  sends SIGKILL after a random delay, then runs the same command again to completion and counts hidden
+  leftovers (temporaries of our naming) and incomplete results (a mesh set with members missing, a
+  scene without its ``scene.json``).
+
+Writes ``bench/results/reliability.json`` with a provenance header; ``bench/run_all.py`` renders it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+TESTS = ROOT / "tests"
+
+
+def _pytest(args: list[str], env: dict, timeout: float) -> tuple[int, Path]:
+    junit = Path(tempfile.mkdtemp(prefix="reliability_")) / "junit.xml"
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={junit}", *args]
+    proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1", **env}, timeout=timeout,
+                          capture_output=True, text=True)
+    print(proc.stdout[-2000:], proc.stderr[-2000:], sep="\n", flush=True)
+    return proc.returncode, junit
+
+
+def malformed_counts() -> dict:
+    """Rows of tests/test_malformed.py per command, and how many passed (were handled)."""
+    _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
+    per: dict[str, list[int]] = {}
+    failed = []
+    for case in ET.parse(junit).getroot().iter("testcase"):
+        m = re.search(r"\[\d+-(\S+)", case.get("name", ""))
+        cmd = m.group(1) if m else "?"
+        ok = case.find("failure") is None and case.find("error") is None and case.find("skipped") is None
+        row = per.setdefault(cmd, [0, 0])
+        row[0] += 1
+        row[1] += int(ok)
+        if not ok:
+            failed.append(case.get("name"))
+    return {"cases": sum(r[0] for r in per.values()), "handled": sum(r[1] for r in per.values()),
+            "per_command": {k: {"cases": v[0], "handled": v[1]} for k, v in sorted(per.items())}, "failed": failed}
+
+
+def fuzz_counts(examples: int) -> dict:
+    report = Path(tempfile.mkdtemp(prefix="reliability_")) / "fuzz.json"
+    rc, _ = _pytest([str(TESTS / "test_fuzz.py")], {"OMNIRECON_FUZZ_EXAMPLES": str(examples),
+                                                     "OMNIRECON_FUZZ_REPORT": str(report)}, 6 * 3600)
+    targets = json.loads(report.read_text()) if report.is_file() else {}
+    return {"examples_per_target": examples, "targets": targets, "cases": sum(t["cases"] for t in targets.values()),
+            "failures": sum(t["failures"] for t in targets.values()), "pytest_exit": rc}
+
+
+# ---------------------------------------------------------------------- kill -9
+STALE = re.compile(r"^\..+\.(?:pid|tmp)(\d+)(?:\..*)?$")
+
+
+def _hidden_leftovers(folder: Path) -> list[str]:
+    return [str(p.relative_to(folder)) for p in folder.rglob(".*") if STALE.match(p.name)]
+
+
+def _cli(args: list[str]) -> list[str]:
+    return [sys.executable, "-m", "omnirecon.cli", *args]
+
+
+def _kill_after(cmd: list[str], delay: float, env: dict) -> bool:
+    """Start ``cmd``, SIGKILL it after ``delay`` s; whether it was still running then."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        proc.wait(delay)
+        return False
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        return True
+
+
+def kill_runs(kills: int, seed: int = 0) -> dict:
+    """``kills`` SIGKILLs at random moments into each command, each followed by a complete re-run."""
+    rng = random.Random(seed)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    work = Path(tempfile.mkdtemp(prefix="reliability_kill_"))
+    scene_dir = work / "scenes"
+    subprocess.run(_cli(["synth", "--num-scenes", "1", "--views", "10", "--resolution", "32", "--out", str(scene_dir)]),
+                   cwd=ROOT, env=env, check=True, capture_output=True)
+    scene = next(scene_dir.glob("scene_*"))
+    ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
+    tiny = ["--model", "gpnr-tiny", "--model-overrides", "num_samples=8", "dim=32", "mlp_dim=32", "heads=1",
+            "layers=[1,1,1]", "point_freqs=4", "--num-views", "3", "--resolution", "32", "--rays", "64",
+            "--val-every", "0", "--threads", "1", "--no-progress", "--ckpt-every", "5"]
+    commands = {
+        "synth": (lambda out: ["synth", "--num-scenes", "3", "--views", "12", "--resolution", "48", "--workers", "1",
+                               "--out", str(out)], (0.5, 6.0)),
+        "train": (lambda out: ["train", "--data", str(scene), "--steps", "30", "--out", str(out),
+                               "--cache", str(work / "cache"), *tiny], (2.0, 12.0)),
+        "mesh": (lambda out: ["mesh", "--scene", str(scene), "--model", "floor", "--threads", "1", "--no-preview",
+                              "--out", str(out / "m.ply"), str(out / "m.obj"), str(out / "m.glb")], (1.0, 10.0)),
+    }
+    if ckpt.is_dir():
+        from omnirecon.viewer.bundle import three_unavailable_reason
+
+        viewer = ["--no-viewer"] if three_unavailable_reason() else []  # the mesh files only, without three.js
+        commands["export"] = (lambda out: ["export", "--scene", str(scene), "--ckpt", str(ckpt), "--threads", "1",
+                                           "--device", "cpu", "--resolution", "32", *viewer, "--out", str(out)],
+                              (1.0, 15.0))
+    results = {}
+    for name, (make, (lo, hi)) in commands.items():
+        out = work / name
+        rec = {"kills": 0, "finished_before_kill": 0, "leftovers_after_rerun": 0, "incomplete_after_kill": 0,
+               "rerun_failed": 0}
+        for _ in range(kills):
+            argv = make(out)
+            if name == "train" and (out / "checkpoints").is_dir():
+                argv.append("--resume")
+            killed = _kill_after(_cli(argv), rng.uniform(lo, hi), env)
+            rec["kills" if killed else "finished_before_kill"] += 1
+            rec["incomplete_after_kill"] += int(_incomplete(name, out))
+            argv = make(out) + (["--resume"] if name == "train" and (out / "checkpoints").is_dir() else [])
+            if name == "synth":
+                argv.append("--overwrite")
+            rerun = subprocess.run(_cli(argv), cwd=ROOT, env=env, capture_output=True, text=True)
+            rec["rerun_failed"] += int(rerun.returncode != 0)
+            if rerun.returncode != 0:
+                rec.setdefault("rerun_errors", []).append(rerun.stderr.strip()[-300:])
+            rec["leftovers_after_rerun"] += len(_hidden_leftovers(out))
+            if name != "train":
+                import shutil
+
+                shutil.rmtree(out, ignore_errors=True)  # each kill starts from nothing (train resumes instead)
+        results[name] = rec
+        print(f"kill -9 {name}: {rec}", flush=True)
+    return results
+
+
+def _incomplete(name: str, out: Path) -> bool:
+    """A partial result that looks complete: a mesh set with some members missing, a scene folder
+    without its scene.json (written last), a checkpoint folder whose meta.json (written last) is absent
+    while weights are present."""
+    if name == "mesh":
+        present = [(out / f"m.{x}").is_file() for x in ("ply", "obj", "glb")]
+        return any(present) and not all(present)
+    if name == "synth":
+        return any(p.is_dir() and not (p / "scene.json").is_file() for p in out.glob("scene_*"))
+    if name == "train":
+        return any((p / "model.safetensors").is_file() and not (p / "meta.json").is_file()
+                   for p in (out / "checkpoints").glob("step_*"))
+    if name == "export":
+        return (out / "viewer").is_dir() and not (out / "viewer" / "bundle.json").is_file()
+    return False
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--fuzz-examples", type=int, default=10_000, help="fuzz cases per target")
+    parser.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (0: skip)")
+    parser.add_argument("--out", type=Path, default=HERE / "results" / "reliability.json")
+    args = parser.parse_args(argv)
+    from omnirecon.data.io import write_json
+    from omnirecon.provenance import provenance
+
+    start = time.perf_counter()
+    result = {"provenance": provenance(seed=0, fuzz_examples=args.fuzz_examples, kills=args.kills,
+                                       command="python bench/reliability.py " + " ".join(argv or sys.argv[1:]))}
+    result["malformed"] = malformed_counts()
+    result["fuzz"] = fuzz_counts(args.fuzz_examples)
+    if args.kills > 0:
+        result["kill"] = kill_runs(args.kills)
+    result["seconds"] = round(time.perf_counter() - start, 1)
+    write_json(args.out, result)
+    m, f = result["malformed"], result["fuzz"]
+    print(f"malformed inputs: {m['handled']}/{m['cases']} handled; fuzz: {f['cases']} cases, {f['failures']} failures; "
+          f"wrote {args.out}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,92 @@
+"""The viewer's file server serves only regular, single-link, non-hidden files inside its bundle, only to
+requests whose ``Host`` names the bound loopback address, and answers one identical 404 for everything it
+refuses (loopback only; no browser needed)."""
+
+import os
+import socket
+
+import pytest
+
+from omnirecon.viewer.server import ViewerServer, host_allowed
+
+
+def raw_get(port: int, target: str, host: str | None = "127.0.0.1") -> tuple[int, bytes]:
+    """Send ``GET target`` exactly as given with the given ``Host`` header (None: no header)."""
+    head = f"GET {target} HTTP/1.0\r\n" + (f"Host: {host}\r\n" if host is not None else "") + "\r\n"
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(head.encode())
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
+@pytest.fixture
+def served(tmp_path):
+    root = tmp_path / "bundle"
+    (root / "sub").mkdir(parents=True)
+    (root / "index.html").write_text("<p>viewer</p>")
+    (root / "sub" / "data.bin").write_bytes(b"\x00\x01")
+    outside = tmp_path / "outside.txt"
+    outside.write_text("TOP SECRET")
+    os.link(outside, root / "hard.txt")  # a hard link: an inode that lives outside the bundle
+    (root / ".env").write_text("TOP SECRET dotfile")
+    (root / ".viewer.abc").mkdir()
+    (root / ".viewer.abc" / "index.html").write_text("TOP SECRET half-written")
+    os.symlink(".env", root / "to_dotfile.txt")
+    os.symlink("/etc", root / "etc")  # exists outside
+    os.symlink("/no/such/folder", root / "nowhere")  # does not exist outside
+    os.mkfifo(root / "fifo")
+    server = ViewerServer(root, port=0, quiet=True)
+    server.start()
+    try:
+        yield server.server_address[1]
+    finally:
+        server.stop()
+
+
+def test_serves_plain_files(served):
+    port = served
+    assert raw_get(port, "/index.html") == (200, b"<p>viewer</p>")
+    assert raw_get(port, "/sub/data.bin", host=f"127.0.0.1:{port}") == (200, b"\x00\x01")
+    assert raw_get(port, "/", host=f"localhost:{port}") == (200, b"<p>viewer</p>")
+
+
+def test_refuses_hard_links(served):
+    status, body = raw_get(served, "/hard.txt")
+    assert status == 404 and b"TOP SECRET" not in body
+
+
+@pytest.mark.parametrize("target", ["/.env", "/.viewer.abc/index.html", "/to_dotfile.txt", "/%2eenv"])
+def test_refuses_dotfiles_and_dot_folders(served, target):
+    status, body = raw_get(served, target)
+    assert status == 404 and b"TOP SECRET" not in body, target
+
+
+def test_refuses_non_regular_files(served):
+    assert raw_get(served, "/fifo")[0] == 404
+    assert raw_get(served, "/sub")[0] == 404
+
+
+@pytest.mark.parametrize("host", ["evil.example:{port}", "evil.example", "127.0.0.1:1", "localhost.evil:{port}",
+                                  "", None, "127.0.0.2:{port}"])
+def test_refuses_foreign_host_headers(served, host):
+    host = None if host is None else host.format(port=served)
+    assert raw_get(served, "/index.html", host=host)[0] == 404, host
+
+
+def test_one_identical_404_for_refused_and_missing(served):
+    """A symbolic link to an existing outside folder and one to a missing folder, a missing file and a
+    traversal all get byte-identical answers, so nothing reveals what exists outside the bundle."""
+    answers = {t: raw_get(served, t) for t in ["/etc/passwd", "/etc/hostname", "/nowhere/x", "/missing.txt",
+                                               "/../outside.txt", "/hard.txt", "/.env"]}
+    assert {status for status, _ in answers.values()} == {404}
+    assert len({body for _, body in answers.values()}) == 1, answers
+
+
+def test_host_allowed():
+    assert host_allowed("127.0.0.1:8765", 8765) and host_allowed("LOCALHOST:8765", 8765)
+    assert host_allowed("127.0.0.1", 8765) and host_allowed("localhost", 8765)
+    assert not host_allowed("127.0.0.1:8766", 8765) and not host_allowed("attacker.test:8765", 8765)
+    assert not host_allowed(None, 8765) and not host_allowed("", 8765)
