@@ -36,6 +36,7 @@ from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames
+from omnirecon.outputs import check_writable, clean_stale
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.workflows.export import ExportConfig, run_export
@@ -101,9 +102,11 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     if not (Path(cfg.ckpt) / "meta.json").is_file():
         raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. checkpoints/omnirecon-tiny")
     out = Path(cfg.out)
+    check_writable(out)
     if out.exists() and not cfg.overwrite:
         raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
     out.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(out.parent)  # an earlier run's temporary folder, if its process was killed
     tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
