@@ -1,0 +1,1 @@
+"""Meshes: depth fusion, marching cubes, cleaning, decimation and the mesh path."""
