@@ -144,7 +144,7 @@ def run_cli(args, capsys):
 def test_mesh_cli_floor(synth_scene, tmp_path, capsys):
     out = tmp_path / "floor.ply"
     code, cap = run_cli(["--scene", synth_scene, "--model", "floor", "--out", out, tmp_path / "floor.glb",
-                         "--threads", 1], capsys)
+                         "--threads", 1, "--masks"], capsys)
     assert code == 0, cap.err
     assert out.is_file() and (tmp_path / "floor.glb").is_file() and (tmp_path / "floor_preview.png").is_file()
     record = json.loads((tmp_path / "floor_metrics.json").read_text())

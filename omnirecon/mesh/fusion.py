@@ -183,8 +183,8 @@ def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float =
     """Forward-backward reprojection agreement between depth maps (MVS fusion's geometric check).
 
     For each pixel ``p`` of map ``i`` with depth, and each other map ``j``: unproject ``p`` to the
-    point ``X``, read map ``j`` at the nearest pixel ``q`` of ``X``'s projection, unproject ``q`` with
-    that depth and project it back into ``i``. Map ``j`` agrees when the point comes back within
+    point ``X``, read map ``j`` at ``X``'s projection ``q`` (:func:`sample_depth`: bilinear within a
+    surface, nearest across depth edges), unproject ``q`` with that depth and project it back into ``i``. Map ``j`` agrees when the point comes back within
     ``px`` pixels of ``p`` and its depth in ``i`` is within ``rel`` (relative) of ``p``'s.
 
     Returns the number of other maps that agree with each pixel. ``# [N, H, W]`` float32
@@ -206,14 +206,11 @@ def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float =
             if j == i:
                 continue
             pj = cams[j].project(Xi)
-            uvj = pj.uv[0]
-            col, row = uvj[:, 0].floor().long(), uvj[:, 1].floor().long()
+            uvj = pj.uv[0]  # [P, 2]
             ok = pj.in_image[0]
-            col, row = col.clamp(0, W - 1), row.clamp(0, H - 1)
-            dj = d[j][row, col]
+            dj = sample_depth(d[j], uvj[:, 0], uvj[:, 1], rel * float(pj.depth[0].median()))
             ok = ok & (dj > 0)
-            qj = torch.stack([col.double() + 0.5, row.double() + 0.5], -1)
-            Xj = cams[j].unproject(qj[None], dj[None])[0]  # [P, 3]
+            Xj = cams[j].unproject(uvj[None], dj[None])[0]  # [P, 3]
             back = cams[i].project(Xj)
             err = (back.uv[0] - pix[has]).norm(dim=-1)
             drel = (back.depth[0] - di[has]).abs() / di[has]
