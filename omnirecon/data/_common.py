@@ -4,6 +4,9 @@ A reader parses its own pose files into full-length arrays (all views, at the re
 files), then calls :func:`assemble`, which picks the views ``ReadOptions`` asks for and decodes only
 their images. Scene-wide quantities (``bounds``, per-view ``near``/``far``) are computed by the
 reader from all views, so they do not depend on which views are loaded.
+
+Size: the helpers every reader shares (image loading, pose checks, splits, rig detection, paths kept
+inside the scene folder); one module so that every reader applies the same checks.
 """
 
 from __future__ import annotations

@@ -49,8 +49,17 @@ def default_views(scene, num_views: int) -> list[int]:
     return [pool[i] for i in pick]
 
 
-def check_views(views, n: int, where) -> list[int]:
-    views = [int(v) for v in views]
+def check_views(views, n: int, where, scene=None) -> list[int]:
+    """``--views`` as indices: integers in ``0..n-1``, or ``all`` (the scene's train views, else every view)."""
+    views = [str(v).strip() for v in views]
+    if views == ["all"]:
+        pool = (scene.splits.get("train") if scene is not None else None) or list(range(n))
+        return list(pool)
+    try:
+        views = [int(v) for v in views]
+    except ValueError:
+        raise InputError(f"--views must be view indices or `all`, got {' '.join(views)}", where,
+                         "pass e.g. --views 0 8 17 or --views all") from None
     bad = [v for v in views if not 0 <= v < n]
     if bad or not views:
         raise InputError(f"--views must name views in 0..{n - 1}, got {views}", where,

@@ -1,3 +1,4 @@
-"""Meshes: depth fusion and extraction, the real-time mesh IBR path, colour baking, mesh scoring.
+"""Meshes: depth fusion, marching cubes, cleaning and decimation; the real-time mesh IBR path, colour
+baking, mesh scoring.
 
 Above models (it renders depth with them), below the engine."""

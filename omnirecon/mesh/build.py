@@ -56,10 +56,22 @@ class MeshOptions:
 
     shifts: tuple[float, ...] = (DTU_SHIFT,)
     """Virtual views per source: x-axis shifts as fractions of the camera's distance to the bounds centre."""
-    voxel: float = 1 / 256
-    """Voxel edge as a fraction of the bounds diagonal (1/256: ~3 mm on DTU, about one pixel at 128 px)."""
-    trunc: float = 3.0
-    """TSDF truncation in voxels (the reference: 3 voxels)."""
+    voxel: float | None = None
+    """Voxel edge as a fraction of the bounds diagonal (1/256: ~3 mm on DTU, about one pixel at 128 px);
+    ``None``: 1/256 with the reference fusion, the depth maps' pixel footprint with the fitted one."""
+    trunc: float | None = None
+    """TSDF truncation in voxels (the reference: 3); ``None``: 3, widened by the fitted fusion to twice
+    the depth error the maps show."""
+    fusion: str = "fit"
+    """``"fit"`` (:mod:`omnirecon.mesh.fusion`: derived scale, confidence weights, sub-pixel depth,
+    free-space carving with masks, face budget) or ``"reference"`` (VolRecon's protocol, this module)."""
+    neighbours: int = 3
+    """Sources per depth map when there are more views than this (each view from itself and its
+    nearest views; cost linear in the views)."""
+    weights: bool = True
+    """Fitted fusion: weight pixels by forward-backward reprojection agreement between the maps."""
+    max_faces: int = 200_000
+    """Fitted fusion: decimate to at most this many faces (0 = no limit)."""
     min_acc: float = 0.5
     """Models that return ``acc`` (accumulated opacity): pixels below it have no depth, and depth is
     divided by ``acc`` (the expected depth of the ray given that it hits)."""
@@ -82,17 +94,22 @@ class MeshOptions:
         if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
             raise InputError(f"--shifts must be finite fractions in (-1, 1), got {list(self.shifts)}", None,
                              f"use e.g. --shifts {DTU_SHIFT:.4f}")
-        if not 0 < self.voxel <= 0.1:
+        if self.fusion not in ("fit", "reference"):
+            raise InputError(f"--fusion must be fit or reference, got {self.fusion!r}", None, "use --fusion fit")
+        if self.voxel is not None and not (math.isfinite(self.voxel) and 0 < self.voxel <= 0.1):
             raise InputError(f"--voxel must be in (0, 0.1] (a fraction of the bounds diagonal), got {self.voxel}",
                              None, "use e.g. 0.004")
-        if self.trunc < 1:
-            raise InputError(f"--trunc must be at least 1 voxel, got {self.trunc}", None, "use e.g. 3")
+        if self.trunc is not None and not (math.isfinite(self.trunc) and 1 <= self.trunc <= 100):
+            raise InputError(f"--trunc must be in [1, 100] voxels, got {self.trunc}", None, "use e.g. 3")
         if not 0 <= self.min_acc <= 1:
             raise InputError(f"--min-acc must be in [0, 1], got {self.min_acc}", None, "use e.g. 0.5")
         if self.min_views < 1:
             raise InputError(f"--min-views must be at least 1, got {self.min_views}", None, "use e.g. 2")
         if not 0 <= self.min_component < 1:
             raise InputError(f"--min-component must be in [0, 1), got {self.min_component}", None, "use e.g. 0.001")
+        if self.neighbours < 1 or self.max_faces < 0:
+            raise InputError(f"--neighbours must be >= 1 and --max-faces >= 0, got {self.neighbours}, "
+                             f"{self.max_faces}", None, "use e.g. --neighbours 3 --max-faces 200000")
         if self.chunk < 1:
             raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
 
@@ -402,7 +419,7 @@ class MeshResult:
     """The fused z-depth maps, 0 = none. ``# [N, H, W]``"""
 
 
-def mesh_from_model(model, scene, views, options: MeshOptions | None = None, device="cpu", use_masks: bool = True,
+def mesh_from_model(model, scene, views, options: MeshOptions | None = None, device="cpu", use_masks: bool = False,
                     progress=None) -> MeshResult:
     """Mesh of ``scene`` (normalised scene frame) from ``model``'s depth renders with sources ``views``.
 
@@ -420,11 +437,15 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
     options = options or MeshOptions()
     options.check()
+    if options.fusion == "fit":
+        from omnirecon.mesh.fusion import mesh_from_model_fit
+
+        return mesh_from_model_fit(model, scene, views, options, device, use_masks, progress)
     views = list(views)
     model = model.to(device).eval()
     diag = float((scene.bounds[1] - scene.bounds[0]).double().norm())
-    voxel = options.voxel * diag
-    trunc = options.trunc * voxel
+    voxel = (options.voxel or 1 / 256) * diag
+    trunc = (options.trunc or 3.0) * voxel
     src_cams = scene.cameras[views]
     render_cams = shifted_cameras(src_cams, options.shifts, scene.bounds.double().mean(0))
     task = None

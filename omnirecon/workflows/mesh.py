@@ -45,10 +45,11 @@ class MeshConfig(MachineConfig):
     """Checkpoint folder written by `omnirecon train` (its model must render depth)."""
     model: Literal["floor"] | None = None
     """Mesh with a non-learned model instead: `floor` is the plane-sweep baseline."""
-    views: tuple[int, ...] | None = None
-    """Source view indices (default: 23 24 33 on DTU, else --num-views evenly spaced train views)."""
+    views: tuple[str, ...] | None = None
+    """View indices to render depth at (default: 23 24 33 on DTU, else --num-views evenly spaced train
+    views), or `all`: every training view, each rendered from its own --num-views nearest views."""
     num_views: int = 3
-    """Source views K when --views is not given."""
+    """Source views K: how many views when --views is not given, and the sources per depth map."""
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
@@ -56,14 +57,22 @@ class MeshConfig(MachineConfig):
     shifts: tuple[float, ...] = (DTU_SHIFT,)
     """Virtual views per source: shifts along the camera x axis as fractions of its distance to the
     scene centre (default: VolRecon's 25 mm on DTU); add 0 to also render at the source itself."""
-    voxel: float = 1 / 256
-    """Voxel size as a fraction of the bounds diagonal."""
-    trunc: float = 3.0
-    """TSDF truncation in voxels."""
+    voxel: float | None = None
+    """Voxel size as a fraction of the bounds diagonal (default: the depth maps' pixel footprint)."""
+    trunc: float | None = None
+    """TSDF truncation in voxels (default: 3, widened to the depth error the maps show)."""
+    fusion: Literal["fit", "reference"] = "fit"
+    """`fit`: confidence-weighted fusion scaled to the depth (omnirecon.mesh.fusion); `reference`:
+    VolRecon's protocol as published."""
+    weights: bool = True
+    """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection)."""
+    max_faces: int = 200_000
+    """Decimate the mesh to at most this many faces (0 = keep every face)."""
     min_acc: float = 0.5
     """Models that return accumulated opacity (IBRNet): pixels below it get no depth."""
-    masks: bool = True
-    """Clean with the source views' object masks when the scene has them."""
+    masks: bool = False
+    """Carve free space outside the source views' object masks and clean with them (objects only;
+    without it the background, e.g. the ground, is kept)."""
     min_views: int = 2
     """Keep vertices inside the masks of at least this many source views."""
     min_component: float = 0.001
@@ -77,7 +86,8 @@ class MeshConfig(MachineConfig):
     def mesh_options(self) -> MeshOptions:
         return MeshOptions(shifts=tuple(self.shifts), voxel=self.voxel, trunc=self.trunc, min_acc=self.min_acc,
                            min_views=self.min_views, cull_hidden=self.cull_hidden, min_component=self.min_component,
-                           chunk=self.chunk)
+                           chunk=self.chunk, fusion=self.fusion, neighbours=self.num_views, weights=self.weights,
+                           max_faces=self.max_faces)
 
 
 def run_mesh(cfg: MeshConfig) -> dict:
@@ -97,7 +107,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
     start = time.perf_counter()
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
     load_seconds = time.perf_counter() - start
-    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
+    views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
     with progress_bar(transient=False) as bar:
@@ -107,8 +117,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
         raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
                          "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
     record["seconds"]["load"] = load_seconds
-    record["seconds"]["images_to_mesh"] = sum(record["seconds"][k] for k in ("load", "render", "fuse",
-                                                                               "marching_cubes", "clean"))
+    record["seconds"]["images_to_mesh"] = sum(v for k, v in record["seconds"].items() if k != "images_to_mesh")
     record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
                    "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
     files = export_mesh(to_input_frame(mesh, scene.to_input), outs)
@@ -130,11 +139,12 @@ def run_mesh(cfg: MeshConfig) -> dict:
 def summary_lines(record: dict) -> list[str]:
     """Human-readable lines about a :func:`run_mesh` record."""
     s = record["seconds"]
-    lines = [f"{record['vertices']:,} vertices, {record['faces']['components']:,} faces from "
+    faces = record["faces"].get("decimated", record["faces"]["components"])
+    lines = [f"{record['vertices']:,} vertices, {faces:,} faces from "
              f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
              f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",
-             f"images to mesh {s['images_to_mesh']:.1f} s (load {s['load']:.1f}, render {s['render']:.1f}, "
-             f"fuse {s['fuse']:.1f}, marching cubes {s['marching_cubes']:.1f}, clean {s['clean']:.1f})"]
+             f"images to mesh {s['images_to_mesh']:.1f} s (" + ", ".join(
+                 f"{k.replace('_', ' ')} {v:.1f}" for k, v in s.items() if k not in ("images_to_mesh", "metrics")) + ")"]
     m = record.get("metrics", {})
     if "mask_iou" in m:
         lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
