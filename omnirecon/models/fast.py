@@ -1,0 +1,94 @@
+"""Switches of the lean hot path. Each fast path keeps the plain fp32 eager code as its reference twin:
+``with reference():`` turns every switch to the plain path (the tests in ``tests/models/test_fast_paths.py``
+and ``bench/`` compare the two); ``with switches(name=value):`` sets some of them.
+
+Defaults are on only where the fast path was faster *and* agreed with the reference within the
+tolerance its test states (numbers: ``bench/results/fast_paths.json``, ``bench/fast_paths.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass
+class FastPaths:
+    """Which fast paths are on. The reference twin of each is its "off" value."""
+
+    inference_mode: bool = True
+    """``render_view`` runs under ``torch.inference_mode`` (reference: ``torch.no_grad``)."""
+    render_batch: int = 256
+    """``render_view`` calls ``render_rays`` on at most this many rays at a time, whatever the memory
+    ``chunk``: per-sample tensors of a few MB stay in cache and in the allocator's free lists instead
+    of being mapped and page-faulted afresh for every op (0, the reference: ``chunk`` rays per call)."""
+    preallocate: bool = True
+    """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
+    chunks concatenated at the end)."""
+    split_linear: bool = True
+    """Per-sample MLPs whose first layer reads a concatenation ``[per-sample stats, per-view features]``
+    (IBRNet's base and colour MLPs) apply the layer's column blocks to the parts apart: the per-sample
+    part once per sample instead of once per view, and no concatenated tensor (reference: concat, one
+    Linear). Forward and gradients agree to float rounding."""
+    bf16_render: bool = False
+    """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
+    appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
+    and everything geometric stays fp32 (reference: fp32 throughout)."""
+
+
+FAST = FastPaths()
+"""The process-wide switches read by the models."""
+
+REFERENCE = {"inference_mode": False, "render_batch": 0, "preallocate": False, "split_linear": False,
+             "bf16_render": False}
+"""Every switch at its reference-twin value."""
+
+
+_RENDERING = [0]
+"""Depth of nested ``render_view`` calls (bf16 autocast applies only inside one)."""
+
+
+@contextmanager
+def rendering():
+    """Marks the block as rendering (``render_view``): ``net_autocast`` may switch to bf16 inside it."""
+    _RENDERING[0] += 1
+    try:
+        yield
+    finally:
+        _RENDERING[0] -= 1
+
+
+def net_autocast(device: torch.device | str):
+    """bf16 autocast for a model's per-sample networks when ``FAST.bf16_render`` and rendering; else nothing.
+    Geometry (projection, sample positions, compositing) stays in the sources' dtype: callers cast the
+    networks' outputs back."""
+    if not (FAST.bf16_render and _RENDERING[0]):
+        return nullcontext()
+    return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
+
+
+@contextmanager
+def reference():
+    """Every switch at its reference twin (plain fp32 eager) inside the block."""
+    with switches(**REFERENCE):
+        yield FAST
+
+
+@contextmanager
+def switches(**values):
+    """Set some switches inside the block, e.g. ``switches(bf16_render=True)``."""
+    names = {f.name for f in dataclasses.fields(FastPaths)}
+    unknown = set(values) - names
+    if unknown:
+        raise AttributeError(f"no fast path {', '.join(sorted(unknown))}; known: {', '.join(sorted(names))}")
+    old = {k: getattr(FAST, k) for k in values}
+    for k, v in values.items():
+        setattr(FAST, k, v)
+    try:
+        yield FAST
+    finally:
+        for k, v in old.items():
+            setattr(FAST, k, v)

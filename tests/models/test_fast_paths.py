@@ -1,0 +1,108 @@
+"""Each fast path of omnirecon.models.fast against its reference twin (plain fp32 eager), within the
+tolerance stated here; training paths in forward and in gradients."""
+
+import pytest
+import torch
+
+from omnirecon.models import fast
+from omnirecon.models.gpnr import GPNR
+from omnirecon.models.ibrnet import IBRNet
+from omnirecon.models.omnirecon import PRESETS as OMNI_PRESETS
+from omnirecon.models.omnirecon import OmniRecon, OmniReconConfig
+from omnirecon.rays import Sources
+from tests.models.test_gpnr import rig
+from tests.models.test_gpnr import small_cfg as gpnr_cfg
+from tests.models.test_ibrnet import tiny as ibrnet_cfg
+
+
+def omni_cfg(**kw):
+    cfg = dict(OMNI_PRESETS["omnirecon-tiny"].__dict__)
+    cfg.update(coarse_samples=12, fine_samples=6, cnn_channels=(4, 8, 8, 8), feature_dim=8,
+               pyramid_channels=(4, 4, 4), volume_resolution=8)
+    cfg.update(kw)
+    return OmniReconConfig(**cfg)
+
+
+MODELS = {"ibrnet": lambda: IBRNet(ibrnet_cfg()), "gpnr": lambda: GPNR(gpnr_cfg()),
+          "omnirecon": lambda: OmniRecon(omni_cfg())}
+
+
+def scene(seed=0):
+    torch.manual_seed(seed)
+    cams = rig(dtype=torch.float32)
+    images = torch.rand(4, cams.height, cams.width, 3)
+    bounds = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    return Sources(images, cams[[0, 1, 3, 4]], 2.0, 4.0, "object", bounds), cams[[2]]
+
+
+def render(model, src, target, chunk=100, **switches):
+    with fast.switches(**switches):
+        with torch.no_grad():
+            feats = model.encode(src)
+        return model.render_view(feats, target, chunk=chunk)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_render_view_fast_paths_equal_reference(name):
+    """inference_mode + small render batches + preallocated outputs: the same image as the reference
+    (list of chunks, no_grad) to 1e-5 (batching changes only the summation order of matmuls)."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True)
+    assert set(out) == set(ref)
+    for k in ref:
+        assert out[k].shape == ref[k].shape and out[k].dtype == ref[k].dtype, k
+        if ref[k].is_floating_point():
+            torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5, msg=k)
+        else:
+            assert torch.equal(out[k], ref[k]), k
+    assert not out["rgb"].requires_grad
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_bf16_render_within_tolerance(name):
+    """bf16 autocast rendering: outputs keep fp32 and the colour stays within 35 dB PSNR of the fp32
+    reference (bench/fast_paths.py measures the cost on a trained model and a held-out scene)."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, bf16_render=True)
+    assert out["rgb"].dtype == torch.float32
+    mse = (out["rgb"] - ref["rgb"]).square().mean().clamp_min(1e-12)
+    assert -10 * torch.log10(mse) > 35, float(mse)
+
+
+def _train_outputs(model, src, rays, **switches):
+    """Loss of one training forward (jittered samples, fixed seed) and the gradients of every parameter."""
+    model.zero_grad(set_to_none=True)
+    with fast.switches(**switches):
+        torch.manual_seed(3)
+        out = model.render_rays(model.encode(src), rays, jitter=True)
+        loss = out["rgb"].square().mean() + out["rgb_coarse"].square().mean() + out["depth"].mean()
+        loss.backward()
+    grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    return out, grads
+
+
+def test_split_linear_forward_and_gradients():
+    """IBRNet's MLPs with their first layer split by input block: forward to 1e-5, gradients of every
+    parameter to 1e-4 relative (float rounding) of the concatenating reference."""
+    from omnirecon.rays import Rays
+
+    torch.manual_seed(0)
+    model = IBRNet(ibrnet_cfg()).train()
+    src, target = scene()
+    rays = Rays.from_image(target)[::3]
+    with fast.reference():
+        ref, ref_g = _train_outputs(model, src, rays)
+        out, out_g = _train_outputs(model, src, rays, split_linear=True)
+    for k in ("rgb", "rgb_coarse", "depth"):
+        torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
+    assert set(out_g) == set(ref_g) and len(ref_g) > 10
+    for n in ref_g:
+        torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
