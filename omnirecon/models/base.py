@@ -81,8 +81,13 @@ class GeneralizableModel(nn.Module):
             n, bufs = len(rays), None
             float_dtype = rays.origins.dtype
             for start in range(0, n, batch):
-                out = self.render_rays(features, rays[start:start + batch], **extra)
                 m = min(batch, n - start)
+                if FAST.compile and m < batch < n:  # pad the last batch: compiled graphs keep one shape
+                    part = rays[torch.arange(start, start + batch, device=rays.origins.device).clamp_max(n - 1)]
+                else:
+                    part = rays[start:start + m]
+                out = {k: v[:m] if v.dim() >= 1 and v.shape[0] == len(part) else v
+                       for k, v in self.render_rays(features, part, **extra).items()}
                 if bufs is None:  # one buffer per per-ray output, filled in place
                     bufs = {k: torch.empty((n, *v.shape[1:]), device=v.device,
                                            dtype=float_dtype if v.is_floating_point() else v.dtype)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
+from weakref import WeakKeyDictionary
 
 import torch
 
@@ -33,6 +34,14 @@ class FastPaths:
     (IBRNet's base and colour MLPs) apply the layer's column blocks to the parts apart: the per-sample
     part once per sample instead of once per view, and no concatenated tensor (reference: concat, one
     Linear). Forward and gradients agree to float rounding."""
+    surface_samples: int = 0
+    """When > 0: the fine pass of IBRNet and Omni-Recon outside training evaluates only this many
+    importance samples, around the coarse surface, instead of the coarse samples plus
+    ``fine_samples`` (reference: 0). Changes the output: a quality/speed trade, not a twin."""
+    compile: bool = False
+    """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
+    network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
+    new). Compiling costs minutes on a 2-core CPU the first time (inductor caches the result on disk)."""
     bf16_render: bool = False
     """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
     appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
@@ -43,7 +52,7 @@ FAST = FastPaths()
 """The process-wide switches read by the models."""
 
 REFERENCE = {"inference_mode": False, "render_batch": 0, "preallocate": False, "split_linear": False,
-             "bf16_render": False}
+             "surface_samples": 0, "compile": False, "bf16_render": False}
 """Every switch at its reference-twin value."""
 
 
@@ -68,6 +77,19 @@ def net_autocast(device: torch.device | str):
     if not (FAST.bf16_render and _RENDERING[0]):
         return nullcontext()
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
+
+
+_COMPILED: WeakKeyDictionary = WeakKeyDictionary()
+
+
+def compiled(module: torch.nn.Module):
+    """``module`` itself, or (``FAST.compile`` inside ``render_view``) its ``torch.compile``d twin, made once."""
+    if not (FAST.compile and _RENDERING[0]):
+        return module
+    fn = _COMPILED.get(module)
+    if fn is None:
+        fn = _COMPILED[module] = torch.compile(module, dynamic=False)
+    return fn
 
 
 @contextmanager

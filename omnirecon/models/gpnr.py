@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import canonical_transform, plucker
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import net_autocast
+from omnirecon.models.fast import compiled, net_autocast
 from omnirecon.models.projector import project, sample
 from omnirecon.rays import Rays, Sources
 
@@ -126,7 +126,7 @@ def _run(block: nn.Module, x: Tensor, pad: Tensor | None) -> Tensor:
     if pad is not None:
         pad = pad & ~pad.all(dim=1, keepdim=True)  # nothing to attend to: attend to everything
     with net_autocast(x.device):
-        return block(x, src_key_padding_mask=pad).to(x.dtype)
+        return compiled(block)(x, src_key_padding_mask=pad).to(x.dtype)
 
 
 class GPNR(GeneralizableModel):

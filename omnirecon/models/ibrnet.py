@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import FAST, net_autocast
+from omnirecon.models.fast import FAST, compiled, net_autocast
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
@@ -233,7 +233,7 @@ class IBRNet(GeneralizableModel):
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None):
         rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
         with net_autocast(z.device):
-            sigma, blend = net(rgb_feat, ray_diff, mask)
+            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask)
         sigma, blend = sigma.to(z.dtype), blend.to(z.dtype)
         w, _ = weights_from_alpha(alpha_from_density(sigma))
         sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]

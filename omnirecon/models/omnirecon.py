@@ -75,7 +75,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import net_autocast
+from omnirecon.models.fast import compiled, net_autocast
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -491,8 +491,8 @@ class OmniRecon(GeneralizableModel):
         samples = self.gather(features, points, rays.origins)
         vol = self.volume_features(features, points)
         with net_autocast(points.device):
-            sdf = self.geometry(samples.feat, vol, samples.dirs, samples.mask, points)  # [R, S]
-            omega = self.blend_weights(samples)  # [R, S, K]
+            sdf = compiled(self.geometry)(samples.feat, vol, samples.dirs, samples.mask, points)  # [R, S]
+            omega = compiled(self.appearance)(samples.feat, samples.dirs[..., :3], samples.mask)  # [R, S, K]
         sdf, omega = sdf.to(points.dtype), omega.to(points.dtype)
         alpha = alpha_from_sdf(sdf, t, self.sharpness)  # [R, S]
         if self.cfg.leftover == "far":

@@ -106,3 +106,17 @@ def test_split_linear_forward_and_gradients():
     assert set(out_g) == set(ref_g) and len(ref_g) > 10
     for n in ref_g:
         torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
+
+
+@pytest.mark.slow
+def test_compiled_networks_equal_reference():
+    """torch.compile of the per-sample networks inside render_view (inductor, minutes to compile on a
+    small CPU): the same image as the reference to 1e-4, the padded last batch included."""
+    torch.manual_seed(0)
+    model = IBRNet(ibrnet_cfg()).eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, compile=True, render_batch=64)  # 480 rays: 7 full batches + 1 padded
+    for k in ("rgb", "depth", "acc"):
+        torch.testing.assert_close(out[k], ref[k], atol=1e-4, rtol=1e-4, msg=k)
