@@ -5,7 +5,7 @@
     python bench/fast_paths.py --compile            # also: torch.compile of IBRNet's aggregator (slow)
 
 For each model (a shipped checkpoint, else random weights: the JSON says which), one held-out procedural
-scene (``synth:eval``, first seed, the ``full`` protocol: 128 px) with K = 3 nearest pool views per
+scene (``synth:eval``, first seed, the ``cpu`` protocol: 64 px; ``--protocol-set full``: 128 px) with K = 3 nearest pool views per
 target, and each variant:
 
 * ``reference``: every switch at its reference twin (fp32 eager, no_grad, one ``render_rays`` per chunk);
@@ -58,13 +58,13 @@ def load(model_name: str):
     return build_model(model_name).eval(), "random weights (no shipped checkpoint)"
 
 
-def jobs(k: int, targets: int):
+def jobs(k: int, targets: int, protocol_set: str = "cpu"):
     """(scene, [(target index, source indices)]) of the first held-out procedural scene."""
     from omnirecon.engine.protocols import targets_and_pool
     from omnirecon.engine.scenes import prepare_scenes
     from omnirecon.engine.views import select_sources
 
-    es = prepare_scenes(["synth:eval"], count=1, cache=ROOT / "outputs" / "cache")[0]
+    es = prepare_scenes(["synth:eval"], count=1, cache=ROOT / "outputs" / "cache", protocol_set=protocol_set)[0]
     tgts, pool = targets_and_pool(es.protocol, es.scene)
     tgts = tgts[:targets]
     return es, [(t, select_sources(es.scene, es.scene.cameras[t], pool, k)) for t in tgts]
@@ -96,11 +96,11 @@ def abs_rel(d: torch.Tensor, ref: torch.Tensor, ok: torch.Tensor) -> float | Non
     return float(((d[ok] - ref[ok]).abs() / ref[ok]).mean())
 
 
-def measure(model_name: str, k: int, targets: int, rounds: int) -> dict:
+def measure(model_name: str, k: int, targets: int, rounds: int, protocol_set: str = "cpu") -> dict:
     from omnirecon.models import fast
 
     model, weights = load(model_name)
-    es, plan = jobs(k, targets)
+    es, plan = jobs(k, targets, protocol_set)
     scene = es.scene
     var = variants(model_name)
     times: dict[str, list[float]] = {v: [] for v in var}
@@ -180,6 +180,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--k", type=int, default=3, help="source views")
     parser.add_argument("--targets", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--protocol-set", default="cpu", choices=["cpu", "full"],
+                        help="the scene's protocol: cpu (64 px) or full (128 px)")
     parser.add_argument("--compile", action="store_true", help="also time torch.compile of IBRNet's aggregator")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "fast_paths.json")
     args = parser.parse_args(argv)
@@ -189,7 +191,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(1)
     result = {"provenance": provenance(seed=0, threads=1), "defaults": repr(FAST),
-              "models": [measure(m, args.k, args.targets, args.rounds) for m in args.models]}
+              "protocol_set": args.protocol_set,
+              "models": [measure(m, args.k, args.targets, args.rounds, args.protocol_set) for m in args.models]}
     if args.compile:
         result["compile"] = measure_compile()
         print(result["compile"])

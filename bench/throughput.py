@@ -96,7 +96,7 @@ def measure(preset: str, rays_per_step: int, side: int, render_rays: int | None,
         opt = torch.optim.AdamW(params, lr=1e-4)
 
         def step():
-            out = model.render_rays(model.encode(src), batch)
+            out = model.render_rays_batched(model.encode(src), batch)  # as the training loss does
             loss = out["rgb"].square().mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()

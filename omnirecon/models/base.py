@@ -51,6 +51,20 @@ class GeneralizableModel(nn.Module):
         per-sample ``weights``, per-view ``blend`` weights and auxiliary outputs where they have them."""
         raise NotImplementedError
 
+    def render_rays_batched(self, features, rays: Rays, **kwargs) -> dict[str, Tensor]:
+        """``render_rays`` on sub-batches of at most ``FAST.train_batch`` rays, per-ray outputs concatenated
+        (graph kept: the training forward). Every model renders each ray independently, so the outputs and
+        their gradients are those of one call up to float rounding; small per-sample tensors stay in cache
+        (reference, ``train_batch = 0``: one call)."""
+        n, b = len(rays), FAST.train_batch
+        if b <= 0 or n <= b:
+            return self.render_rays(features, rays, **kwargs)
+        parts = [self.render_rays(features, rays[s:s + b], **kwargs) for s in range(0, n, b)]
+        sizes = [min(b, n - s) for s in range(0, n, b)]
+        return {k: torch.cat([p[k] for p in parts]) if all(p[k].dim() >= 1 and p[k].shape[0] == m
+                                                          for p, m in zip(parts, sizes)) else v
+                for k, v in parts[0].items()}
+
     def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None
                     ) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.

@@ -26,6 +26,9 @@ class FastPaths:
     """``render_view`` calls ``render_rays`` on at most this many rays at a time, whatever the memory
     ``chunk``: per-sample tensors of a few MB stay in cache and in the allocator's free lists instead
     of being mapped and page-faulted afresh for every op (0, the reference: ``chunk`` rays per call)."""
+    train_batch: int = 0
+    """Training forwards (``render_rays_batched``, used by the training loss) render the ray batch in
+    sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call)."""
     preallocate: bool = True
     """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
     chunks concatenated at the end)."""
@@ -51,7 +54,7 @@ class FastPaths:
 FAST = FastPaths()
 """The process-wide switches read by the models."""
 
-REFERENCE = {"inference_mode": False, "render_batch": 0, "preallocate": False, "split_linear": False,
+REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "split_linear": False,
              "surface_samples": 0, "compile": False, "bf16_render": False}
 """Every switch at its reference-twin value."""
 
