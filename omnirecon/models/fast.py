@@ -9,6 +9,7 @@ tolerance its test states (numbers: ``bench/results/fast_paths.json``, ``bench/f
 from __future__ import annotations
 
 import dataclasses
+import os
 from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from weakref import WeakKeyDictionary
@@ -26,7 +27,7 @@ class FastPaths:
     """``render_view`` calls ``render_rays`` on at most this many rays at a time, whatever the memory
     ``chunk``: per-sample tensors of a few MB stay in cache and in the allocator's free lists instead
     of being mapped and page-faulted afresh for every op (0, the reference: ``chunk`` rays per call)."""
-    train_batch: int = 0
+    train_batch: int = 128
     """Training forwards (``render_rays_batched``, used by the training loss) render the ray batch in
     sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call)."""
     preallocate: bool = True
@@ -51,12 +52,30 @@ class FastPaths:
     and everything geometric stays fp32 (reference: fp32 throughout)."""
 
 
-FAST = FastPaths()
-"""The process-wide switches read by the models."""
+def from_env(text: str | None) -> FastPaths:
+    """Switches from ``OMNIRECON_FAST``: ``reference`` (every reference twin) and/or comma-separated
+    ``name=value`` pairs, e.g. ``compile=1,render_batch=512`` (any command, no code change)."""
+    fp = FastPaths()
+    for item in filter(None, (t.strip() for t in (text or "").split(","))):
+        if item == "reference":
+            fp = dataclasses.replace(fp, **REFERENCE)
+            continue
+        name, _, value = item.partition("=")
+        kind = {f.name: f.type for f in dataclasses.fields(FastPaths)}.get(name)
+        if kind is None or not value:
+            raise ValueError(f"OMNIRECON_FAST: bad item {item!r}; use reference or name=value with a name of "
+                             f"{', '.join(f.name for f in dataclasses.fields(FastPaths))}")
+        setattr(fp, name, int(value) if kind in (int, "int") else value.lower() in ("1", "true", "yes", "on"))
+    return fp
+
 
 REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "split_linear": False,
              "surface_samples": 0, "compile": False, "bf16_render": False}
 """Every switch at its reference-twin value."""
+
+FAST = from_env(os.environ.get("OMNIRECON_FAST"))
+"""The process-wide switches read by the models (defaults, or ``OMNIRECON_FAST``)."""
+
 
 
 _RENDERING = [0]

@@ -173,3 +173,14 @@ def test_surface_samples_fine_pass(name):
         src, target = scene()
         out = render(model, src, target, surface_samples=6)
         assert torch.isfinite(out["rgb"]).all() and out["rgb"].shape == (target.height, target.width, 3)
+
+
+def test_switches_from_environment():
+    """OMNIRECON_FAST sets switches for any command: the reference twins, or name=value pairs."""
+    assert fast.from_env(None) == fast.FastPaths()
+    ref = fast.from_env("reference")
+    assert all(getattr(ref, k) == v for k, v in fast.REFERENCE.items())
+    fp = fast.from_env("compile=1, render_batch=64")
+    assert fp.compile is True and fp.render_batch == 64 and fp.inference_mode is True
+    with pytest.raises(ValueError, match="OMNIRECON_FAST"):
+        fast.from_env("warp_speed=9")
