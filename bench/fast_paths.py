@@ -18,7 +18,8 @@ Reported per variant: render seconds (encode + ``render_view`` of every target; 
 interleaved ``--rounds`` times, the fastest round kept: the cores are shared), the speed-up over the
 reference *measured in the same run*, PSNR against the ground truth, PSNR against the reference render,
 the largest colour difference from the reference, and depth abs-rel (``|d - d_gt| / d_gt`` on pixels
-with ground-truth depth that the model marks valid) against the ground truth and against the reference.
+with ground-truth depth that the model marks valid) against the ground truth and against the reference;
+``coarse_depth_absrel_gt`` scores the coarse pass's depth (what a depth map without the fine pass gets).
 One thread. Writes ``bench/results/fast_paths.json`` with a provenance header.
 """
 
@@ -81,7 +82,7 @@ def render_all(model, es, plan) -> tuple[float, list[dict]]:
         with torch.no_grad():
             feats = model.encode(sources)
         out = model.render_view(feats, scene.cameras[[t]], chunk=4096)
-        outs.append({k: v for k, v in out.items() if k in ("rgb", "depth", "valid")})
+        outs.append({k: v for k, v in out.items() if k in ("rgb", "depth", "depth_coarse", "valid")})
     return time.perf_counter() - t0, outs
 
 
@@ -130,6 +131,12 @@ def measure(model_name: str, k: int, targets: int, rounds: int, protocol_set: st
                   for x, r in zip(o, ref)]
             row["depth_absrel_gt"] = round(sum(g for g in gt if g is not None) / max(1, sum(g is not None for g in gt)), 5)
             row["depth_absrel_vs_reference"] = round(sum(v for v in vs if v is not None) / max(1, len(vs)), 6)
+            if "depth_coarse" in ref[0]:  # what a depth map from the coarse pass alone would score
+                cg = [abs_rel(x["depth_coarse"], scene.depths[t], x.get("valid", torch.ones_like(x["depth"],
+                                                                                                  dtype=torch.bool)))
+                      for x, (t, _) in zip(o, plan)]
+                row["coarse_depth_absrel_gt"] = round(sum(g for g in cg if g is not None)
+                                                      / max(1, sum(g is not None for g in cg)), 5)
         rows.append(row)
         print(model_name, row, flush=True)
     return {"model": model_name, "weights": weights, "scene": es.name, "k": k,
@@ -183,6 +190,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--protocol-set", default="cpu", choices=["cpu", "full"],
                         help="the scene's protocol: cpu (64 px) or full (128 px)")
     parser.add_argument("--compile", action="store_true", help="also time torch.compile of IBRNet's aggregator")
+    parser.add_argument("--compile-only", action="store_true",
+                        help="only the torch.compile timing, added to an existing --out")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "fast_paths.json")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
@@ -190,6 +199,14 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.provenance import provenance
 
     torch.set_num_threads(1)
+    if args.compile_only:
+        import json
+
+        result = json.loads(args.out.read_text())
+        result["compile"] = measure_compile() | {"provenance": provenance(seed=0, threads=1)}
+        print(result["compile"])
+        write_json(args.out, result)
+        return result
     result = {"provenance": provenance(seed=0, threads=1), "defaults": repr(FAST),
               "protocol_set": args.protocol_set,
               "models": [measure(m, args.k, args.targets, args.rounds, args.protocol_set) for m in args.models]}

@@ -297,8 +297,7 @@ def main(argv: list[str] | None = None) -> dict:
                                                        "train_rays", "train_steps", "rounds")}
               | {"samples": "64 + 64", "inverse_depth": True, "weights": "random"},
               "peer_root": str(root) if root else None,
-              "peer_note": None if root else "no IBRNet checkout given (--ibrnet-root): the reference side was not "
-                                             "measured; our side below is",
+              "peer_note": None if root else "no IBRNet checkout was given (--ibrnet-root)",
               "best": best, "ratios": ratios, "runs": runs,
               "loadavg_end": [round(x, 2) for x in os.getloadavg()]}
     write_json(args.out, result)

@@ -124,47 +124,57 @@ def section_throughput(r: dict) -> str:
 
 
 def section_speed(results: Path) -> str | None:
-    """Before/after throughput (reference twins vs fast-path defaults, one run) and the fast paths' costs."""
-    f = results / "throughput.json"
-    if not f.is_file():
-        return None
-    r = json.loads(f.read_text())
+    """Before/after throughput (reference twins vs fast-path defaults, one run), the fast paths' costs on a
+    held-out scene and the per-stage profiles."""
+    names = ("throughput.json", "fast_paths.json", "profile.json", "profile_fast.json")
+    data = {n: json.loads((results / n).read_text()) for n in names if (results / n).is_file()}
+    r = data.get("throughput.json", {"rows": []})
     rows = [row for row in r["rows"] if "reference" in row]
-    if not rows:
+    if not rows and len(data) <= ("throughput.json" in data):
         return None
-    lines = ["## Speed (`bench/throughput.py`, `bench/fast_paths.py`)", "",
-             f"Before = the fast paths of `omnirecon/models/fast.py` at their reference twins (fp32 eager, the code "
-             f"before them); after = their defaults. Both measured in the same run, interleaved repeat by repeat "
-             f"(median of {r['repeats']}), {r['provenance'].get('torch_threads')} thread(s), {r['device']}; load "
-             f"average at the end {r.get('loadavg_end')}.", "",
-             "| preset | train rays/s before | after | speed-up | render rays/s before | after | speed-up |",
-             "|---|---|---|---|---|---|---|"]
-    for row in rows:
-        ref = row["reference"]
-        lines.append(f"| {row['preset']} | {ref.get('train_rays_per_s', '–')} | {row.get('train_rays_per_s', '–')} | "
-                     f"{row.get('speedup_train', '–')}× | {ref['render_rays_per_s']} | {row['render_rays_per_s']} | "
-                     f"{row['speedup_render']}× |")
-    lines += ["", _prov(r["provenance"])]
-    f = results / "fast_paths.json"
-    if f.is_file():
-        fp = json.loads(f.read_text())
+    lines = ["## Speed (`bench/throughput.py`, `bench/fast_paths.py`, `bench/profile_models.py`)", ""]
+    if rows:
+        lines += [f"Before = the fast paths of `omnirecon/models/fast.py` at their reference twins (fp32 eager, the "
+                  f"code before them); after = their defaults. Both measured in the same run, interleaved repeat by "
+                  f"repeat (median of {r['repeats']}), {r['provenance'].get('torch_threads')} thread(s), "
+                  f"{r['device']}; load average at the end {r.get('loadavg_end')}.", "",
+                  "| preset | train rays/s before | after | speed-up | render rays/s before | after | speed-up |",
+                  "|---|---|---|---|---|---|---|"]
+        for row in rows:
+            ref = row["reference"]
+            lines.append(f"| {row['preset']} | {ref.get('train_rays_per_s', '–')} | {row.get('train_rays_per_s', '–')} "
+                         f"| {row.get('speedup_train', '–')}× | {ref['render_rays_per_s']} | {row['render_rays_per_s']} "
+                         f"| {row['speedup_render']}× |")
+        lines += ["", _prov(r["provenance"])]
+    else:
+        lines += ["*Before/after throughput: not measured yet (`python bench/throughput.py`).*"]
+    fp = data.get("fast_paths.json")
+    if fp:
         lines += ["", "Fast paths on a held-out procedural scene (`bench/fast_paths.py`; speed-ups against the "
                   "reference in the same run; `surface_N`: the fine pass on N importance samples around the coarse "
                   "surface only):", "",
                   "| model | variant | render (s) | speed-up | PSNR vs GT | PSNR vs reference | max abs diff | "
-                  "depth abs-rel vs GT | depth abs-rel vs reference |", "|---|---|---|---|---|---|---|---|---|"]
+                  "depth abs-rel vs GT | depth abs-rel vs reference | coarse-pass depth abs-rel vs GT |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for m in fp["models"]:
             for row in m["rows"]:
                 lines.append(f"| {m['model']} ({m['weights']}) | {row['variant']} | {row['seconds']} | "
                              f"{row['speedup']}× | {row['psnr_gt']} | {row['psnr_vs_reference']} | "
                              f"{row['max_abs_vs_reference']} | {row.get('depth_absrel_gt', '–')} | "
-                             f"{row.get('depth_absrel_vs_reference', '–')} |")
+                             f"{row.get('depth_absrel_vs_reference', '–')} | {row.get('coarse_depth_absrel_gt', '–')} |")
         if "compile" in fp:
             c = fp["compile"]
             lines += ["", f"`torch.compile` of {c['preset']}'s {c['module']} ({c['rays']} rays x {c['samples']} "
                       f"samples, inference): compile {c['compile_s']} s, then {c['eager_ms']} ms eager vs "
                       f"{c['compiled_ms']} ms compiled ({c['speedup']}×)."]
         lines += ["", _prov(fp["provenance"])]
+    for name, what in (("profile.json", "reference twins (fp32 eager)"), ("profile_fast.json", "fast-path defaults")):
+        if name in data:
+            from profile_models import table
+
+            lines += ["", f"Where the time goes, {what} (`bench/profile_models.py`: share of the wall time per stage, "
+                      "self times; one thread; peak RSS of a fresh process per row):", "", table(data[name]["rows"]),
+                      "", _prov(data[name]["provenance"])]
     return "\n".join(lines)
 
 
