@@ -31,7 +31,8 @@ class FastPaths:
     train_batch: int = 128
     """Training forwards (``render_rays_batched``, used by the training loss) render the ray batch in
     sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call).
-    Measured 1.2-1.4x on ibrnet-tiny and omnirecon-tiny steps, neutral on gpnr-tiny."""
+    A/B steps (min of 3): 1.3-1.4x on all three tiny presets; bench/throughput.py (median, same run,
+    with split_linear): 1.22x ibrnet-tiny, 0.97-1.03x gpnr-tiny and omnirecon-tiny."""
     preallocate: bool = True
     """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
     chunks concatenated at the end)."""
@@ -48,7 +49,7 @@ class FastPaths:
     compile: bool = False
     """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
     network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
-    new). Off: compiling IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (then 4.4x
+    new). Off: compiling IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (then 1.7-4.4x
     faster), more than most renders take; ``OMNIRECON_FAST=compile=1`` for long jobs."""
     bf16_render: bool = False
     """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
