@@ -105,8 +105,11 @@ def section_throughput(r: dict) -> str:
         "## Throughput (`bench/throughput.py`)",
         "",
         f"Device: {r['device']}. A training step = encode the source views + render the ray batch + MSE + "
-        f"backward + AdamW step. Rendering = `render_view` of a full image (paper presets: a batch of rays) "
-        f"with features encoded once. Median of {r['repeats']} timed repeats after a warm-up.",
+        f"backward + AdamW step. Rendering = `render_view` of a full image (paper presets: of a small view of `render_rays` pixels) "
+        f"with features encoded once. Median of {r['repeats']} timed repeats after a warm-up; "
+        f"{r['provenance'].get('torch_threads')} torch thread(s), load average "
+        f"{r['provenance'].get('loadavg_1min')} at the start and {r.get('loadavg_end', '?')} at the end: absolute "
+        "rays/s depend on both (the machine's 2 cores are shared); the Speed section's before/after ratios do not.",
         "",
         "| preset | parameters | source views | train rays / step | train step (s) | train rays/s | "
         "render rays/s | render FPS |",
