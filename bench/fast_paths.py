@@ -12,7 +12,8 @@ target, and each variant:
 * ``default``: the defaults of ``FastPaths`` (what every command now runs);
 * ``bf16``: the defaults plus bf16 autocast of the per-sample networks;
 * ``surface_N``: the defaults plus ``surface_samples = N`` (the fine pass on N importance samples
-  around the coarse surface only; IBRNet and Omni-Recon).
+  around the coarse surface only; IBRNet and Omni-Recon);
+* ``coarse_only``: the defaults plus ``fine_pass = False`` (no fine pass: depth maps for meshing).
 
 Reported per variant: render seconds (encode + ``render_view`` of every target; the variants run
 interleaved ``--rounds`` times, the fastest round kept: the cores are shared), the speed-up over the
@@ -44,6 +45,7 @@ def variants(model_name: str) -> dict[str, dict]:
     out = {"reference": dict(REFERENCE), "default": {}, "bf16": {"bf16_render": True}}
     if not model_name.startswith("gpnr"):
         out.update({f"surface_{n}": {"surface_samples": n} for n in SURFACE})
+        out["coarse_only"] = {"fine_pass": False}
     return out
 
 

@@ -251,9 +251,10 @@ class IBRNet(GeneralizableModel):
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
         ``acc``, see :mod:`omnirecon.lift.blend`)."""
         z = coarse_depths(features.sources, rays, self.cfg.coarse_samples, jitter)
-        coarse = self._pass(self.coarse, features, rays, z, 0, signals if self.fine is None else None)
+        fine_net = self.fine if FAST.fine_pass or jitter else None  # fine_pass=False: depth maps from the coarse pass
+        coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
-        if self.fine is None:
+        if fine_net is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
         fine = self._pass(self.fine, features, rays, fine_depths(z, coarse["weights"], self.cfg.fine_samples, jitter),
                           1, signals)

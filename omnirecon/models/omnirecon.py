@@ -75,7 +75,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import compiled, net_autocast
+from omnirecon.models.fast import FAST, compiled, net_autocast
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -519,8 +519,9 @@ class OmniRecon(GeneralizableModel):
         :mod:`omnirecon.lift.blend`)."""
         cfg = self.cfg
         z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter)  # [R, S]
-        coarse, omega = self._pass(features, rays, z, signals if cfg.fine_samples == 0 else None)
-        if cfg.fine_samples == 0:
+        coarse_only = cfg.fine_samples == 0 or not (FAST.fine_pass or jitter)  # fine_pass=False: coarse depth maps
+        coarse, omega = self._pass(features, rays, z, signals if coarse_only else None)
+        if coarse_only:
             out = dict(coarse)
         else:
             out, omega = self._pass(features, rays, fine_depths(z, coarse["weights"], cfg.fine_samples, jitter), signals)

@@ -184,3 +184,25 @@ def test_switches_from_environment():
     assert fp.compile is True and fp.render_batch == 64 and fp.inference_mode is True
     with pytest.raises(ValueError, match="OMNIRECON_FAST"):
         fast.from_env("warp_speed=9")
+
+
+@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
+def test_fine_pass_off_renders_the_coarse_pass(name):
+    """fine_pass=False outside training: the main outputs are the reference's coarse pass exactly;
+    training (jitter) still runs both passes."""
+    from omnirecon.rays import Rays
+
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+        out = render(model, src, target, fine_pass=False)
+    torch.testing.assert_close(out["rgb"], ref["rgb_coarse"], atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(out["depth"], ref.get("depth_coarse", ref["depth"]) if name == "omnirecon"
+                               else ref["depth_coarse"], atol=1e-6, rtol=1e-6)
+    with fast.switches(fine_pass=False):
+        rays = Rays.from_image(target)[:16]
+        with torch.no_grad():
+            trained = model.render_rays(model.encode(src), rays, jitter=True)
+    assert trained["rgb"].shape == (16, 3) and not torch.equal(trained["rgb"], trained["rgb_coarse"])
