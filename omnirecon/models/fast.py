@@ -54,13 +54,14 @@ class FastPaths:
     compile: bool = False
     """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
     network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
-    new). Off: compiling IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (then 1.7-4.4x
-    faster), more than most renders take; ``OMNIRECON_FAST=compile=1`` for long jobs."""
+    new). Off: the first compile of IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (7 s
+    from inductor's warm disk cache), more than most renders take, for a 1.5-4.4x faster aggregator;
+    ``OMNIRECON_FAST=compile=1`` for long jobs."""
     bf16_render: bool = False
     """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
     appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
     and everything geometric stays fp32 (reference: fp32 throughout). Off: 1.0-1.1x for IBRNet and
-    Omni-Recon, 1.4x for GPNR, at 56-67 dB PSNR to the fp32 render (colour up to 0.14 off)."""
+    Omni-Recon, 1.4-1.5x for GPNR, at 56-67 dB PSNR to the fp32 render (colour up to 0.14 off)."""
 
 
 def from_env(text: str | None) -> FastPaths:
