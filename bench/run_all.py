@@ -200,6 +200,11 @@ def section_peer(results: Path) -> str | None:
     for name, b in r["best"].items():
         lines.append(f"| {name} | {b['params']:,} | {b['render_s']} | {b['render_rays_per_s']} | {b['train_step_s']} | "
                      f"{b['train_rays_per_s']} | {b['peak_rss_mb']} |")
+    if "ours_reference" in r["best"]:
+        lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager). The sides "
+                  "run one after the other in separate processes, so a training step of a few seconds is at the mercy "
+                  "of the shared cores' load (load average at the end: "
+                  f"{r.get('loadavg_end')}); the same-run, interleaved comparison is the Speed section's."]
     if r.get("ratios"):
         q = r["ratios"]
         lines += ["", f"Ratios (reference / ours): render {q['render_speedup']}×, training {q['train_speedup']}×; "
