@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 from omnirecon.splits import EVAL_ONLY_SCENES
@@ -25,17 +26,19 @@ ROOT = HERE.parent
 # Every benchmark behind the page, in the order they run (mesh_path reuses geometry's meshes).
 # The first four make up --tiny (the test); "ablation" retrains four GPNR rows (about 1 h of CPU).
 STEPS = ("synth", "throughput", "quality", "geometry", "mesh_fps", "mesh_path", "lift", "lift_extra", "ablation",
-         "poses", "reliability")
+         "poses", "reliability", "fast_paths", "peer_ibrnet")
 TINY_STEPS = STEPS[:4]
 
 
 def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, threads: int = 1) -> None:
     """Run the benchmark scripts of ``steps``; each writes its JSON into ``results``."""
     import ablation_gpnr
+    import fast_paths
     import geometry
     import lift
     import lift_extra
     import mesh_path
+    import peer_ibrnet
     import quality
     import reliability
     import synth_speed
@@ -64,6 +67,10 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         "poses": lambda: _run_poses(results, tiny, threads),
         "reliability": lambda: reliability.main([*(["--fuzz-examples", "50", "--kills", "1"] if tiny else []),
                                                  "--out", str(results / "reliability.json")]),
+        "fast_paths": lambda: fast_paths.main(["--out", str(results / "fast_paths.json")]),
+        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", os.environ["IBRNET_ROOT"]]
+                                                   if os.environ.get("IBRNET_ROOT") else []),
+                                                 "--out", str(results / "peer_ibrnet.json")]),
     }
     for step in steps:
         print(f"== bench step {step}", flush=True)
@@ -114,8 +121,11 @@ def section_throughput(r: dict) -> str:
         "## Throughput (`bench/throughput.py`)",
         "",
         f"Device: {r['device']}. A training step = encode the source views + render the ray batch + MSE + "
-        f"backward + AdamW step. Rendering = `render_view` of a full image (paper presets: a batch of rays) "
-        f"with features encoded once. Median of {r['repeats']} timed repeats after a warm-up.",
+        f"backward + AdamW step. Rendering = `render_view` of a full image (paper presets: of a small view of `render_rays` pixels) "
+        f"with features encoded once. Median of {r['repeats']} timed repeats after a warm-up; "
+        f"{r['provenance'].get('torch_threads')} torch thread(s), load average "
+        f"{r['provenance'].get('loadavg_1min')} at the start and {r.get('loadavg_end', '?')} at the end: absolute "
+        "rays/s depend on both (the machine's 2 cores are shared); the Speed section's before/after ratios do not.",
         "",
         "| preset | parameters | source views | train rays / step | train step (s) | train rays/s | "
         "render rays/s | render FPS |",
@@ -129,6 +139,92 @@ def section_throughput(r: dict) -> str:
     if earlier:
         lines += ["", "Rows measured in an earlier run of the same script (`--presets` re-measures some rows and keeps "
                   "the others): " + "; ".join(f"{row['preset']}: {_prov(row['provenance'])}" for row in earlier)]
+    return "\n".join([*lines, "", _prov(r["provenance"])])
+
+
+def section_speed(results: Path) -> str | None:
+    """Before/after throughput (reference twins vs fast-path defaults, one run), the fast paths' costs on a
+    held-out scene and the per-stage profiles."""
+    names = ("throughput.json", "fast_paths.json", "profile.json", "profile_fast.json")
+    data = {n: json.loads((results / n).read_text()) for n in names if (results / n).is_file()}
+    r = data.get("throughput.json", {"rows": []})
+    rows = [row for row in r["rows"] if "reference" in row]
+    if not rows and len(data) <= ("throughput.json" in data):
+        return None
+    lines = ["## Speed (`bench/throughput.py`, `bench/fast_paths.py`, `bench/profile_models.py`)", ""]
+    if rows:
+        lines += [f"Before = the fast paths of `omnirecon/models/fast.py` at their reference twins (fp32 eager, the "
+                  f"code before them); after = their defaults. Both measured in the same run, interleaved repeat by "
+                  f"repeat (median of {r['repeats']}), {r['provenance'].get('torch_threads')} thread(s), "
+                  f"{r['device']}; load average at the end {r.get('loadavg_end')}.", "",
+                  "| preset | train rays/s before | after | speed-up | render rays/s before | after | speed-up |",
+                  "|---|---|---|---|---|---|---|"]
+        for row in rows:
+            ref = row["reference"]
+            lines.append(f"| {row['preset']} | {ref.get('train_rays_per_s', '–')} | {row.get('train_rays_per_s', '–')} "
+                         f"| {row.get('speedup_train', '–')}× | {ref['render_rays_per_s']} | {row['render_rays_per_s']} "
+                         f"| {row['speedup_render']}× |")
+        lines += ["", _prov(r["provenance"])]
+    else:
+        lines += ["*Before/after throughput: not measured yet (`python bench/throughput.py`).*"]
+    fp = data.get("fast_paths.json")
+    if fp:
+        lines += ["", "Fast paths on a held-out procedural scene (`bench/fast_paths.py`; speed-ups against the "
+                  "reference in the same run; `surface_N`: the fine pass on N importance samples around the coarse "
+                  "surface only):", "",
+                  "| model | variant | render (s) | speed-up | PSNR vs GT | PSNR vs reference | max abs diff | "
+                  "depth abs-rel vs GT | depth abs-rel vs reference | coarse-pass depth abs-rel vs GT |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for m in fp["models"]:
+            for row in m["rows"]:
+                lines.append(f"| {m['model']} ({m['weights']}) | {row['variant']} | {row['seconds']} | "
+                             f"{row['speedup']}× | {row['psnr_gt']} | {row['psnr_vs_reference']} | "
+                             f"{row['max_abs_vs_reference']} | {row.get('depth_absrel_gt', '–')} | "
+                             f"{row.get('depth_absrel_vs_reference', '–')} | {row.get('coarse_depth_absrel_gt', '–')} |")
+        if "compile" in fp:
+            c = fp["compile"]
+            lines += ["", f"`torch.compile` of {c['preset']}'s {c['module']} ({c['rays']} rays x {c['samples']} "
+                      f"samples, inference): compile {c['compile_s']} s, then {c['eager_ms']} ms eager vs "
+                      f"{c['compiled_ms']} ms compiled ({c['speedup']}×)."]
+        lines += ["", _prov(fp["provenance"])]
+    for name, what in (("profile.json", "reference twins (fp32 eager)"), ("profile_fast.json", "fast-path defaults")):
+        if name in data:
+            from profile_models import table
+
+            lines += ["", f"Where the time goes, {what} (`bench/profile_models.py`: share of the wall time per stage, "
+                      "self times; one thread; peak RSS of a fresh process per row):", "", table(data[name]["rows"]),
+                      "", _prov(data[name]["provenance"])]
+    return "\n".join(lines)
+
+
+def section_peer(results: Path) -> str | None:
+    f = results / "peer_ibrnet.json"
+    if not f.is_file():
+        return None
+    r = json.loads(f.read_text())
+    c = r["config"]
+    lines = ["## IBRNet reference vs ibrnet-paper (`bench/peer_ibrnet.py`)", "",
+             f"Same configuration on both sides: {c['views']} source views of {c['width']}x{c['height']}, "
+             f"{c['samples']} samples, inverse depth, chunk {c['chunk']}, {c['train_rays']} rays per training "
+             f"step, random weights, one thread, each side in its own process ({c['rounds']} alternating "
+             "round(s), best time and largest peak RSS kept).", ""]
+    if r.get("peer_note"):
+        lines += [f"**Reference not measured: {r['peer_note']}.** Run `python bench/peer_ibrnet.py --ibrnet-root "
+                  "PATH` with a checkout of googleinterns/IBRNet (the project never contains its code).", ""]
+    lines += ["| side | parameters | render s/image | render rays/s | train s/step | train rays/s | peak RSS (MB) |",
+              "|---|---|---|---|---|---|---|"]
+    for name, b in r["best"].items():
+        lines.append(f"| {name} | {b['params']:,} | {b['render_s']} | {b['render_rays_per_s']} | {b['train_step_s']} | "
+                     f"{b['train_rays_per_s']} | {b['peak_rss_mb']} |")
+    if "ours_reference" in r["best"]:
+        lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager). The sides "
+                  "run one after the other in separate processes, so a training step of a few seconds is at the mercy "
+                  "of the shared cores' load (load average at the end: "
+                  f"{r.get('loadavg_end')}); the same-run, interleaved comparison is the Speed section's."]
+    if r.get("ratios"):
+        q = r["ratios"]
+        lines += ["", f"Ratios (reference / ours): render {q['render_speedup']}×, training {q['train_speedup']}×; "
+                  f"peak RSS ours / reference {q['peak_rss_ratio']}."]
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
 
@@ -575,8 +671,8 @@ def write_page(results: Path, out: Path) -> str:
             parts += [render(json.loads(f.read_text())), ""]
         else:
             parts += [f"*{name}: not measured yet (run `python bench/run_all.py`).*", ""]
-    for text in (section_training(), section_quality(results), section_geometry(results), section_mesh_path(results),
-                 section_lift(results)):
+    for text in (section_speed(results), section_peer(results), section_training(), section_quality(results),
+                 section_geometry(results), section_mesh_path(results), section_lift(results)):
         if text:
             parts += [text, ""]
     text = "\n".join(parts)

@@ -42,7 +42,8 @@ class LossModule(nn.Module):
 
     def forward(self, sources, rays, rgb: Tensor, depth: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """-> loss, main-colour MSE (detached) and the fraction of valid rays."""
-        out = self.model.render_rays(self.model.encode(sources), rays, **({"jitter": True} if self.jitter else {}))
+        out = self.model.render_rays_batched(self.model.encode(sources), rays,  # sub-batches: models/fast.py
+                                             **({"jitter": True} if self.jitter else {}))
         valid = out["valid"].float() if "valid" in out else torch.ones_like(rgb[:, 0])  # [R]
         mse = masked_mse(out["rgb"], rgb, valid)
         loss = mse

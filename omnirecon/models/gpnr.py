@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import canonical_transform, plucker
 from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.fast import compiled, net_autocast
 from omnirecon.models.projector import project, sample
 from omnirecon.rays import Rays, Sources
 
@@ -124,7 +125,8 @@ def _run(block: nn.Module, x: Tensor, pad: Tensor | None) -> Tensor:
         return x
     if pad is not None:
         pad = pad & ~pad.all(dim=1, keepdim=True)  # nothing to attend to: attend to everything
-    return block(x, src_key_padding_mask=pad)
+    with net_autocast(x.device):
+        return compiled(block)(x, src_key_padding_mask=pad).to(x.dtype)
 
 
 class GPNR(GeneralizableModel):

@@ -21,6 +21,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.fast import FAST, compiled, net_autocast
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
@@ -154,7 +155,12 @@ class Aggregator(nn.Module):
         w = (e - torch.where(torch.isinf(e_min), torch.zeros_like(e_min), e_min)) * m
         w = w / (w.sum(-2, keepdim=True) + 1e-8)
         stats = _weighted_stats(f, w)  # [R, S, 1, 2C]
-        x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
+        if FAST.split_linear:  # the first layer's stats part once per sample, not per view (no concat)
+            lin = self.base[0][0]
+            h = F.linear(f, lin.weight[:, stats.shape[-1]:], lin.bias) + F.linear(stats, lin.weight[:, :stats.shape[-1]])
+            x = self.base[1](self.base[0][2](self.base[0][1](h)))  # [R, S, V, 32]
+        else:
+            x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
         rv = F.elu(self.vis(x * w))  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
         r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
         x = x + r
@@ -168,7 +174,13 @@ class Aggregator(nn.Module):
         a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
         h = self.attn_norm(h + a)
         sigma = self.sigma(h)[..., 0] * seen  # [R, S]
-        logit = self.rgb(torch.cat([x, v, ray_diff], -1))[..., 0].masked_fill(~mask, -1e9)  # [R, S, V]
+        if FAST.split_linear:  # the colour head's first layer on its three inputs apart (no concat)
+            lin, n = self.rgb[0], x.shape[-1]
+            h = F.linear(x, lin.weight[:, :n], lin.bias) + v * lin.weight[:, n] + F.linear(ray_diff, lin.weight[:, n + 1:])
+            logit = self.rgb[1:](h)[..., 0]
+        else:
+            logit = self.rgb(torch.cat([x, v, ray_diff], -1))[..., 0]
+        logit = logit.masked_fill(~mask, -1e9)  # [R, S, V]
         return sigma, torch.softmax(logit, -1)
 
 
@@ -220,7 +232,9 @@ class IBRNet(GeneralizableModel):
 
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None):
         rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
-        sigma, blend = net(rgb_feat, ray_diff, mask)
+        with net_autocast(z.device):
+            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask)
+        sigma, blend = sigma.to(z.dtype), blend.to(z.dtype)
         w, _ = weights_from_alpha(alpha_from_density(sigma))
         sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]
         enough = (mask.sum(-1) >= 2).sum(-1) > min(8, z.shape[1] // 4)  # reference: > 8 samples seen twice
@@ -237,9 +251,10 @@ class IBRNet(GeneralizableModel):
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
         ``acc``, see :mod:`omnirecon.lift.blend`)."""
         z = coarse_depths(features.sources, rays, self.cfg.coarse_samples, jitter)
-        coarse = self._pass(self.coarse, features, rays, z, 0, signals if self.fine is None else None)
+        fine_net = self.fine if FAST.fine_pass or jitter else None  # fine_pass=False: depth maps from the coarse pass
+        coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
-        if self.fine is None:
+        if fine_net is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
         fine = self._pass(self.fine, features, rays, fine_depths(z, coarse["weights"], self.cfg.fine_samples, jitter),
                           1, signals)

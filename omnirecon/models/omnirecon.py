@@ -75,6 +75,7 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
 from omnirecon.models.base import Capabilities, GeneralizableModel
+from omnirecon.models.fast import FAST, compiled, net_autocast
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -489,8 +490,10 @@ class OmniRecon(GeneralizableModel):
         points = rays.origins[:, None] + rays.directions[:, None] * t[..., None]  # [R, S, 3]
         samples = self.gather(features, points, rays.origins)
         vol = self.volume_features(features, points)
-        sdf = self.geometry(samples.feat, vol, samples.dirs, samples.mask, points)  # [R, S]
-        omega = self.blend_weights(samples)  # [R, S, K]
+        with net_autocast(points.device):
+            sdf = compiled(self.geometry)(samples.feat, vol, samples.dirs, samples.mask, points)  # [R, S]
+            omega = compiled(self.appearance)(samples.feat, samples.dirs[..., :3], samples.mask)  # [R, S, K]
+        sdf, omega = sdf.to(points.dtype), omega.to(points.dtype)
         alpha = alpha_from_sdf(sdf, t, self.sharpness)  # [R, S]
         if self.cfg.leftover == "far":
             alpha = torch.cat([alpha[:, :-1], torch.ones_like(alpha[:, -1:])], -1)
@@ -516,8 +519,9 @@ class OmniRecon(GeneralizableModel):
         :mod:`omnirecon.lift.blend`)."""
         cfg = self.cfg
         z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter)  # [R, S]
-        coarse, omega = self._pass(features, rays, z, signals if cfg.fine_samples == 0 else None)
-        if cfg.fine_samples == 0:
+        coarse_only = cfg.fine_samples == 0 or not (FAST.fine_pass or jitter)  # fine_pass=False: coarse depth maps
+        coarse, omega = self._pass(features, rays, z, signals if coarse_only else None)
+        if coarse_only:
             out = dict(coarse)
         else:
             out, omega = self._pass(features, rays, fine_depths(z, coarse["weights"], cfg.fine_samples, jitter), signals)

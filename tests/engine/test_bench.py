@@ -58,3 +58,42 @@ def test_page_flags_results_measured_with_another_checkpoint(monkeypatch):
     old = run_all.stale_note("omnirecon-tiny", {"step": 5, "sha256": "0" * 16}, "quality.py")
     assert "step 5" in old[0] and now["sha256"] in old[0] and "bench/quality.py" in old[0]
     assert "unrecorded" in run_all.stale_note("omnirecon-tiny", None, "lift.py")[0]
+
+
+def test_throughput_compares_reference_twins_and_page_shows_speed(tmp_path):
+    """throughput.py times the reference twins and the defaults in one run; run_all renders the Speed table."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import run_all
+    import throughput
+
+    r = throughput.main(["--quick", "--presets", "floor", "--out", str(tmp_path / "throughput.json")])
+    row = r["rows"][0]
+    assert row["reference"]["render_rays_per_s"] > 0 and row["speedup_render"] > 0
+    text = run_all.section_speed(tmp_path)
+    assert "## Speed" in text and f"| floor | – | – | –× | {row['reference']['render_rays_per_s']} |" in text
+
+
+def test_peer_ibrnet_without_checkout_measures_our_side_and_says_so(tmp_path):
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peer_ibrnet
+    import run_all
+
+    r = peer_ibrnet.main(["--width", "32", "--height", "24", "--train-rays", "16", "--train-steps", "1",
+                          "--out", str(tmp_path / "peer_ibrnet.json")])
+    assert r["peer_root"] is None and r["ratios"] is None and "no IBRNet checkout" in r["peer_note"]
+    ours = r["best"]["ours"]
+    assert ours["params"] == 8_957_392 and ours["render_s"] > 0 and ours["train_step_s"] > 0
+    text = run_all.section_peer(tmp_path)
+    assert "Reference not measured" in text and "| ours | 8,957,392 |" in text
+
+
+def test_peer_ibrnet_rejects_a_folder_that_is_no_checkout(tmp_path):
+    import pytest
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peer_ibrnet
+
+    from omnirecon.errors import InputError
+
+    with pytest.raises(InputError, match="not an IBRNet checkout"):
+        peer_ibrnet.main(["--ibrnet-root", str(tmp_path), "--out", str(tmp_path / "p.json")])

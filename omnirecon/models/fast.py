@@ -1,0 +1,150 @@
+"""Switches of the lean hot path. Each fast path keeps the plain fp32 eager code as its reference twin:
+``with reference():`` turns every switch to the plain path (the tests in ``tests/models/test_fast_paths.py``
+and ``bench/`` compare the two); ``with switches(name=value):`` sets some of them.
+
+Defaults are on only where the fast path was faster *and* agreed with the reference within the
+tolerance its test states (numbers: ``bench/results/fast_paths.json``, ``bench/fast_paths.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from contextlib import contextmanager, nullcontext
+from dataclasses import dataclass
+from weakref import WeakKeyDictionary
+
+import torch
+
+
+@dataclass
+class FastPaths:
+    """Which fast paths are on. The reference twin of each is its "off" value."""
+
+    inference_mode: bool = True
+    """``render_view`` runs under ``torch.inference_mode`` (reference: ``torch.no_grad``)."""
+    render_batch: int = 256
+    """``render_view`` calls ``render_rays`` on at most this many rays at a time, whatever the memory
+    ``chunk``: per-sample tensors of a few MB stay in cache and in the allocator's free lists instead
+    of being mapped and page-faulted afresh for every op (0, the reference: ``chunk`` rays per call).
+    ibrnet-tiny at 64x64, one thread: 128-512 rays per call rendered about 2x faster than 4096."""
+    train_batch: int = 128
+    """Training forwards (``render_rays_batched``, used by the training loss) render the ray batch in
+    sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call).
+    A/B steps (min of 3): 1.3-1.4x on all three tiny presets; bench/throughput.py (median, same run,
+    with split_linear): 1.22x ibrnet-tiny, 0.97-1.03x gpnr-tiny and omnirecon-tiny."""
+    preallocate: bool = True
+    """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
+    chunks concatenated at the end)."""
+    split_linear: bool = True
+    """Per-sample MLPs whose first layer reads a concatenation ``[per-sample stats, per-view features]``
+    (IBRNet's base and colour MLPs) apply the layer's column blocks to the parts apart: the per-sample
+    part once per sample instead of once per view, and no concatenated tensor (reference: concat, one
+    Linear). Forward and gradients agree to float rounding."""
+    surface_samples: int = 0
+    """When > 0: the fine pass of IBRNet and Omni-Recon outside training evaluates only this many
+    importance samples, around the coarse surface, instead of the coarse samples plus
+    ``fine_samples`` (reference: 0). Changes the output: a quality/speed trade, not a twin. Off: both
+    shipped models lose 3-12 dB on a held-out scene (they were trained on coarse + importance samples)."""
+    fine_pass: bool = True
+    """False: outside training, IBRNet and Omni-Recon render their coarse pass only (the outputs of a
+    model without a fine pass). Changes colour, not a twin: for depth maps (meshing), where the coarse
+    depth of both shipped tiny models scored within 5 % of the fine depth (abs-rel, held-out scene;
+    IBRNet's better) at less than half the samples."""
+    compile: bool = False
+    """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
+    network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
+    new). Off: the first compile of IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (7 s
+    from inductor's warm disk cache), more than most renders take, for a 1.5-4.4x faster aggregator;
+    ``OMNIRECON_FAST=compile=1`` for long jobs."""
+    bf16_render: bool = False
+    """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
+    appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
+    and everything geometric stays fp32 (reference: fp32 throughout). Off: 1.0-1.1x for IBRNet and
+    Omni-Recon, 1.4-1.5x for GPNR, at 56-67 dB PSNR to the fp32 render (colour up to 0.14 off)."""
+
+
+def from_env(text: str | None) -> FastPaths:
+    """Switches from ``OMNIRECON_FAST``: ``reference`` (every reference twin) and/or comma-separated
+    ``name=value`` pairs, e.g. ``compile=1,render_batch=512`` (any command, no code change)."""
+    fp = FastPaths()
+    for item in filter(None, (t.strip() for t in (text or "").split(","))):
+        if item == "reference":
+            fp = dataclasses.replace(fp, **REFERENCE)
+            continue
+        name, _, value = item.partition("=")
+        kind = {f.name: f.type for f in dataclasses.fields(FastPaths)}.get(name)
+        if kind is None or not value:
+            raise ValueError(f"OMNIRECON_FAST: bad item {item!r}; use reference or name=value with a name of "
+                             f"{', '.join(f.name for f in dataclasses.fields(FastPaths))}")
+        setattr(fp, name, int(value) if kind in (int, "int") else value.lower() in ("1", "true", "yes", "on"))
+    return fp
+
+
+REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "split_linear": False,
+             "surface_samples": 0, "fine_pass": True, "compile": False, "bf16_render": False}
+"""Every switch at its reference-twin value."""
+
+FAST = from_env(os.environ.get("OMNIRECON_FAST"))
+"""The process-wide switches read by the models (defaults, or ``OMNIRECON_FAST``)."""
+
+
+
+_RENDERING = [0]
+"""Depth of nested ``render_view`` calls (bf16 autocast applies only inside one)."""
+
+
+@contextmanager
+def rendering():
+    """Marks the block as rendering (``render_view``): ``net_autocast`` may switch to bf16 inside it."""
+    _RENDERING[0] += 1
+    try:
+        yield
+    finally:
+        _RENDERING[0] -= 1
+
+
+def net_autocast(device: torch.device | str):
+    """bf16 autocast for a model's per-sample networks when ``FAST.bf16_render`` and rendering; else nothing.
+    Geometry (projection, sample positions, compositing) stays in the sources' dtype: callers cast the
+    networks' outputs back."""
+    if not (FAST.bf16_render and _RENDERING[0]):
+        return nullcontext()
+    return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
+
+
+_COMPILED: WeakKeyDictionary = WeakKeyDictionary()
+
+
+def compiled(module: torch.nn.Module):
+    """``module`` itself, or (``FAST.compile`` inside ``render_view``) its ``torch.compile``d twin, made once."""
+    if not (FAST.compile and _RENDERING[0]):
+        return module
+    fn = _COMPILED.get(module)
+    if fn is None:
+        fn = _COMPILED[module] = torch.compile(module, dynamic=False)
+    return fn
+
+
+@contextmanager
+def reference():
+    """Every switch at its reference twin (plain fp32 eager) inside the block."""
+    with switches(**REFERENCE):
+        yield FAST
+
+
+@contextmanager
+def switches(**values):
+    """Set some switches inside the block, e.g. ``switches(bf16_render=True)``."""
+    names = {f.name for f in dataclasses.fields(FastPaths)}
+    unknown = set(values) - names
+    if unknown:
+        raise AttributeError(f"no fast path {', '.join(sorted(unknown))}; known: {', '.join(sorted(names))}")
+    old = {k: getattr(FAST, k) for k in values}
+    for k, v in values.items():
+        setattr(FAST, k, v)
+    try:
+        yield FAST
+    finally:
+        for k, v in old.items():
+            setattr(FAST, k, v)

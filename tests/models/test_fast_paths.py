@@ -1,0 +1,208 @@
+"""Each fast path of omnirecon.models.fast against its reference twin (plain fp32 eager), within the
+tolerance stated here; training paths in forward and in gradients."""
+
+import pytest
+import torch
+
+from omnirecon.models import fast
+from omnirecon.models.gpnr import GPNR
+from omnirecon.models.ibrnet import IBRNet
+from omnirecon.models.omnirecon import PRESETS as OMNI_PRESETS
+from omnirecon.models.omnirecon import OmniRecon, OmniReconConfig
+from omnirecon.rays import Sources
+from tests.models.test_gpnr import rig
+from tests.models.test_gpnr import small_cfg as gpnr_cfg
+from tests.models.test_ibrnet import tiny as ibrnet_cfg
+
+
+def omni_cfg(**kw):
+    cfg = dict(OMNI_PRESETS["omnirecon-tiny"].__dict__)
+    cfg.update(coarse_samples=12, fine_samples=6, cnn_channels=(4, 8, 8, 8), feature_dim=8,
+               pyramid_channels=(4, 4, 4), volume_resolution=8)
+    cfg.update(kw)
+    return OmniReconConfig(**cfg)
+
+
+MODELS = {"ibrnet": lambda: IBRNet(ibrnet_cfg()), "gpnr": lambda: GPNR(gpnr_cfg()),
+          "omnirecon": lambda: OmniRecon(omni_cfg())}
+
+
+def scene(seed=0):
+    torch.manual_seed(seed)
+    cams = rig(dtype=torch.float32)
+    images = torch.rand(4, cams.height, cams.width, 3)
+    bounds = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    return Sources(images, cams[[0, 1, 3, 4]], 2.0, 4.0, "object", bounds), cams[[2]]
+
+
+def render(model, src, target, chunk=100, **switches):
+    with fast.switches(**switches):
+        with torch.no_grad():
+            feats = model.encode(src)
+        return model.render_view(feats, target, chunk=chunk)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_render_view_fast_paths_equal_reference(name):
+    """inference_mode + small render batches + preallocated outputs: the same image as the reference
+    (list of chunks, no_grad) to 1e-5 (batching changes only the summation order of matmuls)."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True)
+    assert set(out) == set(ref)
+    for k in ref:
+        assert out[k].shape == ref[k].shape and out[k].dtype == ref[k].dtype, k
+        if ref[k].is_floating_point():
+            torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5, msg=k)
+        else:
+            assert torch.equal(out[k], ref[k]), k
+    assert not out["rgb"].requires_grad
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_bf16_render_within_tolerance(name):
+    """bf16 autocast rendering: outputs keep fp32 and the colour stays within 35 dB PSNR of the fp32
+    reference (bench/fast_paths.py measures the cost on a trained model and a held-out scene)."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, bf16_render=True)
+    assert out["rgb"].dtype == torch.float32
+    mse = (out["rgb"] - ref["rgb"]).square().mean().clamp_min(1e-12)
+    assert -10 * torch.log10(mse) > 35, float(mse)
+
+
+def _train_outputs(model, src, rays, **switches):
+    """Loss of one training forward (jittered samples, fixed seed) and the gradients of every parameter."""
+    model.zero_grad(set_to_none=True)
+    with fast.switches(**switches):
+        torch.manual_seed(3)
+        out = model.render_rays(model.encode(src), rays, jitter=True)
+        loss = out["rgb"].square().mean() + out["rgb_coarse"].square().mean() + out["depth"].mean()
+        loss.backward()
+    grads = {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+    return out, grads
+
+
+def test_split_linear_forward_and_gradients():
+    """IBRNet's MLPs with their first layer split by input block: forward to 1e-5, gradients of every
+    parameter to 1e-4 relative (float rounding) of the concatenating reference."""
+    from omnirecon.rays import Rays
+
+    torch.manual_seed(0)
+    model = IBRNet(ibrnet_cfg()).train()
+    src, target = scene()
+    rays = Rays.from_image(target)[::3]
+    with fast.reference():
+        ref, ref_g = _train_outputs(model, src, rays)
+        out, out_g = _train_outputs(model, src, rays, split_linear=True)
+    for k in ("rgb", "rgb_coarse", "depth"):
+        torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
+    assert set(out_g) == set(ref_g) and len(ref_g) > 10
+    for n in ref_g:
+        torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
+
+
+@pytest.mark.slow
+def test_compiled_networks_equal_reference():
+    """torch.compile of the per-sample networks inside render_view (inductor, minutes to compile on a
+    small CPU): the same image as the reference to 1e-4, the padded last batch included."""
+    torch.manual_seed(0)
+    model = IBRNet(ibrnet_cfg()).eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+    out = render(model, src, target, compile=True, render_batch=64)  # 480 rays: 7 full batches + 1 padded
+    for k in ("rgb", "depth", "acc"):
+        torch.testing.assert_close(out[k], ref[k], atol=1e-4, rtol=1e-4, msg=k)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
+def test_train_batch_forward_and_gradients(name):
+    """A training forward in sub-batches of rays (one graph): the outputs to 1e-5 and the gradients of
+    every parameter to 1e-4 relative of the one-call reference (deterministic samples: the jittered ones
+    draw their random numbers in another order)."""
+    from omnirecon.rays import Rays
+
+    torch.manual_seed(0)
+    model = MODELS[name]().train()
+    src, target = scene()
+    rays = Rays.from_image(target)[::4]  # 120 rays
+
+    def run(**sw):
+        model.zero_grad(set_to_none=True)
+        with fast.switches(**sw):
+            out = model.render_rays_batched(model.encode(src), rays)
+            loss = out["rgb"].square().mean() + out["depth"].mean() + out.get("rgb_aux", out["rgb"]).mean()
+            loss.backward()
+        return out, {n: p.grad.clone() for n, p in model.named_parameters() if p.grad is not None}
+
+    with fast.reference():
+        ref, ref_g = run()
+        out, out_g = run(train_batch=32)  # 3 full sub-batches and one of 24
+    for k in ("rgb", "depth"):
+        torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5, msg=k)
+    assert set(out_g) == set(ref_g) and ref_g
+    for n in ref_g:
+        torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
+
+
+@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
+def test_surface_samples_fine_pass(name):
+    """surface_samples: the fine pass evaluates exactly N samples, drawn where the coarse weights are
+    (inside the coarse depth range, sorted); training (jitter) keeps coarse + importance samples."""
+    from omnirecon.models.sampler import fine_depths
+
+    torch.manual_seed(0)
+    z = torch.linspace(2.0, 4.0, 12).expand(5, 12).contiguous()
+    w = torch.zeros(5, 12)
+    w[:, 6] = 1.0  # all the mass in one coarse interval
+    with fast.switches(surface_samples=6):
+        zf = fine_depths(z, w, 4)
+        assert zf.shape == (5, 6) and (zf.diff(dim=-1) >= 0).all()
+        mid = 0.5 * (z[:, 1:] + z[:, :-1])
+        inner = zf[:, 1:-1]  # the deterministic CDF samples away from the two ends sit in that interval
+        assert ((inner >= mid[:, 5:6] - 1e-6) & (inner <= mid[:, 6:7] + 1e-6)).all()
+        assert fine_depths(z, w, 4, jitter=True).shape == (5, 16)
+        model = MODELS[name]().eval()
+        src, target = scene()
+        out = render(model, src, target, surface_samples=6)
+        assert torch.isfinite(out["rgb"]).all() and out["rgb"].shape == (target.height, target.width, 3)
+
+
+def test_switches_from_environment():
+    """OMNIRECON_FAST sets switches for any command: the reference twins, or name=value pairs."""
+    assert fast.from_env(None) == fast.FastPaths()
+    ref = fast.from_env("reference")
+    assert all(getattr(ref, k) == v for k, v in fast.REFERENCE.items())
+    fp = fast.from_env("compile=1, render_batch=64")
+    assert fp.compile is True and fp.render_batch == 64 and fp.inference_mode is True
+    with pytest.raises(ValueError, match="OMNIRECON_FAST"):
+        fast.from_env("warp_speed=9")
+
+
+@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
+def test_fine_pass_off_renders_the_coarse_pass(name):
+    """fine_pass=False outside training: the main outputs are the reference's coarse pass exactly;
+    training (jitter) still runs both passes."""
+    from omnirecon.rays import Rays
+
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+        out = render(model, src, target, fine_pass=False)
+    torch.testing.assert_close(out["rgb"], ref["rgb_coarse"], atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(out["depth"], ref.get("depth_coarse", ref["depth"]) if name == "omnirecon"
+                               else ref["depth_coarse"], atol=1e-6, rtol=1e-6)
+    with fast.switches(fine_pass=False):
+        rays = Rays.from_image(target)[:16]
+        with torch.no_grad():
+            trained = model.render_rays(model.encode(src), rays, jitter=True)
+    assert trained["rgb"].shape == (16, 3) and not torch.equal(trained["rgb"], trained["rgb_coarse"])
