@@ -496,6 +496,11 @@ def section_reliability(r: dict) -> str:
             "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
     out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
             for k, v in f["targets"].items()]
+    for rerun in r.get("fuzz_reruns", []):  # targets rerun after fixing what the run above found
+        out += ["", f"Rerun at commit `{rerun['commit']}` after {rerun['why']}:", "",
+                "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
+        out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
+                for k, v in rerun["targets"].items()]
     if r.get("kill"):
         out += ["", "**kill -9** at a random moment, then the same command again to completion:", "",
                 "| command | kills | finished first | partial result after the kill | hidden leftovers after the re-run "
