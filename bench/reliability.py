@@ -176,9 +176,26 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--fuzz-examples", type=int, default=10_000, help="fuzz cases per target")
     parser.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (0: skip)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "reliability.json")
+    parser.add_argument("--rerun", nargs="+", default=None, metavar="TARGET",
+                        help="fuzz only these targets again (after fixing what a run found) and append the counts to "
+                             "--out as a rerun at the current commit, with --why")
+    parser.add_argument("--why", default="fixes", help="what changed since the run in --out (with --rerun)")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
-    from omnirecon.provenance import provenance
+    from omnirecon.provenance import git_commit, provenance
+
+    if args.rerun:
+        result = json.loads(args.out.read_text())
+        report = Path(tempfile.mkdtemp(prefix="reliability_")) / "fuzz.json"
+        _pytest([str(TESTS / "test_fuzz.py"), "-k", " or ".join(args.rerun)],
+                {"OMNIRECON_FUZZ_EXAMPLES": str(args.fuzz_examples), "OMNIRECON_FUZZ_REPORT": str(report)}, 6 * 3600)
+        targets = {k: v for k, v in json.loads(report.read_text()).items() if k in args.rerun}
+        result.setdefault("fuzz_reruns", []).append({"commit": git_commit(), "why": args.why, "targets": targets,
+                                                     "examples_per_target": args.fuzz_examples,
+                                                     "provenance": provenance(seed=0)})
+        write_json(args.out, result)
+        print(f"rerun {targets}; wrote {args.out}")
+        return result
 
     start = time.perf_counter()
     result = {"provenance": provenance(seed=0, fuzz_examples=args.fuzz_examples, kills=args.kills,
