@@ -46,13 +46,15 @@ def _pytest(args: list[str], env: dict, timeout: float) -> tuple[int, Path]:
     return proc.returncode, junit
 
 
-def malformed_counts() -> dict:
-    """Rows of tests/test_malformed.py per command, and how many passed (were handled)."""
-    _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
+def malformed_counts(junit: Path | None = None) -> dict:
+    """Rows of tests/test_malformed.py per command, and how many passed (were handled); ``junit``: count
+    from that JUnit XML of an earlier run instead of running the table."""
+    if junit is None:
+        _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
     per: dict[str, list[int]] = {}
     failed = []
     for case in ET.parse(junit).getroot().iter("testcase"):
-        m = re.search(r"\[\d+-(\S+)", case.get("name", ""))
+        m = re.search(r"\[\d+-([^\s\]]+)", case.get("name", ""))
         cmd = m.group(1) if m else "?"
         ok = case.find("failure") is None and case.find("error") is None and case.find("skipped") is None
         row = per.setdefault(cmd, [0, 0])
