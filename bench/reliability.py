@@ -46,13 +46,15 @@ def _pytest(args: list[str], env: dict, timeout: float) -> tuple[int, Path]:
     return proc.returncode, junit
 
 
-def malformed_counts() -> dict:
-    """Rows of tests/test_malformed.py per command, and how many passed (were handled)."""
-    _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
+def malformed_counts(junit: Path | None = None) -> dict:
+    """Rows of tests/test_malformed.py per command, and how many passed (were handled); ``junit``: count
+    from that JUnit XML of an earlier run instead of running the table."""
+    if junit is None:
+        _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
     per: dict[str, list[int]] = {}
     failed = []
     for case in ET.parse(junit).getroot().iter("testcase"):
-        m = re.search(r"\[\d+-(\S+)", case.get("name", ""))
+        m = re.search(r"\[\d+-([^\s\]]+)", case.get("name", ""))
         cmd = m.group(1) if m else "?"
         ok = case.find("failure") is None and case.find("error") is None and case.find("skipped") is None
         row = per.setdefault(cmd, [0, 0])
@@ -98,7 +100,11 @@ def _kill_after(cmd: list[str], delay: float, env: dict) -> bool:
 
 
 def kill_runs(kills: int, seed: int = 0) -> dict:
-    """``kills`` SIGKILLs at random moments into each command, each followed by a complete re-run."""
+    """``kills`` SIGKILLs into each command at a moment drawn uniformly in 10-95 % of the duration of one
+    uninterrupted run (measured first), each from an empty output (train: an empty run folder), then the
+    same command again to completion (train: ``--resume`` when a checkpoint survived)."""
+    import shutil
+
     rng = random.Random(seed)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
     work = Path(tempfile.mkdtemp(prefix="reliability_kill_"))
@@ -109,46 +115,41 @@ def kill_runs(kills: int, seed: int = 0) -> dict:
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     tiny = ["--model", "gpnr-tiny", "--model-overrides", "num_samples=8", "dim=32", "mlp_dim=32", "heads=1",
             "layers=[1,1,1]", "point_freqs=4", "--num-views", "3", "--resolution", "32", "--rays", "64",
-            "--val-every", "0", "--threads", "1", "--no-progress", "--ckpt-every", "5"]
+            "--val-every", "0", "--threads", "1", "--no-progress", "--ckpt-every", "3"]
     commands = {
-        "synth": (lambda out: ["synth", "--num-scenes", "3", "--views", "12", "--resolution", "48", "--workers", "1",
-                               "--out", str(out)], (0.5, 6.0)),
-        "train": (lambda out: ["train", "--data", str(scene), "--steps", "30", "--out", str(out),
-                               "--cache", str(work / "cache"), *tiny], (2.0, 12.0)),
-        "mesh": (lambda out: ["mesh", "--scene", str(scene), "--model", "floor", "--threads", "1", "--no-preview",
-                              "--out", str(out / "m.ply"), str(out / "m.obj"), str(out / "m.glb")], (1.0, 10.0)),
+        "synth": lambda out: ["synth", "--num-scenes", "2", "--views", "8", "--resolution", "48", "--workers", "1",
+                              "--out", str(out)],
+        "train": lambda out: ["train", "--data", str(scene), "--steps", "12", "--out", str(out),
+                              "--cache", str(work / "cache"), *tiny],
+        "mesh": lambda out: ["mesh", "--scene", str(scene), "--model", "floor", "--threads", "1",
+                             "--out", str(out / "m.ply"), str(out / "m.obj"), str(out / "m.glb")],
     }
     if ckpt.is_dir():
         from omnirecon.viewer.bundle import three_unavailable_reason
 
         viewer = ["--no-viewer"] if three_unavailable_reason() else []  # the mesh files only, without three.js
-        commands["export"] = (lambda out: ["export", "--scene", str(scene), "--ckpt", str(ckpt), "--threads", "1",
-                                           "--device", "cpu", "--resolution", "32", *viewer, "--out", str(out)],
-                              (1.0, 15.0))
+        commands["export"] = lambda out: ["export", "--scene", str(scene), "--ckpt", str(ckpt), "--threads", "1",
+                                          "--device", "cpu", "--resolution", "32", *viewer, "--out", str(out)]
     results = {}
-    for name, (make, (lo, hi)) in commands.items():
+    for name, make in commands.items():
         out = work / name
-        rec = {"kills": 0, "finished_before_kill": 0, "leftovers_after_rerun": 0, "incomplete_after_kill": 0,
-               "rerun_failed": 0}
+        t0 = time.perf_counter()
+        subprocess.run(_cli(make(out)), cwd=ROOT, env=env, check=True, capture_output=True)
+        duration = time.perf_counter() - t0
+        rec = {"kills": 0, "finished_before_kill": 0, "incomplete_after_kill": 0, "leftovers_after_rerun": 0,
+               "rerun_failed": 0, "uninterrupted_s": round(duration, 1)}
         for _ in range(kills):
-            argv = make(out)
-            if name == "train" and (out / "checkpoints").is_dir():
-                argv.append("--resume")
-            killed = _kill_after(_cli(argv), rng.uniform(lo, hi), env)
+            shutil.rmtree(out, ignore_errors=True)
+            killed = _kill_after(_cli(make(out)), rng.uniform(0.1, 0.95) * duration, env)
             rec["kills" if killed else "finished_before_kill"] += 1
             rec["incomplete_after_kill"] += int(_incomplete(name, out))
-            argv = make(out) + (["--resume"] if name == "train" and (out / "checkpoints").is_dir() else [])
-            if name == "synth":
-                argv.append("--overwrite")
-            rerun = subprocess.run(_cli(argv), cwd=ROOT, env=env, capture_output=True, text=True)
+            resume = name == "train" and (out / "checkpoints" / "latest").exists()
+            rerun = subprocess.run(_cli(make(out) + (["--resume"] if resume else [])), cwd=ROOT, env=env,
+                                   capture_output=True, text=True)
             rec["rerun_failed"] += int(rerun.returncode != 0)
             if rerun.returncode != 0:
                 rec.setdefault("rerun_errors", []).append(rerun.stderr.strip()[-300:])
             rec["leftovers_after_rerun"] += len(_hidden_leftovers(out))
-            if name != "train":
-                import shutil
-
-                shutil.rmtree(out, ignore_errors=True)  # each kill starts from nothing (train resumes instead)
         results[name] = rec
         print(f"kill -9 {name}: {rec}", flush=True)
     return results
@@ -176,9 +177,34 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--fuzz-examples", type=int, default=10_000, help="fuzz cases per target")
     parser.add_argument("--kills", type=int, default=10, help="SIGKILLs per command (0: skip)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "reliability.json")
+    parser.add_argument("--rerun", nargs="+", default=None, metavar="TARGET",
+                        help="fuzz only these targets again (after fixing what a run found) and append the counts to "
+                             "--out as a rerun at the current commit, with --why")
+    parser.add_argument("--kills-only", action="store_true", help="rerun only the kill -9 part into --out")
+    parser.add_argument("--why", default="fixes", help="what changed since the run in --out (with --rerun)")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
-    from omnirecon.provenance import provenance
+    from omnirecon.provenance import git_commit, provenance
+
+    if args.kills_only:  # replace the kill counts of an existing results file, at the current commit
+        result = json.loads(args.out.read_text())
+        result["kill"] = kill_runs(args.kills)
+        result["kill_provenance"] = provenance(seed=0, kills=args.kills)
+        write_json(args.out, result)
+        print(f"wrote {args.out}")
+        return result
+    if args.rerun:
+        result = json.loads(args.out.read_text())
+        report = Path(tempfile.mkdtemp(prefix="reliability_")) / "fuzz.json"
+        _pytest([str(TESTS / "test_fuzz.py"), "-k", " or ".join(args.rerun)],
+                {"OMNIRECON_FUZZ_EXAMPLES": str(args.fuzz_examples), "OMNIRECON_FUZZ_REPORT": str(report)}, 6 * 3600)
+        targets = {k: v for k, v in json.loads(report.read_text()).items() if k in args.rerun}
+        result.setdefault("fuzz_reruns", []).append({"commit": git_commit(), "why": args.why, "targets": targets,
+                                                     "examples_per_target": args.fuzz_examples,
+                                                     "provenance": provenance(seed=0)})
+        write_json(args.out, result)
+        print(f"rerun {targets}; wrote {args.out}")
+        return result
 
     start = time.perf_counter()
     result = {"provenance": provenance(seed=0, fuzz_examples=args.fuzz_examples, kills=args.kills,

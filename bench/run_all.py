@@ -641,12 +641,20 @@ def section_reliability(r: dict) -> str:
             "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
     out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
             for k, v in f["targets"].items()]
+    for rerun in r.get("fuzz_reruns", []):  # targets rerun after fixing what the run above found
+        out += ["", f"Rerun at commit `{rerun['commit']}` after {rerun['why']}:", "",
+                "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
+        out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
+                for k, v in rerun["targets"].items()]
     if r.get("kill"):
-        out += ["", "**kill -9** at a random moment, then the same command again to completion:", "",
+        out += ["", "**kill -9** at a random moment (10-95 % of an uninterrupted run, from an empty output), then the "
+                "same command again to completion (train with `--resume`):", "",
                 "| command | kills | finished first | partial result after the kill | hidden leftovers after the re-run "
                 "| re-run failed |", "|---|---:|---:|---:|---:|---:|"]
         out += [f"| {k} | {v['kills']} | {v['finished_before_kill']} | {v['incomplete_after_kill']} | "
                 f"{v['leftovers_after_rerun']} | {v['rerun_failed']} |" for k, v in r["kill"].items()]
+        if r.get("kill_provenance"):
+            out += ["", "kill -9 runs: " + _prov(r["kill_provenance"])]
     out += ["", _prov(r["provenance"])]
     return "\n".join(out)
 

@@ -118,7 +118,8 @@ def _matrix(npz, key: str, source: Path, n: int) -> np.ndarray:
         if raw.dtype.kind not in "fiub":  # complex, strings, objects: not a camera matrix
             raise ValueError(f"dtype {raw.dtype} is not real-valued")
         m = raw.astype(np.float64)
-    except (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+    except (ValueError, TypeError, OSError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+            RuntimeError) as e:  # zipfile: unsupported version/compression, encrypted member
         raise InputError(f"cannot read {key} ({e})", source, "regenerate the file") from e
     if m.shape == (3, 4):
         m = np.concatenate([m, [[0, 0, 0, 1.0]]])

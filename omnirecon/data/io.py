@@ -73,7 +73,8 @@ def read_npy(path: Path, allow_pickle: bool = False):
         raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return np.load(path, allow_pickle=allow_pickle)
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, SyntaxError, tokenize.TokenError) as e:  # corrupt header
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, SyntaxError, tokenize.TokenError,
+            NotImplementedError, RuntimeError) as e:  # corrupt header or archive
         raise InputError(f"cannot read NumPy file ({e})", path, "the file is corrupt; regenerate it") from e
 
 

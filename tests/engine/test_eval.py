@@ -8,7 +8,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from test_bad_input import ring_c2w
 
 from omnirecon.data.scene import Scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
@@ -18,6 +17,7 @@ from omnirecon.engine.protocols import PROTOCOLS, targets_and_pool
 from omnirecon.engine.scenes import load_at_resolution, prepare_scenes
 from omnirecon.metrics import psnr
 from omnirecon.models.registry import build_model
+from tests.data.test_bad_input import ring_c2w
 
 TINY_GPNR = {"num_samples": 8, "patch_size": 3, "patch_channels": 4, "dim": 16, "mlp_dim": 16, "heads": 1,
              "layers": [1, 1, 1], "ray_freqs": 1, "point_freqs": 1}
