@@ -128,6 +128,7 @@ class Trainer:
         need(c.clip >= 0, "--clip must be >= 0 (0 disables)", "use e.g. --clip 1")
         need(c.aux_weight >= 0, "--aux-weight must be >= 0", "use e.g. 1")
         need(self.depth_weight >= 0, "--depth-weight must be >= 0", "use e.g. 0.1 (0 disables)")
+        need(c.mask_weight >= 0, "--mask-weight must be >= 0", "use e.g. 0.1 (0 disables)")
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
         need(self.pool >= self.K, f"--pool ({self.pool}) must be at least --num-views ({self.K})",
              "pass --pool >= --num-views")
@@ -206,7 +207,7 @@ class Trainer:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         torch.manual_seed(c.seed)
         self.model = build_model(c.model, self.overrides).to(self.device)
-        self.loss_module = LossModule(self.model, c.aux_weight, self.depth_weight)
+        self.loss_module = LossModule(self.model, c.aux_weight, self.depth_weight, c.mask_weight)
         self.ddp = self.loss_module
         if env.world > 1:
             from torch.nn.parallel import DistributedDataParallel
@@ -348,7 +349,7 @@ class Trainer:
         amp = torch.autocast("cuda", dtype=torch.bfloat16 if c.amp == "bf16" else torch.float16) \
             if c.amp != "none" else nullcontext()
         with amp:
-            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb, batch.depth)
+            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb, batch.depth, batch.mask)
         self.opt.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         if c.clip > 0:
