@@ -22,7 +22,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from train_tiny import CACHE, RESOLUTION, REAL, SEED, SHARED, WEIGHTS  # noqa: E402
+from train_tiny import CACHE, REAL, RESOLUTION, SEED, SHARED, WEIGHTS  # noqa: E402
 
 SYNTH = ["synth:object", "synth:frontal", "synth:forward"]
 HELD_OUT = ["llff/fern", "neus_dtu/dtu_scan37"]
@@ -85,9 +85,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--eval-only", action="store_true", help="score finished runs only")
     a = p.parse_args(argv)
     if not a.eval_only:
-        from train_tiny import prepare
-
         import train_tiny
+        from train_tiny import prepare
         train_tiny.SYNTH = [f"{s}:{a.synth_scenes}" for s in SYNTH]
         prepare(a.synth_scenes)
         with ThreadPoolExecutor(len(a.encoders)) as pool:

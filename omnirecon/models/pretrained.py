@@ -74,9 +74,7 @@ class FrozenConv(nn.Module):
         self.register_buffer("bias", torch.zeros(cout))
 
     def forward(self, x: Tensor) -> Tensor:
-        k = self.weight.shape[-1]
-        x = F.pad(x, [k // 2] * 4, mode="reflect" if min(x.shape[-2:]) > k // 2 else "replicate")
-        return F.conv2d(x, self.weight, self.bias)
+        return F.conv2d(x, self.weight, self.bias, padding=self.weight.shape[-1] // 2)  # zeros, as trained
 
 
 def _blur_down(x: Tensor) -> Tensor:
