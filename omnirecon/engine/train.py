@@ -4,7 +4,8 @@ One step = one scene, one random target view, ``K`` sources drawn from the targe
 training views, ``--rays`` random target pixels; the sources are encoded once per step and the loss
 is the MSE of the main colour plus the auxiliary one (GPNR's blended source colours, IBRNet's and
 Omni-Recon's coarse pass), over the rays the model marks ``valid``, plus ``--depth-weight`` x the L1
-error of the rendered z-depth (both passes) on rays whose ground-truth depth is known (Omni-Recon).
+error of the rendered z-depth (both passes) on rays whose ground-truth depth is known (Omni-Recon), plus
+``--mask-weight`` x the squared error of the accumulated opacity against the object mask (scenes with masks).
 
 Exact resume: every random choice of step ``s`` on rank ``r`` (scene, target, sources, pixels,
 IBRNet's stratified samples) comes from generators seeded by ``(seed, s, r)`` (the scene by
