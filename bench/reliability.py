@@ -3,10 +3,10 @@
     python bench/reliability.py                           # table + 10,000 fuzz cases per target + kills
     python bench/reliability.py --fuzz-examples 200 --kills 2   # a quick run
 
-* **Malformed inputs**: runs ``tests/test_malformed.py`` (every command against a table of malformed
+* **Malformed inputs**: runs ``tests/commands/test_malformed.py`` (every command against a table of malformed
   inputs: exit 2, one line naming the file with a fix clause, no traceback, nothing written) and
   counts the rows per command and how many were handled.
-* **Fuzzing**: runs ``tests/test_fuzz.py`` with ``OMNIRECON_FUZZ_EXAMPLES`` cases per target (7 scene
+* **Fuzzing**: runs ``tests/data/test_fuzz.py`` with ``OMNIRECON_FUZZ_EXAMPLES`` cases per target (7 scene
   readers, ``meta.json``, ``model.safetensors``) and records cases, InputErrors, successful reads and
   failures (any other exception) per target.
 * **kill -9**: starts ``omnirecon synth``, ``train``, ``mesh`` and ``export`` (``--kills`` times each),
@@ -50,7 +50,7 @@ def malformed_counts(junit: Path | None = None) -> dict:
     """Rows of tests/test_malformed.py per command, and how many passed (were handled); ``junit``: count
     from that JUnit XML of an earlier run instead of running the table."""
     if junit is None:
-        _, junit = _pytest([str(TESTS / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
+        _, junit = _pytest([str(TESTS / "commands" / "test_malformed.py"), "-k", "test_malformed_input"], {}, 1800)
     per: dict[str, list[int]] = {}
     failed = []
     for case in ET.parse(junit).getroot().iter("testcase"):
@@ -68,7 +68,7 @@ def malformed_counts(junit: Path | None = None) -> dict:
 
 def fuzz_counts(examples: int) -> dict:
     report = Path(tempfile.mkdtemp(prefix="reliability_")) / "fuzz.json"
-    rc, _ = _pytest([str(TESTS / "test_fuzz.py")], {"OMNIRECON_FUZZ_EXAMPLES": str(examples),
+    rc, _ = _pytest([str(TESTS / "data" / "test_fuzz.py")], {"OMNIRECON_FUZZ_EXAMPLES": str(examples),
                                                      "OMNIRECON_FUZZ_REPORT": str(report)}, 6 * 3600)
     targets = json.loads(report.read_text()) if report.is_file() else {}
     return {"examples_per_target": examples, "targets": targets, "cases": sum(t["cases"] for t in targets.values()),
@@ -99,7 +99,7 @@ def _kill_after(cmd: list[str], delay: float, env: dict) -> bool:
         return True
 
 
-def kill_runs(kills: int, seed: int = 0) -> dict:
+def kill_runs(kills: int, seed: int = 0, only: list[str] | None = None) -> dict:
     """``kills`` SIGKILLs into each command at a moment drawn uniformly in 10-95 % of the duration of one
     uninterrupted run (measured first), each from an empty output (train: an empty run folder), then the
     same command again to completion (train: ``--resume`` when a checkpoint survived)."""
@@ -130,8 +130,23 @@ def kill_runs(kills: int, seed: int = 0) -> dict:
         viewer = ["--no-viewer"] if three_unavailable_reason() else []  # the mesh files only, without three.js
         commands["export"] = lambda out: ["export", "--scene", str(scene), "--ckpt", str(ckpt), "--threads", "1",
                                           "--device", "cpu", "--resolution", "32", *viewer, "--out", str(out)]
+    try:  # photos without poses: a small procedural capture, its images only
+        import pycolmap  # noqa: F401
+
+        photos = work / "photos"
+        photos.mkdir()
+        subprocess.run(_cli(["synth", "--num-scenes", "1", "--views", "12", "--resolution", "256", "--rig", "frontal",
+                             "--out", str(work / "capture")]), cwd=ROOT, env=env, check=True, capture_output=True)
+        for img in sorted(next((work / "capture").glob("scene_*")).glob("*/r_*.png")):
+            if img.stem[2:].isdigit():  # the colour images, not depth, normal, label or mask maps
+                shutil.copy(img, photos / f"{img.parent.name}_{img.name}")
+        commands["process"] = lambda out: ["process", str(photos), "--out", str(out / "scene")]
+    except ImportError:
+        pass
     results = {}
     for name, make in commands.items():
+        if only and name not in only:
+            continue
         out = work / name
         t0 = time.perf_counter()
         subprocess.run(_cli(make(out)), cwd=ROOT, env=env, check=True, capture_output=True)
@@ -169,6 +184,8 @@ def _incomplete(name: str, out: Path) -> bool:
                    for p in (out / "checkpoints").glob("step_*"))
     if name == "export":
         return (out / "viewer").is_dir() and not (out / "viewer" / "bundle.json").is_file()
+    if name == "process":  # the scene folder appears only complete (renamed from a temporary at the end)
+        return (out / "scene").exists() and not (out / "scene" / "process.json").is_file()
     return False
 
 
@@ -181,6 +198,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="fuzz only these targets again (after fixing what a run found) and append the counts to "
                              "--out as a rerun at the current commit, with --why")
     parser.add_argument("--kills-only", action="store_true", help="rerun only the kill -9 part into --out")
+    parser.add_argument("--commands", nargs="+", default=None, help="with --kills-only: only these commands (the "
+                        "others keep their counts in --out)")
+    parser.add_argument("--malformed-only", action="store_true", help="recount only the malformed-input table into --out")
     parser.add_argument("--why", default="fixes", help="what changed since the run in --out (with --rerun)")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
@@ -188,15 +208,25 @@ def main(argv: list[str] | None = None) -> dict:
 
     if args.kills_only:  # replace the kill counts of an existing results file, at the current commit
         result = json.loads(args.out.read_text())
-        result["kill"] = kill_runs(args.kills)
+        counts = kill_runs(args.kills, only=args.commands)
+        result["kill"] = {**result.get("kill", {}), **counts} if args.commands else counts
+        result.setdefault("kill_provenance_by_command", {}).update(
+            {name: provenance(seed=0, kills=args.kills) for name in counts})
         result["kill_provenance"] = provenance(seed=0, kills=args.kills)
         write_json(args.out, result)
         print(f"wrote {args.out}")
         return result
+    if args.malformed_only:
+        result = json.loads(args.out.read_text())
+        result["malformed"] = malformed_counts()
+        result["malformed_provenance"] = provenance(seed=0)
+        write_json(args.out, result)
+        print(f"malformed inputs: {result['malformed']['handled']}/{result['malformed']['cases']}; wrote {args.out}")
+        return result
     if args.rerun:
         result = json.loads(args.out.read_text())
         report = Path(tempfile.mkdtemp(prefix="reliability_")) / "fuzz.json"
-        _pytest([str(TESTS / "test_fuzz.py"), "-k", " or ".join(args.rerun)],
+        _pytest([str(TESTS / "data" / "test_fuzz.py"), "-k", " or ".join(args.rerun)],
                 {"OMNIRECON_FUZZ_EXAMPLES": str(args.fuzz_examples), "OMNIRECON_FUZZ_REPORT": str(report)}, 6 * 3600)
         targets = {k: v for k, v in json.loads(report.read_text()).items() if k in args.rerun}
         result.setdefault("fuzz_reruns", []).append({"commit": git_commit(), "why": args.why, "targets": targets,

@@ -632,12 +632,12 @@ def section_reliability(r: dict) -> str:
     m, f = r["malformed"], r["fuzz"]
     out = ["## Reliability (`bench/reliability.py`)", "",
            f"**Malformed inputs: {m['handled']} of {m['cases']} handled** (exit 2, one line naming the file with a "
-           "fix clause, no traceback, nothing written; the table is `tests/test_malformed.py`).", "",
+           "fix clause, no traceback, nothing written; the table is `tests/commands/test_malformed.py`).", "",
            "| command | cases | handled |", "|---|---:|---:|"]
     out += [f"| {k} | {v['cases']} | {v['handled']} |" for k, v in m["per_command"].items()]
     out += ["", f"**Fuzzing: {f['cases']:,} generated inputs, {f['failures']} failures** "
             f"({f['examples_per_target']:,} per target; a failure is any exception other than a one-line "
-            "InputError; `tests/test_fuzz.py`).", "",
+            "InputError; `tests/data/test_fuzz.py`).", "",
             "| target | cases | InputError | read fine | failures |", "|---|---:|---:|---:|---:|"]
     out += [f"| {k} | {v['cases']:,} | {v['input_errors']:,} | {v['loaded']:,} | {v['failures']} |"
             for k, v in f["targets"].items()]

@@ -76,6 +76,7 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
         start = json.loads((out / "checkpoints" / "latest" / "meta.json").read_text())["step"]
     record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
                        **({"stop_at": stop_at} if stop_at else {}),
+                       **({"model_overrides": list(overrides)} if overrides else {}),
                        **({"num_views_range": list(views)} if views else {})})
     print(" ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
@@ -103,6 +104,7 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
     return [f"python bench/train_tiny.py --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
             f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "")
             + (" --num-views-range {} {}".format(*st["num_views_range"]) if st.get("num_views_range") else "")
+            + "".join(f" --{o.replace('=', ' ', 1)}" for o in st.get("model_overrides", []))
             for st in stages]
 
 
@@ -141,6 +143,14 @@ def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (
     plt.close(fig)
 
 
+def encoder_card(model_config: dict) -> dict:
+    """The image encoder of a checkpoint and where its weights come from (origin and licence)."""
+    from omnirecon.models.pretrained import ORIGIN
+
+    name = model_config.get("encoder", "scratch")
+    return {"name": name, "origin": ORIGIN[name]}
+
+
 def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> Path:
     """Copy the final checkpoint to checkpoints/<model>/ and write its model card (with the run's
     ``notes.md``, when it has one, as a paragraph)."""
@@ -166,6 +176,7 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         "train_psnr_first": train_rows[0]["psnr"] if train_rows else None,
         "validation": val_rows[-1] if val_rows else None,
         "model_config": meta["model_config"], "provenance": meta.get("provenance", {}),
+        "encoder": encoder_card(meta["model_config"]),
     }
     card["curve"] = {"train": [[r["step"], round(r["psnr"], 3)] for r in train_rows[::10]],
                      "validation": [[r["step"], round(r["val_psnr"], 3)] for r in rows if "val_psnr" in r]}
@@ -192,6 +203,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
           if len(card["stages"]) > 1 else []), "",
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
         "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
+        f"Image encoder (`encoder={card['encoder']['name']}`): {card['encoder']['origin']}"
+        + (" (origin and licence: docs/pretrained.md)." if card["encoder"]["name"] != "scratch" else "."), "",
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
         f"{card['train_psnr_last']:.2f} dB at the last. Last validation (monitoring only: a run ships its final "
         f"checkpoint, never an intermediate one picked by validation): {json.dumps(card['validation'])}.", "",
@@ -215,6 +228,8 @@ def main(argv: list[str] | None = None) -> None:
                    help="end the run at this step (the schedule stays --steps long); resumes a longer run's checkpoint")
     p.add_argument("--num-views-range", type=int, nargs=2, default=None, metavar=("LO", "HI"),
                    help="draw the source-view count K uniformly from [LO, HI] at every step (default: the preset's)")
+    p.add_argument("--encoder", default="scratch", choices=["scratch", "vgg16", "alexnet"],
+                   help="image encoder (docs/pretrained.md): the model's own from scratch, or a frozen pretrained one")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
     p.add_argument("--reship", action="store_true",
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
@@ -225,7 +240,8 @@ def main(argv: list[str] | None = None) -> None:
     prepare(a.synth_scenes)
     if a.prepare:
         return
-    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, stop_at=a.stop_at,
+    overrides = [f"encoder={a.encoder}"] if a.encoder != "scratch" else []
+    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, stop_at=a.stop_at,
                 views=tuple(a.num_views_range) if a.num_views_range else None)
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 

@@ -302,11 +302,14 @@ class Batch:
     depth: Tensor | None = None
     """Ground-truth z-depth of each ray in (normalised) scene units, 0 where unknown; ``None`` when the
     scene has no depths. ``# [R]``"""
+    mask: Tensor | None = None
+    """Object mask at each ray (1 object, 0 not); ``None`` when the scene has no masks. ``# [R]``"""
 
     def to(self, device) -> Batch:
         depth = None if self.depth is None else self.depth.to(device)
+        mask = None if self.mask is None else self.mask.to(device)
         return Batch(self.sources.to(device), self.rays.to(device), self.rgb.to(device), self.target, self.source_ids,
-                     depth)
+                     depth, mask)
 
 
 def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: torch.Generator,
@@ -337,7 +340,8 @@ def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: tor
     ray_batch = Rays.from_pixels(cam, torch.zeros(rays, dtype=torch.long), uv)
     rgb = scene.images[target].reshape(-1, 3)[pix]
     depth = None if scene.depths is None else scene.depths[target].reshape(-1)[pix].to(rgb.dtype)
-    return Batch(ps.sources(source_ids), ray_batch, rgb, target, source_ids, depth)
+    mask = None if scene.masks is None else scene.masks[target].reshape(-1)[pix].to(rgb.dtype)
+    return Batch(ps.sources(source_ids), ray_batch, rgb, target, source_ids, depth, mask)
 
 
 def val_views(ps: PreparedScene, count: int, num_views: int) -> list[tuple[int, list[int]]]:

@@ -4,7 +4,8 @@ One step = one scene, one random target view, ``K`` sources drawn from the targe
 training views, ``--rays`` random target pixels; the sources are encoded once per step and the loss
 is the MSE of the main colour plus the auxiliary one (GPNR's blended source colours, IBRNet's and
 Omni-Recon's coarse pass), over the rays the model marks ``valid``, plus ``--depth-weight`` x the L1
-error of the rendered z-depth (both passes) on rays whose ground-truth depth is known (Omni-Recon).
+error of the rendered z-depth (both passes) on rays whose ground-truth depth is known (Omni-Recon), plus
+``--mask-weight`` x the squared error of the accumulated opacity against the object mask (scenes with masks).
 
 Exact resume: every random choice of step ``s`` on rank ``r`` (scene, target, sources, pixels,
 IBRNet's stratified samples) comes from generators seeded by ``(seed, s, r)`` (the scene by
@@ -129,6 +130,7 @@ class Trainer:
         need(c.clip >= 0, "--clip must be >= 0 (0 disables)", "use e.g. --clip 1")
         need(c.aux_weight >= 0, "--aux-weight must be >= 0", "use e.g. 1")
         need(self.depth_weight >= 0, "--depth-weight must be >= 0", "use e.g. 0.1 (0 disables)")
+        need(c.mask_weight >= 0, "--mask-weight must be >= 0", "use e.g. 0.1 (0 disables)")
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
         need(self.pool >= self.K, f"--pool ({self.pool}) must be at least --num-views ({self.K})",
              "pass --pool >= --num-views")
@@ -206,7 +208,7 @@ class Trainer:
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
         torch.manual_seed(c.seed)
         self.model = build_model(c.model, self.overrides).to(self.device)
-        self.loss_module = LossModule(self.model, c.aux_weight, self.depth_weight)
+        self.loss_module = LossModule(self.model, c.aux_weight, self.depth_weight, c.mask_weight)
         self.ddp = self.loss_module
         if env.world > 1:
             from torch.nn.parallel import DistributedDataParallel
@@ -348,7 +350,7 @@ class Trainer:
         amp = torch.autocast("cuda", dtype=torch.bfloat16 if c.amp == "bf16" else torch.float16) \
             if c.amp != "none" else nullcontext()
         with amp:
-            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb, batch.depth)
+            loss, mse, _ = self.ddp(batch.sources, batch.rays, batch.rgb, batch.depth, batch.mask)
         self.opt.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         if c.clip > 0:

@@ -85,6 +85,10 @@ class TrainConfig(DeviceConfig):
     depth_weight: float | None = None
     """Weight of the L1 z-depth loss (both passes) on rays with known ground-truth depth in [near, far]
     (procedural scenes have depths; None: omnirecon 0.1, gpnr/ibrnet 0)."""
+    mask_weight: float = 0.0
+    """Weight of the mask loss: squared error of the accumulated opacity (both passes) against the object
+    mask, on scenes that have masks and for models that render ``acc`` (IBRNet, Omni-Recon). Use it where
+    the background is empty (see :func:`omnirecon.engine.losses.mask_loss`); 0 disables it."""
     num_views: int | None = None
     """Source views K per step (None: the model's num_views); validation always uses it."""
     num_views_range: tuple[int, int] | None = None

@@ -36,6 +36,7 @@ from torch import Tensor, nn
 from omnirecon.cameras import canonical_transform, plucker
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import compiled, net_autocast
+from omnirecon.models.pretrained import SingleMap
 from omnirecon.models.projector import project, sample
 from omnirecon.rays import Rays, Sources
 
@@ -80,6 +81,10 @@ class GPNRConfig:
     """Mask projections outside the image or behind the camera (the reference code does not)."""
     scene_radius: float = 1.0
     """Radius of the bounding sphere for the two-sphere parameterisation (scene units)."""
+    encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
+    """Patch features: the P x P linear projection trained from scratch, or a frozen pretrained backbone
+    (HED's VGG16, ST-LPIPS's AlexNet) with a small trainable adapter to ``patch_channels`` at full
+    resolution (:mod:`omnirecon.models.pretrained`)."""
 
 
 PRESETS = {
@@ -137,7 +142,8 @@ class GPNR(GeneralizableModel):
         self.cfg = cfg
         ray_dim = {"plucker": 6, "lightslab": 4, "twosphere": 6}[cfg.ray_param] * (1 + 2 * cfg.ray_freqs)
         point_dim = 3 * (1 + 2 * cfg.point_freqs)
-        self.patch = nn.Conv2d(3, cfg.patch_channels, cfg.patch_size, padding=cfg.patch_size // 2)
+        self.patch = nn.Conv2d(3, cfg.patch_channels, cfg.patch_size, padding=cfg.patch_size // 2) \
+            if cfg.encoder == "scratch" else SingleMap(cfg.encoder, 1, cfg.patch_channels)
         self.key_proj = nn.Linear(ray_dim + point_dim + cfg.patch_channels + 3 + 12, cfg.dim)
         self.query_proj = nn.Linear(ray_dim, cfg.dim)
         self.query_proj2 = nn.Linear(ray_dim, cfg.dim)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -22,6 +23,7 @@ from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import FAST, compiled, net_autocast
+from omnirecon.models.pretrained import SingleMap
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
@@ -46,6 +48,10 @@ class IBRNetConfig:
     """Stride of the 7x7 stem: 2 gives features at 1/4 resolution (paper), 1 at 1/2."""
     feature_dim: int = 32
     """Feature channels per pass (the U-Net outputs twice this: coarse + fine halves)."""
+    encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
+    """Image encoder: the residual U-Net trained from scratch, or a frozen pretrained backbone (HED's VGG16,
+    ST-LPIPS's AlexNet) with a small trainable adapter to ``2 feature_dim`` channels at the U-Net's stride
+    (:mod:`omnirecon.models.pretrained`)."""
 
 
 PRESETS = {
@@ -198,7 +204,8 @@ class IBRNet(GeneralizableModel):
     def __init__(self, cfg: IBRNetConfig):
         super().__init__()
         self.cfg = cfg
-        self.unet = ResUNet(cfg)
+        self.unet = ResUNet(cfg) if cfg.encoder == "scratch" else \
+            SingleMap(cfg.encoder, 2 * cfg.stem_stride, 2 * cfg.feature_dim, hidden=cfg.channels[0] * 2)
         self.coarse = Aggregator(cfg.feature_dim)
         self.fine = Aggregator(cfg.feature_dim) if cfg.fine_samples > 0 else None
 

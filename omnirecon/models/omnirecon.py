@@ -77,6 +77,7 @@ from omnirecon.cameras import Cameras
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import FAST, compiled, net_autocast
 from omnirecon.models.gpnr import fourier
+from omnirecon.models.pretrained import PyramidMaps
 from omnirecon.models.projector import project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
@@ -131,6 +132,10 @@ class OmniReconConfig:
     that finds no surface comes out dark), to the last sample (``far``: alpha = 1 there, NeRF's infinite
     last interval, so the far bound acts as a backdrop) or spread over the samples (``renormalize``:
     ``w / sum w``). Applies to rgb, depth, blend and lifted signals alike."""
+    encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
+    """2-D encoder: the FPN trained from scratch, or a frozen pretrained backbone (HED's VGG16, ST-LPIPS's
+    AlexNet) with small trainable adapters to the appearance feature and the three pyramid maps
+    (:mod:`omnirecon.models.pretrained`)."""
     bn_running_stats: bool = False
     """BatchNorm keeps running averages for eval mode (the reference). False: it always normalises with
     the current batch (one scene's K source views; its one volume), so training and test agree."""
@@ -405,7 +410,8 @@ class OmniRecon(GeneralizableModel):
         if cfg.volume_resolution % 4 or cfg.volume_resolution < 8:
             raise ValueError(f"volume_resolution must be a multiple of 4, at least 8, got {cfg.volume_resolution}")
         self.cfg = cfg
-        self.encoder = FPNEncoder(cfg)
+        self.encoder = FPNEncoder(cfg) if cfg.encoder == "scratch" else \
+            PyramidMaps(cfg.encoder, cfg.feature_dim, cfg.pyramid_channels)
         self.volume = VolumeDecoder(cfg)
         self.geometry = GeometryBranch(cfg)
         self.appearance = AppearanceBranch(cfg)

@@ -37,7 +37,7 @@ import json
 import math
 import os
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -47,6 +47,7 @@ import trimesh
 from omnirecon.data.io import write_image, write_json
 from omnirecon.data.synth import rigs
 from omnirecon.data.synth.layout import GROUND_ID, Layout, make_layout
+from omnirecon.data.synth.photo import REALISM, camera_effects, options_record, scene_light
 from omnirecon.data.synth.primitives import corner_normals, face_normals
 from omnirecon.data.synth.render import Mesh, render_view
 from omnirecon.data.synth.textures import make_atlas, make_texture
@@ -84,6 +85,25 @@ class SynthOptions:
     """RGB samples per pixel side (1 = off); depth, normals and labels use the pixel centre only."""
     detail: int = 1
     """Tessellation of curved primitives: 0 coarse, 1 (3 degrees between sphere facets), 2 fine."""
+    # Realism (omnirecon.data.synth.photo): all off by default, each deterministic by seed.
+    specular: float = 0.0
+    """View-dependent shading: strength of a white Blinn-Phong highlight (e.g. 0.4; 0 = Lambertian only)."""
+    shininess: float = 32.0
+    """Blinn-Phong exponent of the highlight (larger: smaller, sharper highlights)."""
+    light_variation: float = 0.0
+    """Lighting that varies between scenes: spread of a random light colour, intensity and ambient share
+    per scene (e.g. 1; 0 = the layout's white light)."""
+    noise: float = 0.0
+    """Sensor noise: std of the shot noise at full intensity, plus a read-noise floor of a quarter of it
+    (e.g. 0.02; 0 = none)."""
+    exposure: float = 0.0
+    """Exposure differences between views: std in stops of a random gain per view (e.g. 0.3; 0 = none)."""
+    white_balance: float = 0.0
+    """White-balance differences between views: std of a random log gain per channel and view (e.g. 0.05)."""
+    vignetting: float = 0.0
+    """Corner darkening: gain ``1 - vignetting * r^2``, r = 1 at the corners (e.g. 0.3; 0 = none)."""
+    blur: float = 0.0
+    """Slight lens blur: Gaussian std in pixels (e.g. 0.6; 0 = none)."""
 
     def check(self) -> None:
         """Raise :class:`InputError` for out-of-range options."""
@@ -101,6 +121,13 @@ class SynthOptions:
             raise InputError(f"--antialias must be in 1..8, got {self.antialias}", None, "use 1 (off) to 4")
         if self.detail not in (0, 1, 2):
             raise InputError(f"--detail must be 0, 1 or 2, got {self.detail}", None, "use 0, 1 or 2")
+        for name in REALISM:
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}", None,
+                                 "use 0 (off) or a small positive value")
+        if self.vignetting > 1:
+            raise InputError(f"--vignetting must be at most 1, got {self.vignetting}", None, "use e.g. 0.3")
 
 
 def view_split(i: int, views: int) -> str:
@@ -144,7 +171,7 @@ def same_scene(folder: Path, seed: int, options: SynthOptions) -> bool:
     except (OSError, ValueError):
         return False
     return (meta.get("seed") == seed and meta.get("generator_version") == GENERATOR_VERSION
-            and meta.get("options") == json.loads(json.dumps(asdict(options))))
+            and meta.get("options") == json.loads(json.dumps(options_record(options))))
 
 
 def build_mesh(layout: Layout, texture_size: int) -> Mesh:
@@ -191,9 +218,12 @@ def write_scene(folder: Path, seed: int, options: SynthOptions) -> None:
     mesh = build_mesh(layout, texture_size=int(np.clip(2 ** math.ceil(math.log2(res)), 64, 512)))
     K = rigs.intrinsics(layout.fov, res, res)
     background = np.asarray(layout.background, dtype=np.float32)
+    light = scene_light(layout.light, options, seed)
     views = []
-    for c2w in layout.c2w:
-        views.append(render_view(mesh, K, np.linalg.inv(c2w), res, res, layout.light, background, options.antialias))
+    for i, c2w in enumerate(layout.c2w):
+        view = render_view(mesh, K, np.linalg.inv(c2w), res, res, light, background, options.antialias)
+        view["rgb"] = camera_effects(view["rgb"], options, seed, i)
+        views.append(view)
 
     # Depth bounds over everything seen, and over every object vertex in every view.
     obj = mesh.vertices[np.unique(mesh.faces[mesh.face_label != GROUND_ID])]
@@ -234,14 +264,15 @@ def write_scene(folder: Path, seed: int, options: SynthOptions) -> None:
         if frames:
             write_json(folder / f"transforms_{split}.json", {**header, "frames": frames})
     write_json(folder / "scene.json", {
-        "generator_version": GENERATOR_VERSION, "seed": seed, "options": asdict(options),
+        "generator_version": GENERATOR_VERSION, "seed": seed, "options": options_record(options),
         "rig": layout.rig, "rig_params": layout.extras, "fov_x": layout.fov,
         "primitives": [p.to_json() for p in layout.primitives],
         "ground": None if layout.ground_vertices is None else {
             "id": GROUND_ID, "vertices": layout.ground_vertices.tolist(), "faces": layout.ground_faces.tolist(),
             "texture": layout.ground_texture, "texture_scale": layout.ground_tile},
-        "light": {"direction": layout.light.direction.tolist(), "ambient": layout.light.ambient,
-                  "intensity": layout.light.intensity},
+        "light": {"direction": light.direction.tolist(), "ambient": light.ambient, "intensity": light.intensity,
+                  **({"color": list(light.color)} if light.color != (1.0, 1.0, 1.0) else {}),
+                  **({"specular": light.specular, "shininess": light.shininess} if light.specular > 0 else {})},
         "background": layout.background,
         "near": near, "far": far, "aabb": header["aabb"],
         "splits": {k: [int(f["file_path"].rsplit("_", 1)[1]) for f in v] for k, v in splits.items()},

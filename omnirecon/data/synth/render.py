@@ -39,20 +39,28 @@ class Mesh:
 
 @dataclass
 class Lighting:
-    """A directional light fixed in the world plus ambient light (view-independent shading)."""
+    """A directional light fixed in the world plus ambient light, and an optional white Blinn-Phong
+    highlight (the one view-dependent term; off by default)."""
 
     direction: np.ndarray
     """Unit vector from surfaces towards the light, world frame. ``# [3]``"""
     ambient: float
     """Ambient fraction in [0, 1]; the rest is Lambertian."""
     intensity: float = 1.0
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    """Light colour (per-channel gain)."""
+    specular: float = 0.0
+    """Strength of the highlight ``specular * intensity * max(0, n . h)^shininess`` (0: Lambertian only)."""
+    shininess: float = 32.0
+    """Blinn-Phong exponent."""
 
 
 def shade(mesh: Mesh, frags: Fragments, K: np.ndarray, w2c: np.ndarray, light: Lighting,
           background: np.ndarray) -> np.ndarray:
     """Lambertian + ambient colour of a visibility buffer. ``# [H, W, 3]`` float32 in [0, 1]
 
-    ``colour = albedo * intensity * (ambient + (1 - ambient) * max(0, n . l))`` with the smooth
+    ``colour = albedo * intensity * (ambient + (1 - ambient) * max(0, n . l))`` (times the light colour,
+    plus ``specular * intensity * max(0, n . h)^shininess`` where the surface is lit) with the smooth
     shading normal ``n`` and the triplanar albedo: a function of the surface point only, apart
     from the texture filtering, which widens with the footprint of a sample on the surface
     (``z / f / sqrt(|cos|)``, between the isotropic and the along-the-slope widths).
@@ -79,7 +87,15 @@ def shade(mesh: Mesh, frags: Fragments, K: np.ndarray, w2c: np.ndarray, light: L
     albedo = sample_triplanar(mesh.atlas, mesh.face_texture[f], attr[:, 3:6], _normalize(attr[:, 6:9]),
                               mesh.face_tile[f], footprint)
     lambert = np.maximum(normal @ light.direction.astype(np.float32), 0)[:, None]
-    image[hit] = np.clip(albedo * light.intensity * (light.ambient + (1 - light.ambient) * lambert), 0, 1)
+    colour = albedo * light.intensity * (light.ambient + (1 - light.ambient) * lambert)
+    tint = np.asarray(light.color, dtype=np.float32)
+    if (tint != 1).any():
+        colour = colour * tint
+    if light.specular > 0:  # Blinn-Phong: half vector between the light and the direction to the camera
+        half = _normalize(light.direction.astype(np.float32)[None] - ray)
+        spec = np.maximum(np.einsum("pc,pc->p", normal, half), 0) ** light.shininess * (lambert[:, 0] > 0)
+        colour = colour + (light.specular * light.intensity * spec)[:, None] * tint
+    image[hit] = np.clip(colour, 0, 1)
     return image.reshape(h, w, 3)
 
 
