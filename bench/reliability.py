@@ -100,7 +100,7 @@ def _kill_after(cmd: list[str], delay: float, env: dict) -> bool:
 
 
 def kill_runs(kills: int, seed: int = 0, only: list[str] | None = None) -> dict:
-    """``kills`` SIGKILLs into each command at a moment drawn uniformly in 10-95 % of the duration of one
+    """``kills`` SIGKILLs into each command at a moment drawn uniformly in 5-75 % of the duration of one
     uninterrupted run (measured first), each from an empty output (train: an empty run folder), then the
     same command again to completion (train: ``--resume`` when a checkpoint survived)."""
     import shutil
@@ -155,7 +155,7 @@ def kill_runs(kills: int, seed: int = 0, only: list[str] | None = None) -> dict:
                "rerun_failed": 0, "uninterrupted_s": round(duration, 1)}
         for _ in range(kills):
             shutil.rmtree(out, ignore_errors=True)
-            killed = _kill_after(_cli(make(out)), rng.uniform(0.1, 0.95) * duration, env)
+            killed = _kill_after(_cli(make(out)), rng.uniform(0.05, 0.75) * duration, env)
             rec["kills" if killed else "finished_before_kill"] += 1
             rec["incomplete_after_kill"] += int(_incomplete(name, out))
             resume = name == "train" and (out / "checkpoints" / "latest").exists()

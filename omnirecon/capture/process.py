@@ -22,6 +22,7 @@ from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scen
 from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
 from omnirecon.errors import InputError
+from omnirecon.outputs import clean_stale
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
@@ -46,6 +47,7 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
 
     t0 = time.perf_counter()
     out.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(out.parent)  # a killed run's temporary scene folder (its process is gone)
     tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     work = tmp / "work"
