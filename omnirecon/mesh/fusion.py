@@ -4,9 +4,10 @@
 TSDF, weight 1, fixed voxel and truncation). This module adds what makes fusion hold on sparse,
 noisy, low-resolution depth:
 
-* **Scale from the depth maps** (:func:`auto_scale`): the voxel is the pixel footprint at the median
-  depth (times ``voxel_px``), and the truncation covers both the voxel and the depth error the
-  maps are expected to have (``depth_error``, relative).
+* **Scale from the depth maps** (:func:`auto_scale`): the voxel is half the pixel footprint at the
+  median depth (with exact depth at every view of a 128-px procedural scene, a one-footprint voxel
+  lost 1.0 dB of mesh-path PSNR at object outlines, half a footprint 0.2 dB), and the truncation,
+  4 voxels, widens to twice the depth error the maps show (:func:`depth_disagreement`).
 * **Sub-pixel depth** (:func:`integrate`): each voxel reads the depth map bilinearly at its exact
   projection, falling back to the nearest pixel across depth edges; nearest-pixel lookup alone
   puts stair steps on surfaces seen at grazing angles (ground planes), because one pixel there
@@ -51,7 +52,7 @@ def pixel_footprint(cameras: Cameras, depths: Tensor) -> float:
     return float(fp.median())
 
 
-def auto_scale(cameras: Cameras, depths: Tensor, voxel_px: float = 1.0, trunc_voxels: float = 3.0,
+def auto_scale(cameras: Cameras, depths: Tensor, voxel_px: float = 0.5, trunc_voxels: float = 4.0,
                depth_error: float = 0.0) -> tuple[float, float]:
     """Voxel edge and truncation (scene units) from the depth maps: the voxel is ``voxel_px`` pixel
     footprints at the median depth; the truncation is ``trunc_voxels`` voxels or, if larger, twice the
@@ -370,6 +371,15 @@ def render_depth_maps(model, scene, groups: ViewGroups, shifts, chunk: int = 409
             "confidence": torch.stack(confs), "encodes": encodes, "renders": renders}
 
 
+def outside_bounds(cameras: Cameras, depths: Tensor, bounds: Tensor, margin: float) -> Tensor:
+    """Pixels whose surface point lies outside ``bounds # [2, 3]`` grown by ``margin``. ``# [N, H, W]`` bool"""
+    cams = cameras.to(dtype=torch.float64)
+    lo, hi = bounds[0].double() - margin, bounds[1].double() + margin
+    o, d = cams.image_rays(normalize=False)  # [N, H, W, 3]; t along d is the z-depth
+    p = o + d * depths.double()[..., None]
+    return ((p < lo) | (p > hi)).any(-1) & (depths > 0)
+
+
 # ---------------------------------------------------------------------- the pipeline
 def fuse_depth_maps(cameras: Cameras, depth: Tensor, bounds: Tensor, options, confidence: Tensor | None = None,
                     masks: Tensor | None = None, clean_cameras: Cameras | None = None,
@@ -410,17 +420,24 @@ def fuse_depth_maps(cameras: Cameras, depth: Tensor, bounds: Tensor, options, co
         agree = consistency(cams, depth, rel=rel)
         weight = weight * geometric_weight(agree, len(cams))
     diag = float((bounds[1] - bounds[0]).double().norm())
+    footprint = pixel_footprint(cams, depth)
     voxel = options.voxel * diag if options.voxel is not None else auto_scale(cams, depth)[0]
-    trunc_vox = options.trunc if options.trunc is not None else 3.0
+    trunc_vox = options.trunc if options.trunc is not None else 4.0
     trunc = trunc_vox * voxel
     if options.trunc is None and err is not None:  # room for the depth error the maps show
         trunc = max(trunc, 2.0 * err * float(depth[depth > 0].median()))
     seconds["confidence"] = time.perf_counter() - t
+    # surface points outside the bounds (sky, far background) give no surface: a depth inside the
+    # padding would otherwise leave a sheet at the edge of the grid. Carving along those rays
+    # instead (the ray crosses the box empty) removed real surface with the floor's depth (-5.8 dB).
+    depth = torch.where(outside_bounds(cams, depth, bounds, trunc), torch.zeros_like(depth), depth)
     free = None
     dilated = None
     if masks is not None:
         dilated = torch.from_numpy(dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * cams.width))
         free = ~dilated
+        depth = torch.where(dilated, depth, torch.zeros_like(depth))
+        weight = torch.where(dilated, weight, torch.ones_like(weight))
     t = time.perf_counter()
     volume = fuse(cams, depth, bounds, voxel, trunc, weight, free, options.voxel_chunk, True, device, on_view)
     seconds["fuse"] = time.perf_counter() - t
@@ -442,7 +459,8 @@ def fuse_depth_maps(cameras: Cameras, depth: Tensor, bounds: Tensor, options, co
         if stages is not None:
             stages["in_masks"] = mesh
     if options.cull_hidden and len(mesh.faces):
-        seen = hit_faces(mesh, ccams, None if cmask is None else cmask.numpy())
+        ss = int(np.clip(np.ceil(2 * footprint / voxel), 1, 4))  # >= 2 samples per voxel edge
+        seen = hit_faces(mesh, ccams, None if cmask is None else cmask.numpy(), ss)
         mesh = keep_faces(mesh, grow_faces(mesh, seen, 1))
         counts["visible"] = len(mesh.faces)
         if stages is not None:

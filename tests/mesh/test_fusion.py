@@ -147,7 +147,7 @@ def test_auto_scale_follows_the_pixel_footprint():
     depth = sphere_depth(cams, 1.0)
     voxel, trunc = fusion.auto_scale(cams, depth)
     fp = float(depth[depth > 0].median()) / 60.0
-    assert voxel == pytest.approx(fp, rel=0.05) and trunc == pytest.approx(3 * voxel)
+    assert voxel == pytest.approx(0.5 * fp, rel=0.05) and trunc == pytest.approx(4 * voxel)
     coarse = ring_cameras(res=24, f=30.0)
     assert fusion.auto_scale(coarse, sphere_depth(coarse, 1.0))[0] == pytest.approx(2 * voxel, rel=0.1)
     assert fusion.auto_scale(cams, depth, depth_error=0.05)[1] > trunc
