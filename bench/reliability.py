@@ -101,7 +101,8 @@ def _kill_after(cmd: list[str], delay: float, env: dict) -> bool:
 
 def kill_runs(kills: int, seed: int = 0, only: list[str] | None = None) -> dict:
     """``kills`` SIGKILLs into each command at a moment drawn uniformly in 5-75 % of the duration of one
-    uninterrupted run (measured first), each from an empty output (train: an empty run folder), then the
+    uninterrupted run (measured first; shortened when a run finishes before its kill, and tries go on until
+    ``kills`` landed, at most ``3 * kills``), each from an empty output (train: an empty run folder), then the
     same command again to completion (train: ``--resume`` when a checkpoint survived)."""
     import shutil
 
@@ -153,10 +154,15 @@ def kill_runs(kills: int, seed: int = 0, only: list[str] | None = None) -> dict:
         duration = time.perf_counter() - t0
         rec = {"kills": 0, "finished_before_kill": 0, "incomplete_after_kill": 0, "leftovers_after_rerun": 0,
                "rerun_failed": 0, "uninterrupted_s": round(duration, 1)}
-        for _ in range(kills):
+        for _ in range(3 * kills):  # until `kills` SIGKILLs landed while the command was running
+            if rec["kills"] >= kills:
+                break
             shutil.rmtree(out, ignore_errors=True)
+            start = time.perf_counter()
             killed = _kill_after(_cli(make(out)), rng.uniform(0.05, 0.75) * duration, env)
             rec["kills" if killed else "finished_before_kill"] += 1
+            if not killed:  # this run was quicker than the measured one: aim earlier from now on
+                duration = min(duration, time.perf_counter() - start)
             rec["incomplete_after_kill"] += int(_incomplete(name, out))
             resume = name == "train" and (out / "checkpoints" / "latest").exists()
             rerun = subprocess.run(_cli(make(out) + (["--resume"] if resume else [])), cwd=ROOT, env=env,

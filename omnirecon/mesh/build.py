@@ -39,6 +39,7 @@ from torch import Tensor
 from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
 from omnirecon.mesh.geometry import rasterize_mesh
+from omnirecon.models.fast import switches
 from omnirecon.rays import Sources
 
 DTU_SHIFT = 25.0 / 684.0
@@ -72,6 +73,11 @@ class MeshOptions:
     """Fitted fusion: weight pixels by forward-backward reprojection agreement between the maps."""
     max_faces: int = 200_000
     """Fitted fusion: decimate to at most this many faces (0 = no limit)."""
+    depth_pass: str = "coarse"
+    """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"coarse"`` (the
+    coarse samples only; measured on a held-out scene: Omni-Recon's depth abs rel 0.048 vs 0.046 with the
+    fine pass at about 1/10 of the time, IBRNet's 0.246 vs 0.263) or ``"fine"`` (coarse + importance
+    samples, as the colour is rendered)."""
     min_acc: float = 0.5
     """Models that return ``acc`` (accumulated opacity): pixels below it have no depth, and depth is
     divided by ``acc`` (the expected depth of the ray given that it hits)."""
@@ -91,6 +97,8 @@ class MeshOptions:
     """Voxels projected at once during fusion."""
 
     def check(self) -> None:
+        if self.depth_pass not in ("coarse", "fine"):
+            raise InputError(f"--depth-pass must be coarse or fine, got {self.depth_pass!r}", None, "use --depth-pass coarse")
         if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
             raise InputError(f"--shifts must be finite fractions in (-1, 1), got {list(self.shifts)}", None,
                              f"use e.g. --shifts {DTU_SHIFT:.4f}")
@@ -421,6 +429,16 @@ class MeshResult:
 
 def mesh_from_model(model, scene, views, options: MeshOptions | None = None, device="cpu", use_masks: bool = False,
                     progress=None) -> MeshResult:
+    """Mesh of ``scene`` from ``model``'s depth renders (see :func:`_mesh_from_model`), the depth maps rendered
+    by the pass ``options.depth_pass`` names."""
+    options = options or MeshOptions()
+    options.check()
+    with switches(fine_pass=options.depth_pass == "fine"):
+        return _mesh_from_model(model, scene, views, options, device, use_masks, progress)
+
+
+def _mesh_from_model(model, scene, views, options: MeshOptions, device="cpu", use_masks: bool = False,
+                     progress=None) -> MeshResult:
     """Mesh of ``scene`` (normalised scene frame) from ``model``'s depth renders with sources ``views``.
 
     Args:
