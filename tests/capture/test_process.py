@@ -335,7 +335,7 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
     photos, _ = capture
     ckpt = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
     out = tmp_path / "rec"
-    code, _, err = run_cli(["reconstruct", photos, "--out", out, "--ckpt", ckpt, "--resolution", "48",
+    code, _, err = run_cli(["reconstruct", photos, "--out", out, "--ckpt", ckpt, "--resolution", "48", "--mesh-resolution", "48",
                             "--finetune-seconds", "2", "--frames", "4", "--no-viewer", "--threads", "1"])
     assert code == 0, err
     page = (out / "index.html").read_text()
