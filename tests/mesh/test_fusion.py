@@ -1,7 +1,6 @@
 """The fitted depth fusion (omnirecon/mesh/fusion.py): the oracle, confidence weights, linear cost of
 ``--views all``, the face budget, and one-line errors for bad options."""
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +9,13 @@ import torch
 import trimesh
 from conftest import ROOT
 
-from omnirecon.cameras import Cameras, look_at
 from omnirecon.cli import main
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.mesh import fusion, geometry
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.models.registry import build_model
+from tests.mesh.test_mesh import ring_cameras, sphere_depth
 
 
 @pytest.fixture(scope="module")
@@ -59,26 +58,11 @@ def test_oracle_fusion_gives_the_exact_mesh(scene):
     assert fused > exact - 0.5, (fused, exact)
 
 
-def ring_cameras(n: int = 8, res: int = 48, f: float = 60.0, radius: float = 3.0) -> Cameras:
-    a = torch.arange(n, dtype=torch.float64) * 2 * math.pi / n
-    el = torch.tensor([0.4, -0.4] * (n // 2), dtype=torch.float64)
-    eye = radius * torch.stack([el.cos() * a.cos(), el.cos() * a.sin(), el.sin()], -1)
-    c2w = look_at(eye, torch.zeros(3, dtype=torch.float64), torch.tensor([0, 0, 1.0], dtype=torch.float64))
-    return Cameras(torch.full((n,), f), torch.full((n,), f), res / 2, res / 2, c2w, res, res)
-
-
-def sphere_depth(cams: Cameras, r: float) -> torch.Tensor:
-    o, d = cams.image_rays(normalize=False)
-    a, b, c = (d * d).sum(-1), 2 * (o * d).sum(-1), (o * o).sum(-1) - r * r
-    disc = b * b - 4 * a * c
-    return torch.where(disc > 0, (-b - disc.clamp_min(0).sqrt()) / (2 * a), torch.zeros_like(a)).float()
-
-
 def test_confidence_weights_lower_a_corrupted_map():
     """One of 16 sphere depth maps is pulled 5 % towards its camera: the reprojection weights give its
     pixels a small fraction of the others' weight, and its pull on the fused TSDF on the true sphere
     in front of that camera (exact maps: 0) drops to less than half."""
-    cams = ring_cameras(16)
+    cams = ring_cameras(16, res=48, f=60.0)
     depth = sphere_depth(cams, 1.0)
     depth[0] *= 0.95
     w = fusion.geometric_weight(fusion.consistency(cams, depth), len(cams))
