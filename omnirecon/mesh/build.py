@@ -73,11 +73,11 @@ class MeshOptions:
     """Fitted fusion: weight pixels by forward-backward reprojection agreement between the maps."""
     max_faces: int = 200_000
     """Fitted fusion: decimate to at most this many faces (0 = no limit)."""
-    depth_pass: str = "coarse"
-    """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"coarse"`` (the
-    coarse samples only; measured on a held-out scene: Omni-Recon's depth abs rel 0.048 vs 0.046 with the
-    fine pass at about 1/10 of the time, IBRNet's 0.246 vs 0.263) or ``"fine"`` (coarse + importance
-    samples, as the colour is rendered)."""
+    depth_pass: str = "fine"
+    """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"fine"`` (coarse +
+    importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, about 5x
+    faster). Measured on the demo scene, all 18 views, omnirecon-tiny: fine F-score 0.665, Chamfer 0.50 %
+    of the extent, held-out mesh depth abs rel 0.148; coarse 0.591, 0.55 %, 0.182."""
     min_acc: float = 0.5
     """Models that return ``acc`` (accumulated opacity): pixels below it have no depth, and depth is
     divided by ``acc`` (the expected depth of the ray given that it hits)."""
@@ -98,7 +98,7 @@ class MeshOptions:
 
     def check(self) -> None:
         if self.depth_pass not in ("coarse", "fine"):
-            raise InputError(f"--depth-pass must be coarse or fine, got {self.depth_pass!r}", None, "use --depth-pass coarse")
+            raise InputError(f"--depth-pass must be coarse or fine, got {self.depth_pass!r}", None, "use --depth-pass fine")
         if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
             raise InputError(f"--shifts must be finite fractions in (-1, 1), got {list(self.shifts)}", None,
                              f"use e.g. --shifts {DTU_SHIFT:.4f}")

@@ -68,9 +68,9 @@ class MeshConfig(MachineConfig):
     """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection)."""
     max_faces: int = 200_000
     """Decimate the mesh to at most this many faces (0 = keep every face)."""
-    depth_pass: Literal["coarse", "fine"] = "coarse"
-    """Pass of IBRNet / Omni-Recon that renders the depth maps: coarse (about 10x faster, depth as good on
-    the held-out scene measured) or fine."""
+    depth_pass: Literal["coarse", "fine"] = "fine"
+    """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
+    faster; on the demo scene F-score 0.59 instead of 0.67)."""
     min_acc: float = 0.5
     """Models that return accumulated opacity (IBRNet): pixels below it get no depth."""
     masks: bool = False
