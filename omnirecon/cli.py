@@ -69,6 +69,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"omnirecon: error: {parse_error_line(box.getvalue(), chosen if chosen in COMMANDS else None)}",
                   file=sys.stderr)
             return EXIT_BAD_INPUT
+        from omnirecon.options import check_options
+
+        check_options(chosen, config)  # every numeric option of every verb, before any work
         config.main()
     except InputError as e:
         print(f"omnirecon: error: {e.one_line()}", file=sys.stderr)

@@ -1,0 +1,257 @@
+"""Every numeric option of every command, checked in one place before the command starts.
+
+:func:`check_options` runs in ``omnirecon.cli`` on the parsed configuration of whichever command was chosen,
+before its ``main()``: each ``int``/``float`` field (and each element of a tuple of them) must be finite and
+inside its :class:`Rule`, looked up by field name in :data:`RULES` (a ``"command.field"`` entry overrides
+the field's shared rule), and the options that size an allocation (frames, resolutions, image sizes, rays,
+views) are checked against the memory available now by :data:`MEMORY`, an estimate per command, so that
+an out-of-reach value is refused with the number, the limit and the fix before anything is allocated.
+A numeric field without a rule is a bug (``tests/test_options.py`` walks every command); ``None`` always
+means "the default" and is not checked. ``--device`` is checked for its spelling here too.
+
+Size: one table of rules for every option of every command (~100 fields) and the memory model; splitting
+it by command would scatter the one place this module exists to be.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+import typing
+from dataclasses import dataclass
+from typing import Callable
+
+from omnirecon.chunk import memory_bytes
+from omnirecon.errors import InputError
+
+
+@dataclass(frozen=True)
+class Rule:
+    """An option's allowed values: ``lo <= v <= hi`` (``lo < v`` when ``above``); ``example`` goes in the fix."""
+
+    lo: float | None = None
+    hi: float | None = None
+    above: bool = False
+    example: str = ""
+
+    def text(self) -> str:
+        if self.lo is not None and self.hi is not None:
+            return f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
+        if self.lo is not None:
+            return f"{'above' if self.above else 'at least'} {_num(self.lo)}"
+        return f"at most {_num(self.hi)}"
+
+    def ok(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.above else v < self.lo):
+            return False
+        return self.hi is None or v <= self.hi
+
+
+def _num(v: float) -> str:
+    return str(int(v)) if float(v).is_integer() else f"{v:g}"
+
+
+DAY = 86_400.0
+COUNT = Rule(1, 1_000_000, example="e.g. 3")
+SEED = Rule(0, 2**32 - 1, example="e.g. 0")
+WEIGHT = Rule(0, 1e6, example="e.g. 1.0")
+FRACTION = Rule(0, 1, example="e.g. 0.5")
+PIXELS = Rule(8, 16_384, example="e.g. 128")
+
+RULES: dict[str, Rule] = {
+    # sizes (also checked against free memory, see MEMORY)
+    "resolution": PIXELS, "mesh_resolution": PIXELS, "source_resolution": PIXELS,
+    "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
+    "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(1, 100_000, example="e.g. 300"),
+    "rays": Rule(1, 1_048_576, example="e.g. 1024"), "chunk": Rule(1, 1_048_576, example="e.g. 4096"),
+    "views": Rule(0, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
+    "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),
+    "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
+    "synth_count": Rule(1, 10_000, example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
+    "max_views": COUNT, "max_targets": COUNT, "max_held_out": Rule(1, 10_000, example="e.g. 4"),
+    "max_faces": Rule(4, 100_000_000, example="e.g. 200000"), "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
+    "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
+    "min_views": Rule(1, 10_000, example="e.g. 2"), "num_pairs": Rule(1, 1_000, example="e.g. 4"),
+    "labelled": Rule(1, 100_000, example="e.g. 6"), "pool": COUNT, "keep": Rule(1, 100_000, example="e.g. 2"),
+    # time and steps (finite, so a run ends)
+    "seconds": Rule(0, DAY, above=True, example="e.g. 60 (at most a day)"),
+    "finetune_seconds": Rule(0, DAY, example="e.g. 60, or 0 to skip tuning (at most a day)"),
+    "eval_at": Rule(0, DAY, example="e.g. 0 10 30 60"),
+    "time_budget": Rule(0, 30 * DAY, above=True, example="e.g. 3600"),
+    "cpu_budget": Rule(0, 30 * DAY, above=True, example="e.g. 3600"),
+    "steps": Rule(1, 1_000_000_000, example="e.g. 1000"), "stop_at": Rule(1, 1_000_000_000, example="e.g. 500"),
+    "warmup": Rule(0, 1_000_000, example="e.g. 3"), "volume_repeats": Rule(1, 10_000, example="e.g. 3"),
+    "ckpt_every": Rule(0, 1_000_000_000, example="e.g. 250"), "val_every": Rule(0, 1_000_000_000, example="e.g. 250"),
+    "log_every": Rule(1, 1_000_000_000, example="e.g. 10"), "switch_every": Rule(1, 1_000_000_000, example="e.g. 10"),
+    # optimisation (finite, or the run writes NaN weights)
+    "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
+    "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
+    "clip": Rule(0, 1e6, above=True, example="e.g. 1.0"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
+    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION,
+    # camera paths and video
+    "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
+    "render.fps": Rule(1, 240, example="e.g. 24"), "fps": Rule(0, 240, above=True, example="e.g. 2"),
+    "keyframes": Rule(0, 1_000_000, example="e.g. 0 5 9"), "overlap": Rule(1, 10_000, example="e.g. 10"),
+    # picking views, pixels, labels
+    "pair": Rule(0, 1_000_000, example="e.g. 0 1"), "targets": Rule(0, 1_000_000, example="e.g. 0 1"),
+    "click": Rule(0, 1_000_000, example="e.g. 40 32"), "click_view": Rule(0, 1_000_000, example="e.g. 0"),
+    "label": Rule(0, 1_000_000, example="e.g. 1"), "dilation": Rule(0, 1_000, example="e.g. 1"),
+    "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
+    # meshing
+    "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
+    "trunc": Rule(0, 1e6, above=True, example="e.g. 0.02"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
+    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
+    "shifts": Rule(-1e6, 1e6, example="e.g. 0.036"),
+    # photos in
+    "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
+    "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),
+    # procedural scenes
+    "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
+    "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
+    "shininess": Rule(0, 10_000, above=True, example="e.g. 32"), "light_variation": FRACTION,
+    "white_balance": FRACTION, "vignetting": FRACTION,
+    # machine and the rest
+    "threads": Rule(1, 1024, example="e.g. 1"), "workers": Rule(1, 1024, example="e.g. 2"),
+    "port": Rule(1, 65_535, example="e.g. 8765"), "seed": SEED,
+}
+
+DEVICE = re.compile(r"^(auto|cpu|mps|cuda(:\d{1,3})?)$")
+SHARE = 0.5
+"""A run may plan on at most this share of the memory available when it starts."""
+
+
+def _flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def _numbers(value) -> list | None:
+    """The numbers in a field value (a number, or a tuple/list of them); ``None`` for anything else."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, (int, float)):
+        return [value]
+    if isinstance(value, (tuple, list)) and value and all(isinstance(v, (int, float)) and not isinstance(v, bool)
+                                                         for v in value):
+        return list(value)
+    return None
+
+
+def numeric_fields(cls) -> list[str]:
+    """Names of the fields of dataclass ``cls`` annotated with ``int``/``float`` (or tuples/options of them)."""
+    hints = typing.get_type_hints(cls)
+    out = []
+    for f in dataclasses.fields(cls):
+        text = str(hints[f.name])
+        if "Literal" in text or "bool" in text and "int" not in text:
+            continue
+        if re.search(r"\b(int|float)\b", text):
+            out.append(f.name)
+    return out
+
+
+def rule_for(command: str | None, name: str) -> Rule | None:
+    return RULES.get(f"{command}.{name}") or RULES.get(name)
+
+
+def check_options(command: str | None, config) -> None:
+    """InputError for the first option of ``config`` (a command's parsed dataclass) that is not finite, out of
+    its range, or would need more memory than the run may use."""
+    if not dataclasses.is_dataclass(config):
+        return
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if f.name == "device" and isinstance(value, str) and not DEVICE.match(value):
+            raise InputError(f"--device {value!r} is not a device", None, "use --device cpu, cuda, cuda:0 or auto")
+        numbers = _numbers(value)
+        if numbers is None:
+            continue
+        rule = rule_for(command, f.name)
+        shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
+        for v in numbers:
+            if not math.isfinite(v):
+                raise InputError(f"{_flag(f.name)} {shown} is not a finite number", None,
+                                 f"pass a number {rule.text() if rule else ''}, {rule.example if rule else ''}"
+                                 .replace(" ,", ",").strip(", "))
+            if rule is not None and not rule.ok(v):
+                raise InputError(f"{_flag(f.name)} {shown} is out of range (must be {rule.text()})", None,
+                                 f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
+    estimate = MEMORY.get(command or "")
+    if estimate is not None:
+        _check_memory(estimate(config))
+
+
+# ---------------------------------------------------------------------------- memory
+# Each estimate returns ``[(flag, shown, value, bytes_of)]``: ``bytes_of(v)`` is the memory the run allocates
+# when the option is ``v`` and the others are as given (it grows with ``v``, so the limit can be solved for).
+# Only sizes the command allocates as asked are estimated: an image reader's ``--resolution`` never exceeds
+# the photos' own size, so it is checked by its range alone.
+Need = tuple[str, str, int, Callable[[int], float]]
+
+SYNTH_BYTES_PER_PIXEL = 2_500
+"""Peak memory of procedural rendering per image pixel (synth 256 vs 768 px, 2 views: 0.49 vs 1.71 GB)."""
+FEATURE_BYTES_PER_PIXEL = 512
+"""Encoded source views: feature maps and image pyramids per source pixel (estimate)."""
+FRAME_BYTES = 1_024
+"""Per frame of a camera path: poses, source lists and the cameras.json record (render --frames 1e8 grew
+to 21 GB, ~210 bytes per frame, before anything was written)."""
+RAY_BYTES = 140_000
+"""A rendered ray (omnirecon.chunk's measurement)."""
+TRAIN_BYTES_PER_RAY = 3 * RAY_BYTES
+"""A training ray: the forward's activations kept for the backward, with gradients (estimate)."""
+
+
+def _sq(v: int) -> float:
+    return float(v) * float(v)
+
+
+def _frames(c) -> list[Need]:
+    return [("--frames", str(c.frames), c.frames, lambda v: v * FRAME_BYTES)]
+
+
+def _synth(c) -> list[Need]:
+    workers = min(c.num_scenes, c.workers or 1)
+    return [("--resolution", str(c.resolution), c.resolution, lambda v: _sq(v) * SYNTH_BYTES_PER_PIXEL * workers),
+            ("--views", str(c.views), c.views, lambda v: v * _sq(c.resolution) * 4 * 12)]
+
+
+def _bench(c) -> list[Need]:
+    per_px = SYNTH_BYTES_PER_PIXEL + c.views * FEATURE_BYTES_PER_PIXEL
+    if c.size:
+        w, h = c.size
+        return [("--size", f"{w} {h}", max(w, h), lambda v: _sq(v) * per_px)]
+    return [("--resolution", str(c.resolution), c.resolution, lambda v: _sq(v) * per_px),
+            ("--source-resolution", str(c.source_resolution), c.source_resolution, lambda v: _sq(v) * per_px),
+            ("--rays", str(c.rays), c.rays, lambda v: v * RAY_BYTES)]
+
+
+def _train(c) -> list[Need]:
+    return [("--rays", str(c.rays), c.rays, lambda v: v * TRAIN_BYTES_PER_RAY)] if c.rays else []
+
+
+MEMORY: dict[str, Callable[[object], list[Need]]] = {
+    "render": _frames, "reconstruct": _frames, "demo": _frames, "synth": _synth, "bench": _bench,
+    "train": _train, "finetune": _train,
+}
+
+
+def _gb(b: float) -> str:
+    return f"{b / 1e9:.1f} GB"
+
+
+def _check_memory(needs: list[Need], available: int | None = None) -> None:
+    available = memory_bytes()[1] if available is None else available
+    budget = SHARE * available
+    for flag, shown, value, bytes_of in needs:
+        need = bytes_of(value)
+        if need <= budget:
+            continue
+        lo, hi = 0, int(value)  # the largest value that fits: bytes_of grows with the value
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if bytes_of(mid) <= budget else (lo, mid - 1)
+        what = " with a long side of" if flag == "--size" else ""
+        fix = f"pass {flag}{what} {lo} or less" if lo >= 1 else "free memory, or lower the other sizes"
+        raise InputError(f"{flag} {shown} needs about {_gb(need)} of memory (estimate), more than the "
+                         f"{_gb(budget)} a run may use here ({SHARE:.0%} of the {_gb(available)} available now)",
+                         None, fix)
