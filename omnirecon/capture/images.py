@@ -16,8 +16,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from PIL import Image, ImageOps, UnidentifiedImageError
-
+from omnirecon.data.photo import open_photo, regular_file, to_8bit, upright
 from omnirecon.errors import InputError
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -42,7 +41,12 @@ class StagedImages:
 
 
 def _visible_files(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if not p.name.startswith(".") and p.is_file())
+    """Visible entries of ``folder`` but sub-folders; a FIFO, device or socket among them is refused (opening
+    one would block or never end)."""
+    files = sorted(p for p in folder.iterdir() if not p.name.startswith(".") and not p.is_dir())
+    for p in files:
+        regular_file(p, "file in the photo folder", "move it out of the photo folder")
+    return files
 
 
 def count_files(folder: Path) -> int | None:
@@ -77,32 +81,26 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
     dest.mkdir(parents=True, exist_ok=True)
     names, sources, sizes, digests, rotated = [], {}, {}, set(), 0
     for p in files:
-        try:
-            with Image.open(p) as im:
-                im.load()
-                orientation = im.getexif().get(EXIF_ORIENTATION, 1)
-                upright = ImageOps.exif_transpose(im)
-                fmt, mode = im.format, upright.mode
-                if mode not in ("RGB", "RGBA", "L"):
-                    upright = upright.convert("RGBA" if "A" in mode else "RGB")
-                digests.add(hashlib.sha1(upright.tobytes() + repr(upright.size).encode()).hexdigest())
-                copy_as_is = orientation in (None, 1) and fmt in ("JPEG", "PNG") and mode in ("RGB", "RGBA", "L")
-                name = p.name if copy_as_is or p.suffix.lower() == ".png" else p.stem + ".png"
-                if name in sources:
-                    raise InputError(f"two photos would both be staged as {name}", p, "rename one of them")
-                target = dest / name
-                if copy_as_is:
-                    try:
-                        os.link(p, target)
-                    except OSError:
-                        shutil.copyfile(p, target)
-                else:
-                    upright.save(target)
-                    rotated += orientation not in (None, 1)
-                sizes[name] = upright.size
-        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-            raise InputError(f"cannot read the image ({type(e).__name__}: {e})".replace(str(p), "").strip(), p,
-                             "the file is corrupt or not an image; replace or remove it") from e
+        with open_photo(p) as im:  # regular file, claimed size checked; decoding errors name the file
+            im.load()
+            up, orientation = upright(im)
+            fmt, mode = im.format, up.mode
+            up = to_8bit(up)  # 16-bit, palette, CMYK...: 8-bit with their true range
+            digests.add(hashlib.sha1(up.tobytes() + repr(up.size).encode()).hexdigest())
+            copy_as_is = orientation in (None, 1) and fmt in ("JPEG", "PNG") and mode in ("RGB", "RGBA", "L")
+            name = p.name if copy_as_is or p.suffix.lower() == ".png" else p.stem + ".png"
+            if name in sources:
+                raise InputError(f"two photos would both be staged as {name}", p, "rename one of them")
+            target = dest / name
+            if copy_as_is:
+                try:
+                    os.link(p, target)
+                except OSError:
+                    shutil.copyfile(p, target)
+            else:
+                up.save(target)
+                rotated += orientation not in (None, 1)
+            sizes[name] = up.size
         names.append(name)
         sources[name] = p
         if on_file is not None:
@@ -140,11 +138,8 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
         if src is None:
             raise InputError(f"no mask for {staged.sources[name].name} (looked for {stem}.png)", mask_dir,
                              "give one mask per photo, named like the photo")
-        try:
-            with Image.open(src) as m:
-                m = ImageOps.exif_transpose(m).convert("L")
-        except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-            raise InputError(f"cannot read the mask ({type(e).__name__})", src, "replace the file") from e
+        with open_photo(src, "mask") as m:
+            m = to_8bit(upright(m)[0]).convert("L")
         if m.size != staged.sizes[name]:
             raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
                              f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")

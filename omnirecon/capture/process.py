@@ -21,6 +21,7 @@ from pathlib import Path
 from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scene
 from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
+from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import clean_stale
 
@@ -36,6 +37,8 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
     source, out = Path(source), Path(out)
     if not source.exists():
         raise InputError("input does not exist", source, "pass a folder of photos or a video file")
+    if not source.is_dir():
+        regular_file(source, "input", "pass a folder of photos or a video file")  # a FIFO or device blocks
     is_video = source.is_file()
     if is_video and source.suffix.lower() not in VIDEO_EXTS:
         raise InputError(f"not a folder or a video ({source.suffix or 'no extension'})", source,

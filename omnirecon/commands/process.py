@@ -10,6 +10,7 @@ import tyro
 from omnirecon.capture.colmap_sfm import SfmOptions
 from omnirecon.capture.process import process, summary_lines
 from omnirecon.errors import InputError
+from omnirecon.outputs import prepare_out
 
 
 @dataclass
@@ -47,6 +48,7 @@ class ProcessCommand(SfmOptions):
             raise InputError("no input given", None, "pass a folder of photos or a video: omnirecon process PATH --out SCENE")
         if self.max_frames < 3:
             raise InputError(f"--max-frames must be at least 3, got {self.max_frames}", None, "use e.g. 300")
+        prepare_out(self.out)  # the common preflight: writable, nothing in the way, before the run
         options = SfmOptions(**{f.name: getattr(self, f.name) for f in fields(SfmOptions)})
         summary = process(self.source, self.out, options, fps=self.fps, max_frames=self.max_frames,
                           overwrite=self.overwrite, quiet=self.quiet, keep_work=self.keep_work,

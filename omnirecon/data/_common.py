@@ -53,17 +53,10 @@ def rigid_poses(c2w: Tensor, source: Path) -> Tensor:
 # ---------------------------------------------------------------------- images on disk
 def image_size(path: Path) -> tuple[int, int]:
     """``(width, height)`` of an image from its header; InputError if missing or not an image."""
-    from PIL import Image, UnidentifiedImageError
+    from omnirecon.data.photo import open_photo
 
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("image file is missing", path, "check the path, or remove the view from the pose file")
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-        raise InputError(f"cannot read image ({type(e).__name__})", path,
-                         "the file is corrupt or not an image; replace it") from e
+    with open_photo(Path(path)) as im:  # regular file; the header's size checked against the limits
+        return im.size
 
 
 def common_size(paths: list[Path], expected: tuple[int, int] | None = None, expected_from: str = "") -> tuple[int, int]:

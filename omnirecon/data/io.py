@@ -21,31 +21,18 @@ def read_image(path: Path, mode: str | None = None, size: tuple[int, int] | None
     ``size = (width, height)`` resizes with area averaging (alpha premultiplied first) when the
     file's size differs.
     """
-    from PIL import Image, UnidentifiedImageError
+    from omnirecon.data.photo import open_photo, to_float
 
     path = Path(path)
-    if not path.is_file():
-        raise InputError("image file is missing", path, "check the path, or remove the view from the pose file")
-    try:
-        with Image.open(path) as im:
-            im.load()
-            if mode is not None and im.mode != mode:
-                im = im.convert(mode)
-            elif im.mode not in ("L", "RGB", "RGBA", "I;16", "I"):
-                im = im.convert("RGBA" if "A" in im.mode else "RGB")
-            if size is not None and im.size != tuple(size):
-                im = _resize(im, size)
-            arr = np.asarray(im)
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as e:
-        raise InputError(f"cannot read image ({type(e).__name__}: {e})", path,
-                         "the file is corrupt or not an image; replace it") from e
-    if arr.dtype == np.uint8:
-        out = arr.astype(np.float32) / 255.0
-    elif arr.dtype in (np.uint16, np.int32, np.uint32):
-        out = arr.astype(np.float32) / 65535.0
-    else:
-        out = arr.astype(np.float32)
-    return out[..., None] if out.ndim == 2 else out
+    with open_photo(path) as im:  # regular file, claimed size checked, decoding errors named
+        im.load()
+        if size is not None and im.size != tuple(size):
+            if im.mode not in ("L", "RGB", "RGBA"):
+                from omnirecon.data.photo import to_8bit
+
+                im = to_8bit(im)
+            im = _resize(im, size)
+        return to_float(im, mode)
 
 
 def _resize(im, size):
