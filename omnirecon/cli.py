@@ -12,6 +12,7 @@ import importlib
 import io
 import sys
 import traceback
+import warnings
 
 from omnirecon.errors import EXIT_BAD_INPUT, InputError
 
@@ -72,7 +73,14 @@ def main(argv: list[str] | None = None) -> int:
         from omnirecon.options import check_options
 
         check_options(chosen, config)  # every numeric option of every verb, before any work
-        config.main()
+        with warnings.catch_warnings(record=True) as caught:  # libraries' warnings: kept off stderr ...
+            warnings.simplefilter("default")
+            try:
+                config.main()
+            except BaseException:
+                _notes(caught, verbose, failed=True)
+                raise
+            _notes(caught, verbose, failed=False)
     except InputError as e:
         print(f"omnirecon: error: {e.one_line()}", file=sys.stderr)
         if verbose:
@@ -82,6 +90,20 @@ def main(argv: list[str] | None = None) -> int:
         print("omnirecon: interrupted", file=sys.stderr)
         return 130
     return 0
+
+
+def _notes(caught: list, verbose: bool, failed: bool) -> None:
+    """... and shown after a run that succeeded as one line each (unique, at most 3), or in full with
+    ``--verbose``; after an error only its one line is printed."""
+    if verbose:
+        for w in caught:
+            print(warnings.formatwarning(w.message, w.category, w.filename, w.lineno).rstrip(), file=sys.stderr)
+        return
+    if failed:
+        return
+    seen = list(dict.fromkeys(f"{w.category.__name__}: {' '.join(str(w.message).split())[:200]}" for w in caught))
+    for text in seen[:3]:
+        print(f"omnirecon: note: {text}", file=sys.stderr)
 
 
 def entry() -> None:

@@ -91,6 +91,10 @@ def intrinsics(f: dict, width: int, height: int, source: Path) -> list[float]:
         raise InputError(f"unsupported camera model {model or 'fisheye'!s}", source,
                          "undistort the images to a pinhole/OPENCV model first (e.g. colmap image_undistorter)")
     get = lambda k: None if f[k] is None else _num(f[k], source, k)  # noqa: E731
+    for key in ("camera_angle_x", "camera_angle_y"):
+        if f[key] is not None and not 0 < get(key) < math.pi:
+            raise InputError(f"{key} is {f[key]}, outside (0, pi) radians", source,
+                             "give the horizontal field of view in radians (e.g. 0.69), or fl_x in pixels")
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None and f["camera_angle_x"] is not None:
         fx = 0.5 * width / math.tan(0.5 * get("camera_angle_x"))
@@ -100,6 +104,9 @@ def intrinsics(f: dict, width: int, height: int, source: Path) -> list[float]:
     if fx is None:
         raise InputError("no focal length (fl_x/fl_y or camera_angle_x)", source,
                          "add fl_x (pixels) or camera_angle_x (radians)")
+    if not (math.isfinite(fx) and math.isfinite(fy) and fx > 0 and fy > 0):
+        raise InputError(f"focal length fl_x={fx:g}, fl_y={fy:g} is not positive", source,
+                         "give positive fl_x/fl_y in pixels (or camera_angle_x in radians)")
     cx, cy = get("cx"), get("cy")
     dist = [get(k) or 0.0 for k in DIST_KEYS]
     return [fx, fy, width / 2 if cx is None else cx, height / 2 if cy is None else cy, *dist]

@@ -52,12 +52,37 @@ def read_json(path: Path) -> dict:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise InputError(f"invalid JSON ({e})", path, "fix or regenerate the file") from e
+    except RecursionError:
+        raise InputError("JSON nested too deeply to read", path, "fix or regenerate the file") from None
+
+
+def _check_npy_header(path: Path) -> None:
+    """InputError when a ``.npy`` header claims more data than the file holds (a header claiming 10^13 rows
+    would otherwise make NumPy try to allocate it) or a shape that is not a tuple of sizes."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+            shape, _, dtype = read.get(version, np.lib.format.read_array_header_2_0)(f, max_header_size=10_000)
+            offset = f.tell()
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, TypeError) as e:
+        raise InputError(f"cannot read NumPy file ({e})", path, "the file is corrupt; regenerate it") from None
+    count = 1
+    for n in shape:
+        count *= int(n)
+    need = count * max(dtype.itemsize, 1)
+    have = path.stat().st_size - offset
+    if dtype.hasobject or need > have:
+        raise InputError(f"header claims shape {tuple(shape)} ({need:,} bytes) but the file holds {have:,} bytes",
+                         path, "the file is truncated or corrupt; regenerate it")
 
 
 def read_npy(path: Path, allow_pickle: bool = False):
     path = Path(path)
     if not path.is_file():
         raise InputError("file is missing", path, "check the path (or the scene's --format)")
+    if path.suffix == ".npy":
+        _check_npy_header(path)
     try:
         return np.load(path, allow_pickle=allow_pickle)
     except (ValueError, OSError, EOFError, zipfile.BadZipFile, SyntaxError, tokenize.TokenError,

@@ -90,7 +90,7 @@ def open_photo(path: Path, what: str = "image file"):
                          f"{MAX_PIXELS / 1e6:.0f} MP), a decompression bomb or a damaged file", path,
                          "resize the image or replace the file") from None
     except (UnidentifiedImageError, *BROKEN) as e:
-        detail = str(e).replace(str(path), "").strip(" :")[:120]
+        detail = str(e).replace(str(path), "").replace("''", "").strip(" :")[:120]
         raise InputError(f"cannot read {what} ({type(e).__name__}{': ' + detail if detail else ''})", path,
                          "the file is corrupt or not an image; replace it") from e
 

@@ -25,7 +25,7 @@ from torch import Tensor
 from omnirecon.errors import InputError
 from omnirecon.lift.blend import lift_points, normalise
 from omnirecon.mesh.build import mesh_from_model
-from omnirecon.mesh.geometry import ground_truth_mesh
+from omnirecon.mesh.geometry import ground_truth_mesh, load_mesh_file
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
 
@@ -66,7 +66,8 @@ def gt_face_labels(scene) -> np.ndarray | None:
     (label values as in ``scene.labels``: 1..254 objects, 255 ground), or None. ``# [F]`` int64"""
     if scene.mesh_path is None:
         return None
-    raw = trimesh.load(scene.mesh_path, process=False, force="mesh").metadata.get("_ply_raw", {})
+    raw = load_mesh_file(scene.mesh_path, "ground-truth mesh",
+                         "fix the scene's mesh file, or remove its mesh_path entry").metadata.get("_ply_raw", {})
     data = raw.get("face", {}).get("data")
     if data is None or "object_id" not in (data.dtype.names or ()):
         return None

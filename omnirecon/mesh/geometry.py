@@ -31,6 +31,7 @@ from torch import Tensor
 
 from omnirecon.cameras import Cameras
 from omnirecon.data.io import write_image
+from omnirecon.errors import InputError
 from omnirecon.render.zbuffer import Fragments, rasterize
 
 FSCORE_THRESHOLD = 0.01
@@ -202,6 +203,28 @@ def scene_scales(scene) -> dict[str, float]:
     return {"diagonal": diag, "threshold": FSCORE_THRESHOLD * diag, "max_dist": MAX_DIST * diag}
 
 
+def load_mesh_file(path, what: str = "mesh file", fix: str = "pass a valid .ply, .obj or .glb triangle mesh"):
+    """``trimesh.load(path, force="mesh")`` with one-line errors naming ``path`` (any parser failure, a file
+    without triangles, non-finite vertices) and the parser's warnings kept off stderr. Small on purpose: the
+    one place mesh files are read, until a mesh-file module owns it."""
+    import warnings
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{what} is missing or not a regular file", path, fix)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # e.g. NumPy's fromstring deprecation inside trimesh's PLY reader
+            mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
+        raise InputError(f"cannot read {what} ({type(e).__name__}: {str(e)[:100]})", path, fix) from e
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError(f"the {what} holds no triangles", path, fix)
+    if not np.isfinite(np.asarray(mesh.vertices)).all():
+        raise InputError(f"the {what} has non-finite vertices", path, fix)
+    return mesh
+
+
 def ground_truth_mesh(scene, objects_only: bool = False) -> trimesh.Trimesh | None:
     """The scene's exact mesh (``scene.mesh_path``) in the scene frame, or ``None`` without one.
 
@@ -209,7 +232,8 @@ def ground_truth_mesh(scene, objects_only: bool = False) -> trimesh.Trimesh | No
     """
     if scene.mesh_path is None:
         return None
-    gt = trimesh.load(scene.mesh_path, process=False, force="mesh")
+    gt = load_mesh_file(scene.mesh_path, "ground-truth mesh",
+                        "fix the scene's mesh file, or remove its mesh_path entry")
     T = scene.mesh_to_scene.double().numpy()
     verts = np.asarray(gt.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
     faces = np.asarray(gt.faces)

@@ -189,9 +189,9 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
 
     # the fixed mesh, rasterized once per view
     if cfg.mesh is not None:
-        if not Path(cfg.mesh).is_file():
-            raise InputError("mesh file does not exist", cfg.mesh, "pass a .ply/.obj/.glb written by `omnirecon mesh`")
-        mesh = trimesh.load(cfg.mesh, force="mesh", process=False)
+        from omnirecon.mesh.geometry import load_mesh_file  # one-line errors naming --mesh
+
+        mesh = load_mesh_file(cfg.mesh, "--mesh file", "pass a .ply/.obj/.glb written by `omnirecon mesh`")
         T = np.linalg.inv(scene.to_input.double().numpy())  # input frame -> scene frame
         mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
     else:

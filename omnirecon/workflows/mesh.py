@@ -169,7 +169,9 @@ def scene_frame_mesh(path: Path, mesh_file: Path, long_side: int):
     ``omnirecon mesh`` writes it) moved into that frame. Returns ``(scene, trimesh.Trimesh)``."""
     import trimesh
 
+    from omnirecon.mesh.geometry import load_mesh_file
+
     scene = load_at_resolution(path, long_side)
-    mesh = trimesh.load(mesh_file, force="mesh", process=False)
+    mesh = load_mesh_file(mesh_file)
     T = np.linalg.inv(scene.to_input.double().numpy())
     return scene, trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)

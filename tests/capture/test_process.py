@@ -203,7 +203,7 @@ def test_bad_unreadable_and_non_image(capsys, tmp_path, capture):
     d = tmp_path / "mixed"
     shutil.copytree(photos, d)
     (d / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
-    assert_refused(capsys, tmp_path, d, "broken.jpg", "cannot read the image")
+    assert_refused(capsys, tmp_path, d, "broken.jpg", "cannot read image")
     (d / "broken.jpg").unlink()
     (d / "readme.md").write_text("# my photos")
     assert_refused(capsys, tmp_path, d, "readme.md", "not an image file")
