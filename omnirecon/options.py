@@ -113,7 +113,7 @@ RULES: dict[str, Rule] = {
     "white_balance": FRACTION, "vignetting": FRACTION,
     # machine and the rest
     "threads": Rule(1, 1024, example="e.g. 1"), "workers": Rule(1, 1024, example="e.g. 2"),
-    "port": Rule(1, 65_535, example="e.g. 8765"), "seed": SEED,
+    "port": Rule(0, 65_535, example="e.g. 8765, or 0 for any free port"), "seed": SEED,
 }
 
 DEVICE = re.compile(r"^(auto|cpu|mps|cuda(:\d{1,3})?)$")

@@ -3,12 +3,14 @@
 :class:`BundleRequestHandler` (an ``http.server.SimpleHTTPRequestHandler``) answers ``GET`` / ``HEAD``
 only, for regular files under its root. It answers one identical 404 (no 403 that would reveal what
 exists) to any request whose ``Host`` header is not the bound address (``127.0.0.1:PORT`` or
-``localhost:PORT``, the port optional: a DNS-rebinding page sends its own host name), whose path is not
+``localhost:PORT``, the port optional: a DNS-rebinding page sends its own host name; a request with
+two ``Host`` headers gets 400), whose path is not
 a plain ``/``-rooted path (absolute-form ``http://...`` targets, backslashes, NUL bytes), has a ``..``
 or ``.`` segment (also percent-encoded) or a dotfile / dot-folder segment, resolves (symbolic links
 followed) to anything outside the root or to a hidden name, is not a regular file, or has more than
 one hard link (a hard link can name an inode outside the bundle); it does not list folders.
-Responses are not cached, so a re-exported bundle shows at once.
+Responses are not cached, so a re-exported bundle shows at once. A client that disconnects mid-response
+is not reported (no traceback on the terminal).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ from pathlib import Path
 from omnirecon.errors import InputError
 
 HOST = "127.0.0.1"
+DISCONNECTS = (ConnectionError, TimeoutError)
+"""A client closing the connection mid-response (BrokenPipe, ConnectionReset, ConnectionAborted) or timing out."""
 TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
          ".glb": "model/gltf-binary", ".bin": "application/octet-stream", ".ply": "application/octet-stream",
          ".png": "image/png", ".html": "text/html; charset=utf-8", ".css": "text/css", "": "application/octet-stream"}
@@ -51,7 +55,10 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
         super().__init__(*args, directory=str(Path(directory).resolve()), **kwargs)
 
     def resolve(self) -> tuple[int, Path | None]:
-        """``(status, file)``: 200 and the file to send, or 404 for everything refused or missing."""
+        """``(status, file)``: 200 and the file to send, 400 for a request with more than one ``Host`` header
+        (which one a proxy or browser honours differs: never guess), or 404 for everything refused or missing."""
+        if len(self.headers.get_all("Host") or []) > 1:
+            return 400, None
         if not host_allowed(self.headers.get("Host"), self.server.server_address[1]):
             return 404, None  # DNS rebinding: a foreign page reaching 127.0.0.1 under its own name
         target = self.path
@@ -90,7 +97,7 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
     def send_head(self):
         status, file = self.resolve()
         if status != 200:
-            self.send_error(404, "Not found")
+            self.send_error(status, "Bad request" if status == 400 else "Not found")
             return None
         try:
             f = open(file, "rb")  # noqa: SIM115 - closed by copyfile's caller
@@ -126,6 +133,12 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
 
     do_PUT = do_DELETE = do_PATCH = do_POST
 
+    def copyfile(self, source, outputfile):
+        try:
+            super().copyfile(source, outputfile)
+        except DISCONNECTS:
+            self.close_connection = True  # the client went away mid-response: nothing to report
+
     def log_message(self, format, *args):
         if not self.quiet:
             super().log_message(format, *args)
@@ -148,6 +161,14 @@ class ViewerServer(http.server.ThreadingHTTPServer):
         except OSError as e:
             raise InputError(f"cannot listen on {HOST}:{port} ({e.strerror or e})", None,
                              "pick another --port, or --port 0 for any free one") from e
+
+    def handle_error(self, request, client_address):
+        """A client that disconnects (or stalls out) is routine, not an error: no traceback for it."""
+        import sys
+
+        if isinstance(sys.exc_info()[1], DISCONNECTS):
+            return
+        super().handle_error(request, client_address)
 
     @property
     def url(self) -> str:

@@ -90,3 +90,47 @@ def test_host_allowed():
     assert host_allowed("127.0.0.1", 8765) and host_allowed("localhost", 8765)
     assert not host_allowed("127.0.0.1:8766", 8765) and not host_allowed("attacker.test:8765", 8765)
     assert not host_allowed(None, 8765) and not host_allowed("", 8765)
+
+
+def _raw(port: int, request: bytes) -> int:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(request)
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+    return int(data.split()[1])
+
+
+@pytest.mark.parametrize("hosts", [("127.0.0.1", "evil.example"), ("evil.example", "127.0.0.1"),
+                                   ("127.0.0.1", "127.0.0.1")])
+def test_two_host_headers_are_a_bad_request(served, hosts):
+    """Which of two Host headers a proxy honours differs: good-then-evil must not be served (400)."""
+    head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in hosts) + "Connection: close\r\n\r\n"
+    assert _raw(served, head.encode()) == 400
+
+
+def test_client_disconnect_mid_response_is_quiet(tmp_path, capfd):
+    """A client that closes the socket while a large file is sent leaves no traceback on stderr."""
+    import struct
+    import time
+
+    root = tmp_path / "bundle"
+    root.mkdir()
+    (root / "index.html").write_text("<p>viewer</p>")
+    (root / "big.bin").write_bytes(os.urandom(32 * 1024 * 1024))
+    server = ViewerServer(root, port=0, quiet=True)
+    server.start()
+    try:
+        port = server.server_address[1]
+        for _ in range(3):
+            s = socket.create_connection(("127.0.0.1", port), timeout=10)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close with a reset
+            s.sendall(b"GET /big.bin HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+            s.recv(1024)
+            s.close()
+        time.sleep(1.0)
+        assert raw_get(port, "/index.html") == (200, b"<p>viewer</p>")  # still serving
+    finally:
+        server.stop()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "Error" not in err, err
