@@ -110,6 +110,9 @@ def run_mesh(cfg: MeshConfig) -> dict:
     start = time.perf_counter()
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
     load_seconds = time.perf_counter() - start
+    if cfg.metrics and scene.mesh_path is not None:  # a damaged ground truth is named before any mesh is written
+        geometry.load_mesh_file(scene.mesh_path, "ground-truth mesh", "fix the scene's mesh file, or remove its "
+                                "mesh_path entry (or pass --no-metrics)")
     views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]

@@ -195,6 +195,107 @@ SCENE_COMMANDS = {
 ROWS += [([*args, f"{{{s}}}"], f"{{{s}}}/{f}") for args in SCENE_COMMANDS.values() for s, f in BAD_SCENES.items()]
 
 
+# ---- issue 28 (inputs): numeric options checked in one place, photos as they come, the right name
+INPUT_ROWS: list[tuple[list[str], str | None]] = [
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--frames", "100000000"],
+     "--frames 100000000"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--rots", "nan"], "--rots nan"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--arc", "inf"], "--arc inf"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--fps", "100000"], "--fps"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--device", "bogus"],
+     "--device 'bogus'"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{out}", *RENDER, "--threads", "0"], "--threads 0"),
+    (["synth", "--resolution", "20000", "--out", "{out}"], "--resolution 20000"),
+    (["synth", "--resolution", "16000", "--out", "{out}"], "needs about"),
+    (["synth", "--noise", "nan", "--out", "{out}"], "--noise nan"),
+    (["bench", "--ckpt", "{ck}", "--size", "30000", "30000", "--out", "{out}.json"], "--size 30000 30000"),
+    (["bench", "--ckpt", "{ck}", "--size", "16000", "12000", "--out", "{out}.json"], "--size 16000 12000 needs about"),
+    (["bench", "--ckpt", "{ck}", "--warmup", "-1", "--out", "{out}.json"], "--warmup -1"),
+    (["finetune", "--scene", "{with_test}", "--ckpt", "{ck_omni}", "--seconds", "inf", "--out", "{out}"], "--seconds inf"),
+    (["finetune", "--scene", "{with_test}", "--ckpt", "{ck_omni}", "--lr", "inf", "--out", "{out}"], "--lr inf"),
+    (["finetune", "--scene", "{with_test}", "--ckpt", "{ck_omni}", "--max-held-out", "0", "--out", "{out}"],
+     "--max-held-out 0"),
+    (["finetune", "--scene", "{with_test}", "--ckpt", "{ck_omni}", "--eval-at", "0", "nan", "--out", "{out}"],
+     "--eval-at"),
+    (["reconstruct", "{blender}", "--finetune-seconds", "inf", "--out", "{out}"], "--finetune-seconds inf"),
+    (["reconstruct", "{blender}", "--finetune-seconds", "nan", "--out", "{out}"], "--finetune-seconds nan"),
+    (["train", "--data", "{small}", "--out", "{out}", *TRAIN, "--lr", "inf"], "--lr inf"),
+    (["train", "--data", "{small}", "--out", "{out}", *TRAIN, "--lr", "nan"], "--lr nan"),
+    (["train", "--data", "{small}", "--out", "{out}", *TRAIN, "--clip", "-1"], "--clip -1"),
+    (["inspect", "{blender}", "--num-pairs", "0", "--out", "{out}"], "--num-pairs 0"),
+    (["inspect", "{blender}", "--downscale", "nan", "--out", "{out}"], "--downscale nan"),
+    (["process", "{blender}/train", "--fps", "inf", "--out", "{out}"], "--fps inf"),
+    (["mesh", "--scene", "{blender}", "--model", "floor", "--device", "gpu", "--out", "{out}.ply"], "--device 'gpu'"),
+    (["view", "{empty}", "--port", "70000", "--no-browser"], "--port 70000"),
+    # photos as they come
+    (["inspect", "{png_bomb}", "--out", "{out}"], "{png_bomb}/train/r_1.png"),
+    (["inspect", "{fifo_image}", "--out", "{out}"], "{fifo_image}/train/r_1.png"),
+    (["process", "{photos_bomb}", "--out", "{out}"], "{photos_bomb}/p1.png"),
+    (["process", "{photos_fifo}", "--out", "{out}"], "{photos_fifo}/p9.png"),
+    (["process", "/dev/zero", "--out", "{out}"], "/dev/zero"),
+    # the right name
+    (["inspect", "{angle0}", "--out", "{out}"], "{angle0}/transforms_train.json"),
+    (["inspect", "{nested_json}", "--out", "{out}"], "{nested_json}/transforms_train.json"),
+    (["inspect", "{llff_huge}", "--out", "{out}"], "{llff_huge}/poses_bounds.npy"),
+    (["mesh", "--scene", "{gt_text}", "--model", "floor", "--out", "{out}.ply"], "{gt_text}/mesh.ply"),
+    (["export", "--scene", "{blender}", "--ckpt", "{ck_omni}", "--mesh", "{text_ply}", "--out", "{out}"], "{text_ply}"),
+    (["finetune", "--scene", "{with_test}", "--ckpt", "{ck_omni}", "--mesh", "{text_ply}", "--out", "{out}"],
+     "{text_ply}"),
+    (["process", "{blender}/train", "--out", "/proc/omnirecon-no/x"], "/proc/omnirecon-no/x"),
+    (["process", "{blender}/train", "--out", "{a_file}/sub"], "{a_file}"),
+    (["process", "{blender}/train", "--out", "{dangling}"], "{dangling}"),
+]
+ROWS += INPUT_ROWS
+
+
+def _input_fixtures(root: Path) -> dict[str, Path]:
+    """The hostile inputs of INPUT_ROWS: photos that claim huge sizes or are FIFOs, bad fields and headers."""
+    import re
+    import struct
+    import zlib
+
+    p: dict[str, Path] = {}
+
+    def png_bomb(path: Path) -> None:  # a valid PNG header claiming 100,000 x 100,000 pixels, a few hundred bytes
+        def chunk(kind: bytes, data: bytes) -> bytes:
+            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        ihdr = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 0, 0, 0, 0)
+        path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 1000))
+                         + chunk(b"IEND", b""))
+
+    s = p["png_bomb"] = blender_scene(root / "png_bomb")
+    png_bomb(s / "train" / "r_1.png")
+    s = p["fifo_image"] = blender_scene(root / "fifo_image")
+    (s / "train" / "r_1.png").unlink()
+    os.mkfifo(s / "train" / "r_1.png")
+    for name in ("photos_bomb", "photos_fifo"):
+        d = p[name] = root / name
+        for i in range(4):
+            tiny_image(d / f"p{i}.png", w=32, h=24, seed=i)
+    png_bomb(p["photos_bomb"] / "p1.png")
+    os.mkfifo(p["photos_fifo"] / "p9.png")
+    s = p["angle0"] = blender_scene(root / "angle0")
+    meta = json.loads((s / "transforms_train.json").read_text())
+    (s / "transforms_train.json").write_text(json.dumps({**meta, "camera_angle_x": 0}))
+    s = p["nested_json"] = blender_scene(root / "nested_json")
+    (s / "transforms_train.json").write_text("[" * 100_000 + "]" * 100_000)
+    s = p["llff_huge"] = llff_scene(root / "llff_huge")
+    raw = (s / "poses_bounds.npy").read_bytes()
+    head = re.sub(rb"'shape': \(\d+, 17\)", b"'shape': (10000000000000, 17)", raw[:128])
+    (s / "poses_bounds.npy").write_bytes(head[:127].ljust(127) + b"\n" + raw[128:])
+    ascii_ply = ("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                 "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\nhello\n3 0 1 2\n")
+    s = p["gt_text"] = blender_scene(root / "gt_text")
+    meta = json.loads((s / "transforms_train.json").read_text())
+    (s / "transforms_train.json").write_text(json.dumps({**meta, "mesh_path": "mesh.ply"}))
+    (s / "mesh.ply").write_text(ascii_ply)
+    p["text_ply"] = root / "text.ply"
+    p["text_ply"].write_text(ascii_ply)
+    p["dangling"] = root / "dangling"
+    os.symlink(root / "no" / "such" / "folder", p["dangling"])
+    return p
+
+
 def _fill(text: str, paths: dict, out: Path) -> str:
     return text.replace("{out}", str(out)).format(**{k: str(v) for k, v in paths.items()})
 
@@ -321,6 +422,7 @@ def fixtures(tmp_path_factory) -> dict[str, Path]:
     f = s / "sparse" / "0" / "images.txt"
     f.write_text(f.read_text().replace("im1.png", "../../outside.png"))
     p.update(_ckpt_variants(root))
+    p.update(_input_fixtures(root))  # issue 28 (inputs) rows
     run = p["run_broken"] = root / "run_broken"  # a run folder whose only checkpoint is truncated
     shutil.copytree(p["ck_trunc"], run / "checkpoints" / "step_0000002")
     os.symlink("step_0000002", run / "checkpoints" / "latest")
