@@ -693,6 +693,7 @@ def section_encoder_lever(r: dict) -> str:
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
             "ablation_gpnr.json": section_ablation, "poses.json": section_poses,
             "reliability.json": section_reliability, "encoder_lever.json": section_encoder_lever}
+SECTIONS["hostile.json"] = lambda r: __import__("hostile").section(r)  # issue 28: bench/hostile.py
 
 
 def section_geometry_budget(results: Path) -> str | None:
