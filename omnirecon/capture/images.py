@@ -43,6 +43,9 @@ class StagedImages:
 def _visible_files(folder: Path) -> list[Path]:
     """Visible entries of ``folder`` but sub-folders; a FIFO, device or socket among them is refused (opening
     one would block or never end)."""
+    for p in folder.iterdir():
+        if p.is_dir() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTS:
+            raise InputError("a folder named like a photo", p, "move it out of the photo folder")
     files = sorted(p for p in folder.iterdir() if not p.name.startswith(".") and not p.is_dir())
     for p in files:
         regular_file(p, "file in the photo folder", "move it out of the photo folder")

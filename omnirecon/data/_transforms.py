@@ -63,7 +63,11 @@ class Frames:
         """``(w, h)`` from the json (first frame that declares it) and a phrase naming its file."""
         for f, src in zip(self.fields, self.sources):
             if f["w"] is not None and f["h"] is not None:
-                return (int(round(_num(f["w"], src, "w"))), int(round(_num(f["h"], src, "h")))), f"{src.name} gives"
+                w, h = int(round(_num(f["w"], src, "w"))), int(round(_num(f["h"], src, "h")))
+                if not (0 < w <= 100_000 and 0 < h <= 100_000):
+                    raise InputError(f"image size w={w}, h={h} is not a plausible size in pixels", src,
+                                     "give the images' width and height in pixels, or remove w and h")
+                return (w, h), f"{src.name} gives"
         return None, ""
 
     def cameras(self, width: int, height: int) -> tuple[Cameras, torch.Tensor]:

@@ -50,8 +50,8 @@ def read_json(path: Path) -> dict:
         raise InputError("file is missing", path, "check the path (or the scene's --format)")
     try:
         return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"invalid JSON ({e})", path, "fix or regenerate the file") from e
+    except (ValueError, UnicodeDecodeError) as e:  # JSONDecodeError, and ints over Python's digit limit
+        raise InputError(f"invalid JSON ({str(e)[:160]})", path, "fix or regenerate the file") from e
     except RecursionError:
         raise InputError("JSON nested too deeply to read", path, "fix or regenerate the file") from None
 
