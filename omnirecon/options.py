@@ -39,8 +39,8 @@ class Rule:
         if self.lo is not None and self.hi is not None:
             return f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
         if self.lo is not None:
-            return f"{'above' if self.above else 'at least'} {_num(self.lo)}"
-        return f"at most {_num(self.hi)}"
+            return f"{'>' if self.above else '>='} {_num(self.lo)}"
+        return f"<= {_num(self.hi)}"
 
     def ok(self, v: float) -> bool:
         if self.lo is not None and (v <= self.lo if self.above else v < self.lo):
@@ -55,7 +55,7 @@ def _num(v: float) -> str:
 DAY = 86_400.0
 COUNT = Rule(1, 1_000_000, example="e.g. 3")
 SEED = Rule(0, 2**32 - 1, example="e.g. 0")
-WEIGHT = Rule(0, 1e6, example="e.g. 1.0")
+WEIGHT = Rule(0, example="e.g. 1.0")
 FRACTION = Rule(0, 1, example="e.g. 0.5")
 PIXELS = Rule(8, 16_384, example="e.g. 128")
 
@@ -70,7 +70,7 @@ RULES: dict[str, Rule] = {
     "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
     "synth_count": Rule(1, 10_000, example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
     "max_views": COUNT, "max_targets": COUNT, "max_held_out": Rule(1, 10_000, example="e.g. 4"),
-    "max_faces": Rule(4, 100_000_000, example="e.g. 200000"), "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
+    "max_faces": Rule(0, example="e.g. 200000"), "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
     "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
     "min_views": Rule(1, 10_000, example="e.g. 2"), "num_pairs": Rule(1, 1_000, example="e.g. 4"),
     "labelled": Rule(1, 100_000, example="e.g. 6"), "pool": COUNT, "keep": Rule(1, 100_000, example="e.g. 2"),
@@ -99,7 +99,7 @@ RULES: dict[str, Rule] = {
     "label": Rule(0, 1_000_000, example="e.g. 1"), "dilation": Rule(0, 1_000, example="e.g. 1"),
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
-    "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
+    "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
     "trunc": Rule(0, 1e6, above=True, example="e.g. 0.02"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
     "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
     "shifts": Rule(-1e6, 1e6, example="e.g. 0.036"),
@@ -170,11 +170,11 @@ def check_options(command: str | None, config) -> None:
         shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
         for v in numbers:
             if not math.isfinite(v):
-                raise InputError(f"{_flag(f.name)} {shown} is not a finite number", None,
-                                 f"pass a number {rule.text() if rule else ''}, {rule.example if rule else ''}"
-                                 .replace(" ,", ",").strip(", "))
+                want = f"{rule.text()} (a finite number)" if rule else "a finite number"
+                raise InputError(f"{_flag(f.name)} must be {want}, got {shown}", None,
+                                 f"use {rule.example}" if rule and rule.example else "pass a finite number")
             if rule is not None and not rule.ok(v):
-                raise InputError(f"{_flag(f.name)} {shown} is out of range (must be {rule.text()})", None,
+                raise InputError(f"{_flag(f.name)} must be {rule.text()}, got {shown}", None,
                                  f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
     estimate = MEMORY.get(command or "")
     if estimate is not None:

@@ -42,7 +42,7 @@ def test_non_finite_is_refused_with_the_flag(value):
     from omnirecon.workflows.finetune import FinetuneConfig
 
     cfg = FinetuneConfig(scene=pathlib.Path("s"), ckpt=pathlib.Path("c"), seconds=value)
-    with pytest.raises(InputError, match="--seconds .* not a finite number"):
+    with pytest.raises(InputError, match="--seconds must be .* finite number.*got"):
         check_options("finetune", cfg)
 
 

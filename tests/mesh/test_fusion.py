@@ -144,7 +144,7 @@ def test_auto_scale_follows_the_pixel_footprint():
     (["--voxel", "-0.01"], "--voxel must be in (0, 0.1]"),
     (["--voxel", "nan"], "--voxel must be in (0, 0.1]"),
     (["--trunc", "0.5"], "--trunc must be in [1, 100] voxels"),
-    (["--max-faces", "-1"], "--max-faces >= 0"),
+    (["--max-faces", "-1"], "--max-faces must be >= 0"),
 ])
 def test_bad_mesh_options_give_one_line_errors(args, message, scene_path, tmp_path, capsys):
     code = main(["mesh", "--scene", str(scene_path), "--model", "floor", "--out", str(tmp_path / "m.ply"), *args])
