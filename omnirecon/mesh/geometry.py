@@ -211,7 +211,7 @@ def load_mesh_file(path, what: str = "mesh file", fix: str = "pass a valid .ply,
 
     path = Path(path)
     if not path.is_file():
-        raise InputError(f"{what} is missing or not a regular file", path, fix)
+        raise InputError(f"{what} {'is not a regular file' if path.exists() else 'does not exist'}", path, fix)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # e.g. NumPy's fromstring deprecation inside trimesh's PLY reader
