@@ -73,6 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         from omnirecon.options import check_options
 
         check_options(chosen, config)  # every numeric option of every verb, before any work
+        sys.stderr.write(box.getvalue())  # notes printed while the options were parsed (e.g. a large --chunk)
         with warnings.catch_warnings(record=True) as caught:  # libraries' warnings: kept off stderr ...
             warnings.simplefilter("default")
             try:

@@ -51,3 +51,15 @@ def test_memory_limit_is_solved_for():
         _check_memory([("--frames", "5000", 5000, lambda v: v * 1000.0)], available=2_000_000)
     assert "--frames 5000" in e.value.what and "--frames 1000 or less" in e.value.fix  # 50 % of 2 MB / 1 kB
     _check_memory([("--frames", "1000", 1000, lambda v: v * 1000.0)], available=2_000_000)
+
+
+def test_notes_printed_while_parsing_reach_stderr(tmp_path, capsys):
+    """MachineConfig's note on a --chunk above the memory ceiling is printed while tyro parses (whose stderr the
+    CLI captures for its error box): it must still reach the user."""
+    from omnirecon.chunk import ceiling
+    from omnirecon.cli import main
+
+    rc = main(["render", "--scene", str(tmp_path / "nope"), "--model", "floor", "--chunk", str(ceiling() + 1),
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "omnirecon: note: --chunk" in err and str(tmp_path / "nope") in err.splitlines()[-1], err
