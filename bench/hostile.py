@@ -463,7 +463,9 @@ def main(argv: list[str] | None = None) -> dict:
               "handled": verdicts["handled"], "handled_fraction": verdicts["handled"] / max(1, len(results)),
               "verdicts": verdicts, "per_class": per, "seconds": round(time.perf_counter() - t0, 1),
               "timeout_s": TIMEOUT, "extra_memory_gb": EXTRA_MEMORY / 2**30,
-              "failures": [r for r in results if r["verdict"] != "handled"], "results": results}
+              "failures": [r for r in results if r["verdict"] != "handled"],
+              "results": [{"class": r["class"], "verdict": r["verdict"], "exit": r["exit"], "seconds": r["seconds"],
+                           "args": " ".join(r["args"])[:200], "message": r["message"][:160]} for r in results]}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(record, indent=1, default=str))
     print(f"{record['handled']}/{record['cases']} handled ({100 * record['handled_fraction']:.1f} %); "
