@@ -485,6 +485,9 @@ def section(r: dict) -> str:
              f"**{r['handled']}/{r['cases']} handled ({100 * r['handled_fraction']:.1f} %)**; "
              + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in r["verdicts"].items() if k != "handled")
              + f"; {r['seconds']:.0f} s, load average {r['provenance'].get('load_average', ['?'])[0]:.1f}.", "",
+             f"*Provenance: commit {r['provenance'].get('commit')}, {r['provenance'].get('date')}, torch "
+             f"{r['provenance'].get('torch')}, {r['provenance'].get('torch_threads')} thread(s); time limit "
+             f"{r['timeout_s']:.0f} s and +{r['extra_memory_gb']:.0f} GB address space per case.*", "",
              "| class | cases | handled |", "|---|---:|---:|"]
     lines += [f"| {k} | {v['cases']} | {v['handled']} |" for k, v in sorted(r["per_class"].items())]
     if r["failures"]:
