@@ -31,6 +31,7 @@ def test_points_sit_at_their_z_depth():
         cam_z = (pts - cam.centers[0]) @ cam.forward[0]
         torch.testing.assert_close(cam_z, z.expand(len(rays), 7), atol=1e-9, rtol=0)
         torch.testing.assert_close((pts - rays.origins[:, None]).norm(dim=-1), rays.distances(zz), atol=1e-9, rtol=0)
+        torch.testing.assert_close(rays.points(zz, unit_z=True), pts, atol=1e-12, rtol=0)  # the other rounding
 
 
 def test_gather_lays_out_samples_per_point():

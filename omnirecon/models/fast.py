@@ -74,6 +74,9 @@ def from_env(text: str | None) -> FastPaths:
             fp = dataclasses.replace(fp, **REFERENCE)
             continue
         name, _, value = item.partition("=")
+        if name in ("fine_pass", "surface_samples"):
+            raise ValueError(f"OMNIRECON_FAST: {name} changes the output, so it is not a switch; it is an argument "
+                             "of render_view / render_rays (mesh: --depth-pass coarse)")
         kind = {f.name: f.type for f in dataclasses.fields(FastPaths)}.get(name)
         if kind is None or not value:
             raise ValueError(f"OMNIRECON_FAST: bad item {item!r}; use reference or name=value with a name of "
@@ -88,7 +91,6 @@ REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "prea
 
 FAST = from_env(os.environ.get("OMNIRECON_FAST"))
 """The process-wide switches read by the models (defaults, or ``OMNIRECON_FAST``)."""
-
 
 
 _RENDERING = [0]

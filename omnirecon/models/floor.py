@@ -54,7 +54,7 @@ class PlaneSweep(GeneralizableModel):
         R, S = len(rays), self.cfg.num_depths
         near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
         z = sample_along_rays(near, torch.full_like(near, src.far), S, inverse_depth=src.rig == "forward")  # [R, S]
-        proj = project(cams, rays.points(z))  # [R, S, 3] points
+        proj = project(cams, rays.points(z, unit_z=True))  # [R, S, 3] points
         rgb = gather(src.images.permute(0, 3, 1, 2), proj)  # [R, S, V, 3]
         m = proj.mask[..., None].to(rgb.dtype)  # [R, S, V, 1]
         count = m.sum(2)  # [R, S, 1]

@@ -209,7 +209,7 @@ class IBRNet(GeneralizableModel):
         ``# [R, S, V, C]``, else None."""
         src = feats.sources
         cams = src.cameras
-        pts = rays.points(z)  # [R, S, 3]
+        pts = rays.points(z, unit_z=True)  # [R, S, 3]
         proj = project(cams, pts)
         C = self.cfg.feature_dim
         maps = feats.maps[:, half * C:(half + 1) * C]

@@ -162,6 +162,8 @@ def test_switches_from_environment():
     assert fp.compile is True and fp.render_batch == 64 and fp.inference_mode is True
     with pytest.raises(ValueError, match="OMNIRECON_FAST"):
         fast.from_env("warp_speed=9")
+    with pytest.raises(ValueError, match="not a switch"):
+        fast.from_env("fine_pass=0")
 
 
 def test_reference_twins_share_signatures():
