@@ -213,8 +213,7 @@ class IBRNet(GeneralizableModel):
         proj = project(cams, pts)
         C = self.cfg.feature_dim
         maps = feats.maps[:, half * C:(half + 1) * C]
-        rgb_feat = torch.cat([gather(src.images.permute(0, 3, 1, 2), proj, "border"),
-                              gather(maps, proj, "zeros")], -1)  # [R, S, V, 3+C]
+        rgb_feat = gather([src.images.permute(0, 3, 1, 2), maps], proj, ["border", "zeros"])  # [R, S, V, 3+C]
         a = F.normalize(rays.origins[:, None, None] - pts[:, :, None], dim=-1)  # to target  [R, S, 1, 3]
         b = F.normalize(cams.centers[None, None] - pts[:, :, None], dim=-1)  # to sources [R, S, V, 3]
         ray_diff = torch.cat([F.normalize(a - b, dim=-1), (a * b).sum(-1, keepdim=True)], -1)

@@ -21,6 +21,9 @@ from torch import Tensor
 
 from omnirecon.cameras import Cameras
 
+Padding = Literal["zeros", "border"]
+"""Where a sample falls outside a map: zeros, or the nearest border pixel."""
+
 
 class Projection(NamedTuple):
     """Where points land in each of ``V`` views."""
@@ -54,15 +57,22 @@ def project(cameras: Cameras, points: Tensor, dtype: torch.dtype | None = None) 
     return Projection(grid.to(dtype or points.dtype)[:, None], proj.in_image, tuple(points.shape[:-1]))
 
 
-def sample(maps: Tensor, projection: Projection, padding: Literal["zeros", "border"] = "zeros") -> Tensor:
+def sample(maps: Tensor, projection: Projection, padding: Padding = "zeros") -> Tensor:
     """Bilinear samples of per-view ``maps # [V, C, H, W]`` at a :class:`Projection`. ``# [V, C, P]``"""
     out = F.grid_sample(maps, projection.grid.to(maps.dtype), align_corners=False, padding_mode=padding)
     return out[:, :, 0]
 
 
-def gather(maps: Tensor, projection: Projection, padding: Literal["zeros", "border"] = "zeros") -> Tensor:
+def gather(maps: Tensor | list[Tensor], projection: Projection, padding: Padding | list[Padding] = "zeros") -> Tensor:
     """:func:`sample` laid out per point: per-view ``maps # [V, C, H, W]`` at the projected points of shape
-    ``[R, S]`` (``projection.shape``), views and channels last. ``# [R, S, V, C]`` (a view, not a copy)"""
-    out = sample(maps, projection, padding)  # [V, C, P]
+    ``[R, S]`` (``projection.shape``), views and channels last. ``# [R, S, V, C]`` (a view of the samples).
+
+    A list of maps (one ``padding`` each) gives their samples concatenated along the channels, in one
+    buffer laid out as the single-map case (``# [R, S, V, C1 + C2 + ...]``)."""
+    if isinstance(maps, Tensor):
+        out = sample(maps, projection, padding)  # [V, C, P]
+    else:
+        pads = [padding] * len(maps) if isinstance(padding, str) else padding
+        out = torch.cat([sample(m, projection, p) for m, p in zip(maps, pads)], 1)  # [V, C1 + C2 + ..., P]
     shape = projection.shape or (out.shape[-1],)
     return out.reshape(*out.shape[:2], *shape).permute(*range(2, len(shape) + 2), 0, 1)
