@@ -49,3 +49,16 @@ def test_gather_lays_out_samples_per_point():
     assert torch.equal(proj.mask, proj.in_image.reshape(len(cams), 6, 4).permute(1, 2, 0))
     ref = F.grid_sample(maps, proj.grid, align_corners=False, padding_mode="border")[:, :, 0]
     assert torch.equal(flat, ref)
+
+
+def test_gather_of_several_maps_concatenates_channels():
+    """gather([a, b], paddings): the samples of each map with its padding, channels concatenated, laid out
+    as a single map's samples (same strides: reductions over views round the same way)."""
+    torch.manual_seed(1)
+    cams = rig(dtype=torch.float32)
+    proj = project(cams, torch.randn(5, 3, 3))
+    a = torch.rand(len(cams), 3, cams.height, cams.width)
+    b = torch.rand(len(cams), 4, cams.height, cams.width)
+    both = gather([a, b], proj, ["border", "zeros"])
+    assert torch.equal(both, torch.cat([gather(a, proj, "border"), gather(b, proj, "zeros")], -1))
+    assert both.stride() == gather(torch.cat([a, b], 1), proj).stride()
