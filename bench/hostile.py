@@ -363,6 +363,9 @@ def _http_case(argv: list[str]) -> int:
         return 0 if get(b"GET /index.html HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n") == 200 else 3
     finally:
         server.stop()
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
