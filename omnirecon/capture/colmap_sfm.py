@@ -358,8 +358,9 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
         with stages.stage("retries", None):
 
-            def consider(cand: list, k: int, database: Path) -> None:
+            def consider(cand: list, database: Path) -> None:  # the attempt just made
                 nonlocal models, chosen, best_db
+                k = len(attempts) - 1
                 better = cand and (not models or cand[0].num_reg_images() > models[0].num_reg_images())
                 agree = better and models and agreement(models[0], cand[0])
                 attempts[k]["agrees_deg"] = agree if agree else None
@@ -370,12 +371,12 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 db2 = work / "database_affine.db"
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
-                consider(attempt("affine SIFT", db2, False), len(attempts), db2)
+                consider(attempt("affine SIFT", db2, False), db2)
             if models:  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
                 models[0].write(start)
-                consider(attempt("relaxed, continuing the largest model", best_db, True, start), len(attempts), best_db)
+                consider(attempt("relaxed, continuing the largest model", best_db, True, start), best_db)
     if chosen < len(attempts):
         attempts[chosen]["kept"] = True
     if not models:
