@@ -44,7 +44,7 @@ overlapping views can still be posed."""
 AGREE_DEG = (2.0, 5.0)
 """A retry's model replaces the current one only if, on the images both pose, their rotations agree
 to this median and maximum (degrees) after a similarity alignment: more images, never other poses."""
-MIN_MATCHES = 15  # verified matches a pair needs in the first mapping (COLMAP's default)
+MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's default)
 
 
 @dataclass
@@ -392,7 +392,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                        "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts)
     if len(registered) < n:
         result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], match_graph(best_db),
-                                      RELAXED["min_num_matches"] if attempts[chosen]["relaxed"] else MIN_MATCHES)
+                                      MIN_MATCHES)
     need = max(3, int(-(-options.min_registered * n // 1)))
     if len(registered) < need:
         missing = result.unregistered
