@@ -231,18 +231,27 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--encoder", default="scratch", choices=["scratch", "vgg16", "alexnet"],
                    help="image encoder (docs/pretrained.md): the model's own from scratch, or a frozen pretrained one")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
+    p.add_argument("--run-name", default=None,
+                   help="run folder under outputs/train (default: <model>_bench, the shipped checkpoint's run)")
+    p.add_argument("--no-ship", action="store_true",
+                   help="leave checkpoints/<model>/ alone (a candidate run: ship it with --reship once validation "
+                        "says it is better)")
     p.add_argument("--reship", action="store_true",
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
     a = p.parse_args(argv)
     if a.reship:
-        print(f"shipped {ship(a.model, ROOT / 'outputs' / 'train' / f'{a.model}_bench', a.cpu_budget, a.threads, a.steps)}")
+        run = ROOT / "outputs" / "train" / (a.run_name or f"{a.model}_bench")
+        print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
         return
     prepare(a.synth_scenes)
     if a.prepare:
         return
     overrides = [f"encoder={a.encoder}"] if a.encoder != "scratch" else []
-    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, stop_at=a.stop_at,
-                views=tuple(a.num_views_range) if a.num_views_range else None)
+    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, name=a.run_name,
+                stop_at=a.stop_at, views=tuple(a.num_views_range) if a.num_views_range else None)
+    if a.no_ship:
+        print(f"trained {run} (not shipped: --no-ship)")
+        return
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
 
