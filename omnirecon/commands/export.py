@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 from omnirecon.workflows.export import ExportConfig, run_export
 
 
@@ -10,8 +10,8 @@ class ExportCommand(ExportConfig):
     __doc__ = ExportConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        record = run_export(self)
+        with claim(self.out, "export", inputs=(self.ckpt, self.scene, self.mesh)):  # see outputs.claim
+            record = run_export(self)
         for p in record["files"]:
             print(f"wrote {p}")
         b = record["bake"]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
 
@@ -10,8 +10,8 @@ class FinetuneCommand(FinetuneConfig):
     __doc__ = FinetuneConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        result = run_finetune(self)
+        with claim(self.out, "finetune", inputs=(self.ckpt, self.scene, self.mesh)):  # see outputs.claim
+            result = run_finetune(self)
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(
             f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:]))

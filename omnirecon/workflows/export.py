@@ -57,15 +57,17 @@ class ExportConfig(MachineConfig):
     """Colour RGBA inputs are composited on."""
 
 
-def run_export(cfg: ExportConfig) -> dict:
-    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``)."""
+def run_export(cfg: ExportConfig, mesh=None) -> dict:
+    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``). ``mesh``: a
+    ``trimesh.Trimesh`` in the input frame handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()
     check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
-    mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None
+    if mesh is None and cfg.mesh is not None:
+        mesh = read_mesh(cfg.mesh)
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     fmt = detect_format(cfg.scene)

@@ -159,8 +159,9 @@ class Clock:
 
 
 # ---------------------------------------------------------------------- the run
-def run_finetune(cfg: FinetuneConfig) -> dict:
-    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``."""
+def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
+    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
+    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
     import trimesh
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -188,7 +189,9 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
         (0.0,) * 3 if proto.background == "black" else (1.0,) * 3)
 
     # the fixed mesh, rasterized once per view
-    if cfg.mesh is not None:
+    if mesh is not None:
+        pass
+    elif cfg.mesh is not None:
         if not Path(cfg.mesh).is_file():
             raise InputError("mesh file does not exist", cfg.mesh, "pass a .ply/.obj/.glb written by `omnirecon mesh`")
         mesh = trimesh.load(cfg.mesh, force="mesh", process=False)
