@@ -657,6 +657,24 @@ def section_reliability(r: dict) -> str:
                 f"{v['leftovers_after_rerun']} | {v['rerun_failed']} |" for k, v in r["kill"].items()]
         if r.get("kill_provenance"):
             out += ["", "kill -9 runs: " + _prov(r["kill_provenance"])]
+    for sig, rows in r.get("output_sets", {}).items():
+        out += ["", f"**{sig} into a run that replaces a previous output of its own** (variants A and B alternate; "
+                "the moment drawn in 5-75 % of an uninterrupted run): the output must be the old set or the complete "
+                "new one; then the same command again to completion:", "",
+                "| command | signals | old set kept | new set complete | mixed or missing | hung | re-run failed "
+                "| leftovers after the re-run |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+        out += [f"| {k} | {v['signals']} | {v['old_set_kept']} | {v['new_set_complete']} | {v['mixed']} | {v['hung']} "
+                f"| {v['rerun_failed']} | {v['leftovers_after_rerun']} |" for k, v in rows.items()]
+    if r.get("concurrent"):
+        out += ["", "**Two runs started together on one `--out`** (one must finish, the other be refused by the lock "
+                "with one line; one complete output):", "",
+                "| command | pairs | one finished, one refused | both finished | other | incomplete output | leftovers |",
+                "|---|---:|---:|---:|---:|---:|---:|"]
+        out += [f"| {k} | {v['pairs']} | {v['one_finished_one_refused']} | {v['both_finished']} | "
+                f"{v['other'] + v['both_failed']} | {v['incomplete_output']} | {v['leftovers']} |"
+                for k, v in r["concurrent"].items()]
+    if r.get("outputs_provenance"):
+        out += ["", "Output-set and concurrent runs: " + _prov(r["outputs_provenance"])]
     out += ["", _prov(r["provenance"])]
     return "\n".join(out)
 

@@ -364,9 +364,9 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
                 write_marker(out, command)
             return
         replaced = None
+        if overwrite is False and out.exists():
+            raise InputError("output folder already exists", out, f"choose another {flag}, or add --overwrite")
         if existed:
-            if overwrite is False:
-                raise InputError("output folder already exists", out, f"choose another {flag}, or add --overwrite")
             if marker is None:
                 raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it is never replaced",
                                  out, f"choose a new or empty folder for {flag}")
