@@ -152,3 +152,22 @@ def test_mesh_set_is_replaced_whole(scene, tmp_path, run_cli, monkeypatch):
     code, _, err = run_cli(["mesh", "--scene", scene, "--out", out, "--no-metrics", "--no-preview", *MESH])
     assert code == 0, err
     assert sorted(_files(tmp_path)) == ["m.ply"]
+
+
+@pytest.mark.parametrize("verb", ["process", "reconstruct", "train", "export", "finetune", "synth", "eval", "inspect",
+                                  "lift", "demo"])
+def test_every_writing_verb_takes_the_lock(verb, scene, tmp_path, run_cli):
+    """The issue's "two runs to one --out" for every writing verb: while a run holds --out, another is refused
+    with one line before it does any work (render and mesh: above)."""
+    pytest.importorskip("pycolmap") if verb == "process" else None
+    out = tmp_path / "o"
+    ck = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
+    args = {"process": ["process", scene / "train"], "reconstruct": ["reconstruct", scene],
+            "train": ["train", "--data", scene, "--model", "gpnr-tiny"], "export": ["export", "--scene", scene,
+            "--ckpt", ck], "finetune": ["finetune", "--scene", scene, "--ckpt", ck], "synth": ["synth"],
+            "eval": ["eval", "--model", "floor", "--scenes", scene], "inspect": ["inspect", scene],
+            "lift": ["lift", "--ckpt", ck, "--scene", scene], "demo": ["demo"]}[verb]
+    with out_lock(out, "process"):
+        code, _, err = run_cli([*args, "--out", out])
+    assert code == 2 and "another omnirecon run is writing --out" in err and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
