@@ -18,6 +18,12 @@
   tool writes into every output folder, and the replacement is said before any work starts.
   ``mode="fill"`` (the other verbs, and ``train``, whose ``--resume`` continues the folder) writes in
   place under the lock and marks a folder it created.
+* A record written in a temporary folder must name the final paths: before the swap,
+  :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
+  to it (so they hold for ``--out``).
+
+Size: the whole output policy (checks, lock, marker, swap, records) in one module, so that every verb
+follows the same rules.
 """
 
 from __future__ import annotations
@@ -136,8 +142,9 @@ def atomic_files(paths):
 
 
 def prepare_out(*paths: Path | None, kind: str = "folder", recursive: bool = False) -> None:
-    """What every writing command calls first: :func:`check_writable` on each output path (``None``, a
-    default under ``outputs/``: that folder is checked) and :func:`clean_stale` on its folder."""
+    """:func:`check_writable` on each output path (``None``, a default under ``outputs/``: that folder is
+    checked) and :func:`clean_stale` on its folder. Checks only: writing verbs take their ``--out`` with
+    :func:`claim`, which runs these checks too."""
     for path in paths or (None,):
         path = Path("outputs") if path is None else Path(path)
         check_writable(path, "folder" if path.name == "outputs" and not path.suffix else kind)
@@ -316,6 +323,46 @@ def restore_swapped(out: Path) -> None:
             return
 
 
+def relative_to(value, folder: Path):
+    """``value`` (JSON-like) with every string naming ``folder`` or a path inside it made relative to
+    ``folder`` (``"."`` for the folder itself); other strings unchanged."""
+    prefixes = sorted({str(folder), str(Path(folder).absolute()), str(real(folder))}, key=len, reverse=True)
+
+    def fix(v):
+        if isinstance(v, str):
+            for p in prefixes:
+                if v == p:
+                    return "."
+                if v.startswith(p + os.sep):
+                    return v[len(p) + 1:]
+            return v
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        return v
+
+    return fix(value)
+
+
+def relative_records(folder: Path) -> list[Path]:
+    """Apply :func:`relative_to` to every JSON file under ``folder`` (rewritten atomically); returns those
+    changed. Files that are not JSON are left alone."""
+    changed = []
+    for f in sorted(Path(folder).rglob("*.json")):
+        try:
+            data = json.loads(f.read_text())
+        except (OSError, ValueError):
+            continue
+        new = relative_to(data, folder)
+        if new != data:
+            tmp = f.parent / f".{f.stem}.pid{os.getpid()}.json"
+            tmp.write_text(json.dumps(new, indent=1))
+            os.replace(tmp, f)
+            changed.append(f)
+    return changed
+
+
 @dataclass
 class Claim:
     """A verb's hold on its output: write into ``work`` (``out`` itself, or its temporary twin)."""
@@ -379,6 +426,7 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
         tmp.mkdir()
         try:
             yield Claim(out, tmp, command, replaced)
+            relative_records(tmp)
             write_marker(tmp, command)
             swap_in(tmp, out)
         finally:

@@ -23,7 +23,6 @@ once, for the user.
 
 from __future__ import annotations
 
-import json
 import statistics
 import time
 from dataclasses import dataclass
@@ -41,7 +40,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames
-from omnirecon.outputs import claim
+from omnirecon.outputs import claim, relative_to
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.workflows.export import ExportConfig, run_export
@@ -109,43 +108,9 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     out = Path(cfg.out)
     with claim(out, "reconstruct", inputs=(cfg.path, cfg.ckpt, cfg.masks), mode="replace",
                overwrite=cfg.overwrite) as owned:
-        record = _stages(cfg, owned.work)
-        relative_records(owned.work)
+        record = relative_to(_stages(cfg, owned.work), owned.work)  # claim does the same to the JSON records
     record["report"] = str(out / "index.html")
     return record
-
-
-def relative_records(folder: Path) -> int:
-    """Rewrite every JSON record under ``folder`` so that a string naming ``folder`` or a path inside it
-    becomes that path relative to ``folder`` (``"."`` for the folder itself); returns the files changed.
-    Runs on the temporary folder just before it is swapped in: the records then hold for ``--out``."""
-    prefixes = sorted({str(folder), str(folder.resolve()), str(folder.absolute())}, key=len, reverse=True)
-
-    def fix(v):
-        if isinstance(v, str):
-            for p in prefixes:
-                if v == p:
-                    return "."
-                if v.startswith(p + "/"):
-                    return v[len(p) + 1:]
-            return v
-        if isinstance(v, list):
-            return [fix(x) for x in v]
-        if isinstance(v, dict):
-            return {k: fix(x) for k, x in v.items()}
-        return v
-
-    changed = 0
-    for f in sorted(folder.rglob("*.json")):
-        try:
-            data = json.loads(f.read_text())
-        except (OSError, ValueError):
-            continue
-        new = fix(data)
-        if new != data:
-            write_json(f, new)
-            changed += 1
-    return changed
 
 
 def _stages(cfg: ReconstructConfig, out: Path) -> dict:

@@ -171,3 +171,14 @@ def test_every_writing_verb_takes_the_lock(verb, scene, tmp_path, run_cli):
         code, _, err = run_cli([*args, "--out", out])
     assert code == 2 and "another omnirecon run is writing --out" in err and len(err.strip().splitlines()) == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_records_name_final_paths_not_the_temporary_folder(tmp_path):
+    """What a verb records while it builds in the temporary folder holds for --out after the swap."""
+    out = tmp_path / "rec"
+    with claim(out, "reconstruct", mode="replace", overwrite=False) as c:
+        (c.work / "export").mkdir()
+        (c.work / "export" / "export.json").write_text(json.dumps(
+            {"files": [str(c.work / "export" / "mesh.glb")], "out": str(c.work.absolute()), "input": str(tmp_path)}))
+    assert json.loads((out / "export" / "export.json").read_text()) == {
+        "files": ["export/mesh.glb"], "out": ".", "input": str(tmp_path)}
