@@ -182,3 +182,17 @@ def test_records_name_final_paths_not_the_temporary_folder(tmp_path):
             {"files": [str(c.work / "export" / "mesh.glb")], "out": str(c.work.absolute()), "input": str(tmp_path)}))
     assert json.loads((out / "export" / "export.json").read_text()) == {
         "files": ["export/mesh.glb"], "out": ".", "input": str(tmp_path)}
+
+
+def test_two_rename_fallback_replaces_too(tmp_path, monkeypatch):
+    """Kernels or file systems without RENAME_EXCHANGE: the swap is two renames, same result."""
+    from omnirecon import outputs
+
+    out = tmp_path / "r"
+    with claim(out, "render", mode="replace") as c:
+        (c.work / "a.txt").write_text("old")
+    monkeypatch.setattr(outputs, "_exchange", lambda a, b: False)
+    with claim(out, "render", mode="replace", say=lambda s: None) as c:
+        (c.work / "b.txt").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "b.txt"]
