@@ -405,8 +405,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--why", default="fixes", help="what changed since the run in --out (with --rerun)")
     parser.add_argument("--outputs-only", action="store_true", help="rerun only the output-set signal runs (kill -9 "
                         "and SIGINT) and the concurrent runs into --out")
-    parser.add_argument("--signals", type=int, default=5, help="with --outputs-only: signals per command and kind")
-    parser.add_argument("--pairs", type=int, default=2, help="with --outputs-only: concurrent pairs per command")
+    parser.add_argument("--signals", type=int, default=5, help="signals per command and kind into replacing runs (0: skip)")
+    parser.add_argument("--pairs", type=int, default=2, help="concurrent pairs per command (0: skip)")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
     from omnirecon.provenance import git_commit, provenance
@@ -458,6 +458,11 @@ def main(argv: list[str] | None = None) -> dict:
     result["fuzz"] = fuzz_counts(args.fuzz_examples)
     if args.kills > 0:
         result["kill"] = kill_runs(args.kills)
+    if args.signals > 0:
+        result["output_sets"] = {"SIGKILL": signal_runs(args.signals, signal.SIGKILL),
+                                 "SIGINT": signal_runs(args.signals, signal.SIGINT, seed=1)}
+    if args.pairs > 0:
+        result["concurrent"] = concurrent_runs(args.pairs)
     result["seconds"] = round(time.perf_counter() - start, 1)
     write_json(args.out, result)
     m, f = result["malformed"], result["fuzz"]

@@ -67,7 +67,8 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         "ablation": lambda: ablation_gpnr.main([*t, "--threads", str(threads),
                                                 "--out", str(results / "ablation_gpnr.json")]),
         "poses": lambda: _run_poses(results, tiny, threads),
-        "reliability": lambda: reliability.main([*(["--fuzz-examples", "50", "--kills", "1"] if tiny else []),
+        "reliability": lambda: reliability.main([*(["--fuzz-examples", "50", "--kills", "1", "--signals", "1",
+                                                    "--pairs", "1"] if tiny else []),
                                                  "--out", str(results / "reliability.json")]),
         "fast_paths": lambda: fast_paths.main(["--out", str(results / "fast_paths.json")]),
         "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", os.environ["IBRNET_ROOT"]]
