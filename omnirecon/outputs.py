@@ -182,7 +182,7 @@ def check_outside_inputs(out: Path, inputs, flag: str = "--out") -> None:
     change or delete the inputs)."""
     o = real(out)
     for given in inputs:
-        if given is None:
+        if given is None or not os.path.lexists(given):  # a name such as synth:eval, or a missing path: not harmed
             continue
         i = real(given)
         if o == i or i in o.parents:

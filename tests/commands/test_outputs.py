@@ -196,3 +196,10 @@ def test_two_rename_fallback_replaces_too(tmp_path, monkeypatch):
         (c.work / "b.txt").write_text("new")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r"]
     assert sorted(p.name for p in out.iterdir()) == [MARKER, "b.txt"]
+
+
+def test_names_that_are_not_paths_are_not_inputs(tmp_path, monkeypatch):
+    """`lift --out .` with the default scene synth:eval: the name is not a folder of the working directory."""
+    monkeypatch.chdir(tmp_path)
+    with claim(Path("."), "lift", inputs=("synth:eval", None)) as c:
+        assert c.work == Path(".")
