@@ -57,6 +57,11 @@ class ExportConfig(MachineConfig):
     """Colour RGBA inputs are composited on."""
 
 
+def default_out(cfg: ExportConfig) -> Path:
+    """``--out``, or ``outputs/export/<scene>``."""
+    return cfg.out or Path("outputs/export") / Path(cfg.scene).name
+
+
 def run_export(cfg: ExportConfig, mesh=None) -> dict:
     """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``). ``mesh``: a
     ``trimesh.Trimesh`` in the input frame handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
@@ -75,7 +80,7 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     proto = protocol_for(Path(cfg.scene), fmt)
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
-    out = cfg.out or Path("outputs/export") / Path(cfg.scene).name
+    out = default_out(cfg)
     mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
     if mesh is None:
         mesh_options.check()

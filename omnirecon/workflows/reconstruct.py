@@ -40,7 +40,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames
-from omnirecon.outputs import claim, relative_to
+from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.workflows.export import ExportConfig, run_export
@@ -163,6 +163,8 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
                                        resolution=side, num_views=cfg.num_views, viewer=cfg.viewer,
                                        device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=meshes["input"])
+    for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
+        write_marker(out / sub, verb)
     lap("export")
 
     # ---------------------------------------------------------------- camera path through the tuned mesh path

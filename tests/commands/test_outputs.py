@@ -203,3 +203,23 @@ def test_names_that_are_not_paths_are_not_inputs(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     with claim(Path("."), "lift", inputs=("synth:eval", None)) as c:
         assert c.work == Path(".")
+
+
+def test_export_replaces_its_set_whole(scene, tmp_path, run_cli):
+    """A second export into the same --out (here without the viewer) leaves no member of the first behind,
+    and its record names the final folder."""
+    ck = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
+    code, _, err = run_cli(["mesh", "--scene", scene, "--out", tmp_path / "m.ply", *MESH])
+    assert code == 0, err
+    out = tmp_path / "e"
+    args = ["export", "--scene", scene, "--ckpt", ck, "--mesh", tmp_path / "m.ply", "--no-viewer", "--threads", "1",
+            "--device", "cpu", "--out", out]
+    code, _, err = run_cli(args)
+    assert code == 0, err
+    (out / "viewer").mkdir()  # what an earlier export with the viewer left
+    (out / "viewer" / "bundle.json").write_text("{}")
+    code, stdout, err = run_cli(args)
+    assert code == 0 and f"replacing {out}: an omnirecon export output" in stdout, err
+    assert f"wrote {out / 'mesh.glb'}" in stdout
+    assert not (out / "viewer").exists()
+    assert ".tmp" not in (out / "export.json").read_text()
