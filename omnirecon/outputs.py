@@ -12,7 +12,7 @@
 * :func:`claim` is how every writing verb takes its ``--out``: the path is checked (writable, neither
   inside nor holding an input), locked (one run per ``--out``: ``fcntl.flock`` on ``.NAME.lock`` beside
   it; a second run gets one line naming the first), and, for verbs whose output is a whole folder
-  (``mode="replace"``: process, reconstruct, render, export), built in ``.NAME.tmpPID`` and swapped in at the end
+  (``mode="replace"``: process, reconstruct, render, export, finetune), built in ``.NAME.tmpPID`` and swapped in at the end
   (``renameat2(RENAME_EXCHANGE)`` where the kernel has it), so an interrupt leaves the old folder or the
   complete new one. A folder is only ever replaced when it holds the marker :data:`MARKER` that this
   tool writes into every output folder, and the replacement is said before any work starts.
