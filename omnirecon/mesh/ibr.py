@@ -17,6 +17,12 @@ points seen just past an occluder's silhouette. Masked views are treated exactly
 projects outside of (``OmniRecon.shade``'s ``visible`` argument): a point no view sees blends all
 views uniformly, as in the volumetric path.
 
+**Fill** (``MeshRenderOptions.fill``, not in the paper). Pixels no triangle covers are not left at a
+background colour: by default they get a *background layer*, the point where the pixel's ray leaves
+the scene's bounds box (the box's far side), never farther than the sources' far z-depth
+(:func:`fill_points`), shaded by the same image-based blend as the surface. ``render`` reports which
+pixels lie on real surface (``mask``); their fraction is the view's coverage.
+
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
 like the source RGB (bilinear, border padding, at any resolution covering the source images) and
@@ -37,7 +43,8 @@ layers), and the source colours are sampled exactly as the model does. ``fused=F
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -54,7 +61,12 @@ class MeshRenderOptions:
     """Settings of :class:`MeshRenderer`."""
 
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """Colour of pixels no triangle covers (DTU: white; procedural scenes: ``Scene.background``)."""
+    """Colour of pixels no triangle covers when ``fill="background"`` (DTU: white; procedural scenes:
+    ``Scene.background``); also what :meth:`MeshRenderer.render_signal` leaves there."""
+    fill: Literal["far", "background"] = "far"
+    """What :meth:`MeshRenderer.render` puts where no triangle covers a pixel: ``"far"``, a background
+    layer (the ray's exit from the sources' bounds box, at most at their far z-depth) shaded by the same
+    blend as the surface, so no pixel is left blank; ``"background"``, the ``background`` colour."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -87,6 +99,9 @@ class ShadeResult:
     only the colour was asked for). ``# [K, 2, P]``"""
     rgb: Tensor | None = None
     """Blended source colour, when the shader computed it on the way. ``# [P, 3]``"""
+    covered: int | None = None
+    """The first ``covered`` pixels lie on the mesh, the rest on the fill's background layer
+    (``None``: every pixel is on the mesh)."""
 
 
 class TexelAtlas:
@@ -162,6 +177,37 @@ def _norm(d: Tensor) -> Tensor:
     sq = d[0] * d[0]
     sq.addcmul_(d[1], d[1]).addcmul_(d[2], d[2])
     return sq.sqrt_().clamp_min_(1e-12)[None]
+
+
+def fill_points(camera: Cameras, pixels: Tensor, far: float, bounds: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """The background layer at flat pixel indices ``pixels # [M]`` of one camera: where each pixel-centre
+    ray leaves the box ``bounds # [2, 3]`` (its far side), at most at z-depth ``far`` (rays that miss the
+    box, or no box: at ``far``). Returns world ``points # [M, 3]`` and their z-depths ``# [M]`` (float32)."""
+    uv = camera.pixel_centers().reshape(-1, 2)[pixels.to(camera.device)]  # [M, 2]
+    o, d = camera.rays(uv[None], normalize=False)  # [1, M, 3]: origin + z * d is at z-depth z
+    o, d = o[0].double(), d[0].double()
+    z = torch.full((len(uv),), float(far), dtype=torch.float64, device=o.device)
+    if bounds is not None:
+        b = bounds.to(o)
+        safe = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
+        t1, t2 = (b[0] - o) / safe, (b[1] - o) / safe  # [M, 3]
+        t_in, t_out = torch.minimum(t1, t2).amax(-1), torch.maximum(t1, t2).amin(-1)  # [M]
+        hit = (t_out > t_in.clamp_min(0)) & (t_out > 0)
+        z = torch.where(hit, torch.minimum(t_out, z), z)
+    return (o + z[:, None] * d).float(), z.float()
+
+
+def with_fill(surface: Surface, camera: Cameras, far: float, bounds: Tensor | None = None) -> tuple[Surface, int]:
+    """``surface`` plus the background layer (:func:`fill_points`) at every pixel it does not cover; the
+    first returned count of pixels are the real surface's."""
+    covered = torch.zeros(surface.height * surface.width, dtype=torch.bool)
+    covered[surface.pixels] = True
+    miss = (~covered).nonzero()[:, 0]
+    if not len(miss):
+        return surface, len(surface.pixels)
+    points, depth = fill_points(camera, miss, far, bounds)
+    return replace(surface, pixels=torch.cat([surface.pixels, miss]), points=torch.cat([surface.points, points]),
+                   depth=torch.cat([surface.depth, depth])), len(surface.pixels)
 
 
 class MeshRenderer:
@@ -255,20 +301,23 @@ class MeshRenderer:
         flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
         return z <= dmax.reshape(-1)[flat] * (1 + self.options.visibility_tol)
 
-    def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True) -> ShadeResult:
+    def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True, fill: bool = False) -> ShadeResult:
         """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels
         (with ``with_rgb``, also their blended source colour; ``with_coords=False`` skips storing the
-        source coordinates that :meth:`blend` needs)."""
+        source coordinates that :meth:`blend` needs; with ``fill``, every other pixel too, on the
+        background layer of :func:`with_fill`)."""
         with torch.inference_mode():
-            surf = self.rasterizer.surface(camera)
+            surf, covered = self.rasterizer.surface(camera), None
+            if fill:
+                surf, covered = with_fill(surf, camera, self.sources.far, self.sources.bounds)
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
             if self.options.fused:
-                return self._fused(surf, points, origin, with_rgb, with_coords)
+                return replace(self._fused(surf, points, origin, with_rgb, with_coords), covered=covered)
             uv, _, mask = self.project(points.T)
             out = self.model.shade(self.features, points, origin.expand_as(points),
                                    visible=mask.T if self.options.visibility else None)
-            return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None)
+            return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
     def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool) -> ShadeResult:
         """``OmniRecon.shade`` for one point per pixel, fused (module docstring)."""
@@ -316,12 +365,13 @@ class MeshRenderer:
         return out
 
     def render(self, camera: Cameras, extras: bool = True) -> dict[str, Tensor]:
-        """Render one view: ``rgb # [H, W, 3]`` (the options' background where no triangle) and, with
+        """Render one view: ``rgb # [H, W, 3]`` (where no triangle: the options' fill) and, with
         ``extras``, ``depth # [H, W]`` (z-depth, 0 = background), ``mask # [H, W]`` (covered by the
-        mesh), ``blend # [H, W, K]`` (omega, 0 on background) and ``seen # [H, W]`` (some source sees
-        the surface point)."""
+        mesh; its mean is the view's coverage), ``blend # [H, W, K]`` (omega, 0 on background) and
+        ``seen # [H, W]`` (some source sees the surface point)."""
         with torch.inference_mode():
-            shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused)
+            shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused,
+                                  fill=self.options.fill == "far")
             rgb = shaded.rgb if shaded.rgb is not None else self.blend(shaded, self._rgb)
             rgb = shaded.surface.image(rgb, self.options.background)
             return self._outputs(shaded, rgb=rgb) if extras else {"rgb": rgb}
@@ -340,8 +390,10 @@ class MeshRenderer:
     def _outputs(self, shaded: ShadeResult, **images: Tensor) -> dict[str, Tensor]:
         surf = shaded.surface
         covered = torch.ones(len(surf.pixels), 1, dtype=self.dtype, device=self.device)
+        if shaded.covered is not None:
+            covered[shaded.covered:] = 0
         return {**images,
-                "depth": surf.image(surf.depth[:, None].to(self.device, self.dtype), 0.0)[..., 0],
+                "depth": surf.image(surf.depth[:, None].to(self.device, self.dtype) * covered, 0.0)[..., 0],
                 "mask": surf.image(covered, 0.0)[..., 0] > 0,
                 "blend": surf.image(shaded.omega.T, 0.0),
                 "seen": surf.image(shaded.mask.any(0)[:, None].to(self.dtype), 0.0)[..., 0] > 0}
