@@ -17,11 +17,8 @@ points seen just past an occluder's silhouette. Masked views are treated exactly
 projects outside of (``OmniRecon.shade``'s ``visible`` argument): a point no view sees blends all
 views uniformly, as in the volumetric path.
 
-**Fill** (``MeshRenderOptions.fill``, not in the paper). Pixels no triangle covers are not left at a
-background colour: by default they get a *background layer*, the point where the pixel's ray leaves
-the scene's bounds box (the box's far side), never farther than the sources' far z-depth
-(:func:`fill_points`), shaded by the same image-based blend as the surface. ``render`` reports which
-pixels lie on real surface (``mask``); their fraction is the view's coverage.
+**Fill** (``MeshRenderOptions.fill``, not in the paper): pixels no triangle covers get the background
+layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``mask`` is the coverage.
 
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
@@ -52,6 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
+from omnirecon.mesh.fill import with_fill
 from omnirecon.rays import Sources
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
@@ -64,9 +62,8 @@ class MeshRenderOptions:
     """Colour of pixels no triangle covers when ``fill="background"`` (DTU: white; procedural scenes:
     ``Scene.background``); also what :meth:`MeshRenderer.render_signal` leaves there."""
     fill: Literal["far", "background"] = "far"
-    """What :meth:`MeshRenderer.render` puts where no triangle covers a pixel: ``"far"``, a background
-    layer (the ray's exit from the sources' bounds box, at most at their far z-depth) shaded by the same
-    blend as the surface, so no pixel is left blank; ``"background"``, the ``background`` colour."""
+    """Where no triangle covers a pixel, :meth:`MeshRenderer.render` shades ``"far"``: the background layer
+    of :mod:`omnirecon.mesh.fill` (no pixel left blank), or puts ``"background"``: that colour."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -179,37 +176,6 @@ def _norm(d: Tensor) -> Tensor:
     return sq.sqrt_().clamp_min_(1e-12)[None]
 
 
-def fill_points(camera: Cameras, pixels: Tensor, far: float, bounds: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """The background layer at flat pixel indices ``pixels # [M]`` of one camera: where each pixel-centre
-    ray leaves the box ``bounds # [2, 3]`` (its far side), at most at z-depth ``far`` (rays that miss the
-    box, or no box: at ``far``). Returns world ``points # [M, 3]`` and their z-depths ``# [M]`` (float32)."""
-    uv = camera.pixel_centers().reshape(-1, 2)[pixels.to(camera.device)]  # [M, 2]
-    o, d = camera.rays(uv[None], normalize=False)  # [1, M, 3]: origin + z * d is at z-depth z
-    o, d = o[0].double(), d[0].double()
-    z = torch.full((len(uv),), float(far), dtype=torch.float64, device=o.device)
-    if bounds is not None:
-        b = bounds.to(o)
-        safe = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
-        t1, t2 = (b[0] - o) / safe, (b[1] - o) / safe  # [M, 3]
-        t_in, t_out = torch.minimum(t1, t2).amax(-1), torch.maximum(t1, t2).amin(-1)  # [M]
-        hit = (t_out > t_in.clamp_min(0)) & (t_out > 0)
-        z = torch.where(hit, torch.minimum(t_out, z), z)
-    return (o + z[:, None] * d).float(), z.float()
-
-
-def with_fill(surface: Surface, camera: Cameras, far: float, bounds: Tensor | None = None) -> tuple[Surface, int]:
-    """``surface`` plus the background layer (:func:`fill_points`) at every pixel it does not cover; the
-    first returned count of pixels are the real surface's."""
-    covered = torch.zeros(surface.height * surface.width, dtype=torch.bool)
-    covered[surface.pixels] = True
-    miss = (~covered).nonzero()[:, 0]
-    if not len(miss):
-        return surface, len(surface.pixels)
-    points, depth = fill_points(camera, miss, far, bounds)
-    return replace(surface, pixels=torch.cat([surface.pixels, miss]), points=torch.cat([surface.points, points]),
-                   depth=torch.cat([surface.depth, depth])), len(surface.pixels)
-
-
 class MeshRenderer:
     """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
 
@@ -305,7 +271,7 @@ class MeshRenderer:
         """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels
         (with ``with_rgb``, also their blended source colour; ``with_coords=False`` skips storing the
         source coordinates that :meth:`blend` needs; with ``fill``, every other pixel too, on the
-        background layer of :func:`with_fill`)."""
+        background layer of :func:`omnirecon.mesh.fill.with_fill`)."""
         with torch.inference_mode():
             surf, covered = self.rasterizer.surface(camera), None
             if fill:

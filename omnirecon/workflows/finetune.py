@@ -49,7 +49,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
-from omnirecon.mesh.ibr import with_fill
+from omnirecon.mesh.fill import with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.preflight import check_resolution
 from omnirecon.provenance import provenance
