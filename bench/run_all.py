@@ -609,6 +609,17 @@ def section_poses(r: dict) -> str:
             f"| {name} | {x['rig']} | {size} | {x['registered']} / {x['images']} ({100 * x['registered_fraction']:.0f}%) | "
             f"{x['rotation_deg_median']:.2f} / {x['rotation_deg_mean']:.2f} | {x['centre_pct_median']:.2f} / "
             f"{x['centre_pct_mean']:.2f} | {x['points3D']} | {x['reprojection_px']:.2f} | {x['seconds']:.1f} |")
+    notes = []  # what process said about the photos it left out, and which retry was kept
+    for x in r["scenes"]:
+        name = x["scene"] + (" + masks" if x.get("masks") else "")
+        tried = x.get("attempts", [])
+        if len(tried) > 1:
+            kept = next((a["attempt"] for a in tried if a.get("kept")), "?")
+            steps = ", ".join(f"{a['attempt']}: {a['registered']}" for a in tried)
+            notes.append(f"- {name}: retried ({steps}); "
+                         f"kept {kept}; worst rotation {x.get('rotation_deg_max', float('nan')):.2f} deg")
+        for d in x.get("dropped", []):
+            notes.append(f"  - {name} dropped {d['name']}: {d['reason']}")
     return "\n".join([
         "## Pose recovery (`omnirecon process`)",
         "",
@@ -625,6 +636,7 @@ def section_poses(r: dict) -> str:
         "",
         *rows,
         "",
+        *([*notes, ""] if notes else []),
         _prov(r["provenance"]),
     ])
 

@@ -63,7 +63,7 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
-            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks")
+            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate)
             result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
                              mask_dir=mask_dir)
             info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
@@ -98,9 +98,15 @@ def summary_lines(s: dict) -> list[str]:
     if s["models"] > 1:
         lines.append(f"note: COLMAP found {s['models']} separate models; kept the largest "
                      f"({s['images_registered']} images)")
+    retried = s.get("attempts", [])[1:]
+    if retried:
+        kept = next((a["attempt"] for a in s["attempts"] if a.get("kept")), "")
+        lines.append(f"retried the mapping {len(retried)} times ({s['attempts'][0]['registered']} images at first); "
+                     f"kept: {kept}")
     if s["unregistered"]:
-        u = s["unregistered"]
-        lines.append(f"not registered ({len(u)}): " + ", ".join(u[:10]) + (" ..." if len(u) > 10 else ""))
+        d = s.get("dropped") or [{"name": n, "reason": ""} for n in s["unregistered"]]
+        shown = "; ".join(f"{x['name']} ({x['reason']})" if x["reason"] else x["name"] for x in d[:10])
+        lines.append(f"dropped {len(d)} photos (no pose): " + shown + (" ..." if len(d) > 10 else ""))
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
     return lines
