@@ -19,5 +19,6 @@ class FinetuneCommand(FinetuneConfig):
             result = run_finetune(replace(self, out=c.work))
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(
-            f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:]))
+            f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:])
+            + f"; coverage {result['coverage']:.1%} of held-out pixels on the mesh (the rest: {result['fill']} fill)")
         print(f"wrote {out}/curve.json, curve.png, before_after.png")

@@ -148,12 +148,12 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     # ---------------------------------------------------------------- fine-tune at the photos' resolution
     side = cfg.resolution or photo_side(scene_path)
     tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(cfg.finetune_seconds, 1e-3),
-                                        eval_at=(0.0, cfg.finetune_seconds), num_views=cfg.num_views,
+                                        eval_at=(0.0, *(t for t in (10.0, 30.0, 60.0) if t < cfg.finetune_seconds), cfg.finetune_seconds), num_views=cfg.num_views,
                                         mesh=out / "mesh.ply", resolution=side, out=out / "finetune",
                                         save=cfg.finetune_seconds > 0, threads=cfg.threads), mesh=meshes["scene"])
     curve = tuned["curve"]
     lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
-                 f"{curve[-1]['seconds']:g} s of fine-tuning")
+                 f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
     ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
     lap("finetune")
 
@@ -196,8 +196,8 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
         Section("Real-time mesh path").text(lines[-1]).figure(video, out, "camera path", 480),
-        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)"],
-                                        [[p["seconds"], round(p["psnr"], 2)] for p in curve])
+        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)", "coverage"],
+                                        [[p["seconds"], round(p["psnr"], 2), f"{p['coverage']:.1%}"] for p in curve])
         .figure(out / "finetune" / "curve.png", out, "held-out PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
         Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
