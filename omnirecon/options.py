@@ -108,6 +108,9 @@ RULES: dict[str, Rule] = {
     "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),
     "first_octave": Rule(-3, 1, example="e.g. -1"), "max_ratio": Rule(0, 1, above=True, example="e.g. 0.8"),
     "retry_below": FRACTION, "mask_dilate": Rule(0, 10_000, example="e.g. 0 or 8"),
+    # tuning
+    "reg": WEIGHT, "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
+    "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
     # procedural scenes
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,

@@ -1,7 +1,9 @@
 """Photos or a video in, a posed COLMAP scene out (what ``omnirecon process`` runs).
 
-Everything is built in a hidden temporary folder beside ``out`` (``.<name>.tmp<pid>``) and renamed
-onto ``out`` at the very end, so a failure or Ctrl-C leaves no scene folder behind. The scene holds
+Everything is built in a hidden temporary folder beside ``out`` (``.<name>.tmp<pid>``) and swapped in
+at the very end (:func:`omnirecon.outputs.claim`: one run per ``out``, never inside or around the
+photos, ``overwrite`` replaces only a scene this tool wrote), so a failure or Ctrl-C leaves the
+previous folder or none. The scene holds
 
     images/            undistorted photos (PINHOLE cameras), at full size
     images_2/, images_4/   the same, downscaled by 2 and 4 (area averaging)
@@ -12,7 +14,6 @@ onto ``out`` at the very end, so a failure or Ctrl-C leaves no scene folder behi
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from dataclasses import asdict
@@ -23,7 +24,7 @@ from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stag
 from omnirecon.capture.video import sample_frames
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
-from omnirecon.outputs import clean_stale
+from omnirecon.outputs import claim
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
@@ -43,18 +44,16 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
     if is_video and source.suffix.lower() not in VIDEO_EXTS:
         raise InputError(f"not a folder or a video ({source.suffix or 'no extension'})", source,
                          f"pass a folder of photos, or a video ({', '.join(VIDEO_EXTS)})")
-    if out.exists() and not overwrite:
-        raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
-    if out.resolve() == source.resolve() or source.resolve() in out.resolve().parents:
-        raise InputError("output folder is inside the input", out, "write the scene somewhere else")
-
     t0 = time.perf_counter()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(out.parent)  # a killed run's temporary scene folder (its process is gone)
-    tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    work = tmp / "work"
-    scene = tmp / "scene"
+    with claim(out, "process", inputs=(source, masks), mode="replace", overwrite=overwrite) as owned:
+        return _build(source, owned.work, options, fps, max_frames, quiet, keep_work, masks, is_video, t0)
+
+
+def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frames: int, quiet: bool,
+           keep_work: bool, masks: Path | None, is_video: bool, t0: float) -> dict:
+    """Structure from motion into the (temporary, empty) scene folder ``scene``; returns the summary."""
+    work = scene.parent / f"{scene.name}.work"  # .OUT.tmpPID.work: a stale temporary if the run is killed
+    scene.rmdir()  # write_scene creates it
     try:
         with Stages(quiet) as stages:
             if is_video:
@@ -81,11 +80,8 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
         (scene / "process.json").write_text(json.dumps(summary, indent=1))
         if keep_work:
             shutil.move(str(work), str(scene / "colmap_work"))
-        if out.exists():
-            shutil.rmtree(out)
-        scene.rename(out)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(work, ignore_errors=True)
     return summary
 
 
