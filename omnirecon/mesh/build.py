@@ -17,8 +17,8 @@ SRDF depend on the ray), so the mesh is built from depth maps it renders:
    in-mask pixel ray of a source view hits first, and drop connected components smaller than a
    fraction of the largest.
 
-All of it happens in the normalised scene frame; :func:`to_input_frame` maps the result back to the
-user's coordinates (``Scene.to_input``) and :func:`export_mesh` writes PLY/OBJ/GLB.
+All of it happens in the normalised scene frame; :mod:`omnirecon.mesh.files` writes the result in the
+user's coordinates (``Scene.to_input``).
 
 Size: the mesh protocol end to end (depth at views, TSDF, marching cubes, cleaning, export) in the order
 it runs.
@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -47,8 +46,6 @@ DTU_SHIFT = 25.0 / 684.0
 scene centre (684 mm on scan24, measured), as a fraction of the camera distance."""
 DTU_DILATE = 11 / 800
 """The reference dilates masks with an 11-px ellipse at 800 px image width; as a fraction of the width."""
-MESH_FORMATS = (".ply", ".obj", ".glb")
-"""File types :func:`export_mesh` writes (chosen by the suffix)."""
 
 
 @dataclass
@@ -498,67 +495,3 @@ def _mesh_from_model(model, scene, views, options: MeshOptions, device="cpu", us
             "depth_maps": len(render_cams), "valid_depth_fraction": float(valid.float().mean()),
             "masks": masks is not None, "faces": counts, "vertices": len(mesh.vertices), "seconds": seconds}
     return MeshResult(mesh, info, render_cams, depths)
-
-
-# ---------------------------------------------------------------------- export
-def to_input_frame(mesh: trimesh.Trimesh, to_input: Tensor) -> trimesh.Trimesh:
-    """``mesh`` moved by the similarity ``to_input # [4, 4]`` (winding flipped if it mirrors)."""
-    T = to_input.double().numpy()
-    verts = np.asarray(mesh.vertices, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-    faces = np.asarray(mesh.faces)
-    if np.linalg.det(T[:3, :3]) < 0:
-        faces = faces[:, ::-1]
-    return trimesh.Trimesh(verts, faces, process=False)
-
-
-def check_mesh_paths(paths) -> list[Path]:
-    """``paths`` as :class:`Path` objects; :class:`InputError` for an unknown suffix."""
-    out = [Path(p) for p in paths]
-    for p in out:
-        if p.suffix.lower() not in MESH_FORMATS:
-            raise InputError(f"cannot write a mesh as {p.suffix or 'a file without suffix'}", p,
-                             f"end --out with one of {', '.join(MESH_FORMATS)}")
-        if p.is_dir():
-            raise InputError("output path is a folder", p, "pass a file name such as mesh.ply")
-    return out
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function inverted (IEC 61966-2-1), ``c`` in [0, 1]."""
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(c: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function (IEC 61966-2-1), ``c`` in [0, 1]."""
-    c = np.asarray(c, dtype=np.float64)
-    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.clip(c, 0.0031308, None) ** (1 / 2.4) - 0.055)
-
-
-def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """``mesh`` as glTF wants it: vertex colours (sRGB bytes, as in our images and PLY files) converted
-    to *linear* RGB, since glTF defines ``COLOR_0`` as linear and viewers encode it to sRGB for display
-    (sRGB bytes stored as-is show washed out). 8-bit linear is coarse in the shadows: sRGB values
-    0-0.1 get only 4 codes (0-3)."""
-    if mesh.visual.kind != "vertex":
-        return mesh
-    rgba = np.asarray(mesh.visual.vertex_colors)
-    lin = np.round(srgb_to_linear(rgba[:, :3] / 255.0) * 255).astype(np.uint8)
-    out = mesh.copy()
-    out.visual = trimesh.visual.ColorVisuals(out, vertex_colors=np.concatenate([lin, rgba[:, 3:]], 1))
-    return out
-
-
-def export_mesh(mesh: trimesh.Trimesh, paths) -> list[Path]:
-    """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically. Vertex colours are sRGB
-    bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`)."""
-    from omnirecon.outputs import atomic_files  # all written, then renamed: complete or absent
-
-    written = check_mesh_paths(paths)
-    with atomic_files(written) as tmps:
-        for p, tmp in zip(written, tmps):
-            kind = p.suffix.lower().lstrip(".")
-            m = gltf_mesh(mesh) if kind == "glb" else mesh
-            data = m.export(file_type=kind, **({"include_normals": False} if kind == "obj" else {}))
-            Path(tmp).write_bytes(data if isinstance(data, bytes) else data.encode())
-    return written

@@ -39,6 +39,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.mesh.files import read_mesh
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.preflight import check_resolution
 from omnirecon.provenance import provenance
@@ -161,7 +162,6 @@ class Clock:
 # ---------------------------------------------------------------------- the run
 def run_finetune(cfg: FinetuneConfig) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``."""
-    import trimesh
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     if not cfg.seconds > 0:
@@ -189,11 +189,7 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
 
     # the fixed mesh, rasterized once per view
     if cfg.mesh is not None:
-        if not Path(cfg.mesh).is_file():
-            raise InputError("mesh file does not exist", cfg.mesh, "pass a .ply/.obj/.glb written by `omnirecon mesh`")
-        mesh = trimesh.load(cfg.mesh, force="mesh", process=False)
-        T = np.linalg.inv(scene.to_input.double().numpy())  # input frame -> scene frame
-        mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
+        mesh = read_mesh(cfg.mesh, scene.to_input)
     else:
         mesh = mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:

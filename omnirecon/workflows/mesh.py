@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
@@ -27,7 +25,8 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, mesh_from_model
+from omnirecon.mesh.files import check_mesh_paths, read_mesh, write_mesh
 from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
 
@@ -123,7 +122,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
     record["seconds"]["images_to_mesh"] = sum(v for k, v in record["seconds"].items() if k != "images_to_mesh")
     record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
                    "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
-    files = export_mesh(to_input_frame(mesh, scene.to_input), outs)
+    files = write_mesh(mesh, outs, scene.to_input)
     stem = outs[0].with_suffix("")
     if cfg.preview:
         cam = scene.cameras[views[0]]
@@ -167,9 +166,5 @@ def summary_lines(record: dict) -> list[str]:
 def scene_frame_mesh(path: Path, mesh_file: Path, long_side: int):
     """The scene at ``long_side`` (normalised, as models see it) and ``mesh_file`` (input frame, as
     ``omnirecon mesh`` writes it) moved into that frame. Returns ``(scene, trimesh.Trimesh)``."""
-    import trimesh
-
     scene = load_at_resolution(path, long_side)
-    mesh = trimesh.load(mesh_file, force="mesh", process=False)
-    T = np.linalg.inv(scene.to_input.double().numpy())
-    return scene, trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
+    return scene, read_mesh(mesh_file, scene.to_input)

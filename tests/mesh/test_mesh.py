@@ -18,12 +18,11 @@ from omnirecon.mesh import geometry
 from omnirecon.mesh.build import (
     MeshOptions,
     clean_mesh,
-    export_mesh,
     extract_mesh,
     fuse_depths,
     shifted_cameras,
-    to_input_frame,
 )
+from omnirecon.mesh.files import to_input_frame, write_mesh
 from omnirecon.models.registry import build_model
 
 TINY_IBRNET = {"coarse_samples": 8, "fine_samples": 4, "channels": [8, 8, 16], "feature_dim": 8}
@@ -123,7 +122,7 @@ def test_mesh_lands_on_the_ground_truth_in_the_input_frame(synth_scene, tmp_path
     voxel = diag / 128
     volume = fuse_depths(scene.cameras[views], scene.depths[views], None, scene.bounds, voxel, 3 * voxel)
     mesh, _ = clean_mesh(extract_mesh(volume), scene.cameras[views], None, voxel, MeshOptions(cull_hidden=False))
-    files = export_mesh(to_input_frame(mesh, scene.to_input), [tmp_path / f"m.{s}" for s in ("ply", "obj", "glb")])
+    files = write_mesh(mesh, [tmp_path / f"m.{s}" for s in ("ply", "obj", "glb")], scene.to_input)
     gt = trimesh.load(scene.mesh_path, process=False)  # the generator's frame = the input frame
     scale = scene.scale_to_input
     gt_points = geometry.sample_points(gt, 100_000)
