@@ -34,7 +34,8 @@ from omnirecon.engine.scenes import EvalScene, prepare_scenes
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry as geo
-from omnirecon.mesh.build import MeshOptions, depth_from_outputs, mesh_from_model
+from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.mesh.depth import depth_from_outputs
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.geometry import depth_errors
 from omnirecon.preflight import check_planned

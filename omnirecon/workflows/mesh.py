@@ -25,7 +25,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, mesh_from_model
+from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, write_mesh
 from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
@@ -53,9 +53,13 @@ class MeshConfig(MachineConfig):
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
     """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
-    shifts: tuple[float, ...] = (DTU_SHIFT,)
-    """Virtual views per source: shifts along the camera x axis as fractions of its distance to the
-    scene centre (default: VolRecon's 25 mm on DTU); add 0 to also render at the source itself."""
+    depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
+    """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
+    no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
+    depth; `auto`: the measured best for the scene kind (omnirecon.mesh.build.default_depth)."""
+    shifts: tuple[float, ...] | None = None
+    """Virtual views per view: shifts along the camera x axis as fractions of its distance to the
+    scene centre (default: the preset's: 0 for fit, VolRecon's 25 mm on DTU for reference)."""
     voxel: float | None = None
     """Voxel size as a fraction of the bounds diagonal (default: the depth maps' pixel footprint)."""
     trunc: float | None = None
@@ -63,8 +67,9 @@ class MeshConfig(MachineConfig):
     fusion: Literal["fit", "reference"] = "fit"
     """`fit`: confidence-weighted fusion scaled to the depth (omnirecon.mesh.fusion); `reference`:
     VolRecon's protocol as published."""
-    weights: bool = True
-    """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection)."""
+    weights: bool | None = None
+    """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
+    default: the preset's, on for fit)."""
     max_faces: int = 200_000
     """Decimate the mesh to at most this many faces (0 = keep every face)."""
     depth_pass: Literal["coarse", "fine"] = "fine"
@@ -85,18 +90,24 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    def mesh_options(self) -> MeshOptions:
-        return MeshOptions(shifts=tuple(self.shifts), voxel=self.voxel, trunc=self.trunc, min_acc=self.min_acc,
-                           min_views=self.min_views, cull_hidden=self.cull_hidden, min_component=self.min_component,
-                           chunk=self.chunk, fusion=self.fusion, neighbours=self.num_views, weights=self.weights,
-                           max_faces=self.max_faces, depth_pass=self.depth_pass)
+    complete: bool = True
+    """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
+    forward-facing scenes, hole filling); only with the fit preset."""
+    def mesh_options(self, scene=None, has_model: bool = True) -> MeshOptions:
+        given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
+                 "trunc": self.trunc, "weights": self.weights}
+        depth = self.depth if self.depth != "auto" else default_depth(scene, has_model)
+        return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
+                                  min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,
+                                  min_component=self.min_component, chunk=self.chunk, neighbours=self.num_views,
+                                  max_faces=self.max_faces, depth_pass=self.depth_pass,
+                                  **({} if self.fusion == "reference" else {"complete": self.complete}))
 
 
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
 
-    options = cfg.mesh_options()
-    options.check()
+    cfg.mesh_options().check()  # bad options fail before any work
     check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
@@ -104,12 +115,17 @@ def run_mesh(cfg: MeshConfig) -> dict:
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     fmt = detect_format(cfg.scene)
-    net, info = load_model(cfg.ckpt, cfg.model, device)
+    if cfg.ckpt is None and cfg.model is None and cfg.depth in ("stereo", "oracle"):
+        net, info = None, {"name": cfg.depth, "preset": None, "checkpoint": None}
+    else:
+        net, info = load_model(cfg.ckpt, cfg.model, device)
     proto = protocol_for(Path(cfg.scene), fmt)
     start = time.perf_counter()
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
     load_seconds = time.perf_counter() - start
     views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
+    options = cfg.mesh_options(scene, net is not None)
+    options.check()
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
     with progress_bar(transient=False) as bar:
@@ -141,12 +157,16 @@ def run_mesh(cfg: MeshConfig) -> dict:
 def summary_lines(record: dict) -> list[str]:
     """Human-readable lines about a :func:`run_mesh` record."""
     s = record["seconds"]
-    faces = record["faces"].get("decimated", record["faces"]["components"])
+    faces = record["faces"].get("completed", record["faces"].get("decimated", record["faces"]["components"]))
     lines = [f"{record['vertices']:,} vertices, {faces:,} faces from "
              f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
              f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",
              f"images to mesh {s['images_to_mesh']:.1f} s (" + ", ".join(
                  f"{k.replace('_', ' ')} {v:.1f}" for k, v in s.items() if k not in ("images_to_mesh", "metrics")) + ")"]
+    comp = record.get("completion")
+    if comp:
+        lines.append(f"completion: {comp['fill_faces']:,} fill faces; the views' content pixels covered "
+                     f"{comp['coverage_before']:.1%} by the fused mesh, 100% after")
     m = record.get("metrics", {})
     if "mask_iou" in m:
         lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
