@@ -97,8 +97,9 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
     return made, scene.to_input, time.process_time() - t
 
 
-def coverage_and_iou(mesh, scene, targets) -> dict:
-    """Held-out pixels on the mesh (inside the masks when the scene has masks) and the silhouette IoU."""
+def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
+    """Held-out pixels on the mesh (inside the object masks with ``masks``) and the silhouette IoU (with
+    ``masks``: object captures; a procedural scene's masks hold the objects, not its ground)."""
     from omnirecon.mesh import geometry
     from omnirecon.mesh.complete import DepthRenderer
 
@@ -106,7 +107,7 @@ def coverage_and_iou(mesh, scene, targets) -> dict:
     cov, iou = [], []
     for t in targets:
         hit = r(scene.cameras[t]) > 0
-        if scene.masks is not None:
+        if masks:
             m = scene.masks[t].numpy().astype(bool)
             cov.append(float((hit & m).sum() / max(1, m.sum())))
             iou.append(geometry.mask_iou(hit, m))
@@ -156,8 +157,8 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "psnr": {"before": first["psnr"], "after": last["psnr"] if source in TUNED else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if source in TUNED
                             else None},
-           **coverage_and_iou(mesh, scene, ft["held_out"])}
-    if "psnr_masked" in first:
+           **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
+    if masks and "psnr_masked" in first:
         row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if source in TUNED else None}
     if scene.mesh_path is not None:
         c = geometry.evaluate_mesh(mesh, scene, ft["held_out"])["chamfer"]
@@ -184,7 +185,7 @@ def exact_row(name: str, tiny: bool) -> dict | None:
                                      out=work / "finetune", max_held_out=4))
     return {"scene": name, "source": "exact mesh", "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
-            **coverage_and_iou(gt, scene, ft["held_out"])}
+            **coverage_and_iou(gt, scene, ft["held_out"], False)}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     models = {"floor": build_model("floor")}
     if "omnirecon-tiny" in a.sources and not a.tiny:
         models["omnirecon-tiny"] = mesh_model
-    sources_wanted = [s for s in a.sources if s in ("oracle", "stereo") or s in models]
+    sources_wanted = [s for s in a.sources if (s == "oracle" or (s == "stereo" and not a.tiny)) or s in models]
     res = 48 if a.tiny else 128
     cache = ROOT / "outputs" / "cache" / "geometry_budget"
     scenes = [("demo", generate_scene(cache / f"demo_{res}", DEMO_SEED,
