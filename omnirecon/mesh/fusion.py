@@ -285,7 +285,7 @@ def _near_maps(cams: Cameras, k: int) -> list[list[int]]:
     return nearest_views(cams, cams, k, exclude=torch.arange(n)).tolist()
 
 
-def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float = 1.0, max_pairs: int = 4) -> Tensor:
+def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float = 1.0, max_pairs: int = 8) -> Tensor:
     """Forward-backward reprojection agreement between depth maps (MVS fusion's geometric check).
 
     For each pixel ``p`` of map ``i`` with depth, and each of the ``max_pairs`` maps nearest to ``i``
