@@ -182,3 +182,20 @@ def test_mesh_bad_input_exit_2(args, message, synth_scene, tmp_path, capsys, run
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("omnirecon: error:") and message in lines[0], err
+
+
+def test_reference_preset_is_settings_of_the_one_pipeline(synth_scene):
+    """VolRecon's protocol (`--fusion reference`) runs through the same stages with its own settings."""
+    from omnirecon.mesh.build import PRESETS, mesh_from_model
+
+    scene = load_at_resolution(synth_scene, 40)
+    views = scene.splits["train"][:6]
+    opts = MeshOptions.preset("reference", depth="oracle")
+    assert opts.voxel == PRESETS["reference"]["voxel"] and not opts.bilinear and not opts.complete
+    made = mesh_from_model(None, scene, views, opts, use_masks=True)
+    assert made.info["options"]["fusion"] == "reference" and "in_masks" in made.info["faces"]
+    assert made.info["completion"] is None and len(made.mesh.faces) > 100
+    gt = geometry.ground_truth_mesh(scene, objects_only=True)
+    c = geometry.mesh_chamfer(made.mesh, gt, threshold=0.02 * float((scene.bounds[1] - scene.bounds[0]).norm()),
+                              count=20_000)
+    assert c["precision"] > 0.8, c
