@@ -11,9 +11,11 @@ that view's own depth:
    depth placed on that backdrop,
 3. otherwise the nearest known depth (the mesh's or the map's) in the image: hole filling.
 
-The fill of a view is a grid of two triangles per uncovered pixel whose corners lie on the rays of
-image points offset by a quarter pixel, so each pixel centre lies strictly inside one of its two
-triangles whatever the depths are: the view's coverage becomes 100 % by construction. Views are
+The fill of a view is two triangles per uncovered pixel whose corners lie on the rays of image points
+offset by a quarter pixel, so each pixel centre lies strictly inside one of its two triangles whatever
+the depths are: the view's coverage becomes 100 % by construction. Neighbouring pixels share corner
+depths only where their depths agree, so no sheet is stretched across a depth edge (such sheets,
+seen from the other views, hid real surface). Views are
 completed in turn, each against the mesh plus the fills before it, so overlapping holes are filled
 once.
 
@@ -79,30 +81,34 @@ def nearest_fill(depth: np.ndarray, known: np.ndarray) -> np.ndarray:
     return depth[rows, cols]
 
 
-def pixel_grid_surface(camera: Cameras, depth: np.ndarray, region: np.ndarray) -> trimesh.Trimesh:
+def pixel_grid_surface(camera: Cameras, depth: np.ndarray, region: np.ndarray, edge: float = 0.03) -> trimesh.Trimesh:
     """Two triangles per pixel of ``region # [H, W]`` at ``depth # [H, W]`` (> 0 on the region).
 
-    Vertex ``(r, c)`` lies on the ray of the image point ``(c + 0.25, r)`` at the mean depth of the
-    region pixels around that corner, so pixel ``(r, c)``'s centre ``(c + 0.5, r + 0.5)`` falls
-    strictly inside the triangle ``(r, c), (r + 1, c), (r + 1, c + 1)`` however the depths vary."""
+    Each pixel gets its own four corners on the rays of the image points ``(c + 0.25, r)``,
+    ``(c + 1.25, r)``, ``(c + 0.25, r + 1)``, ``(c + 1.25, r + 1)``, so its centre ``(c + 0.5, r + 0.5)``
+    falls strictly inside the triangle ``(top-left, bottom-left, bottom-right)`` whatever the depths.
+    A corner's depth is the mean over the region pixels around it whose depth is within ``edge``
+    (relative) of the pixel's own: smooth surfaces join up, and no sheet is stretched across a depth
+    edge (a foreground pixel beside the background keeps its own depth)."""
     H, W = region.shape
     d = np.where(region, depth, 0.0).astype(np.float64)
-    w = region.astype(np.float64)
-    pad_d, pad_w = np.pad(d, 1), np.pad(w, 1)
-    # corners (r, c), r in 0..H, c in 0..W: the pixels (r-1|r, c-1|c) around them
-    sd = pad_d[:-1, :-1] + pad_d[:-1, 1:] + pad_d[1:, :-1] + pad_d[1:, 1:]  # [H+1, W+1]
-    sw = pad_w[:-1, :-1] + pad_w[:-1, 1:] + pad_w[1:, :-1] + pad_w[1:, 1:]
-    corner_depth = np.where(sw > 0, sd / np.maximum(sw, 1), 0.0)
-    used = sw > 0
-    index = -np.ones((H + 1, W + 1), dtype=np.int64)
-    index[used] = np.arange(int(used.sum()))
-    rr, cc = np.nonzero(used)
-    uv = torch.from_numpy(np.stack([cc + 0.25, rr.astype(np.float64)], -1))[None]  # [1, V, 2]
-    cam = camera.to(dtype=torch.float64)
-    verts = cam.unproject(uv, torch.from_numpy(corner_depth[rr, cc])[None])[0].numpy()
+    pad = np.pad(d, 1)  # pixel (r, c) at pad[r + 1, c + 1]
     pr, pc = np.nonzero(region)
-    a, b = index[pr, pc], index[pr, pc + 1]
-    c, e = index[pr + 1, pc], index[pr + 1, pc + 1]
+    own = d[pr, pc]  # [P]
+    corners = []
+    for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):  # top-left, top-right, bottom-left, bottom-right corner
+        # the four pixels around corner (pr + dr, pc + dc): rows pr + dr - 1 .. pr + dr, cols pc + dc - 1 .. pc + dc
+        near = np.stack([pad[pr + dr + a, pc + dc + b] for a in (0, 1) for b in (0, 1)])  # [4, P]
+        ok = (near > 0) & (np.abs(near - own) <= edge * own)
+        corners.append((near * ok).sum(0) / np.maximum(ok.sum(0), 1))  # own pixel is always ok
+    cd = np.stack(corners, 1)  # [P, 4]
+    u = np.stack([pc + 0.25, pc + 1.25, pc + 0.25, pc + 1.25], 1)
+    v = np.stack([pr, pr, pr + 1, pr + 1], 1).astype(np.float64)
+    uv = torch.from_numpy(np.stack([u, v], -1).reshape(1, -1, 2))
+    cam = camera.to(dtype=torch.float64)
+    verts = cam.unproject(uv, torch.from_numpy(cd.reshape(1, -1)))[0].numpy()  # [4P, 3]
+    base = 4 * np.arange(len(pr))
+    a, b, c, e = base, base + 1, base + 2, base + 3  # top-left, top-right, bottom-left, bottom-right
     # OpenCV camera (x right, y down): (a, c, e) and (a, e, b) wind counter-clockwise seen from the camera
     faces = np.concatenate([np.stack([a, c, e], 1), np.stack([a, e, b], 1)])
     return trimesh.Trimesh(verts, faces, process=False)
