@@ -1,7 +1,7 @@
-"""``omnirecon mesh``: a mesh from a model's rendered depth (TSDF fusion), in the input frame.
+"""``omnirecon mesh``: a mesh from depth maps (stereo and/or a model's rendered depth), in the input frame.
 
-The protocol is :mod:`omnirecon.mesh.build`'s (VolRecon / Omni-Recon, ``docs`` of the Omni-Recon
-spec §6). Outputs, for ``--out mesh.ply`` (any of ``.ply .obj .glb``, several allowed)::
+The pipeline is :mod:`omnirecon.mesh.build`'s (``--fusion reference``: VolRecon / Omni-Recon's protocol,
+the Omni-Recon spec §6, as a preset). Outputs, for ``--out mesh.ply`` (any of ``.ply .obj .glb``, several allowed)::
 
     mesh.ply            the cleaned mesh in the input scene's frame (``Scene.to_input`` applied)
     mesh_metrics.json   settings, face counts, seconds per stage and the geometry metrics the scene
@@ -34,9 +34,10 @@ PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
 class MeshConfig(MachineConfig):
-    """Extract a mesh from a checkpoint (or the plane-sweep floor): render z-depth at virtually
-    shifted source views, fuse it into a TSDF over the scene bounds, run marching cubes, clean the
-    result with the source masks, and write it in the input scene's frame with its metrics."""
+    """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
+    rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
+    the masks for objects), a face budget and completion (every content pixel of every view gets a
+    surface); written in the input scene's frame with its metrics."""
 
     scene: Path
     """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
