@@ -189,12 +189,9 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
         raise InputError(f"--depth {options.depth} needs a model", None, "pass --ckpt or --model floor, or --depth stereo")
 
     def from_model(shifts):
-        from omnirecon.models.fast import switches
-
         model.to(device).eval()
-        with switches(fine_pass=options.depth_pass == "fine"):
-            return model_depths(model, scene, views, options.neighbours, shifts, options.chunk, options.min_acc,
-                                device, on_view)
+        return model_depths(model, scene, views, options.neighbours, shifts, options.chunk, options.min_acc,
+                            device, on_view, fine_pass=options.depth_pass == "fine")
 
     if options.depth == "model":
         return from_model(options.shifts)

@@ -115,10 +115,11 @@ class ViewGroups:
 
 @torch.no_grad()
 def model_depths(model, scene, views, neighbours: int = 3, shifts=(0.0,), chunk: int = 4096, min_acc: float = 0.5,
-                 device="cpu", on_view=None) -> DepthMaps:
+                 device="cpu", on_view=None, fine_pass: bool = True) -> DepthMaps:
     """Depth of ``model`` at each of ``views`` shifted by each of ``shifts`` (:func:`shifted_cameras`),
-    each rendered from its :class:`ViewGroups` sources; encodings are shared between views with the same
-    sources. ``info`` counts the ``encode`` and ``render_view`` calls."""
+    each rendered from its :class:`ViewGroups` sources (``fine_pass``: a two-pass model's pass, see
+    ``render_view``); encodings are shared between views with the same sources. ``info`` counts the
+    ``encode`` and ``render_view`` calls."""
     from omnirecon.models.base import Sources
 
     groups = ViewGroups(scene.cameras, list(views), max(1, neighbours))
@@ -135,7 +136,8 @@ def model_depths(model, scene, views, neighbours: int = 3, shifts=(0.0,), chunk:
             cache[key] = model.encode(Sources.from_scene(scene, srcs).to(device))
             encodes += 1
         for cam in shifted_cameras(scene.cameras[[view]], shifts, centre):
-            out = model.render_view(cache[key], cam.to(device=device, dtype=scene.images.dtype), chunk=chunk)
+            out = model.render_view(cache[key], cam.to(device=device, dtype=scene.images.dtype), chunk=chunk,
+                                    fine_pass=fine_pass)
             renders += 1
             d, v = depth_from_outputs(out, min_acc)
             conf = torch.ones_like(d)
