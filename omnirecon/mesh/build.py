@@ -342,7 +342,10 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
 
 def default_depth(scene=None, has_model: bool = True) -> str:
-    """The depth source ``omnirecon mesh --depth auto`` picks for ``scene``'s kind (measured by
-    ``bench/depth_sources.py``): classical stereo, with the model's depth where stereo finds none when
-    there is a model."""
+    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks for
+    ``scene``'s kind: classical stereo on every kind, with the model's depth where stereo finds none
+    when there is a model (tiny or textureless captures where stereo matches nothing still mesh).
+    Measured (``bench/depth_sources.py``, and the issue's probe): stereo's geometry is the more accurate
+    on forward-facing (fern) and object scans (DTU) alike; completion, not the learned depth, now
+    supplies the coverage. ``stereo+model`` itself was not measured against ``stereo`` alone."""
     return "stereo+model" if has_model else "stereo"
