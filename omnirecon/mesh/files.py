@@ -116,16 +116,22 @@ def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return out
 
 
-def write_mesh(mesh: trimesh.Trimesh, paths, to_input: Tensor | np.ndarray | None = None) -> list[Path]:
+def write_mesh(mesh: trimesh.Trimesh, paths, to_input: Tensor | np.ndarray | None = None,
+               extra: dict | None = None) -> list[Path]:
     """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically: moved into the input
     frame first when the scene's ``to_input`` is given (``mesh`` is then in the scene frame). Vertex
-    colours are sRGB bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`)."""
+    colours are sRGB bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`). ``extra``:
+    ``{path: write(tmp_path)}``, files of the same set (metrics, preview) written with the meshes and
+    renamed with them."""
     from omnirecon.outputs import atomic_files  # all written, then renamed: complete or absent
 
     written = check_mesh_paths(paths)
+    extra = extra or {}
     if to_input is not None:
         mesh = to_input_frame(mesh, to_input)
-    with atomic_files(written) as tmps:
+    with atomic_files([*written, *extra]) as tmps:
+        for (_, write), tmp in zip(extra.items(), tmps[len(written):]):
+            write(Path(tmp))
         for p, tmp in zip(written, tmps):
             kind = p.suffix.lower().lstrip(".")
             m = gltf_mesh(mesh) if kind == "glb" else mesh
