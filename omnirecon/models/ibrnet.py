@@ -177,7 +177,10 @@ class Aggregator(nn.Module):
         h = h + sample_index_code(h.shape[1], 16, h.device).to(h.dtype)
         seen = mask.any(-1)  # [R, S]
         pad = ~seen & ~(~seen).all(-1, keepdim=True)
-        a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
+        if FAST.sdpa_attention:
+            a = _ray_attention(self.attn, h, pad)
+        else:
+            a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
         h = self.attn_norm(h + a)
         sigma = self.sigma(h)[..., 0] * seen  # [R, S]
         if FAST.split_linear:  # the colour head's first layer on its three inputs apart (no concat)
@@ -188,6 +191,15 @@ class Aggregator(nn.Module):
             logit = self.rgb(torch.cat([x, v, ray_diff], -1))[..., 0]
         logit = logit.masked_fill(~mask, -1e9)  # [R, S, V]
         return sigma, torch.softmax(logit, -1)
+
+
+def _ray_attention(attn: nn.MultiheadAttention, h: Tensor, pad: Tensor) -> Tensor:
+    """``attn(h, h, h, key_padding_mask=pad)`` (no biases, self-attention over samples) through
+    ``scaled_dot_product_attention`` with a boolean mask. ``h # [R, S, E]``, ``pad # [R, S]`` -> ``# [R, S, E]``"""
+    (R, S, E), heads = h.shape, attn.num_heads
+    qkv = F.linear(h, attn.in_proj_weight).view(R, S, 3, heads, E // heads).permute(2, 0, 3, 1, 4)  # [3, R, H, S, D]
+    o = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=~pad[:, None, None, :])  # [R, H, S, D]
+    return F.linear(o.transpose(1, 2).reshape(R, S, E), attn.out_proj.weight)
 
 
 # ---------------------------------------------------------------------- the model
