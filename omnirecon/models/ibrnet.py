@@ -111,10 +111,18 @@ class ResUNet(nn.Module):
 
 
 # ---------------------------------------------------------------------- per-sample aggregation
+class _ELU(nn.ELU):
+    """ELU that overwrites its input when ``FAST.inplace_elu`` (every use follows a Linear whose output
+    nothing else reads)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.elu(x, self.alpha, inplace=FAST.inplace_elu)
+
+
 def _mlp(*dims: int) -> nn.Sequential:
     layers: list[nn.Module] = []
     for a, b in zip(dims[:-1], dims[1:]):
-        layers += [nn.Linear(a, b), nn.ELU()]
+        layers += [nn.Linear(a, b), _ELU()]
     return nn.Sequential(*layers[:-1])
 
 
@@ -140,15 +148,15 @@ class Aggregator(nn.Module):
     def __init__(self, feature_dim: int):
         super().__init__()
         c = feature_dim + 3
-        self.dir_mlp = nn.Sequential(nn.Linear(4, 16), nn.ELU(), nn.Linear(16, c), nn.ELU())
+        self.dir_mlp = nn.Sequential(nn.Linear(4, 16), _ELU(), nn.Linear(16, c), _ELU())
         self.sharpness = nn.Parameter(torch.tensor(0.2))
-        self.base = nn.Sequential(_mlp(3 * c, 64, 32), nn.ELU())
+        self.base = nn.Sequential(_mlp(3 * c, 64, 32), _ELU())
         self.vis = _mlp(32, 32, 33)
         self.vis2 = _mlp(32, 32, 1)
-        self.density_feat = nn.Sequential(_mlp(65, 64, 16), nn.ELU())
+        self.density_feat = nn.Sequential(_mlp(65, 64, 16), _ELU())
         self.attn = nn.MultiheadAttention(16, 4, bias=False, batch_first=True)
         self.attn_norm = nn.LayerNorm(16)
-        self.sigma = nn.Sequential(nn.Linear(16, 16), nn.ELU(), nn.Linear(16, 1), nn.ReLU())
+        self.sigma = nn.Sequential(nn.Linear(16, 16), _ELU(), nn.Linear(16, 1), nn.ReLU())
         self.rgb = _mlp(37, 16, 8, 1)
 
     def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
@@ -167,7 +175,7 @@ class Aggregator(nn.Module):
             x = self.base[1](self.base[0][2](self.base[0][1](h)))  # [R, S, V, 32]
         else:
             x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
-        rv = F.elu(self.vis(x * w))  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
+        rv = F.elu(self.vis(x * w), inplace=FAST.inplace_elu)  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
         r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
         x = x + r
         v = torch.sigmoid(self.vis2(x * v)) * m  # [R, S, V, 1]

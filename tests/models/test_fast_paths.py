@@ -51,7 +51,8 @@ def test_render_view_fast_paths_equal_reference(name):
     src, target = scene()
     with fast.reference():
         ref = render(model, src, target)
-    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True, sdpa_attention=True)
+    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True, sdpa_attention=True,
+                 inplace_elu=True)
     assert set(out) == set(ref)
     for k in ref:
         assert out[k].shape == ref[k].shape and out[k].dtype == ref[k].dtype, k
@@ -108,8 +109,9 @@ def test_split_linear_forward_and_gradients():
         torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
 
 
-def test_sdpa_attention_forward_and_gradients():
-    """IBRNet's ray transformer through scaled_dot_product_attention with a boolean key mask: forward to 1e-5,
+def test_sdpa_attention_and_inplace_elu_forward_and_gradients():
+    """IBRNet's ray transformer through scaled_dot_product_attention with a boolean key mask and its ELUs in
+    place: forward to 1e-5,
     gradients of every parameter to 1e-4 relative of nn.MultiheadAttention (the reference)."""
     from omnirecon.rays import Rays
 
@@ -119,7 +121,7 @@ def test_sdpa_attention_forward_and_gradients():
     rays = Rays.from_image(target)[::3]
     with fast.reference():
         ref, ref_g = _train_outputs(model, src, rays)
-        out, out_g = _train_outputs(model, src, rays, sdpa_attention=True)
+        out, out_g = _train_outputs(model, src, rays, sdpa_attention=True, inplace_elu=True)
     for k in ("rgb", "rgb_coarse", "depth"):
         torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
     assert set(out_g) == set(ref_g) and any("attn" in n for n in ref_g)
