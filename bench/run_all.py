@@ -218,20 +218,23 @@ def section_peer(results: Path) -> str | None:
         lines += [f"**Reference not measured: {r['peer_note']}.** Run `python bench/peer_ibrnet.py --ibrnet-root "
                   "PATH` with a checkout of googleinterns/IBRNet (the project never contains its code).", ""]
     q = r.get("ratios") or {}
-    lines += ["| side | switches | parameters | render s/image (first) | render rays/s | train s/step | train rays/s | peak RSS (MB) "
+    lines += ["| side | switches | parameters | render CPU s/image (wall) | render rays/CPU-s | train CPU s/step (wall) | "
+              "train rays/CPU-s | peak RSS (MB) "
               "| render × ref. | train × ref. | peak RSS / ref. | PSNR to our twin (dB) |",
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, b in r["best"].items():
         ratio = q.get(name, {}) if isinstance(q.get(name), dict) else {}
-        psnr = b.get("psnr_to_reference_db", "–" if name in ("peer", "ours_reference") else "identical")
-        first = b.get("render_first_s", b["render_s"])
+        psnr = b.get("psnr_to_reference_db", "–")
+        psnr = "identical" if psnr is None else psnr
         lines.append(f"| {name} | {b.get('switches', '–') if name != 'peer' else 'official code'} | {b['params']:,} | "
-                     f"{b['render_s']} "
-                     f"({first}) | {b['render_rays_per_s']} | {b['train_step_s']} | {b['train_rays_per_s']} | "
+                     f"{b.get('render_cpu_s', '–')} ({b['render_s']}) | {b['render_rays_per_s']} | "
+                     f"{b.get('train_step_cpu_s', '–')} ({b['train_step_s']}) | {b['train_rays_per_s']} | "
                      f"{b['peak_rss_mb']} | {ratio.get('render_speedup', '–')}× | {ratio.get('train_speedup', '–')}× | "
                      f"{ratio.get('peak_rss_ratio', '–')} | {psnr} |")
     lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager); PSNR is each "
-              "of our sides' render against it (same weights; \"identical\": bit-identical). Load average at the "
+              "of our sides' render against it (same weights; \"identical\": bit-identical). Ratios are of process CPU "
+              "seconds (one thread each), which other jobs on the shared cores do not inflate as they do wall time "
+              "(wall-time ratios are in the JSON). Load average at the "
               f"start {r.get('loadavg_start')}, at the end {r.get('loadavg_end')}; ratios come from this one run."]
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
