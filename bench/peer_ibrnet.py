@@ -1,24 +1,25 @@
 """The official IBRNet code against our ``ibrnet-paper`` at the same configuration, in one run.
 
-    python bench/peer_ibrnet.py --ibrnet-root ~/src/IBRNet      # a checkout of googleinterns/IBRNet
+    python bench/peer_ibrnet.py --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
+    python bench/peer_ibrnet.py --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
     python bench/peer_ibrnet.py                                 # no checkout: our side only, the JSON says so
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
-https://github.com/googleinterns/IBRNet``; the code layout of commit 41807b2 and its ancestors:
-``ibrnet/mlp_network.py`` ``IBRNet``, ``ibrnet/feature_network.py`` ``ResUNet``,
-``ibrnet/projection.py`` ``Projector``, ``ibrnet/render_ray.py`` ``render_rays``,
-``ibrnet/render_image.py`` ``render_single_image``, ``ibrnet/sample_ray.py``
-``RaySamplerSingleImage``). Its hard-wired CUDA calls (``.cuda()``, ``.to("cuda:0")``) are mapped to
-the CPU by a shim active only while its code runs; both sides get random weights (speed does not
-depend on them) and the same parameter count (8,957,392).
+https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,
+configargparse). The reference side runs that code as its own ``train.py`` and evaluation would: its
+``config.py`` parser reads ``configs/eval_llff.txt`` (64 + 64 samples, inverse depth, chunk 4096), its
+``IBRNetModel`` builds the networks, Adam and StepLR; a render is ``render_single_image`` on a
+``RaySamplerSingleImage``; a training step is ``random_sample`` -> ``feature_net`` -> ``render_rays`` ->
+masked MSE on both passes -> backward -> step. Its hard-wired CUDA calls (``.cuda()``, ``.to("cuda:0")`` on
+tensors and modules) are mapped to the CPU by a shim active only while its code runs. Both sides get random
+weights (speed does not depend on them) and have the same parameter count (8,957,392).
 
-Configuration (``configs/eval_llff.txt`` and the training defaults): ``--views`` source views of
-``--width x --height``, 64 coarse + 64 importance samples, inverse-depth sampling, chunk 4096 rays
-(theirs and ours: our ``render_view`` also sub-batches per its fast paths), anti-alias pooling; a
-training step is one target view, ``--train-rays`` random rays, encode + coarse + fine + masked MSE
-on both passes + backward + Adam(W) step. Each side runs in its own fresh child process (so that
-peak RSS is its own), alternately ``--rounds`` times; the table keeps each side's best time and its
-largest peak RSS. Writes ``bench/results/peer_ibrnet.json`` with a provenance header.
+Each side runs in its own fresh child process (so that peak RSS is its own), one thread, alternately
+``--rounds`` times; the table keeps each side's best wall and best process-CPU time and its largest peak
+RSS. Ratios are of CPU seconds: on the shared cores a process's wall time is mostly the scheduler's.
+With ``--reference-too`` our reference twins (every fast path off) run too and each of our sides' render
+is scored against theirs (PSNR; bit-identical is recorded as ``None``). Writes
+``bench/results/peer_ibrnet.json`` with a provenance header and the load average at start and end.
 """
 
 from __future__ import annotations
