@@ -123,7 +123,7 @@ def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
     peer, ours = r["best"]["peer"], r["best"]["ours"]
     assert peer["params"] == ours["params"] == 8_957_392  # the same network on both sides
     assert peer["render_s"] > 0 and peer["train_step_s"] > 0 and r["peer_note"] is None
-    assert r["ratios"]["ours"]["render_speedup"] == round(peer["render_s"] / ours["render_s"], 2)
+    assert r["ratios"]["ours"]["render_speedup"] == round(peer["render_cpu_s"] / ours["render_cpu_s"], 2)
     psnr = ours.get("psnr_to_reference_db")
     assert psnr is None or psnr > 60  # None: bit-identical to the reference twin
     text = run_all.section_peer(tmp_path)
