@@ -90,9 +90,13 @@ def _train_outputs(model, src, rays, **switches):
     return out, grads
 
 
-def test_split_linear_forward_and_gradients():
-    """IBRNet's MLPs with their first layer split by input block: forward to 1e-5, gradients of every
-    parameter to 1e-4 relative (float rounding) of the concatenating reference."""
+@pytest.mark.parametrize("switches", [{"split_linear": True}, {"sdpa_attention": True, "inplace_elu": True}],
+                         ids=["split_linear", "sdpa_attention+inplace_elu"])
+def test_ibrnet_exact_paths_forward_and_gradients(switches):
+    """IBRNet's exact fast paths in training, each against its reference twin: the MLPs' first layer split by
+    input block (reference: concatenation), the ray transformer through scaled_dot_product_attention with a
+    boolean key mask (reference: nn.MultiheadAttention) with the ELUs in place. Forward to 1e-5, gradients of
+    every parameter to 1e-4 relative (float rounding)."""
     from omnirecon.rays import Rays
 
     torch.manual_seed(0)
@@ -101,30 +105,10 @@ def test_split_linear_forward_and_gradients():
     rays = Rays.from_image(target)[::3]
     with fast.reference():
         ref, ref_g = _train_outputs(model, src, rays)
-        out, out_g = _train_outputs(model, src, rays, split_linear=True)
+        out, out_g = _train_outputs(model, src, rays, **switches)
     for k in ("rgb", "rgb_coarse", "depth"):
         torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
-    assert set(out_g) == set(ref_g) and len(ref_g) > 10
-    for n in ref_g:
-        torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
-
-
-def test_sdpa_attention_and_inplace_elu_forward_and_gradients():
-    """IBRNet's ray transformer through scaled_dot_product_attention with a boolean key mask and its ELUs in
-    place: forward to 1e-5,
-    gradients of every parameter to 1e-4 relative of nn.MultiheadAttention (the reference)."""
-    from omnirecon.rays import Rays
-
-    torch.manual_seed(0)
-    model = IBRNet(ibrnet_cfg()).train()
-    src, target = scene()
-    rays = Rays.from_image(target)[::3]
-    with fast.reference():
-        ref, ref_g = _train_outputs(model, src, rays)
-        out, out_g = _train_outputs(model, src, rays, sdpa_attention=True, inplace_elu=True)
-    for k in ("rgb", "rgb_coarse", "depth"):
-        torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
-    assert set(out_g) == set(ref_g) and any("attn" in n for n in ref_g)
+    assert set(out_g) == set(ref_g) and len(ref_g) > 10 and any("attn" in n for n in ref_g)
     for n in ref_g:
         torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
 
