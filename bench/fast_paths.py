@@ -12,9 +12,9 @@ target, and each variant:
 * ``default``: the defaults of ``FastPaths`` (what every command now runs);
 * ``bf16``: the defaults plus bf16 autocast of the per-sample networks;
 * ``without_sdpa_elu`` (IBRNet): the defaults with ``sdpa_attention`` and ``inplace_elu`` off;
-* ``surface_N``: the defaults plus ``surface_samples = N`` (the fine pass on N importance samples
-  around the coarse surface only; IBRNet and Omni-Recon);
-* ``coarse_only``: the defaults plus ``fine_pass = False`` (no fine pass: depth maps for meshing).
+* ``surface_N``: the defaults, rendered with ``surface_samples = N`` (the fine pass on N importance
+  samples around the coarse surface only; IBRNet and Omni-Recon; an option of ``render_view``);
+* ``coarse_only``: the defaults, rendered with ``fine_pass = False`` (no fine pass: depth maps for meshing).
 
 Reported per variant: render CPU seconds (encode + ``render_view`` of every target; the variants run
 interleaved ``--rounds`` times, the fastest round kept: the cores are shared), the speed-up over the
@@ -76,7 +76,11 @@ def jobs(k: int, targets: int, protocol_set: str = "cpu"):
     return es, [(t, select_sources(es.scene, es.scene.cameras[t], pool, k)) for t in tgts]
 
 
-def render_all(model, es, plan) -> tuple[float, list[dict]]:
+OPTIONS = ("fine_pass", "surface_samples")
+"""Keys of a variant that are options of ``render_view`` (they change the output), not fast-path switches."""
+
+
+def render_all(model, es, plan, **options) -> tuple[float, list[dict]]:
     from omnirecon.rays import Sources
 
     scene = es.scene
@@ -86,7 +90,7 @@ def render_all(model, es, plan) -> tuple[float, list[dict]]:
         sources = Sources.from_scene(scene, src)
         with torch.no_grad():
             feats = model.encode(sources)
-        out = model.render_view(feats, scene.cameras[[t]], chunk=4096)
+        out = model.render_view(feats, scene.cameras[[t]], chunk=4096, **options)
         outs.append({k: v for k, v in out.items() if k in ("rgb", "depth", "depth_coarse", "valid")})
     return time.process_time() - t0, outs
 
@@ -115,8 +119,8 @@ def measure(model_name: str, k: int, targets: int, rounds: int, protocol_set: st
         render_all(model, es, plan[:1])
     for _ in range(rounds):
         for name, sw in var.items():
-            with fast.switches(**sw):
-                t, o = render_all(model, es, plan)
+            with fast.switches(**{k: v for k, v in sw.items() if k not in OPTIONS}):
+                t, o = render_all(model, es, plan, **{k: v for k, v in sw.items() if k in OPTIONS})
             times[name].append(t)
             outs[name] = o
     ref = outs["reference"]

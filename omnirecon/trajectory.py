@@ -1,4 +1,5 @@
-"""Camera paths for ``omnirecon render``: orbit, LLFF-style spiral and keyframe interpolation.
+"""Camera paths (``omnirecon render``, the mesh-path videos of ``demo`` and ``reconstruct``): orbit,
+LLFF-style spiral and keyframe interpolation. :func:`camera_path` makes one of a named kind from cameras.
 
 Every path is built from a scene's cameras and returns OpenCV camera-to-world matrices
 ``# [F, 4, 4]`` (rigid, ``det R = +1``), in float64; :func:`path_cameras` adds intrinsics.
@@ -17,12 +18,56 @@ Every path is built from a scene's cameras and returns OpenCV camera-to-world ma
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from omnirecon.cameras import Cameras, closest_point_to_axes, look_at
+
+PathKind = Literal["orbit", "spiral", "interp"]
+"""The kinds of :func:`camera_path`."""
+
+MAX_DEFAULT_KEYFRAMES = 8
+"""``interp`` without ``keyframes`` uses at most this many views, evenly spaced in index order."""
+
+
+def default_keyframes(n: int) -> list[int]:
+    """All ``n`` views when there are few, else ``MAX_DEFAULT_KEYFRAMES`` evenly spaced ones."""
+    if n <= MAX_DEFAULT_KEYFRAMES:
+        return list(range(n))
+    return np.unique(np.linspace(0, n - 1, MAX_DEFAULT_KEYFRAMES).round().astype(int)).tolist()
+
+
+def camera_path(cameras: Cameras, kind: PathKind, frames: int, center: Tensor | None = None,
+                near: float | None = None, far: float | None = None, keyframes: list[int] | None = None,
+                arc: float = 360.0, rots: float = 2.0) -> Cameras:
+    """``frames`` cameras along a path of ``kind`` built from ``cameras`` (their resolution and the
+    intrinsics of camera 0; interp: interpolated intrinsics), float64.
+
+    Args:
+        cameras: The scene's cameras.
+        kind: ``"orbit"`` (:func:`orbit` around ``center``, default the point closest to all optical
+            axes, over ``arc`` degrees), ``"spiral"`` (:func:`spiral` with ``rots`` turns; needs the
+            scene's ``near`` and ``far`` z-depths) or ``"interp"`` (:func:`interpolate` through the
+            views ``keyframes``, default :func:`default_keyframes`).
+    Raises:
+        ValueError: a spiral without ``near``/``far``, fewer than 2 keyframes or one out of range, or an
+            unknown kind.
+    """
+    if kind == "orbit":
+        return path_cameras(orbit(cameras, frames, center, arc), cameras)
+    if kind == "spiral":
+        if near is None or far is None:
+            raise ValueError("a spiral path needs the scene's near and far depths")
+        return path_cameras(spiral(cameras, near, far, frames, rots), cameras)
+    if kind != "interp":
+        raise ValueError(f"unknown path kind {kind!r}; use orbit, spiral or interp")
+    keys = list(keyframes) if keyframes else default_keyframes(len(cameras))
+    if len(keys) < 2 or any(not 0 <= k < len(cameras) for k in keys):
+        raise ValueError(f"keyframes must name at least 2 views in 0..{len(cameras) - 1}, got {keys}")
+    return interpolate(cameras[keys], frames)
 
 
 def mean_up(cams: Cameras) -> Tensor:

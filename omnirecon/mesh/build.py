@@ -39,7 +39,6 @@ from torch import Tensor
 from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
 from omnirecon.mesh.geometry import rasterize_mesh
-from omnirecon.models.fast import switches
 from omnirecon.rays import Sources
 
 DTU_SHIFT = 25.0 / 684.0
@@ -301,12 +300,14 @@ def depth_from_outputs(out: dict[str, Tensor], min_acc: float = 0.5) -> tuple[Te
 
 @torch.no_grad()
 def render_depths(model, sources, cameras: Cameras, chunk: int = 4096, min_acc: float = 0.5, device="cpu",
-                  on_view=None) -> tuple[Tensor, Tensor]:
-    """Encode ``sources`` once and render a z-depth map at each camera. ``# [N, H, W]`` depth and valid."""
+                  on_view=None, fine_pass: bool = True) -> tuple[Tensor, Tensor]:
+    """Encode ``sources`` once and render a z-depth map at each camera (``fine_pass``: see ``render_view``).
+    ``# [N, H, W]`` depth and valid."""
     features = model.encode(sources.to(device))
     depths, valids = [], []
     for i in range(len(cameras)):
-        out = model.render_view(features, cameras[i].to(device=device, dtype=sources.images.dtype), chunk=chunk)
+        out = model.render_view(features, cameras[i].to(device=device, dtype=sources.images.dtype), chunk=chunk,
+                                fine_pass=fine_pass)
         d, v = depth_from_outputs(out, min_acc)
         depths.append(d)
         valids.append(v)
@@ -433,8 +434,7 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
     by the pass ``options.depth_pass`` names."""
     options = options or MeshOptions()
     options.check()
-    with switches(fine_pass=options.depth_pass == "fine"):
-        return _mesh_from_model(model, scene, views, options, device, use_masks, progress)
+    return _mesh_from_model(model, scene, views, options, device, use_masks, progress)
 
 
 def _mesh_from_model(model, scene, views, options: MeshOptions, device="cpu", use_masks: bool = False,
@@ -473,7 +473,7 @@ def _mesh_from_model(model, scene, views, options: MeshOptions, device="cpu", us
     seconds = {}
     start = time.perf_counter()
     depths, valid = render_depths(model, Sources.from_scene(scene, views), render_cams, options.chunk, options.min_acc,
-                                  device, advance)
+                                  device, advance, fine_pass=options.depth_pass == "fine")
     seconds["render"] = time.perf_counter() - start
     if progress is not None:
         progress.update(task, description="fuse")

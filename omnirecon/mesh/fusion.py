@@ -331,7 +331,7 @@ class ViewGroups:
 
 @torch.no_grad()
 def render_depth_maps(model, scene, groups: ViewGroups, shifts, chunk: int = 4096, min_acc: float = 0.5,
-                      device="cpu", on_view=None) -> dict:
+                      device="cpu", on_view=None, fine_pass: bool = True) -> dict:
     """Depth, validity and confidence at each view of ``groups`` shifted by each of ``shifts``
     (``shifted_cameras``), each from its own sources; encodings are shared between views with the
     same sources. Returns ``cameras``, ``depth``, ``valid``, ``confidence`` (``# [N, H, W]``) and the
@@ -352,7 +352,8 @@ def render_depth_maps(model, scene, groups: ViewGroups, shifts, chunk: int = 409
             encodes += 1
         features = cache[key]
         for cam in shifted_cameras(scene.cameras[[view]], shifts, centre):
-            out = model.render_view(features, cam.to(device=device, dtype=scene.images.dtype), chunk=chunk)
+            out = model.render_view(features, cam.to(device=device, dtype=scene.images.dtype), chunk=chunk,
+                                    fine_pass=fine_pass)
             renders += 1
             d, v = depth_from_outputs(out, min_acc)
             conf = torch.ones_like(d)
@@ -499,7 +500,8 @@ def mesh_from_model_fit(model, scene, views, options, device="cpu", use_masks: b
     task = progress.add_task("depth", total=2 * n_maps + 2) if progress is not None else None
     advance = (lambda: progress.advance(task)) if task is not None else None
     t = time.perf_counter()
-    maps = render_depth_maps(model, scene, groups, options.shifts, options.chunk, options.min_acc, device, advance)
+    maps = render_depth_maps(model, scene, groups, options.shifts, options.chunk, options.min_acc, device, advance,
+                             fine_pass=options.depth_pass == "fine")
     render_s = time.perf_counter() - t
     if progress is not None:
         progress.update(task, description="fuse")

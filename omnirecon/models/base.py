@@ -13,11 +13,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
-from omnirecon.models.fast import FAST, rendering
+from omnirecon.models.fast import FAST, grad_mode, render_batches, render_sub_batches, rendering
 from omnirecon.rays import Rays, Sources
 
 
@@ -35,6 +34,15 @@ class Capabilities:
     appearance: bool = False
     """An appearance branch that colours surface points alone: ``shade(features, points, origins)``
     and ``model.appearance`` (the real-time mesh path, export, fine-tuning, PET)."""
+    passes: bool = False
+    """Two passes, coarse then fine on importance samples (IBRNet, Omni-Recon): ``render_rays`` takes the
+    output-changing options ``fine_pass: bool = True`` (False: outside training, render the coarse pass
+    only, as a model without a fine pass would: depth maps for meshing, where the coarse depth of both
+    shipped tiny models scored within 5 % of the fine depth at less than half the samples) and
+    ``surface_samples: int = 0`` (n > 0: outside training, the fine pass evaluates only n importance
+    samples around the coarse surface instead of the coarse samples plus the fine ones; both shipped
+    models lose 3-12 dB on a held-out scene with it). Both are quality/speed trades measured by
+    ``bench/fast_paths.py``, not fast paths with a reference twin."""
 
 
 class GeneralizableModel(nn.Module):
@@ -53,59 +61,31 @@ class GeneralizableModel(nn.Module):
 
     def render_rays_batched(self, features, rays: Rays, **kwargs) -> dict[str, Tensor]:
         """``render_rays`` on sub-batches of at most ``FAST.train_batch`` rays, per-ray outputs concatenated
-        (graph kept: the training forward). Every model renders each ray independently, so the outputs and
-        their gradients are those of one call up to float rounding; small per-sample tensors stay in cache
-        (reference, ``train_batch = 0``: one call)."""
-        n, b = len(rays), FAST.train_batch
-        if b <= 0 or n <= b:
-            return self.render_rays(features, rays, **kwargs)
-        parts = [self.render_rays(features, rays[s:s + b], **kwargs) for s in range(0, n, b)]
-        sizes = [min(b, n - s) for s in range(0, n, b)]
-        return {k: torch.cat([p[k] for p in parts]) if all(p[k].dim() >= 1 and p[k].shape[0] == m
-                                                          for p, m in zip(parts, sizes)) else v
-                for k, v in parts[0].items()}
+        (graph kept: the training forward; :func:`omnirecon.models.fast.render_sub_batches`)."""
+        return render_sub_batches(lambda r: self.render_rays(features, r, **kwargs), rays, FAST.train_batch)
 
-    def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None
-                    ) -> dict[str, Tensor]:
+    def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None,
+                    fine_pass: bool = True, surface_samples: int = 0) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
 
         ``signals # [V, H, W, C]`` (per-source-view 2-D maps) is passed to ``render_rays`` when given
         (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`).
-        ``camera`` may be in any float dtype and on any device (a :class:`~omnirecon.data.scene.Scene`'s
-        cameras are float64): it is moved to the sources' dtype and device first.
+        ``fine_pass`` and ``surface_samples`` are passed to the ``render_rays`` of two-pass models
+        (``capabilities.passes``, where they are documented); a one-pass model renders its only pass
+        whatever they say. ``camera`` may be in any float dtype and on any device (a
+        :class:`~omnirecon.data.scene.Scene`'s cameras are float64): it is moved to the sources' dtype
+        and device first.
 
         The fast paths of :mod:`omnirecon.models.fast` apply here (``inference_mode``, ``render_batch``,
-        ``preallocate``, ``bf16_render``); floating outputs keep the sources' dtype."""
+        ``preallocate``, ``compile``, ``bf16_render``); floating outputs keep the sources' dtype."""
         src = getattr(features, "sources", None)
         if src is not None:
             camera = camera.to(device=src.images.device, dtype=src.images.dtype)
         rays = Rays.from_image(camera)
         extra = {} if signals is None else {"signals": signals}
+        if self.capabilities.passes:
+            extra.update(fine_pass=fine_pass, surface_samples=surface_samples)
         batch = min(chunk, FAST.render_batch) if FAST.render_batch > 0 else chunk
-        h, w = camera.height, camera.width
-        with torch.inference_mode() if FAST.inference_mode else torch.no_grad(), rendering():
-            if not FAST.preallocate:  # the reference: a list of chunks, concatenated
-                parts: dict[str, list[Tensor]] = {}
-                for start in range(0, len(rays), batch):
-                    out = self.render_rays(features, rays[start:start + batch], **extra)
-                    for k, v in out.items():
-                        if v.dim() >= 1 and v.shape[0] == min(batch, len(rays) - start):
-                            parts.setdefault(k, []).append(v)
-                return {k: torch.cat(v).reshape(h, w, *v[0].shape[1:]) for k, v in parts.items()}
-            n, bufs = len(rays), None
-            float_dtype = rays.origins.dtype
-            for start in range(0, n, batch):
-                m = min(batch, n - start)
-                if FAST.compile and m < batch < n:  # pad the last batch: compiled graphs keep one shape
-                    part = rays[torch.arange(start, start + batch, device=rays.origins.device).clamp_max(n - 1)]
-                else:
-                    part = rays[start:start + m]
-                out = {k: v[:m] if v.dim() >= 1 and v.shape[0] == len(part) else v
-                       for k, v in self.render_rays(features, part, **extra).items()}
-                if bufs is None:  # one buffer per per-ray output, filled in place
-                    bufs = {k: torch.empty((n, *v.shape[1:]), device=v.device,
-                                           dtype=float_dtype if v.is_floating_point() else v.dtype)
-                            for k, v in out.items() if v.dim() >= 1 and v.shape[0] == m}
-                for k, buf in bufs.items():
-                    buf[start:start + m] = out[k]
-            return {k: v.reshape(h, w, *v.shape[1:]) for k, v in (bufs or {}).items()}
+        with grad_mode(), rendering():
+            return render_batches(lambda r: self.render_rays(features, r, **extra), rays, batch,
+                                  camera.height, camera.width)

@@ -1,6 +1,11 @@
-"""Switches of the lean hot path. Each fast path keeps the plain fp32 eager code as its reference twin:
-``with reference():`` turns every switch to the plain path (the tests in ``tests/models/test_fast_paths.py``
-and ``bench/`` compare the two); ``with switches(name=value):`` sets some of them.
+"""Switches of the lean hot path, and the fast functions they choose. Every switch is a speed twin: its
+"off" value runs the plain fp32 eager reference twin, a function of the same name and signature in
+:mod:`omnirecon.models.reference` (gsplat's pattern), and the fast path agrees with it to the
+tolerance ``tests/models/test_fast_paths.py`` states. ``with reference():`` (or
+``OMNIRECON_FAST=reference``) turns every switch to its reference twin; ``with switches(name=value):``
+sets some of them. Options that change what a model renders are not switches: they are keyword
+arguments of ``render_rays`` / ``render_view`` (``fine_pass``, ``surface_samples``: see
+:class:`omnirecon.models.base.Capabilities`).
 
 Defaults are on only where the fast path was faster *and* agreed with the reference within the
 tolerance its test states (numbers: ``bench/results/fast_paths.json``, ``bench/fast_paths.py``).
@@ -10,11 +15,17 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from contextlib import contextmanager, nullcontext
+from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from weakref import WeakKeyDictionary
 
 import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from omnirecon.models import reference as _ref
+from omnirecon.rays import Rays
 
 
 @dataclass
@@ -41,16 +52,6 @@ class FastPaths:
     (IBRNet's base and colour MLPs) apply the layer's column blocks to the parts apart: the per-sample
     part once per sample instead of once per view, and no concatenated tensor (reference: concat, one
     Linear). Forward and gradients agree to float rounding."""
-    surface_samples: int = 0
-    """When > 0: the fine pass of IBRNet and Omni-Recon outside training evaluates only this many
-    importance samples, around the coarse surface, instead of the coarse samples plus
-    ``fine_samples`` (reference: 0). Changes the output: a quality/speed trade, not a twin. Off: both
-    shipped models lose 3-12 dB on a held-out scene (they were trained on coarse + importance samples)."""
-    fine_pass: bool = True
-    """False: outside training, IBRNet and Omni-Recon render their coarse pass only (the outputs of a
-    model without a fine pass). Changes colour, not a twin: for depth maps (meshing), where the coarse
-    depth of both shipped tiny models scored within 5 % of the fine depth (abs-rel, held-out scene;
-    IBRNet's better) at less than half the samples."""
     compile: bool = False
     """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
     network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
@@ -85,6 +86,9 @@ def from_env(text: str | None) -> FastPaths:
             fp = dataclasses.replace(fp, **REFERENCE)
             continue
         name, _, value = item.partition("=")
+        if name in ("fine_pass", "surface_samples"):
+            raise ValueError(f"OMNIRECON_FAST: {name} changes the output, so it is not a switch; it is an argument "
+                             "of render_view / render_rays (mesh: --depth-pass coarse)")
         kind = {f.name: f.type for f in dataclasses.fields(FastPaths)}.get(name)
         if kind is None or not value:
             raise ValueError(f"OMNIRECON_FAST: bad item {item!r}; use reference or name=value with a name of "
@@ -94,7 +98,7 @@ def from_env(text: str | None) -> FastPaths:
 
 
 REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "split_linear": False,
-             "surface_samples": 0, "fine_pass": True, "compile": False, "bf16_render": False,
+             "compile": False, "bf16_render": False,
              "sdpa_attention": False, "inplace_elu": False}
 """Every switch at its reference-twin value."""
 
@@ -102,14 +106,13 @@ FAST = from_env(os.environ.get("OMNIRECON_FAST"))
 """The process-wide switches read by the models (defaults, or ``OMNIRECON_FAST``)."""
 
 
-
 _RENDERING = [0]
-"""Depth of nested ``render_view`` calls (bf16 autocast applies only inside one)."""
+"""Depth of nested ``render_view`` calls (bf16 autocast and compiled networks apply only inside one)."""
 
 
 @contextmanager
 def rendering():
-    """Marks the block as rendering (``render_view``): ``net_autocast`` may switch to bf16 inside it."""
+    """Marks the block as rendering (``render_view``): ``net_autocast`` and ``compiled`` may act inside it."""
     _RENDERING[0] += 1
     try:
         yield
@@ -117,22 +120,29 @@ def rendering():
         _RENDERING[0] -= 1
 
 
+# ---------------------------------------------------------------------- fast functions (twins: reference.py)
+def grad_mode():
+    """``torch.inference_mode()`` when ``FAST.inference_mode``; else the reference's ``torch.no_grad()``."""
+    return torch.inference_mode() if FAST.inference_mode else _ref.grad_mode()
+
+
 def net_autocast(device: torch.device | str):
-    """bf16 autocast for a model's per-sample networks when ``FAST.bf16_render`` and rendering; else nothing.
-    Geometry (projection, sample positions, compositing) stays in the sources' dtype: callers cast the
-    networks' outputs back."""
+    """bf16 autocast for a model's per-sample networks when ``FAST.bf16_render`` and rendering; else the
+    reference (none). Geometry (projection, sample positions, compositing) stays in the sources' dtype:
+    callers cast the networks' outputs back."""
     if not (FAST.bf16_render and _RENDERING[0]):
-        return nullcontext()
+        return _ref.net_autocast(device)
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
 
 
 _COMPILED: WeakKeyDictionary = WeakKeyDictionary()
 
 
-def compiled(module: torch.nn.Module):
-    """``module`` itself, or (``FAST.compile`` inside ``render_view``) its ``torch.compile``d twin, made once."""
+def compiled(module: nn.Module):
+    """(``FAST.compile`` inside ``render_view``) the ``torch.compile``d twin of ``module``, made once; else
+    the reference: ``module`` itself."""
     if not (FAST.compile and _RENDERING[0]):
-        return module
+        return _ref.compiled(module)
     fn = _COMPILED.get(module)
     if fn is None:
         os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(compile_cache_dir()))
@@ -147,6 +157,70 @@ def compile_cache_dir() -> str:
     return os.path.join(base, "omnirecon", "inductor")
 
 
+def concat_linear(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
+    """``layer`` on the concatenation of ``parts`` (broadcast along the leading axes), as
+    :func:`omnirecon.models.reference.concat_linear`. With ``FAST.split_linear`` the layer's column
+    blocks apply to the parts apart, and the sum is broadcast: a per-sample part ``# [R, S, 1, A]``
+    costs once per sample instead of once per view, and no concatenated tensor is made. The bias goes
+    with the part of the most rows (the first of them: a per-view part), which is computed first; the
+    others are added in order (float rounding apart, the same sum). ``# [..., out]``"""
+    if not FAST.split_linear:
+        return _ref.concat_linear(layer, parts)
+    cols, start = [], 0
+    for p in parts:
+        cols.append(layer.weight[:, start:start + p.shape[-1]])
+        start += p.shape[-1]
+    first = max(range(len(parts)), key=lambda i: parts[i].shape[:-1].numel())
+    out = F.linear(parts[first], cols[first], layer.bias)
+    for i, (p, w) in enumerate(zip(parts, cols)):
+        if i != first:
+            out = out + (p * w[:, 0] if p.shape[-1] == 1 else F.linear(p, w))
+    return out
+
+
+def render_batches(render: Callable[[Rays], dict[str, Tensor]], rays: Rays, batch: int, height: int, width: int
+                   ) -> dict[str, Tensor]:
+    """``render`` on consecutive batches of at most ``batch`` of ``rays``, per-ray outputs reshaped to
+    ``[height, width, ...]`` (as :func:`omnirecon.models.reference.render_batches`). With
+    ``FAST.preallocate`` each batch is written into full-image buffers made once (floating outputs in
+    the rays' dtype), and with ``FAST.compile`` the last batch is padded to the full size (compiled
+    graphs keep one shape)."""
+    if not FAST.preallocate:
+        return _ref.render_batches(render, rays, batch, height, width)
+    n, bufs = len(rays), None
+    float_dtype = rays.origins.dtype
+    for start in range(0, n, batch):
+        m = min(batch, n - start)
+        if FAST.compile and m < batch < n:  # pad the last batch: compiled graphs keep one shape
+            part = rays[torch.arange(start, start + batch, device=rays.origins.device).clamp_max(n - 1)]
+        else:
+            part = rays[start:start + m]
+        out = {k: v[:m] if v.dim() >= 1 and v.shape[0] == len(part) else v for k, v in render(part).items()}
+        if bufs is None:  # one buffer per per-ray output, filled in place
+            bufs = {k: torch.empty((n, *v.shape[1:]), device=v.device,
+                                   dtype=float_dtype if v.is_floating_point() else v.dtype)
+                    for k, v in out.items() if v.dim() >= 1 and v.shape[0] == m}
+        for k, buf in bufs.items():
+            buf[start:start + m] = out[k]
+    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in (bufs or {}).items()}
+
+
+def render_sub_batches(render: Callable[[Rays], dict[str, Tensor]], rays: Rays, batch: int) -> dict[str, Tensor]:
+    """A training forward of ``rays`` (graph kept). With ``FAST.train_batch`` > 0 (``batch``) ``render``
+    runs on sub-batches of at most ``batch`` rays and the per-ray outputs are concatenated: every model
+    renders each ray independently, so outputs and gradients are those of one call up to float rounding
+    (the reference: one call)."""
+    n = len(rays)
+    if batch <= 0 or n <= batch:
+        return _ref.render_sub_batches(render, rays, batch)
+    parts = [render(rays[s:s + batch]) for s in range(0, n, batch)]
+    sizes = [min(batch, n - s) for s in range(0, n, batch)]
+    return {k: torch.cat([p[k] for p in parts]) if all(p[k].dim() >= 1 and p[k].shape[0] == m
+                                                      for p, m in zip(parts, sizes)) else v
+            for k, v in parts[0].items()}
+
+
+# ---------------------------------------------------------------------- switching
 @contextmanager
 def reference():
     """Every switch at its reference twin (plain fp32 eager) inside the block."""

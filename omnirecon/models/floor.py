@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.projector import project, sample
+from omnirecon.models.projector import gather, project
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import sample_along_rays
 
@@ -51,15 +51,12 @@ class PlaneSweep(GeneralizableModel):
     def render_rays(self, features: PlaneSweepFeatures, rays: Rays) -> dict[str, Tensor]:
         src = features.sources
         cams = src.cameras
-        V, R, S = len(cams), len(rays), self.cfg.num_depths
+        R, S = len(rays), self.cfg.num_depths
         near = torch.full((R,), src.near, dtype=rays.origins.dtype, device=rays.origins.device)
         z = sample_along_rays(near, torch.full_like(near, src.far), S, inverse_depth=src.rig == "forward")  # [R, S]
-        d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)
-        pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
-        proj = project(cams, pts.reshape(-1, 3))
-        rgb = sample(src.images.permute(0, 3, 1, 2), proj)  # [V, 3, R*S]
-        rgb = rgb.reshape(V, 3, R, S).permute(2, 3, 0, 1)  # [R, S, V, 3]
-        m = proj.in_image.reshape(V, R, S).permute(1, 2, 0)[..., None].to(rgb.dtype)  # [R, S, V, 1]
+        proj = project(cams, rays.points(z, unit_z=True))  # [R, S, 3] points
+        rgb = gather(src.images.permute(0, 3, 1, 2), proj)  # [R, S, V, 3]
+        m = proj.mask[..., None].to(rgb.dtype)  # [R, S, V, 1]
         count = m.sum(2)  # [R, S, 1]
         mean = (rgb * m).sum(2) / count.clamp_min(1)  # [R, S, 3]
         var = (((rgb - mean[:, :, None]) ** 2) * m).sum(2).sum(-1) / count[..., 0].clamp_min(1)  # [R, S]

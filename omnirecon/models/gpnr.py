@@ -37,7 +37,7 @@ from omnirecon.cameras import canonical_transform, plucker
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import compiled, net_autocast
 from omnirecon.models.pretrained import SingleMap
-from omnirecon.models.projector import project, sample
+from omnirecon.models.projector import gather, project
 from omnirecon.rays import Rays, Sources
 
 
@@ -192,18 +192,15 @@ class GPNR(GeneralizableModel):
 
         # 1. samples along the target rays, linear in z-depth
         z = torch.linspace(src.near, src.far, M, dtype=dtype, device=rays.origins.device)  # [M]
-        dist = z[None, :] / rays.z_scale[:, None].clamp_min(1e-6)  # [R, M]
-        pts = rays.origins[:, None] + rays.directions[:, None] * dist[..., None]  # [R, M, 3]
+        dist = rays.distances(z)  # [R, M]
+        pts = rays.points(z)  # [R, M, 3]
 
         # 2. project into every source view and sample patch features and colours
-        proj = project(cams, pts.reshape(-1, 3), dtype)
-        valid = proj.in_image.reshape(K, R, M) if cfg.mask_invalid else torch.ones(K, R, M, dtype=torch.bool,
-                                                                                   device=pts.device)
-        feat = sample(features.patches, proj, "zeros")  # [K, C, R*M]
-        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [K, 3, R*M]
-        feat = feat.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
-        rgb = rgb.reshape(K, 3, R, M).permute(2, 0, 3, 1)  # [R, K, M, 3]
-        valid = valid.permute(1, 0, 2)  # [R, K, M]
+        proj = project(cams, pts, dtype)
+        valid = proj.mask.transpose(1, 2) if cfg.mask_invalid else torch.ones(R, K, M, dtype=torch.bool,
+                                                                               device=pts.device)  # [R, K, M]
+        feat = gather(features.patches, proj, "zeros").transpose(1, 2)  # [R, K, M, C]
+        rgb = gather(src.images.permute(0, 3, 1, 2), proj, "border").transpose(1, 2)  # [R, K, M, 3]
 
         # 3. canonical frame per target ray; source rays through each point, points, relative poses
         T = canonical_transform(rays.origins, rays.directions, rays.up)  # [R, 4, 4]
@@ -266,8 +263,7 @@ class GPNR(GeneralizableModel):
         out = {"rgb": main, "rgb_aux": aux, "rgb_blend": rgb_aux, "depth": depth, "alpha": alpha, "blend": beta,
                "valid": view_ok.any(-1)}
         if signals is not None:  # predict-then-blend with the colour weights: beta over views, alpha along rays
-            sig = sample(signals.permute(0, 3, 1, 2).to(dtype), proj, "border")
-            sig = sig.reshape(K, -1, R, M).permute(2, 0, 3, 1)  # [R, K, M, C]
+            sig = gather(signals.permute(0, 3, 1, 2).to(dtype), proj, "border").transpose(1, 2)  # [R, K, M, C]
             out["signal"] = (beta[..., None] * (alpha[..., None] * sig).sum(2)).sum(1)
         return out
 

@@ -22,9 +22,9 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import FAST, compiled, net_autocast
+from omnirecon.models.fast import FAST, compiled, concat_linear, net_autocast
 from omnirecon.models.pretrained import SingleMap
-from omnirecon.models.projector import project, sample
+from omnirecon.models.projector import gather, project
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import alpha_from_density, composite, weights_from_alpha
@@ -169,12 +169,8 @@ class Aggregator(nn.Module):
         w = (e - torch.where(torch.isinf(e_min), torch.zeros_like(e_min), e_min)) * m
         w = w / (w.sum(-2, keepdim=True) + 1e-8)
         stats = _weighted_stats(f, w)  # [R, S, 1, 2C]
-        if FAST.split_linear:  # the first layer's stats part once per sample, not per view (no concat)
-            lin = self.base[0][0]
-            h = F.linear(f, lin.weight[:, stats.shape[-1]:], lin.bias) + F.linear(stats, lin.weight[:, :stats.shape[-1]])
-            x = self.base[1](self.base[0][2](self.base[0][1](h)))  # [R, S, V, 32]
-        else:
-            x = self.base(torch.cat([stats.expand(*f.shape[:-1], -1), f], -1))  # [R, S, V, 32]
+        first, act, second = self.base[0]  # the base MLP on [stats, f] (split_linear: the stats part once per sample)
+        x = self.base[1](second(act(concat_linear(first, [stats, f]))))  # [R, S, V, 32]
         rv = F.elu(self.vis(x * w), inplace=FAST.inplace_elu)  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
         r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
         x = x + r
@@ -191,12 +187,7 @@ class Aggregator(nn.Module):
             a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
         h = self.attn_norm(h + a)
         sigma = self.sigma(h)[..., 0] * seen  # [R, S]
-        if FAST.split_linear:  # the colour head's first layer on its three inputs apart (no concat)
-            lin, n = self.rgb[0], x.shape[-1]
-            h = F.linear(x, lin.weight[:, :n], lin.bias) + v * lin.weight[:, n] + F.linear(ray_diff, lin.weight[:, n + 1:])
-            logit = self.rgb[1:](h)[..., 0]
-        else:
-            logit = self.rgb(torch.cat([x, v, ray_diff], -1))[..., 0]
+        logit = self.rgb[1:](concat_linear(self.rgb[0], [x, v, ray_diff]))[..., 0]  # the colour head on [x, v, ray_diff]
         logit = logit.masked_fill(~mask, -1e9)  # [R, S, V]
         return sigma, torch.softmax(logit, -1)
 
@@ -219,7 +210,7 @@ class IBRNetFeatures:
 
 
 class IBRNet(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, passes=True)
 
     def __init__(self, cfg: IBRNetConfig):
         super().__init__()
@@ -238,23 +229,16 @@ class IBRNet(GeneralizableModel):
         ``# [R, S, V, C]``, else None."""
         src = feats.sources
         cams = src.cameras
-        V, (R, S) = len(cams), z.shape
-        d_z = rays.directions / rays.z_scale[:, None].clamp_min(1e-6)  # z = 1 directions
-        pts = rays.origins[:, None] + d_z[:, None] * z[..., None]  # [R, S, 3]
-        proj = project(cams, pts.reshape(-1, 3))
+        pts = rays.points(z, unit_z=True)  # [R, S, 3]
+        proj = project(cams, pts)
         C = self.cfg.feature_dim
         maps = feats.maps[:, half * C:(half + 1) * C]
-        feat = sample(maps, proj, "zeros").reshape(V, C, R, S)
-        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [V, 3, R*S]
-        rgb_feat = torch.cat([rgb.reshape(V, 3, R, S), feat], 1).permute(2, 3, 0, 1)  # [R, S, V, 3+C]
+        rgb_feat = gather([src.images.permute(0, 3, 1, 2), maps], proj, ["border", "zeros"])  # [R, S, V, 3+C]
         a = F.normalize(rays.origins[:, None, None] - pts[:, :, None], dim=-1)  # to target  [R, S, 1, 3]
         b = F.normalize(cams.centers[None, None] - pts[:, :, None], dim=-1)  # to sources [R, S, V, 3]
         ray_diff = torch.cat([F.normalize(a - b, dim=-1), (a * b).sum(-1, keepdim=True)], -1)
-        mask = proj.in_image.reshape(V, R, S).permute(1, 2, 0)  # [R, S, V]
-        sig = None
-        if signals is not None:
-            sig = sample(signals.permute(0, 3, 1, 2).to(pts.dtype), proj, "border")
-            sig = sig.reshape(V, -1, R, S).permute(2, 3, 0, 1)  # [R, S, V, C]
+        mask = proj.mask  # [R, S, V]
+        sig = None if signals is None else gather(signals.permute(0, 3, 1, 2).to(pts.dtype), proj, "border")  # [R, S, V, C]
         return rgb_feat, ray_diff, mask, sig
 
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None):
@@ -272,19 +256,21 @@ class IBRNet(GeneralizableModel):
         return out
 
     def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False,
-                    signals: Tensor | None = None) -> dict[str, Tensor]:
+                    signals: Tensor | None = None, fine_pass: bool = True, surface_samples: int = 0
+                    ) -> dict[str, Tensor]:
         """Coarse then fine pass. ``signals # [V, H, W, C]`` (optional, per-source-view 2-D maps): also
         return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
-        ``acc``, see :mod:`omnirecon.lift.blend`)."""
+        ``acc``, see :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the
+        output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``)."""
         z = coarse_depths(features.sources, rays, self.cfg.coarse_samples, jitter)
-        fine_net = self.fine if FAST.fine_pass or jitter else None  # fine_pass=False: depth maps from the coarse pass
+        fine_net = self.fine if fine_pass or jitter else None  # fine_pass=False: depth maps from the coarse pass
         coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
         if fine_net is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
-        fine = self._pass(self.fine, features, rays, fine_depths(z, coarse["weights"], self.cfg.fine_samples, jitter),
-                          1, signals)
+        z_fine = fine_depths(z, coarse["weights"], self.cfg.fine_samples, jitter, surface_samples)
+        fine = self._pass(self.fine, features, rays, z_fine, 1, signals)
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out

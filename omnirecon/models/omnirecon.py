@@ -75,10 +75,10 @@ from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import FAST, compiled, net_autocast
+from omnirecon.models.fast import compiled, net_autocast
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.pretrained import PyramidMaps
-from omnirecon.models.projector import project, sample
+from omnirecon.models.projector import gather, project, sample
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import alpha_from_sdf, composite, weights_from_alpha
@@ -403,7 +403,7 @@ class PointSamples(NamedTuple):
 
 
 class OmniRecon(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True)
 
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
@@ -438,13 +438,10 @@ class OmniRecon(GeneralizableModel):
         """Sample the source views at ``points # [R, S, 3]`` seen from ``origins # [R, 3]`` (the target camera)."""
         src = features.sources
         cams = src.cameras
-        K, (R, S) = len(cams), points.shape[:2]
-        proj = project(cams, points.reshape(-1, 3))
-        feat = sample(features.maps, proj, "zeros")  # [K, C, R*S]
-        rgb = sample(src.images.permute(0, 3, 1, 2), proj, "border")  # [K, 3, R*S]
-        mask = proj.in_image.reshape(K, R, S).permute(1, 2, 0)  # [R, S, K]
-        feat = feat.reshape(K, -1, R, S).permute(2, 3, 0, 1) * mask[..., None]  # [R, S, K, C]
-        rgb = rgb.reshape(K, 3, R, S).permute(2, 3, 0, 1)  # [R, S, K, 3]
+        proj = project(cams, points)
+        mask = proj.mask  # [R, S, K]
+        feat = gather(features.maps, proj, "zeros") * mask[..., None]  # [R, S, K, C]
+        rgb = gather(src.images.permute(0, 3, 1, 2), proj, "border")  # [R, S, K, 3]
         u = F.normalize(points - origins[:, None], dim=-1)[:, :, None]  # target -> point  [R, S, 1, 3]
         u_src = F.normalize(points[:, :, None] - cams.centers.to(points.dtype), dim=-1)  # sources -> point [R, S, K, 3]
         dirs = torch.cat([u - u_src, (u * u_src).sum(-1, keepdim=True)], -1)
@@ -481,19 +478,15 @@ class OmniRecon(GeneralizableModel):
     def sample_signals(self, features: OmniReconFeatures, points: Tensor, signals: Tensor) -> Tensor:
         """Per-view 2-D maps ``signals # [K, H, W, C]`` at ``points # [R, S, 3]``, projected and sampled exactly
         as :meth:`gather` samples the source colours (bilinear, border padding). ``# [R, S, K, C]``"""
-        cams = features.sources.cameras
-        K, (R, S) = len(cams), points.shape[:2]
-        sig = sample(signals.permute(0, 3, 1, 2).to(points.dtype), project(cams, points.reshape(-1, 3)), "border")
-        return sig.reshape(K, -1, R, S).permute(2, 3, 0, 1)
+        return gather(signals.permute(0, 3, 1, 2).to(points.dtype), project(features.sources.cameras, points), "border")
 
     def _pass(self, features: OmniReconFeatures, rays: Rays, z: Tensor,
               signals: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
         """One pass at sample z-depths ``z # [R, S]``: outputs and the per-sample ``omega # [R, S, K]``.
         With ``signals # [K, H, W, C]`` the outputs add ``signal # [R, C]``: the maps blended with ``omega``
         and composited with ``w``, exactly as ``rgb`` (predict-then-blend)."""
-        cos = rays.z_scale.clamp_min(1e-6)[:, None]  # [R, 1]
-        t = z / cos  # ray distances
-        points = rays.origins[:, None] + rays.directions[:, None] * t[..., None]  # [R, S, 3]
+        t = rays.distances(z)  # [R, S]
+        points = rays.points(z)  # [R, S, 3]
         samples = self.gather(features, points, rays.origins)
         vol = self.volume_features(features, points)
         with net_autocast(points.device):
@@ -517,20 +510,23 @@ class OmniRecon(GeneralizableModel):
         return out, omega
 
     def render_rays(self, features: OmniReconFeatures, rays: Rays, jitter: bool = False,
-                    return_samples: bool = False, signals: Tensor | None = None) -> dict[str, Tensor]:
+                    return_samples: bool = False, signals: Tensor | None = None, fine_pass: bool = True,
+                    surface_samples: int = 0) -> dict[str, Tensor]:
         """Coarse pass, then the fine pass on the coarse + importance samples (see the module docstring for
         the outputs). ``jitter``: stratified coarse samples and random importance samples (training).
         ``signals # [K, H, W, C]`` (per-source-view 2-D maps, optional) adds ``signal # [R, C]`` from the
         final pass: predict-then-blend with the RGB weights (not normalised by ``acc``; see
-        :mod:`omnirecon.lift.blend`)."""
+        :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the output outside
+        training (:class:`~omnirecon.models.base.Capabilities` ``passes``)."""
         cfg = self.cfg
         z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter)  # [R, S]
-        coarse_only = cfg.fine_samples == 0 or not (FAST.fine_pass or jitter)  # fine_pass=False: coarse depth maps
+        coarse_only = cfg.fine_samples == 0 or not (fine_pass or jitter)  # fine_pass=False: coarse depth maps
         coarse, omega = self._pass(features, rays, z, signals if coarse_only else None)
         if coarse_only:
             out = dict(coarse)
         else:
-            out, omega = self._pass(features, rays, fine_depths(z, coarse["weights"], cfg.fine_samples, jitter), signals)
+            z_fine = fine_depths(z, coarse["weights"], cfg.fine_samples, jitter, surface_samples)
+            out, omega = self._pass(features, rays, z_fine, signals)
             out["valid"] = out["valid"] & coarse["valid"]
         out["rgb_coarse"], out["depth_coarse"] = coarse["rgb"], coarse["depth"]
         if return_samples:

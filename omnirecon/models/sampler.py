@@ -8,7 +8,6 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from omnirecon.models.fast import FAST
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import sample_along_rays, sample_pdf
 
@@ -21,16 +20,17 @@ def coarse_depths(sources: Sources, rays: Rays, num: int, jitter: bool = False) 
     return sample_along_rays(near, far, num, inverse_depth=sources.rig == "forward", jitter=jitter)
 
 
-def fine_depths(z: Tensor, weights: Tensor, num: int, jitter: bool = False) -> Tensor:
+def fine_depths(z: Tensor, weights: Tensor, num: int, jitter: bool = False, surface_samples: int = 0) -> Tensor:
     """The coarse depths ``z # [R, S]`` plus ``num`` samples of the piecewise-constant density of
     ``weights # [R, S]`` between their midpoints (deterministic unless ``jitter``), sorted (the
     importance samples detached from the graph). ``# [R, S + num]``
 
-    With ``FAST.surface_samples = n > 0`` and no ``jitter`` (rendering, depth maps), the fine pass gets
-    only ``n`` deterministic importance samples, which gather around the coarse surface: no coarse depth
-    is evaluated twice. ``# [R, n]`` (a quality/speed trade measured by ``bench/fast_paths.py``)."""
+    With ``surface_samples = n > 0`` and no ``jitter`` (rendering, depth maps), the fine pass gets only
+    ``n`` deterministic importance samples, which gather around the coarse surface: no coarse depth is
+    evaluated twice. ``# [R, n]`` (it changes the output: a quality/speed trade measured by
+    ``bench/fast_paths.py``)."""
     mid = 0.5 * (z[:, 1:] + z[:, :-1])
-    if FAST.surface_samples > 0 and not jitter:
-        return sample_pdf(mid, weights[:, 1:-1].detach(), FAST.surface_samples).detach()
+    if surface_samples > 0 and not jitter:
+        return sample_pdf(mid, weights[:, 1:-1].detach(), surface_samples).detach()
     z_imp = sample_pdf(mid, weights[:, 1:-1].detach(), num, deterministic=not jitter)
     return torch.cat([z, z_imp.detach()], -1).sort(-1).values

@@ -246,23 +246,18 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     from omnirecon.engine.checkpoint import load_checkpoint  # lazy: demo --help stays fast
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
     from omnirecon.engine.views import default_views  # lazy: demo --help stays fast
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames  # lazy: demo --help stays fast
-    from omnirecon.rays import Sources  # lazy: demo --help stays fast
     from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: demo --help stays fast
-    from omnirecon.workflows.render import RenderConfig, camera_path, write_video  # lazy: demo --help stays fast
+    from omnirecon.workflows.render import mesh_path_video, scene_camera_path  # lazy: demo --help stays fast
 
     side = 128 if cfg.quick else 256
     scene, mesh = scene_frame_mesh(path, mesh_file, 128)
     views = default_views(scene, min(cfg.num_views, 3))
     model, _ = load_checkpoint(ckpt)
     frames = 8 if cfg.quick else 48
-    cams = camera_path(RenderConfig(scene=path, frames=frames, path="orbit"), scene)
+    cams = scene_camera_path(scene, "orbit", frames)
     cams = cams.rescaled(side / max(cams.width, cams.height))
-    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    with MeshRenderer(model, mesh, Sources.from_scene(scene, views), MeshRenderOptions(background=bg)) as r:
-        images, times = render_frames(r, cams)
+    video, images, times = mesh_path_video(model, mesh, scene, cams, [views] * len(cams), out / "mesh_path" / "orbit.mp4")
     fps = 1.0 / statistics.median(times)
-    video = write_video(out / "mesh_path" / "orbit.mp4", images, 24)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": views}

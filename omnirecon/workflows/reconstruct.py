@@ -35,15 +35,13 @@ from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
-from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames
 from omnirecon.outputs import check_writable, clean_stale
 from omnirecon.provenance import provenance
-from omnirecon.rays import Sources
 from omnirecon.workflows.export import ExportConfig, run_export
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh, scene_frame_mesh
-from omnirecon.workflows.render import RenderConfig, camera_path, write_video
+from omnirecon.workflows.render import mesh_path_video, scene_camera_path
 
 CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
 """The shipped Omni-Recon checkpoint (the default model)."""
@@ -176,23 +174,10 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     scene, mesh = scene_frame_mesh(scene_path, out / "mesh.ply", side)
     model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
-    cams = camera_path(RenderConfig(scene=scene_path, frames=cfg.frames, path=kind), scene)
+    cams = scene_camera_path(scene, kind, cfg.frames)
     train = scene.splits.get("train") or list(range(len(scene)))
-    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    picks = [tuple(sorted(select_sources(scene, cams[i], train, cfg.num_views))) for i in range(len(cams))]
-    images, times = [], []
-    start = 0
-    while start < len(cams):  # consecutive frames with the same nearest sources share one encoding
-        end = start + 1
-        while end < len(cams) and picks[end] == picks[start]:
-            end += 1
-        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(picks[start])),
-                          MeshRenderOptions(background=bg)) as r:
-            frame, frame_s = render_frames(r, cams[start:end])
-        images += frame
-        times += frame_s
-        start = end
-    video = write_video(out / "path.mp4", images, 24)
+    picks = [sorted(select_sources(scene, cams[i], train, cfg.num_views)) for i in range(len(cams))]
+    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4")
     write_image(out / "path_first_frame.png", images[0])
     fps = 1.0 / statistics.median(times)
     lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, mesh path {fps:.1f} FPS "

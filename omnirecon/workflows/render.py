@@ -30,9 +30,6 @@ from omnirecon.errors import InputError
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 
-MAX_DEFAULT_KEYFRAMES = 8
-"""``interp`` without ``--keyframes`` uses at most this many views, evenly spaced in index order."""
-
 
 @dataclass
 class RenderConfig(MachineConfig):
@@ -81,28 +78,26 @@ class RenderConfig(MachineConfig):
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 
 
+def scene_camera_path(scene, kind: trajectory.PathKind, frames: int, keyframes: list[int] | None = None,
+                      arc: float = 360.0, rots: float = 2.0) -> Cameras:
+    """:func:`omnirecon.trajectory.camera_path` through a :class:`~omnirecon.data.scene.Scene`: an orbit
+    circles the point closest to the optical axes (object rigs) or the bounds centre, a spiral spans the
+    scene's near and far depths."""
+    cams = scene.cameras
+    center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
+    return trajectory.camera_path(cams, kind, frames, center, float(scene.near.min()), float(scene.far.max()),
+                                  keyframes, arc, rots)
+
+
 def camera_path(cfg: RenderConfig, scene) -> Cameras:
     """The frame cameras of ``cfg.path`` through ``scene`` (its resolution and intrinsics)."""
-    cams = scene.cameras
-    if cfg.path == "orbit":
-        center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
-        return trajectory.path_cameras(trajectory.orbit(cams, cfg.frames, center, cfg.arc), cams)
-    if cfg.path == "spiral":
-        c2w = trajectory.spiral(cams, float(scene.near.min()), float(scene.far.max()), cfg.frames, cfg.rots)
-        return trajectory.path_cameras(c2w, cams)
-    keys = list(cfg.keyframes) if cfg.keyframes else default_keyframes(len(scene))
-    bad = [k for k in keys if not 0 <= k < len(scene)]
-    if bad or len(keys) < 2:
-        raise InputError(f"--keyframes must name at least 2 views in 0..{len(scene) - 1}, got {keys}", scene.path,
-                         "pass view indices as listed by `omnirecon inspect`")
-    return trajectory.interpolate(cams[keys], cfg.frames)
-
-
-def default_keyframes(n: int) -> list[int]:
-    """All ``n`` views when there are few, else ``MAX_DEFAULT_KEYFRAMES`` evenly spaced ones."""
-    if n <= MAX_DEFAULT_KEYFRAMES:
-        return list(range(n))
-    return np.unique(np.linspace(0, n - 1, MAX_DEFAULT_KEYFRAMES).round().astype(int)).tolist()
+    if cfg.path == "interp":
+        keys = list(cfg.keyframes) if cfg.keyframes else trajectory.default_keyframes(len(scene))
+        bad = [k for k in keys if not 0 <= k < len(scene)]
+        if bad or len(keys) < 2:
+            raise InputError(f"--keyframes must name at least 2 views in 0..{len(scene) - 1}, got {keys}", scene.path,
+                             "pass view indices as listed by `omnirecon inspect`")
+    return scene_camera_path(scene, cfg.path, cfg.frames, list(cfg.keyframes or ()), cfg.arc, cfg.rots)
 
 
 def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
@@ -144,6 +139,32 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     video = write_video(out / "video.mp4", frames, cfg.fps) if cfg.video else None
     print(f"{seconds / len(cams):.2f} s per frame")
     return out, video
+
+
+def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24
+                    ) -> tuple[Path, list[np.ndarray], list[float]]:
+    """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
+    (:class:`~omnirecon.mesh.ibr.MeshRenderer`, the scene's background) and write the video at ``path``.
+
+    ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
+    share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
+    ``# [H, W, 3]`` and the seconds of each frame (after one untimed warm-up frame per renderer)."""
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames  # lazy: --help stays fast
+
+    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    images, times = [], []
+    start = 0
+    while start < len(cameras):
+        end = start + 1
+        while end < len(cameras) and list(sources[end]) == list(sources[start]):
+            end += 1
+        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])),
+                          MeshRenderOptions(background=bg)) as r:
+            frames, seconds = render_frames(r, cameras[start:end])
+        images += frames
+        times += seconds
+        start = end
+    return write_video(path, images, fps), images, times
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int) -> Path:

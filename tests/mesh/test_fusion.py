@@ -97,9 +97,9 @@ class CountingModel(torch.nn.Module):
         self.sources.append(len(sources.images))
         return self.inner.encode(sources)
 
-    def render_view(self, features, camera, chunk=4096):
+    def render_view(self, features, camera, chunk=4096, **options):
         self.renders += 1
-        return self.inner.render_view(features, camera, chunk=chunk)
+        return self.inner.render_view(features, camera, chunk=chunk, **options)
 
 
 def test_views_all_cost_is_linear_in_views(scene):

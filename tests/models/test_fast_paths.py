@@ -1,5 +1,6 @@
-"""Each fast path of omnirecon.models.fast against its reference twin (plain fp32 eager), within the
-tolerance stated here; training paths in forward and in gradients."""
+"""Each fast path of omnirecon.models.fast against its reference twin (plain fp32 eager, in
+omnirecon.models.reference), within the tolerance stated here; training paths in forward and in gradients.
+The output-changing options of two-pass models (fine_pass, surface_samples) are tested in test_passes.py."""
 
 import pytest
 import torch
@@ -157,29 +158,6 @@ def test_train_batch_forward_and_gradients(name):
         torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
 
 
-@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
-def test_surface_samples_fine_pass(name):
-    """surface_samples: the fine pass evaluates exactly N samples, drawn where the coarse weights are
-    (inside the coarse depth range, sorted); training (jitter) keeps coarse + importance samples."""
-    from omnirecon.models.sampler import fine_depths
-
-    torch.manual_seed(0)
-    z = torch.linspace(2.0, 4.0, 12).expand(5, 12).contiguous()
-    w = torch.zeros(5, 12)
-    w[:, 6] = 1.0  # all the mass in one coarse interval
-    with fast.switches(surface_samples=6):
-        zf = fine_depths(z, w, 4)
-        assert zf.shape == (5, 6) and (zf.diff(dim=-1) >= 0).all()
-        mid = 0.5 * (z[:, 1:] + z[:, :-1])
-        inner = zf[:, 1:-1]  # the deterministic CDF samples away from the two ends sit in that interval
-        assert ((inner >= mid[:, 5:6] - 1e-6) & (inner <= mid[:, 6:7] + 1e-6)).all()
-        assert fine_depths(z, w, 4, jitter=True).shape == (5, 16)
-        model = MODELS[name]().eval()
-        src, target = scene()
-        out = render(model, src, target, surface_samples=6)
-        assert torch.isfinite(out["rgb"]).all() and out["rgb"].shape == (target.height, target.width, 3)
-
-
 def test_switches_from_environment():
     """OMNIRECON_FAST sets switches for any command: the reference twins, or name=value pairs."""
     assert fast.from_env(None) == fast.FastPaths()
@@ -189,25 +167,33 @@ def test_switches_from_environment():
     assert fp.compile is True and fp.render_batch == 64 and fp.inference_mode is True
     with pytest.raises(ValueError, match="OMNIRECON_FAST"):
         fast.from_env("warp_speed=9")
+    with pytest.raises(ValueError, match="not a switch"):
+        fast.from_env("fine_pass=0")
 
 
-@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
-def test_fine_pass_off_renders_the_coarse_pass(name):
-    """fine_pass=False outside training: the main outputs are the reference's coarse pass exactly;
-    training (jitter) still runs both passes."""
-    from omnirecon.rays import Rays
+def test_reference_twins_share_signatures():
+    """Every reference twin has a fast namesake with the same signature (gsplat's pattern)."""
+    import inspect
+
+    from omnirecon.models import reference
+
+    twins = [n for n, f in vars(reference).items() if inspect.isfunction(f) and f.__module__ == reference.__name__]
+    assert len(twins) >= 6
+    for n in twins:
+        assert inspect.signature(getattr(fast, n)) == inspect.signature(getattr(reference, n)), n
+
+
+@pytest.mark.parametrize("views", [1, 2, 5])
+def test_concat_linear_equals_reference(views):
+    """The split first layer: forward to 1e-6 of one Linear on the concatenation, whichever part is the
+    larger (a per-sample part ``[R, S, 1, A]`` beside per-view parts, and a one-channel part)."""
+    from omnirecon.models import reference
 
     torch.manual_seed(0)
-    model = MODELS[name]().eval()
-    src, target = scene()
-    with fast.reference():
-        ref = render(model, src, target)
-        out = render(model, src, target, fine_pass=False)
-    torch.testing.assert_close(out["rgb"], ref["rgb_coarse"], atol=1e-6, rtol=1e-6)
-    torch.testing.assert_close(out["depth"], ref.get("depth_coarse", ref["depth"]) if name == "omnirecon"
-                               else ref["depth_coarse"], atol=1e-6, rtol=1e-6)
-    with fast.switches(fine_pass=False):
-        rays = Rays.from_image(target)[:16]
-        with torch.no_grad():
-            trained = model.render_rays(model.encode(src), rays, jitter=True)
-    assert trained["rgb"].shape == (16, 3) and not torch.equal(trained["rgb"], trained["rgb_coarse"])
+    layer = torch.nn.Linear(6 + 4 + 1, 7)
+    parts = [torch.randn(3, 4, 1, 6), torch.randn(3, 4, views, 4), torch.randn(3, 4, views, 1)]
+    ref = reference.concat_linear(layer, parts)
+    with fast.switches(split_linear=True):
+        out = fast.concat_linear(layer, parts)
+    assert out.shape == ref.shape == (3, 4, views, 7)
+    torch.testing.assert_close(out, ref, atol=1e-6, rtol=1e-6)

@@ -90,6 +90,24 @@ def test_interp_passes_through_keyframes():
     assert torch.allclose(cams.centers[1], keys.centers[0] * 2 / 3 + keys.centers[1] / 3, atol=1e-9)
 
 
+def test_camera_path_kinds_from_cameras():
+    """trajectory.camera_path: cameras and a kind give the path of that kind (the same poses as the
+    primitives, camera 0's intrinsics); a bad kind, a spiral without depths or bad keyframes: ValueError."""
+    cams = hemisphere_cameras(10)
+    orbit = trajectory.camera_path(cams, "orbit", 6, arc=180.0)
+    assert torch.equal(orbit.c2w, trajectory.orbit(cams, 6, None, 180.0)) and (orbit.width, orbit.height) == (16, 16)
+    spiral = trajectory.camera_path(cams, "spiral", 5, near=1.0, far=5.0, rots=1.0)
+    assert torch.equal(spiral.c2w, trajectory.spiral(cams, 1.0, 5.0, 5, 1.0))
+    interp = trajectory.camera_path(cams, "interp", 9)
+    keys = trajectory.default_keyframes(len(cams))
+    assert len(keys) == trajectory.MAX_DEFAULT_KEYFRAMES
+    assert torch.equal(interp.c2w, trajectory.interpolate(cams[keys], 9).c2w)
+    for kw in ({"kind": "spiral"}, {"kind": "interp", "keyframes": [3]}, {"kind": "interp", "keyframes": [0, 99]},
+               {"kind": "zoom"}):
+        with pytest.raises(ValueError):
+            trajectory.camera_path(cams, frames=4, **kw)
+
+
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     return generate_scene(tmp_path_factory.mktemp("synth"), 900_321, SynthOptions(resolution=32, views=12))

@@ -1,0 +1,71 @@
+"""The output-changing options of the two-pass models (IBRNet, Omni-Recon): ``fine_pass`` and
+``surface_samples``, keyword arguments of ``render_rays`` and ``render_view`` (not fast-path switches)."""
+
+import pytest
+import torch
+
+from omnirecon.models import fast
+from omnirecon.rays import Rays
+from tests.models.test_fast_paths import MODELS, render, scene
+
+
+@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
+def test_surface_samples_fine_pass(name):
+    """surface_samples: the fine pass evaluates exactly N samples, drawn where the coarse weights are
+    (inside the coarse depth range, sorted); training (jitter) keeps coarse + importance samples."""
+    from omnirecon.models.sampler import fine_depths
+
+    torch.manual_seed(0)
+    z = torch.linspace(2.0, 4.0, 12).expand(5, 12).contiguous()
+    w = torch.zeros(5, 12)
+    w[:, 6] = 1.0  # all the mass in one coarse interval
+    zf = fine_depths(z, w, 4, surface_samples=6)
+    assert zf.shape == (5, 6) and (zf.diff(dim=-1) >= 0).all()
+    mid = 0.5 * (z[:, 1:] + z[:, :-1])
+    inner = zf[:, 1:-1]  # the deterministic CDF samples away from the two ends sit in that interval
+    assert ((inner >= mid[:, 5:6] - 1e-6) & (inner <= mid[:, 6:7] + 1e-6)).all()
+    assert fine_depths(z, w, 4, jitter=True, surface_samples=6).shape == (5, 16)
+    assert fine_depths(z, w, 4).shape == (5, 16)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    out = render(model, src, target)
+    surf = model.render_view(model.encode(src), target, chunk=100, surface_samples=6)
+    assert torch.isfinite(surf["rgb"]).all() and surf["rgb"].shape == (target.height, target.width, 3)
+    assert not torch.equal(surf["rgb"], out["rgb"])
+
+
+@pytest.mark.parametrize("name", ["ibrnet", "omnirecon"])
+def test_fine_pass_off_renders_the_coarse_pass(name):
+    """fine_pass=False outside training: the main outputs are the reference's coarse pass exactly;
+    training (jitter) still runs both passes; the process-wide switches are untouched."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with fast.reference():
+        ref = render(model, src, target)
+        with torch.no_grad():
+            out = model.render_view(model.encode(src), target, chunk=100, fine_pass=False)
+    torch.testing.assert_close(out["rgb"], ref["rgb_coarse"], atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(out["depth"], ref.get("depth_coarse", ref["depth"]) if name == "omnirecon"
+                               else ref["depth_coarse"], atol=1e-6, rtol=1e-6)
+    rays = Rays.from_image(target)[:16]
+    with torch.no_grad():
+        feats = model.encode(src)
+        trained = model.render_rays(feats, rays, jitter=True, fine_pass=False)
+        coarse = model.render_rays(feats, rays, fine_pass=False)
+    assert trained["rgb"].shape == (16, 3) and not torch.equal(trained["rgb"], trained["rgb_coarse"])
+    torch.testing.assert_close(coarse["rgb"], coarse["rgb_coarse"], atol=0, rtol=0)
+    assert fast.FAST == fast.FastPaths() or fast.FAST == fast.from_env(None)
+
+
+@pytest.mark.parametrize("name", ["gpnr"])
+def test_one_pass_models_ignore_pass_options(name):
+    """A one-pass model renders its only pass whatever fine_pass and surface_samples say."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    with torch.no_grad():
+        feats = model.encode(src)
+    a = model.render_view(feats, target, chunk=100)
+    b = model.render_view(feats, target, chunk=100, fine_pass=False, surface_samples=4)
+    assert not model.capabilities.passes and torch.equal(a["rgb"], b["rgb"])
