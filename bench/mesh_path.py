@@ -48,8 +48,10 @@ def visibility_psnr(model, scene, views, targets, mesh) -> dict:
     for vis in (False, True):
         opts = MeshRenderOptions(background=bg, visibility=vis, cull_back_faces=False)
         with MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts) as r:
-            renders = {t: r.render(scene.cameras[t], extras=False)["rgb"].float().clamp(0, 1) for t in targets}
+            outs = {t: r.render(scene.cameras[t]) for t in targets}
+            renders = {t: o["rgb"].float().clamp(0, 1) for t, o in outs.items()}
             key = "with" if vis else "without"
+            out["coverage"] = float(np.mean([o["mask"].float().mean() for o in outs.values()]))  # held-out pixels on the mesh
             out[key] = float(np.mean([metrics.psnr(renders[t], scene.images[t].float()) for t in targets]))
             if scene.masks is not None:
                 out[key + "_masked"] = float(np.mean([metrics.psnr(renders[t], scene.images[t].float(), scene.masks[t])
@@ -99,7 +101,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
     curve_covered = {str(int(c["seconds"])): c["psnr_covered"] for c in ft["curve"] if "psnr_covered" in c}
     return {"name": name, "sources": ft["sources"], "held_out": ft["held_out"], "faces": ft["faces"],
             "mesh": "geometry bench mesh" if cached else "extracted here", "curve": curve, "curve_masked": curve_masked,
-            "curve_covered": curve_covered,
+            "curve_covered": curve_covered, "coverage": ft["coverage"],
             "steps": {str(int(c["seconds"])): c["steps"] for c in ft["curve"]}, "visibility": vis,
             "tuned_parameters": ft["tuned_parameters"], "clock": ft["clock"],
             "pictures": {"curve": f"figures/mesh_path_{name}_curve.png",

@@ -18,7 +18,7 @@ import os
 import shutil
 import tempfile
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +92,7 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
         centre_pct_max=round(err["centre_pct_max"], 4), extent=round(extent, 5),
         points3D=summary["points3D"], reprojection_px=round(summary["mean_reprojection_error_px"], 4),
         models=summary["models"], matcher=summary["matcher"], stage_seconds=summary["seconds"],
+        dropped=summary.get("dropped", []), attempts=summary.get("attempts", []),
         detected_rig=est.rig, focal_est=round(float(est.cameras.fx[0]), 2), focal_ref=round(float(ref.cameras.fx[0]), 2),
     )
     return row
@@ -109,6 +110,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--affine-sift", action="store_true")
     parser.add_argument("--no-guided", action="store_true")
     parser.add_argument("--peak-threshold", type=float, default=0.0067)
+    parser.add_argument("--retry-below", type=float, default=1.0, help="0 = the mapping is never retried")
+    parser.add_argument("--mask-dilate", type=int, default=0, help="pixels the masks grow by (masked scenes only)")
+    parser.add_argument("--jobs", type=int, default=1, help="scenes run side by side in this many processes")
     parser.add_argument("--tiny", action="store_true", help="one 12-view procedural scene instead of the real ones")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
@@ -125,7 +129,8 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.capture.colmap_sfm import SfmOptions
 
     options = SfmOptions(camera_model=args.camera_model, threads=args.threads, seed=args.seed, min_registered=0.0, affine_sift=args.affine_sift,
-                         guided_matching=not args.no_guided, peak_threshold=args.peak_threshold)
+                         guided_matching=not args.no_guided, peak_threshold=args.peak_threshold,
+                         retry_below=args.retry_below)
     rows = []
     with tempfile.TemporaryDirectory(prefix="poses_") as tmp:
         tmp = Path(tmp)
@@ -138,16 +143,24 @@ def main(argv: list[str] | None = None) -> dict:
         jobs = [(p, False) for p in paths]
         if not args.tiny:
             jobs += [(SHARED / s, True) for s in args.masked if (SHARED / s).is_dir()]
-        for p, masked in jobs:
-            row = run_scene(p, args.images, options, tmp / "work", "all" if args.tiny else "train", masked)
-            print({k: v for k, v in row.items() if k != "stage_seconds"}, flush=True)
-            rows.append(row)
+        calls = [(p, args.images, replace(options, mask_dilate=args.mask_dilate) if masked else options,
+                  tmp / f"work{k}", "all" if args.tiny else "train", masked) for k, (p, masked) in enumerate(jobs)]
+        if args.jobs > 1:  # scenes side by side, each in its own process at --threads (rows keep their order)
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(args.jobs) as pool:
+                rows = list(pool.map(run_scene, *zip(*calls)))
+        else:
+            rows = [run_scene(*c) for c in calls]
+        for row in rows:
+            print({k: v for k, v in row.items() if k not in ("stage_seconds", "attempts", "dropped")}, flush=True)
     prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
     result = {
         "provenance": prov,
-        "config": {"images_per_scene": args.images, "threads": args.threads, "tiny": args.tiny,
+        "config": {"images_per_scene": args.images, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
                    "size": "each scene's stored image size (long side <= 400 px)",
-                   "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options), "alignment": "Umeyama similarity on camera centres",
+                   "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options),
+                   "mask_dilate_masked_scenes": args.mask_dilate, "alignment": "Umeyama similarity on camera centres",
                    "extent": "diagonal of the reference scene's bounds box"},
         "goals": GOALS,
         "scenes": rows,

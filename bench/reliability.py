@@ -13,6 +13,13 @@
   sends SIGKILL after a random delay, then runs the same command again to completion and counts hidden
   leftovers (temporaries of our naming) and incomplete results (a mesh set with members missing, a
   scene without its ``scene.json``).
+* **Output sets under kill -9 and Ctrl-C** (``--outputs-only``): ``mesh``, ``render`` and ``reconstruct`` replace
+  a previous output of theirs (variants A and B alternate: other frame counts or resolutions), SIGKILL or
+  SIGINT lands at a random moment; the output must then be the old set or the complete new one, never a
+  mix; the re-run must succeed and leave no temporaries or locks.
+* **Concurrent runs** (``--outputs-only``): two runs of ``render``, ``mesh``, ``train``, ``reconstruct`` (and
+  ``process`` with pycolmap) started together on one ``--out``: one must finish, the other must be refused
+  with the one-line lock message, and the output must be one complete set.
 
 Writes ``bench/results/reliability.json`` with a provenance header; ``bench/run_all.py`` renders it.
 """
@@ -195,6 +202,194 @@ def _incomplete(name: str, out: Path) -> bool:
     return False
 
 
+# ---------------------------------------------------------------------- output sets: signals and concurrent runs
+def _ply_faces(path: Path) -> int | None:
+    try:
+        head = path.read_bytes()[:2000].split(b"end_header")[0].decode(errors="replace")
+    except OSError:
+        return None
+    m = re.search(r"element face (\d+)", head)
+    return int(m.group(1)) if m else None
+
+
+def _set_state(name: str, out: Path, variants: dict) -> str:
+    """Which complete set ``out`` holds: ``"a"`` or ``"b"`` (the variant's own numbers, every member present and
+    agreeing with the others), else ``"mixed"`` (members missing or from two runs) or ``"absent"``."""
+    if not out.exists():
+        return "absent"
+    try:
+        if name == "render":
+            frames = len(list((out / "frames").glob("*.png")))
+            cams = len(json.loads((out / "cameras.json").read_text())["frames"])
+            whole = (out / "video.mp4").is_file() and frames == cams
+            key = frames
+        elif name == "mesh":
+            metrics = json.loads((out / "m_metrics.json").read_text())
+            final = metrics["faces"].get("decimated", metrics["faces"]["components"])
+            whole = all(Path(f).is_file() for f in metrics["files"]) and _ply_faces(out / "m.ply") == final
+            key = metrics["resolution"][0]
+        elif name == "reconstruct":
+            rec = json.loads((out / "reconstruct.json").read_text())
+            whole = all((out / p).is_file() for p in ("index.html", "path.mp4", "mesh.ply", "finetune/curve.json",
+                                                      "export/mesh.glb", ".omnirecon-output.json"))
+            key = rec["path"]["frames"]
+        else:
+            raise ValueError(name)
+    except (OSError, ValueError, KeyError, TypeError):
+        return "mixed"
+    for v, k in variants.items():
+        if whole and key == k:
+            return v
+    return "mixed"
+
+
+def _leftovers(out: Path) -> list[str]:
+    """Temporaries of our naming and lock files inside ``out`` or beside it under its name."""
+    inside = [p for p in out.rglob(".*") if STALE.match(p.name) or p.name.endswith(".lock")] if out.is_dir() else []
+    beside = [p for p in out.parent.glob(f".{out.name}*")]
+    return [str(p) for p in inside + beside]
+
+
+def _signal_after(cmd: list[str], delay: float, sig: int, env: dict) -> tuple[bool, int]:
+    """Start ``cmd``, send ``sig`` after ``delay`` s; (whether it was still running then, its exit code)."""
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        return False, proc.wait(delay)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(sig)
+        try:
+            return True, proc.wait(300)
+        except subprocess.TimeoutExpired:  # did not stop on the signal: counted as a hang (code None)
+            proc.kill()
+            proc.wait()
+            return True, -999
+
+
+def _output_commands(work: Path, env: dict) -> tuple[Path, dict]:
+    scene_dir = work / "scenes"
+    subprocess.run(_cli(["synth", "--num-scenes", "1", "--views", "10", "--resolution", "32", "--out", str(scene_dir)]),
+                   cwd=ROOT, env=env, check=True, capture_output=True)
+    scene = next(scene_dir.glob("scene_*"))
+    ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
+    commands = {  # name: (make(out, variant value), {variant: value})
+        "render": (lambda out, n: ["render", "--scene", str(scene), "--model", "floor", "--resolution", "32",
+                                   "--num-views", "3", "--threads", "1", "--frames", str(n), "--out", str(out)],
+                   {"a": 3, "b": 6}),
+        "mesh": (lambda out, r: ["mesh", "--scene", str(scene), "--model", "floor", "--threads", "1", "--resolution",
+                                 str(r), "--out", str(out / "m.ply"), str(out / "m.obj"), str(out / "m.glb")],
+                 {"a": 24, "b": 32}),
+    }
+    if ckpt.is_dir():
+        commands["reconstruct"] = (
+            lambda out, n: ["reconstruct", str(scene), "--ckpt", str(ckpt), "--out", str(out), "--overwrite",
+                            "--mesh-resolution", "32", "--resolution", "32", "--finetune-seconds", "2",
+                            "--frames", str(n), "--no-viewer", "--threads", "1", "--device", "cpu"],
+            {"a": 4, "b": 6})
+    return scene, commands
+
+
+def signal_runs(tries: int, sig: int, seed: int = 0, only: list[str] | None = None) -> dict:
+    """``tries`` signals ``sig`` into runs of mesh / render / reconstruct that replace a previous output of
+    theirs, each at a moment drawn in 5-75 % of an uninterrupted run; counts what the output then holds (the
+    old set, the complete new one, or a mix), then re-runs the new variant to completion."""
+    import shutil
+
+    rng = random.Random(seed)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    work = Path(tempfile.mkdtemp(prefix="reliability_sets_"))
+    _, commands = _output_commands(work, env)
+    results = {}
+    for name, (make, variants) in commands.items():
+        if only and name not in only:
+            continue
+        out = work / name
+        t0 = time.perf_counter()
+        subprocess.run(_cli(make(out, variants["a"])), cwd=ROOT, env=env, check=True, capture_output=True)
+        duration = time.perf_counter() - t0
+        cur = _set_state(name, out, variants)
+        rec = {"signals": 0, "finished_before_signal": 0, "old_set_kept": 0, "new_set_complete": 0, "mixed": 0,
+               "hung": 0, "leftovers_after_rerun": 0, "rerun_failed": 0, "uninterrupted_s": round(duration, 1),
+               "first_state": cur}
+        for _ in range(3 * tries):
+            if rec["signals"] >= tries:
+                break
+            nxt = "b" if cur == "a" else "a"
+            start = time.perf_counter()
+            landed, code = _signal_after(_cli(make(out, variants[nxt])), rng.uniform(0.05, 0.75) * duration, sig, env)
+            if not landed:
+                rec["finished_before_signal"] += 1
+                duration = min(duration, time.perf_counter() - start)
+            else:
+                rec["signals"] += 1
+                rec["hung"] += int(code == -999)
+                state = _set_state(name, out, variants)
+                rec["old_set_kept" if state == cur else "new_set_complete" if state == nxt else "mixed"] += 1
+                if state not in (cur, nxt):
+                    rec.setdefault("mixed_states", []).append(state)
+            rerun = subprocess.run(_cli(make(out, variants[nxt])), cwd=ROOT, env=env, capture_output=True, text=True)
+            ok = rerun.returncode == 0 and _set_state(name, out, variants) == nxt
+            rec["rerun_failed"] += int(not ok)
+            if not ok:
+                rec.setdefault("rerun_errors", []).append(rerun.stderr.strip()[-300:])
+            rec["leftovers_after_rerun"] += len(_leftovers(out))
+            cur = nxt
+        results[name] = rec
+        print(f"{signal.Signals(sig).name} {name}: {rec}", flush=True)
+    shutil.rmtree(work, ignore_errors=True)
+    return results
+
+
+def concurrent_runs(pairs: int, only: list[str] | None = None) -> dict:
+    """``pairs`` times, two runs of one command started together on one fresh ``--out``: exactly one must
+    finish and the other be refused by the lock (exit 2, one line naming the first run), leaving one complete
+    output."""
+    import shutil
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    work = Path(tempfile.mkdtemp(prefix="reliability_concurrent_"))
+    scene, commands = _output_commands(work, env)
+    runs = {name: (lambda out, m=make, v=variants: m(out, v["a"]), variants) for name, (make, variants) in commands.items()}
+    runs["train"] = (lambda out: ["train", "--data", str(scene), "--steps", "6", "--out", str(out), "--cache",
+                                  str(work / "cache"), "--model", "gpnr-tiny", "--model-overrides", "num_samples=8",
+                                  "dim=32", "mlp_dim=32", "heads=1", "layers=[1,1,1]", "point_freqs=4", "--num-views",
+                                  "3", "--resolution", "32", "--rays", "64", "--val-every", "0", "--threads", "1",
+                                  "--no-progress"], None)
+    results = {}
+    for name, (make, variants) in runs.items():
+        if only and name not in only:
+            continue
+        rec = {"pairs": 0, "one_finished_one_refused": 0, "both_finished": 0, "both_failed": 0, "other": 0,
+               "incomplete_output": 0, "leftovers": 0}
+        for i in range(pairs):
+            out = work / f"{name}_{i}"
+            procs = [subprocess.Popen(_cli(make(out)), cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.PIPE, text=True) for _ in range(2)]
+            done = [(p.wait(1800), p.stderr.read()) for p in procs]
+            codes = sorted(c for c, _ in done)
+            refused = [e for c, e in done if c == 2]
+            rec["pairs"] += 1
+            if codes == [0, 2] and len(refused[0].strip().splitlines()) == 1 and "another omnirecon run" in refused[0]:
+                rec["one_finished_one_refused"] += 1
+            elif codes == [0, 0]:
+                rec["both_finished"] += 1
+            elif 0 not in codes:
+                rec["both_failed"] += 1
+            else:
+                rec["other"] += 1
+                rec.setdefault("errors", []).append([e.strip()[-300:] for _, e in done])
+            if name == "train":
+                complete = (out / "checkpoints" / "final" / "meta.json").is_file()
+            else:
+                complete = _set_state(name, out, variants) == "a"
+            rec["incomplete_output"] += int(not complete)
+            rec["leftovers"] += len(_leftovers(out))
+            shutil.rmtree(out, ignore_errors=True)
+        results[name] = rec
+        print(f"concurrent {name}: {rec}", flush=True)
+    shutil.rmtree(work, ignore_errors=True)
+    return results
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--fuzz-examples", type=int, default=10_000, help="fuzz cases per target")
@@ -204,10 +399,14 @@ def main(argv: list[str] | None = None) -> dict:
                         help="fuzz only these targets again (after fixing what a run found) and append the counts to "
                              "--out as a rerun at the current commit, with --why")
     parser.add_argument("--kills-only", action="store_true", help="rerun only the kill -9 part into --out")
-    parser.add_argument("--commands", nargs="+", default=None, help="with --kills-only: only these commands (the "
+    parser.add_argument("--commands", nargs="+", default=None, help="with --kills-only / --outputs-only: only these commands (the "
                         "others keep their counts in --out)")
     parser.add_argument("--malformed-only", action="store_true", help="recount only the malformed-input table into --out")
     parser.add_argument("--why", default="fixes", help="what changed since the run in --out (with --rerun)")
+    parser.add_argument("--outputs-only", action="store_true", help="rerun only the output-set signal runs (kill -9 "
+                        "and SIGINT) and the concurrent runs into --out")
+    parser.add_argument("--signals", type=int, default=5, help="signals per command and kind into replacing runs (0: skip)")
+    parser.add_argument("--pairs", type=int, default=2, help="concurrent pairs per command (0: skip)")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
     from omnirecon.provenance import git_commit, provenance
@@ -219,6 +418,16 @@ def main(argv: list[str] | None = None) -> dict:
         result.setdefault("kill_provenance_by_command", {}).update(
             {name: provenance(seed=0, kills=args.kills) for name in counts})
         result["kill_provenance"] = provenance(seed=0, kills=args.kills)
+        write_json(args.out, result)
+        print(f"wrote {args.out}")
+        return result
+    if args.outputs_only:  # output sets under kill -9 / Ctrl-C, and concurrent runs on one --out
+        result = json.loads(args.out.read_text()) if args.out.is_file() else {"provenance": provenance(seed=0)}
+        result["output_sets"] = {"SIGKILL": signal_runs(args.signals, signal.SIGKILL, only=args.commands),
+                                 "SIGINT": signal_runs(args.signals, signal.SIGINT, seed=1, only=args.commands)}
+        result["concurrent"] = concurrent_runs(args.pairs, only=args.commands)
+        result["outputs_provenance"] = provenance(seed=0, signals=args.signals, pairs=args.pairs,
+                                                  load_average=os.getloadavg())
         write_json(args.out, result)
         print(f"wrote {args.out}")
         return result
@@ -249,6 +458,11 @@ def main(argv: list[str] | None = None) -> dict:
     result["fuzz"] = fuzz_counts(args.fuzz_examples)
     if args.kills > 0:
         result["kill"] = kill_runs(args.kills)
+    if args.signals > 0:
+        result["output_sets"] = {"SIGKILL": signal_runs(args.signals, signal.SIGKILL),
+                                 "SIGINT": signal_runs(args.signals, signal.SIGINT, seed=1)}
+    if args.pairs > 0:
+        result["concurrent"] = concurrent_runs(args.pairs)
     result["seconds"] = round(time.perf_counter() - start, 1)
     write_json(args.out, result)
     m, f = result["malformed"], result["fuzz"]

@@ -6,17 +6,39 @@
 * Temporaries carry the writing process's id: ``.NAME.pidPID.XXXX`` (:func:`omnirecon.data.io.atomic_path`,
   viewer bundles) and ``.scene_NNNNN.tmpPID`` (synth). :func:`clean_stale` removes the ones whose
   process is gone (a ``kill -9`` or a power cut); the next run of a command calls it on its output folder.
-* :func:`atomic_files` writes several files that belong together (a mesh as PLY + OBJ + GLB) to
-  temporaries and renames them only when all are written, so the set is complete or absent.
+* :func:`atomic_files` writes several files that belong together (a mesh as PLY + OBJ + GLB, its metrics
+  and preview) to temporaries and renames them only when all are written, with Ctrl-C held back during
+  the renames, so the set is the old one or the complete new one.
+* :func:`claim` is how every writing verb takes its ``--out``: the path is checked (writable, neither
+  inside nor holding an input), locked (one run per ``--out``: ``fcntl.flock`` on ``.NAME.lock`` beside
+  it; a second run gets one line naming the first), and, for verbs whose output is a whole folder
+  (``mode="replace"``: process, reconstruct, render, export, finetune), built in ``.NAME.tmpPID`` and swapped in at the end
+  (``renameat2(RENAME_EXCHANGE)`` where the kernel has it), so an interrupt leaves the old folder or the
+  complete new one. A folder is only ever replaced when it holds the marker :data:`MARKER` that this
+  tool writes into every output folder, and the replacement is said before any work starts.
+  ``mode="fill"`` (the other verbs, and ``train``, whose ``--resume`` continues the folder) writes in
+  place under the lock and marks a folder it created.
+* A record written in a temporary folder must name the final paths: before the swap,
+  :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
+  to it (so they hold for ``--out``).
+
+Size: the whole output policy (checks, lock, marker, swap, records) in one module, so that every verb
+follows the same rules.
 """
 
 from __future__ import annotations
 
+import ctypes
+import fcntl
+import json
 import os
 import re
 import shutil
+import signal
 import tempfile
+import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon.errors import InputError
@@ -110,8 +132,9 @@ def atomic_files(paths):
         yield list(tmps)
         for tmp in tmps:
             os.chmod(tmp, 0o666 & ~umask)
-        for tmp, p in zip(tmps, finals):
-            os.replace(tmp, p)
+        with held_signals():
+            for tmp, p in zip(tmps, finals):
+                os.replace(tmp, p)
     finally:
         for tmp in tmps:
             if tmp.exists():
@@ -119,9 +142,292 @@ def atomic_files(paths):
 
 
 def prepare_out(*paths: Path | None, kind: str = "folder", recursive: bool = False) -> None:
-    """What every writing command calls first: :func:`check_writable` on each output path (``None``, a
-    default under ``outputs/``: that folder is checked) and :func:`clean_stale` on its folder."""
+    """:func:`check_writable` on each output path (``None``, a default under ``outputs/``: that folder is
+    checked) and :func:`clean_stale` on its folder. Checks only: writing verbs take their ``--out`` with
+    :func:`claim`, which runs these checks too."""
     for path in paths or (None,):
         path = Path("outputs") if path is None else Path(path)
         check_writable(path, "folder" if path.name == "outputs" and not path.suffix else kind)
         clean_stale(path if kind == "folder" else path.parent, recursive)
+
+
+# ------------------------------------------------------------------------------------------------ folders we own
+MARKER = ".omnirecon-output.json"
+"""Written into every output folder: ``{"tool": "omnirecon", "command": ..., "written": ...}``. Only a folder
+holding it is ever replaced."""
+
+
+@contextmanager
+def held_signals():
+    """Hold back Ctrl-C / SIGTERM / SIGHUP for the block (a few renames): delivered right after it."""
+    sigs = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+    try:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+    except (AttributeError, OSError, ValueError):
+        old = None
+    try:
+        yield
+    finally:
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def real(path: Path) -> Path:
+    """``path`` absolute with every existing link resolved (the same folder reached two ways compares equal)."""
+    return Path(os.path.realpath(os.path.abspath(path)))
+
+
+def check_outside_inputs(out: Path, inputs, flag: str = "--out") -> None:
+    """Refuse an output that is an input, lies inside one or holds one (a replaced or filled ``--out`` would
+    change or delete the inputs)."""
+    o = real(out)
+    for given in inputs:
+        if given is None or not os.path.lexists(given):  # a name such as synth:eval, or a missing path: not harmed
+            continue
+        i = real(given)
+        if o == i or i in o.parents:
+            raise InputError(f"{flag} is inside the input {given}", out,
+                             f"write {flag} somewhere outside {given}, e.g. beside it")
+        if o in i.parents:
+            raise InputError(f"{flag} holds the input {given}", out,
+                             f"choose a new folder for {flag} that does not contain {given}")
+
+
+def check_out(path: Path, kind: str, inputs=(), flag: str = "--out") -> None:
+    """:func:`check_writable` and :func:`check_outside_inputs` for one output path."""
+    check_writable(path, kind, flag)
+    check_outside_inputs(path, inputs, flag)
+
+
+def read_marker(folder: Path) -> dict | None:
+    """The marker of an output folder written by this tool, else ``None``."""
+    try:
+        m = json.loads((Path(folder) / MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) and m.get("tool") == "omnirecon" and isinstance(m.get("command"), str) else None
+
+
+def write_marker(folder: Path, command: str) -> None:
+    folder = Path(folder)
+    tmp = folder / f".{MARKER.lstrip('.')}.pid{os.getpid()}"
+    tmp.write_text(json.dumps({"tool": "omnirecon", "command": command,
+                               "written": time.strftime("%Y-%m-%d %H:%M:%S %Z")}))
+    os.replace(tmp, folder / MARKER)
+
+
+def describe(marker: dict) -> str:
+    return f"an omnirecon {marker['command']} output written {marker.get('written', '(time unknown)')}"
+
+
+def _mkdirs(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; returns the ones created (outermost first)."""
+    missing = []
+    while not folder.exists():
+        missing.append(folder)
+        folder = folder.parent
+    created = []
+    for d in reversed(missing):
+        try:
+            d.mkdir()
+            created.append(d)
+        except FileExistsError:
+            pass
+    return created
+
+
+def _rmdirs(created: list[Path]) -> None:
+    for d in reversed(created):
+        try:
+            d.rmdir()  # only when empty: what a failed run created and left unused
+        except OSError:
+            break
+
+
+@contextmanager
+def out_lock(out: Path, command: str, flag: str = "--out"):
+    """Hold ``fcntl.flock`` on ``.NAME.lock`` beside ``out`` for the block; a second run on the same ``out``
+    gets an InputError naming the first. The lock file goes at the end (a killed run's file holds no lock
+    and is reused); parents created for it and left empty after a failure are removed."""
+    out = Path(os.path.abspath(out))
+    lockfile = out.parent / f".{out.name}.lock"
+    created = _mkdirs(out.parent)
+    try:
+        while True:
+            fd = os.open(lockfile, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = os.read(fd, 200).decode(errors="replace").strip() or "another process"
+                os.close(fd)
+                raise InputError(f"another omnirecon run is writing {flag} ({holder})", out,
+                                 f"wait for it to finish, or choose another {flag}") from None
+            try:
+                same = os.stat(lockfile).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:  # else the holder removed the file between our open and our lock: take the new one
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}, omnirecon {command}".encode())
+    except BaseException:
+        _rmdirs(created)
+        raise
+    try:
+        yield
+    finally:
+        try:
+            os.unlink(lockfile)
+        except OSError:
+            pass
+        os.close(fd)
+        _rmdirs(created)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where unsupported."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (AttributeError, OSError):
+        return False
+    fn.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd, rename_exchange = -100, 2
+    return fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0
+
+
+def swap_in(new: Path, out: Path) -> None:
+    """Put folder ``new`` at ``out``, replacing what is there as one step where the kernel allows (else two
+    renames; :func:`restore_swapped` undoes a crash between them). Interrupts wait for it."""
+    with held_signals():
+        if not out.exists() and not out.is_symlink():
+            os.rename(new, out)
+            return
+        if _exchange(new, out):
+            old = new
+        else:
+            old = out.parent / f".{out.name}.old{os.getpid()}"
+            os.rename(out, old)
+            os.rename(new, out)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def restore_swapped(out: Path) -> None:
+    """A run killed between :func:`swap_in`'s two renames left ``.NAME.oldPID`` and no ``NAME``: put it back."""
+    if out.exists():
+        return
+    for old in out.parent.glob(f".{out.name}.old*"):
+        pid = old.name[len(out.name) + 5:]
+        if pid.isdigit() and not pid_alive(int(pid)):
+            os.rename(old, out)
+            return
+
+
+def relative_to(value, folder: Path):
+    """``value`` (JSON-like) with every string naming ``folder`` or a path inside it made relative to
+    ``folder`` (``"."`` for the folder itself); other strings unchanged."""
+    prefixes = sorted({str(folder), str(Path(folder).absolute()), str(real(folder))}, key=len, reverse=True)
+
+    def fix(v):
+        if isinstance(v, str):
+            for p in prefixes:
+                if v == p:
+                    return "."
+                if v.startswith(p + os.sep):
+                    return v[len(p) + 1:]
+            return v
+        if isinstance(v, list):
+            return [fix(x) for x in v]
+        if isinstance(v, dict):
+            return {k: fix(x) for k, x in v.items()}
+        return v
+
+    return fix(value)
+
+
+def relative_records(folder: Path) -> list[Path]:
+    """Apply :func:`relative_to` to every JSON file under ``folder`` (rewritten atomically); returns those
+    changed. Files that are not JSON are left alone."""
+    changed = []
+    for f in sorted(Path(folder).rglob("*.json")):
+        try:
+            data = json.loads(f.read_text())
+        except (OSError, ValueError):
+            continue
+        new = relative_to(data, folder)
+        if new != data:
+            tmp = f.parent / f".{f.stem}.pid{os.getpid()}.json"
+            tmp.write_text(json.dumps(new, indent=1))
+            os.replace(tmp, f)
+            changed.append(f)
+    return changed
+
+
+@dataclass
+class Claim:
+    """A verb's hold on its output: write into ``work`` (``out`` itself, or its temporary twin)."""
+
+    out: Path
+    work: Path
+    command: str
+    replaced: str | None = None
+
+
+@contextmanager
+def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", overwrite: bool | None = None,
+          flag: str = "--out", recursive: bool = False, say=print):
+    """Take ``out`` for one run of ``command`` (see the module docstring); yields a :class:`Claim`.
+
+    ``mode="replace"``: the run's output is the whole folder, built in ``claim.work`` and swapped in when
+    the block succeeds. An existing non-empty ``out`` is replaced only when it holds :data:`MARKER` and
+    either ``overwrite`` is True (verbs with ``--overwrite``; False refuses) or, for verbs without the flag
+    (``overwrite=None``), the marker names the same command. ``mode="fill"``: ``claim.work == out``; a folder
+    the run created gets the marker, and is removed again if the run fails and leaves it empty.
+    ``mode="file"``: ``out`` is a file (or the first file of a set); it is checked and locked only.
+    ``out=None`` (a verb's default under ``outputs/``): ``outputs/<command>`` is claimed in fill mode.
+    ``recursive``: also remove stale temporaries anywhere inside ``out`` (run folders with checkpoints)."""
+    if out is None:
+        out, mode = Path("outputs") / command, "fill"
+    out = Path(out)
+    check_out(out, "file" if mode == "file" else "folder", inputs, flag)
+    with out_lock(out, command, flag):
+        clean_stale(out.parent)  # a killed run's temporaries beside out (their process is gone)
+        if mode == "file":
+            yield Claim(out, out, command)
+            return
+        restore_swapped(out)
+        clean_stale(out, recursive)
+        existed = out.is_dir() and any(out.iterdir())
+        marker = read_marker(out) if existed else None
+        if mode == "fill":
+            created = not out.exists()
+            try:
+                yield Claim(out, out, command)
+            except BaseException:
+                if created and out.is_dir() and not any(out.iterdir()):
+                    out.rmdir()
+                raise
+            if out.is_dir() and (marker is not None or not existed):
+                write_marker(out, command)
+            return
+        replaced = None
+        if overwrite is False and out.exists():
+            raise InputError("output folder already exists", out, f"choose another {flag}, or add --overwrite")
+        if existed:
+            if marker is None:
+                raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it is never replaced",
+                                 out, f"choose a new or empty folder for {flag}")
+            if overwrite is None and marker["command"] != command:
+                raise InputError(f"{flag} holds {describe(marker)}", out, f"choose another {flag} for {command}")
+            replaced = describe(marker)
+            say(f"replacing {out}: {replaced} (the new one takes its place when complete)")
+        tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        try:
+            yield Claim(out, tmp, command, replaced)
+            relative_records(tmp)
+            write_marker(tmp, command)
+            swap_in(tmp, out)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)

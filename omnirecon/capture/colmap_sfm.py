@@ -7,7 +7,11 @@ undistorts its largest model to PINHOLE cameras and writes a standard COLMAP sce
 Matching: every pair of images (``exhaustive``), or each image with the next ``overlap`` images and
 those 2, 4, 8, ... further on (``sequential``, for video frames and large sets). The pairs are
 matched in chunks so that progress and its ETA advance while COLMAP works. One thread by default
-(``threads``), a fixed seed: the same input gives the same model.
+(``threads``), a fixed seed: the same input gives the same model. When too few images register,
+the mapping is retried with relaxed settings and affine-adapted features (:class:`SfmOptions`).
+
+Size: features, matching, the mapping and its retries, and the scene writer share one set of options
+and one work folder; split apart they would pass both around.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 from PIL import Image
 
 from omnirecon.errors import InputError
@@ -31,6 +36,15 @@ MAPPER = {"init_min_tri_angle": 4.0, "init_min_num_inliers": 50, "abs_pose_min_n
           "abs_pose_min_inlier_ratio": 0.15}
 """COLMAP mapper settings relaxed from its defaults (16 degrees, 100, 30, 0.25) for small captures:
 20 images of a few hundred pixels give few features, and short arcs give small angles."""
+RELAXED = {"mapper.abs_pose_min_num_inliers": 12, "mapper.abs_pose_min_inlier_ratio": 0.1, "mapper.max_reg_trials": 5,
+           "triangulation.ignore_two_view_tracks": False}
+"""Mapper settings of the retry that continues the largest model: images posed from 12 inlier
+correspondences, and points seen in two images kept, so images at the end of a chain of weakly
+overlapping views can still be posed."""
+AGREE_DEG = (2.0, 5.0)
+"""A retry's model replaces the current one only if, on the images both pose, their rotations agree
+to this median and maximum (degrees) after a similarity alignment: more images, never other poses."""
+MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's default)
 
 
 @dataclass
@@ -56,6 +70,23 @@ class SfmOptions:
     on 20 views of dtu_scan37 it registered 18 instead of 14)."""
     peak_threshold: float = 0.0067
     """SIFT detection threshold (COLMAP's default 0.0067; lower finds more features in small images)."""
+    first_octave: int = -1
+    """SIFT's first octave: -1 (COLMAP's default) doubles the image before detection, -2 quadruples it
+    (more, finer features on small images; slower)."""
+    max_ratio: float = 0.8
+    """Lowe's ratio test when matching (COLMAP's default 0.8; higher keeps more ambiguous matches)."""
+    retry_below: float = 1.0
+    """When the first mapping registers fewer than this fraction of the images, retry: map again with
+    affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
+    settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
+    current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
+    images all register is never retried."""
+    affine_retry: bool = True
+    """Retries include re-extracting features with affine shape and domain-size pooling (wide
+    baselines on object captures; features take about 3x longer)."""
+    mask_dilate: int = 0
+    """Grow each mask (``--masks``) by this many pixels before features are detected: the object's
+    outline and a turntable's top turn with the object, and add features."""
     min_registered: float = 0.5
     """Fail when fewer than this fraction of the images (or fewer than 3) get a pose."""
     threads: int = 1
@@ -69,6 +100,11 @@ class SfmOptions:
         if self.overlap < 1 or self.threads < 1 or self.max_image_size < 64 or self.max_features < 64:
             raise InputError("--overlap and --threads must be at least 1, --max-image-size and --max-features at "
                              "least 64", None, "use the defaults")
+        if not 0 <= self.retry_below <= 1 or self.mask_dilate < 0 or not -1 <= -self.first_octave <= 3:
+            raise InputError("--retry-below must be in [0, 1], --mask-dilate at least 0, --first-octave in [-3, 1]",
+                             None, "use the defaults")
+        if not 0 < self.max_ratio <= 1:
+            raise InputError(f"--max-ratio must be in (0, 1], got {self.max_ratio}", None, "use e.g. 0.8")
         if not 0 <= self.min_registered <= 1:
             raise InputError(f"--min-registered must be a fraction in [0, 1], got {self.min_registered}", None,
                              "use e.g. 0.5")
@@ -90,6 +126,10 @@ class SfmResult:
     """Image pairs matched."""
     matcher: str
     seconds: dict[str, float] = field(default_factory=dict)
+    dropped: dict[str, str] = field(default_factory=dict)
+    """Why each unregistered image got no pose (:func:`omnirecon.capture.dropped.drop_reasons`)."""
+    attempts: list[dict] = field(default_factory=list)
+    """Each mapping tried: what, images registered, models, seconds; ``kept`` marks the chosen one."""
 
     @property
     def unregistered(self) -> list[str]:
@@ -100,7 +140,9 @@ class SfmResult:
         r = self.reconstruction
         return {
             "images_given": len(self.names), "images_registered": len(self.registered),
-            "unregistered": self.unregistered, "models": self.models, "matcher": self.matcher, "pairs": self.pairs,
+            "unregistered": self.unregistered, "dropped": [{"name": n, "reason": self.dropped.get(n, "")}
+                                                           for n in self.unregistered],
+            "attempts": self.attempts, "models": self.models, "matcher": self.matcher, "pairs": self.pairs,
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
         }
@@ -166,30 +208,19 @@ def _quiet_colmap() -> None:
     pycolmap.logging.stderrthreshold = 3
 
 
-def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, stages: Stages,
-            video: bool = False, source: Path | None = None, mask_dir: Path | None = None) -> SfmResult:
-    """Features, matches and incremental mapping of ``names`` in ``image_dir``; files go to ``work``.
-
-    Raises :class:`InputError` (naming ``source``, the user's input) when no model comes out or too
-    few images are registered. ``mask_dir`` holds COLMAP masks (``<name>.png``, features only where
-    non-zero), e.g. to ignore a static background behind an object on a turntable.
-    """
-    source = image_dir if source is None else source
+def _extract(db: Path, image_dir: Path, names: list[str], options: SfmOptions, stages: Stages, mask_dir: Path | None,
+             affine: bool, stage: str = "features") -> None:
+    """SIFT features into ``db``, in chunks (progress); the first chunk creates the shared camera."""
     import pycolmap  # lazy: the optional 'capture' extra
 
-    _quiet_colmap()
-    work.mkdir(parents=True, exist_ok=True)
-    db = work / "database.db"
-    cpu = pycolmap.Device.cpu
     n = len(names)
-
-    # --- features, in chunks (progress); the first chunk creates the shared camera, the rest reuse it
     extract = pycolmap.FeatureExtractionOptions()
     extract.num_threads = options.threads
     extract.max_image_size = options.max_image_size
     extract.sift.max_num_features = options.max_features
     extract.sift.peak_threshold = options.peak_threshold
-    if options.affine_sift:
+    extract.sift.first_octave = options.first_octave
+    if affine:
         extract.sift.estimate_affine_shape = True
         extract.sift.domain_size_pooling = True
     reader = pycolmap.ImageReaderOptions()
@@ -198,27 +229,31 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
         reader.mask_path = str(mask_dir)
     mode = pycolmap.CameraMode.PER_IMAGE if options.per_image_cameras else pycolmap.CameraMode.SINGLE
     chunk = max(1, min(8, n // 10))
-    with stages.stage("features", n) as advance:
+    with stages.stage(stage, n) as advance:
         for k in range(0, n, chunk):
             part = names[k:k + chunk]
             pycolmap.extract_features(db, image_dir, image_names=part, camera_mode=mode, reader_options=reader,
-                                      extraction_options=extract, device=cpu)
+                                      extraction_options=extract, device=pycolmap.Device.cpu)
             if k == 0 and not options.per_image_cameras:
                 with pycolmap.Database.open(db) as d:
                     reader.existing_camera_id = d.read_all_cameras()[0].camera_id
             advance(len(part))
 
-    # --- matching, in chunks of pairs written as match lists
-    sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
-    pairs = image_pairs(n, sequential, options.overlap)
+
+def _match(db: Path, work: Path, names: list[str], pairs: list[tuple[int, int]], options: SfmOptions,
+           stages: Stages, stage: str = "matching") -> None:
+    """Match and verify ``pairs`` in chunks written as match lists (progress with ETA)."""
+    import pycolmap  # lazy: the optional 'capture' extra
+
     match = pycolmap.FeatureMatchingOptions()
     match.num_threads = options.threads
     match.guided_matching = options.guided_matching
+    match.sift.max_ratio = options.max_ratio
     verify = pycolmap.TwoViewGeometryOptions()
     if hasattr(verify, "ransac"):
         verify.ransac.random_seed = options.seed
     step = max(1, min(200, len(pairs) // 20))
-    with stages.stage("matching", len(pairs)) as advance:
+    with stages.stage(stage, len(pairs)) as advance:
         for k in range(0, len(pairs), step):
             part = pairs[k:k + step]
             lst = work / "pairs.txt"
@@ -226,34 +261,138 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
             pairing = pycolmap.ImportedPairingOptions()
             pairing.match_list_path = str(lst)
             pycolmap.match_image_pairs(db, matching_options=match, pairing_options=pairing,
-                                       verification_options=verify, device=cpu)
+                                       verification_options=verify, device=pycolmap.Device.cpu)
             advance(len(part))
 
-    # --- incremental mapping; the callback fires once per newly registered image
+
+def _map(db: Path, image_dir: Path, out: Path, options: SfmOptions, relaxed: bool, advance=None,
+         start: Path | None = None) -> list:
+    """Incremental mapping (``relaxed``: with :data:`RELAXED`; ``start``: continue a model written
+    there). Returns the models, largest first; the callback fires once per newly registered image."""
+    import pycolmap  # lazy: the optional 'capture' extra
+
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = options.threads
     mapping.random_seed = options.seed
     mapping.mapper.random_seed = options.seed
     mapping.triangulation.random_seed = options.seed
     mapping.min_model_size = 3
-    for k, v in MAPPER.items():
-        setattr(mapping.mapper, k, v)
-    (work / "sparse").mkdir(exist_ok=True)
+    mapping.min_num_matches = MIN_MATCHES
+    settings = {**{f"mapper.{k}": v for k, v in MAPPER.items()}, **(RELAXED if relaxed else {})}
+    for key, v in settings.items():
+        *path, name = key.split(".")
+        obj = mapping
+        for part in path:
+            obj = getattr(obj, part)
+        setattr(obj, name, v)
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    tick = advance or (lambda n=1: None)
+    models = pycolmap.incremental_mapping(db, image_dir, out, mapping, input_path=str(start or ""),
+                                          initial_image_pair_callback=lambda: tick(2),
+                                          next_image_callback=lambda: tick(1))
+    return sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
+
+
+def agreement(a, b) -> tuple[float, float] | None:
+    """Median and largest rotation difference (degrees) between reconstructions ``a`` and ``b`` on the
+    images both pose, after a similarity alignment; None when they share fewer than 3 images."""
+    from omnirecon.capture.align import pose_errors
+
+    def c2w(rec) -> dict:
+        out = {}
+        for i in rec.reg_image_ids():
+            im = rec.images[i]
+            m = np.eye(4)
+            m[:3] = im.cam_from_world().inverse().matrix()  # [3, 4]
+            out[im.name] = m
+        return out
+
+    pa, pb = c2w(a), c2w(b)
+    common = sorted(set(pa) & set(pb))
+    if len(common) < 3:
+        return None
+    e = pose_errors(np.stack([pb[n] for n in common]), np.stack([pa[n] for n in common]), 1.0)
+    return round(e["rotation_deg_median"], 3), round(e["rotation_deg_max"], 3)
+
+
+def _names(rec) -> list[str]:
+    return sorted(rec.images[i].name for i in rec.reg_image_ids())
+
+
+def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, stages: Stages,
+            video: bool = False, source: Path | None = None, mask_dir: Path | None = None) -> SfmResult:
+    """Features, matches and incremental mapping of ``names`` in ``image_dir``; files go to ``work``.
+
+    When fewer than ``options.retry_below`` of the images register, the mapping is retried (see
+    :attr:`SfmOptions.retry_below`) and the result with the most images kept; every attempt and the
+    reason each left-out image got no pose are recorded. Raises :class:`InputError` (naming
+    ``source``, the user's input) when no model comes out or too few images are registered.
+    ``mask_dir`` holds COLMAP masks (``<name>.png``, features only where non-zero), e.g. to ignore a
+    static background behind an object on a turntable.
+    """
+    from omnirecon.capture.dropped import drop_reasons, match_graph
+
+    source = image_dir if source is None else source
+    _quiet_colmap()
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "database.db"
+    n = len(names)
+    _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
+    sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
+    pairs = image_pairs(n, sequential, options.overlap)
+    _match(db, work, names, pairs, options, stages)
+
+    attempts: list[dict] = []
+
+    def attempt(what: str, database: Path, relaxed: bool, start=None, advance=None) -> list:
+        t0 = time.perf_counter()
+        models = _map(database, image_dir, work / f"sparse_{len(attempts)}", options, relaxed, advance, start)
+        attempts.append({"attempt": what, "relaxed": relaxed, "registered": models[0].num_reg_images() if models else 0,
+                         "models": len(models), "seconds": round(time.perf_counter() - t0, 3)})
+        return models
+
     with stages.stage("mapping", n) as advance:
-        models = pycolmap.incremental_mapping(db, image_dir, work / "sparse", mapping,
-                                              initial_image_pair_callback=lambda: advance(2),
-                                              next_image_callback=lambda: advance(1))
+        models, chosen = attempt("default settings", db, False, advance=advance), 0
+    best_db = db
+    if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
+        with stages.stage("retries", None):
+
+            def consider(cand: list, database: Path) -> None:  # the attempt just made
+                nonlocal models, chosen, best_db
+                k = len(attempts) - 1
+                better = cand and (not models or cand[0].num_reg_images() > models[0].num_reg_images())
+                agree = better and models and agreement(models[0], cand[0])
+                attempts[k]["agrees_deg"] = agree if agree else None
+                if better and (not models or (agree and agree[0] <= AGREE_DEG[0] and agree[1] <= AGREE_DEG[1])):
+                    models, chosen, best_db = cand, k, database
+
+            if options.affine_retry and not options.affine_sift:
+                db2 = work / "database_affine.db"
+                _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
+                _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
+                consider(attempt("affine SIFT", db2, False), db2)
+            if models:  # continue the largest model: leftovers and smaller models' images may join it
+                start = work / "start_model"
+                start.mkdir(exist_ok=True)
+                models[0].write(start)
+                consider(attempt("relaxed, continuing the largest model", best_db, True, start), best_db)
+    if chosen < len(attempts):
+        attempts[chosen]["kept"] = True
     if not models:
         raise InputError(f"no camera poses found: 0 of {n} images registered", source,
                          "take more overlapping photos (each spot seen from 3+ viewpoints, 60-80% overlap), "
                          "with texture and without motion blur")
-    best = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+    best = models[0]
     if best.num_points3D() < MIN_POINTS:
         raise InputError(f"the largest model has {best.num_reg_images()} images but only {best.num_points3D()} 3-D "
                          "points", source, "take more overlapping, textured photos")
-    registered = sorted(best.images[i].name for i in best.reg_image_ids())
+    registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
-                       "sequential" if sequential else "exhaustive", dict(stages.seconds))
+                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts)
+    if len(registered) < n:
+        result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], match_graph(best_db),
+                                      MIN_MATCHES)
     need = max(3, int(-(-options.min_registered * n // 1)))
     if len(registered) < need:
         missing = result.unregistered

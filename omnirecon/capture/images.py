@@ -16,7 +16,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from PIL import Image, ImageOps, UnidentifiedImageError
+from PIL import Image, ImageFilter, ImageOps, UnidentifiedImageError
 
 from omnirecon.errors import InputError
 
@@ -121,10 +121,11 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
     return StagedImages(dest, sorted(names), sources, sizes, rotated)
 
 
-def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
+def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 0) -> Path:
     """Masks for the staged images, as COLMAP wants them: ``dest/<image name>.png``, 255 where features
     may be detected (the mask's non-zero pixels), 0 elsewhere. Masks are matched to the photos by file
-    stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size."""
+    stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size.
+    ``dilate``: grow each mask by this many pixels (a square of side ``2 * dilate + 1``)."""
 
     mask_dir, dest = Path(mask_dir), Path(dest)
     if not mask_dir.is_dir():
@@ -148,5 +149,8 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path) -> Path:
         if m.size != staged.sizes[name]:
             raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
                              f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")
-        m.point(lambda v: 255 if v > 0 else 0).save(dest / f"{name}.png")
+        m = m.point(lambda v: 255 if v > 0 else 0)
+        if dilate > 0:
+            m = m.filter(ImageFilter.MaxFilter(2 * dilate + 1))
+        m.save(dest / f"{name}.png")
     return dest

@@ -1,7 +1,9 @@
 """Photos or a video in, a posed COLMAP scene out (what ``omnirecon process`` runs).
 
-Everything is built in a hidden temporary folder beside ``out`` (``.<name>.tmp<pid>``) and renamed
-onto ``out`` at the very end, so a failure or Ctrl-C leaves no scene folder behind. The scene holds
+Everything is built in a hidden temporary folder beside ``out`` (``.<name>.tmp<pid>``) and swapped in
+at the very end (:func:`omnirecon.outputs.claim`: one run per ``out``, never inside or around the
+photos, ``overwrite`` replaces only a scene this tool wrote), so a failure or Ctrl-C leaves the
+previous folder or none. The scene holds
 
     images/            undistorted photos (PINHOLE cameras), at full size
     images_2/, images_4/   the same, downscaled by 2 and 4 (area averaging)
@@ -12,7 +14,6 @@ onto ``out`` at the very end, so a failure or Ctrl-C leaves no scene folder behi
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import time
 from dataclasses import asdict
@@ -22,7 +23,7 @@ from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scen
 from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
 from omnirecon.errors import InputError
-from omnirecon.outputs import clean_stale
+from omnirecon.outputs import claim
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
@@ -40,18 +41,16 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
     if is_video and source.suffix.lower() not in VIDEO_EXTS:
         raise InputError(f"not a folder or a video ({source.suffix or 'no extension'})", source,
                          f"pass a folder of photos, or a video ({', '.join(VIDEO_EXTS)})")
-    if out.exists() and not overwrite:
-        raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
-    if out.resolve() == source.resolve() or source.resolve() in out.resolve().parents:
-        raise InputError("output folder is inside the input", out, "write the scene somewhere else")
-
     t0 = time.perf_counter()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(out.parent)  # a killed run's temporary scene folder (its process is gone)
-    tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    work = tmp / "work"
-    scene = tmp / "scene"
+    with claim(out, "process", inputs=(source, masks), mode="replace", overwrite=overwrite) as owned:
+        return _build(source, owned.work, options, fps, max_frames, quiet, keep_work, masks, is_video, t0)
+
+
+def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frames: int, quiet: bool,
+           keep_work: bool, masks: Path | None, is_video: bool, t0: float) -> dict:
+    """Structure from motion into the (temporary, empty) scene folder ``scene``; returns the summary."""
+    work = scene.parent / f"{scene.name}.work"  # .OUT.tmpPID.work: a stale temporary if the run is killed
+    scene.rmdir()  # write_scene creates it
     try:
         with Stages(quiet) as stages:
             if is_video:
@@ -63,7 +62,7 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
-            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks")
+            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate)
             result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
                              mask_dir=mask_dir)
             info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
@@ -78,11 +77,8 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
         (scene / "process.json").write_text(json.dumps(summary, indent=1))
         if keep_work:
             shutil.move(str(work), str(scene / "colmap_work"))
-        if out.exists():
-            shutil.rmtree(out)
-        scene.rename(out)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(work, ignore_errors=True)
     return summary
 
 
@@ -98,9 +94,15 @@ def summary_lines(s: dict) -> list[str]:
     if s["models"] > 1:
         lines.append(f"note: COLMAP found {s['models']} separate models; kept the largest "
                      f"({s['images_registered']} images)")
+    retried = s.get("attempts", [])[1:]
+    if retried:
+        kept = next((a["attempt"] for a in s["attempts"] if a.get("kept")), "")
+        lines.append(f"retried the mapping {len(retried)} times ({s['attempts'][0]['registered']} images at first); "
+                     f"kept: {kept}")
     if s["unregistered"]:
-        u = s["unregistered"]
-        lines.append(f"not registered ({len(u)}): " + ", ".join(u[:10]) + (" ..." if len(u) > 10 else ""))
+        d = s.get("dropped") or [{"name": n, "reason": ""} for n in s["unregistered"]]
+        shown = "; ".join(f"{x['name']} ({x['reason']})" if x["reason"] else x["name"] for x in d[:10])
+        lines.append(f"dropped {len(d)} photos (no pose): " + shown + (" ..." if len(d) > 10 else ""))
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
     return lines

@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 from omnirecon.engine.speed import BenchConfig, measure
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 
 
 class BenchCommand(BenchConfig):
     __doc__ = BenchConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out, kind="file")  # writable, stale temporaries gone: before any work
-        r = measure(self)
+        with claim(self.out, "bench", inputs=(self.ckpt,), mode="file"):  # checked, locked: see outputs.claim
+            r = measure(self)
         print(f"mesh path {r['mesh']['fps']:.1f} FPS, volumetric {r['volumetric']['fps_equivalent']:.5f} FPS "
               f"(extrapolated from {r['volumetric']['rays_per_s']:.0f} rays/s), ratio {r['ratio']:.0f}x -> {self.out}")

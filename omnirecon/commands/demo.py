@@ -3,7 +3,7 @@ HTML report."""
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 from omnirecon.workflows.demo import DemoConfig, run_demo
 
 
@@ -11,8 +11,8 @@ class DemoCommand(DemoConfig):
     __doc__ = DemoConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out, recursive=True)  # writable, stale temporaries gone: before any work
-        result = run_demo(self)
+        with claim(self.out, "demo", inputs=(self.data, self.checkpoints), recursive=True):  # see outputs.claim
+            result = run_demo(self)
         for line in result["lines"]:
             print(line)
         print(f"report: {result['report']}")

@@ -10,7 +10,7 @@ from omnirecon.engine.evaluate import evaluate
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
 from omnirecon.errors import InputError
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 
 
 def default_name(ckpt: Path | None, model_name: str) -> str:
@@ -57,17 +57,17 @@ class EvalCommand(MachineConfig):
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        set_threads(self.threads)
-        device = pick_device(self.device)
-        net, info = load_model(self.ckpt, self.model, device)
-        out = self.out or Path("outputs/eval") / default_name(self.ckpt, info["name"])
-        if out.exists() and not out.is_dir():
-            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
-        result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
-                          device=device, max_targets=self.max_targets, synth_count=self.synth_count,
-                          cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
-                          geometry=self.geometry)
+        with claim(self.out, "eval", inputs=(self.ckpt, *self.scenes)):  # checked, locked: see outputs.claim
+            set_threads(self.threads)
+            device = pick_device(self.device)
+            net, info = load_model(self.ckpt, self.model, device)
+            out = self.out or Path("outputs/eval") / default_name(self.ckpt, info["name"])
+            if out.exists() and not out.is_dir():
+                raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+            result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
+                              device=device, max_targets=self.max_targets, synth_count=self.synth_count,
+                              cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
+                              geometry=self.geometry)
         from omnirecon.engine.eval_report import summary_lines  # lazy: the report module loads only after a run
 
         for line in summary_lines(result):

@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
-from omnirecon.workflows.export import ExportConfig, run_export
+from dataclasses import replace
+
+from omnirecon.outputs import claim, relative_to
+from omnirecon.workflows.export import ExportConfig, default_out, run_export
 
 
 class ExportCommand(ExportConfig):
     __doc__ = ExportConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        record = run_export(self)
+        out = default_out(self)
+        # mesh.ply, mesh.glb, export.json and viewer/ are one set: built beside --out, swapped in whole.
+        with claim(out, "export", inputs=(self.ckpt, self.scene, self.mesh), mode="replace") as c:
+            record = relative_to(run_export(replace(self, out=c.work)), c.work)
         for p in record["files"]:
-            print(f"wrote {p}")
+            print(f"wrote {out / p}")
         b = record["bake"]
         print(f"{record['vertices']:,} vertices, {record['faces']:,} faces; baked from {b['mean_views']:.2f} views per "
               f"vertex on average ({b['fallback']} fallback, {b['unseen']} unseen)")
         if self.viewer:
-            print(f"view it: omnirecon view {record['out']}")
+            print(f"view it: omnirecon view {out}")

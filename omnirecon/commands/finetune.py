@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from dataclasses import replace
+from pathlib import Path
+
+from omnirecon.outputs import claim
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
 
@@ -10,9 +13,12 @@ class FinetuneCommand(FinetuneConfig):
     __doc__ = FinetuneConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        result = run_finetune(self)
+        out = self.out or Path("outputs/finetune") / Path(self.scene).name  # the workflow's default
+        # curve.json, the pictures and the tuned checkpoint are one set: built beside --out, swapped in whole.
+        with claim(out, "finetune", inputs=(self.ckpt, self.scene, self.mesh), mode="replace") as c:
+            result = run_finetune(replace(self, out=c.work))
         c = result["curve"]
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(
-            f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:]))
-        print(f"wrote {result['out']}/curve.json, curve.png, before_after.png")
+            f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:])
+            + f"; coverage {result['coverage']:.1%} of held-out pixels on the mesh (the rest: {result['fill']} fill)")
+        print(f"wrote {out}/curve.json, curve.png, before_after.png")

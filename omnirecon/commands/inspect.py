@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 from omnirecon.workflows.inspect import InspectConfig, run_inspect
 
 
@@ -10,5 +10,5 @@ class InspectCommand(InspectConfig):
     __doc__ = InspectConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        run_inspect(self)
+        with claim(self.out, "inspect", inputs=(self.path,)):  # checked, locked, marked: see outputs.claim
+            run_inspect(self)

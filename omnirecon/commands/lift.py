@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from omnirecon.outputs import claim
 from omnirecon.workflows.lift import LiftConfig
 
 
@@ -10,6 +10,7 @@ class LiftCommand(LiftConfig):
     __doc__ = LiftConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        for line in self.run():
+        with claim(self.out, "lift", inputs=(self.ckpt, self.scene, self.user_model)):  # checked, locked, marked: see outputs.claim
+            lines = self.run()
+        for line in lines:
             print(line)

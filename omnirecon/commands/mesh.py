@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
+from pathlib import Path
+
+from omnirecon.outputs import check_out, claim
 from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines
 
 
@@ -10,8 +12,13 @@ class MeshCommand(MeshConfig):
     __doc__ = MeshConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(*self.out, kind="file")  # writable, stale temporaries gone: before any work
-        result = run_mesh(self)
+        first = self.out[0] if self.out else Path("outputs/mesh") / Path(self.scene).name
+        inputs = (self.scene, self.ckpt)
+        # One run per mesh set; the set (meshes, metrics, preview) is written whole by run_mesh.
+        with claim(first, "mesh", inputs=inputs, mode="file"):
+            for extra in self.out[1:]:
+                check_out(extra, "file", inputs)
+            result = run_mesh(self)
         for p in result["files"]:
             print(f"wrote {p}")
         for line in summary_lines(result):

@@ -3,7 +3,6 @@ report out."""
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
 from omnirecon.workflows.reconstruct import ReconstructConfig, run_reconstruct
 
 
@@ -11,7 +10,6 @@ class ReconstructCommand(ReconstructConfig):
     __doc__ = ReconstructConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
         record = run_reconstruct(self)
         for line in record["lines"]:
             print(line)

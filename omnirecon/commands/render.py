@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import prepare_out
-from omnirecon.workflows.render import RenderConfig, run_render
+from dataclasses import replace
+
+from omnirecon.outputs import claim
+from omnirecon.workflows.render import RenderConfig, default_out, run_render
 
 
 class RenderCommand(RenderConfig):
     __doc__ = RenderConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        prepare_out(self.out)  # writable, stale temporaries gone: before any work
-        out, video = run_render(self)
-        print(f"wrote {self.frames} frames to {out / 'frames'}" + (f" and {video}" if video else ""))
+        out = default_out(self)
+        # The frames, cameras.json and the video are one set: built beside --out, swapped in whole.
+        with claim(out, "render", inputs=(self.scene, self.ckpt), mode="replace") as c:
+            _, video = run_render(replace(self, out=c.work))
+        print(f"wrote {self.frames} frames to {out / 'frames'}" + (f" and {out / video.name}" if video else ""))

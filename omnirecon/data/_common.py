@@ -24,6 +24,7 @@ from omnirecon.cameras import Cameras, check_poses, orthonormalize
 from omnirecon.data.io import read_image
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.splits import DTU_SOURCES, dtu_held_out
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".exr", ".webp")
 BACKGROUNDS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
@@ -209,6 +210,15 @@ def holdout_splits(n: int, every: int = 8) -> dict[str, list[int]]:
     """LLFF convention (``llffhold``): every ``every``-th view (0, 8, 16, ...) is test, the rest train."""
     test = list(range(0, n, every))
     return {"train": [i for i in range(n) if i % every], "test": test}
+
+
+def dtu_splits(n: int) -> dict[str, list[int]]:
+    """A DTU scan's splits: ``test`` = the DTU protocol's held-out views (:func:`omnirecon.splits.dtu_held_out`)
+    for a full scan (more views than the fixed sources need), else every 8th view; ``train`` = the rest."""
+    if n <= max(DTU_SOURCES):
+        return holdout_splits(n)
+    test = dtu_held_out(n)
+    return {"train": [i for i in range(n) if i not in set(test)], "test": test}
 
 
 def select_views(n: int, splits: dict[str, list[int]], options, source: Path) -> tuple[list[int], dict[str, list[int]]]:

@@ -33,6 +33,7 @@ from omnirecon.data._common import (
     assemble,
     common_size,
     detect_rig,
+    dtu_splits,
     frustum_box,
     rigid_poses,
 )
@@ -143,7 +144,7 @@ def read(path: Path, options) -> Scene:
     meta = {"view_ids": ids, **({"pairs": parse_pairs(pair_file)} if pair_file else {})}
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=images, near=near, far=far,
-        bounds=frustum_box(cameras, near, far), splits={"train": list(range(len(ids)))}, options=options,
+        bounds=frustum_box(cameras, near, far), splits=dtu_splits(len(ids)), options=options,
         rig=detect_rig(cameras), source=cam_dir, meta=meta,
     )
 

@@ -28,7 +28,7 @@ import scipy.linalg
 import torch
 
 from omnirecon.cameras import Cameras
-from omnirecon.data._common import assemble, common_size, rigid_poses
+from omnirecon.data._common import assemble, common_size, dtu_splits, rigid_poses
 from omnirecon.data.io import list_images, read_npy
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
@@ -103,7 +103,7 @@ def read(path: Path, options) -> Scene:
                              "give one mask per image (sorted order pairs them)")
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=images, near=near, far=far,
-        bounds=torch.tensor([[-1.0] * 3, [1.0] * 3]), splits={"train": list(range(n))}, options=options,
+        bounds=torch.tensor([[-1.0] * 3, [1.0] * 3]), splits=dtu_splits(n), options=options,
         rig="object", source=source, mask_paths=masks, to_input=torch.from_numpy(scale_mats[0]),
         meta={"pixelnerf_train": [i for i in PIXELNERF_TRAIN if i < n]},
     )

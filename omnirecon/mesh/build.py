@@ -549,13 +549,17 @@ def gltf_mesh(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return out
 
 
-def export_mesh(mesh: trimesh.Trimesh, paths) -> list[Path]:
+def export_mesh(mesh: trimesh.Trimesh, paths, extra: dict | None = None) -> list[Path]:
     """Write ``mesh`` to every path (PLY binary, OBJ or GLB by suffix), atomically. Vertex colours are sRGB
-    bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`)."""
+    bytes in PLY and OBJ and linear in GLB (:func:`gltf_mesh`). ``extra``: ``{path: write(tmp_path)}``, files
+    of the same set (metrics, preview) written with the meshes and renamed with them."""
     from omnirecon.outputs import atomic_files  # all written, then renamed: complete or absent
 
     written = check_mesh_paths(paths)
-    with atomic_files(written) as tmps:
+    extra = extra or {}
+    with atomic_files([*written, *extra]) as tmps:
+        for (p, write), tmp in zip(extra.items(), tmps[len(written):]):
+            write(Path(tmp))
         for p, tmp in zip(written, tmps):
             kind = p.suffix.lower().lstrip(".")
             m = gltf_mesh(mesh) if kind == "glb" else mesh

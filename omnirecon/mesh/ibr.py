@@ -17,6 +17,9 @@ points seen just past an occluder's silhouette. Masked views are treated exactly
 projects outside of (``OmniRecon.shade``'s ``visible`` argument): a point no view sees blends all
 views uniformly, as in the volumetric path.
 
+**Fill** (``MeshRenderOptions.fill``, not in the paper): pixels no triangle covers get the background
+layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``mask`` is the coverage.
+
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
 like the source RGB (bilinear, border padding, at any resolution covering the source images) and
@@ -37,7 +40,8 @@ layers), and the source colours are sampled exactly as the model does. ``fused=F
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 import torch
@@ -45,6 +49,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
+from omnirecon.mesh.fill import with_fill
 from omnirecon.rays import Sources
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
@@ -54,7 +59,11 @@ class MeshRenderOptions:
     """Settings of :class:`MeshRenderer`."""
 
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """Colour of pixels no triangle covers (DTU: white; procedural scenes: ``Scene.background``)."""
+    """Colour of pixels no triangle covers when ``fill="background"`` (DTU: white; procedural scenes:
+    ``Scene.background``); also what :meth:`MeshRenderer.render_signal` leaves there."""
+    fill: Literal["far", "background"] = "far"
+    """Where no triangle covers a pixel, :meth:`MeshRenderer.render` shades ``"far"``: the background layer
+    of :mod:`omnirecon.mesh.fill` (no pixel left blank), or puts ``"background"``: that colour."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -87,6 +96,9 @@ class ShadeResult:
     only the colour was asked for). ``# [K, 2, P]``"""
     rgb: Tensor | None = None
     """Blended source colour, when the shader computed it on the way. ``# [P, 3]``"""
+    covered: int | None = None
+    """The first ``covered`` pixels lie on the mesh, the rest on the fill's background layer
+    (``None``: every pixel is on the mesh)."""
 
 
 class TexelAtlas:
@@ -255,20 +267,23 @@ class MeshRenderer:
         flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
         return z <= dmax.reshape(-1)[flat] * (1 + self.options.visibility_tol)
 
-    def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True) -> ShadeResult:
+    def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True, fill: bool = False) -> ShadeResult:
         """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels
         (with ``with_rgb``, also their blended source colour; ``with_coords=False`` skips storing the
-        source coordinates that :meth:`blend` needs)."""
+        source coordinates that :meth:`blend` needs; with ``fill``, every other pixel too, on the
+        background layer of :func:`omnirecon.mesh.fill.with_fill`)."""
         with torch.inference_mode():
-            surf = self.rasterizer.surface(camera)
+            surf, covered = self.rasterizer.surface(camera), None
+            if fill:
+                surf, covered = with_fill(surf, camera, self.sources.far, self.sources.bounds)
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
             if self.options.fused:
-                return self._fused(surf, points, origin, with_rgb, with_coords)
+                return replace(self._fused(surf, points, origin, with_rgb, with_coords), covered=covered)
             uv, _, mask = self.project(points.T)
             out = self.model.shade(self.features, points, origin.expand_as(points),
                                    visible=mask.T if self.options.visibility else None)
-            return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None)
+            return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
     def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool) -> ShadeResult:
         """``OmniRecon.shade`` for one point per pixel, fused (module docstring)."""
@@ -316,12 +331,13 @@ class MeshRenderer:
         return out
 
     def render(self, camera: Cameras, extras: bool = True) -> dict[str, Tensor]:
-        """Render one view: ``rgb # [H, W, 3]`` (the options' background where no triangle) and, with
+        """Render one view: ``rgb # [H, W, 3]`` (where no triangle: the options' fill) and, with
         ``extras``, ``depth # [H, W]`` (z-depth, 0 = background), ``mask # [H, W]`` (covered by the
-        mesh), ``blend # [H, W, K]`` (omega, 0 on background) and ``seen # [H, W]`` (some source sees
-        the surface point)."""
+        mesh; its mean is the view's coverage), ``blend # [H, W, K]`` (omega, 0 on background) and
+        ``seen # [H, W]`` (some source sees the surface point)."""
         with torch.inference_mode():
-            shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused)
+            shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused,
+                                  fill=self.options.fill == "far")
             rgb = shaded.rgb if shaded.rgb is not None else self.blend(shaded, self._rgb)
             rgb = shaded.surface.image(rgb, self.options.background)
             return self._outputs(shaded, rgb=rgb) if extras else {"rgb": rgb}
@@ -340,8 +356,10 @@ class MeshRenderer:
     def _outputs(self, shaded: ShadeResult, **images: Tensor) -> dict[str, Tensor]:
         surf = shaded.surface
         covered = torch.ones(len(surf.pixels), 1, dtype=self.dtype, device=self.device)
+        if shaded.covered is not None:
+            covered[shaded.covered:] = 0
         return {**images,
-                "depth": surf.image(surf.depth[:, None].to(self.device, self.dtype), 0.0)[..., 0],
+                "depth": surf.image(surf.depth[:, None].to(self.device, self.dtype) * covered, 0.0)[..., 0],
                 "mask": surf.image(covered, 0.0)[..., 0] > 0,
                 "blend": surf.image(shaded.omega.T, 0.0),
                 "seen": surf.image(shaded.mask.any(0)[:, None].to(self.dtype), 0.0)[..., 0] > 0}

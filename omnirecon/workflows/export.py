@@ -57,15 +57,22 @@ class ExportConfig(MachineConfig):
     """Colour RGBA inputs are composited on."""
 
 
-def run_export(cfg: ExportConfig) -> dict:
-    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``)."""
+def default_out(cfg: ExportConfig) -> Path:
+    """``--out``, or ``outputs/export/<scene>``."""
+    return cfg.out or Path("outputs/export") / Path(cfg.scene).name
+
+
+def run_export(cfg: ExportConfig, mesh=None) -> dict:
+    """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``). ``mesh``: a
+    ``trimesh.Trimesh`` in the input frame handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()
     check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
-    mesh = read_mesh(cfg.mesh) if cfg.mesh is not None else None
+    if mesh is None and cfg.mesh is not None:
+        mesh = read_mesh(cfg.mesh)
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     fmt = detect_format(cfg.scene)
@@ -73,7 +80,7 @@ def run_export(cfg: ExportConfig) -> dict:
     proto = protocol_for(Path(cfg.scene), fmt)
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
-    out = cfg.out or Path("outputs/export") / Path(cfg.scene).name
+    out = default_out(cfg)
     mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
     if mesh is None:
         mesh_options.check()

@@ -1,22 +1,32 @@
 """``omnirecon finetune``: seconds-scale per-scene tuning of the mesh path (``shared/docs/omnirecon.md`` §7).
 
+Size: one workflow (options, the tuning loop with its validation and best-state keeping, the
+curve and pictures); its pieces are small functions here because nothing else uses them.
+
 The mesh is fixed (``--mesh`` or extracted from the model at the source views); every training view
-of the scene is rasterized once, giving one surface point per covered pixel. Each step samples
-``--rays`` of those pixels, encodes the source views with the 2-D encoder (the feature volume and
-the geometry branch are not used by the mesh path and are not computed), colours the points with
-the appearance branch (``OmniRecon.shade``) and takes an Adam step on the MSE to the training
-images. Only the 2-D encoder and the appearance branch change.
+of the scene is rasterized once, giving one surface point per covered pixel, and every pixel the mesh
+misses a point on the fill's background layer (:func:`omnirecon.mesh.ibr.fill_points`, as the mesh
+renderer does), so every pixel is shaded. Each step samples ``--rays`` mesh pixels of the tuning views,
+encodes the source views with the 2-D encoder (the feature volume and the geometry branch are not used
+by the mesh path and are not computed), colours the points with the appearance branch
+(``OmniRecon.shade``) and takes an Adam step on the MSE to the training images. The 2-D encoder and the
+appearance branch change (``--tune``), optionally with a per-source affine colour (``exposure``) and
+an L2 pull toward the pretrained weights (``--reg``).
+
+**Tuning never ends worse than it started.** ``--val-views`` training views (never sources) are kept
+out of tuning and scored every ``--val-every`` seconds; the state with the best validation PSNR (the
+start is a candidate) is what is returned, saved and scored. The held-out test views (the protocol's
+targets) are never tuned on nor used to choose.
 
 The budget is ``--seconds`` of optimisation (``--clock wall``: wall time; ``cpu``: this process's
 CPU time, which other jobs on the machine do not shrink). Evaluations do not count against it: at
-each of ``--eval-at`` (seconds of optimisation) the held-out views are rendered through the mesh
-(pixels the mesh misses get the scene's background colour: the generator's for procedural
-scenes, else the protocol's white or black); with masks, ``psnr_masked`` scores the object pixels only, and ``psnr_covered`` the pixels the mesh covers
-(inside the masks): appearance without the mesh's missing parts and their PSNR goes into the curve.
+each of ``--eval-at`` the returned-so-far state renders the held-out views; ``psnr`` is the whole
+image, ``psnr_masked`` the object pixels (scenes with masks), ``psnr_covered`` the pixels the mesh
+covers (inside the masks) and ``coverage`` the fraction of held-out pixels on real surface.
 
-Outputs in ``--out``: ``curve.json`` (every evaluation: seconds, steps, PSNR per view and mean),
-``curve.png`` (PSNR against seconds), ``before_after.png`` (GT | before | after for the first
-held-out view) and, with ``--save``, the tuned checkpoint.
+Outputs in ``--out``: ``curve.json`` (every evaluation: seconds, steps, test and validation PSNR,
+coverage), ``curve.png`` (test and validation PSNR against seconds), ``before_after.png`` (GT | before |
+after for the first held-out view) and, with ``--save``, the tuned checkpoint.
 """
 
 from __future__ import annotations
@@ -39,6 +49,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.mesh.fill import with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.preflight import check_resolution
 from omnirecon.provenance import provenance
@@ -47,12 +58,15 @@ from omnirecon.render.raster import MeshRasterizer
 
 EVAL_AT = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 """Default evaluation points (seconds of optimisation; 0 = before tuning)."""
+VAL_PIXELS = 8192
+"""Validation pixels per validation view (a fixed random subset: scoring stays cheap at any size)."""
 
 
 @dataclass
 class FinetuneConfig(ThreadsConfig):
     """Tune Omni-Recon's 2-D encoder and appearance branch on one scene's training views through its
-    mesh, within a time budget; writes a PSNR-vs-time curve on the held-out views."""
+    mesh, within a time budget, keeping the best state on validation views; writes a PSNR-vs-time
+    curve on the held-out views."""
 
     ckpt: Path
     """Omni-Recon checkpoint folder (written by `omnirecon train`)."""
@@ -66,7 +80,7 @@ class FinetuneConfig(ThreadsConfig):
     clock: Literal["wall", "cpu"] = "wall"
     """Budget clock: wall time, or this process's CPU time (fair when other jobs share the machine)."""
     views: tuple[int, ...] | None = None
-    """Source views (default: DTU's 23 24 33, else --num-views evenly spaced train views)."""
+    """Source views (default: DTU's 23 24 33, else --num-views evenly spaced train views); never a held-out view."""
     num_views: int = 3
     """Source views K when --views is not given."""
     mesh: Path | None = None
@@ -74,9 +88,24 @@ class FinetuneConfig(ThreadsConfig):
     resolution: int | None = None
     """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
     rays: int = 2048
-    """Surface pixels per step."""
+    """Pixels per step."""
     lr: float = 5e-4
     """Adam learning rate."""
+    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
+    """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
+    view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
+    from the tuning views' mesh pixels)."""
+    reg: float = 0.0
+    """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
+    val_views: int = 2
+    """Training views (never sources) kept out of tuning to choose the returned state; 0 = none (the
+    state at the end is returned)."""
+    val_every: float = 2.0
+    """Seconds of optimisation between validation scores (also scored at every --eval-at)."""
+    fill: Literal["auto", "far", "background"] = "auto"
+    """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend;
+    `background`, the scene's background colour; `auto`: `background` for scenes that declare their
+    background colour (procedural), else `far`. Tuning samples only pixels on the mesh."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -85,58 +114,108 @@ class FinetuneConfig(ThreadsConfig):
     """Also write the tuned checkpoint to <out>/checkpoint."""
     seed: int = 0
     """Seed of the pixel sampling."""
+
+
 # ---------------------------------------------------------------------- pieces
 @dataclass
 class ViewPixels:
-    """The mesh-covered pixels of one view."""
+    """The shaded pixels of one view: first the ``covered`` ones on the mesh, then the fill's."""
 
     index: int
     """Scene view index."""
     origin: torch.Tensor
     """Camera centre. ``# [3]``"""
     points: torch.Tensor
-    """Surface point per covered pixel. ``# [P, 3]``"""
+    """Surface (or background-layer) point per pixel. ``# [P, 3]``"""
     pixels: torch.Tensor
     """Flat pixel indices. ``# [P]``"""
     target: torch.Tensor
     """Ground-truth colour of those pixels. ``# [P, 3]``"""
+    covered: int
+    """The first ``covered`` pixels lie on the mesh."""
 
 
-def rasterize_views(mesh, scene, indices) -> list[ViewPixels]:
-    """Rasterize ``mesh`` (scene frame) at each of ``indices`` once."""
-
+def rasterize_views(mesh, scene, indices, fill: bool = True) -> list[ViewPixels]:
+    """Rasterize ``mesh`` (scene frame) at each of ``indices`` once; with ``fill``, every pixel the mesh
+    misses gets the mesh renderer's background layer."""
     out = []
+    far, bounds = float(scene.far.max()), scene.bounds.float()
     with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
         for i in indices:
             cam = scene.cameras[i]
             surf = rast.surface(cam)
+            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, bounds) if fill else (surf, len(surf.pixels))
             img = scene.images[i].reshape(-1, 3)
             out.append(ViewPixels(i, cam.centers[0].float(), surf.points.float(), surf.pixels,
-                                  img[surf.pixels].float()))
+                                  img[surf.pixels].float(), covered))
     return out
 
 
-def encode_maps(model, sources):
-    """The mesh path's features: the 2-D encoder only (no feature volume). Differentiable."""
+class Exposure(torch.nn.Module):
+    """An affine colour per source view: ``gain_k * rgb + offset_k`` (per channel), identity at start."""
+
+    def __init__(self, k: int):
+        super().__init__()
+        self.gain = torch.nn.Parameter(torch.ones(k, 1, 1, 3), requires_grad=False)
+        """Per-view, per-channel gain. ``# [K, 1, 1, 3]``"""
+        self.offset = torch.nn.Parameter(torch.zeros(k, 1, 1, 3), requires_grad=False)
+        """Per-view, per-channel offset (0: a robust fit of the offset as well measured worse). ``# [K, 1, 1, 3]``"""
+
+    def forward(self, sources: Sources) -> Sources:
+        images = sources.images * self.gain + self.offset  # [K, H, W, 3]
+        return Sources(images, sources.cameras, sources.near, sources.far, sources.rig, sources.bounds)
+
+
+@torch.no_grad()
+def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Generator, n: int = 32768) -> torch.Tensor:
+    """Per-source, per-channel exposure gain: the median over mesh pixels of the tuning views of
+    ``photo / source colour`` where the source sees the point (the median ignores occluded views and
+    misregistered pixels, which bias a least-squares fit toward 0). ``# [K, 1, 1, 3]``"""
+    feats = encode_maps(model, sources)
+    K = len(sources.cameras)
+    ratios = [[] for _ in range(K)]
+    per_view = max(n // len(views), 1)
+    for v in views:
+        idx = torch.randperm(v.covered, generator=g)[:per_view]
+        seen = model.gather(feats, v.points[idx][:, None], v.origin.expand(len(idx), 3))
+        rgb, mask, t = seen.rgb[:, 0], seen.mask[:, 0], v.target[idx]  # [P, K, 3], [P, K], [P, 3]
+        for k in range(K):
+            ok = mask[:, k] & (rgb[:, k] > 0.04).all(-1) & (t > 0.04).all(-1)
+            ratios[k].append(t[ok] / rgb[ok, k])
+    gains = [torch.cat(r).median(0).values if sum(len(x) for x in r) >= 16 else torch.ones(3) for r in ratios]
+    return torch.stack(gains).reshape(K, 1, 1, 3)
+
+
+def encode_maps(model, sources, colours: Sources | None = None):
+    """The mesh path's features: the 2-D encoder only (no feature volume). Differentiable. ``colours``:
+    the sources whose images the blend mixes (default ``sources``; e.g. exposure-corrected)."""
 
     maps, _ = model.encoder(sources.images.permute(0, 3, 1, 2))
-    return OmniReconFeatures(sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
+    return OmniReconFeatures(colours or sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
 
 
-def render_pixels(model, features, view: ViewPixels, chunk: int = 16384) -> torch.Tensor:
-    """Colours of ``view``'s covered pixels through the appearance branch. ``# [P, 3]``"""
+def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384) -> torch.Tensor:
+    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch. ``# [P, 3]``"""
+    points = view.points if idx is None else view.points[idx]
     out = []
-    for s in range(0, len(view.points), chunk):
-        pts = view.points[s:s + chunk]
+    for s in range(0, len(points), chunk):
+        pts = points[s:s + chunk]
         out.append(model.shade(features, pts, view.origin.expand_as(pts))["rgb"])
     return torch.cat(out) if out else view.target.new_zeros(0, 3)
 
 
 def full_image(scene, view: ViewPixels, rgb: torch.Tensor, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """The whole image: ``rgb`` at the covered pixels, ``background`` (RGB) elsewhere. ``# [H, W, 3]``"""
+    """The whole image: ``rgb`` at the shaded pixels, ``background`` (RGB) elsewhere. ``# [H, W, 3]``"""
     img = torch.tensor(background, dtype=torch.float32).expand(scene.height * scene.width, 3).clone()
     img[view.pixels] = rgb.detach().float().clamp(0, 1)
     return img.reshape(scene.height, scene.width, 3)
+
+
+def coverage_mask(scene, view: ViewPixels) -> torch.Tensor:
+    """Pixels on real surface. ``# [H, W]`` bool"""
+    m = torch.zeros(scene.height * scene.width, dtype=torch.bool)
+    m[view.pixels[:view.covered]] = True
+    return m.reshape(scene.height, scene.width)
 
 
 class Clock:
@@ -158,9 +237,19 @@ class Clock:
         return self.spent + (self.read() - self._start if self._start is not None else 0.0)
 
 
+def pick_validation(train_views: list[int], sources: list[int], n: int) -> list[int]:
+    """``n`` training views, evenly spaced, never a source; always leaves a view to tune on."""
+    cand = [i for i in train_views if i not in set(sources)]
+    n = min(n, len(cand), len(train_views) - 1)
+    if n < 1:
+        return []
+    return [cand[i] for i in np.unique(np.linspace(0, len(cand) - 1, n + 2).round().astype(int))[1:-1][:n]] or cand[:n]
+
+
 # ---------------------------------------------------------------------- the run
-def run_finetune(cfg: FinetuneConfig) -> dict:
-    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``."""
+def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
+    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
+    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
     import trimesh
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -168,6 +257,9 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
         raise InputError(f"--seconds must be positive, got {cfg.seconds}", None, "use e.g. 60")
     if cfg.rays < 1 or not cfg.lr > 0:
         raise InputError("--rays must be >= 1 and --lr positive", None, "use e.g. --rays 2048 --lr 5e-4")
+    if cfg.reg < 0 or not cfg.val_every > 0 or cfg.val_views < 0 or not cfg.tune:
+        raise InputError("--reg must be >= 0, --val-every positive, --val-views >= 0 and --tune non-empty", None,
+                         "use e.g. --reg 0 --val-every 2 --val-views 2 --tune encoder appearance")
     check_resolution(cfg.resolution)
     set_threads(cfg.threads)
     model, meta = load_checkpoint(cfg.ckpt)
@@ -179,16 +271,25 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     targets, pool = targets_and_pool(proto, scene)
+    held = sorted(set(views) & (set(targets) | set(scene.splits.get("test", []))))
+    if held:
+        raise InputError(f"--views names held-out view(s) {held}: they are scored, never used as sources", cfg.scene,
+                         "pick source views from the training views (`omnirecon inspect` lists the splits)")
     if len(targets) > cfg.max_held_out:
         targets = [targets[i] for i in np.unique(np.linspace(0, len(targets) - 1, cfg.max_held_out).round().astype(int))]
-    train_views = [i for i in pool if i not in set(targets)]
+    train_views = [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]
+    val_views = pick_validation(train_views, views, cfg.val_views)
+    tune_views = [i for i in train_views if i not in set(val_views) | set(views)] or [
+        i for i in train_views if i not in set(val_views)]  # sources are targets only when nothing else is left
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
     sources = Sources.from_scene(scene, views)
     background = scene.background if scene.background is not None else (
         (0.0,) * 3 if proto.background == "black" else (1.0,) * 3)
 
     # the fixed mesh, rasterized once per view
-    if cfg.mesh is not None:
+    if mesh is not None:
+        pass
+    elif cfg.mesh is not None:
         if not Path(cfg.mesh).is_file():
             raise InputError("mesh file does not exist", cfg.mesh, "pass a .ply/.obj/.glb written by `omnirecon mesh`")
         mesh = trimesh.load(cfg.mesh, force="mesh", process=False)
@@ -198,73 +299,116 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
         mesh = mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
-    train_px = [v for v in rasterize_views(mesh, scene, train_views) if len(v.points)]
-    held_px = rasterize_views(mesh, scene, targets)
-    if not train_px:
+    fill = cfg.fill == "far" or (cfg.fill == "auto" and scene.background is None)
+    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill) if len(v.points)]
+    held_px = rasterize_views(mesh, scene, targets, fill)
+    val_px = rasterize_views(mesh, scene, val_views, fill)
+    if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
-    counts = torch.tensor([len(v.points) for v in train_px], dtype=torch.float64)
+    counts = torch.tensor([v.covered for v in train_px], dtype=torch.float64)  # tuning: pixels on the mesh
+    g = torch.Generator().manual_seed(cfg.seed)
+    val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in val_px]
 
-    params = list(model.encoder.parameters()) + list(model.appearance.parameters())
+    exposure = Exposure(len(views))
+    modules = {"encoder": model.encoder, "appearance": model.appearance}
+    params = [p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
+    net = params
+    start = [p.detach().clone() for p in net]
+    if "exposure" in cfg.tune:
+        with torch.no_grad():
+            exposure.gain.copy_(estimate_gains(model, sources, train_px, g))
     for p in model.parameters():
         p.requires_grad_(False)
     for p in params:
         p.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=cfg.lr)
-    g = torch.Generator().manual_seed(cfg.seed)
+    opt = torch.optim.Adam(params, lr=cfg.lr) if params else None
     model.train()
 
-    def evaluate_now() -> dict:
+    def features():  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
+        return encode_maps(model, sources, colours=exposure(sources))
+
+    @torch.no_grad()
+    def validate() -> float:
+        if not val_px:
+            return float("nan")
         model.eval()
-        with torch.no_grad():
-            feats = encode_maps(model, sources)
-            renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
+        feats = features()
+        se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
+                        for v, i in zip(val_px, val_idx)])
         model.train()
-        scores = [metrics.psnr(r, scene.images[v.index].float()) for r, v in zip(renders, held_px)]
-        out = {"psnr": float(np.mean(scores)), "per_view": scores, "renders": renders}
+        return float(-10 * torch.log10(se.mean().clamp_min(1e-10)))
+
+    @torch.no_grad()
+    def test_scores() -> dict:
+        model.eval()
+        feats = features()
+        renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
+        model.train()
+        gts = [scene.images[v.index].float() for v in held_px]
+        cover = [coverage_mask(scene, v) for v in held_px]
+        r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
+             "per_view": [metrics.psnr(x, y) for x, y in zip(renders, gts)], "renders": renders,
+             "coverage": float(torch.stack(cover).float().mean())}
         if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
-            out["psnr_masked"] = float(np.mean([metrics.psnr(r, scene.images[v.index].float(), scene.masks[v.index])
-                                                for r, v in zip(renders, held_px)]))
-        covered = []  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
-        for r, v in zip(renders, held_px):
-            m = torch.zeros(scene.height * scene.width, dtype=torch.bool)
-            m[v.pixels] = True
-            m = m.reshape(scene.height, scene.width)
-            if scene.masks is not None:
-                m &= scene.masks[v.index].bool()
-            if m.any():
-                covered.append(metrics.psnr(r, scene.images[v.index].float(), m))
-        if covered:
-            out["psnr_covered"] = float(np.mean(covered))
-        return out
+            masks = [scene.masks[v.index].bool() for v in held_px]
+            r["psnr_masked"] = float(np.mean([metrics.psnr(x, y, m) for x, y, m in zip(renders, gts, masks)]))
+            r["coverage_masked"] = float(sum(int((c & m).sum()) for c, m in zip(cover, masks)) /
+                                         max(sum(int(m.sum()) for m in masks), 1))
+            cover = [c & m for c, m in zip(cover, masks)]
+        covered = [metrics.psnr(x, y, c) for x, y, c in zip(renders, gts, cover) if c.any()]
+        if covered:  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
+            r["psnr_covered"] = float(np.mean(covered))
+        return r
+
+    def swap(state: list[torch.Tensor]) -> list[torch.Tensor]:
+        """Load ``state`` into the tuned parameters; returns the state they had."""
+        old = [p.detach().clone() for p in params]
+        with torch.no_grad():
+            for p, s in zip(params, state):
+                p.copy_(s)
+        return old
 
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
-    curve, before, step = [], None, 0
+    checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
+    curve, validation, before, step = [], [], None, 0
+    best_state, best_val, best_at = [p.detach().clone() for p in params], -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
     with Progress(*columns) as bar:
         task = bar.add_task("finetune", total=cfg.seconds, psnr="")
-        for t_eval in eval_at:
+        for t_check in checks:
             clock.start()
-            while clock.now() < t_eval:
+            while opt is not None and clock.now() < t_check:
                 view = train_px[int(torch.multinomial(counts, 1, generator=g))]
-                idx = torch.randint(len(view.points), (min(cfg.rays, len(view.points)),), generator=g)
-                pts = view.points[idx]
-                feats = encode_maps(model, sources)
-                rgb = model.shade(feats, pts, view.origin.expand_as(pts))["rgb"]
+                idx = torch.randint(view.covered, (min(cfg.rays, view.covered),), generator=g)
+                rgb = model.shade(features(), view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
                 loss = (rgb - view.target[idx]).square().mean()
+                if cfg.reg > 0 and net:
+                    loss = loss + cfg.reg * sum((p - p0).square().sum() for p, p0 in zip(net, start)) / sum(
+                        p.numel() for p in net)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
-            r = evaluate_now()
+            val = validate()
+            validation.append({"seconds": t_check, "steps": step, "psnr": val})
+            if not val_px or val > best_val or step == 0:  # without validation views: the latest state
+                best_state, best_val, best_at = [p.detach().clone() for p in params], val, (t_check, step)
+            if t_check not in eval_at:
+                continue
+            current = swap(best_state)  # score what tuning returns if it stopped here
+            r = test_scores()
+            swap(current)
             before = before or r
-            curve.append({"seconds": t_eval, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
-                          **{k: r[k] for k in ("psnr_masked", "psnr_covered") if k in r}})
-            bar.update(task, completed=min(t_eval, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
+            curve.append({"seconds": t_check, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
+                          "val_psnr": best_val, "val_psnr_now": val, "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
+                          **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}})
+            bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
     after = r
+    swap(best_state)  # the returned (and saved) state: the best on validation
 
     # outputs
     import matplotlib
@@ -273,11 +417,15 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
-    ax.plot([c["seconds"] for c in curve], [c["psnr"] for c in curve], "o-")
+    ax.plot([c["seconds"] for c in curve], [c["psnr"] for c in curve], "o-", label="held-out test views")
+    if val_px:
+        ax.plot([c["seconds"] for c in validation], [c["psnr"] for c in validation], ".:", label="validation (current)")
     ax.set_xlabel(f"seconds of fine-tuning ({cfg.clock} clock)")
-    ax.set_ylabel("held-out PSNR (dB)")
-    ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(held_px)} held-out views", fontsize=9)
+    ax.set_ylabel("PSNR (dB)")
+    ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(held_px)} held-out views, coverage {after['coverage']:.0%}",
+                 fontsize=9)
     ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "curve.png") as tmp:
@@ -287,13 +435,21 @@ def run_finetune(cfg: FinetuneConfig) -> dict:
     white = torch.ones(gt.shape[0], 2, 3)
     write_image(out / "before_after.png", torch.cat([gt, white, before["renders"][0], white, after["renders"][0]], 1).numpy())
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": meta["preset"], "sources": views,
-              "held_out": targets, "train_views": len(train_px), "faces": len(mesh.faces), "clock": cfg.clock,
-              "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr, "tuned": ["encoder", "appearance"],
+              "held_out": targets, "validation_views": val_views, "train_views": len(train_px), "faces": len(mesh.faces),
+              "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr, "reg": cfg.reg,
+              "fill": "far" if fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
               "tuned_parameters": sum(p.numel() for p in params), "resolution": [scene.width, scene.height],
-              "curve": curve, "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
+              "coverage": after["coverage"], "curve": curve, "validation": validation,
+              "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val},
+              "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
+    if "exposure" in cfg.tune:
+        result["exposure"] = {"gain": exposure.gain.detach().reshape(-1, 3).tolist(),
+                              "offset": exposure.offset.detach().reshape(-1, 3).tolist()}
     write_json(out / "curve.json", result)
     if cfg.save:
         save_checkpoint(out / "checkpoint", model, meta["preset"], step=step,
-                        extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds})
+                        extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
+                               "returned_from": result["returned_from"], **({"exposure": result["exposure"]}
+                                                                            if "exposure" in result else {})})
     return result

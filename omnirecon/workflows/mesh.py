@@ -123,20 +123,41 @@ def run_mesh(cfg: MeshConfig) -> dict:
     record["seconds"]["images_to_mesh"] = sum(v for k, v in record["seconds"].items() if k != "images_to_mesh")
     record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
                    "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
-    files = export_mesh(to_input_frame(mesh, scene.to_input), outs)
+    # The set (meshes, preview, metrics) is computed first and renamed into place together, so an interrupt
+    # leaves the previous set or the new one; members of the previous set this run does not write go.
     stem = outs[0].with_suffix("")
+    extra = {}
     if cfg.preview:
         cam = scene.cameras[views[0]]
         cam = cam.rescaled(max(1.0, PREVIEW_SIDE / max(cam.width, cam.height)))
-        files.append(geometry.save_picture(Path(f"{stem}_preview.png"), mesh, cam))
+        extra[Path(f"{stem}_preview.png")] = lambda tmp: geometry.save_picture(tmp, mesh, cam)
     if cfg.metrics:
         start = time.perf_counter()
         record["metrics"] = geometry.score_mesh(made, scene, held_out_views(scene, views))
         record["seconds"]["metrics"] = time.perf_counter() - start
-        write_json(Path(f"{stem}_metrics.json"), record)
-        files.append(Path(f"{stem}_metrics.json"))
-    record["files"] = [str(p) for p in files]
+        extra[Path(f"{stem}_metrics.json")] = lambda tmp: write_json(tmp, record)
+    previous = previous_set(stem)
+    record["files"] = [str(p) for p in [*outs, *extra]]
+    in_input = to_input_frame(mesh, scene.to_input)
+    files = export_mesh(in_input, outs, extra)
+    for p in previous - {Path(f) for f in record["files"]}:
+        p.unlink(missing_ok=True)
+    record["files"] = [str(p) for p in [*files, *extra]]
+    record["meshes"] = {"scene": mesh, "input": in_input}  # in memory, for reconstruct's next stages (not JSON)
     return record
+
+
+def previous_set(stem: Path) -> set[Path]:
+    """The files an earlier ``omnirecon mesh`` run wrote for ``stem`` (listed in its ``<stem>_metrics.json``;
+    only names of that set, beside it)."""
+    import json
+
+    try:
+        listed = json.loads(Path(f"{stem}_metrics.json").read_text()).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    names = {f"{stem.name}{s}" for s in (".ply", ".obj", ".glb", "_preview.png", "_metrics.json")}
+    return {Path(f) for f in listed if isinstance(f, str) and Path(f).parent == stem.parent and Path(f).name in names}
 
 
 def summary_lines(record: dict) -> list[str]:

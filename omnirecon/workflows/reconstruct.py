@@ -12,14 +12,17 @@ Stages (each timed; the report lists them)::
 
 Outputs in ``--out DIR``: ``scene/`` (when processed), ``mesh.ply`` (+ metrics and preview),
 ``finetune/`` (curve, tuned checkpoint), ``export/`` (PLY, GLB, ``viewer/``), ``path.mp4``,
-``cameras.png``, ``reconstruct.json`` and ``index.html``. The folder is built beside its final place
-and renamed at the end, so a failed run leaves no half-written result.
+``cameras.png``, ``reconstruct.json`` and ``index.html``. The folder is taken with
+:func:`omnirecon.outputs.claim` (the one owner of the ``--out`` checks: never inside or around an input,
+one run at a time, ``--overwrite`` replaces only a folder this tool wrote): built beside its final place
+and swapped in at the end, so a failed or interrupted run leaves the previous folder or none. Every
+record in it names files inside it relative to ``--out`` (``scene``, ``export/mesh.glb``), so no record
+points into the temporary folder. The mesh goes from stage to stage in memory; ``mesh.ply`` is written
+once, for the user.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
 import statistics
 import time
 from dataclasses import dataclass
@@ -33,14 +36,15 @@ from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.report import Section, write_report
+from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
-from omnirecon.outputs import check_writable, clean_stale
+from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.workflows.export import ExportConfig, run_export
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 from omnirecon.workflows.inspect import draw_cameras
-from omnirecon.workflows.mesh import MeshConfig, run_mesh, scene_frame_mesh
+from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video, scene_camera_path
 
 CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
@@ -100,21 +104,9 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     if not (Path(cfg.ckpt) / "meta.json").is_file():
         raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. checkpoints/omnirecon-tiny")
     out = Path(cfg.out)
-    check_writable(out)
-    if out.exists() and not cfg.overwrite:
-        raise InputError("output folder already exists", out, "choose another --out, or add --overwrite")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(out.parent)  # an earlier run's temporary folder, if its process was killed
-    tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    try:
-        record = _stages(cfg, tmp)
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with claim(out, "reconstruct", inputs=(cfg.path, cfg.ckpt, cfg.masks), mode="replace",
+               overwrite=cfg.overwrite) as owned:
+        record = relative_to(_stages(cfg, owned.work), owned.work)  # claim does the same to the JSON records
     record["report"] = str(out / "index.html")
     return record
 
@@ -149,29 +141,32 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
                           out=(out / "mesh.ply",), resolution=cfg.mesh_resolution, device=cfg.device,
                           threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
+    meshes = meshed.pop("meshes")  # scene and input frame, in memory: the next stages read no file
     lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
     lap("mesh")
 
     # ---------------------------------------------------------------- fine-tune at the photos' resolution
     side = cfg.resolution or photo_side(scene_path)
     tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(cfg.finetune_seconds, 1e-3),
-                                        eval_at=(0.0, cfg.finetune_seconds), num_views=cfg.num_views,
+                                        eval_at=(0.0, *(t for t in (10.0, 30.0, 60.0) if t < cfg.finetune_seconds), cfg.finetune_seconds), num_views=cfg.num_views,
                                         mesh=out / "mesh.ply", resolution=side, out=out / "finetune",
-                                        save=cfg.finetune_seconds > 0, threads=cfg.threads))
+                                        save=cfg.finetune_seconds > 0, threads=cfg.threads), mesh=meshes["scene"])
     curve = tuned["curve"]
     lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
-                 f"{curve[-1]['seconds']:g} s of fine-tuning")
+                 f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
     ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
     lap("finetune")
 
     # ---------------------------------------------------------------- export
     exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
                                        resolution=side, num_views=cfg.num_views, viewer=cfg.viewer,
-                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk))
+                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=meshes["input"])
+    for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
+        write_marker(out / sub, verb)
     lap("export")
 
     # ---------------------------------------------------------------- camera path through the tuned mesh path
-    scene, mesh = scene_frame_mesh(scene_path, out / "mesh.ply", side)
+    scene, mesh = load_at_resolution(scene_path, side), meshes["scene"]
     model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
     cams = scene_camera_path(scene, kind, cfg.frames)
@@ -201,8 +196,8 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
         Section("Real-time mesh path").text(lines[-1]).figure(video, out, "camera path", 480),
-        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)"],
-                                        [[p["seconds"], round(p["psnr"], 2)] for p in curve])
+        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)", "coverage"],
+                                        [[p["seconds"], round(p["psnr"], 2), f"{p['coverage']:.1%}"] for p in curve])
         .figure(out / "finetune" / "curve.png", out, "held-out PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
         Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),

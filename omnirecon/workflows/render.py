@@ -78,6 +78,11 @@ class RenderConfig(MachineConfig):
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 
 
+def default_out(cfg: RenderConfig) -> Path:
+    """``--out``, or ``outputs/render/<scene>_<path>``."""
+    return cfg.out or Path("outputs/render") / f"{Path(cfg.scene).name}_{cfg.path}"
+
+
 def scene_camera_path(scene, kind: trajectory.PathKind, frames: int, keyframes: list[int] | None = None,
                       arc: float = 360.0, rots: float = 2.0) -> Cameras:
     """:func:`omnirecon.trajectory.camera_path` through a :class:`~omnirecon.data.scene.Scene`: an orbit
@@ -111,7 +116,7 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     if cfg.num_views > len(scene):
         raise InputError(f"--num-views {cfg.num_views} but the scene has {len(scene)} views", cfg.scene,
                          f"use --num-views {len(scene)} or fewer")
-    out = cfg.out or Path("outputs/render") / f"{Path(cfg.scene).name}_{cfg.path}"
+    out = default_out(cfg)
     cams = camera_path(cfg, scene)
     pool = list(range(len(scene)))
     center = closest_point_to_axes(scene.cameras) if view_metric(scene) == "angle" else None

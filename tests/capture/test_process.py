@@ -346,3 +346,10 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
     record = json.loads((out / "reconstruct.json").read_text())
     assert record["process"]["images_registered"] == VIEWS and (out / "scene" / "sparse" / "0").is_dir()
     assert (out / "export" / "mesh.glb").is_file() and (out / "finetune" / "checkpoint").is_dir()
+    # Every record names files inside the output relative to --out, never the temporary build folder.
+    for f in out.rglob("*.json"):
+        text = f.read_text()
+        assert ".tmp" not in text and str(tmp_path) not in text, (f, re.findall(r'"[^"]*\.tmp[^"]*"', text))
+    assert record["scene"] == "scene" and all((out / p).exists() for p in record["export"])
+    assert json.loads((out / "finetune" / "checkpoint" / "meta.json").read_text())["extra"]["finetuned_on"] == "scene"
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no lock, no temporary

@@ -163,6 +163,35 @@ ROWS: list[tuple[list[str], str | None]] = [
     (["render"], "--scene"),
 ]
 
+# ---- outputs own their folder (omnirecon/outputs.py claim): an --out inside or around an input, or a folder this
+# tool did not write, is refused before any work, whatever --overwrite says (tests/commands/test_outputs.py has
+# the cases that need a previous output, a second run or an interrupt).
+ROWS += [
+    (["process", "{blender}/train", "--out", "{blender}", "--overwrite"], "{blender}"),  # --out holds the photos
+    (["process", "{blender}/train", "--out", "{blender}/train", "--overwrite"], "{blender}/train"),
+    (["process", "{blender}/train", "--out", "{llff}", "--overwrite"], "{llff}"),  # not ours: never replaced
+    (["process", "{blender}/train", "--out", "{llff}"], "{llff}"),
+    (["reconstruct", "{blender}", "--out", "{root}", "--overwrite"], "{root}"),  # holds the input
+    (["reconstruct", "{blender}", "--out", "{blender}/rec", "--overwrite"], "{blender}/rec"),
+    (["reconstruct", "{blender}", "--out", "{llff}", "--overwrite"], "{llff}"),
+    (["reconstruct", "{blender}", "--ckpt", "{ck_omni}", "--out", "{ck_omni}/..", "--overwrite"], "{ck_omni}/.."),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{llff}", *RENDER], "{llff}"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{blender}/render", *RENDER], "{blender}/render"),
+    (["render", "--scene", "{blender}", "--ckpt", "{ck}", "--out", "{ck}/render", *RENDER], "{ck}/render"),
+    (["mesh", "--scene", "{blender}", "--model", "floor", "--out", "{blender}/m.ply"], "{blender}/m.ply"),
+    (["mesh", "--scene", "{blender}", "--model", "floor", "--out", "{out}.ply", "{blender}/m.glb"], "{blender}/m.glb"),
+    (["export", "--scene", "{blender}", "--ckpt", "{ck_omni}", "--out", "{blender}/x"], "{blender}/x"),
+    (["finetune", "--scene", "{blender}", "--ckpt", "{ck_omni}", "--out", "{root}"], "{root}"),
+    (["eval", "--ckpt", "{ck}", "--scenes", "{with_test}", "--out", "{with_test}/ev", "--device", "cpu"],
+     "{with_test}/ev"),
+    (["train", "--data", "{small}", "--out", "{small}/run", *TRAIN], "{small}/run"),
+    (["inspect", "{blender}", "--out", "{blender}"], "{blender}"),
+    (["lift", "--ckpt", "{ck}", "--scene", "{blender}", "--out", "{ck}/lift"], "{ck}/lift"),
+    (["edit", "--ckpt", "{ck}", "--scene", "{blender}", "--label", "1", "--out", "{ck}"], "{ck}"),
+    (["pet", "--ckpt", "{ck}", "--scene", "{blender}", "--out", "{blender}/pet"], "{blender}/pet"),
+    (["bench", "--ckpt", "{ck}", "--out", "{ck}/r.json"], "{ck}/r.json"),
+]
+
 # Every command that loads a checkpoint, against every broken checkpoint (each command reads it its own way).
 BAD_CKPTS = {"ck_no_config": "meta.json", "ck_five": "meta.json", "ck_preset": "meta.json", "ck_option": "meta.json",
              "ck_meta_list": "meta.json", "ck_meta_bad": "meta.json", "ck_shape": "meta.json",

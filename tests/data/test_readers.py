@@ -89,12 +89,12 @@ def test_scene_is_valid(rel):
     ("instant_ngp/fox", {"all": 67, "train": 58, "test": 9}),
     ("llff/fern", {"all": 20, "train": 17, "test": 3}),
     ("llff/ethiopianHead", {"all": 66, "train": 57, "test": 9}),
-    ("neus_dtu/dtu_scan24", {"all": 49, "train": 49}),
+    ("neus_dtu/dtu_scan24", {"all": 49, "train": 41, "test": 8}),
 ])
 def test_split_counts(rel, counts):
     s = scene(rel, downscale=8)
     assert {k: len(v) for k, v in s.splits.items()} == counts
-    if "test" in s.splits and "val" not in s.splits:
+    if "test" in s.splits and "val" not in s.splits and s.format != "dtu_neus":
         assert s.splits["test"][:3] == [0, 8, 16][:len(s.splits["test"])]
 
 
@@ -429,3 +429,34 @@ def test_blender_extension_sphere(tmp_path):
     assert torch.equal(half.depths, s.depths[:, 1::2, 1::2])  # nearest: the pixel holding the new centre
     assert torch.allclose(half.cameras.fx, s.cameras.fx / 2)
     assert set(half.labels.unique().tolist()) <= {0, 7}
+
+
+# ---------------------------------------------------------------------- held-out views stay held out
+def _held_out_scenes(tmp_path):
+    """One scene per reader: the shared real scenes, plus written MVSNet (49 views, as DTU) and COLMAP ones."""
+    out = [scene(rel, downscale=8) for rel in SCENES]
+    dtu = out[-1]
+    out.append(load_scene(write_mvsnet(dtu, tmp_path / "mvs", layout="test", scan="scan37")))
+    write_model(colmap_from_scene(dtu), tmp_path / "colmap" / "sparse" / "0", ".bin")
+    for i in range(len(dtu)):
+        write_image(tmp_path / "colmap" / "images" / f"view_{i:03d}.png", dtu.images[i].numpy())
+    out.append(load_scene(tmp_path / "colmap"))
+    return out
+
+
+def test_every_reader_holds_out_the_protocols_views(tmp_path):
+    """Every reader gives a test split = the evaluation protocol's held-out views, disjoint from the
+    training views that `--views all` meshes, finetune tunes on and the default sources come from."""
+    from omnirecon.engine.protocols import protocol_for, targets_and_pool
+    from omnirecon.engine.views import check_views, default_views
+
+    formats = set()
+    for s in _held_out_scenes(tmp_path):
+        formats.add(s.format)
+        test, train = set(s.splits.get("test", [])), set(s.splits["train"])
+        assert test and not test & train, (s.path, s.splits)
+        targets, pool = targets_and_pool(protocol_for(s.path, s.format), s)
+        assert set(targets) <= test and not set(pool) & test, (s.path, targets)
+        assert not set(check_views(["all"], len(s), s.path, s)) & test
+        assert not set(default_views(s, 3)) & test
+    assert formats == {"blender", "ngp", "llff", "dtu_neus", "dtu_mvsnet", "colmap"}

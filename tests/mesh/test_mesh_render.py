@@ -41,7 +41,7 @@ def test_mesh_path_equals_volumetric_colour_at_the_exact_surface(setup):
     same point. The exact points come from the float64 reference rasterizer; the GL path interpolates
     them in float32."""
     scene, mesh, model, sources, target = setup
-    with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background)) as renderer:
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background, fill="background")) as renderer:
         out = renderer.render(target)
         feats = renderer.features
     ref = MeshRasterizer.from_trimesh(mesh, backend="reference").rasterize(target)
@@ -95,6 +95,28 @@ def test_constant_signal_renders_the_constant(setup):
         assert torch.allclose(got[m], (out["blend"] * torch.arange(4.0)).sum(-1)[m], atol=1e-5)
     one_shot = render_signal(model, mesh, sources, target, const.expand(4, 16, 16, 3).clone())
     assert torch.allclose(one_shot[m], const.expand(int(m.sum()), 3), atol=1e-5)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_fill_leaves_no_background_pixel_where_the_target_has_content(setup, fused):
+    """Half the mesh removed: every pixel it no longer covers is shaded on the background layer (the
+    blend of the sources), never left at the background colour; covered pixels are unchanged."""
+    scene, mesh, model, sources, target = setup
+    keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    sentinel = (1.0, 0.0, 1.0)  # a colour no source has: any pixel left at it is a hole
+    opts = dict(background=sentinel, fused=fused, cull_back_faces=False)
+    with MeshRenderer(model, half, sources, MeshRenderOptions(**opts)) as filled, \
+            MeshRenderer(model, half, sources, MeshRenderOptions(**opts, fill="background")) as holes:
+        a, b = filled.render(target), holes.render(target)
+    gt = scene.images[0].float()
+    content = (gt - torch.tensor(sentinel)).abs().amax(-1) > 1e-3  # every pixel, here
+    assert content.all() and 0.2 < b["mask"].float().mean() < 0.9
+    assert torch.equal(a["mask"], b["mask"])  # the mask stays the real surface (coverage)
+    left = (a["rgb"] - torch.tensor(sentinel)).abs().amax(-1) < 1e-3
+    assert not (left & content).any()
+    assert (b["rgb"][~b["mask"]] == torch.tensor(sentinel)).all()
+    assert torch.allclose(a["rgb"][a["mask"]], b["rgb"][b["mask"]], atol=1e-6)
 
 
 def quad(center, half: float) -> tuple[np.ndarray, np.ndarray]:

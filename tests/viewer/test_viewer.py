@@ -215,7 +215,8 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     sources = Sources.from_scene(scene, SOURCES)
     refs = {}
     for vis in (True, False):
-        with MeshRenderer(model, mm, sources, MeshRenderOptions(background=scene.background, visibility=vis)) as r:
+        opts = MeshRenderOptions(background=scene.background, visibility=vis, fill="background")  # viewer: no fill yet
+        with MeshRenderer(model, mm, sources, opts) as r:
             refs[vis] = r.render(cam)["rgb"].numpy()
     refs["baked"] = baked_reference(out, scene, cam)
     cam_in = cam.to(dtype=torch.float64).transformed(scene.to_input)  # what a user passes: the input frame
