@@ -86,7 +86,8 @@ def test_browser_draws_the_tuned_appearance(bundles):
     sources = Sources.from_scene(scene, SOURCES)
     refs = {}
     for name, model in bundles["models"].items():
-        with MeshRenderer(model, mm, sources, MeshRenderOptions(background=scene.background, visibility=True)) as r:
+        opts = MeshRenderOptions(background=scene.background, visibility=True, fill="background")  # viewer: no fill yet
+        with MeshRenderer(model, mm, sources, opts) as r:
             refs[name] = r.render(cam)["rgb"].numpy()
     cam_in = cam.to(dtype=torch.float64).transformed(scene.to_input)
     camera = {"fx": float(cam_in.fx[0]), "fy": float(cam_in.fy[0]), "cx": float(cam_in.cx[0]),
