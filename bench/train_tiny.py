@@ -108,6 +108,21 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
             for st in stages]
 
 
+def stage_spans(run: Path, rows: list[dict], last_step: int) -> list[dict]:
+    """Steps and CPU seconds of each ``stages.json`` invocation, from the cumulative ``cpu_time`` that
+    ``metrics.jsonl`` logs (the last row at or before each stage's first and last step)."""
+    path = run / "stages.json"
+    stages = json.loads(path.read_text()) if path.is_file() else [{"from_step": 0}]
+    cpu = sorted((r["step"], r["cpu_time"]) for r in rows if "cpu_time" in r)
+
+    def cpu_at(step: int) -> float:
+        return max((c for s, c in cpu if s <= step), default=0.0)
+
+    ends = [st["from_step"] for st in stages[1:]] + [last_step]
+    return [{"from_step": st["from_step"], "to_step": end, "cpu_s": cpu_at(end) - cpu_at(st["from_step"])}
+            for st, end in zip(stages, ends)]
+
+
 def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (),
                view_changes: list[tuple[int, list[int] | None]] = ()) -> None:
     """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG."""
@@ -172,6 +187,7 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         "held_out": "procedural seeds 900000-900999, dtu_scan24, dtu_scan37, fern (never trained on)",
         "command": " && ".join(stage_commands(model, run, cpu_budget, steps, threads)),
         "stages": stage_commands(model, run, cpu_budget, steps, threads),
+        "stage_spans": stage_spans(run, train_rows, meta["step"]),
         "train_psnr_last": train_rows[-1]["psnr"] if train_rows else None,
         "train_psnr_first": train_rows[0]["psnr"] if train_rows else None,
         "validation": val_rows[-1] if val_rows else None,
@@ -192,7 +208,8 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         f"# {model}", "",
         f"Trained (seed {SEED}) for {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
         f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION} by", "",
-        *[f"{i + 1}. `{c}`" for i, c in enumerate(card["stages"])], "",
+        *[f"{i + 1}. `{c}` (steps {sp['from_step']}-{sp['to_step']}, {sp['cpu_s']:.0f} CPU-s)"
+          for i, (c, sp) in enumerate(zip(card["stages"], card["stage_spans"]))], "",
         *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a different "
            "`--steps` the cosine schedule is recomputed for the new length from where it starts (the learning rate "
            "rises again after an annealed stage: a warm restart; each change is marked on the curve); with the same "
@@ -231,18 +248,27 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--encoder", default="scratch", choices=["scratch", "vgg16", "alexnet"],
                    help="image encoder (docs/pretrained.md): the model's own from scratch, or a frozen pretrained one")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
+    p.add_argument("--run-name", default=None,
+                   help="run folder under outputs/train (default: <model>_bench, the shipped checkpoint's run)")
+    p.add_argument("--no-ship", action="store_true",
+                   help="leave checkpoints/<model>/ alone (a candidate run: ship it with --reship once validation "
+                        "says it is better)")
     p.add_argument("--reship", action="store_true",
                    help="only rewrite checkpoints/<model>/ (card, curve) from the finished run in outputs/train")
     a = p.parse_args(argv)
     if a.reship:
-        print(f"shipped {ship(a.model, ROOT / 'outputs' / 'train' / f'{a.model}_bench', a.cpu_budget, a.threads, a.steps)}")
+        run = ROOT / "outputs" / "train" / (a.run_name or f"{a.model}_bench")
+        print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
         return
     prepare(a.synth_scenes)
     if a.prepare:
         return
     overrides = [f"encoder={a.encoder}"] if a.encoder != "scratch" else []
-    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, stop_at=a.stop_at,
-                views=tuple(a.num_views_range) if a.num_views_range else None)
+    run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, name=a.run_name,
+                stop_at=a.stop_at, views=tuple(a.num_views_range) if a.num_views_range else None)
+    if a.no_ship:
+        print(f"trained {run} (not shipped: --no-ship)")
+        return
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
 

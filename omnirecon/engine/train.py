@@ -11,6 +11,9 @@ Exact resume: every random choice of step ``s`` on rank ``r`` (scene, target, so
 IBRNet's stratified samples) comes from generators seeded by ``(seed, s, r)`` (the scene by
 ``(seed, s // switch_every, r)``), so a checkpoint needs only weights, optimizer state and the step.
 
+Stopping politely: SIGTERM ends the run after the current step with a checkpoint (as a reached budget
+does), so ``kill PID`` keeps every finished step and ``--resume`` continues exactly from it.
+
 Multi-process: run under ``torchrun --standalone --nproc_per_node=N -m omnirecon.cli train ...``;
 each rank draws its own scenes and rays, gradients are averaged by DDP (gloo on CPU, nccl on CUDA)
 and rank 0 writes checkpoints, logs and pictures.
@@ -26,6 +29,8 @@ import json
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 from contextlib import nullcontext
 from pathlib import Path
@@ -296,7 +301,7 @@ class Trainer:
     def run(self) -> None:
 
         self.setup()
-        c, env = self.cfg, self.env
+        c = self.cfg
         for note in self.notes:
             self.say(f"note: {note}")
         last = min(c.steps, c.stop_at or c.steps)
@@ -305,6 +310,26 @@ class Trainer:
                      "(raise --steps or --time-budget to train on)")
             return
         self.start_progress(last)
+        self.terminated = False
+        previous = self.catch_sigterm()
+        try:
+            self.loop(last)
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+
+    def catch_sigterm(self):
+        """Make SIGTERM end the loop after the current step (main thread only); returns the old handler."""
+        if threading.current_thread() is not threading.main_thread():
+            return None
+
+        def stop(signum, frame):
+            self.terminated = True
+
+        return signal.signal(signal.SIGTERM, stop)
+
+    def loop(self, last: int) -> None:
+        c, env = self.cfg, self.env
         window = torch.zeros(4, dtype=torch.float64)  # loss, mse, steps, step seconds since the last log line
         t0 = time.perf_counter() - self.elapsed
         cpu0 = time.process_time() - self.cpu_used
@@ -322,7 +347,7 @@ class Trainer:
             self.step = s
             self.elapsed = time.perf_counter() - t0
             self.cpu_used = time.process_time() - cpu0
-            stop = self.agree(self.over_budget())
+            stop = self.agree(self.over_budget() or self.terminated)
             end = stop or s == last
             if s % c.log_every == 0 or end:
                 loss_sum, mse_sum, n, secs = self.reduce(window)  # sums over ranks
@@ -337,7 +362,9 @@ class Trainer:
             if c.ckpt_every and s % c.ckpt_every == 0 and not end:
                 self.checkpoint(s)
             if stop:
-                self.say(f"budget reached at step {s} ({self.elapsed:.0f} s wall, {self.cpu_used:.0f} CPU s)")
+                why = "SIGTERM received" if self.terminated else "budget reached"
+                self.say(f"{why} at step {s} ({self.elapsed:.0f} s wall, {self.cpu_used:.0f} CPU s): checkpointed, "
+                         "continue with --resume")
                 break
         self.finish(self.step)
 
@@ -386,7 +413,7 @@ class Trainer:
     # ------------------------------------------------------------------ distributed helpers
     def agree(self, flag: bool) -> bool:
         """Whether any rank raised ``flag`` (every rank gets the same answer)."""
-        if self.env.world == 1 or (self.cfg.time_budget is None and self.cfg.cpu_budget is None):
+        if self.env.world == 1:
             return flag
         import torch.distributed as dist
 

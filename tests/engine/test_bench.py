@@ -128,3 +128,20 @@ def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
     assert psnr is None or psnr > 60  # None: bit-identical to the reference twin
     text = run_all.section_peer(tmp_path)
     assert "| peer | official code | 8,957,392 |" in text and "| ours | defaults | 8,957,392 |" in text
+
+
+def test_train_tiny_stage_spans_split_the_cumulative_cpu_time(tmp_path):
+    """The model card's CPU seconds per stage: differences of metrics.jsonl's cumulative cpu_time at the
+    stages' boundaries (the last logged row at or before each)."""
+    import json
+
+    sys.path.insert(0, str(ROOT / "bench"))
+    from train_tiny import stage_spans
+
+    (tmp_path / "stages.json").write_text(json.dumps([{"from_step": 0}, {"from_step": 250}, {"from_step": 300}]))
+    rows = [{"step": s, "cpu_time": 2.0 * s} for s in range(10, 301, 10)] + [{"step": 312, "cpu_time": 700.0}]
+    assert stage_spans(tmp_path, rows, 312) == [{"from_step": 0, "to_step": 250, "cpu_s": 500.0},
+                                                {"from_step": 250, "to_step": 300, "cpu_s": 100.0},
+                                                {"from_step": 300, "to_step": 312, "cpu_s": 100.0}]
+    (tmp_path / "stages.json").unlink()  # a run from before stages.json: one stage
+    assert stage_spans(tmp_path, rows, 312) == [{"from_step": 0, "to_step": 312, "cpu_s": 700.0}]

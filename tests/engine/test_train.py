@@ -103,6 +103,32 @@ def test_validation_picture_and_resume_refusals(tmp_path, scene, capsys):
     assert main(train_args(tmp_path / "empty", str(scene), "gpnr-tiny", 4, "--resume")) == 2
 
 
+def test_sigterm_checkpoints_the_finished_steps_and_resumes_exactly(tmp_path, scene):
+    """``kill PID`` (SIGTERM) mid-run: exit 0, a checkpoint at the last finished step s, and ``--resume`` continues
+    exactly (steps s+1, s+2 lose what an uninterrupted run loses)."""
+    import signal
+    import time
+
+    run, straight = tmp_path / "run", tmp_path / "straight"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen([sys.executable, "-m", "omnirecon.cli", *train_args(run, str(scene), "gpnr-tiny", 500)],
+                            cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    metrics, deadline = run / "metrics.jsonl", time.monotonic() + 120
+    while (not metrics.is_file() or len(metrics.read_text().splitlines()) < 2) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-2000:]
+    assert "SIGTERM received" in err
+    s = json.loads((run / "summary.json").read_text())["step"]
+    assert 2 <= s < 500 and max(losses(run)) == s
+    assert json.loads((run / "checkpoints" / "latest" / "meta.json").read_text())["step"] == s
+    assert main(train_args(run, str(scene), "gpnr-tiny", 500, "--resume", "--stop-at", str(s + 2))) == 0
+    assert main(train_args(straight, str(scene), "gpnr-tiny", 500, "--stop-at", str(s + 2))) == 0
+    a, b = losses(straight), losses(run)
+    assert [a[k] for k in range(1, s + 3)] == [b[k] for k in range(1, s + 3)]
+
+
 def test_ddp_two_processes(tmp_path, scene):
     """torchrun, 2 CPU processes (gloo): exits 0 and both ranks end with identical parameters."""
     run = tmp_path / "run"

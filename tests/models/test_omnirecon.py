@@ -107,6 +107,22 @@ def test_volume_box_modes():
     assert torch.equal(model.encode(src).box, torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=torch.float64))
 
 
+def test_forward_box_holds_the_source_cameras():
+    """On a forward-facing rig the ``scene`` box grows to the source cameras (``forward_box="cameras"``, the
+    default); ``content`` keeps the content box; object rigs keep it either way."""
+    model, src, _, _ = setup(small_cfg(volume_margin=0.0))
+    centres = src.cameras.centers
+    assert not ((centres >= src.bounds[0]) & (centres <= src.bounds[1])).all()  # the rig's cameras sit outside
+    assert torch.equal(model.encode(src).box, src.bounds)  # object rig: the content box
+    src.rig = "forward"
+    box = model.encode(src).box
+    assert ((centres >= box[0] - 1e-12) & (centres <= box[1] + 1e-12)).all()
+    assert torch.equal(box, torch.stack([torch.minimum(src.bounds[0], centres.amin(0)),
+                                         torch.maximum(src.bounds[1], centres.amax(0))]))
+    content = OmniRecon(small_cfg(volume_margin=0.0, forward_box="content")).double().eval()
+    assert torch.equal(content.encode(src).box, src.bounds)
+
+
 def test_lattice_and_volume_sampling_agree():
     """A volume holding its voxel centres' coordinates, sampled trilinearly, returns the query points."""
     from omnirecon.models.omnirecon import OmniReconFeatures, lattice
