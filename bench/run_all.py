@@ -50,6 +50,8 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
     results.mkdir(parents=True, exist_ok=True)
     t = ["--tiny"] if tiny else []
     shipped = [m for m in QUALITY_MODELS[1:] if (ROOT / "checkpoints" / m).is_dir()]
+    peer_root = os.environ.get("IBRNET_ROOT") or next(
+        (str(p) for p in [ROOT.parent / "shared" / "peer" / "IBRNet"] if p.is_dir()), None)
     runs = {
         "synth": lambda: synth_speed.main([*(["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []),
                                            "--out", str(results / "synth_speed.json")]),
@@ -71,8 +73,9 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
                                                     "--pairs", "1"] if tiny else []),
                                                  "--out", str(results / "reliability.json")]),
         "fast_paths": lambda: fast_paths.main(["--out", str(results / "fast_paths.json")]),
-        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", os.environ["IBRNET_ROOT"]]
-                                                   if os.environ.get("IBRNET_ROOT") else []),
+        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", peer_root] if peer_root else []),
+                                                 *(["--width", "24", "--height", "18", "--train-rays", "32",
+                                                    "--train-steps", "1"] if tiny else []), "--reference-too",
                                                  "--out", str(results / "peer_ibrnet.json")]),
     }
     for step in steps:
@@ -210,24 +213,30 @@ def section_peer(results: Path) -> str | None:
              f"Same configuration on both sides: {c['views']} source views of {c['width']}x{c['height']}, "
              f"{c['samples']} samples, inverse depth, chunk {c['chunk']}, {c['train_rays']} rays per training "
              f"step, random weights, one thread, each side in its own process ({c['rounds']} alternating "
-             "round(s), best time and largest peak RSS kept).", ""]
+             "round(s), best time and largest peak RSS kept). The reference is the official code "
+             f"({c.get('peer_config', 'its layout')}), its CUDA calls mapped to the CPU.", ""]
     if r.get("peer_note"):
         lines += [f"**Reference not measured: {r['peer_note']}.** Run `python bench/peer_ibrnet.py --ibrnet-root "
                   "PATH` with a checkout of googleinterns/IBRNet (the project never contains its code).", ""]
-    lines += ["| side | parameters | render s/image | render rays/s | train s/step | train rays/s | peak RSS (MB) |",
-              "|---|---|---|---|---|---|---|"]
+    q = r.get("ratios") or {}
+    lines += ["| side | switches | parameters | render CPU s/image (wall) | render rays/CPU-s | train CPU s/step (wall) | "
+              "train rays/CPU-s | peak RSS (MB) "
+              "| render × ref. | train × ref. | peak RSS / ref. | PSNR to our twin (dB) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, b in r["best"].items():
-        lines.append(f"| {name} | {b['params']:,} | {b['render_s']} | {b['render_rays_per_s']} | {b['train_step_s']} | "
-                     f"{b['train_rays_per_s']} | {b['peak_rss_mb']} |")
-    if "ours_reference" in r["best"]:
-        lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager). The sides "
-                  "run one after the other in separate processes, so a training step of a few seconds is at the mercy "
-                  "of the shared cores' load (load average at the end: "
-                  f"{r.get('loadavg_end')}); the same-run, interleaved comparison is the Speed section's."]
-    if r.get("ratios"):
-        q = r["ratios"]
-        lines += ["", f"Ratios (reference / ours): render {q['render_speedup']}×, training {q['train_speedup']}×; "
-                  f"peak RSS ours / reference {q['peak_rss_ratio']}."]
+        ratio = q.get(name, {}) if isinstance(q.get(name), dict) else {}
+        psnr = b.get("psnr_to_reference_db", "–")
+        psnr = "identical" if psnr is None else psnr
+        lines.append(f"| {name} | {b.get('switches', '–') if name != 'peer' else 'official code'} | {b['params']:,} | "
+                     f"{b.get('render_cpu_s', '–')} ({b['render_s']}) | {b['render_rays_per_s']} | "
+                     f"{b.get('train_step_cpu_s', '–')} ({b['train_step_s']}) | {b['train_rays_per_s']} | "
+                     f"{b['peak_rss_mb']} | {ratio.get('render_speedup', '–')}× | {ratio.get('train_speedup', '–')}× | "
+                     f"{ratio.get('peak_rss_ratio', '–')} | {psnr} |")
+    lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager); PSNR is each "
+              "of our sides' render against it (same weights; \"identical\": bit-identical). Ratios are of process CPU "
+              "seconds (one thread each), which other jobs on the shared cores do not inflate as they do wall time "
+              "(wall-time ratios are in the JSON). Load average at the "
+              f"start {r.get('loadavg_start')}, at the end {r.get('loadavg_end')}; ratios come from this one run."]
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
 
