@@ -11,11 +11,12 @@ target, and each variant:
 * ``reference``: every switch at its reference twin (fp32 eager, no_grad, one ``render_rays`` per chunk);
 * ``default``: the defaults of ``FastPaths`` (what every command now runs);
 * ``bf16``: the defaults plus bf16 autocast of the per-sample networks;
+* ``without_sdpa_elu`` (IBRNet): the defaults with ``sdpa_attention`` and ``inplace_elu`` off;
 * ``surface_N``: the defaults, rendered with ``surface_samples = N`` (the fine pass on N importance
   samples around the coarse surface only; IBRNet and Omni-Recon; an option of ``render_view``);
 * ``coarse_only``: the defaults, rendered with ``fine_pass = False`` (no fine pass: depth maps for meshing).
 
-Reported per variant: render seconds (encode + ``render_view`` of every target; the variants run
+Reported per variant: render CPU seconds (encode + ``render_view`` of every target; the variants run
 interleaved ``--rounds`` times, the fastest round kept: the cores are shared), the speed-up over the
 reference *measured in the same run*, PSNR against the ground truth, PSNR against the reference render,
 the largest colour difference from the reference, and depth abs-rel (``|d - d_gt| / d_gt`` on pixels
@@ -43,6 +44,8 @@ def variants(model_name: str) -> dict[str, dict]:
     from omnirecon.models.fast import REFERENCE
 
     out = {"reference": dict(REFERENCE), "default": {}, "bf16": {"bf16_render": True}}
+    if model_name.startswith("ibrnet"):  # the defaults without this session's exact levers (SDPA, in-place ELU)
+        out["without_sdpa_elu"] = {"sdpa_attention": False, "inplace_elu": False}
     if not model_name.startswith("gpnr"):
         out.update({f"surface_{n}": {"surface_samples": n} for n in SURFACE})
         out["coarse_only"] = {"fine_pass": False}
@@ -82,14 +85,14 @@ def render_all(model, es, plan, **options) -> tuple[float, list[dict]]:
 
     scene = es.scene
     outs = []
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # CPU seconds of this one-thread process: the shared cores' load does not count
     for t, src in plan:
         sources = Sources.from_scene(scene, src)
         with torch.no_grad():
             feats = model.encode(sources)
         out = model.render_view(feats, scene.cameras[[t]], chunk=4096, **options)
         outs.append({k: v for k, v in out.items() if k in ("rgb", "depth", "depth_coarse", "valid")})
-    return time.perf_counter() - t0, outs
+    return time.process_time() - t0, outs
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor) -> float:

@@ -4,13 +4,13 @@
     python bench/geometry_budget.py --tiny               # one scene at 48 px, oracle and floor (tests)
 
 For each scene (the demo's held-out scene, seed 900999, 24 views at 128 px, and the first
-``--scenes`` of ``synth:eval``) and each depth source (``oracle``: the exact mesh's depth; ``floor``;
-``omnirecon-tiny``), at the 3 default source views and at every training view (``all``, each depth
+``--scenes`` of ``synth:eval``) and each depth source (``oracle``: the exact mesh's depth; ``stereo``: classical stereo;
+``floor``; ``omnirecon-tiny``), at the 3 default source views and at every training view (``all``, each depth
 map from its own 3 nearest views), the depth maps go through
 
 * ``reference``: VolRecon's protocol as main had it (depth at shifted views, nearest-pixel TSDF at
   1/256 of the diagonal, weight 1, cleaned with the source masks), 3 views only, and
-* ``fit``: :mod:`omnirecon.mesh.fusion` (no masks: the background is kept),
+* ``fit``: the pipeline's default preset (no masks: the background is kept; completion on),
 
 and the mesh after each stage (marching cubes, visibility, components, face budget) is scored:
 Chamfer distance over the observed ground truth's extent and F-score (at 1 % of the bounds
@@ -27,7 +27,6 @@ Writes ``bench/results/geometry_budget.json`` and the pictures of the mesh path 
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
@@ -72,58 +71,38 @@ def score(mesh, scene, targets, model, sources, picture=None) -> dict:
             "psnr": mesh_path_psnr(model, scene, sources, targets, mesh, picture)}
 
 
-def depth_maps(source: str, scene, views, k: int, shifts, cache: Path, models: dict) -> dict:
-    """Depth maps of ``source`` at ``views`` (shifted by ``shifts``), cached on disk."""
-    from omnirecon.mesh import geometry
-    from omnirecon.mesh.build import shifted_cameras
-    from omnirecon.mesh.fusion import ViewGroups, render_depth_maps
+def depth_maps(source: str, scene, views, k: int, shifts, cache: Path, models: dict):
+    """:class:`~omnirecon.mesh.depth.DepthMaps` of ``source`` at ``views`` (shifted by ``shifts``), cached on disk."""
+    from omnirecon.mesh.build import MeshOptions, depth_maps
 
     key = cache / f"{source}_{'-'.join(map(str, views))}_k{k}_s{'-'.join(f'{s:.4f}' for s in shifts)}.pt"
-    if source == "oracle":
-        gt = geometry.ground_truth_mesh(scene)
-        cams = shifted_cameras(scene.cameras[views], shifts, scene.bounds.double().mean(0))
-        t = time.perf_counter()
-        d = torch.from_numpy(np.stack([geometry.mesh_depth(gt, cams[i]) for i in range(len(cams))])).float()
-        return {"cameras": cams, "depth": d, "confidence": (d > 0).float(), "seconds": time.perf_counter() - t,
-                "encodes": 0, "renders": 0}
-    if key.is_file():
+    if source not in ("oracle", "stereo") and key.is_file():
         return torch.load(key, weights_only=False)
-    t = time.perf_counter()
-    maps = render_depth_maps(models[source], scene, ViewGroups(scene.cameras, views, k), shifts)
-    maps["seconds"] = time.perf_counter() - t
-    cache.mkdir(parents=True, exist_ok=True)
-    torch.save(maps, key)
+    depth = source if source in ("oracle", "stereo") else "model"
+    maps = depth_maps(MeshOptions(depth=depth, shifts=tuple(shifts), neighbours=k), scene, views, models.get(source))
+    if depth == "model":
+        cache.mkdir(parents=True, exist_ok=True)
+        torch.save(maps, key)
     return maps
 
 
 def run_case(scene, name, source, setting, views, pipeline, models, mesh_model, sources, targets, cache, figures):
     from omnirecon.mesh import geometry
-    from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, clean_mesh, extract_mesh, fuse_depths
-    from omnirecon.mesh.fusion import fuse_depth_maps
+    from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, mesh_from_depths
 
     shifts = (DTU_SHIFT,) if pipeline == "reference" else (0.0,)
     maps = depth_maps(source, scene, views, 3, shifts, cache, models)
-    row = {"scene": name, "source": source, "views": setting, "num_maps": len(maps["cameras"]),
-           "pipeline": pipeline, "render_seconds": maps["seconds"],
-           "model_calls": {"encode": maps["encodes"], "render_view": maps["renders"]}}
-    row["depth"] = geometry.rendered_depth_errors(scene, maps["cameras"], maps["depth"]).get("rendered_depth")
+    row = {"scene": name, "source": source, "views": setting, "num_maps": len(maps.cameras),
+           "pipeline": pipeline, "render_seconds": maps.info["seconds"],
+           "model_calls": maps.info.get("model_calls", {"encode": 0, "render_view": 0})}
+    row["depth"] = geometry.rendered_depth_errors(scene, maps.cameras, maps.depth).get("rendered_depth")
     stages: dict = {}
-    t = time.perf_counter()
-    if pipeline == "reference":
-        opts = MeshOptions(fusion="reference")
-        diag = float((scene.bounds[1] - scene.bounds[0]).double().norm())
-        voxel = diag / 256
-        vol = fuse_depths(maps["cameras"], maps["depth"], None, scene.bounds, voxel, 3 * voxel)
-        stages["marching_cubes"] = extract_mesh(vol)
-        stages["cleaned_with_masks"], _ = clean_mesh(stages["marching_cubes"], scene.cameras[views],
-                                                     scene.masks[views], voxel, opts)
-        row["seconds"] = {"mesh": time.perf_counter() - t}
+    if pipeline == "reference":  # VolRecon's protocol: a preset of the one pipeline, cleaned with the masks
+        made = mesh_from_depths(maps, scene, views, MeshOptions.preset("reference"), scene.masks, stages=stages)
     else:
-        opts = MeshOptions(fusion="fit", max_faces=100_000)
-        _, info = fuse_depth_maps(maps["cameras"], maps["depth"], scene.bounds, opts, maps["confidence"],
-                                  clean_cameras=scene.cameras[views], stages=stages)
-        row["seconds"] = info["seconds"]
-        row.update({k: info[k] for k in ("voxel", "trunc", "depth_disagreement", "mean_weight")})
+        made = mesh_from_depths(maps, scene, views, MeshOptions(max_faces=100_000), stages=stages)
+        row.update({k: made.info[k] for k in ("voxel", "trunc", "depth_disagreement", "mean_weight")})
+    row["seconds"] = made.info["seconds"]
     row["stages"] = {}
     last = list(stages)[-1]
     for stage, mesh in stages.items():
@@ -144,8 +123,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", type=int, default=2, help="synth:eval scenes besides the demo scene")
-    p.add_argument("--sources", nargs="+", default=["oracle", "floor", "omnirecon-tiny"])
-    p.add_argument("--all-views-for", nargs="+", default=["oracle", "floor", "omnirecon-tiny@demo"],
+    p.add_argument("--sources", nargs="+", default=["oracle", "stereo", "floor", "omnirecon-tiny"])
+    p.add_argument("--all-views-for", nargs="+", default=["oracle", "stereo", "floor", "omnirecon-tiny@demo"],
                    help="depth sources meshed from every training view (NAME@demo: the demo scene only)")
     p.add_argument("--tiny", action="store_true", help="the demo scene at 48 px, oracle and floor (tests)")
     p.add_argument("--threads", type=int, default=1)
@@ -157,7 +136,7 @@ def main(argv: list[str] | None = None) -> dict:
     models = {"floor": build_model("floor")}
     if "omnirecon-tiny" in a.sources and not a.tiny:
         models["omnirecon-tiny"] = mesh_model
-    sources_wanted = [s for s in a.sources if s == "oracle" or s in models]
+    sources_wanted = [s for s in a.sources if (s == "oracle" or (s == "stereo" and not a.tiny)) or s in models]
     res = 48 if a.tiny else 128
     cache = ROOT / "outputs" / "cache" / "geometry_budget"
     scenes = [("demo", generate_scene(cache / f"demo_{res}", DEMO_SEED,

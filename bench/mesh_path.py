@@ -60,8 +60,6 @@ def visibility_psnr(model, scene, views, targets, mesh) -> dict:
 
 
 def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: int) -> dict:
-    import trimesh
-
     from omnirecon.data import detect_format
     from omnirecon.engine.checkpoint import load_checkpoint
     from omnirecon.engine.protocols import protocol_for
@@ -84,9 +82,9 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
     proto = protocol_for(path, fmt)
     scene = load_at_resolution(path, res, proto.background, fmt)
     if cached is not None:
-        mesh = trimesh.load(cached, force="mesh", process=False)
-        T = np.linalg.inv(scene.to_input.double().numpy())
-        mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
+        from omnirecon.mesh.files import read_mesh
+
+        mesh = read_mesh(cached, scene.to_input)
     else:
         from omnirecon.mesh.build import MeshOptions, mesh_from_model
 

@@ -1,24 +1,25 @@
 """The official IBRNet code against our ``ibrnet-paper`` at the same configuration, in one run.
 
-    python bench/peer_ibrnet.py --ibrnet-root ~/src/IBRNet      # a checkout of googleinterns/IBRNet
+    python bench/peer_ibrnet.py --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
+    python bench/peer_ibrnet.py --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
     python bench/peer_ibrnet.py                                 # no checkout: our side only, the JSON says so
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
-https://github.com/googleinterns/IBRNet``; the code layout of commit 41807b2 and its ancestors:
-``ibrnet/mlp_network.py`` ``IBRNet``, ``ibrnet/feature_network.py`` ``ResUNet``,
-``ibrnet/projection.py`` ``Projector``, ``ibrnet/render_ray.py`` ``render_rays``,
-``ibrnet/render_image.py`` ``render_single_image``, ``ibrnet/sample_ray.py``
-``RaySamplerSingleImage``). Its hard-wired CUDA calls (``.cuda()``, ``.to("cuda:0")``) are mapped to
-the CPU by a shim active only while its code runs; both sides get random weights (speed does not
-depend on them) and the same parameter count (8,957,392).
+https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,
+configargparse). The reference side runs that code as its own ``train.py`` and evaluation would: its
+``config.py`` parser reads ``configs/eval_llff.txt`` (64 + 64 samples, inverse depth, chunk 4096), its
+``IBRNetModel`` builds the networks, Adam and StepLR; a render is ``render_single_image`` on a
+``RaySamplerSingleImage``; a training step is ``random_sample`` -> ``feature_net`` -> ``render_rays`` ->
+masked MSE on both passes -> backward -> step. Its hard-wired CUDA calls (``.cuda()``, ``.to("cuda:0")`` on
+tensors and modules) are mapped to the CPU by a shim active only while its code runs. Both sides get random
+weights (speed does not depend on them) and have the same parameter count (8,957,392).
 
-Configuration (``configs/eval_llff.txt`` and the training defaults): ``--views`` source views of
-``--width x --height``, 64 coarse + 64 importance samples, inverse-depth sampling, chunk 4096 rays
-(theirs and ours: our ``render_view`` also sub-batches per its fast paths), anti-alias pooling; a
-training step is one target view, ``--train-rays`` random rays, encode + coarse + fine + masked MSE
-on both passes + backward + Adam(W) step. Each side runs in its own fresh child process (so that
-peak RSS is its own), alternately ``--rounds`` times; the table keeps each side's best time and its
-largest peak RSS. Writes ``bench/results/peer_ibrnet.json`` with a provenance header.
+Each side runs in its own fresh child process (so that peak RSS is its own), one thread, alternately
+``--rounds`` times; the table keeps each side's best wall and best process-CPU time and its largest peak
+RSS. Ratios are of CPU seconds: on the shared cores a process's wall time is mostly the scheduler's.
+With ``--reference-too`` our reference twins (every fast path off) run too and each of our sides' render
+is scored against theirs (PSNR; bit-identical is recorded as ``None``). Writes
+``bench/results/peer_ibrnet.json`` with a provenance header and the load average at start and end.
 """
 
 from __future__ import annotations
@@ -60,25 +61,34 @@ def scene(views: int, width: int, height: int, seed: int = 0):
 
 @contextlib.contextmanager
 def cuda_to_cpu():
-    """While active: ``Tensor.cuda``/``Module.cuda`` return the CPU object, ``.to("cuda...")`` goes to the CPU."""
+    """While active: ``Tensor.cuda``/``Module.cuda`` return the CPU object and ``.to("cuda...")`` (a string or a
+    ``torch.device``, on tensors and modules) goes to the CPU: the reference's hard-wired CUDA calls run here."""
     import torch
 
-    saved = (torch.Tensor.cuda, torch.nn.Module.cuda, torch.Tensor.to)
-    real_to = torch.Tensor.to
+    saved = (torch.Tensor.cuda, torch.nn.Module.cuda, torch.Tensor.to, torch.nn.Module.to)
+    real_to, real_module_to = torch.Tensor.to, torch.nn.Module.to
 
-    def to(self, *args, **kwargs):
+    def _cpu(args, kwargs):
         args = tuple("cpu" if isinstance(a, (str, torch.device)) and str(a).startswith("cuda") else a for a in args)
         if "device" in kwargs and str(kwargs["device"]).startswith("cuda"):
-            kwargs["device"] = "cpu"
+            kwargs = dict(kwargs, device="cpu")
+        return args, kwargs
+
+    def to(self, *args, **kwargs):
+        args, kwargs = _cpu(args, kwargs)
         return real_to(self, *args, **kwargs)
+
+    def module_to(self, *args, **kwargs):
+        args, kwargs = _cpu(args, kwargs)
+        return real_module_to(self, *args, **kwargs)
 
     torch.Tensor.cuda = lambda self, *a, **k: self
     torch.nn.Module.cuda = lambda self, *a, **k: self
-    torch.Tensor.to = to
+    torch.Tensor.to, torch.nn.Module.to = to, module_to
     try:
         yield
     finally:
-        torch.Tensor.cuda, torch.nn.Module.cuda, torch.Tensor.to = saved
+        torch.Tensor.cuda, torch.nn.Module.cuda, torch.Tensor.to, torch.nn.Module.to = saved
 
 
 def _camera_vector(cams, i: int):
@@ -92,8 +102,11 @@ def _camera_vector(cams, i: int):
 
 
 def run_peer(root: Path, args) -> dict:
-    """Time the official code (in this process)."""
-    import argparse as ap
+    """Time the official code (in this process): its own option parser reading ``configs/eval_llff.txt``, its
+    ``IBRNetModel`` (networks, Adam with its two learning rates, StepLR), ``render_single_image`` for a view and
+    its training step (``RaySamplerSingleImage.random_sample`` -> ``render_rays`` -> masked MSE on both passes ->
+    backward -> step)."""
+    import tempfile
 
     import numpy as np
     import torch
@@ -102,20 +115,20 @@ def run_peer(root: Path, args) -> dict:
     views, w, h = args.views, args.width, args.height
     cams, images = scene(views, w, h)
     base = peak_rss_mb()
-    with cuda_to_cpu():
-        from ibrnet.feature_network import ResUNet
-        from ibrnet.mlp_network import IBRNet
+    with cuda_to_cpu(), tempfile.TemporaryDirectory() as tmp:
+        from config import config_parser
+        from ibrnet.model import IBRNetModel
         from ibrnet.projection import Projector
         from ibrnet.render_image import render_single_image
         from ibrnet.render_ray import render_rays
         from ibrnet.sample_ray import RaySamplerSingleImage
 
-        opts = ap.Namespace(anti_alias_pooling=1, local_rank=0, coarse_feat_dim=32, fine_feat_dim=32,
-                            N_samples=64, N_importance=64, inv_uniform=True, chunk_size=args.chunk)
+        opts = config_parser().parse_args(["--config", str(root / "configs" / "eval_llff.txt"), "--rootdir", tmp,
+                                           "--ckpt_path", "", "--no_reload", "--chunk_size", str(args.chunk),
+                                           "--N_samples", "64", "--N_importance", "64"])
         torch.manual_seed(0)
-        model = ap.Namespace(net_coarse=IBRNet(opts, in_feat_ch=32, n_samples=64),
-                             net_fine=IBRNet(opts, in_feat_ch=32, n_samples=128),
-                             feature_net=ResUNet(coarse_out_ch=32, fine_out_ch=32, coarse_only=False))
+        with contextlib.redirect_stdout(sys.stderr):  # it prints "No ckpts found" (stdout carries our JSON)
+            model = IBRNetModel(opts, load_opt=False, load_scheduler=False)
         nets = (model.net_coarse, model.net_fine, model.feature_net)
         params = sum(p.numel() for n in nets for p in n.parameters())
         projector = Projector(device="cpu")
@@ -123,43 +136,55 @@ def run_peer(root: Path, args) -> dict:
                 "rgb_path": ["target"], "depth_range": torch.tensor([[args.near, args.far]]),
                 "src_rgbs": images[None, :views].float(),
                 "src_cameras": torch.stack([_camera_vector(cams, i) for i in range(views)])[None]}
+        rendered = {}
 
         def render():
-            for n in nets:
-                n.eval()
+            model.switch_to_eval()
             with torch.no_grad():
                 sampler = RaySamplerSingleImage(data, "cpu")
                 batch = sampler.get_all()
                 featmaps = model.feature_net(batch["src_rgbs"].squeeze(0).permute(0, 3, 1, 2))
-                render_single_image(sampler, batch, model, projector, args.chunk, 64, inv_uniform=True,
-                                    N_importance=64, det=True, featmaps=featmaps)
+                out = render_single_image(sampler, batch, model, projector, opts.chunk_size, opts.N_samples,
+                                          inv_uniform=opts.inv_uniform, N_importance=opts.N_importance, det=True,
+                                          white_bkgd=opts.white_bkgd, featmaps=featmaps)
+            rendered["rgb"] = out["outputs_fine"]["rgb"]
 
-        opt = torch.optim.Adam([{"params": model.net_coarse.parameters()}, {"params": model.net_fine.parameters()},
-                                {"params": model.feature_net.parameters(), "lr": 1e-3}], lr=5e-4)
         np.random.seed(0)
 
-        def mse(out, rgb):  # their criterion (utils.img2mse with the ray mask), without importing utils
+        def mse(out, rgb):  # the training criterion: squared error over the rays the mask keeps, per channel
             m = out["mask"].float()[..., None]
             return ((out["rgb"] - rgb) ** 2 * m).sum() / (m.sum() * 3 + 1e-8)
 
         def train_step():
-            for n in nets:
-                n.train()
+            model.switch_to_train()
             sampler = RaySamplerSingleImage(data, "cpu")
-            batch = sampler.random_sample(args.train_rays, sample_mode="uniform")
+            batch = sampler.random_sample(args.train_rays, sample_mode=opts.sample_mode, center_ratio=opts.center_ratio)
             featmaps = model.feature_net(batch["src_rgbs"].squeeze(0).permute(0, 3, 1, 2))
-            ret = render_rays(batch, model, featmaps, projector=projector, N_samples=64, inv_uniform=True,
-                              N_importance=64, det=False)
-            opt.zero_grad()
+            ret = render_rays(batch, model, featmaps, projector=projector, N_samples=opts.N_samples,
+                              inv_uniform=opts.inv_uniform, N_importance=opts.N_importance, det=False,
+                              white_bkgd=opts.white_bkgd)
+            model.optimizer.zero_grad()
             loss = mse(ret["outputs_coarse"], batch["rgb"]) + mse(ret["outputs_fine"], batch["rgb"])
             loss.backward()
-            opt.step()
+            model.optimizer.step()
+            model.scheduler.step()
 
-        return _time_both(render, train_step, params, base, args)
+        out = _time_both(render, train_step, params, base, args)
+    _save_render(args, rendered["rgb"].reshape(h, w, 3))
+    return out
+
+
+def _save_render(args, rgb) -> None:
+    """The rendered image (``--save-render``) for the parent's PSNR between sides."""
+    if args.save_render:
+        import numpy as np
+
+        np.save(args.save_render, rgb.detach().float().cpu().numpy())
 
 
 def run_ours(args) -> dict:
-    """Time ``ibrnet-paper`` (in this process) at the same configuration."""
+    """Time ``ibrnet-paper`` (in this process) at the same configuration; fast-path switches from
+    ``OMNIRECON_FAST`` (the parent sets it per side), every reference twin with ``--reference``."""
     import torch
 
     from omnirecon.engine.losses import LossModule
@@ -171,6 +196,7 @@ def run_ours(args) -> dict:
     cams, images = scene(views, args.width, args.height)
     base = peak_rss_mb()
     ctx = reference() if args.reference else contextlib.nullcontext()
+    rendered = {}
     with ctx:
         torch.manual_seed(0)
         model = build_model("ibrnet-paper", {"num_views": views, "coarse_samples": 64, "fine_samples": 64})
@@ -185,7 +211,7 @@ def run_ours(args) -> dict:
             model.eval()
             with torch.no_grad():
                 feats = model.encode(src)
-            model.render_view(feats, target, chunk=args.chunk)
+            rendered["rgb"] = model.render_view(feats, target, chunk=args.chunk)["rgb"]
 
         loss_mod = LossModule(model, aux_weight=1.0)
         opt = torch.optim.AdamW(model.parameters(), lr=5e-4)
@@ -199,29 +225,46 @@ def run_ours(args) -> dict:
             opt.step()
 
         out = _time_both(render, train_step, params, base, args)
-    out["fast_paths"] = "reference twins" if args.reference else repr(FAST)
+        out["fast_paths"] = "reference twins" if args.reference else repr(FAST)
+    _save_render(args, rendered["rgb"])
     return out
 
 
 def _time_both(render, train_step, params: int, base_rss: float, args) -> dict:
-    t0 = time.perf_counter()
-    render()
-    render_s = time.perf_counter() - t0
+    """Wall and process CPU seconds (one thread: CPU time is what the work costs, whatever else shares the
+    cores) of ``--renders`` renders and ``--train-steps`` training steps after a warm-up; best of each kept."""
+    renders, renders_cpu = [], []
+    for _ in range(args.renders):
+        t0, c0 = time.perf_counter(), time.process_time()
+        render()
+        renders.append(time.perf_counter() - t0)
+        renders_cpu.append(time.process_time() - c0)
     render_rss = peak_rss_mb()
     train_step()  # warm-up
-    times = []
+    times, cpu = [], []
     for _ in range(args.train_steps):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         train_step()
         times.append(time.perf_counter() - t0)
-    return {"params": params, "render_s": round(render_s, 3), "train_step_s": round(min(times), 3),
-            "train_step_s_all": [round(t, 3) for t in times], "render_peak_rss_mb": round(render_rss, 1),
-            "peak_rss_mb": round(peak_rss_mb(), 1), "baseline_rss_mb": round(base_rss, 1)}
+        cpu.append(time.process_time() - c0)
+    return {"params": params, "render_s": round(min(renders), 3), "render_first_s": round(renders[0], 3),
+            "render_cpu_s": round(min(renders_cpu), 3), "train_step_s": round(min(times), 3),
+            "train_step_cpu_s": round(min(cpu), 3), "train_step_s_all": [round(t, 3) for t in times],
+            "render_peak_rss_mb": round(render_rss, 1), "peak_rss_mb": round(peak_rss_mb(), 1),
+            "baseline_rss_mb": round(base_rss, 1)}
 
 
 def check_root(root: Path) -> list[str]:
     """The files of the checkout we run; missing ones listed."""
     return [f for f in PEER_FILES if not (root / f).is_file()]
+
+
+def _psnr(a_path: Path, b_path: Path) -> float | None:
+    import numpy as np
+
+    a, b = np.load(a_path), np.load(b_path)
+    mse = float(((a.astype(np.float64) - b) ** 2).mean())
+    return round(10 * np.log10(1.0 / mse), 2) if mse > 0 else None  # None: bit-identical
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -233,14 +276,19 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--near", type=float, default=1.5)
     parser.add_argument("--far", type=float, default=4.5)
     parser.add_argument("--chunk", type=int, default=4096)
-    parser.add_argument("--train-rays", type=int, default=500)
+    parser.add_argument("--train-rays", type=int, default=512, help="rays per training step (IBRNet's N_rand)")
     parser.add_argument("--train-steps", type=int, default=2, help="timed steps after a warm-up (best kept)")
+    parser.add_argument("--renders", type=int, default=1, help="renders per process (the first is the cold start)")
     parser.add_argument("--rounds", type=int, default=1, help="alternating rounds of child processes")
     parser.add_argument("--reference-too", action="store_true",
-                        help="also time our reference twins (fast paths off) in the same run")
+                        help="also time our reference twins (fast paths off) in the same run; PSNR of each of our "
+                             "sides to it")
+    parser.add_argument("--variant", nargs=2, action="append", default=[], metavar=("NAME", "SWITCHES"),
+                        help="one more of our sides with OMNIRECON_FAST=SWITCHES (e.g. bf16 bf16_render=1)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "peer_ibrnet.json")
     parser.add_argument("--child", choices=["peer", "ours"], help=argparse.SUPPRESS)
     parser.add_argument("--reference", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--save-render", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
         import torch
@@ -249,6 +297,8 @@ def main(argv: list[str] | None = None) -> dict:
         res = run_peer(args.ibrnet_root, args) if args.child == "peer" else run_ours(args)
         print(json.dumps(res))
         return res
+
+    import tempfile
 
     from omnirecon.data.io import write_json
     from omnirecon.errors import InputError
@@ -260,45 +310,68 @@ def main(argv: list[str] | None = None) -> dict:
         if missing:
             raise InputError(f"{root} is not an IBRNet checkout (missing {', '.join(missing)})", None,
                              "pass the folder of `git clone https://github.com/googleinterns/IBRNet`")
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
-               PYTHONPATH=os.pathsep.join([str(HERE.parent), os.environ.get("PYTHONPATH", "")]))
+    base_env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
+                    PYTHONPATH=os.pathsep.join([str(HERE.parent), os.environ.get("PYTHONPATH", "")]))
+    base_env.pop("OMNIRECON_FAST", None)
     common = ["--views", str(args.views), "--width", str(args.width), "--height", str(args.height),
               "--near", str(args.near), "--far", str(args.far), "--chunk", str(args.chunk),
-              "--train-rays", str(args.train_rays), "--train-steps", str(args.train_steps)]
-    sides = ([("peer", ["--ibrnet-root", str(root)])] if root else []) + [("ours", [])]
+              "--train-rays", str(args.train_rays), "--train-steps", str(args.train_steps),
+              "--renders", str(args.renders)]
+    # (name, child, extra arguments, OMNIRECON_FAST)
+    sides = ([("peer", "peer", ["--ibrnet-root", str(root)], "")] if root else []) + [("ours", "ours", [], "")]
+    sides += [(name, "ours", [], spec) for name, spec in args.variant]
     if args.reference_too:
-        sides.append(("ours_reference", ["--reference"]))
-    runs: dict[str, list[dict]] = {name: [] for name, _ in sides}
+        sides.append(("ours_reference", "ours", ["--reference"], ""))
+    runs: dict[str, list[dict]] = {name: [] for name, *_ in sides}
+    load_start = [round(x, 2) for x in os.getloadavg()]
+    renders = Path(tempfile.mkdtemp(prefix="peer_ibrnet_"))
     for _ in range(args.rounds):
-        for name, extra in sides:
-            child = "peer" if name == "peer" else "ours"
-            res = subprocess.run([sys.executable, __file__, "--child", child, *common, *extra], env=env,
+        for name, child, extra, spec in sides:
+            env = dict(base_env, OMNIRECON_FAST=spec) if spec else base_env
+            save = ["--save-render", str(renders / f"{name}.npy")]
+            res = subprocess.run([sys.executable, __file__, "--child", child, *common, *extra, *save], env=env,
                                  capture_output=True, text=True)
             if res.returncode:
                 raise SystemExit(f"{name} failed:\n{res.stderr[-3000:]}")
-            runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]))
+            label = "reference twins" if "--reference" in extra else spec or "defaults"
+            runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]) | {"switches": label})
             print(name, runs[name][-1], flush=True)
-    best = {name: {"params": rs[0]["params"], "render_s": min(r["render_s"] for r in rs),
+    best = {name: {"params": rs[0]["params"], "switches": rs[0]["switches"],
+                   "render_s": min(r["render_s"] for r in rs),
+                   "render_first_s": min(r["render_first_s"] for r in rs),
                    "train_step_s": min(r["train_step_s"] for r in rs),
+                   "render_cpu_s": min(r["render_cpu_s"] for r in rs),
+                   "train_step_cpu_s": min(r["train_step_cpu_s"] for r in rs),
                    "peak_rss_mb": max(r["peak_rss_mb"] for r in rs),
                    "render_peak_rss_mb": max(r["render_peak_rss_mb"] for r in rs)} for name, rs in runs.items()}
     n_render = args.width * args.height
-    for b in best.values():
-        b["render_rays_per_s"] = round(n_render / b["render_s"], 1)
-        b["train_rays_per_s"] = round(args.train_rays / b["train_step_s"], 1)
+    for name, b in best.items():  # per CPU second (one thread)
+        b["render_rays_per_s"] = round(n_render / b["render_cpu_s"], 1)
+        b["train_rays_per_s"] = round(args.train_rays / b["train_step_cpu_s"], 1)
+        if "ours_reference" in best and name.startswith("ours") and name != "ours_reference":
+            b["psnr_to_reference_db"] = _psnr(renders / f"{name}.npy", renders / "ours_reference.npy")
     ratios = None
     if "peer" in best:
-        p, o = best["peer"], best["ours"]
-        ratios = {"render_speedup": round(p["render_s"] / o["render_s"], 2),
-                  "train_speedup": round(p["train_step_s"] / o["train_step_s"], 2),
-                  "peak_rss_ratio": round(o["peak_rss_mb"] / p["peak_rss_mb"], 2)}
+        p = best["peer"]
+        ratios = {name: {"render_speedup": round(p["render_cpu_s"] / o["render_cpu_s"], 2),
+                         "train_speedup": round(p["train_step_cpu_s"] / o["train_step_cpu_s"], 2),
+                         "render_speedup_wall": round(p["render_s"] / o["render_s"], 2),
+                         "train_speedup_wall": round(p["train_step_s"] / o["train_step_s"], 2),
+                         "peak_rss_ratio": round(o["peak_rss_mb"] / p["peak_rss_mb"], 2),
+                         "render_peak_rss_ratio": round(o["render_peak_rss_mb"] / p["render_peak_rss_mb"], 2)}
+                  for name, o in best.items() if name != "peer"}
+    import shutil
+
+    shutil.rmtree(renders, ignore_errors=True)
     result = {"provenance": provenance(seed=0, threads=1),
               "config": {k: getattr(args, k) for k in ("views", "width", "height", "near", "far", "chunk",
-                                                       "train_rays", "train_steps", "rounds")}
-              | {"samples": "64 + 64", "inverse_depth": True, "weights": "random"},
+                                                       "train_rays", "train_steps", "renders", "rounds")}
+              | {"samples": "64 + 64", "inverse_depth": True, "weights": "random (seed 0)",
+                 "peer_config": "configs/eval_llff.txt through its own config.py"},
               "peer_root": str(root) if root else None,
               "peer_note": None if root else "no IBRNet checkout was given (--ibrnet-root)",
               "best": best, "ratios": ratios, "runs": runs,
+              "loadavg_start": load_start,
               "loadavg_end": [round(x, 2) for x in os.getloadavg()]}
     write_json(args.out, result)
     print(json.dumps({"best": best, "ratios": ratios}, indent=1))

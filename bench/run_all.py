@@ -50,6 +50,8 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
     results.mkdir(parents=True, exist_ok=True)
     t = ["--tiny"] if tiny else []
     shipped = [m for m in QUALITY_MODELS[1:] if (ROOT / "checkpoints" / m).is_dir()]
+    peer_root = os.environ.get("IBRNET_ROOT") or next(
+        (str(p) for p in [ROOT.parent / "shared" / "peer" / "IBRNet"] if p.is_dir()), None)
     runs = {
         "synth": lambda: synth_speed.main([*(["--scenes", "2", "--views", "8", "--resolution", "32"] if tiny else []),
                                            "--out", str(results / "synth_speed.json")]),
@@ -71,8 +73,9 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
                                                     "--pairs", "1"] if tiny else []),
                                                  "--out", str(results / "reliability.json")]),
         "fast_paths": lambda: fast_paths.main(["--out", str(results / "fast_paths.json")]),
-        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", os.environ["IBRNET_ROOT"]]
-                                                   if os.environ.get("IBRNET_ROOT") else []),
+        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", peer_root] if peer_root else []),
+                                                 *(["--width", "24", "--height", "18", "--train-rays", "32",
+                                                    "--train-steps", "1"] if tiny else []), "--reference-too",
                                                  "--out", str(results / "peer_ibrnet.json")]),
     }
     for step in steps:
@@ -210,24 +213,30 @@ def section_peer(results: Path) -> str | None:
              f"Same configuration on both sides: {c['views']} source views of {c['width']}x{c['height']}, "
              f"{c['samples']} samples, inverse depth, chunk {c['chunk']}, {c['train_rays']} rays per training "
              f"step, random weights, one thread, each side in its own process ({c['rounds']} alternating "
-             "round(s), best time and largest peak RSS kept).", ""]
+             "round(s), best time and largest peak RSS kept). The reference is the official code "
+             f"({c.get('peer_config', 'its layout')}), its CUDA calls mapped to the CPU.", ""]
     if r.get("peer_note"):
         lines += [f"**Reference not measured: {r['peer_note']}.** Run `python bench/peer_ibrnet.py --ibrnet-root "
                   "PATH` with a checkout of googleinterns/IBRNet (the project never contains its code).", ""]
-    lines += ["| side | parameters | render s/image | render rays/s | train s/step | train rays/s | peak RSS (MB) |",
-              "|---|---|---|---|---|---|---|"]
+    q = r.get("ratios") or {}
+    lines += ["| side | switches | parameters | render CPU s/image (wall) | render rays/CPU-s | train CPU s/step (wall) | "
+              "train rays/CPU-s | peak RSS (MB) "
+              "| render × ref. | train × ref. | peak RSS / ref. | PSNR to our twin (dB) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, b in r["best"].items():
-        lines.append(f"| {name} | {b['params']:,} | {b['render_s']} | {b['render_rays_per_s']} | {b['train_step_s']} | "
-                     f"{b['train_rays_per_s']} | {b['peak_rss_mb']} |")
-    if "ours_reference" in r["best"]:
-        lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager). The sides "
-                  "run one after the other in separate processes, so a training step of a few seconds is at the mercy "
-                  "of the shared cores' load (load average at the end: "
-                  f"{r.get('loadavg_end')}); the same-run, interleaved comparison is the Speed section's."]
-    if r.get("ratios"):
-        q = r["ratios"]
-        lines += ["", f"Ratios (reference / ours): render {q['render_speedup']}×, training {q['train_speedup']}×; "
-                  f"peak RSS ours / reference {q['peak_rss_ratio']}."]
+        ratio = q.get(name, {}) if isinstance(q.get(name), dict) else {}
+        psnr = b.get("psnr_to_reference_db", "–")
+        psnr = "identical" if psnr is None else psnr
+        lines.append(f"| {name} | {b.get('switches', '–') if name != 'peer' else 'official code'} | {b['params']:,} | "
+                     f"{b.get('render_cpu_s', '–')} ({b['render_s']}) | {b['render_rays_per_s']} | "
+                     f"{b.get('train_step_cpu_s', '–')} ({b['train_step_s']}) | {b['train_rays_per_s']} | "
+                     f"{b['peak_rss_mb']} | {ratio.get('render_speedup', '–')}× | {ratio.get('train_speedup', '–')}× | "
+                     f"{ratio.get('peak_rss_ratio', '–')} | {psnr} |")
+    lines += ["", "`ours_reference` is our code with every fast path at its reference twin (fp32 eager); PSNR is each "
+              "of our sides' render against it (same weights; \"identical\": bit-identical). Ratios are of process CPU "
+              "seconds (one thread each), which other jobs on the shared cores do not inflate as they do wall time "
+              "(wall-time ratios are in the JSON). Load average at the "
+              f"start {r.get('loadavg_start')}, at the end {r.get('loadavg_end')}; ratios come from this one run."]
     return "\n".join([*lines, "", _prov(r["provenance"])])
 
 
@@ -721,6 +730,34 @@ def section_encoder_lever(r: dict) -> str:
     ])
 
 
+def section_depth_sources(r: dict) -> str:
+    """Depth source x scene through the mesh path (``bench/depth_sources.py``)."""
+    def f(x, fmt="{:.2f}"):
+        return "–" if x is None else fmt.format(x)
+
+    out = ["## Depth sources: whole image, coverage, geometry (`bench/depth_sources.py`)", "", _prov(r["provenance"]), "",
+           "Meshes from the training views minus the held-out ones (DTU: 14 views, with the object masks) by the one "
+           "mesh pipeline, scored like `omnirecon finetune --mesh M --clock cpu --threads 1` at the photos' resolution "
+           "(fern 336x252, DTU 400x300, procedural 128 px). `learned`: omnirecon-tiny's coarse-pass depth at 128 px; "
+           "`floor`: the plane sweep; `stereo`: classical stereo (OpenCV SGBM on sideways neighbour pairs rectified "
+           "from the poses, vote over 4 pairs); `+fill`: completion (every content pixel of every meshed view covered, "
+           f"backdrop on forward-facing scenes); `oracle`: exact depth. Rows marked tuned got {r['tuning_seconds']:.0f} "
+           "CPU-s of tuning. PSNR: whole image (DTU: over the object mask); covered: over the pixels the mesh covers; "
+           "coverage: held-out pixels on the mesh (DTU: of the mask); mesh s: CPU seconds images -> mesh (1 thread). "
+           "Goals: fern ≥ 24 dB whole image after tuning with coverage ≥ 99 %; DTU ≥ 22 dB over the mask, IoU ≥ 0.95; "
+           "procedural: within 1 dB of the exact mesh before tuning.", "",
+           "| scene | depth | PSNR before → after | covered before → after | coverage | IoU | Chamfer | F | faces | mesh s | picture |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for row in r["rows"]:
+        ps = row.get("psnr_masked") or row["psnr"]
+        cv = row.get("psnr_covered") or {}
+        pic = f"![{row['scene']} {row['source']}](bench/results/{row['picture']})" if row.get("picture") else ""
+        out.append(f"| {row['scene']} | {row['source']} | {f(ps['before'])} → {f(ps.get('after'))} | "
+                   f"{f(cv.get('before'))} → {f(cv.get('after'))} | {f(row.get('coverage'), '{:.1%}')} | "
+                   f"{f(row.get('silhouette_iou'), '{:.3f}')} | {f(row.get('chamfer_rel'), '{:.2%}')} | "
+                   f"{f(row.get('fscore'), '{:.3f}')} | {f(row.get('faces'), '{:,}')} | "
+                   f"{f(row.get('mesh_cpu_seconds'), '{:.0f}')} | {pic} |")
+    return "\n".join(out)
 def section_finetune_curves(r: dict) -> str:
     """The mesh path's held-out PSNR against seconds of CPU tuning, with coverage (bench/finetune_curves.py)."""
     times = sorted({c["seconds"] for row in r["rows"].values() for c in row["curve"]})
@@ -756,6 +793,7 @@ def section_finetune_curves(r: dict) -> str:
 SECTIONS = {"synth_speed.json": section_synth, "throughput.json": section_throughput,
             "ablation_gpnr.json": section_ablation, "poses.json": section_poses,
             "reliability.json": section_reliability, "encoder_lever.json": section_encoder_lever,
+            "depth_sources.json": section_depth_sources,
             "finetune_curves.json": section_finetune_curves}
 SECTIONS["hostile.json"] = lambda r: __import__("hostile").section(r)  # issue 28: bench/hostile.py
 

@@ -34,7 +34,9 @@ from omnirecon.engine.scenes import EvalScene, prepare_scenes
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry as geo
-from omnirecon.mesh.build import MeshOptions, depth_from_outputs, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.mesh.depth import depth_from_outputs
+from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.geometry import depth_errors
 from omnirecon.preflight import check_planned
 from omnirecon.progress import progress_bar
@@ -233,7 +235,7 @@ def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> No
     if out is not None:
         folder = Path(out) / es.name / f"k{job['k']}"
 
-        export_mesh(to_input_frame(made.mesh, es.scene.to_input), [folder / "mesh.ply"])
+        write_mesh(made.mesh, [folder / "mesh.ply"], es.scene.to_input)
         cam = es.scene.cameras[views[0]]
         geo.save_picture(folder / "mesh.png", made.mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
     job["geometry"] = row

@@ -25,6 +25,7 @@ from torch import Tensor
 from omnirecon.errors import InputError
 from omnirecon.lift.blend import lift_points, normalise
 from omnirecon.mesh.build import mesh_from_model
+from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.geometry import ground_truth_mesh, load_mesh_file
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 
@@ -50,15 +51,7 @@ def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tup
     path = Path(spec)
     if not path.is_file():
         raise InputError("mesh file not found", path, "pass gt, model, auto or a .ply/.obj/.glb file")
-    try:
-        loaded = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # noqa: BLE001 - trimesh raises many types
-        raise InputError(f"cannot read the mesh ({type(e).__name__})", path, "pass a .ply/.obj/.glb mesh") from e
-    if len(getattr(loaded, "faces", [])) == 0:
-        raise InputError("the mesh has no faces", path, "pass a triangle mesh")
-    T = np.linalg.inv(scene.to_input.double().numpy())  # input frame -> scene frame
-    return trimesh.Trimesh(np.asarray(loaded.vertices) @ T[:3, :3].T + T[:3, 3], np.asarray(loaded.faces),
-                           process=False), str(path)
+    return read_mesh(path, scene.to_input), str(path)
 
 
 def gt_face_labels(scene) -> np.ndarray | None:

@@ -32,7 +32,7 @@ import trimesh
 from torch import Tensor
 
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import to_input_frame
+from omnirecon.mesh.files import to_input_frame
 from omnirecon.render.raster import vertex_normals
 
 
@@ -135,7 +135,7 @@ def bake_vertex_colors(renderer, vertices, faces, options: BakeOptions | None = 
 
 def colored_mesh(vertices, faces, colors: Tensor | np.ndarray, to_input: Tensor | None = None) -> trimesh.Trimesh:
     """A ``trimesh.Trimesh`` with per-vertex RGBA colours (uint8, alpha 255), moved to the input frame by the
-    similarity ``to_input # [4, 4]`` when given (:func:`omnirecon.mesh.build.to_input_frame`: winding
+    similarity ``to_input # [4, 4]`` when given (:func:`omnirecon.mesh.files.to_input_frame`: winding
     flipped if it mirrors; the vertex order, hence the colours, is kept)."""
 
     mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64), process=False)

@@ -1,31 +1,22 @@
-"""Depth fusion that fits the depth it gets (issue 16).
+"""Depth maps -> a truncated signed distance grid -> a surface: the fusion stage of the mesh pipeline.
 
-:mod:`omnirecon.mesh.build` holds the reference protocol (VolRecon's: nearest-pixel projective
-TSDF, weight 1, fixed voxel and truncation). This module adds what makes fusion hold on sparse,
-noisy, low-resolution depth:
+One projective TSDF (:func:`integrate`, the only one in the package) with the switches the presets
+set (:class:`omnirecon.mesh.build.MeshOptions`):
 
 * **Scale from the depth maps** (:func:`auto_scale`): the voxel is half the pixel footprint at the
   median depth (with exact depth at every view of a 128-px procedural scene, a one-footprint voxel
   lost 1.0 dB of mesh-path PSNR at object outlines, half a footprint 0.2 dB), and the truncation,
   4 voxels, widens to twice the depth error the maps show (:func:`depth_disagreement`).
-* **Sub-pixel depth** (:func:`integrate`): each voxel reads the depth map bilinearly at its exact
-  projection, falling back to the nearest pixel across depth edges; nearest-pixel lookup alone
-  puts stair steps on surfaces seen at grazing angles (ground planes), because one pixel there
-  spans several voxels in depth.
-* **Confidence weights per pixel** (:func:`confidence`): accumulated opacity, the concentration of
-  the ray's weights, and a forward-backward reprojection check between depth maps (MVS fusion's
-  geometric consistency: a pixel counts when enough other maps see the same point at the same
-  depth and project it back to within a pixel). Each observation is weighted, so a corrupted map
-  loses its vote where the others disagree.
-* **Free-space carving**: pixels with a confident "no surface" (outside the masks with
-  ``--masks``) mark the voxels they see through as empty, which removes sheets that one view
-  floated in front of another's surface.
-* **Depth from every view** (:func:`render_depths_nearest`): each view's depth is rendered from its
-  own ``K`` nearest views (itself first), so the cost grows linearly with the number of views.
-* **A face budget** (:func:`decimate`): quadric decimation with fast-simplification.
-
-Size: the fitted fusion end to end (scale from the depth maps, confidence and reprojection weights,
-free-space carving, all-view depth, decimation), in the order it runs.
+* **Sub-pixel depth** (:func:`sample_depth`): each voxel reads the depth map bilinearly at its exact
+  projection, falling back to the nearest pixel across depth edges (VolRecon's protocol: nearest).
+* **Confidence weights per pixel**: the depth source's own confidence times a forward-backward
+  reprojection check between maps (:func:`consistency`, MVS fusion's geometric test), so a
+  corrupted map loses its vote where the others disagree.
+* **Free-space carving**: pixels with a confident "no surface" (outside the object masks) mark the
+  voxels they see through as empty.
+* **Only near surfaces** (:func:`surface_band`): the grid is split into blocks of 4^3 voxels and only
+  the blocks within the truncation of some depth sample are integrated, so
+  the cost follows the surface area, not the volume of the bounds.
 """
 
 from __future__ import annotations
@@ -37,30 +28,75 @@ from torch import Tensor
 
 from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import TSDFVolume, empty_volume
+
+BLOCK = 4
+"""Voxels per block side for :func:`surface_band`."""
 
 
-# ---------------------------------------------------------------------- scale
-def pixel_footprint(cameras: Cameras, depths: Tensor) -> float:
-    """Median size of one pixel on the surface (``z / f``) over every pixel with depth (scene units)."""
-    f = 0.5 * (cameras.fx + cameras.fy).double()  # [N]
-    d = depths.double()
-    fp = d / f[:, None, None]
-    fp = fp[d > 0]
-    if fp.numel() == 0:
-        raise InputError("no depth map has a valid pixel", None, "check the model's depth (or --min-acc)")
-    return float(fp.median())
+# ---------------------------------------------------------------------- the grid
+class TSDFVolume:
+    """A truncated signed distance grid; voxel ``(i, j, k)`` sits at ``origin + voxel * (i, j, k)``.
+
+    ``tsdf``: signed distance over the truncation in [-1, 1], positive in front of surfaces, 1 where
+    unobserved (``# [X, Y, Z]`` float32); ``weight``: summed observation weight, 0 = unobserved
+    (``# [X, Y, Z]`` float32); ``origin # [3]`` float64; ``voxel`` and ``trunc`` in scene units."""
+
+    def __init__(self, tsdf: Tensor, weight: Tensor, origin: Tensor, voxel: float, trunc: float):
+        self.tsdf, self.weight, self.origin, self.voxel, self.trunc = tsdf, weight, origin, voxel, trunc
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.tsdf.shape)
+
+    def positions(self, flat: Tensor) -> Tensor:
+        """Centres of voxels with flat (C-order) indices ``flat # [P]``. ``# [P, 3]``"""
+        X, Y, Z = self.shape
+        ijk = torch.stack([flat // (Y * Z), (flat // Z) % Y, flat % Z], -1)
+        return self.origin.to(self.tsdf.device) + self.voxel * ijk.to(torch.float64)
 
 
-def auto_scale(cameras: Cameras, depths: Tensor, voxel_px: float = 0.5, trunc_voxels: float = 4.0,
-               depth_error: float = 0.0) -> tuple[float, float]:
-    """Voxel edge and truncation (scene units) from the depth maps: the voxel is ``voxel_px`` pixel
-    footprints at the median depth; the truncation is ``trunc_voxels`` voxels or, if larger, twice the
-    expected depth error (``depth_error`` relative times the median depth)."""
-    voxel = voxel_px * pixel_footprint(cameras, depths)
-    d = depths[depths > 0].double()
-    trunc = max(trunc_voxels * voxel, 2.0 * depth_error * float(d.median()))
-    return voxel, trunc
+def empty_volume(bounds: Tensor, voxel: float, trunc: float, device="cpu") -> TSDFVolume:
+    """An unobserved grid over ``bounds # [2, 3]`` padded by ``trunc`` plus 2 voxels on every side, so
+    that surfaces on the bounds (a ground plane) get voxels on both sides."""
+    pad = trunc + 2 * voxel
+    lo = bounds[0].double() - pad
+    hi = bounds[1].double() + pad
+    dims = torch.ceil((hi - lo) / voxel).long() + 1
+    if int(dims.prod()) > 1 << 30:
+        raise InputError(f"the TSDF grid would have {int(dims.prod()):,} voxels ({'x'.join(map(str, dims.tolist()))})",
+                         None, "use a larger --voxel")
+    shape = tuple(int(d) for d in dims)
+    return TSDFVolume(torch.ones(shape, device=device), torch.zeros(shape, device=device), lo, voxel, trunc)
+
+
+def surface_band(volume: TSDFVolume, cameras: Cameras, depths: Tensor) -> Tensor:
+    """Flat indices of the voxels of every block (:data:`BLOCK`^3 voxels) that holds a depth sample
+    moved along its ray by up to the truncation: the only voxels a zero crossing can lie in. Pixels
+    are sampled at most one block apart on the surface, and along each ray at steps of half the
+    truncation (at most one block), so the marked blocks join up. ``# [P]`` int64, increasing"""
+    X, Y, Z = volume.shape
+    nb = np.array([-(-X // BLOCK), -(-Y // BLOCK), -(-Z // BLOCK)])
+    marked = np.zeros(tuple(nb), dtype=bool)
+    cams = cameras.to(dtype=torch.float64)
+    footprint = pixel_footprint(cams, depths)
+    step = max(1, int(BLOCK * volume.voxel / (2 * footprint)))
+    o, d = cams.image_rays(normalize=False)  # [N, H, W, 3]
+    o, d, z = o[:, ::step, ::step], d[:, ::step, ::step], depths.double()[:, ::step, ::step]
+    has = z > 0
+    o, d, z = o[has].float(), d[has].float(), z[has].float()
+    origin = volume.origin.float()
+    n_along = int(np.ceil(2 * volume.trunc / min(volume.trunc / 2, BLOCK * volume.voxel)))
+    for dz in np.linspace(-volume.trunc, volume.trunc, n_along + 1):
+        p = o + d * (z + float(dz))[:, None]
+        b = torch.floor((p - origin) / (volume.voxel * BLOCK)).long().numpy()
+        b = b[((b >= 0) & (b < nb)).all(1)]
+        marked[b[:, 0], b[:, 1], b[:, 2]] = True
+    blocks = np.argwhere(marked)  # [B, 3]
+    off = np.stack(np.meshgrid(*[np.arange(BLOCK)] * 3, indexing="ij"), -1).reshape(-1, 3)  # [BLOCK^3, 3]
+    ijk = (blocks[:, None] * BLOCK + off[None]).reshape(-1, 3)
+    ijk = ijk[(ijk < np.array([X, Y, Z])).all(1)]
+    flat = (ijk[:, 0] * Y + ijk[:, 1]) * Z + ijk[:, 2]
+    return torch.from_numpy(np.sort(flat))
 
 
 # ---------------------------------------------------------------------- integration
@@ -89,7 +125,8 @@ def sample_depth(depth: Tensor, u: Tensor, v: Tensor, edge: float) -> Tensor:
 
 
 def integrate(volume: TSDFVolume, camera: Cameras, depth: Tensor, weight: Tensor | None = None,
-              free: Tensor | None = None, chunk: int = 1 << 20, bilinear: bool = True) -> None:
+              free: Tensor | None = None, chunk: int = 1 << 20, bilinear: bool = True,
+              voxels: Tensor | None = None) -> None:
     """Fuse one z-depth map into ``volume`` in place (weighted projective TSDF).
 
     A voxel at depth ``z`` in front of the camera that projects onto a pixel with depth ``d > 0``
@@ -104,6 +141,7 @@ def integrate(volume: TSDFVolume, camera: Cameras, depth: Tensor, weight: Tensor
         weight: Confidence of each pixel (default 1 where there is depth). ``# [H, W]``
         free: Pixels whose ray is empty as far as the grid goes. ``# [H, W]`` bool
         bilinear: Read depth bilinearly (:func:`sample_depth`) instead of at the nearest pixel.
+        voxels: Flat indices of the voxels to update (:func:`surface_band`; default every voxel).
     """
     dev = volume.tsdf.device
     H, W = depth.shape
@@ -118,22 +156,27 @@ def integrate(volume: TSDFVolume, camera: Cameras, depth: Tensor, weight: Tensor
     w2c = camera.w2c[0].to(dev, torch.float64)
     R, t = w2c[:3, :3], w2c[:3, 3]
     fx, fy, cx, cy = (float(getattr(camera, k)[0]) for k in ("fx", "fy", "cx", "cy"))
+    Rf, t_rel = R.float(), (R @ volume.origin.to(dev) + t).float()
+    _, Y, Z = volume.shape
+    YZ = Y * Z
     tsdf, wsum = volume.tsdf.view(-1), volume.weight.view(-1)
-    edge = volume.trunc
-    for start in range(0, tsdf.numel(), chunk):
-        flat = torch.arange(start, min(start + chunk, tsdf.numel()), device=dev)
-        p = volume.positions(flat) @ R.T + t  # [P, 3] camera frame
+    total = tsdf.numel() if voxels is None else len(voxels)
+    for start in range(0, total, chunk):
+        stop = min(start + chunk, total)
+        flat = torch.arange(start, stop, device=dev) if voxels is None else voxels[start:stop].to(dev)
+        ijk = torch.stack([flat // YZ, (flat // Z) % Y, flat % Z], -1).float()
+        p = (volume.voxel * ijk) @ Rf.T + t_rel  # [P, 3] camera frame (relative to the grid origin: float32 is exact enough)
         z = p[:, 2]
         zs = z.clamp_min(1e-9)
-        u = (fx * p[:, 0] / zs + cx).float()
-        v = (fy * p[:, 1] / zs + cy).float()
+        u = fx * p[:, 0] / zs + cx
+        v = fy * p[:, 1] / zs + cy
         inside = (z > 1e-9) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
         flat, z, u, v = flat[inside], z[inside].float(), u[inside], v[inside]
         pix = v.long() * W + u.long()
         w = wflat[pix]
         keep = w > 0
         flat, z, u, v, pix, w = flat[keep], z[keep], u[keep], v[keep], pix[keep], w[keep]
-        d = sample_depth(depth, u, v, edge) if bilinear else dflat[pix]
+        d = sample_depth(depth, u, v, volume.trunc) if bilinear else dflat[pix]
         sdf = d - z
         obs = (sdf / volume.trunc).clamp(max=1.0)
         use = (d > 0) & (sdf >= -volume.trunc)
@@ -149,75 +192,131 @@ def integrate(volume: TSDFVolume, camera: Cameras, depth: Tensor, weight: Tensor
 
 def fuse(cameras: Cameras, depths: Tensor, bounds: Tensor, voxel: float, trunc: float, weights: Tensor | None = None,
          free: Tensor | None = None, chunk: int = 1 << 20, bilinear: bool = True, device="cpu",
-         on_view=None) -> TSDFVolume:
+         on_view=None, band: bool = True) -> TSDFVolume:
     """Weighted TSDF of ``N`` z-depth maps over ``bounds`` (:func:`integrate` for each).
 
     Args:
         depths: z-depth maps, 0 = none. ``# [N, H, W]``
         weights: Per-pixel confidence (default 1). ``# [N, H, W]``
         free: Pixels whose ray is empty (carved). ``# [N, H, W]`` bool
+        band: Integrate only the blocks near some depth sample (:func:`surface_band`): the same
+            surface, at a cost that follows the surface area.
+        on_view: Called with no argument after each view is fused (progress bars).
     """
+    if depths.shape[0] != len(cameras) or (weights is not None and weights.shape != depths.shape):
+        raise ValueError(f"{len(cameras)} cameras, depths {tuple(depths.shape)}")
     volume = empty_volume(bounds, voxel, trunc, device)
+    voxels = surface_band(volume, cameras, depths) if band and (depths > 0).any() else None
     for i in range(len(cameras)):
         integrate(volume, cameras[i], depths[i], None if weights is None else weights[i],
-                  None if free is None else free[i], chunk, bilinear)
+                  None if free is None else free[i], chunk, bilinear, voxels)
         if on_view is not None:
             on_view()
     return volume
 
 
-# ---------------------------------------------------------------------- confidence
-def concentration(out: dict[str, Tensor], rel: float = 0.02) -> Tensor | None:
-    """How concentrated each ray's weights are around its expected depth: ``1 / (1 + (s / (rel d))^2)``
-    with ``s`` the weighted standard deviation of the sample depths and ``d`` the expected depth
-    (1 for a ray whose weight sits at one depth). ``None`` for a model without ``weights``/``z``. ``# [H, W]``"""
-    if "weights" not in out or "z" not in out or out["weights"].shape != out["z"].shape:
-        return None
-    w, z = out["weights"].detach().float(), out["z"].detach().float()  # [H, W, S]
-    acc = w.sum(-1).clamp_min(1e-6)
-    d = (w * z).sum(-1) / acc
-    spread = ((w * (z - d[..., None]) ** 2).sum(-1) / acc).sqrt()
-    return (1.0 / (1.0 + (spread / (rel * d.clamp_min(1e-6))) ** 2)).cpu()
+def extract_mesh(volume: TSDFVolume, level: float = 0.0) -> trimesh.Trimesh:
+    """Marching cubes (scikit-image, Lewiner) of ``volume`` at ``level``, in scene coordinates.
+
+    Only surface between observed voxels is kept: a face survives when each of its vertices lies
+    on a grid edge whose two voxels were both observed, so no surface appears where observed space
+    meets unobserved space (behind the truncation band). Faces wind counter-clockwise seen from the
+    free side, so normals point towards the cameras. Returns an empty mesh when nothing crosses
+    the level.
+    """
+    from skimage.measure import marching_cubes
+
+    tsdf = volume.tsdf.cpu().numpy()
+    seen = volume.weight.cpu().numpy() > 0
+    empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64), process=False)
+    if not seen.any() or not (tsdf[seen].min() < level < tsdf.max()):
+        return empty
+    verts, faces, _, _ = marching_cubes(tsdf, level, allow_degenerate=False, mask=seen)  # verts in voxel units
+    if len(faces) == 0:
+        return empty
+    lo = np.floor(verts).astype(np.int64)
+    hi = np.minimum(np.ceil(verts).astype(np.int64), np.array(tsdf.shape) - 1)
+    ok = seen[lo[:, 0], lo[:, 1], lo[:, 2]] & seen[hi[:, 0], hi[:, 1], hi[:, 2]]  # [V]
+    faces = faces[ok[faces].all(1)]
+    if len(faces) == 0:
+        return empty
+    mesh = trimesh.Trimesh(verts.astype(np.float64) * volume.voxel + volume.origin.numpy(), faces.astype(np.int64),
+                           process=False)
+    mesh.remove_unreferenced_vertices()
+    return mesh
 
 
-def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float = 1.0) -> Tensor:
+# ---------------------------------------------------------------------- scale
+def pixel_footprint(cameras: Cameras, depths: Tensor) -> float:
+    """Median size of one pixel on the surface (``z / f``) over every pixel with depth (scene units)."""
+    f = 0.5 * (cameras.fx + cameras.fy).double()  # [N]
+    d = depths.double()
+    fp = d / f[:, None, None]
+    fp = fp[d > 0]
+    if fp.numel() == 0:
+        raise InputError("no depth map has a valid pixel", None, "check the depth source (or --min-acc)")
+    return float(fp.median())
+
+
+def auto_scale(cameras: Cameras, depths: Tensor, voxel_px: float = 0.5, trunc_voxels: float = 4.0,
+               depth_error: float = 0.0) -> tuple[float, float]:
+    """Voxel edge and truncation (scene units) from the depth maps: the voxel is ``voxel_px`` pixel
+    footprints at the median depth; the truncation is ``trunc_voxels`` voxels or, if larger, twice the
+    expected depth error (``depth_error`` relative times the median depth)."""
+    voxel = voxel_px * pixel_footprint(cameras, depths)
+    d = depths[depths > 0].double()
+    trunc = max(trunc_voxels * voxel, 2.0 * depth_error * float(d.median()))
+    return voxel, trunc
+
+
+# ---------------------------------------------------------------------- confidence between maps
+def _pixels(H: int, W: int) -> Tensor:
+    vv, uu = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    return torch.stack([uu, vv], -1).reshape(-1, 2)  # [HW, 2]
+
+
+def _near_maps(cams: Cameras, k: int) -> list[list[int]]:
+    from omnirecon.cameras import nearest_views
+
+    n = len(cams)
+    if n - 1 <= k:
+        return [[j for j in range(n) if j != i] for i in range(n)]
+    return nearest_views(cams, cams, k, exclude=torch.arange(n)).tolist()
+
+
+def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float = 1.0, max_pairs: int = 8) -> Tensor:
     """Forward-backward reprojection agreement between depth maps (MVS fusion's geometric check).
 
-    For each pixel ``p`` of map ``i`` with depth, and each other map ``j``: unproject ``p`` to the
-    point ``X``, read map ``j`` at ``X``'s projection ``q`` (:func:`sample_depth`: bilinear within a
-    surface, nearest across depth edges), unproject ``q`` with that depth and project it back into ``i``. Map ``j`` agrees when the point comes back within
-    ``px`` pixels of ``p`` and its depth in ``i`` is within ``rel`` (relative) of ``p``'s.
+    For each pixel ``p`` of map ``i`` with depth, and each of the ``max_pairs`` maps nearest to ``i``
+    (cost linear in the maps): unproject ``p`` to the point ``X``, read map ``j`` at ``X``'s
+    projection ``q`` (:func:`sample_depth`), unproject ``q`` with that depth and project it back into
+    ``i``. Map ``j`` agrees when the point comes back within ``px`` pixels of ``p`` and its depth in
+    ``i`` is within ``rel`` (relative) of ``p``'s.
 
-    Returns the number of other maps that agree with each pixel. ``# [N, H, W]`` float32
+    Returns the number of maps that agree with each pixel. ``# [N, H, W]`` float32
     """
     cams = cameras.to(dtype=torch.float64)
     N, H, W = depths.shape
     d = depths.double()
-    vv, uu = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
-                            indexing="ij")
-    pix = torch.stack([uu, vv], -1).reshape(-1, 2)  # [HW, 2]
+    pix = _pixels(H, W)
     agree = torch.zeros(N, H * W)
-    for i in range(N):
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
         di = d[i].reshape(-1)
         has = di > 0
         if not has.any():
             continue
+        idx = torch.nonzero(has)[:, 0]
         Xi = cams[i].unproject(pix[has][None], di[has][None])[0]  # [P, 3] world
-        for j in range(N):
-            if j == i:
-                continue
+        for j in near:
             pj = cams[j].project(Xi)
             uvj = pj.uv[0]  # [P, 2]
-            ok = pj.in_image[0]
             dj = sample_depth(d[j], uvj[:, 0], uvj[:, 1], rel * float(pj.depth[0].median()))
-            ok = ok & (dj > 0)
-            Xj = cams[j].unproject(uvj[None], dj[None])[0]  # [P, 3]
-            back = cams[i].project(Xj)
+            ok = pj.in_image[0] & (dj > 0)
+            back = cams[i].project(cams[j].unproject(uvj[None], dj[None])[0])
             err = (back.uv[0] - pix[has]).norm(dim=-1)
             drel = (back.depth[0] - di[has]).abs() / di[has]
-            ok = ok & back.in_front[0] & (err <= px) & (drel <= rel)
-            idx = torch.nonzero(has)[:, 0]
-            agree[i, idx] += ok.float()
+            agree[i, idx] += (ok & back.in_front[0] & (err <= px) & (drel <= rel)).float()
     return agree.reshape(N, H, W)
 
 
@@ -231,75 +330,23 @@ def geometric_weight(agree: Tensor, num_maps: int, need: int = 2, floor: float =
     return (agree / need).clamp(floor, 1.0)
 
 
-# ---------------------------------------------------------------------- cleaning and the face budget
-def grow_faces(mesh: trimesh.Trimesh, keep: np.ndarray, rings: int = 1) -> np.ndarray:
-    """``keep # [F]`` grown by ``rings`` rings of faces sharing a vertex (sliver faces between kept
-    faces are often missed by the visibility samples). ``# [F]`` bool"""
-    faces = np.asarray(mesh.faces)
-    keep = keep.copy()
-    for _ in range(rings):
-        on = np.zeros(len(mesh.vertices), dtype=bool)
-        on[faces[keep].reshape(-1)] = True
-        keep |= on[faces].sum(1) >= 2
-    return keep
-
-
-def hit_faces(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray | None, supersample: int = 2) -> np.ndarray:
-    """Faces hit first by some (in-mask) pixel sample of ``cameras`` at ``supersample``^2 samples per
-    pixel (:func:`omnirecon.mesh.build.visible_faces` with a fixed rate: the slivers it misses are
-    restored by :func:`grow_faces`). ``# [F]`` bool"""
-    from omnirecon.mesh.geometry import rasterize_mesh
-
-    seen = np.zeros(len(mesh.faces), dtype=bool)
-    verts = np.asarray(mesh.vertices, dtype=np.float64)
-    for i in range(len(cameras)):
-        face = rasterize_mesh(verts, mesh.faces, cameras[i], supersample=supersample).face
-        if masks is not None:
-            face = np.where(np.repeat(np.repeat(masks[i], supersample, 0), supersample, 1), face, -1)
-        seen[np.unique(face[face >= 0])] = True
-    return seen
-
-
-def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
-    """``mesh`` with at most ``max_faces`` faces (quadric edge collapse, fast-simplification); unchanged
-    when it already fits or ``max_faces`` is 0."""
-    if max_faces <= 0 or len(mesh.faces) <= max_faces:
-        return mesh
-    import fast_simplification
-
-    verts = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    target = 1.0 - max_faces / len(faces)
-    for _ in range(4):  # the library stops near the target; tighten until the budget holds
-        v, f = fast_simplification.simplify(verts, faces, target_reduction=min(target, 0.999))
-        if len(f) <= max_faces:
-            break
-        target = 1.0 - (1.0 - target) * max_faces / len(f) * 0.98
-    out = trimesh.Trimesh(v, f, process=False)
-    out.remove_unreferenced_vertices()
-    return out
-
-
-def depth_disagreement(cameras: Cameras, depths: Tensor, max_rel: float = 0.1, max_pairs: int = 8) -> float | None:
+def depth_disagreement(cameras: Cameras, depths: Tensor, max_rel: float = 0.1, max_pairs: int = 8,
+                       step: int = 2) -> float | None:
     """The depth error the maps actually have, measured without ground truth: the median relative
-    difference between a pixel's depth and the depth another map sees at its projection, over pairs
-    that differ by less than ``max_rel`` (outliers and occlusions left out), each map against its
-    ``max_pairs`` nearest maps. ``None`` with fewer than 2 maps or no overlap."""
-    from omnirecon.cameras import nearest_views
-
+    difference between a pixel's depth (every ``step``-th pixel) and the depth another map sees at its
+    projection, over pairs that differ by less than ``max_rel`` (outliers and occlusions left out), each
+    map against its ``max_pairs`` nearest maps. ``None`` with fewer than 2 maps or no overlap."""
     cams = cameras.to(dtype=torch.float64)
     N, H, W = depths.shape
     if N < 2:
         return None
-    near = nearest_views(cams, cams, min(max_pairs, N - 1), exclude=torch.arange(N))
+    pix = _pixels(H, W).reshape(H, W, 2)[::step, ::step].reshape(-1, 2)
     diffs = []
-    for i in range(N):
-        vv, uu = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5,
-                                torch.arange(W, dtype=torch.float64) + 0.5, indexing="ij")
-        di = depths[i].double()
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
+        di = depths[i].double()[::step, ::step].reshape(-1)
         has = di > 0
-        X = cams[i].unproject(torch.stack([uu[has], vv[has]], -1)[None], di[has][None])[0]
-        for j in near[i].tolist():
+        X = cams[i].unproject(pix[has][None], di[has][None])[0]
+        for j in near:
             pj = cams[j].project(X)
             col = pj.uv[0, :, 0].floor().long().clamp(0, W - 1)
             row = pj.uv[0, :, 1].floor().long().clamp(0, H - 1)
@@ -311,67 +358,6 @@ def depth_disagreement(cameras: Cameras, depths: Tensor, max_rel: float = 0.1, m
     return float(allr.median()) if allr.numel() else None
 
 
-# ---------------------------------------------------------------------- depth from every view
-class ViewGroups:
-    """Which sources render each depth map: every view with all ``views`` as sources when there are at
-    most ``k`` of them, else each view with itself and its ``k - 1`` nearest other views (by camera
-    distance), so the number of model calls grows linearly with the views."""
-
-    def __init__(self, cameras: Cameras, views: list[int], k: int):
-        self.views = list(views)
-        if len(self.views) <= k:
-            self.sources = [list(self.views) for _ in self.views]
-        else:
-            from omnirecon.cameras import nearest_views
-
-            cams = cameras[self.views].to(dtype=torch.float64)
-            near = nearest_views(cams, cams, k - 1, exclude=torch.arange(len(self.views)))
-            self.sources = [[v] + [self.views[j] for j in near[i].tolist()] for i, v in enumerate(self.views)]
-
-
-@torch.no_grad()
-def render_depth_maps(model, scene, groups: ViewGroups, shifts, chunk: int = 4096, min_acc: float = 0.5,
-                      device="cpu", on_view=None, fine_pass: bool = True) -> dict:
-    """Depth, validity and confidence at each view of ``groups`` shifted by each of ``shifts``
-    (``shifted_cameras``), each from its own sources; encodings are shared between views with the
-    same sources. Returns ``cameras``, ``depth``, ``valid``, ``confidence`` (``# [N, H, W]``) and the
-    number of ``encodes`` and ``renders``."""
-    from omnirecon.mesh.build import depth_from_outputs, shifted_cameras
-    from omnirecon.models.base import Sources
-
-    centre = scene.bounds.double().mean(0)
-    cams, depths, valids, confs = [], [], [], []
-    cache: dict[tuple, object] = {}
-    renders = encodes = 0
-    for view, srcs in zip(groups.views, groups.sources):
-        key = tuple(srcs)
-        if key not in cache:
-            if len(cache) > 4:
-                cache.clear()
-            cache[key] = model.encode(Sources.from_scene(scene, srcs).to(device))
-            encodes += 1
-        features = cache[key]
-        for cam in shifted_cameras(scene.cameras[[view]], shifts, centre):
-            out = model.render_view(features, cam.to(device=device, dtype=scene.images.dtype), chunk=chunk,
-                                    fine_pass=fine_pass)
-            renders += 1
-            d, v = depth_from_outputs(out, min_acc)
-            conf = torch.ones_like(d)
-            if "acc" in out:
-                conf = conf * out["acc"].detach().float().clamp(0, 1).cpu()
-            c = concentration(out)
-            if c is not None:
-                conf = conf * c
-            cams.append(cam)
-            depths.append(d)
-            valids.append(v)
-            confs.append(torch.where(v, conf, torch.zeros_like(conf)))
-            if on_view is not None:
-                on_view()
-    return {"cameras": Cameras.cat(cams), "depth": torch.stack(depths), "valid": torch.stack(valids),
-            "confidence": torch.stack(confs), "encodes": encodes, "renders": renders}
-
-
 def outside_bounds(cameras: Cameras, depths: Tensor, bounds: Tensor, margin: float) -> Tensor:
     """Pixels whose surface point lies outside ``bounds # [2, 3]`` grown by ``margin``. ``# [N, H, W]`` bool"""
     cams = cameras.to(dtype=torch.float64)
@@ -381,142 +367,15 @@ def outside_bounds(cameras: Cameras, depths: Tensor, bounds: Tensor, margin: flo
     return ((p < lo) | (p > hi)).any(-1) & (depths > 0)
 
 
-# ---------------------------------------------------------------------- the pipeline
-def fuse_depth_maps(cameras: Cameras, depth: Tensor, bounds: Tensor, options, confidence: Tensor | None = None,
-                    masks: Tensor | None = None, clean_cameras: Cameras | None = None,
-                    clean_masks: Tensor | None = None, device="cpu",
-                    stages: dict | None = None, on_view=None) -> tuple[trimesh.Trimesh, dict]:
-    """Depth maps -> mesh, the fitted way (module docstring), with timings and counts per stage.
-
-    Args:
-        cameras: The ``N`` cameras the maps were rendered at.
-        depth: z-depth maps, 0 = none. ``# [N, H, W]``
-        bounds: ``[min, max]`` of the region to reconstruct. ``# [2, 3]``
-        options: :class:`~omnirecon.mesh.build.MeshOptions` (``voxel``/``trunc`` ``None`` = derived
-            from the maps; ``weights``; ``max_faces``; the cleaning settings).
-        confidence: The renderer's per-pixel confidence (opacity x concentration). ``# [N, H, W]``
-        masks: Object masks at ``cameras``: pixels outside them carve free space, and the mesh is
-            cleaned with them. ``# [N, H, W]`` bool
-        clean_cameras: Cameras of the hidden-face test and mask votes (default ``cameras``).
-        clean_masks: Object masks at ``clean_cameras`` (default ``masks``). ``# [M, H, W]`` bool
-        stages: Filled with the mesh after each stage (``marching_cubes``, ``in_masks``, ``visible``,
-            ``components``, ``decimated``) when given.
-
-    Returns:
-        The mesh and a JSON-serialisable record (voxel, truncation, depth error estimate, grid,
-        faces and seconds per stage).
-    """
-    import time
-
-    from omnirecon.mesh.build import dilate_masks, drop_small_components, extract_mesh, keep_faces, mask_votes
-
-    seconds: dict[str, float] = {}
-    t = time.perf_counter()
+def exit_depth(cameras: Cameras, bounds: Tensor) -> Tensor:
+    """z-depth at which each pixel's ray leaves the box ``bounds # [2, 3]`` (0 when it misses it): the
+    backdrop a forward-facing scene's far content is clamped onto. ``# [N, H, W]``"""
     cams = cameras.to(dtype=torch.float64)
-    depth = depth.float().cpu()
-    weight = (depth > 0).float() if confidence is None else confidence.float().cpu() * (depth > 0)
-    err = depth_disagreement(cams, depth) if len(cams) > 1 else None
-    rel = max(0.01, 2.0 * (err or 0.0))
-    if getattr(options, "weights", True) and len(cams) > 1:
-        agree = consistency(cams, depth, rel=rel)
-        weight = weight * geometric_weight(agree, len(cams))
-    diag = float((bounds[1] - bounds[0]).double().norm())
-    footprint = pixel_footprint(cams, depth)
-    voxel = options.voxel * diag if options.voxel is not None else auto_scale(cams, depth)[0]
-    trunc_vox = options.trunc if options.trunc is not None else 4.0
-    trunc = trunc_vox * voxel
-    if options.trunc is None and err is not None:  # room for the depth error the maps show
-        trunc = max(trunc, 2.0 * err * float(depth[depth > 0].median()))
-    seconds["confidence"] = time.perf_counter() - t
-    # surface points outside the bounds (sky, far background) give no surface: a depth inside the
-    # padding would otherwise leave a sheet at the edge of the grid. Carving along those rays
-    # instead (the ray crosses the box empty) removed real surface with the floor's depth (-5.8 dB).
-    depth = torch.where(outside_bounds(cams, depth, bounds, trunc), torch.zeros_like(depth), depth)
-    free = None
-    dilated = None
-    if masks is not None:
-        dilated = torch.from_numpy(dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * cams.width))
-        free = ~dilated
-        depth = torch.where(dilated, depth, torch.zeros_like(depth))
-        weight = torch.where(dilated, weight, torch.ones_like(weight))
-    t = time.perf_counter()
-    volume = fuse(cams, depth, bounds, voxel, trunc, weight, free, options.voxel_chunk, True, device, on_view)
-    seconds["fuse"] = time.perf_counter() - t
-    t = time.perf_counter()
-    mesh = extract_mesh(volume)
-    seconds["marching_cubes"] = time.perf_counter() - t
-    counts = {"marching_cubes": len(mesh.faces)}
-    if stages is not None:
-        stages["marching_cubes"] = mesh
-    t = time.perf_counter()
-    ccams = (clean_cameras if clean_cameras is not None else cams).to(dtype=torch.float64)
-    cmask = dilated
-    if clean_masks is not None:
-        cmask = torch.from_numpy(dilate_masks(clean_masks.cpu().numpy().astype(bool), options.dilate * ccams.width))
-    if cmask is not None and len(mesh.faces):
-        votes = mask_votes(np.asarray(mesh.vertices), ccams, cmask.numpy())
-        mesh = keep_faces(mesh, (votes >= min(options.min_views, len(ccams)))[mesh.faces].all(1))
-        counts["in_masks"] = len(mesh.faces)
-        if stages is not None:
-            stages["in_masks"] = mesh
-    if options.cull_hidden and len(mesh.faces):
-        ss = int(np.clip(np.ceil(2 * footprint / voxel), 1, 4))  # >= 2 samples per voxel edge
-        seen = hit_faces(mesh, ccams, None if cmask is None else cmask.numpy(), ss)
-        mesh = keep_faces(mesh, grow_faces(mesh, seen, 1))
-        counts["visible"] = len(mesh.faces)
-        if stages is not None:
-            stages["visible"] = mesh
-    mesh = drop_small_components(mesh, options.min_component)
-    counts["components"] = len(mesh.faces)
-    if stages is not None:
-        stages["components"] = mesh
-    seconds["clean"] = time.perf_counter() - t
-    t = time.perf_counter()
-    mesh = decimate(mesh, getattr(options, "max_faces", 0))
-    counts["decimated"] = len(mesh.faces)
-    if stages is not None:
-        stages["decimated"] = mesh
-    seconds["decimate"] = time.perf_counter() - t
-    info = {"fusion": "fit", "voxel": voxel, "trunc": trunc, "grid": list(volume.shape),
-            "depth_disagreement": err, "consistency_rel": rel, "faces": counts, "seconds": seconds,
-            "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0}
-    return mesh, info
-
-
-def mesh_from_model_fit(model, scene, views, options, device="cpu", use_masks: bool = False, progress=None):
-    """:func:`omnirecon.mesh.build.mesh_from_model` the fitted way: depth at every view of ``views``
-    (each from its own ``options.neighbours`` nearest views when there are more), confidence weights,
-    derived voxel and truncation, free space carved outside the masks (``use_masks``), cleaning, the
-    face budget. Returns a :class:`~omnirecon.mesh.build.MeshResult`."""
-    import time
-    from dataclasses import asdict
-
-    from omnirecon.mesh.build import MeshResult
-
-    views = list(views)
-    model = model.to(device).eval()
-    groups = ViewGroups(scene.cameras, views, max(1, getattr(options, "neighbours", 3)))
-    n_maps = len(views) * len(options.shifts)
-    task = progress.add_task("depth", total=2 * n_maps + 2) if progress is not None else None
-    advance = (lambda: progress.advance(task)) if task is not None else None
-    t = time.perf_counter()
-    maps = render_depth_maps(model, scene, groups, options.shifts, options.chunk, options.min_acc, device, advance,
-                             fine_pass=options.depth_pass == "fine")
-    render_s = time.perf_counter() - t
-    if progress is not None:
-        progress.update(task, description="fuse")
-    masks = src_masks = None
-    if use_masks and scene.masks is not None:
-        src_masks = scene.masks[views]
-        masks = scene.masks[[v for v in views for _ in options.shifts]]  # the source's mask at its shifted view
-    mesh, info = fuse_depth_maps(maps["cameras"], maps["depth"], scene.bounds, options, maps["confidence"], masks,
-                                 scene.cameras[views], src_masks, device, None, advance)
-    if advance:
-        advance()
-        advance()
-    info["seconds"] = {"render": render_s, **info["seconds"]}
-    info.update({"views": views, "options": asdict(options), "depth_maps": len(maps["cameras"]),
-                 "valid_depth_fraction": float(maps["valid"].float().mean()), "masks": masks is not None,
-                 "model_calls": {"encode": maps["encodes"], "render_view": maps["renders"]},
-                 "sources_per_map": len(groups.sources[0]), "vertices": len(mesh.vertices)})
-    return MeshResult(mesh, info, maps["cameras"], maps["depth"])
+    o, d = cams.image_rays(normalize=False)
+    lo, hi = bounds[0].double(), bounds[1].double()
+    with torch.no_grad():
+        inv = 1.0 / torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
+        t0, t1 = (lo - o) * inv, (hi - o) * inv
+        t_near = torch.minimum(t0, t1).amax(-1)
+        t_far = torch.maximum(t0, t1).amin(-1)
+    return torch.where((t_far > t_near) & (t_far > 0), t_far, torch.zeros_like(t_far)).float()

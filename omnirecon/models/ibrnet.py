@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import compiled, concat_linear, net_autocast
+from omnirecon.models.fast import FAST, compiled, concat_linear, net_autocast
 from omnirecon.models.pretrained import SingleMap
 from omnirecon.models.projector import gather, project
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -111,10 +111,18 @@ class ResUNet(nn.Module):
 
 
 # ---------------------------------------------------------------------- per-sample aggregation
+class _ELU(nn.ELU):
+    """ELU that overwrites its input when ``FAST.inplace_elu`` (every use follows a Linear whose output
+    nothing else reads)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        return F.elu(x, self.alpha, inplace=FAST.inplace_elu)
+
+
 def _mlp(*dims: int) -> nn.Sequential:
     layers: list[nn.Module] = []
     for a, b in zip(dims[:-1], dims[1:]):
-        layers += [nn.Linear(a, b), nn.ELU()]
+        layers += [nn.Linear(a, b), _ELU()]
     return nn.Sequential(*layers[:-1])
 
 
@@ -140,15 +148,15 @@ class Aggregator(nn.Module):
     def __init__(self, feature_dim: int):
         super().__init__()
         c = feature_dim + 3
-        self.dir_mlp = nn.Sequential(nn.Linear(4, 16), nn.ELU(), nn.Linear(16, c), nn.ELU())
+        self.dir_mlp = nn.Sequential(nn.Linear(4, 16), _ELU(), nn.Linear(16, c), _ELU())
         self.sharpness = nn.Parameter(torch.tensor(0.2))
-        self.base = nn.Sequential(_mlp(3 * c, 64, 32), nn.ELU())
+        self.base = nn.Sequential(_mlp(3 * c, 64, 32), _ELU())
         self.vis = _mlp(32, 32, 33)
         self.vis2 = _mlp(32, 32, 1)
-        self.density_feat = nn.Sequential(_mlp(65, 64, 16), nn.ELU())
+        self.density_feat = nn.Sequential(_mlp(65, 64, 16), _ELU())
         self.attn = nn.MultiheadAttention(16, 4, bias=False, batch_first=True)
         self.attn_norm = nn.LayerNorm(16)
-        self.sigma = nn.Sequential(nn.Linear(16, 16), nn.ELU(), nn.Linear(16, 1), nn.ReLU())
+        self.sigma = nn.Sequential(nn.Linear(16, 16), _ELU(), nn.Linear(16, 1), nn.ReLU())
         self.rgb = _mlp(37, 16, 8, 1)
 
     def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
@@ -163,7 +171,7 @@ class Aggregator(nn.Module):
         stats = _weighted_stats(f, w)  # [R, S, 1, 2C]
         first, act, second = self.base[0]  # the base MLP on [stats, f] (split_linear: the stats part once per sample)
         x = self.base[1](second(act(concat_linear(first, [stats, f]))))  # [R, S, V, 32]
-        rv = F.elu(self.vis(x * w))  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
+        rv = F.elu(self.vis(x * w), inplace=FAST.inplace_elu)  # the reference's vis_fc ends with an ELU (32->32->33, ELU after both)
         r, v = rv[..., :32], torch.sigmoid(rv[..., 32:]) * m
         x = x + r
         v = torch.sigmoid(self.vis2(x * v)) * m  # [R, S, V, 1]
@@ -173,12 +181,24 @@ class Aggregator(nn.Module):
         h = h + sample_index_code(h.shape[1], 16, h.device).to(h.dtype)
         seen = mask.any(-1)  # [R, S]
         pad = ~seen & ~(~seen).all(-1, keepdim=True)
-        a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
+        if FAST.sdpa_attention:
+            a = _ray_attention(self.attn, h, pad)
+        else:
+            a, _ = self.attn(h, h, h, key_padding_mask=pad, need_weights=False)
         h = self.attn_norm(h + a)
         sigma = self.sigma(h)[..., 0] * seen  # [R, S]
         logit = self.rgb[1:](concat_linear(self.rgb[0], [x, v, ray_diff]))[..., 0]  # the colour head on [x, v, ray_diff]
         logit = logit.masked_fill(~mask, -1e9)  # [R, S, V]
         return sigma, torch.softmax(logit, -1)
+
+
+def _ray_attention(attn: nn.MultiheadAttention, h: Tensor, pad: Tensor) -> Tensor:
+    """``attn(h, h, h, key_padding_mask=pad)`` (no biases, self-attention over samples) through
+    ``scaled_dot_product_attention`` with a boolean mask. ``h # [R, S, E]``, ``pad # [R, S]`` -> ``# [R, S, E]``"""
+    (R, S, E), heads = h.shape, attn.num_heads
+    qkv = F.linear(h, attn.in_proj_weight).view(R, S, 3, heads, E // heads).permute(2, 0, 3, 1, 4)  # [3, R, H, S, D]
+    o = F.scaled_dot_product_attention(qkv[0], qkv[1], qkv[2], attn_mask=~pad[:, None, None, :])  # [R, H, S, D]
+    return F.linear(o.transpose(1, 2).reshape(R, S, E), attn.out_proj.weight)
 
 
 # ---------------------------------------------------------------------- the model

@@ -20,13 +20,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 import trimesh
 
 from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
 from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
-from omnirecon.mesh.build import export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.build import mesh_from_model
+from omnirecon.mesh.files import to_scene_frame, write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.rays import Sources
 from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
@@ -56,22 +56,6 @@ class ExportOptions:
             raise InputError(f"--visibility-tol must be in [0, 1), got {self.visibility_tol}", None, "use e.g. 0.01")
         if not (self.max_edge == 0 or 1e-4 <= self.max_edge <= 1):
             raise InputError(f"--max-edge must be 0 (off) or in [1e-4, 1], got {self.max_edge}", None, "use e.g. 0.005")
-
-
-def read_mesh(path: Path) -> trimesh.Trimesh:
-    """A triangle mesh file (PLY, OBJ, GLB, ...) as one ``trimesh.Trimesh``; one-line errors."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("mesh file is missing", path, "pass a mesh written by `omnirecon mesh` (.ply, .obj, .glb)")
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
-        raise InputError(f"cannot read mesh ({type(e).__name__}: {e})", path, "pass a valid .ply, .obj or .glb") from e
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError("the file holds no triangles", path, "pass a triangle mesh")
-    if not np.isfinite(np.asarray(mesh.vertices)).all():
-        raise InputError("the mesh has non-finite vertices", path, "pass a valid mesh")
-    return mesh
 
 
 def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int = 4_000_000):
@@ -128,7 +112,7 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
         made = mesh_from_model(model, scene, views, mesh_options, device, use_masks, progress)
         mesh_model, record["mesh"] = made.mesh, {"source": "mesh_from_model", **made.info}
     else:
-        mesh_model = to_input_frame(mesh, torch.linalg.inv(scene.to_input.double()))
+        mesh_model = to_scene_frame(mesh, scene.to_input)
         record["mesh"] = {"source": "file"}
     seconds["mesh"] = time.perf_counter() - start
     if len(mesh_model.faces) == 0:
@@ -152,7 +136,7 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
         bake = bake_vertex_colors(renderer, verts, faces, BakeOptions(views=options.bake_views), background)
         seconds["bake"] = time.perf_counter() - start
         colored = colored_mesh(verts, faces, bake.colors, scene.to_input)
-        files = export_mesh(colored, [out / "mesh.ply", out / "mesh.glb"])
+        files = write_mesh(colored, [out / "mesh.ply", out / "mesh.glb"])
         record.update({"vertices": len(verts), "faces": len(faces), "bake": {**bake.summary(),
                        "views": options.bake_views, "visibility_tol": options.visibility_tol},
                        "background": list(background), "rasterizer": renderer.rasterizer.backend})

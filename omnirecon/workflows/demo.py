@@ -229,6 +229,8 @@ def run_demo(cfg: DemoConfig) -> dict:
     footer = (markdown_header(numbers["provenance"]).replace("`", "")
               + f". Total {numbers['seconds']['total']:.0f} s. Numbers: demo.json.")
     report = write_report(out, "omnirecon demo", sections, footer)
+    lines.append("seconds per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in numbers["seconds"].items()
+                                                     if k != "total"))
     lines.append(f"total {numbers['seconds']['total']:.0f} s")
     return {"report": str(report), "lines": lines, "numbers": numbers}
 

@@ -31,7 +31,7 @@ from omnirecon.lift.blend import supports_lifting
 from omnirecon.lift.experiment import knn_train_views
 from omnirecon.lift.predictors import labels_to_classes
 from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs, scene_mesh
-from omnirecon.mesh.build import export_mesh
+from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
 from omnirecon.provenance import provenance
@@ -273,6 +273,6 @@ def _mesh_edit(cfg: EditConfig, model, scene, used, views, onehot, cls: int, tab
     if cfg.geometry:
         T = scene.to_input.double().numpy()
         for name, m, c in (("mesh_original.glb", mesh, colours), ("mesh_edited.glb", edited_mesh, edited_colours)):
-            export_mesh(E.coloured_mesh(m, c).apply_transform(T), [out / name])
+            write_mesh(E.coloured_mesh(m, c), [out / name], T)
         rec["files"] = ["mesh_original.glb", "mesh_edited.glb"]
     return rec

@@ -14,9 +14,10 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
+from omnirecon.mesh.files import read_mesh
 from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
-from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
+from omnirecon.viewer.export import ExportOptions, export_scene
 
 
 @dataclass

@@ -49,6 +49,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
+from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.preflight import check_resolution
@@ -250,7 +251,6 @@ def pick_validation(train_views: list[int], sources: list[int], n: int) -> list[
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
     ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
-    import trimesh
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
     if not cfg.seconds > 0:
@@ -290,11 +290,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     if mesh is not None:
         pass
     elif cfg.mesh is not None:
-        from omnirecon.mesh.geometry import load_mesh_file  # one-line errors naming --mesh
-
-        mesh = load_mesh_file(cfg.mesh, "--mesh file", "pass a .ply/.obj/.glb written by `omnirecon mesh`")
-        T = np.linalg.inv(scene.to_input.double().numpy())  # input frame -> scene frame
-        mesh = trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
+        mesh = read_mesh(cfg.mesh, scene.to_input)
     else:
         mesh = mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:

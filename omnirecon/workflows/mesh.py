@@ -1,7 +1,7 @@
-"""``omnirecon mesh``: a mesh from a model's rendered depth (TSDF fusion), in the input frame.
+"""``omnirecon mesh``: a mesh from depth maps (stereo and/or a model's rendered depth), in the input frame.
 
-The protocol is :mod:`omnirecon.mesh.build`'s (VolRecon / Omni-Recon, ``docs`` of the Omni-Recon
-spec §6). Outputs, for ``--out mesh.ply`` (any of ``.ply .obj .glb``, several allowed)::
+The pipeline is :mod:`omnirecon.mesh.build`'s (``--fusion reference``: VolRecon / Omni-Recon's protocol,
+the Omni-Recon spec §6, as a preset). Outputs, for ``--out mesh.ply`` (any of ``.ply .obj .glb``, several allowed)::
 
     mesh.ply            the cleaned mesh in the input scene's frame (``Scene.to_input`` applied)
     mesh_metrics.json   settings, face counts, seconds per stage and the geometry metrics the scene
@@ -17,8 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
@@ -27,7 +25,8 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import DTU_SHIFT, MeshOptions, check_mesh_paths, export_mesh, mesh_from_model, to_input_frame
+from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
+from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
 from omnirecon.preflight import check_resolution
 from omnirecon.progress import progress_bar
 
@@ -35,9 +34,10 @@ PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
 class MeshConfig(MachineConfig):
-    """Extract a mesh from a checkpoint (or the plane-sweep floor): render z-depth at virtually
-    shifted source views, fuse it into a TSDF over the scene bounds, run marching cubes, clean the
-    result with the source masks, and write it in the input scene's frame with its metrics."""
+    """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
+    rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
+    the masks for objects), a face budget and completion (every content pixel of every view gets a
+    surface); written in the input scene's frame with its metrics."""
 
     scene: Path
     """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
@@ -54,9 +54,13 @@ class MeshConfig(MachineConfig):
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
     """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
-    shifts: tuple[float, ...] = (DTU_SHIFT,)
-    """Virtual views per source: shifts along the camera x axis as fractions of its distance to the
-    scene centre (default: VolRecon's 25 mm on DTU); add 0 to also render at the source itself."""
+    depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
+    """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
+    no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
+    depth; `auto`: the measured best for the scene kind (omnirecon.mesh.build.default_depth)."""
+    shifts: tuple[float, ...] | None = None
+    """Virtual views per view: shifts along the camera x axis as fractions of its distance to the
+    scene centre (default: the preset's: 0 for fit, VolRecon's 25 mm on DTU for reference)."""
     voxel: float | None = None
     """Voxel size as a fraction of the bounds diagonal (default: the depth maps' pixel footprint)."""
     trunc: float | None = None
@@ -64,8 +68,9 @@ class MeshConfig(MachineConfig):
     fusion: Literal["fit", "reference"] = "fit"
     """`fit`: confidence-weighted fusion scaled to the depth (omnirecon.mesh.fusion); `reference`:
     VolRecon's protocol as published."""
-    weights: bool = True
-    """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection)."""
+    weights: bool | None = None
+    """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
+    default: the preset's, on for fit)."""
     max_faces: int = 200_000
     """Decimate the mesh to at most this many faces (0 = keep every face)."""
     depth_pass: Literal["coarse", "fine"] = "fine"
@@ -86,18 +91,24 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    def mesh_options(self) -> MeshOptions:
-        return MeshOptions(shifts=tuple(self.shifts), voxel=self.voxel, trunc=self.trunc, min_acc=self.min_acc,
-                           min_views=self.min_views, cull_hidden=self.cull_hidden, min_component=self.min_component,
-                           chunk=self.chunk, fusion=self.fusion, neighbours=self.num_views, weights=self.weights,
-                           max_faces=self.max_faces, depth_pass=self.depth_pass)
+    complete: bool = True
+    """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
+    forward-facing scenes, hole filling); only with the fit preset."""
+    def mesh_options(self, scene=None, has_model: bool = True) -> MeshOptions:
+        given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
+                 "trunc": self.trunc, "weights": self.weights}
+        depth = self.depth if self.depth != "auto" else default_depth(scene, has_model)
+        return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
+                                  min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,
+                                  min_component=self.min_component, chunk=self.chunk, neighbours=self.num_views,
+                                  max_faces=self.max_faces, depth_pass=self.depth_pass,
+                                  **({} if self.fusion == "reference" else {"complete": self.complete}))
 
 
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
 
-    options = cfg.mesh_options()
-    options.check()
+    cfg.mesh_options().check()  # bad options fail before any work
     check_resolution(cfg.resolution)
     if cfg.num_views < 1:
         raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
@@ -105,7 +116,10 @@ def run_mesh(cfg: MeshConfig) -> dict:
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     fmt = detect_format(cfg.scene)
-    net, info = load_model(cfg.ckpt, cfg.model, device)
+    if cfg.ckpt is None and cfg.model is None and cfg.depth in ("stereo", "oracle"):
+        net, info = None, {"name": cfg.depth, "preset": None, "checkpoint": None}
+    else:
+        net, info = load_model(cfg.ckpt, cfg.model, device)
     proto = protocol_for(Path(cfg.scene), fmt)
     start = time.perf_counter()
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
@@ -114,6 +128,8 @@ def run_mesh(cfg: MeshConfig) -> dict:
         geometry.load_mesh_file(scene.mesh_path, "ground-truth mesh", "fix the scene's mesh file, or remove its "
                                 "mesh_path entry (or pass --no-metrics)")
     views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
+    options = cfg.mesh_options(scene, net is not None)
+    options.check()
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
     with progress_bar(transient=False) as bar:
@@ -142,7 +158,7 @@ def run_mesh(cfg: MeshConfig) -> dict:
     previous = previous_set(stem)
     record["files"] = [str(p) for p in [*outs, *extra]]
     in_input = to_input_frame(mesh, scene.to_input)
-    files = export_mesh(in_input, outs, extra)
+    files = write_mesh(in_input, outs, extra=extra)
     for p in previous - {Path(f) for f in record["files"]}:
         p.unlink(missing_ok=True)
     record["files"] = [str(p) for p in [*files, *extra]]
@@ -166,12 +182,16 @@ def previous_set(stem: Path) -> set[Path]:
 def summary_lines(record: dict) -> list[str]:
     """Human-readable lines about a :func:`run_mesh` record."""
     s = record["seconds"]
-    faces = record["faces"].get("decimated", record["faces"]["components"])
+    faces = record["faces"].get("completed", record["faces"].get("decimated", record["faces"]["components"]))
     lines = [f"{record['vertices']:,} vertices, {faces:,} faces from "
              f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
              f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",
              f"images to mesh {s['images_to_mesh']:.1f} s (" + ", ".join(
                  f"{k.replace('_', ' ')} {v:.1f}" for k, v in s.items() if k not in ("images_to_mesh", "metrics")) + ")"]
+    comp = record.get("completion")
+    if comp:
+        lines.append(f"completion: {comp['fill_faces']:,} fill faces; the views' content pixels covered "
+                     f"{comp['coverage_before']:.1%} by the fused mesh, 100% after")
     m = record.get("metrics", {})
     if "mask_iou" in m:
         lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
@@ -191,11 +211,5 @@ def summary_lines(record: dict) -> list[str]:
 def scene_frame_mesh(path: Path, mesh_file: Path, long_side: int):
     """The scene at ``long_side`` (normalised, as models see it) and ``mesh_file`` (input frame, as
     ``omnirecon mesh`` writes it) moved into that frame. Returns ``(scene, trimesh.Trimesh)``."""
-    import trimesh
-
-    from omnirecon.mesh.geometry import load_mesh_file
-
     scene = load_at_resolution(path, long_side)
-    mesh = load_mesh_file(mesh_file)
-    T = np.linalg.inv(scene.to_input.double().numpy())
-    return scene, trimesh.Trimesh(np.asarray(mesh.vertices) @ T[:3, :3].T + T[:3, 3], mesh.faces, process=False)
+    return scene, read_mesh(mesh_file, scene.to_input)

@@ -84,7 +84,7 @@ def test_peer_ibrnet_without_checkout_measures_our_side_and_says_so(tmp_path):
     ours = r["best"]["ours"]
     assert ours["params"] == 8_957_392 and ours["render_s"] > 0 and ours["train_step_s"] > 0
     text = run_all.section_peer(tmp_path)
-    assert "Reference not measured" in text and "| ours | 8,957,392 |" in text
+    assert "Reference not measured" in text and "| ours | defaults | 8,957,392 |" in text
 
 
 def test_peer_ibrnet_rejects_a_folder_that_is_no_checkout(tmp_path):
@@ -97,6 +97,37 @@ def test_peer_ibrnet_rejects_a_folder_that_is_no_checkout(tmp_path):
 
     with pytest.raises(InputError, match="not an IBRNet checkout"):
         peer_ibrnet.main(["--ibrnet-root", str(tmp_path), "--out", str(tmp_path / "p.json")])
+
+
+PEER_ROOT = ROOT.parent / "shared" / "peer" / "IBRNet"
+
+
+def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
+    """With the checkout beside the clone: the official code renders and trains (CUDA calls on the CPU), our
+    fast paths render bit-identically or within float rounding of our reference twin, and the page shows it."""
+    import os
+
+    import pytest
+
+    if not PEER_ROOT.is_dir():
+        if os.environ.get("CI") == "true":
+            pytest.fail(f"CI must have {PEER_ROOT}")
+        pytest.skip(f"{PEER_ROOT} not found: the official IBRNet code sits beside the clone (../shared/peer)")
+    pytest.importorskip("configargparse", reason="the reference's option parser: pip install '.[bench]'")
+    sys.path.insert(0, str(ROOT / "bench"))
+    import peer_ibrnet
+    import run_all
+
+    r = peer_ibrnet.main(["--ibrnet-root", str(PEER_ROOT), "--width", "24", "--height", "18", "--train-rays", "16",
+                          "--train-steps", "1", "--reference-too", "--out", str(tmp_path / "peer_ibrnet.json")])
+    peer, ours = r["best"]["peer"], r["best"]["ours"]
+    assert peer["params"] == ours["params"] == 8_957_392  # the same network on both sides
+    assert peer["render_s"] > 0 and peer["train_step_s"] > 0 and r["peer_note"] is None
+    assert r["ratios"]["ours"]["render_speedup"] == round(peer["render_cpu_s"] / ours["render_cpu_s"], 2)
+    psnr = ours.get("psnr_to_reference_db")
+    assert psnr is None or psnr > 60  # None: bit-identical to the reference twin
+    text = run_all.section_peer(tmp_path)
+    assert "| peer | official code | 8,957,392 |" in text and "| ours | defaults | 8,957,392 |" in text
 
 
 def test_train_tiny_stage_spans_split_the_cumulative_cpu_time(tmp_path):

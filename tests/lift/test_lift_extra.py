@@ -204,7 +204,7 @@ def test_recolour_changes_only_the_objects_lifted_pixels(setup):
 
 
 def test_face_deletion_and_glb(setup, tmp_path):
-    from omnirecon.mesh.build import export_mesh
+    from omnirecon.mesh.files import write_mesh
 
     scene, mesh, model, table = setup
     labels = P.labels_to_classes(gt_face_labels(scene), table)
@@ -214,7 +214,7 @@ def test_face_deletion_and_glb(setup, tmp_path):
     assert len(out.faces) == len(mesh.faces) - int((labels == cls).sum())
     assert (labels[keep] != cls).all() and len(out_colours) == len(keep)
     assert np.allclose(out.triangles, mesh.triangles[keep])  # the other faces, unchanged
-    export_mesh(E.coloured_mesh(out, out_colours), [tmp_path / "edited.glb"])
+    write_mesh(E.coloured_mesh(out, out_colours), [tmp_path / "edited.glb"])
     loaded = trimesh.load(tmp_path / "edited.glb", force="mesh")
     assert len(loaded.faces) == len(keep)
     recol, new_colours, _ = E.edit_faces(mesh, colours, labels, cls, "recolour", (0.9, 0.1, 0.1))

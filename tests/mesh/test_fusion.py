@@ -13,7 +13,9 @@ from omnirecon.cli import main
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.mesh import fusion, geometry
-from omnirecon.mesh.build import MeshOptions
+from omnirecon.mesh.build import MeshOptions, mesh_from_depths
+from omnirecon.mesh.clean import decimate
+from omnirecon.mesh.depth import ViewGroups, model_depths, oracle_depths
 from omnirecon.models.registry import build_model
 from tests.mesh.test_mesh import ring_cameras, sphere_depth
 
@@ -36,8 +38,9 @@ def test_oracle_fusion_gives_the_exact_mesh(scene):
     from omnirecon.engine.checkpoint import load_checkpoint
 
     views = scene.splits["train"]
-    cams = scene.cameras[views]
-    mesh, info = fusion.fuse_depth_maps(cams, scene.depths[views], scene.bounds, MeshOptions())
+    maps = oracle_depths(scene, views)
+    made = mesh_from_depths(maps, scene, views, MeshOptions(complete=False))
+    mesh, info = made.mesh, made.info
     held_out = scene.splits["test"]
     scored = geometry.evaluate_mesh(mesh, scene, held_out)
     c = scored["chamfer"]
@@ -109,21 +112,21 @@ def test_views_all_cost_is_linear_in_views(scene):
     for n in (4, 8):
         model = CountingModel()
         views = scene.splits["train"][:n]
-        groups = fusion.ViewGroups(scene.cameras, views, 3)
+        groups = ViewGroups(scene.cameras, views, 3)
         assert all(g[0] == v and len(g) == 3 == len(set(g)) for v, g in zip(views, groups.sources))
-        maps = fusion.render_depth_maps(model, scene, groups, (0.0,), chunk=1 << 14)
-        assert maps["depth"].shape == (n, scene.height, scene.width)
+        maps = model_depths(model, scene, views, 3, (0.0,), chunk=1 << 14)
+        assert maps.depth.shape == (n, scene.height, scene.width)
         calls[n] = (model.encodes, model.renders, set(model.sources))
     assert calls[4] == (4, 4, {3}) and calls[8] == (8, 8, {3})
 
 
 def test_decimation_keeps_the_face_budget():
     sphere = trimesh.creation.icosphere(5)  # 20480 faces
-    small = fusion.decimate(sphere, 3000)
+    small = decimate(sphere, 3000)
     assert 2000 < len(small.faces) <= 3000
     r = np.linalg.norm(small.vertices, axis=1)
     assert np.abs(r - 1).max() < 0.02  # still the sphere
-    assert fusion.decimate(sphere, 0) is sphere and fusion.decimate(sphere, 10**6) is sphere
+    assert decimate(sphere, 0) is sphere and decimate(sphere, 10**6) is sphere
 
 
 def test_auto_scale_follows_the_pixel_footprint():
@@ -151,3 +154,10 @@ def test_bad_mesh_options_give_one_line_errors(args, message, scene_path, tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and err[0].startswith("omnirecon: error:") and message in err[0], err
     assert not (tmp_path / "m.ply").exists()
+
+
+def test_one_integrate_in_the_package():
+    """One TSDF integration (omnirecon/mesh/fusion.py): the reference protocol is a preset, not a copy."""
+    found = [(p.relative_to(ROOT), line) for p in (ROOT / "omnirecon").rglob("*.py")
+             for line in p.read_text().splitlines() if line.lstrip().startswith("def integrate(")]
+    assert [str(p) for p, _ in found] == ["omnirecon/mesh/fusion.py"], found

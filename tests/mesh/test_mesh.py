@@ -15,15 +15,11 @@ from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import save_checkpoint
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import (
-    MeshOptions,
-    clean_mesh,
-    export_mesh,
-    extract_mesh,
-    fuse_depths,
-    shifted_cameras,
-    to_input_frame,
-)
+from omnirecon.mesh.build import MeshOptions
+from omnirecon.mesh.clean import clean_mesh, dilate_masks
+from omnirecon.mesh.depth import shifted_cameras
+from omnirecon.mesh.files import to_input_frame, write_mesh
+from omnirecon.mesh.fusion import extract_mesh, fuse
 from omnirecon.models.registry import build_model
 
 TINY_IBRNET = {"coarse_samples": 8, "fine_samples": 4, "channels": [8, 8, 16], "feature_dim": 8}
@@ -56,7 +52,7 @@ def test_tsdf_reproduces_a_sphere_within_a_voxel():
     cams, r = ring_cameras(), 0.8
     bounds = torch.tensor([[-1.0] * 3, [1.0] * 3])
     voxel = float((bounds[1] - bounds[0]).norm()) / 128
-    volume = fuse_depths(cams, sphere_depth(cams, r), None, bounds, voxel, 3 * voxel, chunk=100_000)
+    volume = fuse(cams, sphere_depth(cams, r), bounds, voxel, 3 * voxel, chunk=100_000, bilinear=False)
     mesh = extract_mesh(volume)
     radial = np.abs(np.linalg.norm(mesh.vertices, axis=1) - r)
     assert radial.mean() < 0.3 * voxel and radial.max() < 1.5 * voxel  # no surface behind the truncation band
@@ -69,7 +65,7 @@ def test_tsdf_reproduces_a_sphere_within_a_voxel():
 
 def test_unobserved_volume_gives_an_empty_mesh():
     cams = ring_cameras(2)
-    volume = fuse_depths(cams, torch.zeros(2, 64, 64), None, torch.tensor([[-1.0] * 3, [1.0] * 3]), 0.1, 0.3)
+    volume = fuse(cams, torch.zeros(2, 64, 64), torch.tensor([[-1.0] * 3, [1.0] * 3]), 0.1, 0.3)
     assert len(extract_mesh(volume).faces) == 0 and volume.weight.sum() == 0
 
 
@@ -86,17 +82,18 @@ def test_mask_cleaning_drops_a_blob_outside_the_masks():
     main_sphere = trimesh.creation.icosphere(3, radius=0.5)
     blob = trimesh.creation.icosphere(2, radius=0.1).apply_translation([0.0, 0.0, 0.8])
     mesh = trimesh.util.concatenate([main_sphere, blob])
-    masks = torch.from_numpy(np.stack([geometry.silhouette(main_sphere, cams[i]) for i in range(len(cams))]))
-    opts = MeshOptions(cull_hidden=False, min_component=0.0, dilate=0.1)  # rim vertices sit on the mask edge
-    clean, counts = clean_mesh(mesh, cams, masks, voxel=0.02, options=opts)
+    masks = np.stack([geometry.silhouette(main_sphere, cams[i]) for i in range(len(cams))])
+    masks = dilate_masks(masks, 0.1 * cams.width)  # rim vertices sit on the mask edge
+    opts = MeshOptions(cull_hidden=False, min_component=0.0)
+    clean, counts = clean_mesh(mesh, cams, masks, opts)
     assert np.linalg.norm(clean.vertices, axis=1).max() < 0.51  # the blob is gone
     assert len(clean.faces) == len(main_sphere.faces) and counts["in_masks"] == len(main_sphere.faces)
     # Without masks the component filter drops it instead (320 faces against the sphere's 1280).
-    clean, _ = clean_mesh(mesh, cams, None, 0.02, replace(opts, min_component=0.3))
+    clean, _ = clean_mesh(mesh, cams, None, replace(opts, min_component=0.3))
     assert len(clean.faces) == len(main_sphere.faces)
     # Hidden-face culling keeps the visible outside of the sphere, drops a sphere inside it.
     inner = trimesh.creation.icosphere(2, radius=0.3)
-    clean, _ = clean_mesh(trimesh.util.concatenate([main_sphere, inner]), cams, masks, 0.02, MeshOptions(dilate=0.1))
+    clean, _ = clean_mesh(trimesh.util.concatenate([main_sphere, inner]), cams, masks, MeshOptions(), supersample=4)
     assert np.linalg.norm(clean.vertices, axis=1).min() > 0.45
 
 
@@ -121,9 +118,9 @@ def test_mesh_lands_on_the_ground_truth_in_the_input_frame(synth_scene, tmp_path
     views = scene.splits["train"]
     diag = float((scene.bounds[1] - scene.bounds[0]).norm())
     voxel = diag / 128
-    volume = fuse_depths(scene.cameras[views], scene.depths[views], None, scene.bounds, voxel, 3 * voxel)
-    mesh, _ = clean_mesh(extract_mesh(volume), scene.cameras[views], None, voxel, MeshOptions(cull_hidden=False))
-    files = export_mesh(to_input_frame(mesh, scene.to_input), [tmp_path / f"m.{s}" for s in ("ply", "obj", "glb")])
+    volume = fuse(scene.cameras[views], scene.depths[views], scene.bounds, voxel, 3 * voxel, bilinear=False)
+    mesh, _ = clean_mesh(extract_mesh(volume), scene.cameras[views], None, MeshOptions(cull_hidden=False))
+    files = write_mesh(mesh, [tmp_path / f"m.{s}" for s in ("ply", "obj", "glb")], scene.to_input)
     gt = trimesh.load(scene.mesh_path, process=False)  # the generator's frame = the input frame
     scale = scene.scale_to_input
     gt_points = geometry.sample_points(gt, 100_000)
@@ -163,7 +160,7 @@ def test_mesh_cli_random_ibrnet_checkpoint(synth_scene, tmp_path, capsys, run_cl
     torch.manual_seed(0)
     ckpt = tmp_path / "ckpt"
     save_checkpoint(ckpt, build_model("ibrnet-tiny", TINY_IBRNET), "ibrnet-tiny", step=3)
-    code, stdout, err = run_cli(["mesh", "--scene", synth_scene, "--ckpt", ckpt, "--views", 1, 2, 3, "--shifts", 0.0, 0.03,
+    code, stdout, err = run_cli(["mesh", "--scene", synth_scene, "--ckpt", ckpt, "--views", 1, 2, 3, "--shifts", 0.0, 0.03, "--depth", "model",
                          "--min-acc", 0, "--no-masks", "--no-metrics", "--out", tmp_path / "ibr.obj"])
     assert code == 0, err
     assert (tmp_path / "ibr.obj").is_file() and not (tmp_path / "ibr_metrics.json").exists()
@@ -185,3 +182,20 @@ def test_mesh_bad_input_exit_2(args, message, synth_scene, tmp_path, capsys, run
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("omnirecon: error:") and message in lines[0], err
+
+
+def test_reference_preset_is_settings_of_the_one_pipeline(synth_scene):
+    """VolRecon's protocol (`--fusion reference`) runs through the same stages with its own settings."""
+    from omnirecon.mesh.build import PRESETS, mesh_from_model
+
+    scene = load_at_resolution(synth_scene, 40)
+    views = scene.splits["train"][:6]
+    opts = MeshOptions.preset("reference", depth="oracle")
+    assert opts.voxel == PRESETS["reference"]["voxel"] and not opts.bilinear and not opts.complete
+    made = mesh_from_model(None, scene, views, opts, use_masks=True)
+    assert made.info["options"]["fusion"] == "reference" and "in_masks" in made.info["faces"]
+    assert made.info["completion"] is None and len(made.mesh.faces) > 100
+    gt = geometry.ground_truth_mesh(scene, objects_only=True)
+    c = geometry.mesh_chamfer(made.mesh, gt, threshold=0.02 * float((scene.bounds[1] - scene.bounds[0]).norm()),
+                              count=20_000)
+    assert c["precision"] > 0.8, c

@@ -52,7 +52,8 @@ def test_render_view_fast_paths_equal_reference(name):
     src, target = scene()
     with fast.reference():
         ref = render(model, src, target)
-    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True)
+    out = render(model, src, target, inference_mode=True, render_batch=32, preallocate=True, sdpa_attention=True,
+                 inplace_elu=True)
     assert set(out) == set(ref)
     for k in ref:
         assert out[k].shape == ref[k].shape and out[k].dtype == ref[k].dtype, k
@@ -90,9 +91,13 @@ def _train_outputs(model, src, rays, **switches):
     return out, grads
 
 
-def test_split_linear_forward_and_gradients():
-    """IBRNet's MLPs with their first layer split by input block: forward to 1e-5, gradients of every
-    parameter to 1e-4 relative (float rounding) of the concatenating reference."""
+@pytest.mark.parametrize("switches", [{"split_linear": True}, {"sdpa_attention": True, "inplace_elu": True}],
+                         ids=["split_linear", "sdpa_attention+inplace_elu"])
+def test_ibrnet_exact_paths_forward_and_gradients(switches):
+    """IBRNet's exact fast paths in training, each against its reference twin: the MLPs' first layer split by
+    input block (reference: concatenation), the ray transformer through scaled_dot_product_attention with a
+    boolean key mask (reference: nn.MultiheadAttention) with the ELUs in place. Forward to 1e-5, gradients of
+    every parameter to 1e-4 relative (float rounding)."""
     from omnirecon.rays import Rays
 
     torch.manual_seed(0)
@@ -101,10 +106,10 @@ def test_split_linear_forward_and_gradients():
     rays = Rays.from_image(target)[::3]
     with fast.reference():
         ref, ref_g = _train_outputs(model, src, rays)
-        out, out_g = _train_outputs(model, src, rays, split_linear=True)
+        out, out_g = _train_outputs(model, src, rays, **switches)
     for k in ("rgb", "rgb_coarse", "depth"):
         torch.testing.assert_close(out[k], ref[k], atol=1e-5, rtol=1e-5)
-    assert set(out_g) == set(ref_g) and len(ref_g) > 10
+    assert set(out_g) == set(ref_g) and len(ref_g) > 10 and any("attn" in n for n in ref_g)
     for n in ref_g:
         torch.testing.assert_close(out_g[n], ref_g[n], atol=1e-6, rtol=1e-4, msg=n)
 

@@ -19,13 +19,13 @@ from omnirecon.cli import main
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
 from omnirecon.engine.scenes import load_at_resolution
-from omnirecon.mesh.build import linear_to_srgb, srgb_to_linear, to_input_frame
+from omnirecon.mesh.files import linear_to_srgb, read_mesh, srgb_to_linear, to_input_frame
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.registry import build_model
 from omnirecon.rays import Sources
 from omnirecon.render.raster import MeshRasterizer
 from omnirecon.viewer.bundle import three_unavailable_reason
-from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
+from omnirecon.viewer.export import ExportOptions, export_scene
 from omnirecon.viewer.headless import find_chromium
 from omnirecon.viewer.server import ViewerServer, bundle_folder
 
@@ -182,9 +182,9 @@ def test_export_cli(exported, tmp_path, capsys):
         files = {p.relative_to(tmp_path / "out" / "viewer").as_posix() for p in (tmp_path / "out" / "viewer").rglob("*")}
         assert {"index.html", "viewer.js", "bundle.json", "mesh.glb", "images.bin", "features.bin", "depth.bin",
                 "lib/three/build/three.module.js"} <= files
-    for bad, words in ([["--mesh", str(tmp_path / "nope.ply")], "mesh file is missing"],
+    for bad, words in ([["--mesh", str(tmp_path / "nope.ply")], "mesh file not found"],
                        [["--mesh", str(mesh_file), "--bake-views", "0"], "--bake-views"],
-                       [["--mesh", str(ckpt / "meta.json")], "cannot read mesh"]):
+                       [["--mesh", str(ckpt / "meta.json")], "cannot read the mesh"]):
         assert main([*base, *bad, "--out", str(tmp_path / "bad")]) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("omnirecon: error:") and words in err and "\n" not in err, err

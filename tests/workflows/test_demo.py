@@ -24,7 +24,10 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
         assert name in page, name
     for ref in [p.split('"')[0] for p in page.split('src="')[1:]]:
         assert (out / ref).is_file(), ref  # every picture the page shows exists
-    assert "report:" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "report:" in printed
+    stages = next(line for line in printed.splitlines() if "seconds per stage:" in line)
+    assert all(f"{k} " in stages for k in numbers["seconds"] if k != "total")  # every timed stage printed
     assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
     if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
         assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0

@@ -46,7 +46,7 @@ def test_finetune_raises_held_out_psnr_and_writes_curve(setup, capsys):
 @pytest.mark.parametrize("args, message", [
     (["--ckpt", "{root}/gpnr"], "needs an Omni-Recon checkpoint"),
     (["--ckpt", "{root}/omni", "--seconds", "0"], "--seconds"),
-    (["--ckpt", "{root}/omni", "--mesh", "{root}/nope.ply"], "mesh file does not exist"),
+    (["--ckpt", "{root}/omni", "--mesh", "{root}/nope.ply"], "mesh file not found"),
 ])
 def test_finetune_bad_input_exit_2(setup, args, message, capsys):
     root, scene = setup

@@ -1,0 +1,237 @@
+"""Depth source x scene: what each depth source's mesh gives through the mesh path (issue 24).
+
+    python bench/depth_sources.py                      # every row below (tens of CPU-minutes)
+    python bench/depth_sources.py --rows fern:stereo+fill dtu_scan24:stereo+fill
+    python bench/depth_sources.py --tiny               # the demo scene at 48 px, oracle and stereo (tests)
+
+Per scene (fern at its photos' resolution, 336x252; dtu_scan24/37 at 400x300 with their object masks;
+the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth source:
+
+* ``learned``: omnirecon-tiny's coarse-pass depth at 128 px, each view from its 3 nearest views;
+* ``floor``: the plane-sweep floor's depth, the same way;
+* ``stereo``: classical stereo (``omnirecon/mesh/stereo.py``) at the photos' resolution, no completion;
+* ``stereo+fill``: the same with completion (``omnirecon/mesh/complete.py``): every content pixel of
+  every meshed view covered (fill from the view's depth, a backdrop on forward-facing scenes);
+* ``oracle``: the exact depth (procedural scenes), with completion.
+
+Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
+them, evenly spaced) by the one pipeline (``omnirecon/mesh/build.py``) and scored like
+``omnirecon finetune --mesh M --clock cpu --threads 1``: held-out PSNR of the mesh path before and after
+``--seconds`` of tuning (whole image; over the object masks on DTU; over the covered pixels), coverage
+(held-out pixels on the mesh, inside the masks on DTU), silhouette IoU (DTU), Chamfer and F-score
+against the exact mesh (procedural), and the CPU seconds of images -> mesh (this process, 1 thread).
+A picture per row (ground truth | before | after on the first held-out view) goes to
+``bench/results/figures/depth_sources_<scene>_<source>.png``. Rows are written as they finish.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnirecon.data.io import write_json
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+DEMO_SEED = 900_999
+SCENES = {"fern": "llff/fern", "dtu_scan24": "neus_dtu/dtu_scan24", "dtu_scan37": "neus_dtu/dtu_scan37", "demo": None}
+SOURCES = ("learned", "floor", "stereo", "stereo+fill", "oracle")
+TUNED = ("stereo+fill",)
+"""Sources tuned for ``--seconds`` (the others are scored before tuning only, to keep the run short)."""
+DTU_VIEWS = 14
+
+
+def load(name: str, tiny: bool):
+    from omnirecon.data import detect_format
+    from omnirecon.engine.protocols import protocol_for
+    from omnirecon.engine.scenes import load_at_resolution
+
+    if name == "demo":
+        from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+        res = 48 if tiny else 128
+        path = generate_scene(ROOT / "outputs" / "cache" / "depth_sources" / f"demo_{res}", DEMO_SEED,
+                              SynthOptions(rig="object", views=24, resolution=res))
+    else:
+        path = SHARED / SCENES[name]
+        res = 512  # the photos' own resolution (fern 336x252, DTU 400x300)
+    fmt = detect_format(path)
+    proto = protocol_for(Path(path), fmt)
+    return Path(path), load_at_resolution(path, res, proto.background, fmt), proto, res
+
+
+def held_out(scene, proto, cap: int = 4):
+    """The targets ``omnirecon finetune`` scores (at most ``cap``, evenly spaced) and the meshing views."""
+    from omnirecon.engine.protocols import targets_and_pool
+
+    targets, pool = targets_and_pool(proto, scene)
+    all_targets = set(targets)
+    if len(targets) > cap:
+        targets = [targets[i] for i in np.unique(np.linspace(0, len(targets) - 1, cap).round().astype(int))]
+    views = [v for v in pool if v not in all_targets]
+    if proto.name == "dtu" and len(views) > DTU_VIEWS:
+        views = [views[i] for i in np.unique(np.linspace(0, len(views) - 1, DTU_VIEWS).round().astype(int))]
+    return targets, views
+
+
+def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models: dict):
+    """The pipeline's result for ``source``, the similarity to the input frame, and the CPU seconds of
+    this process."""
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.mesh.build import MeshOptions, mesh_from_model
+
+    t = time.process_time()
+    if source in ("learned", "floor"):  # depth at 128 px (as `omnirecon reconstruct --mesh-resolution 128`)
+        low = load_at_resolution(path, 128, proto.background) if max(scene.width, scene.height) > 128 else scene
+        opts = MeshOptions(depth="model", depth_pass="coarse")
+        made = mesh_from_model(models[source], low, views, opts, use_masks=masks)
+        return made, low.to_input, time.process_time() - t
+    else:
+        opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo")
+        made = mesh_from_model(None, scene, views, opts, use_masks=masks)
+    return made, scene.to_input, time.process_time() - t
+
+
+def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
+    """Held-out pixels on the mesh (inside the object masks with ``masks``) and the silhouette IoU (with
+    ``masks``: object captures; a procedural scene's masks hold the objects, not its ground)."""
+    from omnirecon.mesh import geometry
+    from omnirecon.mesh.complete import DepthRenderer
+
+    r = DepthRenderer(mesh)
+    cov, iou = [], []
+    for t in targets:
+        hit = r(scene.cameras[t]) > 0
+        if masks:
+            m = scene.masks[t].numpy().astype(bool)
+            cov.append(float((hit & m).sum() / max(1, m.sum())))
+            iou.append(geometry.mask_iou(hit, m))
+        else:
+            cov.append(float(hit.mean()))
+    r.close()
+    out = {"coverage": float(np.mean(cov))}
+    if iou:
+        out["silhouette_iou"] = float(np.mean(iou))
+    return out
+
+
+def picture(src: Path, dst: Path, max_width: int = 720) -> str:
+    from PIL import Image
+
+    img = Image.open(src)
+    if img.width > max_width:
+        img = img.resize((max_width, round(img.height * max_width / img.width)), Image.LANCZOS)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    img.save(dst, optimize=True)
+    return str(dst.relative_to(dst.parents[1]))
+
+
+def run_row(name: str, source: str, seconds: float, models: dict, results: Path, tiny: bool) -> dict | None:
+    from omnirecon.mesh import geometry
+    from omnirecon.mesh.files import read_mesh, write_mesh
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+
+    path, scene, proto, res = load(name, tiny)
+    if source == "oracle" and scene.mesh_path is None:
+        return None
+    targets, views = held_out(scene, proto)
+    masks = scene.masks is not None and proto.name == "dtu"
+    made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
+    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{source.replace('+', '_')}"
+    (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
+    mesh = read_mesh(mesh_file, scene.to_input)  # as the scoring sees it
+    tune = seconds if source in TUNED else 1.0
+    ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
+                                     eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
+                                     out=work / "finetune", max_held_out=4))
+    first, last = ft["curve"][0], ft["curve"][-1]
+    row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
+           "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
+           "seconds": made.info["seconds"], "completion": made.info.get("completion"),
+           "tuned_seconds": tune if source in TUNED else 0.0,
+           "psnr": {"before": first["psnr"], "after": last["psnr"] if source in TUNED else None},
+           "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if source in TUNED
+                            else None},
+           **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
+    if masks and "psnr_masked" in first:
+        row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if source in TUNED else None}
+    if scene.mesh_path is not None:
+        c = geometry.evaluate_mesh(mesh, scene, ft["held_out"])["chamfer"]
+        row.update({"chamfer_rel": c["chamfer"] / c["gt_extent"], "fscore": c["fscore"]})
+    row["picture"] = picture(work / "finetune" / "before_after.png",
+                             results / "figures" / f"depth_sources_{name}_{source.replace('+', '_')}.png")
+    return row
+
+
+def exact_row(name: str, tiny: bool) -> dict | None:
+    """The exact mesh through the same scoring (procedural scenes): the target of the oracle row."""
+    from omnirecon.mesh.files import write_mesh
+    from omnirecon.mesh.geometry import ground_truth_mesh
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+
+    path, scene, proto, res = load(name, tiny)
+    gt = ground_truth_mesh(scene)
+    if gt is None:
+        return None
+    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_exact"
+    (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
+    ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
+                                     eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
+                                     out=work / "finetune", max_held_out=4))
+    return {"scene": name, "source": "exact mesh", "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
+            "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
+            **coverage_and_iou(gt, scene, ft["held_out"], False)}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.models.registry import build_model
+    from omnirecon.provenance import provenance
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--rows", nargs="+", default=None, help="SCENE:SOURCE pairs (default: every scene x source)")
+    p.add_argument("--seconds", type=float, default=60.0, help="CPU seconds of tuning for the tuned sources")
+    p.add_argument("--tiny", action="store_true", help="the demo scene at 48 px, oracle and stereo (tests)")
+    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+    if a.tiny:
+        rows = [("demo", "oracle"), ("demo", "stereo+fill")]
+    elif a.rows:
+        rows = [tuple(r.split(":", 1)) for r in a.rows]
+    else:
+        rows = [(s, src) for s in SCENES for src in SOURCES]
+    models = {"floor": build_model("floor")}
+    ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
+    if any(src == "learned" for _, src in rows):
+        models["learned"] = load_checkpoint(ckpt)[0]
+    out_file = a.out / "depth_sources.json"
+    old = json.loads(out_file.read_text()) if out_file.is_file() and not a.tiny else {}
+    keep = [r for r in old.get("rows", []) if (r["scene"], r["source"]) not in set(rows)]
+    result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), "path": "checkpoints/omnirecon-tiny"},
+              "tuning_seconds": a.seconds, "tiny": a.tiny, "rows": keep}
+    scenes_done = {r["scene"] for r in keep if r["source"] == "exact mesh"}
+    for name, source in rows:
+        if name not in scenes_done and (name == "demo"):
+            ex = exact_row(name, a.tiny)
+            scenes_done.add(name)
+            if ex:
+                result["rows"].append(ex)
+        row = run_row(name, source, a.seconds, models, a.out, a.tiny)
+        if row is None:
+            continue
+        result["rows"].append(row)
+        print(f"{name} {source}: PSNR {row['psnr']['before']:.2f} -> {row['psnr']['after'] or float('nan'):.2f} dB, "
+              f"coverage {row['coverage']:.3f}, mesh {row['mesh_cpu_seconds']:.0f} CPU-s", flush=True)
+        write_json(out_file, result)
+    write_json(out_file, result)
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,152 @@
+"""Cleaning and the face budget: the stages of the mesh pipeline after marching cubes.
+
+* :func:`mask_votes`: with object masks, keep vertices inside the (dilated) masks of at least
+  ``min_views`` views (VolRecon's ``count > 1`` of 3).
+* :func:`visible_faces`: drop faces that no (in-mask) pixel sample of the views hits first. The
+  views are rasterised (both sides of every face) at a few samples per voxel edge, by OpenGL
+  (``MeshRasterizer``) when it is there; :func:`grow_faces` restores the sliver faces between kept
+  faces that the samples miss.
+* :func:`drop_small_components`: connected components under a fraction of the largest.
+* :func:`decimate`: the face budget (quadric edge collapse, fast-simplification).
+
+What the training views see is never lost for good: the completion stage
+(:mod:`omnirecon.mesh.complete`) covers every pixel the cleaned mesh leaves uncovered.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import trimesh
+
+from omnirecon.cameras import Cameras
+
+
+def dilate_masks(masks: np.ndarray, diameter: float) -> np.ndarray:
+    """Binary dilation of ``masks # [N, H, W]`` by a disk of ``diameter`` pixels (< 2: unchanged)."""
+    from scipy.ndimage import binary_dilation
+
+    r = diameter / 2
+    if r < 1:
+        return masks
+    k = int(math.floor(r))
+    yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+    disk = (xx**2 + yy**2) <= r * r
+    return np.stack([binary_dilation(m, structure=disk) for m in masks])
+
+
+def mask_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
+    """Number of views whose mask holds the projection of each point (outside the image: no vote). ``# [P]``"""
+    proj = cameras.project(torch.from_numpy(points).to(cameras.c2w))
+    col = proj.uv[..., 0].floor().long().clamp(0, cameras.width - 1).numpy()  # [N, P]
+    row = proj.uv[..., 1].floor().long().clamp(0, cameras.height - 1).numpy()
+    inside = proj.in_image.numpy()
+    hit = masks[np.arange(len(masks))[:, None], row, col] & inside
+    return hit.sum(0)
+
+
+def keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:
+    """The faces ``keep # [F]`` (bool) of ``mesh`` with unreferenced vertices removed."""
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def visible_faces(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray | None, supersample: int = 2) -> np.ndarray:
+    """Faces hit first by some (in-mask) pixel sample of ``cameras``, ``supersample``^2 samples per
+    pixel. ``# [F]`` bool"""
+    from omnirecon.render.raster import MeshRasterizer, gl_available
+
+    seen = np.zeros(len(mesh.faces), dtype=bool)
+    rast = MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) if gl_available() else None
+    try:
+        for i in range(len(cameras)):
+            cam = cameras[i].rescaled(supersample) if supersample != 1 else cameras[i]
+            if rast is not None:
+                face = rast.rasterize(cam, normals="none").face.numpy()
+            else:
+                from omnirecon.mesh.geometry import rasterize_mesh
+
+                face = rasterize_mesh(np.asarray(mesh.vertices, dtype=np.float64), mesh.faces, cam).face
+            if masks is not None:
+                face = np.where(np.repeat(np.repeat(masks[i], supersample, 0), supersample, 1), face, -1)
+            seen[np.unique(face[face >= 0])] = True
+    finally:
+        if rast is not None:
+            rast.close()
+    return seen
+
+
+def grow_faces(mesh: trimesh.Trimesh, keep: np.ndarray, rings: int = 1) -> np.ndarray:
+    """``keep # [F]`` grown by ``rings`` rings of faces sharing an edge's two vertices with kept faces
+    (sliver faces between kept faces are often missed by the visibility samples). ``# [F]`` bool"""
+    faces = np.asarray(mesh.faces)
+    keep = keep.copy()
+    for _ in range(rings):
+        on = np.zeros(len(mesh.vertices), dtype=bool)
+        on[faces[keep].reshape(-1)] = True
+        keep |= on[faces].sum(1) >= 2
+    return keep
+
+
+def drop_small_components(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Trimesh:
+    """Keep connected components (by shared edges) with at least ``fraction`` of the largest one's faces."""
+    if len(mesh.faces) == 0 or fraction <= 0:
+        return mesh
+    groups = trimesh.graph.connected_components(mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), min_len=1)
+    sizes = np.array([len(g) for g in groups])
+    keep = np.zeros(len(mesh.faces), dtype=bool)
+    for g in (g for g, n in zip(groups, sizes) if n >= fraction * sizes.max()):
+        keep[g] = True
+    return keep_faces(mesh, keep)
+
+
+def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """``mesh`` with at most ``max_faces`` faces (quadric edge collapse, fast-simplification); unchanged
+    when it already fits or ``max_faces`` is 0."""
+    if max_faces <= 0 or len(mesh.faces) <= max_faces:
+        return mesh
+    import fast_simplification
+
+    verts = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    target = 1.0 - max_faces / len(faces)
+    for _ in range(4):  # the library stops near the target; tighten until the budget holds
+        v, f = fast_simplification.simplify(verts, faces, target_reduction=min(target, 0.999))
+        if len(f) <= max_faces:
+            break
+        target = 1.0 - (1.0 - target) * max_faces / len(f) * 0.98
+    out = trimesh.Trimesh(v, f, process=False)
+    out.remove_unreferenced_vertices()
+    return out
+
+
+def clean_mesh(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray | None, options, supersample: int = 2,
+               stages: dict | None = None) -> tuple[trimesh.Trimesh, dict]:
+    """Mask votes (with ``masks``, already dilated, ``# [N, H, W]`` bool), hidden faces
+    (``options.cull_hidden``, grown by ``options.grow_rings``) and small components, against
+    ``cameras``. Returns the mesh and the face count after each step (``stages`` gets the meshes)."""
+    counts = {}
+    cams = cameras.to(dtype=torch.float64)
+    if masks is not None and len(mesh.faces):
+        votes = mask_votes(np.asarray(mesh.vertices), cams, masks)
+        mesh = keep_faces(mesh, (votes >= min(options.min_views, len(cams)))[mesh.faces].all(1))
+        counts["in_masks"] = len(mesh.faces)
+        if stages is not None:
+            stages["in_masks"] = mesh
+    if options.cull_hidden and len(mesh.faces):
+        if options.max_faces and len(mesh.faces) > 4 * options.max_faces:  # the test's cost follows the faces
+            mesh = decimate(mesh, 2 * options.max_faces)
+            counts["pre_decimated"] = len(mesh.faces)
+        seen = visible_faces(mesh, cams, masks, supersample)
+        mesh = keep_faces(mesh, grow_faces(mesh, seen, options.grow_rings))
+        counts["visible"] = len(mesh.faces)
+        if stages is not None:
+            stages["visible"] = mesh
+    mesh = drop_small_components(mesh, options.min_component)
+    counts["components"] = len(mesh.faces)
+    if stages is not None:
+        stages["components"] = mesh
+    return mesh, counts

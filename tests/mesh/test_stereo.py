@@ -1,0 +1,74 @@
+"""Classical stereo: depth on a procedural pair against its exact depth; bad options are one-line errors."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from omnirecon.cameras import Cameras, look_at
+from omnirecon.errors import InputError
+from omnirecon.mesh.stereo import StereoOptions, stereo_depths, stereo_neighbours
+
+W, H, F = 160, 120, 150.0
+
+
+def textured_plane_views(centres: list[list[float]]):
+    """Cameras at ``centres`` looking down +z at a slanted plane ``z = 4 + 0.3 x`` with a random texture:
+    the images and the exact z-depth of every pixel."""
+    g = torch.Generator().manual_seed(0)
+    tex = torch.rand(1, 3, 64, 64, generator=g)
+    c2w = torch.cat([look_at(torch.tensor(c, dtype=torch.float64), torch.tensor(c, dtype=torch.float64)
+                               + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+                               torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64)) for c in centres])
+    n = len(centres)
+    cams = Cameras(torch.full((n,), F, dtype=torch.float64), torch.full((n,), F, dtype=torch.float64),
+                   torch.full((n,), W / 2, dtype=torch.float64), torch.full((n,), H / 2, dtype=torch.float64), c2w, W, H)
+    o, d = cams.image_rays(normalize=False)  # [N, H, W, 3], camera z of d is 1
+    # plane z = 4 + 0.3 x  ->  o_z + t d_z = 4 + 0.3 (o_x + t d_x)
+    t = (4 + 0.3 * o[..., 0] - o[..., 2]) / (d[..., 2] - 0.3 * d[..., 0])
+    p = o + t[..., None] * d
+    grid = torch.stack([p[..., 0] / 3.0, p[..., 1] / 2.5], -1).float()  # plane coordinates -> [-1, 1]
+    images = torch.nn.functional.grid_sample(tex.expand(n, -1, -1, -1), grid, mode="bilinear", align_corners=False,
+                                             padding_mode="reflection").permute(0, 2, 3, 1)
+    return images.contiguous(), cams, t.float()
+
+
+def test_stereo_depth_on_a_procedural_pair_is_within_2_percent():
+    # a rectified pair (baseline along x) and a third view above: depth at view 0 from two pairs
+    images, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0], [0.0, 0.3, 0]])
+    bounds = torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]])
+    out = stereo_depths(images, cams, [0, 1, 2], bounds)
+    depth = out["depth"][0]
+    ok = depth > 0
+    assert ok.float().mean() > 0.8  # most of the view is matched (the left band too: padding)
+    abs_rel = float(((depth[ok] - exact[0][ok]).abs() / exact[0][ok]).mean())
+    assert abs_rel < 0.02, abs_rel
+    assert out["confidence"][0][ok].min() > 0 and out["confidence"].max() <= 1
+    # the right view of the pair (matched mirrored) is as good
+    ok1 = out["depth"][1] > 0
+    assert ok1.float().mean() > 0.8
+    assert float(((out["depth"][1][ok1] - exact[1][ok1]).abs() / exact[1][ok1]).mean()) < 0.02
+
+
+def test_neighbours_skip_baselines_along_the_optical_axis():
+    _, cams, _ = textured_plane_views([[0.0, 0, 0], [0.0, 0, 0.5], [0.4, 0, 0], [0.2, 0, 0]])
+    near = stereo_neighbours(cams, [0, 1, 2, 3], StereoOptions(pairs=3))
+    assert 1 not in near[0] and near[0][0] == 3  # the forward step is no stereo pair; the short sideways one first
+
+
+@pytest.mark.parametrize("field,value", [("pairs", 0), ("block_size", 4), ("p2", 100), ("agree", 0.0),
+                                         ("min_axis_angle", math.nan), ("max_disparities", 8)])
+def test_bad_stereo_options_are_one_line_errors(field, value):
+    opts = StereoOptions(**{field: value})
+    with pytest.raises(InputError) as e:
+        opts.check()
+    assert "\n" not in str(e.value) and "stereo option" in str(e.value) and "use" in str(e.value)
+
+
+def test_stereo_time_per_view_is_recorded_for_the_bench():
+    images, cams, _ = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0]])
+    out = stereo_depths(images, cams, [0, 1], torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]]))
+    assert out["pairs"] == [[1], [0]] and np.isfinite(out["depth"].numpy()).all()
