@@ -14,7 +14,7 @@ from conftest import ROOT, require
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.scenes import load_at_resolution
-from omnirecon.mesh.build import to_input_frame
+from omnirecon.mesh.files import to_input_frame
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.rays import Sources
 from omnirecon.viewer.bundle import appearance_tables, three_unavailable_reason
