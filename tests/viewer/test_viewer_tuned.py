@@ -14,11 +14,11 @@ from conftest import ROOT, require
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.scenes import load_at_resolution
-from omnirecon.mesh.files import to_input_frame
+from omnirecon.mesh.files import read_mesh, to_input_frame
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.rays import Sources
 from omnirecon.viewer.bundle import appearance_tables, three_unavailable_reason
-from omnirecon.viewer.export import ExportOptions, export_scene, read_mesh
+from omnirecon.viewer.export import ExportOptions, export_scene
 from omnirecon.viewer.headless import find_chromium
 from omnirecon.viewer.server import ViewerServer
 from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
