@@ -303,6 +303,7 @@ def test_cli_writes_scenes(tmp_path):
     code = cli_main(["synth", "--out", str(tmp_path), "--num-scenes", "2", "--seed", "3", "--views", "3",
                      "--resolution", "16", "--workers", "1", "--rig", "forward", "--no-ground"])
     assert code == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene_00003", "scene_00004"]
+    # the scenes, and the marker that says omnirecon wrote this folder (outputs.claim)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".omnirecon-output.json", "scene_00003", "scene_00004"]
     scene = load_scene(tmp_path / "scene_00004")
     assert scene.rig == "forward" and len(scene) == 3 and not (scene.labels == GROUND_ID).any()

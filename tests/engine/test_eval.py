@@ -117,7 +117,9 @@ def test_evaluate_api_is_deterministic_without_output(synth_scene):
     (["--model", "floor", "--scenes", "{scene}", "--threads", "0"], "--threads"),
 ])
 def test_eval_bad_input_exit_2(args, message, synth_scene, tmp_path, capsys, run_cli):
-    args = [a.format(tmp=tmp_path, scene=synth_scene) for a in args]
+    inputs = tmp_path / "in"  # --out beside the inputs: an --out inside an input is refused first
+    inputs.mkdir()
+    args = [a.format(tmp=inputs, scene=synth_scene) for a in args]
     code, _, err = run_cli(["eval", *args, "--out", tmp_path / "out"])
     assert code == 2
     lines = err.strip().splitlines()
