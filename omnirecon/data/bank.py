@@ -241,6 +241,9 @@ class SceneBank:
         self.max_views = max_views
         self._cache: OrderedDict[SceneRef, PreparedScene] = OrderedDict()
         self._downscale: dict[Path, float] = {}
+        self.annotate = None
+        """Optional ``(ref, scene) -> scene`` for scenes read from disk without depths (the trainer's stereo
+        pseudo ground truth: a layer above data computes it)."""
 
     def __len__(self) -> int:
         return sum(len(s) for s in self.sources)
@@ -254,7 +257,10 @@ class SceneBank:
         if ref in self._cache:
             self._cache.move_to_end(ref)
             return self._cache[ref]
-        prepared = prepare(self._load(ref), ref.name)
+        scene = self._load(ref)
+        if self.annotate is not None and ref.seed is None and scene.depths is None:
+            scene = self.annotate(ref, scene)
+        prepared = prepare(scene, ref.name)
         self._cache[ref] = prepared
         while len(self._cache) > self.capacity:
             self._cache.popitem(last=False)

@@ -44,8 +44,9 @@ from omnirecon.data.io import write_json
 from omnirecon.engine.checkpoint import load_optimizer_state, param_digest, point_latest, read_meta, save_checkpoint
 from omnirecon.engine.distributed import DistEnv
 from omnirecon.engine.losses import LossModule, psnr
+from omnirecon.engine.pseudo_depth import StereoPseudoDepth
 from omnirecon.engine.report import save_val_picture
-from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, TrainConfig, parse_overrides
+from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, RESUMABLE_CHANGES, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
 from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
 from omnirecon.preflight import check_train_views
@@ -105,6 +106,8 @@ class Trainer:
         self.train_sources = parse_sources(cfg.data, "train", **common)
         self.bank = SceneBank(self.train_sources, list(cfg.data_weights) if cfg.data_weights else None,
                               cfg.resolution, cfg.scenes_in_memory, cfg.max_views)
+        if cfg.stereo_depth:
+            self.bank.annotate = StereoPseudoDepth()
         val_specs = cfg.val_scenes
         if val_specs is None:
             rig = next((d.split(":")[1] for d in cfg.data if d.startswith("synth:") and d.count(":") >= 1), None)
@@ -252,7 +255,7 @@ class Trainer:
     def check_resume(self, meta: dict) -> None:
         saved = meta.get("train_config", {})
         now = self.config_dict()
-        diff = [k for k in now if k not in OPERATIONAL | {"num_views_range"} and k in saved and saved[k] != now[k]]
+        diff = [k for k in now if k not in OPERATIONAL | RESUMABLE_CHANGES and k in saved and saved[k] != now[k]]
         if meta.get("preset") != self.cfg.model or diff:
             what = ", ".join(f"--{k.replace('_', '-')} {saved[k]} -> {now[k]}" for k in diff) or \
                 f"model {meta.get('preset')} -> {self.cfg.model}"
@@ -264,6 +267,9 @@ class Trainer:
         if saved.get("steps") != now["steps"]:
             self.notes.append(f"--steps changed {saved.get('steps')} -> {now['steps']}: the learning-rate schedule "
                               "changes, so the run is no longer the one a single invocation would give")
+        if saved.get("resolution", now["resolution"]) != now["resolution"]:
+            self.notes.append(f"--resolution changed {saved['resolution']} -> {now['resolution']}: the run continues on "
+                              "images of the new size (a coarse-to-fine schedule, e.g. 64 then 128)")
         if saved.get("num_views_range") != now["num_views_range"]:
             self.notes.append(f"--num-views-range changed {saved.get('num_views_range')} -> {now['num_views_range']}: "
                               "the run continues on a different view-count distribution")

@@ -29,6 +29,9 @@ FAMILY_DEFAULTS = {
 # Fields that may change on --resume without breaking the run's arithmetic.
 OPERATIONAL = {"steps", "stop_at", "time_budget", "cpu_budget", "resume", "threads", "device", "val_every", "val_scenes",
                "val_views", "ckpt_every", "keep", "log_every", "out", "cache", "scenes_in_memory", "progress"}
+RESUMABLE_CHANGES = {"num_views_range", "resolution"}
+"""Training flags a ``--resume`` may change (with a note): the view-count distribution, and the image size
+(training at 64 px, then continuing at 128)."""
 
 
 @dataclass
@@ -85,6 +88,10 @@ class TrainConfig(DeviceConfig):
     depth_weight: float | None = None
     """Weight of the L1 z-depth loss (both passes) on rays with known ground-truth depth in [near, far]
     (procedural scenes have depths; None: omnirecon 0.1, gpnr/ibrnet 0)."""
+    stereo_depth: bool = False
+    """Pseudo ground truth for real scenes without depths: confident classical-stereo depth
+    (:func:`omnirecon.mesh.stereo.stereo_depths` among the scene's training views, at the training
+    resolution, kept where every pair agrees), supervised like known depth with ``--depth-weight``."""
     mask_weight: float = 0.0
     """Weight of the mask loss: squared error of the accumulated opacity (both passes) against the object
     mask, on scenes that have masks and for models that render ``acc`` (IBRNet, Omni-Recon). Use it where

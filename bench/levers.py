@@ -1,0 +1,297 @@
+"""Training levers at a small fixed CPU budget: each lever against its baseline, same seed, data, schedule and
+budget (process CPU seconds, 1 thread), one run at a time. Scored on validation data only: procedural
+validation seeds (901000+) and the held-out views of the real training scenes (the test split / every 8th
+view, which training never draws). The final held-out scenes (fern, dtu_scan24/37, seeds 900000+) are not
+looked at here.
+
+    python bench/levers.py --runs ibrnet_vgg16 gpnr_vgg16 gpnr_scratch --cpu-budget 100
+    python bench/levers.py --eval-only              # rescore finished runs, rewrite the JSON
+    python bench/levers.py --shipped                # also score the shipped checkpoints the same way
+
+Every run: ``--schedule constant --warmup 50`` (a run cut by its CPU budget is at the same point of the
+schedule as its rival whatever its cost per step), K drawn from [3, 10], 8 procedural scenes per rig and the
+real training scenes. Runs live in outputs/train/lever_<name>; results go to bench/results/levers.json
+(provenance header) and a Markdown table on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from train_tiny import CACHE, REAL, SEED, SHARED  # noqa: E402
+
+SYNTH = ["object", "frontal", "forward"]
+SYNTH_SCENES = 8
+BASE_WEIGHTS = [2.0, 2.0, 2.0] + [1.0] * len(REAL)
+VAL_SCENES = {"object": (901000, 901001), "frontal": (901002,), "forward": (901004,)}
+"""Procedural validation seeds (never trained on, never the evaluation seeds 900000+)."""
+REALISM = dict(specular=0.4, light_variation=1.0, noise=0.02, exposure=0.3, white_balance=0.05, vignetting=0.3, blur=0.6)
+"""``omnirecon synth`` realism options of the realism lever (the values its help suggests)."""
+
+LEVERS: dict[str, dict] = {
+    "ibrnet_vgg16": dict(model="ibrnet-tiny", encoder="vgg16", base=None,
+                         what="ibrnet-tiny + frozen VGG16 (baseline of the data, loss and resolution levers)"),
+    "gpnr_scratch": dict(model="gpnr-tiny", encoder="scratch", base=None, what="gpnr-tiny, encoder from scratch"),
+    "gpnr_vgg16": dict(model="gpnr-tiny", encoder="vgg16", base="gpnr_scratch", what="gpnr-tiny + frozen VGG16"),
+    "omnirecon_scratch": dict(model="omnirecon-tiny", encoder="scratch", base=None,
+                              what="omnirecon-tiny, encoder from scratch"),
+    "omnirecon_vgg16": dict(model="omnirecon-tiny", encoder="vgg16", base="omnirecon_scratch",
+                            what="omnirecon-tiny + frozen VGG16"),
+    "ibrnet_vgg16_depth": dict(model="ibrnet-tiny", encoder="vgg16", base="ibrnet_vgg16", depth_weight=0.1,
+                               what="+ exact depth on procedural scenes (--depth-weight 0.1)"),
+    "ibrnet_vgg16_stereo": dict(model="ibrnet-tiny", encoder="vgg16", base="ibrnet_vgg16_depth", depth_weight=0.1,
+                                stereo_depth=True,
+                                what="+ confident stereo depth as pseudo-GT on the real scenes (--stereo-depth)"),
+    "ibrnet_vgg16_realism": dict(model="ibrnet-tiny", encoder="vgg16", base="ibrnet_vgg16", realism=True,
+                                 what="+ synth realism (specular, light, noise, exposure, WB, vignetting, blur)"),
+    "ibrnet_vgg16_real3": dict(model="ibrnet-tiny", encoder="vgg16", base="ibrnet_vgg16", real_weight=3.0,
+                               what="real-scene weight 1 -> 3 (procedural 2 per rig)"),
+    "ibrnet_vgg16_64to128": dict(model="ibrnet-tiny", encoder="vgg16", base="ibrnet_vgg16", fork=0.5, resolution=128,
+                                 what="first half of the budget at 64 px (the baseline's), second half at 128 px"),
+}
+
+
+def run_dir(name: str) -> Path:
+    return ROOT / "outputs" / "train" / f"lever_{name}"
+
+
+def synth_refs(resolution: int) -> list:
+    from omnirecon.data.bank import parse_sources
+
+    return parse_sources([f"synth:{r}:{SYNTH_SCENES}" for r in SYNTH], "train", seed=SEED, synth_scenes=SYNTH_SCENES,
+                         cache=CACHE, resolution=resolution, synth_views=40)
+
+
+def prepare(resolution: int, realism: bool) -> list[Path]:
+    """Generate the procedural training scenes (before the clock starts); with ``realism`` the same seeds with
+    the realism options, in their own folder (one folder per rig, passed as data)."""
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+    folders = []
+    for rig, refs in zip(SYNTH, synth_refs(resolution)):
+        folder = CACHE.parent / "synth_realism" / f"{rig}_{resolution}" if realism else refs[0].path.parent
+        for r in refs:
+            if not (folder / r.path.name).is_dir():
+                generate_scene(folder, r.seed, SynthOptions(rig=rig, views=40, resolution=resolution,
+                                                            **(REALISM if realism else {})))
+        folders.append(folder)
+    return folders
+
+
+def data_args(lever: dict) -> list[str]:
+    real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
+    synth = [str(f) for f in prepare(64, True)] if lever.get("realism") else \
+        [f"synth:{r}:{SYNTH_SCENES}" for r in SYNTH]
+    weights = [2.0] * len(synth) + [lever.get("real_weight", 1.0)] * len(real)
+    return ["--data", *synth, *real, "--data-weights", *map(str, weights)]
+
+
+def train_cmd(name: str, budget: float, resolution: int = 64) -> list[str]:
+    lever = LEVERS[name]
+    cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", lever["model"], *data_args(lever),
+           "--resolution", str(resolution), "--steps", "100000", "--schedule", "constant", "--warmup", "50",
+           "--num-views-range", "3", "10", "--cpu-budget", str(budget), "--threads", "1", "--seed", str(SEED),
+           "--synth-scenes", str(SYNTH_SCENES), "--cache", str(CACHE), "--val-every", "0", "--ckpt-every", "0",
+           "--out", str(run_dir(name)), "--no-progress"]
+    if lever["encoder"] != "scratch":
+        cmd += ["--model-overrides", f"encoder={lever['encoder']}"]
+    if "depth_weight" in lever:
+        cmd += ["--depth-weight", str(lever["depth_weight"])]
+    if lever.get("stereo_depth"):
+        cmd.append("--stereo-depth")
+    if (run_dir(name) / "checkpoints" / "latest").exists():
+        cmd.append("--resume")
+    return cmd
+
+
+def run(cmd: list[str], log: Path) -> None:
+    print(" ".join(cmd), flush=True)
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as f:
+        subprocess.run(cmd, check=True, cwd=ROOT, stdout=f, stderr=subprocess.STDOUT)
+
+
+def train(name: str, budget: float) -> None:
+    """Train one lever run to ``budget`` CPU-s. A ``fork`` lever copies its baseline's checkpoint at
+    ``fork x budget`` (the baseline is trained to that point first) and continues it at its own resolution."""
+    lever = LEVERS[name]
+    out = run_dir(name)
+    final = out / "checkpoints" / "final"
+    if final.is_dir() and json.loads((final / "meta.json").read_text())["extra"]["cpu_s"] >= budget - 1:
+        return
+    if lever.get("resolution", 64) != 64:
+        prepare(lever["resolution"], bool(lever.get("realism")))
+    if lever.get("fork") and not (out / "checkpoints").is_dir():
+        shutil.copytree(fork_point(lever["base"], lever["fork"] * budget), out, symlinks=True)
+    forks = [f for f, lv in LEVERS.items() if lv.get("base") == name and lv.get("fork")]
+    for f in forks:  # the forks' starting point, before this run goes past it
+        fork_point(name, LEVERS[f]["fork"] * budget)
+    run(train_cmd(name, budget, lever.get("resolution", 64)), out.with_suffix(".log"))
+
+
+def cpu_s(run: Path) -> float:
+    latest = run / "checkpoints" / "latest"
+    return json.loads((latest / "meta.json").read_text())["extra"]["cpu_s"] if latest.exists() else 0.0
+
+
+def fork_point(name: str, at: float) -> Path:
+    """A copy of run ``name`` at ``at`` CPU-s (trained there first), kept as outputs/train/lever_<name>_at<at>."""
+    snap = run_dir(name).with_name(f"lever_{name}_at{at:g}")
+    if not snap.is_dir():
+        if cpu_s(run_dir(name)) > at + 1:
+            raise SystemExit(f"{run_dir(name)} is past {at:g} CPU-s: delete it, or the fork, and rerun")
+        run(train_cmd(name, at), run_dir(name).with_suffix(".log"))
+        shutil.copytree(run_dir(name), snap, symlinks=True)
+    return snap
+
+
+def val_scenes() -> list[str]:
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+    out = []
+    for rig, seeds in VAL_SCENES.items():
+        for seed in seeds:
+            out.append(str(generate_scene(ROOT / "outputs" / "cache" / "lever_val" / rig, seed,
+                                          SynthOptions(rig=rig, views=40, resolution=64))))
+    return out + [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
+
+
+def evaluate(ckpt: Path, out: Path) -> dict:
+    """``omnirecon eval`` (cpu protocol, K = 3 and 10) on the validation scenes; PSNR per scene and K."""
+    if not (out / "results.json").is_file():
+        cmd = [sys.executable, "-m", "omnirecon.cli", "eval", "--ckpt", str(ckpt), "--scenes", *val_scenes(),
+               "--protocol-set", "cpu", "--threads", "1", "--out", str(out), "--no-save-images"]
+        t = time.process_time()
+        run(cmd, out.with_suffix(".log"))
+        print(f"  eval {time.process_time() - t:.0f} s", flush=True)
+    res = json.loads((out / "results.json").read_text())
+    scenes = {}
+    for s in res["scenes"]:
+        key = f"synth:{s['name']}" if s["name"].startswith("scene_") else s["name"]
+        scenes[key] = {k: round(v["mean"]["psnr"], 3) for k, v in s["settings"].items()}
+    return {"scenes": scenes, "load": res.get("provenance", {}).get("loadavg_1min")}
+
+
+def summarize(scenes: dict) -> dict:
+    out = {}
+    for group, pick in (("procedural", lambda n: n.startswith("synth:")), ("real", lambda n: not n.startswith("synth:"))):
+        for k in ("3", "10"):
+            vals = [v[k] for n, v in scenes.items() if pick(n) and k in v]
+            out[f"{group}_{k}"] = round(sum(vals) / len(vals), 3) if vals else None
+    return out
+
+
+def row(name: str) -> dict:
+    final = run_dir(name) / "checkpoints" / "final"
+    meta = json.loads((final / "meta.json").read_text())
+    ev = evaluate(final, run_dir(name) / "eval_val")
+    return {"what": LEVERS[name]["what"], "base": LEVERS[name]["base"], "model": LEVERS[name]["model"],
+            "step": meta["step"], "cpu_s": round(meta["extra"]["cpu_s"], 1), "command": " ".join(
+                train_cmd(name, 0)[1:]).replace("--cpu-budget 0", "--cpu-budget B"),
+            **ev, **summarize(ev["scenes"])}
+
+
+def shipped_row(model: str) -> dict:
+    ckpt = ROOT / "checkpoints" / model
+    card = json.loads((ckpt / "card.json").read_text()) if (ckpt / "card.json").is_file() else {}
+    ev = evaluate(ckpt, ROOT / "outputs" / "train" / "lever_shipped" / model)
+    return {"what": f"shipped {model}", "model": model, "step": card.get("steps"), "cpu_s": card.get("cpu_seconds"),
+            **ev, **summarize(ev["scenes"])}
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", nargs="+", default=list(LEVERS), choices=list(LEVERS))
+    p.add_argument("--cpu-budget", type=float, default=100.0)
+    p.add_argument("--eval-only", action="store_true", help="score finished runs only")
+    p.add_argument("--shipped", nargs="*", default=None, help="also score these shipped checkpoints")
+    p.add_argument("--extra", nargs="*", default=[], metavar="NAME=CKPT",
+                   help="also score other checkpoints (e.g. a continued run) under a name")
+    a = p.parse_args(argv)
+    dest = ROOT / "bench" / "results" / "levers.json"
+    result = json.loads(dest.read_text()) if dest.is_file() else {"runs": {}, "shipped": {}, "extra": {}}
+    for name in a.runs:
+        if not a.eval_only:
+            train(name, a.cpu_budget)
+        if (run_dir(name) / "checkpoints" / "final").is_dir():
+            result["runs"][name] = row(name)
+            save(result, dest, a.cpu_budget)
+    for model in a.shipped or []:
+        result["shipped"][model] = shipped_row(model)
+        save(result, dest, a.cpu_budget)
+    for item in a.extra:
+        name, ckpt = item.split("=", 1)
+        meta = json.loads((Path(ckpt) / "meta.json").read_text())
+        ev = evaluate(Path(ckpt), ROOT / "outputs" / "train" / "lever_extra" / name)
+        result["extra"][name] = {"checkpoint": ckpt, "step": meta["step"], "cpu_s": meta["extra"].get("cpu_s"),
+                                 **ev, **summarize(ev["scenes"])}
+        save(result, dest, a.cpu_budget)
+    print(table(result))
+
+
+def save(result: dict, dest: Path, budget: float) -> None:
+    from omnirecon.provenance import provenance
+
+    result.update(provenance=provenance(SEED), cpu_budget=budget, val_scenes={k: list(v) for k, v in VAL_SCENES.items()},
+                  real_val=REAL, realism=REALISM)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dest.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, indent=1, default=str))
+    tmp.replace(dest)
+
+
+def delta(r: dict, b: dict | None, key: str) -> str:
+    if r.get(key) is None:
+        return "-"
+    if b is None or b.get(key) is None:
+        return f"{r[key]:.2f}"
+    return f"{r[key]:.2f} ({r[key] - b[key]:+.2f})"
+
+
+def table(result: dict) -> str:
+    """Markdown: mean PSNR (dB, cpu protocol, whole image) on the procedural validation seeds and on the held-out
+    views of the real training scenes, K = 3 and 10; in brackets the change against the lever's baseline."""
+    keys = ("procedural_3", "procedural_10", "real_3", "real_10")
+    lines = ["| run | lever | steps | CPU-s | procedural K=3 | K=10 | real (held-out views) K=3 | K=10 |",
+             "|---|---|---|---|---|---|---|---|"]
+    runs = result.get("runs", {})
+    for name, r in runs.items():
+        b = runs.get(r.get("base") or "")
+        lines.append(f"| {name} | {r['what']} | {r['step']} | {r['cpu_s']:.0f} | "
+                     + " | ".join(delta(r, b, k) for k in keys) + " |")
+    for name, r in {**result.get("shipped", {}), **result.get("extra", {})}.items():
+        cpu = f"{r['cpu_s']:.0f}" if r.get("cpu_s") is not None else "-"
+        lines.append(f"| {name} | {r.get('what', r.get('checkpoint', ''))} | {r.get('step')} | {cpu} | "
+                     + " | ".join(delta(r, None, k) for k in keys) + " |")
+    return "\n".join(lines)
+
+
+def section(r: dict) -> str:
+    """The BENCHMARKS.md section of bench/results/levers.json."""
+    from omnirecon.provenance import markdown_header
+
+    val = ", ".join(f"{rig} {', '.join(map(str, seeds))}" for rig, seeds in r["val_scenes"].items())
+    return "\n".join([
+        "## Training levers at a small CPU budget (`bench/levers.py`)", "",
+        f"Each lever trained from scratch for {r['cpu_budget']:.0f} process CPU-seconds (1 thread, seed 0, constant "
+        "learning rate after a 50-step warm-up, K drawn from [3, 10], 8 procedural scenes per rig plus the real "
+        f"training scenes {', '.join(r['real_val'])}), against its baseline at the same budget (in brackets: the "
+        "difference). Scored with `omnirecon eval --protocol-set cpu` (64 px, whole image, PSNR in dB) on "
+        f"validation data only: procedural validation seeds ({val}) and the held-out views of the real training "
+        "scenes (test split / every 8th view; never trained on). fern, dtu_scan24/37 and the evaluation seeds are "
+        "not looked at. Realism options: " + ", ".join(f"`--{k.replace('_', '-')} {v}`" for k, v in r["realism"].items())
+        + ". The shipped checkpoints and the continued run are scored the same way below the lever rows (their own "
+        "budgets).", "",
+        table(r), "", markdown_header(r["provenance"]), ""])
+
+
+if __name__ == "__main__":
+    main()
