@@ -1,7 +1,7 @@
 """Zero-shot 3-D understanding: predict-then-blend vs render-then-predict with the shipped checkpoints.
 
-    python bench/lift.py            # every shipped model, 10 held-out procedural scenes, K = 3
-    python bench/lift.py --tiny     # one scene, one target (a smoke run)
+    python -m bench lift            # every shipped model, 10 held-out procedural scenes, K = 3
+    python -m bench lift --tiny     # one scene, one target (a smoke run)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+, never trained on) under the ``cpu``
 protocol set of ``omnirecon.engine.evaluate`` (64 px, 2 targets per scene), K = 3 nearest pool views as
@@ -184,6 +184,3 @@ def main(argv: list[str] | None = None) -> None:
     (a.out / "lift.md").write_text("\n".join(table) + "\n")
     print("\n".join(table))
 
-
-if __name__ == "__main__":
-    main()

@@ -1,8 +1,8 @@
 """Lifting, part 2, measured with ``checkpoints/omnirecon-tiny``: the mesh path vs the volumetric path,
 parameter-efficient tuning, the embedding path and the edits.
 
-    python bench/lift_extra.py            # 3 held-out procedural scenes (~10 CPU-minutes at 1 thread)
-    python bench/lift_extra.py --tiny     # one scene, one target, few steps (a smoke run)
+    python -m bench lift_extra            # 3 held-out procedural scenes (~10 CPU-minutes at 1 thread)
+    python -m bench lift_extra --tiny     # one scene, one target, few steps (a smoke run)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+) under the ``cpu`` protocol set (64 px, 2
 targets per scene), K = 3 nearest pool views as sources. Per target:
@@ -316,6 +316,3 @@ def main(argv: list[str] | None = None) -> None:
     print("\n".join(result["table"]))
     print(f"{result['seconds']:.0f} s; wrote {a.out / 'lift_extra.json'}")
 
-
-if __name__ == "__main__":
-    main()
