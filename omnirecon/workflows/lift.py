@@ -146,8 +146,30 @@ class LiftConfig(MachineConfig):
             raise InputError(str(e), None, "install what it names, or pick another --predictor") from e
 
     def _scene(self, model, es, folder: Path, device: str) -> dict:
-        import torch
+        scene = es.scene
+        targets, pool = self._targets_and_pool(es)
+        sources = {t: select_sources(scene, scene.cameras[t], pool, self.num_views) for t in targets}
+        pred = self._predictor(es, pool, {v for s in sources.values() for v in s})
+        mesh, mesh_info = None, None
+        if self.path == "mesh":
+            mesh, mesh_source = scene_mesh(model, scene, sorted({v for s in sources.values() for v in s}), self.mesh)
+            mesh_info = {"source": mesh_source, "faces": len(mesh.faces), "visibility": self.visibility}
+        rows = []
+        for t in targets:
+            src = sources[t]
+            maps = pred.predict_views(scene.images[src], src)
+            lifted = self._lift(model, mesh, scene, t, src, maps, pred, device)
+            lift_map = lifted.maps["p"]
+            rtp = None if pred.needs_view else pred(lifted.rgb)
+            metrics = X.score_target(pred, lift_map, rtp, scene, t)
+            rows.append({"target": t, "sources": src, **metrics})
+            scale = float(maps.max()) if pred.name == "oracle-depth" else None
+            _write_pictures(folder / f"{t:03d}", scene, t, pred, lifted, rtp, scale)
+        return {"name": es.name, "path": None if es.path is None else str(es.path), "predictor": pred.description,
+                "mesh": mesh_info, "targets": rows, "mean": X.mean_rows(rows)}
 
+    def _targets_and_pool(self, es) -> tuple[list[int], list[int]]:
+        """``(targets, source pool)``: the protocol's, or --targets and every other view."""
         scene = es.scene
         targets, pool = targets_and_pool(es.protocol, scene)
         if self.targets:
@@ -160,54 +182,42 @@ class LiftConfig(MachineConfig):
         if len(pool) < self.num_views:
             raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {self.num_views}",
                              es.path, "lower --num-views")
-        sources = {t: select_sources(scene, scene.cameras[t], pool, self.num_views) for t in targets}
-        pred = self._predictor(es, pool, {v for s in sources.values() for v in s})
-        mesh_info = None
+        return targets, pool
+
+    def _lift(self, model, mesh, scene, t: int, src: list[int], maps, pred, device: str):
+        """The predictor's ``maps`` of the sources blended into target ``t`` (volumetric or through ``mesh``)."""
+        import torch
+
         if self.path == "mesh":
+            bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+            opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
+            with MeshRenderer(model, mesh, Sources.from_scene(scene, src).to(device), opts) as renderer:
+                return render_lifted_mesh(renderer, scene.cameras[t], {"p": (maps, pred.kind)})
+        with torch.no_grad():
+            feats = model.encode(Sources.from_scene(scene, src).to(device))
+        return render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
 
-            mesh, mesh_source = scene_mesh(model, scene, sorted({v for s in sources.values() for v in s}), self.mesh)
-            mesh_info = {"source": mesh_source, "faces": len(mesh.faces), "visibility": self.visibility}
-        rows = []
-        for t in targets:
-            src = sources[t]
-            maps = pred.predict_views(scene.images[src], src)
-            if self.path == "mesh":
 
-                bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-                opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
-                with MeshRenderer(model, mesh, Sources.from_scene(scene, src).to(device), opts) as renderer:
-                    lifted = render_lifted_mesh(renderer, scene.cameras[t], {"p": (maps, pred.kind)})
-            else:
-                with torch.no_grad():
-                    feats = model.encode(Sources.from_scene(scene, src).to(device))
-                lifted = render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
-            lift_map = lifted.maps["p"]
-            rtp = None if pred.needs_view else pred(lifted.rgb)
-            metrics = X.score_target(pred, lift_map, rtp, scene, t)
-            rows.append({"target": t, "sources": src, **metrics})
-            stem = f"{t:03d}"
-            img = scene.images[t]
-            scale = float(maps.max()) if pred.name == "oracle-depth" else None
-            pic = X.colourise(lift_map, pred.kind, pred.name, scale)
-            tiles = [img.numpy(), lifted.rgb.numpy(), pic]
-            write_image(folder / f"{stem}_lift.png", pic)
-            write_image(folder / f"{stem}_overlay.png", X.overlay(img, pic))
-            if rtp is not None:
-                rp = X.colourise(rtp, pred.kind, pred.name, scale)
-                write_image(folder / f"{stem}_render_predict.png", rp)
-                tiles.append(rp)
-            truth = pred(img, t)  # the predictor on the true image (oracles: the ground truth itself)
-            tp = X.colourise(truth, pred.kind, pred.name, scale)
-            write_image(folder / (f"{stem}_gt.png" if pred.needs_view and pred.name != "noisy-labels"
-                                  else f"{stem}_input.png"), tp)
-            tiles.append(tp)
-            if pred.name == "noisy-labels":
-                clean = X.colourise(X.torch_image(np.eye(pred.channels)[_classes(scene, t, pred)]), "probabilities")
-                write_image(folder / f"{stem}_gt.png", clean)
-                tiles.append(clean)
-            write_image(folder / f"{stem}_panel.png", X.panel(tiles))
-        return {"name": es.name, "path": None if es.path is None else str(es.path), "predictor": pred.description,
-                "mesh": mesh_info, "targets": rows, "mean": X.mean_rows(rows)}
+def _write_pictures(stem: Path, scene, t: int, pred, lifted, rtp, scale: float | None) -> None:
+    """``<view>_lift.png``, ``_overlay.png``, ``_render_predict.png``, ``_gt.png`` / ``_input.png`` and ``_panel.png``."""
+    img = scene.images[t]
+    pic = X.colourise(lifted.maps["p"], pred.kind, pred.name, scale)
+    tiles = [img.numpy(), lifted.rgb.numpy(), pic]
+    write_image(Path(f"{stem}_lift.png"), pic)
+    write_image(Path(f"{stem}_overlay.png"), X.overlay(img, pic))
+    if rtp is not None:
+        rp = X.colourise(rtp, pred.kind, pred.name, scale)
+        write_image(Path(f"{stem}_render_predict.png"), rp)
+        tiles.append(rp)
+    truth = pred(img, t)  # the predictor on the true image (oracles: the ground truth itself)
+    tp = X.colourise(truth, pred.kind, pred.name, scale)
+    write_image(Path(f"{stem}_gt.png" if pred.needs_view and pred.name != "noisy-labels" else f"{stem}_input.png"), tp)
+    tiles.append(tp)
+    if pred.name == "noisy-labels":
+        clean = X.colourise(X.torch_image(np.eye(pred.channels)[_classes(scene, t, pred)]), "probabilities")
+        write_image(Path(f"{stem}_gt.png"), clean)
+        tiles.append(clean)
+    write_image(Path(f"{stem}_panel.png"), X.panel(tiles))
 
 
 def _classes(scene, t, pred):
