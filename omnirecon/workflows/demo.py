@@ -65,7 +65,7 @@ def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
 
 
 def demo_scene(cfg: DemoConfig) -> Path:
-    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated once)."""
+    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated into ``<out>/scene``)."""
     from omnirecon.data import detect_format  # lazy: demo --help stays fast
     from omnirecon.data.synth.generate import SynthOptions, generate_scene  # lazy: demo --help stays fast
 
@@ -79,10 +79,9 @@ def demo_scene(cfg: DemoConfig) -> Path:
 def run_demo(cfg: DemoConfig) -> dict:
     """Run the demo; returns ``{"report", "lines", "numbers"}`` (numbers are also in ``demo.json``)."""
     from omnirecon.engine.machine import set_threads  # lazy: demo --help stays fast
+    from omnirecon.options import check_options  # lazy: demo --help stays fast
 
-    if cfg.frames < 1 or cfg.resolution < 16 or cfg.num_views < 2:
-        raise InputError("--frames must be >= 1, --resolution >= 16 and --num-views >= 2", None,
-                         "use e.g. --frames 24 --resolution 96 --num-views 5")
+    check_options("demo", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     set_threads(cfg.threads)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from omnirecon.chunk import pick_chunk
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
-from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.protocols import given_targets
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
@@ -34,12 +34,14 @@ from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs,
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
+from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class EditConfig(ThreadsConfig):
+class EditConfig(ThreadsConfig, FolderVerb):
     """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
     before/after, and delete or recolour its faces on the baked mesh (GLB)."""
 
@@ -93,19 +95,18 @@ class EditConfig(ThreadsConfig):
     """Rays rendered per chunk (edits run on the CPU; default: from the free memory, at most 4096; a note
     when above 25% of RAM)."""
 
-    def run(self) -> list[str]:
-        """Run the command; returns the lines to print."""
+    command: ClassVar[str] = "edit"
+
+    def default_out(self) -> Path:
+        return Path("outputs/edit") / f"{Path(self.ckpt).name}_{self.action}"
+
+    def run(self, folder: Path | None = None) -> list[str]:
         lines: list[str] = []
         self.chunk = pick_chunk(self.chunk)  # None: from the free memory
 
-        if self.num_views < 1:
-            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
+        check_options("edit", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         if (self.label is None) == (self.click is None):
             raise InputError("give exactly one of --label or --click", None, "e.g. --label 2 or --click 30 20")
-        if not all(0.0 <= c <= 1.0 for c in self.colour):
-            raise InputError(f"--colour must be RGB in [0, 1], got {self.colour}", None, "e.g. --colour 0.9 0.1 0.8")
-        if self.dilation < 0:
-            raise InputError(f"--dilation must be >= 0, got {self.dilation}", None, "use e.g. 1")
         set_threads(self.threads)
         model, info = load_model(self.ckpt, None, "cpu")
         if not supports_lifting(model):
@@ -114,16 +115,15 @@ class EditConfig(ThreadsConfig):
         if (self.path == "mesh" or self.geometry) and not isinstance(model, OmniRecon):
             raise InputError(f"the mesh path and the mesh edit need Omni-Recon, got {info['name']}", self.ckpt,
                              "use an omnirecon checkpoint, or --path volumetric --no-geometry")
-        out = self.out or Path("outputs/edit") / f"{Path(self.ckpt).name}_{self.action}"
-        if out.exists() and not out.is_dir():
-            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+        out = self.out or self.default_out()
+        folder = folder or out
         es = prepare_scenes([self.scene], 1, self.cache, protocol_set=self.protocol_set)[0]
         if es.scene.labels is None:
             raise InputError("the scene has no label maps", es.path, "use a procedural scene (synth:eval or "
                              "`omnirecon synth`)")
-        result = {"model": info, **run_edit(self, model, es, out / es.name)}
+        result = {"model": info, **run_edit(self, model, es, folder / es.name)}
 
-        write_json(out / "edit.json", {"provenance": provenance(seed=0), **result})
+        write_json(folder / "edit.json", {"provenance": provenance(seed=0), **result})
         r = result
         lines.append(f"{r['action']} label {r['label']} in {len(r['edited_views'])} source views; "
               + ", ".join(f"view {t['target']}: mean change {t['mean_change_inside']:.3f} on the object's lifted pixels, "
@@ -182,27 +182,11 @@ def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
             "after | first edited source", "targets": rows, "mesh": mesh_rec if cfg.geometry else None}
 
 
-def _pool(cfg: EditConfig, es) -> tuple[list[int], list[int]]:
-    """``(targets, source pool)``: the protocol's, or --targets and every other view."""
-    scene = es.scene
-    targets, pool = targets_and_pool(es.protocol, scene)
-    if cfg.targets:
-        bad = [t for t in cfg.targets if not 0 <= t < len(scene)]
-        if bad:
-            raise InputError(f"--targets {bad} outside the views 0..{len(scene) - 1}", es.path, "pick view indices")
-        targets = list(cfg.targets)
-        pool = [v for v in range(len(scene)) if v not in set(targets)]
-    if len(pool) < cfg.num_views:
-        raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {cfg.num_views}", es.path,
-                         "lower --num-views")
-    return targets, pool
-
-
 def _views(cfg: EditConfig, es) -> tuple[list[int], list[int], dict[int, list[int]], list[int]]:
     """``(targets, pool, sources per target, face views)``; the face views (the sources, then the pool views nearest
     the first target) only when a mesh is needed."""
     scene = es.scene
-    targets, pool = _pool(cfg, es)
+    targets, pool = given_targets(es.protocol, scene, cfg.targets, cfg.num_views, es.path)
     sources = {t: select_sources(scene, scene.cameras[t], pool, cfg.num_views) for t in targets}
     used = sorted({v for s in sources.values() for v in s})
     face_views = []

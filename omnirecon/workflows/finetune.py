@@ -52,7 +52,7 @@ from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
-from omnirecon.preflight import check_resolution
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.render.raster import MeshRasterizer
@@ -269,17 +269,6 @@ class Setup:
     train_px: list[ViewPixels]
     held_px: list[ViewPixels]
     val_px: list[ViewPixels]
-
-
-def check_options(cfg: FinetuneConfig) -> None:
-    if not cfg.seconds > 0:
-        raise InputError(f"--seconds must be positive, got {cfg.seconds}", None, "use e.g. 60")
-    if cfg.rays < 1 or not cfg.lr > 0:
-        raise InputError("--rays must be >= 1 and --lr positive", None, "use e.g. --rays 2048 --lr 5e-4")
-    if cfg.reg < 0 or not cfg.val_every > 0 or cfg.val_views < 0 or not cfg.tune:
-        raise InputError("--reg must be >= 0, --val-every positive, --val-views >= 0 and --tune non-empty", None,
-                         "use e.g. --reg 0 --val-every 2 --val-views 2 --tune encoder appearance")
-    check_resolution(cfg.resolution)
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -518,7 +507,9 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
     ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
-    check_options(cfg)
+    check_options("finetune", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+    if not cfg.tune:
+        raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
     set_threads(cfg.threads)
     s = prepare(cfg, mesh)
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)

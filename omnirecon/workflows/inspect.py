@@ -29,6 +29,7 @@ from omnirecon.data import Format, ReadOptions, load_scene
 from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 
 
 @dataclass
@@ -52,18 +53,25 @@ class InspectConfig:
     """How many neighbouring view pairs the consistency scores average over."""
     seed: int = 0
     """Seed for pixel sampling in the scores."""
-def run_inspect(cfg: InspectConfig) -> dict:
+def default_out(cfg: InspectConfig) -> Path:
+    """The output folder when --out is not given."""
+    return Path("outputs/inspect") / Path(cfg.path).resolve().name
+
+
+def run_inspect(cfg: InspectConfig, folder: Path | None = None) -> dict:
+    """Validate and summarise the scene; pictures and ``summary.json`` go to ``folder`` (default: --out; the
+    command passes the temporary twin that :func:`omnirecon.outputs.claim` swaps in), messages name --out."""
     from rich.console import Console
     from rich.table import Table
 
     console = Console()
-    if cfg.downscale <= 0:
-        raise InputError(f"--downscale must be positive, got {cfg.downscale}", fix="pass e.g. --downscale 2")
+    check_options("inspect", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     scene = load_scene(cfg.path, cfg.format, ReadOptions(downscale=cfg.downscale, max_views=cfg.max_views))
     if len(scene) < 2:
         raise InputError(f"scene has {len(scene)} view(s); inspection needs at least 2", cfg.path,
                          "add views, or raise --max-views")
-    out = cfg.out or Path("outputs/inspect") / Path(cfg.path).resolve().name
+    out = cfg.out or default_out(cfg)
+    folder = folder or out
     summary = scene.summary()
     pairs = neighbour_pairs(scene, cfg.num_pairs)
     a, b = cfg.pair if cfg.pair is not None else pairs[0]
@@ -80,9 +88,9 @@ def run_inspect(cfg: InspectConfig) -> dict:
         scores["hull_fraction"] = visual_hull_score(scene, g)
     summary["consistency"] = scores
 
-    draw_cameras(scene, out / "cameras.png")
-    draw_epipolar(scene, a, b, out / "epipolar.png")
-    write_json(out / "summary.json", summary)
+    draw_cameras(scene, folder / "cameras.png")
+    draw_epipolar(scene, a, b, folder / "epipolar.png")
+    write_json(folder / "summary.json", summary)
 
     table = Table(title=f"{scene.path}", show_header=False)
     for k, v in summary.items():

@@ -27,7 +27,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
 from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
-from omnirecon.preflight import check_resolution
+from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
@@ -108,9 +108,7 @@ class MeshConfig(MachineConfig):
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
     cfg.mesh_options().check()  # bad options fail before any work
-    check_resolution(cfg.resolution)
-    if cfg.num_views < 1:
-        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
+    check_options("mesh", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     outs = check_mesh_paths(cfg.out) if cfg.out else None
     set_threads(cfg.threads)
     device = pick_device(cfg.device)

@@ -39,6 +39,7 @@ from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.workflows.export import ExportConfig, run_export
@@ -96,9 +97,7 @@ def photo_side(scene_path: Path, cap: int = 512) -> int:
 
 def run_reconstruct(cfg: ReconstructConfig) -> dict:
     """Run every stage; returns the record written to ``reconstruct.json`` (plus ``lines``)."""
-    if cfg.finetune_seconds < 0 or cfg.frames < 2 or cfg.num_views < 1:
-        raise InputError("--finetune-seconds must be >= 0, --frames >= 2 and --num-views >= 1", None,
-                         "use e.g. --finetune-seconds 60 --frames 48 --num-views 3")
+    check_options("reconstruct", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not Path(cfg.path).exists():
         raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
     if not (Path(cfg.ckpt) / "meta.json").is_file():
