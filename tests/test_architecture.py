@@ -60,6 +60,22 @@ def test_long_modules_say_why():
     assert not long, f"modules over {MAX_LINES} lines need a 'Size:' line in their docstring: {long}"
 
 
+MAX_WORKFLOW_FUNCTION = 45
+"""Lines (``def`` to its last line, nested functions included) a function of ``omnirecon/workflows/`` may have:
+a workflow reads as named steps (checks, computation, pictures, writing), each short enough to see at a glance."""
+
+
+def test_workflow_functions_are_short():
+    long = []
+    for path in sorted((PACKAGE / "workflows").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > MAX_WORKFLOW_FUNCTION:
+                    long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert not long, f"workflow functions over {MAX_WORKFLOW_FUNCTION} lines: split them into named steps: {long}"
+
+
 def test_cli_registry_points_at_commands():
     from omnirecon.cli import COMMANDS
 
