@@ -4,14 +4,14 @@ validation seeds (901000+) and the held-out views of the real training scenes (t
 view, which training never draws). The final held-out scenes (fern, dtu_scan24/37, seeds 900000+) are not
 looked at here.
 
-    python bench/levers.py --runs ibrnet_vgg16 gpnr_vgg16 gpnr_scratch --cpu-budget 100
-    python bench/levers.py --eval-only              # rescore finished runs, rewrite the JSON
-    python bench/levers.py --shipped                # also score the shipped checkpoints the same way
+    python -m bench levers --runs ibrnet_vgg16 gpnr_vgg16 gpnr_scratch --cpu-budget 100
+    python -m bench levers --eval-only --runs ibrnet_vgg16       # rescore finished runs, rewrite the JSON
+    python -m bench levers --eval-only --runs ibrnet_vgg16 --shipped ibrnet-tiny   # also score a shipped checkpoint
 
 Every run: ``--schedule constant --warmup 50`` (a run cut by its CPU budget is at the same point of the
 schedule as its rival whatever its cost per step), K drawn from [3, 10], 8 procedural scenes per rig and the
 real training scenes. Runs live in outputs/train/lever_<name>; results go to bench/results/levers.json
-(provenance header) and a Markdown table on stdout.
+(provenance header; the table: `python -m bench page --reuse`).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from bench.train_tiny import CACHE, REAL, SEED, SHARED
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "bench"))
-from train_tiny import CACHE, REAL, SEED, SHARED  # noqa: E402
 
 SYNTH = ["object", "frontal", "forward"]
 SYNTH_SCENES = 8
@@ -247,7 +247,12 @@ def main(argv: list[str] | None = None) -> None:
         result["extra"][name] = {"checkpoint": ckpt, "step": meta["step"], "cpu_s": meta["extra"].get("cpu_s"),
                                  **ev, **summarize(ev["scenes"])}
         save(result, dest, a.cpu_budget)
-    print(table(result))
+    result["curves"] = curves_figure(ROOT / "bench" / "results" / "figures" / "levers_ibrnet_curves.png")
+    save(result, dest, a.cpu_budget)
+    for group in ("runs", "shipped", "extra"):
+        for name, r in result.get(group, {}).items():
+            print(f"{name}: step {r.get('step')}, procedural K=3 {r.get('procedural_3')}, real K=3 {r.get('real_3')}")
+    print(f"wrote {dest} (the table: python -m bench page --reuse)")
 
 
 def save(result: dict, dest: Path, budget: float) -> None:
@@ -261,50 +266,37 @@ def save(result: dict, dest: Path, budget: float) -> None:
     tmp.replace(dest)
 
 
-def delta(r: dict, b: dict | None, key: str) -> str:
-    if r.get(key) is None:
-        return "-"
-    if b is None or b.get(key) is None:
-        return f"{r[key]:.2f}"
-    return f"{r[key]:.2f} ({r[key] - b[key]:+.2f})"
+def curves_figure(dest: Path) -> dict:
+    """Monitoring validation PSNR (seeds 901000-901001, the runs' own ``val_psnr``) against CPU-s: the shipped
+    ibrnet-tiny (encoder from scratch) and the continued ibrnet-tiny + VGG16 run, for the next-budget estimate.
+    CPU-s of the shipped run: its steps times its mean CPU-s per step (the card keeps no per-step CPU)."""
+    import matplotlib
 
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
-def table(result: dict) -> str:
-    """Markdown: mean PSNR (dB, cpu protocol, whole image) on the procedural validation seeds and on the held-out
-    views of the real training scenes, K = 3 and 10; in brackets the change against the lever's baseline."""
-    keys = ("procedural_3", "procedural_10", "real_3", "real_10")
-    lines = ["| run | lever | steps | CPU-s | procedural K=3 | K=10 | real (held-out views) K=3 | K=10 |",
-             "|---|---|---|---|---|---|---|---|"]
-    runs = result.get("runs", {})
-    for name, r in runs.items():
-        b = runs.get(r.get("base") or "")
-        lines.append(f"| {name} | {r['what']} | {r['step']} | {r['cpu_s']:.0f} | "
-                     + " | ".join(delta(r, b, k) for k in keys) + " |")
-    for name, r in {**result.get("shipped", {}), **result.get("extra", {})}.items():
-        cpu = f"{r['cpu_s']:.0f}" if r.get("cpu_s") is not None else "-"
-        lines.append(f"| {name} | {r.get('what', r.get('checkpoint', ''))} | {r.get('step')} | {cpu} | "
-                     + " | ".join(delta(r, None, k) for k in keys) + " |")
-    return "\n".join(lines)
-
-
-def section(r: dict) -> str:
-    """The BENCHMARKS.md section of bench/results/levers.json."""
-    from omnirecon.provenance import markdown_header
-
-    val = ", ".join(f"{rig} {', '.join(map(str, seeds))}" for rig, seeds in r["val_scenes"].items())
-    return "\n".join([
-        "## Training levers at a small CPU budget (`bench/levers.py`)", "",
-        f"Each lever trained from scratch for {r['cpu_budget']:.0f} process CPU-seconds (1 thread, seed 0, constant "
-        "learning rate after a 50-step warm-up, K drawn from [3, 10], 8 procedural scenes per rig plus the real "
-        f"training scenes {', '.join(r['real_val'])}), against its baseline at the same budget (in brackets: the "
-        "difference). Scored with `omnirecon eval --protocol-set cpu` (64 px, whole image, PSNR in dB) on "
-        f"validation data only: procedural validation seeds ({val}) and the held-out views of the real training "
-        "scenes (test split / every 8th view; never trained on). fern, dtu_scan24/37 and the evaluation seeds are "
-        "not looked at. Realism options: " + ", ".join(f"`--{k.replace('_', '-')} {v}`" for k, v in r["realism"].items())
-        + ". The shipped checkpoints and the continued run are scored the same way below the lever rows (their own "
-        "budgets).", "",
-        table(r), "", markdown_header(r["provenance"]), ""])
-
-
-if __name__ == "__main__":
-    main()
+    card = json.loads((ROOT / "checkpoints" / "ibrnet-tiny" / "card.json").read_text())
+    per_step = card["cpu_seconds"] / card["steps"]
+    shipped = [(s * per_step, v) for s, v in card["curve"]["validation"]]
+    rows = [json.loads(x) for x in (ROOT / "checkpoints" / "runs" / "ibrnet-tiny_vgg16" / "metrics.jsonl")
+            .read_text().splitlines() if x.strip()]
+    cpu = {r["step"]: r["cpu_time"] for r in rows if "cpu_time" in r}
+    vgg = [(cpu.get(r["step"]), r["val_psnr"]) for r in rows if "val_psnr" in r and r["step"] in cpu]
+    fig, ax = plt.subplots(figsize=(5.5, 3.3), dpi=120)
+    ax.plot(*zip(*shipped), "o-", color="0.4", label=f"shipped ibrnet-tiny (scratch encoder), {card['steps']} steps")
+    ax.plot(*zip(*vgg), "s-", color="C3", label="ibrnet-tiny + frozen VGG16 (continued run)")
+    ax.set_xscale("log")
+    ticks = [200, 500, 1000, 2000, 5000]
+    ax.set_xticks(ticks, [str(t) for t in ticks])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.set_xlabel("training CPU-seconds (1 thread)")
+    ax.set_ylabel("validation PSNR (dB), seeds 901000-1")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(dest, format="png")
+    plt.close(fig)
+    return {"shipped_ibrnet_tiny": [[round(c), round(v, 2)] for c, v in shipped],
+            "ibrnet_tiny_vgg16": [[round(c), round(v, 2)] for c, v in vgg], "figure": str(dest.relative_to(ROOT))}

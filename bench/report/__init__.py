@@ -17,6 +17,7 @@ from bench.report import (
     geometry,
     geometry_budget,
     hostile,
+    levers,
     lift,
     mesh_path,
     peer,
@@ -30,7 +31,7 @@ from bench.report import (
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, depth_sources, finetune_curves, hostile,
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, levers, depth_sources, finetune_curves, hostile,
             speed, peer, training, quality, geometry, mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"
