@@ -92,7 +92,7 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
         centre_pct_max=round(err["centre_pct_max"], 4), extent=round(extent, 5),
         points3D=summary["points3D"], reprojection_px=round(summary["mean_reprojection_error_px"], 4),
         models=summary["models"], matcher=summary["matcher"], stage_seconds=summary["seconds"],
-        dropped=summary.get("dropped", []), attempts=summary.get("attempts", []),
+        dropped=summary.get("dropped", []), attempts=summary.get("attempts", []), reachable=summary.get("reachable"),
         detected_rig=est.rig, focal_est=round(float(est.cameras.fx[0]), 2), focal_ref=round(float(ref.cameras.fx[0]), 2),
     )
     return row
