@@ -46,7 +46,8 @@ AGREE_DEG = (2.0, 5.0)
 to this median and maximum (degrees) after a similarity alignment: more images, never other poses.
 One exception: when the affine-feature model poses exactly as many images as the first one and they
 disagree, the affine one is kept (affine-adapted descriptors are the less ambiguous; on 20 views of
-Blender's chair the first model was 9.4 degrees off, the affine one 0.2)."""
+Blender's chair the first model was 9.4 degrees off, the affine one 0.2). A model of fewer than half
+the images is not protected (:func:`replaces`)."""
 MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's default)
 
 
@@ -323,13 +324,15 @@ def agreement(a, b) -> tuple[float, float] | None:
     return round(e["rotation_deg_median"], 3), round(e["rotation_deg_max"], 3)
 
 
-def replaces(current: int | None, candidate: int, agree: tuple[float, float] | None, affine: bool) -> bool:
-    """Whether a retry's model (``candidate`` images) replaces the current one (``current`` images, None
-    when there is none): it must pose more images and agree (``agree``: median and largest rotation
-    difference in degrees, :func:`agreement`; within :data:`AGREE_DEG`), or be the affine-feature
-    model posing as many images and disagreeing (see :data:`AGREE_DEG`)."""
-    if current is None:
-        return candidate > 0
+def replaces(current: int | None, candidate: int, agree: tuple[float, float] | None, affine: bool,
+             total: int) -> bool:
+    """Whether a retry's model (``candidate`` of ``total`` images) replaces the current one (``current``
+    images, None when there is none): it must pose more images and agree (``agree``: median and largest
+    rotation difference in degrees, :func:`agreement`; within :data:`AGREE_DEG`), or be the
+    affine-feature model posing as many images and disagreeing (see :data:`AGREE_DEG`). A current
+    model of fewer than half the images is not protected: any model with more images replaces it."""
+    if current is None or 2 * current < total:
+        return candidate > (current or 0)
     agrees = agree is not None and agree[0] <= AGREE_DEG[0] and agree[1] <= AGREE_DEG[1]
     return (candidate > current and agrees) or (affine and candidate == current > 0 and not agrees)
 
@@ -383,7 +386,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 got = cand[0].num_reg_images() if cand else 0
                 agree = agreement(models[0], cand[0]) if models and cand and got >= now else None
                 attempts[k]["agrees_deg"] = agree
-                if replaces(now, got, agree, affine):
+                if replaces(now, got, agree, affine, n):
                     models, chosen, best_db = cand, k, database
 
             if options.affine_retry and not options.affine_sift:

@@ -72,12 +72,18 @@ def test_retry_replaces_rule():
     """A retry replaces the current model with more images only when they agree; the affine-feature
     model also on a tie when they disagree (the first model is then the suspect one); never with fewer."""
     good, bad = (0.3, 1.2), (9.4, 30.0)
-    assert replaces(None, 5, None, False) and not replaces(None, 0, None, True)
-    assert replaces(10, 12, good, False) and not replaces(10, 12, bad, False) and not replaces(10, 12, None, True)
-    assert not replaces(12, 12, good, False) and not replaces(12, 12, bad, False)
-    assert replaces(12, 12, bad, True) and not replaces(12, 12, good, True)
-    assert not replaces(12, 11, bad, True) and not replaces(12, 11, good, False)
-    assert replaces(12, 14, (AGREE_DEG[0], AGREE_DEG[1]), True) and not replaces(12, 14, (AGREE_DEG[0] + 0.1, 1.0), True)
+
+    def rep(current, candidate, agree, affine, total=20):
+        return replaces(current, candidate, agree, affine, total)
+
+    assert rep(None, 5, None, False) and not rep(None, 0, None, True)
+    assert rep(10, 12, good, False) and not rep(10, 12, bad, False) and not rep(10, 12, None, True)
+    assert not rep(12, 12, good, False) and not rep(12, 12, bad, False)
+    assert rep(12, 12, bad, True) and not rep(12, 12, good, True)
+    assert not rep(12, 11, bad, True) and not rep(12, 11, good, False)
+    assert rep(12, 14, (AGREE_DEG[0], AGREE_DEG[1]), True) and not rep(12, 14, (AGREE_DEG[0] + 0.1, 1.0), True)
+    assert rep(4, 11, bad, True) and rep(9, 10, bad, False) and not rep(10, 11, bad, False)  # under half: unprotected
+    assert not rep(4, 4, bad, False) and not rep(4, 3, good, True)
 
 
 def test_retry_and_dropped_record(photos, tmp_path):
