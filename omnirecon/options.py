@@ -204,6 +204,9 @@ RAY_BYTES = 140_000
 """A rendered ray (omnirecon.chunk's measurement)."""
 TRAIN_BYTES_PER_RAY = 3 * RAY_BYTES
 """A training ray: the forward's activations kept for the backward, with gradients (estimate)."""
+FINETUNE_BYTES_PER_RAY_VIEW = 1_000
+"""A fine-tuning pixel of the mesh path, per source view: one surface point through the appearance
+branch, forward and backward (measured ~600 bytes per pixel and view with K = 3; margin for larger K)."""
 
 
 def _sq(v: int) -> float:
@@ -234,9 +237,14 @@ def _train(c) -> list[Need]:
     return [("--rays", str(c.rays), c.rays, lambda v: v * TRAIN_BYTES_PER_RAY)] if c.rays else []
 
 
+def _finetune(c) -> list[Need]:
+    views = max(c.num_views, len(c.views or ()))
+    return [("--rays", str(c.rays), c.rays, lambda v: v * views * FINETUNE_BYTES_PER_RAY_VIEW)]
+
+
 MEMORY: dict[str, Callable[[object], list[Need]]] = {
     "render": _frames, "reconstruct": _frames, "demo": _frames, "synth": _synth, "bench": _bench,
-    "train": _train, "finetune": _train,
+    "train": _train, "finetune": _finetune,
 }
 
 

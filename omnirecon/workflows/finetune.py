@@ -45,7 +45,7 @@ from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
 from omnirecon.engine.machine import ThreadsConfig, set_threads
 from omnirecon.engine.protocols import protocol_for, targets_and_pool
-from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
@@ -87,9 +87,13 @@ class FinetuneConfig(ThreadsConfig):
     mesh: Path | None = None
     """Mesh file in the input scene's frame (default: `omnirecon mesh`'s mesh from the model at the sources)."""
     resolution: int | None = None
-    """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
-    rays: int = 2048
-    """Pixels per step."""
+    """Long side of the images in pixels (default: the photos' own, at most 512): the training views are
+    rasterized once at this size and tuning samples their pixels; the held-out views are scored at it."""
+    rays: int = 8192
+    """Pixels per step (the encoder's pass over the source photos dominates a step's cost; more pixels per
+    step cost little: bench/finetune_levers.py)."""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
     """Adam learning rate."""
     tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
@@ -268,7 +272,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
                          "pass checkpoints/omnirecon-tiny or another omnirecon-* checkpoint")
     fmt = detect_format(cfg.scene)
     proto = protocol_for(Path(cfg.scene), fmt)
-    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
+    scene = load_at_resolution(cfg.scene, cfg.resolution or photo_side(cfg.scene, fmt=fmt), proto.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     targets, pool = targets_and_pool(proto, scene)
     held = sorted(set(views) & (set(targets) | set(scene.splits.get("test", []))))
@@ -304,6 +308,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     counts = torch.tensor([v.covered for v in train_px], dtype=torch.float64)  # tuning: pixels on the mesh
     g = torch.Generator().manual_seed(cfg.seed)
     val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in val_px]
+    val_obj = None if scene.masks is None else [scene.masks[v.index].reshape(-1).bool()[v.pixels[i]]
+                                                 for v, i in zip(val_px, val_idx)]  # validation pixels on the objects
 
     exposure = Exposure(len(views))
     modules = {"encoder": model.encoder, "appearance": model.appearance}
@@ -323,16 +329,26 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     def features():  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
         return encode_maps(model, sources, colours=exposure(sources))
 
+    frozen = None
+    if "encoder" not in cfg.tune:  # the encoder's maps do not change: encode once
+        with torch.no_grad():
+            frozen = features()
+    autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+
     @torch.no_grad()
-    def validate() -> float:
+    def validate() -> dict[str, float]:
+        """Validation PSNR over the shaded pixels (``psnr``) and, with masks, over the objects' (``psnr_masked``)."""
         if not val_px:
-            return float("nan")
+            return {"psnr": float("nan")}
         model.eval()
         feats = features()
         se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
                         for v, i in zip(val_px, val_idx)])
         model.train()
-        return float(-10 * torch.log10(se.mean().clamp_min(1e-10)))
+        out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
+        if val_obj is not None and bool(torch.cat(val_obj).any()):
+            out["psnr_masked"] = float(-10 * torch.log10(se[torch.cat(val_obj)].mean().clamp_min(1e-10)))
+        return out
 
     @torch.no_grad()
     def test_scores() -> dict:
@@ -366,8 +382,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
 
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
-    curve, validation, before, step = [], [], None, 0
-    best_state, best_val, best_at = [p.detach().clone() for p in params], -float("inf"), (0.0, 0)
+    curve, validation, before, step, start_val = [], [], None, 0, None
+    best_state, best_val, best_gain, best_at = [p.detach().clone() for p in params], {}, -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
@@ -378,8 +394,9 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
             while opt is not None and clock.now() < t_check:
                 view = train_px[int(torch.multinomial(counts, 1, generator=g))]
                 idx = torch.randint(view.covered, (min(cfg.rays, view.covered),), generator=g)
-                rgb = model.shade(features(), view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
-                loss = (rgb - view.target[idx]).square().mean()
+                with autocast:
+                    rgb = model.shade(features() if frozen is None else frozen, view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
+                loss = (rgb.float() - view.target[idx]).square().mean()
                 if cfg.reg > 0 and net:
                     loss = loss + cfg.reg * sum((p - p0).square().sum() for p, p0 in zip(net, start)) / sum(
                         p.numel() for p in net)
@@ -390,9 +407,13 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
             val = validate()
-            validation.append({"seconds": t_check, "steps": step, "psnr": val})
-            if not val_px or val > best_val or step == 0:  # without validation views: the latest state
-                best_state, best_val, best_at = [p.detach().clone() for p in params], val, (t_check, step)
+            start_val = start_val or val
+            # a state's gain: its smallest over the validation metrics (whole image and objects), so the
+            # returned state is never worse than the start on either
+            gain = min(val[k] - start_val[k] for k in val) if val_px else 0.0
+            validation.append({"seconds": t_check, "steps": step, **val, "gain": gain})
+            if not val_px or gain > best_gain or step == 0:  # without validation views: the latest state
+                best_state, best_val, best_gain, best_at = [p.detach().clone() for p in params], val, gain, (t_check, step)
             if t_check not in eval_at:
                 continue
             current = swap(best_state)  # score what tuning returns if it stopped here
@@ -400,7 +421,10 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
             swap(current)
             before = before or r
             curve.append({"seconds": t_check, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
-                          "val_psnr": best_val, "val_psnr_now": val, "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
+                          "val_psnr": best_val["psnr"], "val_psnr_now": val["psnr"],
+                          **({"val_psnr_masked": best_val["psnr_masked"], "val_psnr_masked_now": val["psnr_masked"]}
+                             if "psnr_masked" in val else {}),
+                          "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
                           **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}})
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
     after = r
@@ -436,7 +460,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
               "fill": "far" if fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
               "tuned_parameters": sum(p.numel() for p in params), "resolution": [scene.width, scene.height],
               "coverage": after["coverage"], "curve": curve, "validation": validation,
-              "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val},
+              "precision": cfg.precision, "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val["psnr"],
+                                                            "val_gain": best_gain},
               "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
     if "exposure" in cfg.tune:
