@@ -43,25 +43,35 @@ def mesh_record(mesh: Path) -> dict:
             "images_to_mesh_s": m.get("seconds", {}).get("images_to_mesh")}
 
 
-def run_scene(name: str, path: Path, mesh: Path, seconds: float, out: Path, threads: int, resolution: int | None,
-              save: bool = False) -> dict:
+def work_dir(name: str) -> Path:
+    return ROOT / "outputs" / "bench" / "finetune_curves" / name
+
+
+def run_scene(name: str, path: Path, mesh: Path, seconds: float, threads: int, resolution: int | None,
+              save: bool = False) -> None:
     from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
     times = tuple(t for t in (*TIMES, 300.0) if t <= seconds)
-    work = ROOT / "outputs" / "bench" / "finetune_curves" / name
-    ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh,
-                                     seconds=seconds, eval_at=times, clock="cpu", threads=threads, out=work,
-                                     resolution=resolution, max_held_out=4, save=save))
+    run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
+                                eval_at=times, clock="cpu", threads=threads, out=work_dir(name), resolution=resolution,
+                                max_held_out=4, save=save))
+
+
+def scene_row(name: str, mesh: Path, out: Path) -> dict:
+    """The results row of scene ``name`` from its ``curve.json`` (complete, or as far as an interrupted run got)."""
+    work = work_dir(name)
+    ft = json.loads((work / "curve.json").read_text())
     figures = out / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     for f in ("curve.png", "before_after.png"):
         shutil.copy2(work / f, figures / f"finetune_{name}_{f}")
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
             "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
-    return {"scene": str(path), "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
+    return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
             "sources": ft["sources"], "rays": ft["rays"], "tuned": ft["tuned"], "precision": ft["precision"],
             "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
+            "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),
             "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": os.getloadavg()[0],
             "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
@@ -82,13 +92,17 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     p.add_argument("--save", action="store_true", help="keep the tuned checkpoint in outputs/bench/finetune_curves/NAME")
+    p.add_argument("--collect", action="store_true",
+                   help="do not tune: record each scene's curve.json as it stands (an interrupted run's curve so far)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     scenes = dict(s.split("=", 1) for s in a.scene)
     meshes = dict(s.split("=", 1) for s in a.mesh)
     file = a.out / "finetune_curves.json"
     for name, path in scenes.items():
-        row = run_scene(name, Path(path), Path(meshes[name]), a.seconds, a.out, a.threads, a.resolution, a.save)
+        if not a.collect:
+            run_scene(name, Path(path), Path(meshes[name]), a.seconds, a.threads, a.resolution, a.save)
+        row = scene_row(name, Path(meshes[name]), a.out)
         row["mesh_note"] = a.mesh_note
         print(name, [(c["seconds"], round(c["psnr"], 2), round(c["coverage"], 3)) for c in row["curve"]])
         a.out.mkdir(parents=True, exist_ok=True)

@@ -380,6 +380,56 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
                 p.copy_(s)
         return old
 
+    def write_outputs(partial: bool) -> dict:
+        """``curve.png``, ``before_after.png`` and ``curve.json`` as they stand (``partial``: tuning goes on,
+        written at every evaluation so an interrupted run keeps its curve so far)."""
+        after = r
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+        ts = [c["seconds"] for c in curve]
+        ax.plot(ts, [c["psnr"] for c in curve], "o-", color="C0", label="test (held out), whole image")
+        if "psnr_masked" in curve[0]:
+            ax.plot(ts, [c["psnr_masked"] for c in curve], "s-", color="C1", label="test (held out), objects")
+        if val_px:
+            vs = [c["seconds"] for c in validation]
+            ax.plot(vs, [c["psnr"] for c in validation], ".:", color="C0", alpha=0.6, label="validation (current state)")
+            if "psnr_masked" in validation[0]:
+                ax.plot(vs, [c["psnr_masked"] for c in validation], ".:", color="C1", alpha=0.6,
+                        label="validation, objects")
+        ax.set_xlabel(f"seconds of fine-tuning ({cfg.clock} clock)")
+        ax.set_ylabel("PSNR (dB)")
+        ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(held_px)} held-out views, coverage {after['coverage']:.0%}",
+                     fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        out.mkdir(parents=True, exist_ok=True)
+        with atomic_path(out / "curve.png") as tmp:
+            fig.savefig(tmp, format="png")
+        plt.close(fig)
+        gt = scene.images[held_px[0].index].float()
+        white = torch.ones(gt.shape[0], 2, 3)
+        write_image(out / "before_after.png", torch.cat([gt, white, before["renders"][0], white, after["renders"][0]], 1).numpy())
+        result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": meta["preset"], "sources": views,
+                  "held_out": targets, "validation_views": val_views, "train_views": len(train_px), "faces": len(mesh.faces),
+                  "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr, "reg": cfg.reg,
+                  "fill": "far" if fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
+                  "tuned_parameters": sum(p.numel() for p in params), "resolution": [scene.width, scene.height],
+                  "coverage": after["coverage"], "curve": curve, "validation": validation,
+                  "precision": cfg.precision, "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val["psnr"],
+                                                                "val_gain": best_gain},
+                  "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
+                  "provenance": provenance(seed=cfg.seed), "out": str(out), **({"partial": True} if partial else {})}
+        if "exposure" in cfg.tune:
+            result["exposure"] = {"gain": exposure.gain.detach().reshape(-1, 3).tolist(),
+                                  "offset": exposure.offset.detach().reshape(-1, 3).tolist()}
+        write_json(out / "curve.json", result)
+        return result
+
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
     curve, validation, before, step, start_val = [], [], None, 0, None
@@ -427,47 +477,10 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
                           "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
                           **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}})
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
-    after = r
+            if t_check < eval_at[-1]:
+                write_outputs(partial=True)
     swap(best_state)  # the returned (and saved) state: the best on validation
-
-    # outputs
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
-    ax.plot([c["seconds"] for c in curve], [c["psnr"] for c in curve], "o-", label="held-out test views")
-    if val_px:
-        ax.plot([c["seconds"] for c in validation], [c["psnr"] for c in validation], ".:", label="validation (current)")
-    ax.set_xlabel(f"seconds of fine-tuning ({cfg.clock} clock)")
-    ax.set_ylabel("PSNR (dB)")
-    ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(held_px)} held-out views, coverage {after['coverage']:.0%}",
-                 fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
-    fig.tight_layout()
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "curve.png") as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    gt = scene.images[held_px[0].index].float()
-    white = torch.ones(gt.shape[0], 2, 3)
-    write_image(out / "before_after.png", torch.cat([gt, white, before["renders"][0], white, after["renders"][0]], 1).numpy())
-    result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": meta["preset"], "sources": views,
-              "held_out": targets, "validation_views": val_views, "train_views": len(train_px), "faces": len(mesh.faces),
-              "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr, "reg": cfg.reg,
-              "fill": "far" if fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
-              "tuned_parameters": sum(p.numel() for p in params), "resolution": [scene.width, scene.height],
-              "coverage": after["coverage"], "curve": curve, "validation": validation,
-              "precision": cfg.precision, "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val["psnr"],
-                                                            "val_gain": best_gain},
-              "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
-              "provenance": provenance(seed=cfg.seed), "out": str(out)}
-    if "exposure" in cfg.tune:
-        result["exposure"] = {"gain": exposure.gain.detach().reshape(-1, 3).tolist(),
-                              "offset": exposure.offset.detach().reshape(-1, 3).tolist()}
-    write_json(out / "curve.json", result)
+    result = write_outputs(partial=False)
     if cfg.save:
         save_checkpoint(out / "checkpoint", model, meta["preset"], step=step,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
