@@ -88,7 +88,7 @@ RULES: dict[str, Rule] = {
     "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
     "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
     "clip": Rule(0, 1e6, above=True, example="e.g. 1.0"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
-    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION,
+    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION,
     # camera paths and video
     "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
     "render.fps": Rule(1, 240, example="e.g. 24"), "fps": Rule(0, 240, above=True, example="e.g. 2"),
@@ -111,6 +111,7 @@ RULES: dict[str, Rule] = {
     # tuning
     "reg": WEIGHT, "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
+    "val_margin": Rule(0, 100, example="e.g. 0.1 (dB)"),
     # procedural scenes
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
