@@ -1,7 +1,7 @@
 """The most any tuning of the mesh path's blend can give on a scene: the held-out PSNR of the best blend of
 the source colours, chosen per pixel with the ground truth in hand.
 
-    python bench/finetune_ceiling.py --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
+    python -m bench finetune_ceiling --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
 
 The mesh path colours a pixel ``sum_k omega_k c_k``: a convex blend (``omega`` on the simplex, over the
 sources that see the point; uniform when none does) of the ``K`` source colours sampled where the surface
@@ -11,7 +11,7 @@ the true colour; this script solves that per pixel (projected gradient on the si
 held-out views, sources, resolution and fill as ``omnirecon finetune`` (PSNR per view over a fixed random
 subset of ``PIXELS`` pixels of the image and of the object mask, averaged over views) and reports it beside
 the pretrained model's on the same pixels: the gap is the ceiling of every tuning lever that changes blend weights. (Per-source
-exposure scales the colours and can exceed it slightly; ``exposure`` rows of ``finetune_levers`` measure it.)
+exposure scales the colours and can exceed it slightly; ``exposure`` rows of ``python -m bench finetune_levers`` measure it.)
 Results merge into ``bench/results/finetune_ceiling.json``.
 """
 
@@ -139,6 +139,3 @@ def main(argv: list[str] | None = None) -> dict:
             write_json(file, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

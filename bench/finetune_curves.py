@@ -1,7 +1,8 @@
 """The mesh path's PSNR against seconds of CPU tuning, with coverage, on real and procedural scenes.
 
-    python bench/finetune_curves.py --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --seconds 300
-    python bench/finetune_curves.py --scene demo=PATH --mesh demo=MESH.ply --seconds 300
+    python -m bench finetune_curves --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --seconds 300
+    python -m bench finetune_curves --scene demo=PATH --mesh demo=MESH.ply --seconds 300
+    python -m bench finetune_curves --scene fern=... --mesh fern=MESH.ply --collect   # an interrupted run's curve
 
 Per scene: ``omnirecon finetune`` with its defaults (what is tuned, pixels per step, precision) and the
 given mesh (the project's own ``omnirecon mesh --views all`` meshes; the JSON records the depth source
@@ -114,7 +115,3 @@ def main(argv: list[str] | None = None) -> dict:
                           checkpoint={**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"), "path": "checkpoints/omnirecon-tiny"})
             write_json(file, result)
     return result
-
-
-if __name__ == "__main__":
-    main()

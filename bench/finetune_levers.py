@@ -1,7 +1,7 @@
 """What fine-tuning should tune, and how, decided by measurement: the mesh path's held-out PSNR after 60
 CPU-seconds of tuning, one row per lever, on real scenes at the photos' own resolution.
 
-    python bench/finetune_levers.py --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --rows base bf16
+    python -m bench finetune_levers --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --rows base bf16
 
 Rows (``ROWS``): what is tuned (the 2-D encoder, the appearance branch, per-source exposure), pixels per
 step, learning rate and bf16 autocast. Every row is ``omnirecon finetune`` with the same mesh, sources,
@@ -92,6 +92,3 @@ def main(argv: list[str] | None = None) -> dict:
             result = merge(a.out / "finetune_levers.json", f"{name}/{row}", r)
     return result
 
-
-if __name__ == "__main__":
-    main()
