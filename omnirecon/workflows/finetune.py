@@ -442,16 +442,45 @@ class Tuned:
     steps: int
 
 
+class PixelSampler:
+    """Each step's pixels: a tuning view drawn by its mesh pixel count, then ``--rays`` of its mesh pixels
+    (a ``--objects`` share of them inside the object masks)."""
+
+    def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
+        self.cfg, self.views, self.g = cfg, s.train_px, g
+        self.counts = torch.tensor([v.covered for v in s.train_px], dtype=torch.float64)  # pixels on the mesh
+        masks = s.scene.masks
+        self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
+                       else v.pixels[:0] for v in s.train_px]  # mesh pixels on the objects, per tuning view
+
+    def __call__(self) -> tuple[ViewPixels, torch.Tensor]:
+        pick = int(torch.multinomial(self.counts, 1, generator=self.g))
+        view, inside = self.views[pick], self.inside[pick]
+        n = min(self.cfg.rays, view.covered)
+        idx = torch.randint(view.covered, (n,), generator=self.g)
+        if self.cfg.objects > 0 and len(inside):
+            k = int(round(self.cfg.objects * n))
+            idx[:k] = inside[torch.randint(len(inside), (k,), generator=self.g)]
+        return view, idx
+
+
+def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, best_at: tuple[float, int]) -> dict:
+    """One evaluation of the curve: test scores ``r`` of the returned state, its validation and the current one."""
+    return {"seconds": t_check, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
+            "val_psnr": best_val["psnr"], "val_psnr_now": val["psnr"],
+            **({"val_psnr_masked": best_val["psnr_masked"], "val_psnr_masked_now": val["psnr_masked"]}
+               if "psnr_masked" in val else {}),
+            "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
+            **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}}
+
+
 def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_idx: list[torch.Tensor],
          val_obj: list[torch.Tensor] | None = None, on_eval=None) -> Tuned:
     """Tune for ``cfg.seconds``, validating every ``--val-every`` and scoring the held-out views at every
     ``--eval-at`` (then calling ``on_eval(Tuned so far)``); leaves the best state on validation in the model."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-    counts = torch.tensor([v.covered for v in s.train_px], dtype=torch.float64)  # tuning: pixels on the mesh
-    masks = s.scene.masks
-    inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
-              else v.pixels[:0] for v in s.train_px]  # mesh pixels on the objects, per tuning view
+    sample = PixelSampler(cfg, s, g)
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
     curve, validation, before, step, start_val = [], [], None, 0, None
@@ -464,13 +493,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
         for t_check in checks:
             clock.start()
             while tuner.opt is not None and clock.now() < t_check:
-                pick = int(torch.multinomial(counts, 1, generator=g))
-                view, n = s.train_px[pick], min(cfg.rays, s.train_px[pick].covered)
-                idx = torch.randint(view.covered, (n,), generator=g)
-                if cfg.objects > 0 and len(inside[pick]):  # a share of the pixels on the objects
-                    k = int(round(cfg.objects * n))
-                    idx[:k] = inside[pick][torch.randint(len(inside[pick]), (k,), generator=g)]
-                tuner.step(view, idx)
+                tuner.step(*sample())
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
@@ -488,12 +511,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
             r = tuner.test_scores()
             tuner.swap(current)
             before = before or r
-            curve.append({"seconds": t_check, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
-                          "val_psnr": best_val["psnr"], "val_psnr_now": val["psnr"],
-                          **({"val_psnr_masked": best_val["psnr_masked"], "val_psnr_masked_now": val["psnr_masked"]}
-                             if "psnr_masked" in val else {}),
-                          "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
-                          **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}})
+            curve.append(curve_point(t_check, step, r, val, best_val, best_at))
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
             if on_eval is not None and t_check < eval_at[-1]:
                 on_eval(Tuned(curve, validation, before, r, best_val, best_gain, best_at, step))
