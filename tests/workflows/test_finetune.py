@@ -125,3 +125,18 @@ def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path,
     args[args.index(out)] = original
     assert main([str(a) for a in args]) == 0, capsys.readouterr().err
     assert abs(r["curve"][0]["psnr"] - json.loads((original / "curve.json").read_text())["curve"][0]["psnr"]) < 0.15
+
+
+def test_bf16_appearance_only_with_object_pixels_runs_and_never_ends_below_the_start(setup, tmp_path, capsys):
+    """The cheap levers together: bf16 steps, the encoder frozen (encoded once), every pixel on the objects."""
+    root, scene = setup
+    out = tmp_path / "out"
+    args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--clock", "cpu",
+            "--resolution", 48, "--seconds", 1, "--eval-at", 0, "--tune", "appearance", "--precision", "bf16",
+            "--objects", 1, "--val-every", 0.25, "--out", out]
+    assert main([str(a) for a in args]) == 0, capsys.readouterr().err
+    r = json.loads((out / "curve.json").read_text())
+    assert r["precision"] == "bf16" and r["objects"] == 1 and r["tuned"] == ["appearance"]
+    assert r["curve"][-1]["steps"] > 0 and r["returned_from"]["val_gain"] >= 0
+    start, back = r["validation"][0], next(v for v in r["validation"] if v["seconds"] == r["returned_from"]["seconds"])
+    assert back["psnr"] >= start["psnr"] - 1e-9 and back["psnr_masked"] >= start["psnr_masked"] - 1e-9
