@@ -17,16 +17,11 @@ Results merge into ``bench/results/finetune_ceiling.json``.
 
 from __future__ import annotations
 
-import argparse
-import fcntl
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
-
-from omnirecon.data.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 PIXELS = 16384
@@ -114,28 +109,12 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from omnirecon.provenance import provenance
+    from bench.finetune_levers import merge, scene_parser, scenes_and_meshes
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scene", action="append", required=True, help="NAME=PATH (repeatable)")
-    p.add_argument("--mesh", action="append", required=True, help="NAME=MESH.ply, in the scene's input frame")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
-    a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    scenes = dict(s.split("=", 1) for s in a.scene)
-    meshes = dict(s.split("=", 1) for s in a.mesh)
-    file = a.out / "finetune_ceiling.json"
+    a = scene_parser(__doc__).parse_args(argv)
     result = {}
-    for name, path in scenes.items():
-        row = ceiling(Path(path), Path(meshes[name]))
+    for name, path, mesh in scenes_and_meshes(a):
+        row = ceiling(path, mesh)
         print(name, row["model"], "->", row["ceiling"])
-        a.out.mkdir(parents=True, exist_ok=True)
-        with open(file.with_suffix(".lock"), "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            result = json.loads(file.read_text()) if file.is_file() else {"rows": {}}
-            result["rows"][name] = row
-            result["provenance"] = provenance(seed=0)
-            write_json(file, result)
+        result = merge(a.out / "finetune_ceiling.json", name, row)
     return result
-

@@ -55,7 +55,8 @@ def run_row(scene: str, path: Path, mesh: Path, row: str, seconds: float, thread
 
 
 def merge(file: Path, key: str, row: dict) -> dict:
-    """Merge ``row`` into ``file``'s rows under a lock (rows run in parallel processes)."""
+    """Merge ``row`` into ``file``'s rows under a lock (rows run in parallel processes); with the provenance
+    and the checkpoint's fingerprint."""
     from omnirecon.engine.checkpoint import fingerprint
     from omnirecon.provenance import provenance
 
@@ -70,23 +71,33 @@ def merge(file: Path, key: str, row: dict) -> dict:
     return result
 
 
-def main(argv: list[str] | None = None) -> dict:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def scene_parser(doc: str) -> argparse.ArgumentParser:
+    """The options every fine-tuning benchmark takes: scenes and their meshes, threads, the results folder."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--scene", action="append", required=True, help="NAME=PATH (repeatable)")
     p.add_argument("--mesh", action="append", required=True, help="NAME=MESH.ply, in the scene's input frame")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    return p
+
+
+def scenes_and_meshes(a: argparse.Namespace) -> list[tuple[str, Path, Path]]:
+    """``(name, scene folder, mesh file)`` per ``--scene``; sets the torch threads."""
+    torch.set_num_threads(a.threads)
+    meshes = dict(s.split("=", 1) for s in a.mesh)
+    return [(name, Path(path), Path(meshes[name])) for name, path in (s.split("=", 1) for s in a.scene)]
+
+
+def main(argv: list[str] | None = None) -> dict:
+    p = scene_parser(__doc__)
     p.add_argument("--mesh-note", default="", help="how the meshes were made (recorded)")
     p.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     p.add_argument("--seconds", type=float, default=60.0)
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
-    torch.set_num_threads(a.threads)
-    scenes = dict(s.split("=", 1) for s in a.scene)
-    meshes = dict(s.split("=", 1) for s in a.mesh)
     result = {}
-    for name, path in scenes.items():
+    for name, path, mesh in scenes_and_meshes(a):
         for row in a.rows:
-            r = run_row(name, Path(path), Path(meshes[name]), row, a.seconds, a.threads)
+            r = run_row(name, path, mesh, row, a.seconds, a.threads)
             r["mesh_note"] = a.mesh_note
             print(name, row, f"{r['before']['psnr']:.2f} -> {r['after']['psnr']:.2f} dB, {r['steps']} steps")
             result = merge(a.out / "finetune_levers.json", f"{name}/{row}", r)
