@@ -73,7 +73,8 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
             "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),
-            "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": os.getloadavg()[0],
+            "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": ft["provenance"].get("loadavg_1min", os.getloadavg()[0]),
+            "objects": ft.get("objects", 0.0),
             "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
                          "before_after": f"figures/finetune_{name}_before_after.png"}}

@@ -37,7 +37,9 @@ def section(results: Path) -> str:
         notes.append(f"- **{name}**: {row['resolution'][0]}x{row['resolution'][1]}, mesh: {row.get('mesh_note') or row['mesh']}"
                      f"{' (' + str(made['depth']) + ')' if made.get('depth') else ''}, {row['faces']:,} faces; held-out "
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
-                     f"({', '.join(row['tuned'])}, {row['precision']}); returned state from "
+                     f"({', '.join(row['tuned'])}, {row['precision']}"
+                     + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
+                     + "); returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "") + ".")
     pics = [f"![{n}: ground truth | before | after](bench/results/{row['pictures']['before_after']})"

@@ -30,6 +30,16 @@ def section(results: Path) -> str | None:
             obj = f"{b['psnr_masked']:.2f} -> {a['psnr_masked']:.2f}" if "psnr_masked" in b else "–"
             out.append(f"| {key.split('/')[0]} | {LABELS.get(row['row'], row['row'])} | {row['steps']} | "
                        f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {row['gain_db']:+.2f} | {row['load_average']:.0f} |")
+        curves = read(results, "finetune_curves.json") or {"rows": {}}
+        scenes = {key.split("/")[0] for key in levers["rows"]}
+        for name, row in curves["rows"].items():  # the default's row: the curve's 60 s point (same settings)
+            at = {c["seconds"]: c for c in row["curve"]}
+            if name in scenes and 60.0 in at and row.get("rays") == 8192 and row.get("precision") == "fp32":
+                b, a = row["curve"][0], at[60.0]
+                obj = f"{b['psnr_masked']:.2f} -> {a['psnr_masked']:.2f}" if "psnr_masked" in b else "–"
+                out.append(f"| {name} | {LABELS['rays8k']} (the default; the curve's 60 s point) | {a['steps']} | "
+                           f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {a['psnr'] - b['psnr']:+.2f} | "
+                           f"{row['load_average']:.0f} |")
         out += ["", prov(levers["provenance"]), ""]
     if ceiling:
         out += ["The ceiling: the mesh path colours a pixel with a convex blend of the source colours where its surface "
