@@ -35,7 +35,7 @@ from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
 from omnirecon.mesh import clean, fusion
 from omnirecon.mesh.complete import complete_surface
-from omnirecon.mesh.depth import DepthMaps, combine, model_depths, oracle_depths, stereo_maps
+from omnirecon.mesh.depth import DepthMaps, combine, downscaled, model_depths, oracle_depths, stereo_maps, upsampled
 from omnirecon.mesh.stereo import StereoOptions
 
 DTU_SHIFT = 25.0 / 684.0
@@ -105,8 +105,15 @@ class MeshOptions:
     """Drop connected components with fewer faces than this fraction of the largest (the reference drops
     components under 500 faces of meshes of ~10^5-10^6 faces). 1 % removed 63 % of the plane-sweep
     floor's fragmented DTU scan24 mesh (held-out IoU 0.48 -> 0.26); 0.1 % removes 17 % (IoU 0.44)."""
+    surface: str = "fusion"
+    """``fusion``: the fused, cleaned surface as it is; ``poisson``: with object masks, screened Poisson
+    over it, trimmed to the masks (:mod:`omnirecon.mesh.poisson`, needs pymeshlab), which closes the holes
+    fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to)."""
     complete: bool = True
     """Give every content pixel of every view a surface (:mod:`omnirecon.mesh.complete`)."""
+    model_side: int = 128
+    """``stereo+model``: long side (px) the model's depth is rendered at before it fills stereo's holes at
+    the photos' resolution (the model's eval resolution; 0 = the photos' own, ~7x the cost on fern)."""
     stereo: StereoOptions = field(default_factory=StereoOptions)
     """Settings of the stereo depth source."""
     chunk: int = 4096
@@ -147,6 +154,10 @@ class MeshOptions:
                              f"{self.max_faces}", None, "use e.g. --neighbours 3 --max-faces 200000")
         if self.max_voxels < 1000:
             raise InputError(f"max_voxels must be at least 1000, got {self.max_voxels}", None, "use e.g. 67108864")
+        if self.model_side < 0 or 0 < self.model_side < 8:
+            raise InputError(f"model_side must be 0 or at least 8 px, got {self.model_side}", None, "use e.g. 128")
+        if self.surface not in ("fusion", "poisson"):
+            raise InputError(f"--surface must be fusion or poisson, got {self.surface!r}", None, "use --surface fusion")
         if self.chunk < 1:
             raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
@@ -188,9 +199,9 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     if options.depth in ("model", "stereo+model") and model is None:
         raise InputError(f"--depth {options.depth} needs a model", None, "pass --ckpt or --model floor, or --depth stereo")
 
-    def from_model(shifts):
+    def from_model(shifts, at=scene):
         model.to(device).eval()
-        return model_depths(model, scene, views, options.neighbours, shifts, options.chunk, options.min_acc,
+        return model_depths(model, at, views, options.neighbours, shifts, options.chunk, options.min_acc,
                             device, on_view, fine_pass=options.depth_pass == "fine")
 
     if options.depth == "model":
@@ -198,7 +209,11 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     if options.depth == "oracle":
         return oracle_depths(scene, views, options.shifts)
     stereo = stereo_maps(scene, views, options.stereo, on_view)
-    return stereo if options.depth == "stereo" else combine(stereo, from_model((0.0,)))
+    if options.depth == "stereo":
+        return stereo
+    # the model's depth at its own resolution (at most model_side px), read at the photos' pixels
+    low = from_model((0.0,), downscaled(scene, options.model_side) if options.model_side else scene)
+    return combine(stereo, upsampled(low, stereo.cameras))
 
 
 # ---------------------------------------------------------------------- the pipeline
@@ -278,6 +293,15 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         stages["decimated"] = mesh
     seconds["decimate"] = time.perf_counter() - t
 
+    if options.surface == "poisson" and view_masks is not None:
+        from omnirecon.mesh.poisson import poisson_surface
+
+        say("poisson")
+        t = time.perf_counter()
+        mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
+        if stages is not None:
+            stages["poisson"] = mesh
+        seconds["poisson"] = time.perf_counter() - t
     completion = None
     if options.complete:
         say("complete")

@@ -193,6 +193,39 @@ def oracle_depths(scene, views, shifts=(0.0,)) -> DepthMaps:
                      {"source": "oracle", "seconds": time.perf_counter() - start})
 
 
+def downscaled(scene, long_side: int):
+    """``scene`` with its images (area) and masks (nearest) at most ``long_side`` px on the long side and its
+    cameras rescaled to match (``scene`` itself when it is no larger): the model's depth for
+    ``stereo+model`` is rendered at its eval resolution, not the photos'."""
+    import dataclasses
+
+    import torch.nn.functional as F
+
+    scale = long_side / max(scene.width, scene.height)
+    if scale >= 1:
+        return scene
+    cams = scene.cameras.rescaled(scale)
+    size = (cams.height, cams.width)
+    images = F.interpolate(scene.images.permute(0, 3, 1, 2), size=size, mode="area").permute(0, 2, 3, 1)
+    masks = None if scene.masks is None else \
+        F.interpolate(scene.masks[:, None].float(), size=size, mode="nearest")[:, 0] > 0.5
+    return dataclasses.replace(scene, images=images.contiguous(), cameras=cams, masks=masks, depths=None,
+                               normals=None, labels=None)
+
+
+def upsampled(maps: DepthMaps, cameras: Cameras) -> DepthMaps:
+    """``maps`` read at ``cameras`` (the same views at a higher resolution): nearest depth and confidence
+    (no depth blended across an edge)."""
+    import torch.nn.functional as F
+
+    if maps.depth.shape[-2:] == (cameras.height, cameras.width):
+        return maps
+    size = (cameras.height, cameras.width)
+    depth = F.interpolate(maps.depth[:, None], size=size, mode="nearest")[:, 0]
+    conf = F.interpolate(maps.confidence[:, None], size=size, mode="nearest")[:, 0]
+    return DepthMaps(cameras, depth, conf, maps.views, {**maps.info, "upsampled_from": list(maps.depth.shape[-2:])})
+
+
 def combine(primary: DepthMaps, fallback: DepthMaps, weight: float = 0.5) -> DepthMaps:
     """``primary``'s depth where it has some, ``fallback``'s (confidence scaled by ``weight``) elsewhere:
     stereo where it matched, the model's depth for the rest (same cameras)."""
