@@ -99,3 +99,15 @@ def test_poisson_closes_a_hole_and_stays_inside_the_masks():
     from omnirecon.mesh.poisson import outside_votes
 
     assert outside_votes(np.asarray(closed.vertices), cams, masks).max() == 0
+
+
+def test_auto_depth_by_scene_kind(forward_scene):  # noqa: F811
+    from types import SimpleNamespace
+
+    from omnirecon.mesh.build import default_depth
+
+    photos = SimpleNamespace(mesh_path=None, rig="forward")
+    procedural = SimpleNamespace(mesh_path="mesh.ply", rig="object")
+    assert default_depth(photos, has_model=True) == "stereo+model"
+    assert default_depth(procedural, has_model=True) == "model"
+    assert default_depth(procedural, has_model=False) == default_depth(photos, has_model=False) == "stereo"
