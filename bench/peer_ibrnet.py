@@ -1,8 +1,8 @@
 """The official IBRNet code against our ``ibrnet-paper`` at the same configuration, in one run.
 
-    python bench/peer_ibrnet.py --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
-    python bench/peer_ibrnet.py --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
-    python bench/peer_ibrnet.py                                 # no checkout: our side only, the JSON says so
+    python -m bench peer_ibrnet --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
+    python -m bench peer_ibrnet --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
+    python -m bench peer_ibrnet                                 # no checkout: our side only, the JSON says so
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
 https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,
@@ -329,7 +329,7 @@ def main(argv: list[str] | None = None) -> dict:
         for name, child, extra, spec in sides:
             env = dict(base_env, OMNIRECON_FAST=spec) if spec else base_env
             save = ["--save-render", str(renders / f"{name}.npy")]
-            res = subprocess.run([sys.executable, __file__, "--child", child, *common, *extra, *save], env=env,
+            res = subprocess.run([sys.executable, "-m", "bench", "peer_ibrnet", "--child", child, *common, *extra, *save], env=env,
                                  capture_output=True, text=True)
             if res.returncode:
                 raise SystemExit(f"{name} failed:\n{res.stderr[-3000:]}")
@@ -377,6 +377,3 @@ def main(argv: list[str] | None = None) -> dict:
     print(json.dumps({"best": best, "ratios": ratios}, indent=1))
     return result
 
-
-if __name__ == "__main__":
-    main()
