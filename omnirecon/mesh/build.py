@@ -35,7 +35,16 @@ from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
 from omnirecon.mesh import clean, fusion
 from omnirecon.mesh.complete import complete_surface
-from omnirecon.mesh.depth import DepthMaps, combine, downscaled, model_depths, oracle_depths, stereo_maps, upsampled
+from omnirecon.mesh.depth import (
+    DepthMaps,
+    combine,
+    downscaled,
+    model_depths,
+    oracle_depths,
+    stereo_maps,
+    upsampled,
+    without_background,
+)
 from omnirecon.mesh.stereo import StereoOptions
 
 DTU_SHIFT = 25.0 / 684.0
@@ -236,7 +245,7 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     say("confidence")
     t = time.perf_counter()
     if masks is None:
-        maps = without_background(maps, scene, options)
+        maps = without_background(maps, scene, options.shifts)
     cams = maps.cameras.to(dtype=torch.float64)
     depth = maps.depth.float().cpu()
     weight = (maps.confidence.float().cpu() if options.confidence else torch.ones_like(depth)) * (depth > 0)
@@ -325,21 +334,6 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
             "depth_source": maps.info, "vertices": len(mesh.vertices), "completion": completion,
             "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0}
     return MeshResult(mesh, info, maps.cameras, maps.depth)
-
-
-def without_background(maps: DepthMaps, scene, options: MeshOptions, tol: float = 2 / 255) -> DepthMaps:
-    """``maps`` with no depth where the photo shows the scene's background colour (a scene composited on
-    a known ``background``, e.g. procedural renders on black): there is no surface to make there, and a
-    model's depth in the empty sky made sheets that hid the objects from held-out views (demo scene,
-    ``bench/depth_sources.py``). Unshifted maps only (a shifted map's pixels are not the photo's)."""
-    if scene.background is None or any(s != 0 for s in options.shifts) or \
-            tuple(maps.depth.shape[-2:]) != (scene.height, scene.width):
-        return maps
-    bg = torch.tensor(scene.background, dtype=scene.images.dtype)
-    empty = (scene.images[maps.views] - bg).abs().amax(-1) <= tol  # [N, H, W]
-    zero = torch.zeros_like(maps.depth)
-    return DepthMaps(maps.cameras, torch.where(empty, zero, maps.depth), torch.where(empty, zero, maps.confidence),
-                     maps.views, {**maps.info, "background_pixels": float(empty.float().mean())})
 
 
 def mesh_from_model(model, scene, views, options: MeshOptions | None = None, device="cpu", use_masks: bool = False,

@@ -238,3 +238,18 @@ def combine(primary: DepthMaps, fallback: DepthMaps, weight: float = 0.5) -> Dep
             "seconds": primary.info.get("seconds", 0.0) + fallback.info.get("seconds", 0.0),
             "parts": [primary.info, fallback.info]}
     return DepthMaps(primary.cameras, depth, conf, primary.views, info)
+
+
+def without_background(maps: DepthMaps, scene, shifts=(0.0,), tol: float = 2 / 255) -> DepthMaps:
+    """``maps`` with no depth where the photo shows the scene's background colour (a scene composited on
+    a known ``background``, e.g. procedural renders on black): there is no surface to make there, and a
+    model's depth in the empty sky made sheets that hid the objects from held-out views (demo scene,
+    ``bench/depth_sources.py``). Unshifted maps only (a shifted map's pixels are not the photo's)."""
+    if scene.background is None or any(s != 0 for s in shifts) or \
+            tuple(maps.depth.shape[-2:]) != (scene.height, scene.width):
+        return maps
+    bg = torch.tensor(scene.background, dtype=scene.images.dtype)
+    empty = (scene.images[maps.views] - bg).abs().amax(-1) <= tol  # [N, H, W]
+    zero = torch.zeros_like(maps.depth)
+    return DepthMaps(maps.cameras, torch.where(empty, zero, maps.depth), torch.where(empty, zero, maps.confidence),
+                     maps.views, {**maps.info, "background_pixels": float(empty.float().mean())})
