@@ -378,19 +378,18 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
 def default_depth(scene=None, has_model: bool = True) -> str:
     """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks for
-    ``scene``'s kind, by what ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources"):
+    ``scene``'s kind, by what ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", before tuning):
 
     * photos (forward-facing like fern, object scans like DTU), with a model: ``stereo+model``, stereo at
-      the photos' resolution where it matched and the model's depth (at 128 px) for the rest: on
-      dtu_scan24 17.46 dB over the mask before tuning (IoU 0.950) against 15.21 (0.931) for stereo alone
-      and 15.30 (0.958) for the model alone;
-    * procedural renders (a scene that ships its exact mesh: flat-shaded, textureless shapes), with a
-      model: the model's own depth; stereo's single-pair matches there are 31 % outliers (> 10 % depth
-      error) and its meshes score 13.2-14.2 dB whole image against the exact mesh's 22.2;
-    * without a model: ``stereo``.
+      the photos' resolution where it matched and the model's coarse depth (at 128 px) for the rest:
+      fern 20.66 dB whole image against 19.17 for stereo alone and 16.00 for the model alone; dtu_scan24
+      17.46 dB over the mask (IoU 0.950) against 15.21 (0.931) and 15.30 (0.958); dtu_scan37 13.68 against
+      13.65 (IoU 0.897 against 0.918);
+    * procedural renders (a scene that ships its exact mesh: shapes on an empty background) and any scene
+      without a model: ``stereo``: on the demo scene 19.29 dB (exact mesh 22.19) in 16 CPU-s, against
+      13.22 for stereo+model and 12.18 for the model's depth (those two measured before the background
+      test, :func:`~omnirecon.mesh.depth.without_background`, which took stereo from 14.17 to 19.29).
     """
-    if not has_model:
+    if not has_model or (scene is not None and getattr(scene, "mesh_path", None) is not None):
         return "stereo"
-    if scene is not None and getattr(scene, "mesh_path", None) is not None:
-        return "model"
     return "stereo+model"
