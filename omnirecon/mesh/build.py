@@ -377,20 +377,16 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
 
 def default_depth(scene=None, has_model: bool = True) -> str:
-    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks for
-    ``scene``'s kind, by what ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", before tuning):
+    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks, by what
+    ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", PSNR before tuning): with a model,
+    ``stereo+model`` (stereo at the photos' resolution where it matched, the model's coarse depth at 128
+    px for the rest) on every scene kind measured; without one, ``stereo``.
 
-    * photos (forward-facing like fern, object scans like DTU), with a model: ``stereo+model``, stereo at
-      the photos' resolution where it matched and the model's coarse depth (at 128 px) for the rest:
-      fern 20.66 dB whole image against 19.17 for stereo alone and 16.00 for the model alone; dtu_scan24
-      17.46 dB over the mask (IoU 0.950) against 15.21 (0.931) and 15.30 (0.958); dtu_scan37 13.68 against
-      13.65 (IoU 0.897 against 0.918);
-    * procedural renders (a scene that ships its exact mesh: shapes on an empty background) and any scene
-      without a model: ``stereo``: on the demo scene 19.29 dB (exact mesh 22.19), F-score 0.941, in 16
-      CPU-s, against the model's coarse depth 19.61 dB, F-score 0.900, in 101 CPU-s (both with the
-      background test, :func:`~omnirecon.mesh.depth.without_background`, which took stereo from 14.17 and
-      the model from 12.18): the better geometry at a sixth of the cost for 0.3 dB.
+    * fern (forward-facing): 20.66 dB whole image, against 19.17 for stereo alone and 16.00 for the model;
+    * dtu_scan24 / 37 (object scans): 17.46 / 13.68 dB over the mask, against 15.21 / 13.65 for stereo and
+      15.30 / - for the model (IoU 0.950 / 0.897, against 0.931 / 0.918 and 0.958 / -);
+    * the demo's procedural scene: 19.85 dB (F-score 0.945), against 19.29 (0.941) for stereo and 19.61
+      (0.900) for the model; exact mesh 22.19. The cost: 93 CPU-s against 16 for stereo alone there
+      (the model's depth is most of it), so a time-bound run can pass ``--depth stereo`` for -0.56 dB.
     """
-    if not has_model or (scene is not None and getattr(scene, "mesh_path", None) is not None):
-        return "stereo"
-    return "stereo+model"
+    return "stereo+model" if has_model else "stereo"

@@ -109,7 +109,7 @@ def test_auto_depth_by_scene_kind(forward_scene):  # noqa: F811
     photos = SimpleNamespace(mesh_path=None, rig="forward")
     procedural = SimpleNamespace(mesh_path="mesh.ply", rig="object")
     assert default_depth(photos, has_model=True) == "stereo+model"
-    assert default_depth(procedural, has_model=True) == "stereo"
+    assert default_depth(procedural, has_model=True) == "stereo+model"  # measured best on every kind
     assert default_depth(procedural, has_model=False) == default_depth(photos, has_model=False) == "stereo"
 
 
