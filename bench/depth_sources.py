@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -214,7 +215,7 @@ def timing_row(source: str, models: dict, photos: int = 20) -> dict:
     return {"scene": "fern", "source": source, "timing": True, "photos": len(views),
             "resolution": [scene.width, scene.height], "cpu_seconds": {"load": load_s, "images_to_mesh": load_s + mesh_s},
             "stage_wall_seconds": made.info["seconds"], "faces": len(made.mesh.faces),
-            "load_average": list(__import__("os").getloadavg())}
+            "load_average": list(os.getloadavg())}
 
 
 def main(argv: list[str] | None = None) -> dict:
