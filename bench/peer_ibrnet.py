@@ -260,6 +260,12 @@ def _time_both(render, train_step, params: int, base_rss: float, args, rendered:
         renders_cpu.append(time.process_time() - c0)
         encodes.append(rendered["encode_cpu_s"])
     render_rss = peak_rss_mb()
+    if args.train_steps == 0:  # render only (e.g. where a training step does not fit in memory)
+        return {"params": params, "render_s": round(min(renders), 3), "render_first_s": round(renders[0], 3),
+                "render_cpu_s": round(min(renders_cpu), 3),
+                "encode_cpu_s": round(encodes[renders_cpu.index(min(renders_cpu))], 3),
+                "render_peak_rss_mb": round(render_rss, 1), "peak_rss_mb": round(peak_rss_mb(), 1),
+                "baseline_rss_mb": round(base_rss, 1)}
     train_step()  # warm-up
     times, cpu = [], []
     for _ in range(args.train_steps):
@@ -301,7 +307,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--far", type=float, default=4.5)
     parser.add_argument("--chunk", type=int, default=4096)
     parser.add_argument("--train-rays", type=int, default=512, help="rays per training step (IBRNet's N_rand)")
-    parser.add_argument("--train-steps", type=int, default=2, help="timed steps after a warm-up (best kept)")
+    parser.add_argument("--train-steps", type=int, default=2, help="timed steps after a warm-up (best kept); 0: render only")
     parser.add_argument("--renders", type=int, default=1, help="renders per process (the first is the cold start)")
     parser.add_argument("--rounds", type=int, default=1, help="alternating rounds of child processes")
     parser.add_argument("--reference-too", action="store_true",
@@ -363,10 +369,10 @@ def main(argv: list[str] | None = None) -> dict:
     best = {name: {"params": rs[0]["params"], "switches": rs[0]["switches"],
                    "render_s": min(r["render_s"] for r in rs),
                    "render_first_s": min(r["render_first_s"] for r in rs),
-                   "train_step_s": min(r["train_step_s"] for r in rs),
+                   "train_step_s": min((r["train_step_s"] for r in rs if "train_step_s" in r), default=None),
                    "render_cpu_s": min(r["render_cpu_s"] for r in rs),
                    "encode_cpu_s": min(r["encode_cpu_s"] for r in rs),
-                   "train_step_cpu_s": min(r["train_step_cpu_s"] for r in rs),
+                   "train_step_cpu_s": min((r["train_step_cpu_s"] for r in rs if "train_step_cpu_s" in r), default=None),
                    "peak_rss_mb": max(r["peak_rss_mb"] for r in rs),
                    "render_peak_rss_mb": max(r["render_peak_rss_mb"] for r in rs)} for name, rs in runs.items()}
     n_full = args.width * args.height
@@ -375,7 +381,7 @@ def main(argv: list[str] | None = None) -> dict:
         b["render_rays_per_s"] = round((n_render / (b["render_cpu_s"] - b["encode_cpu_s"])) if args.crop
                                        else n_render / b["render_cpu_s"], 1)  # a window: rays past the encoder
         b["full_view_cpu_s"] = round(b["encode_cpu_s"] + (b["render_cpu_s"] - b["encode_cpu_s"]) * n_full / n_render, 1)
-        b["train_rays_per_s"] = round(args.train_rays / b["train_step_cpu_s"], 1)
+        b["train_rays_per_s"] = round(args.train_rays / b["train_step_cpu_s"], 1) if args.train_steps else None
         if "ours_reference" in best and name.startswith("ours") and name != "ours_reference":
             b["psnr_to_reference_db"] = _psnr(renders / f"{name}.npy", renders / "ours_reference.npy")
     ratios = None
@@ -383,9 +389,11 @@ def main(argv: list[str] | None = None) -> dict:
         p = best["peer"]
         ratios = {name: {"render_speedup": round(p["full_view_cpu_s"] / o["full_view_cpu_s"], 2),
                          "window_render_speedup": round(p["render_cpu_s"] / o["render_cpu_s"], 2),
-                         "train_speedup": round(p["train_step_cpu_s"] / o["train_step_cpu_s"], 2),
+                         "train_speedup": round(p["train_step_cpu_s"] / o["train_step_cpu_s"], 2) if args.train_steps
+                         else None,
                          "render_speedup_wall": round(p["render_s"] / o["render_s"], 2),
-                         "train_speedup_wall": round(p["train_step_s"] / o["train_step_s"], 2),
+                         "train_speedup_wall": round(p["train_step_s"] / o["train_step_s"], 2) if args.train_steps
+                         else None,
                          "peak_rss_ratio": round(o["peak_rss_mb"] / p["peak_rss_mb"], 2),
                          "render_peak_rss_ratio": round(o["render_peak_rss_mb"] / p["render_peak_rss_mb"], 2)}
                   for name, o in best.items() if name != "peer"}

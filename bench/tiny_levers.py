@@ -129,6 +129,51 @@ def measure(model_name: str, plans, rounds: int) -> dict:
     return {"model": model_name, "weights": weights, "config": base_cfg, "rows": rows}
 
 
+def switch_ablation(preset: str, rounds: int) -> dict:
+    """Each fast-path switch measured against its reference twin: render CPU seconds of ``preset`` (random
+    weights, ``bench/profile_models.py``'s case: sources and a small target) with every switch at its reference
+    but that one (``only_<switch>``), with the defaults but that one at its reference (``without_<switch>``),
+    and both ends; interleaved ``rounds`` times, fastest kept, one thread."""
+    import sys
+
+    sys.path.insert(0, str(HERE))
+    from profile_models import setup
+
+    from omnirecon.models import fast
+
+    model, src, target, _, _ = setup(preset)
+    model.eval()
+    ref = dict(fast.REFERENCE)
+    default = {k: getattr(fast.FastPaths(), k) for k in ref}
+    on = [k for k in ref if default[k] != ref[k]]
+    sides = {"reference": ref, "default": default}
+    sides |= {f"only_{k}": ref | {k: default[k]} for k in on}
+    sides |= {f"without_{k}": default | {k: ref[k]} for k in on}
+    times: dict[str, list[float]] = {n: [] for n in sides}
+    rgb: dict[str, torch.Tensor] = {}
+
+    def render():
+        t0 = time.process_time()
+        with torch.no_grad():
+            feats = model.encode(src)
+        out = model.render_view(feats, target, chunk=4096)["rgb"]
+        return time.process_time() - t0, out
+
+    with fast.switches(**ref):
+        render()  # warm-up
+    for _ in range(rounds):
+        for name, sw in sides.items():
+            with fast.switches(**sw):
+                t, rgb[name] = render()
+            times[name].append(t)
+    base = min(times["reference"])
+    rows = [{"side": n, "cpu_s": round(min(t), 3), "speedup": round(base / min(t), 2),
+             "max_abs_vs_reference": float((rgb[n] - rgb["reference"]).abs().max())} for n, t in times.items()]
+    for row in rows:
+        print(preset, row, flush=True)
+    return {"preset": preset, "target": [target.width, target.height], "sources": len(src.cameras), "rows": rows}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--models", nargs="+", default=list(MODELS), choices=list(MODELS))
@@ -138,7 +183,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--k", type=int, default=3, help="source views")
     parser.add_argument("--targets", type=int, default=1, help="targets per scene")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--out", type=Path, default=HERE / "results" / "tiny_levers.json")
+    parser.add_argument("--switches", nargs="*", default=None, metavar="PRESET",
+                        help="instead: each fast-path switch against its reference twin on these presets (random "
+                             "weights, bench/profile_models.py's cases); writes --out (default switches.json)")
+    parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
     from omnirecon.models.fast import FAST
@@ -146,6 +194,13 @@ def main(argv: list[str] | None = None) -> dict:
 
     torch.set_num_threads(1)
     load_start = [round(x, 2) for x in os.getloadavg()]
+    if args.switches is not None:
+        result = {"provenance": provenance(seed=0, threads=1), "defaults": repr(FAST), "rounds": args.rounds,
+                  "loadavg_start": load_start,
+                  "presets": [switch_ablation(p, args.rounds) for p in args.switches or ["ibrnet-paper", "ibrnet-tiny"]],
+                  "loadavg_end": [round(x, 2) for x in os.getloadavg()]}
+        write_json(args.out or HERE / "results" / "switches.json", result)
+        return result
     plans = jobs(args.scenes, args.count, args.k, args.targets)
     result = {"provenance": provenance(seed=0, threads=1), "defaults": repr(FAST), "protocol_set": "cpu",
               "k": args.k, "targets_per_scene": args.targets, "rounds": args.rounds,
@@ -153,7 +208,7 @@ def main(argv: list[str] | None = None) -> dict:
                          for es, p in plans], "loadavg_start": load_start,
               "models": [measure(m, plans, args.rounds) for m in args.models]}
     result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
-    write_json(args.out, result)
+    write_json(args.out or HERE / "results" / "tiny_levers.json", result)
     return result
 
 
@@ -182,6 +237,23 @@ def section(r: dict) -> str:
                          f"{row['dpsnr']:+.3f} | " + " | ".join(str(row["psnr"].get(n, "–")) for n in names) + " |")
     lines += ["", "Bold: at least 3x the reference with at most 0.1 dB lost.", "", markdown_header(r["provenance"])]
     return "\n".join(lines) + "\n"
+
+
+def section_switches(r: dict) -> str:
+    """BENCHMARKS.md section: each fast-path switch alone over the reference, and the defaults without it."""
+    from omnirecon.provenance import markdown_header
+
+    lines = ["## Each fast-path switch against its reference twin (`bench/tiny_levers.py --switches`)", "",
+             "Render CPU seconds (encode + `render_view`, random weights, `bench/profile_models.py`'s case, one "
+             f"thread; sides interleaved {r['rounds']} times, fastest kept): `only_X` is the reference with switch "
+             "X on, `without_X` the defaults with X at its reference twin. Speed-up against the reference in the "
+             f"same run. Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
+    for p in r["presets"]:
+        lines += [f"**{p['preset']}** ({p['sources']} sources, {p['target'][0]}x{p['target'][1]} target)", "",
+                  "| side | CPU s | speed-up | max abs diff to the reference |", "|---|---|---|---|"]
+        lines += [f"| {x['side']} | {x['cpu_s']} | {x['speedup']}× | {x['max_abs_vs_reference']:.2g} |" for x in p["rows"]]
+        lines.append("")
+    return "\n".join([*lines, markdown_header(r["provenance"])]) + "\n"
 
 
 if __name__ == "__main__":
