@@ -38,7 +38,7 @@ test: setup
 	$(BIN)/python -m pytest -q -ra --durations=15 tests
 
 bench: setup
-	$(BIN)/python bench/run_all.py
+	$(BIN)/python -m bench page
 
 clean:
 	rm -rf $(VENV) outputs

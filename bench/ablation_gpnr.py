@@ -1,8 +1,8 @@
 """GPNR ablations in the seed's form, at the tiny budget: each row trained with the same data,
 seed and CPU budget, then scored on the held-out procedural scenes.
 
-    python bench/ablation_gpnr.py --cpu-budget 900          # the four rows of the seed's Table 3
-    python bench/ablation_gpnr.py --tiny                    # a fast smoke run (tests; numbers mean nothing)
+    python -m bench ablation_gpnr --cpu-budget 900          # the four rows of the seed's Table 3
+    python -m bench ablation_gpnr --tiny                    # a fast smoke run (tests; numbers mean nothing)
 
 Rows: full model; without the visual (stage-1) transformer; without ray canonicalisation; without
 coordinate canonicalisation. The colour-vs-feature comparison comes from every row at once: GPNR
@@ -17,8 +17,8 @@ import json
 from pathlib import Path
 
 import torch
-import train_tiny
 
+from bench import train_tiny
 from omnirecon.data.io import write_json
 from omnirecon.provenance import provenance
 
@@ -68,6 +68,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(a.out, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """``torch.compile`` with its persistent cache: the cold start, the warm start and the steady render, in one run.
 
-    python bench/compile_cache.py                         # ibrnet-tiny, 64x64 view, 3 sources
-    python bench/compile_cache.py --preset ibrnet-paper --size 64 48
+    python -m bench compile_cache                         # ibrnet-tiny, 64x64 view, 3 sources
+    python -m bench compile_cache --preset ibrnet-paper --size 64 48
 
 A user turns compilation on with ``OMNIRECON_FAST=compile=1``; inductor's kernels are kept on disk
 (``TORCHINDUCTOR_CACHE_DIR``, by default ``~/.cache/omnirecon/inductor``). Each side runs in its own fresh
@@ -114,27 +114,6 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(args.out, result)
     print(json.dumps(summary, indent=1))
     return result
-
-
-def section(r: dict) -> str:
-    """BENCHMARKS.md section: cold and warm start of ``OMNIRECON_FAST=compile=1`` and its steady render."""
-    from omnirecon.provenance import markdown_header
-
-    s = r["summary"]
-    w, h = r["size"]
-    repay = s["renders_to_repay_warm"]
-    lines = ["## torch.compile with a persistent cache: cold and warm start (`bench/compile_cache.py`)", "",
-             f"{r['preset']} (random weights), one {w}x{h} view from 3 sources, one thread, each side a fresh "
-             "process in the order eager, cold (empty inductor cache), warm (same cache, new process), eager; CPU "
-             "seconds including inductor's compile workers. First render = compile + render.", "",
-             "| side | first render CPU s (wall) | steady render CPU s |", "|---|---|---|"]
-    lines += [f"| {x['side']} | {x['first_cpu_s']} ({x['first_wall_s']}) | {x['steady_cpu_s']} |" for x in r["runs"]]
-    lines += ["", f"Compiled steady render {s['steady_speedup']}× eager; start-up cost {s['cold_overhead_cpu_s']} CPU s "
-              f"cold, {s['warm_overhead_cpu_s']} CPU s warm"
-              + (f", repaid after {repay} renders (warm)." if repay is not None else ", never repaid (no steady gain).")
-              + f" Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", "",
-              markdown_header(r["provenance"])]
-    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Depth source x scene: what each depth source's mesh gives through the mesh path (issue 24).
 
-    python bench/depth_sources.py                      # every row below (tens of CPU-minutes)
-    python bench/depth_sources.py --rows fern:stereo+fill dtu_scan24:stereo+fill
-    python bench/depth_sources.py --tiny               # the demo scene at 48 px, oracle and stereo (tests)
+    python -m bench depth_sources                      # every row below (tens of CPU-minutes)
+    python -m bench depth_sources --rows fern:stereo+fill dtu_scan24:stereo+fill
+    python -m bench depth_sources --tiny               # the demo scene at 48 px, oracle and stereo (tests)
 
 Per scene (fern at its photos' resolution, 336x252; dtu_scan24/37 at 400x300 with their object masks;
 the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth source:
@@ -232,6 +232,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(out_file, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -2,8 +2,8 @@
 same CPU budget (same seed, data, schedule, 1 thread), then scored on held-out real scenes and on
 validation seeds. Not a shipped checkpoint: the runs stay in outputs/train/lever_<model>_<encoder>.
 
-    python bench/encoder_lever.py --model ibrnet-tiny --encoders scratch vgg16 alexnet --cpu-budget 300
-    python bench/encoder_lever.py --model ibrnet-tiny --encoders scratch vgg16 alexnet --eval-only
+    python -m bench encoder_lever --model ibrnet-tiny --encoders scratch vgg16 alexnet --cpu-budget 300
+    python -m bench encoder_lever --model ibrnet-tiny --encoders scratch vgg16 alexnet --eval-only
 
 The schedule is constant after a 50-step warm-up, so that a run cut by its CPU budget is not at a
 different point of a decaying schedule than its rival (the encoders differ in cost per step). Each
@@ -20,9 +20,9 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from bench.train_tiny import CACHE, REAL, RESOLUTION, SEED, SHARED, WEIGHTS
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "bench"))
-from train_tiny import CACHE, REAL, RESOLUTION, SEED, SHARED, WEIGHTS  # noqa: E402
 
 SYNTH = ["synth:object", "synth:frontal", "synth:forward"]
 HELD_OUT = ["llff/fern", "neus_dtu/dtu_scan37"]
@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--eval-only", action="store_true", help="score finished runs only")
     a = p.parse_args(argv)
     if not a.eval_only:
-        import train_tiny
-        from train_tiny import prepare
+        from bench import train_tiny
+        from bench.train_tiny import prepare
         train_tiny.SYNTH = [f"{s}:{a.synth_scenes}" for s in SYNTH]
         prepare(a.synth_scenes)
         with ThreadPoolExecutor(len(a.encoders)) as pool:
@@ -128,6 +128,3 @@ def table(result: dict) -> str:
                      f"{pair(held, pick='dtu_scan37')} | {pair(held, 'psnr_masked', 'dtu_scan37')} | {pair(val)} |")
     return "\n".join(lines)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,9 +1,9 @@
 """End to end: ``make demo`` on a fresh clone and ``reconstruct`` of a folder of photos, CPU seconds per stage.
 
-    python bench/end_to_end.py --demo                           # fresh clone of HEAD: make setup, make demo
-    python bench/end_to_end.py --reconstruct ../shared/data/llff/fern/images_12
-    python bench/end_to_end.py --collect-demo CLONE/outputs/demo TIME_FILE [--collect-setup TIME_FILE]
-    python bench/end_to_end.py --collect-reconstruct OUT TIME_FILE   # a run made as below, already finished
+    python -m bench end_to_end --demo                           # fresh clone of HEAD: make setup, make demo
+    python -m bench end_to_end --reconstruct ../shared/data/llff/fern/images_12
+    python -m bench end_to_end --collect-demo CLONE/outputs/demo TIME_FILE [--collect-setup TIME_FILE]
+    python -m bench end_to_end --collect-reconstruct OUT TIME_FILE   # a run made as below, already finished
 
 On the shared cores wall time measures the scheduler, so every command runs at one thread
 (``OMP_NUM_THREADS=1``, ``--threads 1``) with the stage clocks the workflows print and record
@@ -150,30 +150,3 @@ def main(argv: list[str] | None = None) -> dict:
         print(name, json.dumps(run, indent=1), flush=True)
     write_json(args.out, result)
     return result
-
-
-def section(r: dict) -> str:
-    """BENCHMARKS.md section: per command, CPU seconds per stage at one thread, the goal and what limits."""
-    from omnirecon.provenance import markdown_header
-
-    lines = ["## End to end: `make demo` and `reconstruct` (`bench/end_to_end.py`)", "",
-             "One thread, stage clocks reading process CPU seconds (what a quiet machine would take at one thread; "
-             "every wall budget, e.g. 60 s of tuning, becomes CPU seconds too); whole-command CPU and wall seconds from "
-             "`/usr/bin/time` with the load average beside them (wall on the shared cores is mostly the scheduler).", ""]
-    for name, run in r.items():
-        v, w = run["verdict"], run["whole"]
-        lines += [f"**{name}** (`{run['command']}`): stages {v['stages_total_cpu_s']} CPU s against the goal of "
-                  f"{v['goal_s']:.0f} s ({v['over_goal_s']:+.0f} s); the limit is **{v['limiting_stage']}** with "
-                  f"{v['limiting_stage_cpu_s']} CPU s ({100 * v['limiting_share']:.0f} %). Whole command {w['cpu_s']} "
-                  f"CPU s, {w['wall_s']} s wall at load {run.get('load')}, peak RSS {w['peak_rss_mb']} MB."
-                  + (f" `make setup` before it: {run['setup']['cpu_s']} CPU s, {run['setup']['wall_s']} s wall."
-                     if run.get("setup") else ""), "",
-                  "| stage | CPU s | share |", "|---|---|---|"]
-        total = v["stages_total_cpu_s"]
-        lines += [f"| {k} | {s} | {100 * s / total:.0f} % |" for k, s in run["stages_cpu_s"].items()]
-        lines += ["", markdown_header(run["provenance"]), ""]
-    return "\n".join(lines)
-
-
-if __name__ == "__main__":
-    main()

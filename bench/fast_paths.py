@@ -1,8 +1,8 @@
 """The fast paths of ``omnirecon/models/fast.py`` against their reference twins on a held-out scene.
 
-    python bench/fast_paths.py                      # shipped tiny checkpoints, synth:eval seed 900000
-    python bench/fast_paths.py --models ibrnet-tiny --targets 1 --rounds 1
-    python bench/fast_paths.py --compile            # also: torch.compile of IBRNet's aggregator (slow)
+    python -m bench fast_paths                      # shipped tiny checkpoints, synth:eval seed 900000
+    python -m bench fast_paths --models ibrnet-tiny --targets 1 --rounds 1
+    python -m bench fast_paths --compile            # also: torch.compile of IBRNet's aggregator (slow)
 
 For each model (a shipped checkpoint, else random weights: the JSON says which), one held-out procedural
 scene (``synth:eval``, first seed, the ``cpu`` protocol: 64 px; ``--protocol-set full``: 128 px) with K = 3 nearest pool views per
@@ -155,11 +155,7 @@ def measure(model_name: str, k: int, targets: int, rounds: int, protocol_set: st
 def measure_compile(preset: str = "ibrnet-tiny", rays: int = 256, repeats: int = 5) -> dict:
     """Compile time and steady speed of ``torch.compile`` on IBRNet's fine aggregator (inference, one batch
     shape) against eager, the same inputs, interleaved repeats."""
-    import sys
-
-    sys.path.insert(0, str(HERE))
-    from profile_models import setup
-
+    from bench.profile_models import setup
     from omnirecon.rays import Rays
 
     model, src, target, _, _ = setup(preset)
@@ -226,6 +222,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(args.out, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -2,9 +2,9 @@
 and as now on forward-facing rigs (grown to hold the source cameras), plus render-time options, scored on
 validation (procedural forward-rig seeds 901004-901007: object rigs are unchanged by the box) and on fern.
 
-    python bench/fern_gap.py                                  # content vs cameras, validation and fern
-    python bench/fern_gap.py --variants content cameras cameras+far
-    python bench/fern_gap.py --variants cameras cameras+far --object-val --reuse   # add the object-rig seeds
+    python -m bench fern_gap                                  # content vs cameras, validation and fern
+    python -m bench fern_gap --variants content cameras cameras+far
+    python -m bench fern_gap --variants cameras cameras+far --object-val --reuse   # add the object-rig seeds
 
 No retraining: every variant is the same weights with one config field changed (``forward_box``, ``leftover``).
 Validation decides; fern is reported for the table only. Writes ``bench/results/fern_gap.json`` (provenance header,
@@ -110,6 +110,3 @@ def table(result: dict) -> str:
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {sum(r['cpu_s'] for r in row.values()):.0f} |")
     return "\n".join(lines)
 
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """What the mesh path's fill and occlusion test buy before tuning: held-out PSNR and coverage.
 
-    python bench/fill_visibility.py --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
+    python -m bench fill_visibility --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
 
 Per scene and mesh (the project's own ``omnirecon mesh --views all`` meshes): the protocol's held-out
 views (at most 4, evenly spaced) rendered by :class:`~omnirecon.mesh.ibr.MeshRenderer` from the default
@@ -76,6 +76,3 @@ def main(argv: list[str] | None = None) -> dict:
         write_json(file, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

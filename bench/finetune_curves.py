@@ -1,7 +1,7 @@
 """The mesh path's PSNR against seconds of CPU tuning, with coverage, on real and procedural scenes.
 
-    python bench/finetune_curves.py --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
-    python bench/finetune_curves.py --scene demo=PATH --mesh demo=MESH.ply --seconds 300
+    python -m bench finetune_curves --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
+    python -m bench finetune_curves --scene demo=PATH --mesh demo=MESH.ply --seconds 300
 
 Per scene: ``omnirecon finetune`` of the 2-D encoder and the appearance branch with the given mesh
 (the project's own ``omnirecon mesh --views all`` meshes; the JSON records which), images at the
@@ -80,6 +80,3 @@ def main(argv: list[str] | None = None) -> dict:
         write_json(file, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Geometry from 3 source views: meshes of the shipped checkpoints and the floor, scored.
 
-    python bench/geometry.py                                # omnirecon-tiny, ibrnet-tiny, floor
-    python bench/geometry.py --models floor --tiny          # a fast subset (tests)
+    python -m bench geometry                                # omnirecon-tiny, ibrnet-tiny, floor
+    python -m bench geometry --models floor --tiny          # a fast subset (tests)
 
 Each model runs ``omnirecon eval --geometry`` with K = 3 under the ``full`` protocols (128-px long
 side): on the 10 held-out procedural scenes (sources: 3 evenly spaced pool views; the mesh is scored
@@ -83,6 +83,3 @@ def main(argv: list[str] | None = None) -> None:
         g = r["synth"]["means"]["synth"]["3"].get("geometry", {})
         print(m, {k: round(v, 4) for k, v in g.items()})
 
-
-if __name__ == "__main__":
-    main()

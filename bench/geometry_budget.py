@@ -1,7 +1,7 @@
 """Geometry error budget, stage by stage, on procedural scenes (issue 16).
 
-    python bench/geometry_budget.py                      # demo scene + 2 synth:eval scenes (~15 CPU-min)
-    python bench/geometry_budget.py --tiny               # one scene at 48 px, oracle and floor (tests)
+    python -m bench geometry_budget                      # demo scene + 2 synth:eval scenes (~15 CPU-min)
+    python -m bench geometry_budget --tiny               # one scene at 48 px, oracle and floor (tests)
 
 For each scene (the demo's held-out scene, seed 900999, 24 views at 128 px, and the first
 ``--scenes`` of ``synth:eval``) and each depth source (``oracle``: the exact mesh's depth; ``stereo``: classical stereo;
@@ -178,6 +178,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(a.out / "geometry_budget.json", result)
     return result
 
-
-if __name__ == "__main__":
-    main()

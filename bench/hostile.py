@@ -1,8 +1,8 @@
 """A hostile-input set of its own (not the rows of tests/commands/test_malformed.py), run the way a new user
 would hit it, for BENCHMARKS' "Hostile inputs" section (issue 28, inputs part).
 
-    python bench/hostile.py                  # every case, ~5 min at 1 thread
-    python bench/hostile.py --limit 40       # a quick look
+    python -m bench hostile                  # every case, ~5 min at 1 thread
+    python -m bench hostile --limit 40       # a quick look
 
 Classes of cases (each built here, in a temporary folder):
 
@@ -21,6 +21,9 @@ file or option and carrying a ``(fix: ...)`` clause, no traceback, nothing added
 under the fixtures, no ``--out`` and nothing in the working folder. Each case runs in a forked child (the
 package imported once in the parent) with a time limit (a hang) and an address-space limit (killed for
 memory). Writes ``bench/results/hostile.json`` with a provenance header.
+
+Size: the case builders of five classes, the forked runner and the verdict are one measurement; the builders
+are short functions read one at a time.
 """
 
 from __future__ import annotations
@@ -40,7 +43,6 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))
 
 TIMEOUT = 60.0
 """Seconds before a case counts as a hang."""
@@ -477,27 +479,3 @@ def main(argv: list[str] | None = None) -> dict:
     shutil.rmtree(work, ignore_errors=True)
     return record
 
-
-def section(r: dict) -> str:
-    """BENCHMARKS.md section: the hostile set's handled fraction per class and what was not handled."""
-    lines = ["## Hostile inputs (`bench/hostile.py`)", "",
-             f"A set of {r['cases']} hostile inputs of its own (not the malformed-input table's rows), each run in "
-             "a forked child with a time limit and an address-space limit. Handled = exit 2, one stderr line naming "
-             "the file or option with a fix, no traceback, nothing added/removed/changed (valid unusual photos and "
-             "viewer requests: accepted / answered as they must).", "",
-             f"**{r['handled']}/{r['cases']} handled ({100 * r['handled_fraction']:.1f} %)**; "
-             + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in r["verdicts"].items() if k != "handled")
-             + f"; {r['seconds']:.0f} s, load average {r['provenance'].get('load_average', ['?'])[0]:.1f}.", "",
-             f"*Provenance: commit {r['provenance'].get('commit')}, {r['provenance'].get('date')}, torch "
-             f"{r['provenance'].get('torch')}, {r['provenance'].get('torch_threads')} thread(s); time limit "
-             f"{r['timeout_s']:.0f} s and +{r['extra_memory_gb']:.0f} GB address space per case.*", "",
-             "| class | cases | handled |", "|---|---:|---:|"]
-    lines += [f"| {k} | {v['cases']} | {v['handled']} |" for k, v in sorted(r["per_class"].items())]
-    if r["failures"]:
-        lines += ["", "Not handled:", ""]
-        lines += [f"- `{' '.join(f['args'])[:140]}` — {f['verdict']}: {f['message'][:160]}" for f in r["failures"][:20]]
-    return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Zero-shot 3-D understanding: predict-then-blend vs render-then-predict with the shipped checkpoints.
 
-    python bench/lift.py            # every shipped model, 10 held-out procedural scenes, K = 3
-    python bench/lift.py --tiny     # one scene, one target (a smoke run)
+    python -m bench lift            # every shipped model, 10 held-out procedural scenes, K = 3
+    python -m bench lift --tiny     # one scene, one target (a smoke run)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+, never trained on) under the ``cpu``
 protocol set of ``omnirecon.engine.evaluate`` (64 px, 2 targets per scene), K = 3 nearest pool views as
@@ -22,7 +22,7 @@ render's RGB (GPNR: ``rgb_blend``, made with the same weights). Scored as in
 * ``harris`` keypoints: pseudo-GT = Harris on the true target image (heat-map L1, peak F-score at 2 px);
 * ``oracle-normals``: mean angular error of lifted GT normals.
 
-Writes ``bench/results/lift.json`` (+ ``lift.md``) and ``bench/results/figures/lift_<model>.png``.
+Writes ``bench/results/lift.json`` and ``bench/results/figures/lift_<model>.png``.
 """
 
 from __future__ import annotations
@@ -114,24 +114,6 @@ FIGURE_TILES = ("true image | render | GT labels | oracle lift | noisy input (20
                 "Sobel predict-then-blend")
 
 
-def summary(result: dict) -> list[str]:
-    """A Markdown table: one row per (model, task)."""
-    lines = ["| model | task | metric | predict-then-blend | render-then-predict | 2-D input |", "|---|---|---|---|---|---|"]
-    tasks = [("oracle-labels", "miou"), ("noisy-labels", "miou"), ("knn-labels", "miou"), ("sobel", "l1"),
-             ("sobel", "fscore"), ("sobel", "fscore_labels"), ("canny", "l1"), ("canny", "fscore"),
-             ("canny", "fscore_labels"), ("hed", "l1"), ("hed", "fscore"), ("hed", "fscore_labels"), ("harris", "l1"), ("harris", "fscore"), ("oracle-normals", "angle_deg")]
-    for name, r in result["models"].items():
-        for task, metric in tasks:
-            if task not in r["means"]:
-                continue
-            m = r["means"][task]
-
-            def get(part):
-                v = (m.get(part) or {}).get(metric)
-                return "-" if v is None else f"{v:.2f}" if metric in ("miou", "angle_deg") else f"{v:.4f}"
-
-            lines.append(f"| {name} | {task} | {metric} | {get('lift')} | {get('render')} | {get('input')} |")
-    return lines
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -178,12 +160,6 @@ def main(argv: list[str] | None = None) -> None:
               f"oracle {m['oracle-labels']['lift']['miou']:.1f} mIoU; noisy {m['noisy-labels']['lift']['miou']:.1f} "
               f"vs input {m['noisy-labels']['input']['miou']:.1f}; knn blend {m['knn-labels']['lift']['miou']:.1f} vs "
               f"render {m['knn-labels']['render']['miou']:.1f}", flush=True)
-    table = summary(result)
-    result["table"] = table
     write_json(a.out / "lift.json", result)
-    (a.out / "lift.md").write_text("\n".join(table) + "\n")
-    print("\n".join(table))
+    print(f"wrote {a.out / 'lift.json'}")
 
-
-if __name__ == "__main__":
-    main()

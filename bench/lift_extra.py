@@ -1,8 +1,8 @@
 """Lifting, part 2, measured with ``checkpoints/omnirecon-tiny``: the mesh path vs the volumetric path,
 parameter-efficient tuning, the embedding path and the edits.
 
-    python bench/lift_extra.py            # 3 held-out procedural scenes (~10 CPU-minutes at 1 thread)
-    python bench/lift_extra.py --tiny     # one scene, one target, few steps (a smoke run)
+    python -m bench lift_extra            # 3 held-out procedural scenes (~10 CPU-minutes at 1 thread)
+    python -m bench lift_extra --tiny     # one scene, one target, few steps (a smoke run)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+) under the ``cpu`` protocol set (64 px, 2
 targets per scene), K = 3 nearest pool views as sources. Per target:
@@ -25,7 +25,7 @@ and remove the largest object through both paths; delete its faces from the exac
 lifted from the 12 nearest pool views; the mesh path's remove renders the mesh without them) with one
 picture per kind in ``bench/results/figures/lift_edit_*.png``.
 
-Writes ``bench/results/lift_extra.json`` and ``lift_extra.md``.
+Writes ``bench/results/lift_extra.json``.
 """
 
 from __future__ import annotations
@@ -200,24 +200,6 @@ def edits(model, scene, targets, pool, table, gt_mesh, figures: Path) -> dict:
     return out
 
 
-def summary(result: dict) -> list[str]:
-    m = result["means"]
-    lines = ["| measurement | volumetric | mesh (exact mesh) | mesh (exact, no occlusion test) | mesh (baked mesh) |",
-             "|---|---|---|---|---|"]
-    for key, label in (("oracle", "oracle labels lifted, mIoU"), ("knn", "knn labels lifted, mIoU"),
-                       ("knn_render_then_predict", "knn render-then-predict, mIoU")):
-        lines.append(f"| {label} | {m['volumetric'][key]:.2f} | {m['mesh_gt'][key]:.2f} | {m['mesh_gt_novis'][key]:.2f} | "
-                     f"{m['mesh_model'][key]:.2f} |")
-    lines.append(f"| knn on the true target image, mIoU | {m['knn_input']:.2f} | | | |")
-    if "embedding" in m:
-        e = m["embedding"]
-        lines.append(f"| HED-feature cosine classification, mIoU (input {e['input']:.2f}, render-then-predict "
-                     f"{e['render_then_predict']:.2f}) | {e['volumetric']:.2f} | {e['mesh_gt']:.2f} | | |")
-    lines += ["", "| PET mode | tuned params | mIoU before | after | gain | gain per 1k params |", "|---|---|---|---|---|---|"]
-    for mode, p in result["pet_means"].items():
-        lines.append(f"| {mode} | {p['params']} | {p['before']:.2f} | {p['after']:.2f} | {p['gain']:+.2f} | "
-                     f"{p['gain_per_1k_params']:+.3f} |")
-    return lines
 
 
 def mean_of(rows, path):
@@ -310,12 +292,6 @@ def main(argv: list[str] | None = None) -> None:
                                "lift_edit_mesh.png": "lifted face colours | lifted face labels | object's faces deleted "
                                "(exact mesh, target camera)"},
               "seconds": time.perf_counter() - start}
-    result["table"] = summary(result)
     write_json(a.out / "lift_extra.json", result)
-    (a.out / "lift_extra.md").write_text("\n".join(result["table"]) + "\n")
-    print("\n".join(result["table"]))
     print(f"{result['seconds']:.0f} s; wrote {a.out / 'lift_extra.json'}")
 
-
-if __name__ == "__main__":
-    main()

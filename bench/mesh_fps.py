@@ -1,13 +1,14 @@
 """Mesh-path vs volumetric FPS for BENCHMARKS.md: ``omnirecon bench`` writing ``bench/results/mesh_fps.json``.
 
-    python bench/mesh_fps.py --threads 2     # every option: omnirecon/engine/speed.py (BenchConfig)
+    python -m bench mesh_fps --threads 2     # every option: omnirecon/engine/speed.py (BenchConfig)
 """
 
 from pathlib import Path
 
-import tyro
 
-from omnirecon.engine.speed import BenchConfig, measure
+def main(argv: list[str] | None = None) -> None:
+    import tyro
 
-if __name__ == "__main__":
-    measure(tyro.cli(BenchConfig, default=BenchConfig(out=Path(__file__).parent / "results" / "mesh_fps.json")))
+    from omnirecon.engine.speed import BenchConfig, measure
+
+    measure(tyro.cli(BenchConfig, args=argv, default=BenchConfig(out=Path(__file__).parent / "results" / "mesh_fps.json")))

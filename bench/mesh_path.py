@@ -1,11 +1,11 @@
 """Quality of Omni-Recon's mesh path: held-out PSNR before and after seconds of fine-tuning, and what
 the per-source visibility test buys.
 
-    python bench/mesh_path.py                    # 3 held-out procedural scenes + dtu_scan24/37
-    python bench/mesh_path.py --tiny             # one small procedural scene, 2 s (tests)
+    python -m bench mesh_path                    # 3 held-out procedural scenes + dtu_scan24/37
+    python -m bench mesh_path --tiny             # one small procedural scene, 2 s (tests)
 
 Per scene: the mesh of ``checkpoints/omnirecon-tiny`` from 3 source views (``omnirecon mesh``'s
-protocol; the mesh ``bench/geometry.py`` wrote is reused when present), then
+protocol; the mesh ``python -m bench geometry`` wrote is reused when present), then
 
 * the mesh path's held-out PSNR without and with the visibility test (:class:`MeshRenderer`), on the
   protocol's targets (at most 4), images at the ``full`` protocol's 128-px long side; over the whole
@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> dict:
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     if not (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
-        raise SystemExit("bench/mesh_path.py needs checkpoints/omnirecon-tiny (bench/train_tiny.py ships it)")
+        raise SystemExit("`python -m bench mesh_path` needs checkpoints/omnirecon-tiny (`python -m bench train_tiny` ships it)")
     jobs = [(s, s.name, (0.0, 1.0, 2.0) if a.tiny else SHORT)
             for s in synth_eval_paths("synth:eval", 1 if a.tiny else a.synth_scenes, ROOT / "outputs" / "cache")]
     if not a.tiny:
@@ -136,6 +136,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(a.out / "mesh_path.json", result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,8 +1,8 @@
 """The official IBRNet code against our ``ibrnet-paper`` at the same configuration, in one run.
 
-    python bench/peer_ibrnet.py --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
-    python bench/peer_ibrnet.py --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
-    python bench/peer_ibrnet.py                                 # no checkout: our side only, the JSON says so
+    python -m bench peer_ibrnet --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
+    python -m bench peer_ibrnet --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
+    python -m bench peer_ibrnet                                 # no checkout: our side only, the JSON says so
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
 https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,
@@ -359,7 +359,7 @@ def main(argv: list[str] | None = None) -> dict:
         for name, child, extra, spec in sides:
             env = dict(base_env, OMNIRECON_FAST=spec) if spec else base_env
             save = ["--save-render", str(renders / f"{name}.npy")]
-            res = subprocess.run([sys.executable, __file__, "--child", child, *common, *extra, *save], env=env,
+            res = subprocess.run([sys.executable, "-m", "bench", "peer_ibrnet", "--child", child, *common, *extra, *save], env=env,
                                  capture_output=True, text=True)
             if res.returncode:
                 raise SystemExit(f"{name} failed:\n{res.stderr[-3000:]}")
@@ -413,38 +413,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(args.out, result)
     print(json.dumps({"best": best, "ratios": ratios}, indent=1))
     return result
-
-
-def section_eval(r: dict) -> str:
-    """BENCHMARKS.md section of a ``--crop`` run (the reference's evaluation configuration, render only): each
-    side's encoder and window CPU seconds, the full view projected from them, and the ratios to the reference."""
-    from omnirecon.provenance import markdown_header
-
-    c, q = r["config"], r.get("ratios") or {}
-    cw, ch = c["crop"]
-    lines = ["## IBRNet reference vs ibrnet-paper at the reference's evaluation configuration "
-             "(`bench/peer_ibrnet.py --crop`)", "",
-             f"IBRNet's LLFF evaluation: {c['views']} source views of {c['width']}x{c['height']} (fern at factor 4), "
-             f"{c['samples']} samples, inverse depth, chunk {c['chunk']}, random weights, one thread, each side in its "
-             f"own process. To fit the shared CPU, each side encodes all {c['views']} sources and renders a centred "
-             f"{cw}x{ch} window of the target; the full view's CPU seconds are projected as encode + (window - encode) "
-             f"x {c['width'] * c['height']} / {cw * ch} rays (every ray costs the same). "
-             + ("Render only: the reference's training step at this configuration was killed by the kernel's OOM "
-                "killer at 11 GB resident on this shared machine." if not c["train_steps"] else ""), "",
-             "| side | switches | encode CPU s | window CPU s | rays/CPU-s past the encoder | full view CPU s "
-             "(projected) | render peak RSS (MB) | render × ref. | peak RSS / ref. | PSNR to our twin (dB) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for name, b in r["best"].items():
-        ratio = q.get(name) or {}
-        psnr = b.get("psnr_to_reference_db", "–")
-        lines.append(f"| {name} | {b.get('switches') if name != 'peer' else 'official code'} | {b['encode_cpu_s']} | "
-                     f"{b['render_cpu_s']} | {b['render_rays_per_s']} | {b['full_view_cpu_s']} | "
-                     f"{b['render_peak_rss_mb']} | {ratio.get('render_speedup', '–')}× | "
-                     f"{ratio.get('render_peak_rss_ratio', '–')} | {'identical' if psnr is None else psnr} |")
-    lines += ["", f"Ratios of process CPU seconds from this one run; load average at the start {r.get('loadavg_start')}, "
-              f"at the end {r.get('loadavg_end')}.", "", markdown_header(r["provenance"])]
-    return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Pose recovery: `omnirecon process` on the real scenes with their poses thrown away.
 
-    python bench/poses.py                    # 7 real scenes, 20 images each at their stored size, 1 thread
-    python bench/poses.py --tiny             # one procedural scene (for tests)
+    python -m bench poses                    # 7 real scenes, 20 images each at their stored size, 1 thread
+    python -m bench poses --tiny             # one procedural scene (for tests)
 
 For each scene, ``--images`` views are taken evenly spaced over its views (the ``train`` split where
 the scene has one), their image files (only) are handed to :func:`omnirecon.capture.process.process`,
@@ -169,6 +169,3 @@ def main(argv: list[str] | None = None) -> dict:
     print(f"wrote {args.out}")
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,8 +1,8 @@
 """Where time and memory go: each model per stage, fp32 eager, one thread, rendering and one training step.
 
-    python bench/profile_models.py                       # ibrnet-tiny, gpnr-tiny, omnirecon-tiny, ibrnet-paper
-    python bench/profile_models.py --presets ibrnet-tiny --repeats 1
-    python bench/profile_models.py --fast                # the same with the fast paths on (models/fast.py)
+    python -m bench profile_models                       # ibrnet-tiny, gpnr-tiny, omnirecon-tiny, ibrnet-paper
+    python -m bench profile_models --presets ibrnet-tiny --repeats 1
+    python -m bench profile_models --fast                # the same with the fast paths on (models/fast.py)
 
 Stages are timed with ``perf_counter`` around the models' own methods and sub-modules (wrapped on the
 instance for the run, nothing else changes): **encode**; per pass (``coarse``, ``fine``)
@@ -49,7 +49,7 @@ CASES = {
     "ibrnet-paper": (3, 200, 150, 40, 30, 500),
 }
 """``ibrnet-paper`` at the peer benchmark's configuration (3 views of 200x150, 64 + 64 samples, 500 rays
-per step), rendering a small 40x30 target; the tiny presets as ``bench/throughput.py`` runs them."""
+per step), rendering a small 40x30 target; the tiny presets as ``python -m bench throughput`` runs them."""
 
 
 def maxrss_mb() -> float:
@@ -263,19 +263,6 @@ def summary(row: dict) -> dict[str, float]:
     return {k: round(v, 4) for k, v in out.items()}
 
 
-def table(rows: list[dict]) -> str:
-    cols = ["encode", "projection+sampling", "aggregation", "ray transformer", "compositing", "importance sampling",
-            "fine pass", "backward", "optimizer", "other"]
-    lines = ["| preset | mode | wall (s) | rays/s | " + " | ".join(cols) + " | peak RSS (MB) |",
-             "|---|---|---|---|" + "---|" * len(cols) + "---|"]
-    for r in rows:
-        s = summary(r)
-        cells = [f"{100 * s[c] / r['wall_s']:.0f}%" if c in s else "–" for c in cols]
-        lines.append(f"| {r['preset']} | {r['mode']} | {r['wall_s']} | {r['rays_per_s']} | " + " | ".join(cells)
-                     + f" | {r['peak_rss_mb']} |")
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=list(CASES), choices=list(CASES))
@@ -298,7 +285,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = []
     for preset in args.presets:
         for mode in args.modes:  # a fresh process each: peak RSS is per (preset, mode)
-            cmd = [sys.executable, __file__, "--child", preset, mode, "--repeats", str(args.repeats),
+            cmd = [sys.executable, "-m", "bench", "profile_models", "--child", preset, mode, "--repeats", str(args.repeats),
                    "--ops", str(args.ops), *(["--fast"] if args.fast else [])]
             res = subprocess.run(cmd, env=env, capture_output=True, text=True)
             if res.returncode:
@@ -315,9 +302,5 @@ def main(argv: list[str] | None = None) -> dict:
               "repeats": args.repeats, "rows": rows, "stages": {f"{r['preset']}/{r['mode']}": summary(r) for r in rows},
               "loadavg_end": [round(x, 2) for x in os.getloadavg()]}
     write_json(out, result)
-    print(table(rows))
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Novel-view quality of the shipped tiny checkpoints and the non-learned floor.
 
-    python bench/quality.py                         # floor and the shipped tiny checkpoints, every evaluation scene
-    python bench/quality.py --models floor --tiny   # a fast subset (tests)
+    python -m bench quality                         # floor and the shipped tiny checkpoints, every evaluation scene
+    python -m bench quality --models floor --tiny   # a fast subset (tests)
 
 Held-out procedural scenes (``synth:eval``, seeds 900000+) and the real scenes dtu_scan24,
 dtu_scan37, fern (never trained on), fox and lego (training scenes: fitting, not generalisation),
@@ -60,6 +60,3 @@ def main(argv: list[str] | None = None) -> None:
         r = run(m, a.out, a.tiny, a.threads)
         print(m, {proto: {k: round(v.get("psnr", float("nan")), 2) for k, v in ks.items()} for proto, ks in r["means"].items()})
 
-
-if __name__ == "__main__":
-    main()

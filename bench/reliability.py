@@ -1,7 +1,7 @@
 """Reliability counts for BENCHMARKS.md: the malformed-input table, the fuzz run and kill -9 recovery.
 
-    python bench/reliability.py                           # table + 10,000 fuzz cases per target + kills
-    python bench/reliability.py --fuzz-examples 200 --kills 2   # a quick run
+    python -m bench reliability                           # table + 10,000 fuzz cases per target + kills
+    python -m bench reliability --fuzz-examples 200 --kills 2   # a quick run
 
 * **Malformed inputs**: runs ``tests/commands/test_malformed.py`` (every command against a table of malformed
   inputs: exit 2, one line naming the file with a fix clause, no traceback, nothing written) and
@@ -21,7 +21,10 @@
   ``process`` with pycolmap) started together on one ``--out``: one must finish, the other must be refused
   with the one-line lock message, and the output must be one complete set.
 
-Writes ``bench/results/reliability.json`` with a provenance header; ``bench/run_all.py`` renders it.
+Writes ``bench/results/reliability.json`` with a provenance header; ``bench/report/reliability.py`` renders it.
+
+Size: five measurements of one kind (run commands, break them, count what survived) that share their
+helpers; split by measurement they would import each other's.
 """
 
 from __future__ import annotations
@@ -453,7 +456,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     start = time.perf_counter()
     result = {"provenance": provenance(seed=0, fuzz_examples=args.fuzz_examples, kills=args.kills,
-                                       command="python bench/reliability.py " + " ".join(argv or sys.argv[1:]))}
+                                       command="python -m bench reliability " + " ".join(argv or sys.argv[1:]))}
     result["malformed"] = malformed_counts()
     result["fuzz"] = fuzz_counts(args.fuzz_examples)
     if args.kills > 0:
@@ -470,6 +473,3 @@ def main(argv: list[str] | None = None) -> dict:
           f"wrote {args.out}")
     return result
 
-
-if __name__ == "__main__":
-    main()

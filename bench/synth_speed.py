@@ -1,7 +1,7 @@
 """Speed of ``omnirecon synth``: scenes x views at a resolution, all-inclusive (layout, rendering, PNG/JSON/PLY).
 
-    python bench/synth_speed.py                      # the target: 200 scenes x 40 views at 128^2
-    python bench/synth_speed.py --scenes 8 --views 40 --workers 2
+    python -m bench synth_speed                      # the target: 200 scenes x 40 views at 128^2
+    python -m bench synth_speed --scenes 8 --views 40 --workers 2
 
 Prints the wall time, milliseconds per view and scenes per minute, and writes them with a
 provenance header (commit, versions, CPU, seed) to ``--out`` as JSON.
@@ -69,6 +69,3 @@ def main(argv: list[str] | None = None) -> dict:
           f"200x40 projected {result['projected_seconds_200x40']:.0f} s (target {TARGET_SECONDS:.0f} s) -> {args.out}")
     return result
 
-
-if __name__ == "__main__":
-    main()

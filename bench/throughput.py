@@ -1,7 +1,7 @@
 """Training and rendering throughput (rays/s) of each model preset on this machine.
 
-    python bench/throughput.py                  # tiny presets + floor at 64x64, paper presets on a few rays
-    python bench/throughput.py --quick          # fewer repeats (tests)
+    python -m bench throughput                  # tiny presets + floor at 64x64, paper presets on a few rays
+    python -m bench throughput --quick          # fewer repeats (tests)
 
 A training step is what ``omnirecon train`` does per step: encode the K source views, render the
 batch of target rays, MSE loss, backward, AdamW step. Rendering is ``render_view`` of a full
@@ -163,6 +163,3 @@ def main(argv: list[str] | None = None) -> dict:
     write_json(args.out, result)
     return result
 
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Render levers of the tiny presets against their reference twins, over several held-out scenes, in one run.
 
-    python bench/tiny_levers.py                                   # every preset, its candidate levers
-    python bench/tiny_levers.py --models ibrnet-tiny --scenes synth:eval ../shared/data/llff/fern --rounds 1
+    python -m bench tiny_levers                                   # every preset, its candidate levers
+    python -m bench tiny_levers --models ibrnet-tiny --scenes synth:eval ../shared/data/llff/fern --rounds 1
 
 The issue's goal is a render throughput of 3x what the tiny presets had before the fast paths (their
 reference twins: fp32 eager, every switch off) *at equal quality*. For each shipped tiny checkpoint and
@@ -134,11 +134,7 @@ def switch_ablation(preset: str, rounds: int) -> dict:
     weights, ``bench/profile_models.py``'s case: sources and a small target) with every switch at its reference
     but that one (``only_<switch>``), with the defaults but that one at its reference (``without_<switch>``),
     and both ends; interleaved ``rounds`` times, fastest kept, one thread."""
-    import sys
-
-    sys.path.insert(0, str(HERE))
-    from profile_models import setup
-
+    from bench.profile_models import setup
     from omnirecon.models import fast
 
     model, src, target, _, _ = setup(preset)
@@ -210,51 +206,3 @@ def main(argv: list[str] | None = None) -> dict:
     result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     write_json(args.out or HERE / "results" / "tiny_levers.json", result)
     return result
-
-
-def section(r: dict) -> str:
-    """BENCHMARKS.md section: per tiny preset, each candidate's speed-up over the reference twins and its PSNR."""
-    from omnirecon.provenance import markdown_header
-
-    scenes = ", ".join(f"{s['name']} ({s['size'][0]}x{s['size'][1]})" for s in r["scenes"])
-    lines = ["## Render levers of the tiny presets (`bench/tiny_levers.py`)", "",
-             f"Goal: 3x the render throughput the tiny presets had before the fast paths (their reference twins: fp32 "
-             f"eager, every switch off) at equal quality. Render CPU seconds of every target (encode + `render_view`, "
-             f"one thread, K = {r['k']}, {r['targets_per_scene']} target(s) per scene; candidates interleaved "
-             f"{r['rounds']} times, fastest kept) on {scenes}; speed-up against the reference in the same run; PSNR "
-             "against the ground truth (mean over the scenes) and its difference from the reference render's "
-             "(dPSNR). `fine_N`/`coarse_N`/`samples_N`: the model's sample counts changed at render time, no "
-             "retraining; `coarse_only`: no fine pass; `surface_N`: the fine pass on N importance samples only. "
-             f"Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
-    names = [s["name"] for s in r["scenes"]]
-    lines += ["| preset | candidate | CPU s | speed-up | PSNR (dB) | dPSNR | " + " | ".join(names) + " |",
-              "|---|---|---|---|---|---|" + "---|" * len(names)]
-    for m in r["models"]:
-        for row in m["rows"]:
-            best = row["speedup"] >= 3 and row["dpsnr"] >= -0.1
-            cand = f"**{row['candidate']}**" if best else row["candidate"]
-            lines.append(f"| {m['model']} | {cand} | {row['cpu_s']} | {row['speedup']}× | {row['psnr_mean']} | "
-                         f"{row['dpsnr']:+.3f} | " + " | ".join(str(row["psnr"].get(n, "–")) for n in names) + " |")
-    lines += ["", "Bold: at least 3x the reference with at most 0.1 dB lost.", "", markdown_header(r["provenance"])]
-    return "\n".join(lines) + "\n"
-
-
-def section_switches(r: dict) -> str:
-    """BENCHMARKS.md section: each fast-path switch alone over the reference, and the defaults without it."""
-    from omnirecon.provenance import markdown_header
-
-    lines = ["## Each fast-path switch against its reference twin (`bench/tiny_levers.py --switches`)", "",
-             "Render CPU seconds (encode + `render_view`, random weights, `bench/profile_models.py`'s case, one "
-             f"thread; sides interleaved {r['rounds']} times, fastest kept): `only_X` is the reference with switch "
-             "X on, `without_X` the defaults with X at its reference twin. Speed-up against the reference in the "
-             f"same run. Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
-    for p in r["presets"]:
-        lines += [f"**{p['preset']}** ({p['sources']} sources, {p['target'][0]}x{p['target'][1]} target)", "",
-                  "| side | CPU s | speed-up | max abs diff to the reference |", "|---|---|---|---|"]
-        lines += [f"| {x['side']} | {x['cpu_s']} | {x['speedup']}× | {x['max_abs_vs_reference']:.2g} |" for x in p["rows"]]
-        lines.append("")
-    return "\n".join([*lines, markdown_header(r["provenance"])]) + "\n"
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Train a tiny preset for a fixed CPU budget and ship its checkpoint with a model card.
 
-    python bench/train_tiny.py --model gpnr-tiny --cpu-budget 1800 --threads 1
-    python bench/train_tiny.py --model ibrnet-tiny --cpu-budget 1800 --threads 1
+    python -m bench train_tiny --model gpnr-tiny --cpu-budget 1800 --threads 1
+    python -m bench train_tiny --model ibrnet-tiny --cpu-budget 1800 --threads 1
 
 Every preset gets the same data, resolution, budget and seed. Procedural training scenes are
 generated before the clock starts (``--prepare`` only generates them), so the budget is spent on
@@ -101,7 +101,7 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
     path = run / "stages.json"
     stages = json.loads(path.read_text()) if path.is_file() else \
         [{"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": 0}]
-    return [f"python bench/train_tiny.py --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
+    return [f"python -m bench train_tiny --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
             f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "")
             + (" --num-views-range {} {}".format(*st["num_views_range"]) if st.get("num_views_range") else "")
             + "".join(f" --{o.replace('=', ' ', 1)}" for o in st.get("model_overrides", []))
@@ -226,7 +226,7 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
         f"{card['train_psnr_last']:.2f} dB at the last. Last validation (monitoring only: a run ships its final "
         f"checkpoint, never an intermediate one picked by validation): {json.dumps(card['validation'])}.", "",
         *([(run / "notes.md").read_text().strip(), ""] if (run / "notes.md").is_file() else []),
-        "Evaluation numbers are in BENCHMARKS.md (`bench/quality.py`). Files: model.safetensors (weights), "
+        "Evaluation numbers are in BENCHMARKS.md (`python -m bench quality`). Files: model.safetensors (weights), "
         "meta.json (preset, config, step), card.json (this card as data, with the training curve), "
         "training_curve.png.", "", "![training curve](training_curve.png)", ""]))
     shutil.rmtree(dest, ignore_errors=True)
@@ -271,6 +271,3 @@ def main(argv: list[str] | None = None) -> None:
         return
     print(f"shipped {ship(a.model, run, a.cpu_budget, a.threads, a.steps)}")
 
-
-if __name__ == "__main__":
-    main()

@@ -173,47 +173,53 @@ def _stub_modules(names: tuple[str, ...]):
             sys.modules.pop(name, None)
 
 
-def _st_lpips_net(device) -> torch.nn.Module | None:
-    key = ("st_lpips", str(device))
-    if key in _NETS:
-        return _NETS[key]
-    if "st_lpips" in _REASONS:
-        return None
+def _cached_net(name: str):
+    """Decorate a loader that returns a network or, when it cannot, the reason (a string): the result is a
+    ``get(device)`` that loads once per device, keeps the network frozen in eval mode, and after a failure
+    returns None at once (the reason stays in ``_REASONS[name]``)."""
+
+    def wrap(load):
+        def get(device) -> torch.nn.Module | None:
+            key = (name, str(device))
+            if key not in _NETS and name not in _REASONS:
+                net = load()
+                if isinstance(net, str):
+                    _REASONS[name] = net
+                else:
+                    _NETS[key] = net.eval().requires_grad_(False).to(device)
+            return _NETS.get(key)
+
+        return get
+
+    return wrap
+
+
+@_cached_net("st_lpips")
+def _st_lpips_net():
     if importlib.util.find_spec("stlpips_pytorch") is None:
-        _REASONS["st_lpips"] = "stlpips-pytorch is not installed (pip install stlpips-pytorch)"
-        return None
+        return "stlpips-pytorch is not installed (pip install stlpips-pytorch)"
     with _stub_modules(("IPython", "torchsummary", "torchvision")):
         from stlpips_pytorch import stlpips as _st
     weights = Path(_st.__file__).parent / "weights" / "vST0.0" / "alex_shift_tolerant.pth"
     if not weights.is_file():
-        _REASONS["st_lpips"] = f"stlpips-pytorch has no {weights.name} (reinstall the package)"
-        return None
+        return f"stlpips-pytorch has no {weights.name} (reinstall the package)"
     net = _st.LPIPS(net="alex", variant="shift_tolerant", pretrained=False, verbose=False)
     # The package loads with strict=False; load strictly here (only the ``lins`` alias of lin0..4 may be
     # absent) so that a renamed layer cannot silently leave a random trunk.
     missing, unexpected = net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True),
                                               strict=False)
     if unexpected or any(not k.startswith("lins.") for k in missing):
-        _REASONS["st_lpips"] = f"{weights.name} does not match the network (missing {missing[:3]})"
-        return None
-    _NETS[key] = net.eval().requires_grad_(False).to(device)
-    return _NETS[key]
+        return f"{weights.name} does not match the network (missing {missing[:3]})"
+    return net
 
 
-def _lpips_net(device) -> torch.nn.Module | None:
-    key = ("lpips", str(device))
-    if key in _NETS:
-        return _NETS[key]
-    if "lpips" in _REASONS:
-        return None
+@_cached_net("lpips")
+def _lpips_net():
     if importlib.util.find_spec("lpips") is None or importlib.util.find_spec("torchvision") is None:
-        _REASONS["lpips"] = "unavailable offline: the lpips package (with torchvision) is not installed"
-        return None
+        return "unavailable offline: the lpips package (with torchvision) is not installed"
     backbone = Path(torch.hub.get_dir()) / "checkpoints" / LPIPS_BACKBONE
     if not backbone.is_file():
-        _REASONS["lpips"] = f"unavailable offline: torchvision backbone {backbone} is not cached"
-        return None
+        return f"unavailable offline: torchvision backbone {backbone} is not cached"
     import lpips as _lp
 
-    _NETS[key] = _lp.LPIPS(net="alex", verbose=False).eval().requires_grad_(False).to(device)
-    return _NETS[key]
+    return _lp.LPIPS(net="alex", verbose=False)

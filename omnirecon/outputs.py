@@ -12,12 +12,15 @@
 * :func:`claim` is how every writing verb takes its ``--out``: the path is checked (writable, neither
   inside nor holding an input), locked (one run per ``--out``: ``fcntl.flock`` on ``.NAME.lock`` beside
   it; a second run gets one line naming the first), and, for verbs whose output is a whole folder
-  (``mode="replace"``: process, reconstruct, render, export, finetune), built in ``.NAME.tmpPID`` and swapped in at the end
-  (``renameat2(RENAME_EXCHANGE)`` where the kernel has it), so an interrupt leaves the old folder or the
-  complete new one. A folder is only ever replaced when it holds the marker :data:`MARKER` that this
-  tool writes into every output folder, and the replacement is said before any work starts.
-  ``mode="fill"`` (the other verbs, and ``train``, whose ``--resume`` continues the folder) writes in
-  place under the lock and marks a folder it created.
+  (``mode="replace"``: process, reconstruct, render, export, finetune, eval, lift, edit, pet, inspect and
+  demo), built in ``.NAME.tmpPID`` and swapped in at the end (``renameat2(RENAME_EXCHANGE)`` where the
+  kernel has it), so an interrupt leaves the old folder or the complete new one. A folder is only ever
+  replaced when it holds the marker :data:`MARKER` that this tool writes into every output folder, and the
+  replacement is said before any work starts. ``mode="fill"`` writes in place under the lock and marks a
+  folder it created: ``train``, whose ``--resume`` continues the run folder (each checkpoint is a set
+  renamed into place together, and ``checkpoints/latest`` moves only to a complete one), and ``synth``, whose
+  folder grows by whole scenes (each built in ``.scene_NNNNN.tmpPID`` and renamed; existing scenes are kept).
+  ``mesh`` writes a set of files (:func:`atomic_files`) under ``mode="file"``.
 * A record written in a temporary folder must name the final paths: before the swap,
   :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
   to it (so they hold for ``--out``).
@@ -390,6 +393,9 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
         out, mode = Path("outputs") / command, "fill"
     out = Path(out)
     check_out(out, "file" if mode == "file" else "folder", inputs, flag)
+    if mode == "replace" and real(out) in (real(Path.cwd()), *real(Path.cwd()).parents):
+        raise InputError(f"{flag} is the working folder or holds it, and {command} replaces its {flag} whole", out,
+                         f"choose a new folder for {flag}, e.g. {flag} {command}_out")
     with out_lock(out, command, flag):
         clean_stale(out.parent)  # a killed run's temporaries beside out (their process is gone)
         if mode == "file":

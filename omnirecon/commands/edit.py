@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import claim
 from omnirecon.workflows.edit import EditConfig
 
 
@@ -10,7 +9,5 @@ class EditCommand(EditConfig):
     __doc__ = EditConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        with claim(self.out, "edit", inputs=(self.ckpt, self.scene)):  # checked, locked, marked: see outputs.claim
-            lines = self.run()
-        for line in lines:
+        for line in self.run_claimed():  # --out built beside, swapped in whole: see workflows/folder.py
             print(line)

@@ -9,7 +9,6 @@ from typing import Literal
 from omnirecon.engine.evaluate import evaluate
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
-from omnirecon.errors import InputError
 from omnirecon.outputs import claim
 
 
@@ -57,14 +56,13 @@ class EvalCommand(MachineConfig):
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
 
     def main(self) -> None:
-        with claim(self.out, "eval", inputs=(self.ckpt, *self.scenes)):  # checked, locked: see outputs.claim
+        out = self.out or Path("outputs/eval") / default_name(self.ckpt, self.model or "model")
+        # The output set is built beside --out and swapped in whole (see outputs.claim).
+        with claim(out, "eval", inputs=(self.ckpt, *self.scenes), mode="replace") as c:
             set_threads(self.threads)
             device = pick_device(self.device)
             net, info = load_model(self.ckpt, self.model, device)
-            out = self.out or Path("outputs/eval") / default_name(self.ckpt, info["name"])
-            if out.exists() and not out.is_dir():
-                raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
-            result = evaluate(net, list(self.scenes), self.num_views, out, model_info=info, chunk=self.chunk,
+            result = evaluate(net, list(self.scenes), self.num_views, c.work, model_info=info, chunk=self.chunk,
                               device=device, max_targets=self.max_targets, synth_count=self.synth_count,
                               cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
                               geometry=self.geometry)

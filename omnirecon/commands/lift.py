@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import claim
 from omnirecon.workflows.lift import LiftConfig
 
 
@@ -10,7 +9,5 @@ class LiftCommand(LiftConfig):
     __doc__ = LiftConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        with claim(self.out, "lift", inputs=(self.ckpt, self.scene, self.user_model)):  # checked, locked, marked: see outputs.claim
-            lines = self.run()
-        for line in lines:
+        for line in self.run_claimed():  # --out built beside, swapped in whole: see workflows/folder.py
             print(line)

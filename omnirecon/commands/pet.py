@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from omnirecon.outputs import claim
 from omnirecon.workflows.pet import PETConfig
 
 
@@ -10,7 +9,5 @@ class PETCommand(PETConfig):
     __doc__ = PETConfig.__doc__  # the options' description is the command's help
 
     def main(self) -> None:
-        with claim(self.out, "pet", inputs=(self.ckpt, self.scene)):  # checked, locked, marked: see outputs.claim
-            lines = self.run()
-        for line in lines:
+        for line in self.run_claimed():  # --out built beside, swapped in whole: see workflows/folder.py
             print(line)

@@ -1,7 +1,8 @@
 """Checkpoints: a folder with safetensors weights, JSON metadata and optimizer state.
 
-Layout of ``DIR`` (each file written to a temporary name, then renamed; ``meta.json`` last, so a
-folder with ``meta.json`` is complete)::
+Layout of ``DIR`` (the files are one set: all written to temporary names first, then renamed together,
+``meta.json`` last, with Ctrl-C held back (:func:`omnirecon.outputs.atomic_files`), so an interrupted save
+leaves the previous checkpoint or the new one)::
 
     model.safetensors        weights
     optimizer.safetensors    optimizer tensors (training checkpoints only)
@@ -21,9 +22,10 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from omnirecon.data.io import atomic_path, write_json
+from omnirecon.data.io import write_json
 from omnirecon.errors import InputError
 from omnirecon.models.registry import model_config_dict
+from omnirecon.outputs import atomic_files
 
 
 def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: torch.optim.Optimizer | None = None,
@@ -33,25 +35,27 @@ def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: 
     folder.mkdir(parents=True, exist_ok=True)
     module = model.module if hasattr(model, "module") else model  # unwrap DDP
     state = {k: v.detach().contiguous().cpu() for k, v in module.state_dict().items()}
-    with atomic_path(folder / "model.safetensors") as tmp:
-        save_file(state, str(tmp))
-    opt_meta = None
+    tensors, opt_meta = {}, None
     if optimizer is not None:
         sd = optimizer.state_dict()
-        tensors, keys = {}, {}
+        keys = {}
         for pid, st in sd["state"].items():
             for name, value in st.items():
                 t = value if torch.is_tensor(value) else torch.tensor(value)
                 tensors[f"{pid}.{name}"] = t.detach().contiguous().cpu()
                 keys.setdefault(str(pid), []).append(name)
-        with atomic_path(folder / "optimizer.safetensors") as tmp:
-            save_file(tensors, str(tmp))
         opt_meta = {"param_groups": sd["param_groups"], "state_keys": keys}
-    write_json(folder / "meta.json", {
-        "preset": preset, "model_config": model_config_dict(module), "step": step,
-        "train_config": train_config or {}, "optimizer": opt_meta, "extra": extra or {},
-        "provenance": provenance or {},
-    })
+    meta = {"preset": preset, "model_config": model_config_dict(module), "step": step,
+            "train_config": train_config or {}, "optimizer": opt_meta, "extra": extra or {},
+            "provenance": provenance or {}}
+    # weights, optimizer state and meta.json are one set: all written first, then renamed together with
+    # Ctrl-C held back, so an interrupt leaves the previous checkpoint or the new one, never a mix
+    names = ["model.safetensors", *(["optimizer.safetensors"] if optimizer is not None else []), "meta.json"]
+    with atomic_files([folder / n for n in names]) as tmps:
+        save_file(state, str(tmps[0]))
+        if optimizer is not None:
+            save_file(tensors, str(tmps[1]))
+        write_json(tmps[-1], meta)
 
 
 def read_meta(folder: Path) -> dict:

@@ -125,3 +125,20 @@ def targets_and_pool(protocol: Protocol, scene: Scene, max_targets: int | None =
     pool = [i for i in range(n) if i not in set(targets)] if pool_from is None else pool_from
     pool = [i for i in pool if i not in set(targets)]
     return targets, pool
+
+
+def given_targets(protocol: Protocol, scene: Scene, targets, num_views: int, path) -> tuple[list[int], list[int]]:
+    """``(targets, source pool)``: the protocol's, or ``targets`` (a verb's ``--targets``) with every other view
+    as the pool; refuses targets outside the scene and a pool of fewer than ``num_views`` views."""
+    chosen, pool = targets_and_pool(protocol, scene)
+    if targets:
+        bad = [t for t in targets if not 0 <= t < len(scene)]
+        if bad:
+            raise InputError(f"--targets {bad} outside the scene's views 0..{len(scene) - 1}", path,
+                             "pick view indices of the scene")
+        chosen = list(targets)
+        pool = [v for v in range(len(scene)) if v not in set(chosen)]
+    if len(pool) < num_views:
+        raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {num_views}", path,
+                         "lower --num-views")
+    return chosen, pool

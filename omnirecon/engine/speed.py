@@ -4,7 +4,7 @@ path: one model, one scene, one resolution, one run.
     omnirecon bench                          # 512x512 targets, 3 source views, median of 30 frames
     omnirecon bench --threads 1              # one torch thread and one llvmpipe thread
     omnirecon bench --quick                  # 128x128, 3 frames, a 64-ray volumetric batch (tests)
-    python bench/mesh_fps.py ...             # the same, writing bench/results/mesh_fps.json
+    python -m bench mesh_fps ...             # the same, writing bench/results/mesh_fps.json
 
 Scene: a procedural scene (``--seed``), normalised as in training, rendered with its exact mesh
 (the triangles its images were rendered from). Model: ``checkpoints/omnirecon-tiny`` when it exists,

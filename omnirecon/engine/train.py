@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import shutil
 import signal
 import threading
@@ -48,6 +47,7 @@ from omnirecon.engine.report import save_val_picture
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
 from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
+from omnirecon.outputs import swap_in
 from omnirecon.preflight import check_train_views
 from omnirecon.progress import progress_bar
 from omnirecon.provenance import provenance
@@ -528,8 +528,7 @@ class Trainer:
                 tmp = ckdir / ".final.tmp"
                 shutil.rmtree(tmp, ignore_errors=True)
                 shutil.copytree(folder, tmp)
-                shutil.rmtree(ckdir / "final", ignore_errors=True)
-                os.replace(tmp, ckdir / "final")
+                swap_in(tmp, ckdir / "final")  # the previous final or the new one, never neither
         self.barrier()
 
     def close(self) -> None:

@@ -12,6 +12,9 @@ With the shipped checkpoints (``checkpoints/<preset>``) and no per-scene trainin
 
 Every stage shows a progress bar; ``--quick`` is a reduced mode (fewer frames and targets, lower
 resolution) used by the tests.
+
+Size: one workflow of five stages, each a short function that runs its verb and builds its report section;
+they are here together because only the demo uses them.
 """
 
 from __future__ import annotations
@@ -62,7 +65,7 @@ def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
 
 
 def demo_scene(cfg: DemoConfig) -> Path:
-    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated once)."""
+    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated into ``<out>/scene``)."""
     from omnirecon.data import detect_format  # lazy: demo --help stays fast
     from omnirecon.data.synth.generate import SynthOptions, generate_scene  # lazy: demo --help stays fast
 
@@ -75,29 +78,37 @@ def demo_scene(cfg: DemoConfig) -> Path:
 
 def run_demo(cfg: DemoConfig) -> dict:
     """Run the demo; returns ``{"report", "lines", "numbers"}`` (numbers are also in ``demo.json``)."""
-    from omnirecon.data import load_scene  # lazy: demo --help stays fast
-    from omnirecon.data.io import write_json  # lazy: demo --help stays fast
-    from omnirecon.engine.evaluate import evaluate  # lazy: demo --help stays fast
-    from omnirecon.engine.machine import load_model, set_threads  # lazy: demo --help stays fast
-    from omnirecon.engine.report import Section, write_report  # lazy: demo --help stays fast
-    from omnirecon.provenance import markdown_header, provenance  # lazy: demo --help stays fast
-    from omnirecon.workflows.inspect import draw_cameras  # lazy: demo --help stays fast
-    from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines  # lazy: demo --help stays fast
-    from omnirecon.workflows.render import RenderConfig, run_render  # lazy: demo --help stays fast
+    from omnirecon.engine.machine import set_threads  # lazy: demo --help stays fast
+    from omnirecon.options import check_options  # lazy: demo --help stays fast
 
-    if cfg.frames < 1 or cfg.resolution < 16 or cfg.num_views < 2:
-        raise InputError("--frames must be >= 1, --resolution >= 16 and --num-views >= 2", None,
-                         "use e.g. --frames 24 --resolution 96 --num-views 5")
+    check_options("demo", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     set_threads(cfg.threads)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    frames, res = (4, 48) if cfg.quick else (cfg.frames, cfg.resolution)
     numbers: dict = {"seconds": {}}
     lines: list[str] = []
-    sections: list[Section] = []
     start_all = time.perf_counter()
+    path, scene, section = scene_section(cfg, out, numbers, lines)
+    sections = [section, orbits_section(cfg, path, out, numbers, lines), scores_section(cfg, path, out, numbers, lines),
+                meshes_section(cfg, path, out, numbers, lines), *model_sections(cfg, path, scene, out, numbers, lines)]
+    report = finish(out, sections, numbers, lines, start_all)
+    return {"report": str(report), "lines": lines, "numbers": numbers}
 
-    # 1. the scene
+
+def timed(numbers: dict, key: str, fn, *args):
+    """``fn(*args)``, its wall seconds stored as ``numbers["seconds"][key]``."""
+    t = time.perf_counter()
+    value = fn(*args)
+    numbers["seconds"][key] = time.perf_counter() - t
+    return value
+
+
+def scene_section(cfg: DemoConfig, out: Path, numbers: dict, lines: list[str]):
+    """Stage 1: the scene and its cameras; returns ``(path, scene, section)``."""
+    from omnirecon.data import load_scene  # lazy: demo --help stays fast
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.workflows.inspect import draw_cameras  # lazy: demo --help stays fast
+
     t = time.perf_counter()
     path = demo_scene(cfg)
     scene = load_scene(path)
@@ -109,12 +120,18 @@ def run_demo(cfg: DemoConfig) -> dict:
                         "format": scene.format, "seed": DEMO_SEED if cfg.data is None else None}
     numbers["seconds"]["scene"] = time.perf_counter() - t
     what = f"procedural scene, seed {DEMO_SEED} (held out from training)" if cfg.data is None else str(path)
-    sections.append(Section("Scene").text(f"{what}: {len(scene)} views at {scene.width}x{scene.height}, "
-                                          f"format {scene.format}.")
-                    .figure(out / "cameras.png", out, "cameras (frustums by split) and the scene bounds", 480))
     lines.append(f"scene: {what}, {len(scene)} views")
+    return path, scene, (Section("Scene").text(f"{what}: {len(scene)} views at {scene.width}x{scene.height}, "
+                                               f"format {scene.format}.")
+                         .figure(out / "cameras.png", out, "cameras (frustums by split) and the scene bounds", 480))
 
-    # 2. novel-view orbits
+
+def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines: list[str]):
+    """Stage 2: a novel-view orbit per model of :data:`RENDER_MODELS`."""
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.workflows.render import RenderConfig, run_render  # lazy: demo --help stays fast
+
+    frames, res = (4, 48) if cfg.quick else (cfg.frames, cfg.resolution)
     videos = Section("Novel views").text(
         f"An orbit of {frames} frames at a {res}-px long side, each frame rendered from its {cfg.num_views} "
         "nearest source views, with no per-scene training.")
@@ -123,28 +140,42 @@ def run_demo(cfg: DemoConfig) -> dict:
         if ckpt is None:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
-        t = time.perf_counter()
-        folder, video = run_render(RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                                                num_views=cfg.num_views, out=out / f"orbit_{name}"))
-        numbers["seconds"][f"orbit_{name}"] = time.perf_counter() - t
+        render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
+                              num_views=cfg.num_views, out=out / f"orbit_{name}")
+        folder, video = timed(numbers, f"orbit_{name}", run_render, render)
         videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")
-    sections.append(videos)
+    return videos
 
-    # 3. held-out view scores
+
+def score_model(cfg: DemoConfig, path: Path, out: Path, name: str) -> tuple[dict, dict] | None:
+    """``(scene result, setting)`` of ``omnirecon eval`` for one model at K = --num-views (None: no checkpoint
+    or no such setting)."""
+    from omnirecon.engine.evaluate import evaluate  # lazy: demo --help stays fast
+    from omnirecon.engine.machine import load_model  # lazy: demo --help stays fast
+
+    ckpt = _checkpoint(cfg, name) if name != "floor" else None
+    if name != "floor" and ckpt is None:
+        return None
+    net, info = load_model(ckpt, "floor" if name == "floor" else None)
+    r = evaluate(net, [path], (cfg.num_views,), out / f"eval_{name}", model_info=info, protocol_set="cpu",
+                 max_targets=1 if cfg.quick else None, progress=True)
+    scene_r = r["scenes"][0]
+    setting = scene_r["settings"].get(str(cfg.num_views))
+    return None if setting is None else (scene_r, setting)
+
+
+def scores_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines: list[str]):
+    """Stage 3: held-out view scores of :data:`SCORE_MODELS`, with one panel each."""
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+
     t = time.perf_counter()
     rows, panels = [], []
     for name in SCORE_MODELS:
-        ckpt = _checkpoint(cfg, name) if name != "floor" else None
-        if name != "floor" and ckpt is None:
+        scored = score_model(cfg, path, out, name)
+        if scored is None:
             continue
-        net, info = load_model(ckpt, "floor" if name == "floor" else None)
-        r = evaluate(net, [path], (cfg.num_views,), out / f"eval_{name}", model_info=info, protocol_set="cpu",
-                     max_targets=1 if cfg.quick else None, progress=True)
-        scene_r = r["scenes"][0]
-        setting = scene_r["settings"].get(str(cfg.num_views))
-        if setting is None:
-            continue
+        scene_r, setting = scored
         m = setting["mean"]
         rows.append([name, m.get("psnr", float("nan")), m.get("ssim", float("nan")),
                      m.get("st_lpips_alex", float("nan")), m.get("depth_abs_rel", float("nan")),
@@ -162,11 +193,25 @@ def run_demo(cfg: DemoConfig) -> dict:
     scores.table(["model", "PSNR", "SSIM", "ST-LPIPS", "depth abs rel", "s / view"], rows)
     for p, caption in panels:
         scores.figure(p, out, caption, 300)
-    sections.append(scores)
     for r in rows:
         lines.append(f"held-out views {r[0]}: PSNR {r[1]:.2f} dB, SSIM {r[2]:.3f}")
+    return scores
 
-    # 4. meshes
+
+def mesh_numbers(rec: dict) -> dict:
+    """The demo's numbers of one ``omnirecon mesh`` record."""
+    met = rec.get("metrics", {})
+    ch = met.get("chamfer", {})
+    return {"faces": rec["faces"]["components"], "chamfer": ch.get("chamfer"), "fscore": ch.get("fscore"),
+            "chamfer_rel": met.get("chamfer_rel"), "mask_iou": met.get("mask_iou", {}).get("mean"),
+            "seconds": rec["seconds"]["images_to_mesh"]}
+
+
+def meshes_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines: list[str]):
+    """Stage 4: a mesh per model of :data:`MESH_MODELS` (``mesh_<model>.ply`` / ``.glb``) and its scores."""
+    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines  # lazy: demo --help stays fast
+
     meshes = Section("Mesh").text(
         f"`omnirecon mesh --views all`: depth at every training view, each rendered from its {min(cfg.num_views, 3)} "
         "nearest views, fused with confidence weights at a scale fitted to the depth maps, marching cubes, cleaning, "
@@ -177,18 +222,11 @@ def run_demo(cfg: DemoConfig) -> dict:
         ckpt = _checkpoint(cfg, name)
         if ckpt is None:
             continue
-        t = time.perf_counter()
-        rec = run_mesh(MeshConfig(scene=path, ckpt=ckpt, views=("all",), num_views=min(cfg.num_views, 3),
-                                  out=(out / f"mesh_{name}.ply", out / f"mesh_{name}.glb"),
-                                  resolution=48 if cfg.quick else None, voxel=1 / 96 if cfg.quick else None))
-        numbers["seconds"][f"mesh_{name}"] = time.perf_counter() - t
-        met = rec.get("metrics", {})
-        ch = met.get("chamfer", {})
-        numbers.setdefault("mesh", {})[name] = {"faces": rec["faces"]["components"], "chamfer": ch.get("chamfer"),
-                                                "fscore": ch.get("fscore"), "chamfer_rel": met.get("chamfer_rel"),
-                                                "mask_iou": met.get("mask_iou", {}).get("mean"),
-                                                "seconds": rec["seconds"]["images_to_mesh"]}
-        nm = numbers["mesh"][name]
+        mesh_cfg = MeshConfig(scene=path, ckpt=ckpt, views=("all",), num_views=min(cfg.num_views, 3),
+                              out=(out / f"mesh_{name}.ply", out / f"mesh_{name}.glb"),
+                              resolution=48 if cfg.quick else None, voxel=1 / 96 if cfg.quick else None)
+        rec = timed(numbers, f"mesh_{name}", run_mesh, mesh_cfg)
+        nm = numbers.setdefault("mesh", {})[name] = mesh_numbers(rec)
         mesh_rows.append([name, nm["faces"], "–" if nm["chamfer"] is None else nm["chamfer"],
                           "–" if nm["chamfer_rel"] is None else f"{100 * nm['chamfer_rel']:.2f} %",
                           "–" if nm["fscore"] is None else nm["fscore"],
@@ -197,28 +235,32 @@ def run_demo(cfg: DemoConfig) -> dict:
         if preview.is_file():
             meshes.figure(preview, out, f"{name} mesh from source view {rec['views'][0]}", 320)
         meshes.link(out / f"mesh_{name}.glb", out, f"{name} mesh (GLB)")
-        for line in summary_lines(rec):
-            lines.append(f"mesh {name}: {line}")
+        lines.extend(f"mesh {name}: {line}" for line in summary_lines(rec))
     if mesh_rows:
         meshes.table(["model", "faces", "Chamfer (input units)", "Chamfer / GT extent", "F-score",
                       "silhouette IoU", "images -> mesh (s)"], mesh_rows)
-    sections.append(meshes)
+    return meshes
 
-    # 5. the real-time mesh path, fine-tuning, lifting (Omni-Recon)
+
+def model_sections(cfg: DemoConfig, path: Path, scene, out: Path, numbers: dict, lines: list[str]) -> list:
+    """Stage 5: the real-time mesh path, fine-tuning and lifting (Omni-Recon; lifting also with IBRNet)."""
+    sections = []
     omni = _checkpoint(cfg, "omnirecon-tiny")
     omni_mesh = out / "mesh_omnirecon-tiny.ply"
     if omni is not None and omni_mesh.is_file():
-        t = time.perf_counter()
-        sections.append(mesh_path_section(cfg, path, omni, omni_mesh, out, numbers, lines))
-        numbers["seconds"]["mesh_path"] = time.perf_counter() - t
-        t = time.perf_counter()
-        sections.append(finetune_section(cfg, path, omni, omni_mesh, out, numbers, lines))
-        numbers["seconds"]["finetune"] = time.perf_counter() - t
+        for key, fn in (("mesh_path", mesh_path_section), ("finetune", finetune_section)):
+            sections.append(timed(numbers, key, fn, cfg, path, omni, omni_mesh, out, numbers, lines))
     lifter = omni or _checkpoint(cfg, "ibrnet-tiny")
     if lifter is not None:
-        t = time.perf_counter()
-        sections.append(lift_section(cfg, path, scene, lifter, out, numbers, lines))
-        numbers["seconds"]["lift"] = time.perf_counter() - t
+        sections.append(timed(numbers, "lift", lift_section, cfg, path, scene, lifter, out, numbers, lines))
+    return sections
+
+
+def finish(out: Path, sections: list, numbers: dict, lines: list[str], start_all: float) -> Path:
+    """The overview strip, ``demo.json`` and ``index.html``; returns the report's path."""
+    from omnirecon.data.io import write_json  # lazy: demo --help stays fast
+    from omnirecon.engine.report import Section, write_report  # lazy: demo --help stays fast
+    from omnirecon.provenance import markdown_header, provenance  # lazy: demo --help stays fast
 
     overview = overview_figure(out)
     if overview is not None:
@@ -232,7 +274,7 @@ def run_demo(cfg: DemoConfig) -> dict:
     lines.append("seconds per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in numbers["seconds"].items()
                                                      if k != "total"))
     lines.append(f"total {numbers['seconds']['total']:.0f} s")
-    return {"report": str(report), "lines": lines, "numbers": numbers}
+    return report
 
 
 def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, out: Path, numbers: dict,

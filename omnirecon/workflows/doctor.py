@@ -149,7 +149,7 @@ def check_data() -> list[Check]:
                       "" if shared.is_dir() else "tests that need real scenes skip; benchmarks score procedural scenes only"))
     ckpts = sorted(p.name for p in (ROOT / "checkpoints").glob("*") if (p / "model.safetensors").is_file())
     rows.append(Check("shipped checkpoints", "ok" if ckpts else "missing", ", ".join(ckpts) or "none",
-                      "" if ckpts else "train one with bench/train_tiny.py"))
+                      "" if ckpts else "train one with python -m bench train_tiny"))
     return rows
 
 

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from omnirecon.chunk import pick_chunk
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
-from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.protocols import given_targets
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
@@ -34,12 +34,14 @@ from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs,
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
+from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class EditConfig(ThreadsConfig):
+class EditConfig(ThreadsConfig, FolderVerb):
     """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
     before/after, and delete or recolour its faces on the baked mesh (GLB)."""
 
@@ -93,19 +95,18 @@ class EditConfig(ThreadsConfig):
     """Rays rendered per chunk (edits run on the CPU; default: from the free memory, at most 4096; a note
     when above 25% of RAM)."""
 
-    def run(self) -> list[str]:
-        """Run the command; returns the lines to print."""
+    command: ClassVar[str] = "edit"
+
+    def default_out(self) -> Path:
+        return Path("outputs/edit") / f"{Path(self.ckpt).name}_{self.action}"
+
+    def run(self, folder: Path | None = None) -> list[str]:
         lines: list[str] = []
         self.chunk = pick_chunk(self.chunk)  # None: from the free memory
 
-        if self.num_views < 1:
-            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
+        check_options("edit", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         if (self.label is None) == (self.click is None):
             raise InputError("give exactly one of --label or --click", None, "e.g. --label 2 or --click 30 20")
-        if not all(0.0 <= c <= 1.0 for c in self.colour):
-            raise InputError(f"--colour must be RGB in [0, 1], got {self.colour}", None, "e.g. --colour 0.9 0.1 0.8")
-        if self.dilation < 0:
-            raise InputError(f"--dilation must be >= 0, got {self.dilation}", None, "use e.g. 1")
         set_threads(self.threads)
         model, info = load_model(self.ckpt, None, "cpu")
         if not supports_lifting(model):
@@ -114,16 +115,15 @@ class EditConfig(ThreadsConfig):
         if (self.path == "mesh" or self.geometry) and not isinstance(model, OmniRecon):
             raise InputError(f"the mesh path and the mesh edit need Omni-Recon, got {info['name']}", self.ckpt,
                              "use an omnirecon checkpoint, or --path volumetric --no-geometry")
-        out = self.out or Path("outputs/edit") / f"{Path(self.ckpt).name}_{self.action}"
-        if out.exists() and not out.is_dir():
-            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+        out = self.out or self.default_out()
+        folder = folder or out
         es = prepare_scenes([self.scene], 1, self.cache, protocol_set=self.protocol_set)[0]
         if es.scene.labels is None:
             raise InputError("the scene has no label maps", es.path, "use a procedural scene (synth:eval or "
                              "`omnirecon synth`)")
-        result = {"model": info, **run_edit(self, model, es, out / es.name)}
+        result = {"model": info, **run_edit(self, model, es, folder / es.name)}
 
-        write_json(out / "edit.json", {"provenance": provenance(seed=0), **result})
+        write_json(folder / "edit.json", {"provenance": provenance(seed=0), **result})
         r = result
         lines.append(f"{r['action']} label {r['label']} in {len(r['edited_views'])} source views; "
               + ", ".join(f"view {t['target']}: mean change {t['mean_change_inside']:.3f} on the object's lifted pixels, "
@@ -156,100 +156,126 @@ def label_maps(cfg: EditConfig, scene, pool: list[int], used: set[int], table: n
 
 def run_edit(cfg: EditConfig, model, es, folder: Path) -> dict:
     """The edit of one scene (see the module docstring); returns the JSON record."""
-    import functools
-
-    import torch
-
     scene = es.scene
-    targets, pool = targets_and_pool(es.protocol, scene)
-    if cfg.targets:
-        bad = [t for t in cfg.targets if not 0 <= t < len(scene)]
-        if bad:
-            raise InputError(f"--targets {bad} outside the views 0..{len(scene) - 1}", es.path, "pick view indices")
-        targets = list(cfg.targets)
-        pool = [v for v in range(len(scene)) if v not in set(targets)]
-    if len(pool) < cfg.num_views:
-        raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {cfg.num_views}", es.path,
-                         "lower --num-views")
-    sources = {t: select_sources(scene, scene.cameras[t], pool, cfg.num_views) for t in targets}
+    targets, pool, sources, face_views = _views(cfg, es)
     used = sorted({v for s in sources.values() for v in s})
-    mesh_needed = cfg.path == "mesh" or cfg.geometry
-    face_views = []  # the sources, then the pool views nearest the first target
-    if mesh_needed:
-        near = select_sources(scene, scene.cameras[targets[0]], pool, len(pool))
-        face_views = (used + [v for v in near if v not in used])[:max(cfg.face_views, len(used))]
     table = P.class_table(scene)
     labels = label_maps(cfg, scene, pool, set(used), table, used + face_views)  # [N, H, W] values
+    target_label = _target_label(cfg, es, labels, sources[targets[0]], table)
+    background = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    edited = _edit_sources(cfg, scene, used, labels[used] == target_label, background, folder)
+    onehot = _onehot(labels, table)
+    cls = int(np.searchsorted(table, target_label))
+    mesh_rec, meshes = None, None
+    if cfg.path == "mesh" or cfg.geometry:
+        mesh_rec = _mesh_edit(cfg, model, scene, used, face_views, onehot, cls, table, folder.parent)
+        meshes = (mesh_rec.pop("_mesh"), mesh_rec.pop("_after_mesh"))
+    rows = []
+    for t in targets:
+        src = sources[t]
+        r = _reblend(cfg, model, scene, t, src, edited, onehot, background, meshes)
+        lifted = r["labels"].argmax(-1) == cls  # [H, W]
+        rows.append(_target_row(t, src, r, lifted))
+        _write_target(folder / f"{t:03d}", scene.images[t].numpy(), r, lifted, edited[src[0]].numpy())
+    return {"scene": es.name, "action": cfg.action, "label": target_label, "path": cfg.path, "reencode": cfg.reencode,
+            "labels": cfg.labels, "edited_views": used, "panel_tiles": "true image | lifted object mask | before | "
+            "after | first edited source", "targets": rows, "mesh": mesh_rec if cfg.geometry else None}
+
+
+def _views(cfg: EditConfig, es) -> tuple[list[int], list[int], dict[int, list[int]], list[int]]:
+    """``(targets, pool, sources per target, face views)``; the face views (the sources, then the pool views nearest
+    the first target) only when a mesh is needed."""
+    scene = es.scene
+    targets, pool = given_targets(es.protocol, scene, cfg.targets, cfg.num_views, es.path)
+    sources = {t: select_sources(scene, scene.cameras[t], pool, cfg.num_views) for t in targets}
+    used = sorted({v for s in sources.values() for v in s})
+    face_views = []
+    if cfg.path == "mesh" or cfg.geometry:
+        near = select_sources(scene, scene.cameras[targets[0]], pool, len(pool))
+        face_views = (used + [v for v in near if v not in used])[:max(cfg.face_views, len(used))]
+    return targets, pool, sources, face_views
+
+
+def _target_label(cfg: EditConfig, es, labels, first_sources: list[int], table: np.ndarray) -> int:
+    """The object's label value: --label, or the label under --click in --click-view."""
     if cfg.click is not None:
-        view = sources[targets[0]][0] if cfg.click_view is None else cfg.click_view
+        view = first_sources[0] if cfg.click_view is None else cfg.click_view
         target_label = E.label_at(labels, view, *cfg.click)
     else:
         target_label = int(cfg.label)
     if target_label not in set(table.tolist()):
         raise InputError(f"label {target_label} is not in the scene (labels: {table.tolist()})", es.path,
                          "pick one of those values")
-    background = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    masks = labels[used] == target_label  # [U, H, W]
-    edited_used = E.edit_images(scene.images[used], masks, cfg.action, cfg.colour, cfg.fill, background, cfg.dilation)
+    return target_label
+
+
+def _edit_sources(cfg: EditConfig, scene, used: list[int], objects, background, folder: Path):
+    """All images with the object (``objects``: its pixels in the ``used`` views) edited in the ``used`` views (written under ``sources/``). ``# [N, H, W, 3]``"""
+    edited_used = E.edit_images(scene.images[used], objects, cfg.action, cfg.colour, cfg.fill, background,
+                                cfg.dilation)
     edited = scene.images.clone()
     edited[used] = edited_used.float()
-    for i, v in enumerate(used):
+    for v in used:
         write_image(folder / "sources" / f"{v:03d}_edited.png", edited[v].numpy())
-    C = len(table)
-    onehot = torch.from_numpy(np.eye(C, dtype=np.float32)[np.clip(P.labels_to_classes(labels, table), 0, None)])
-    onehot[torch.from_numpy(P.labels_to_classes(labels, table) < 0)] = 0
-    cls = int(np.searchsorted(table, target_label))
+    return edited
 
-    mesh_rec, mesh_after = None, None
-    if mesh_needed:
-        mesh_rec = _mesh_edit(cfg, model, scene, used, face_views, onehot, cls, table, folder.parent)
-        mesh_after = mesh_rec.pop("_after_mesh")
 
-    rows = []
-    for t in targets:
-        src = sources[t]
-        s_orig = Sources.from_scene(scene, src)
-        s_edit = replace(s_orig, images=edited[src].to(s_orig.images.dtype))
-        if cfg.path == "volumetric":
-            with torch.no_grad():
-                feats = model.encode(s_orig)
-                after_feats = model.encode(s_edit) if cfg.reencode else None
-                r = E.reblend_volumetric(model, feats, scene.cameras[t], scene.images[src], edited[src], onehot[src],
-                                         after_feats, cfg.chunk)
-        else:
+def _onehot(labels, table: np.ndarray):
+    """One-hot classes of the label maps (all zero where a label is not in ``table``). ``# [N, H, W, C]``"""
+    import torch
 
-            opts = MeshRenderOptions(background=background, visibility=cfg.visibility, cull_back_faces=False)
-            changed_mesh = cfg.action == "remove"  # the after view lacks the object's faces
-            after = None
-            if cfg.reencode or changed_mesh:
-                after = functools.partial(MeshRenderer, model, mesh_after if changed_mesh else mesh_rec["_mesh"],
-                                          s_edit if cfg.reencode else s_orig, opts)
-            with MeshRenderer(model, mesh_rec["_mesh"], s_orig, opts) as before:
-                r = E.reblend_mesh(before, scene.cameras[t], scene.images[src], edited[src], onehot[src], after)
-        lifted = r["labels"].argmax(-1) == cls  # [H, W]
-        delta = (r["after"] - r["before"]).abs().amax(-1)  # [H, W]
-        diff = delta > 1e-4
+    classes = P.labels_to_classes(labels, table)
+    onehot = torch.from_numpy(np.eye(len(table), dtype=np.float32)[np.clip(classes, 0, None)])
+    onehot[torch.from_numpy(classes < 0)] = 0
+    return onehot
 
-        def frac(x, m):
-            return float(x[m].float().mean()) if m.any() else 0.0
 
-        rows.append({"target": t, "sources": src, "object_pixels": int(lifted.sum()),
-                     "changed_inside": frac(diff, lifted), "changed_outside": frac(diff, ~lifted),
-                     "mean_change_inside": frac(delta, lifted), "mean_change_outside": frac(delta, ~lifted)})
-        stem = folder / f"{t:03d}"
-        img = scene.images[t].numpy()
-        mask_pic = np.where(lifted.numpy()[..., None], 0.5 * img + 0.5 * np.array([1.0, 0.0, 0.0]), img)
-        write_image(Path(f"{stem}_before.png"), r["before"].clamp(0, 1).numpy())
-        write_image(Path(f"{stem}_after.png"), r["after"].clamp(0, 1).numpy())
-        write_image(Path(f"{stem}_mask.png"), mask_pic)
-        tiles = [img, mask_pic, r["before"].clamp(0, 1).numpy(), r["after"].clamp(0, 1).numpy(),
-                 edited[src[0]].numpy()]
-        write_image(Path(f"{stem}_panel.png"), X.panel(tiles))
-    if mesh_rec is not None:
-        mesh_rec.pop("_mesh")
-    return {"scene": es.name, "action": cfg.action, "label": target_label, "path": cfg.path, "reencode": cfg.reencode,
-            "labels": cfg.labels, "edited_views": used, "panel_tiles": "true image | lifted object mask | before | "
-            "after | first edited source", "targets": rows, "mesh": mesh_rec if cfg.geometry else None}
+def _reblend(cfg: EditConfig, model, scene, t: int, src: list[int], edited, onehot, background, meshes) -> dict:
+    """Target ``t`` before and after the edit (and its lifted labels), through the model's ray weights or the mesh
+    (``meshes``: the mesh before and after the edit)."""
+    import functools
+
+    import torch
+
+    s_orig = Sources.from_scene(scene, src)
+    s_edit = replace(s_orig, images=edited[src].to(s_orig.images.dtype))
+    if cfg.path == "volumetric":
+        with torch.no_grad():
+            feats = model.encode(s_orig)
+            after_feats = model.encode(s_edit) if cfg.reencode else None
+            return E.reblend_volumetric(model, feats, scene.cameras[t], scene.images[src], edited[src], onehot[src],
+                                        after_feats, cfg.chunk)
+    opts = MeshRenderOptions(background=background, visibility=cfg.visibility, cull_back_faces=False)
+    changed_mesh = cfg.action == "remove"  # the after view lacks the object's faces
+    after = None
+    if cfg.reencode or changed_mesh:
+        after = functools.partial(MeshRenderer, model, meshes[1] if changed_mesh else meshes[0],
+                                  s_edit if cfg.reencode else s_orig, opts)
+    with MeshRenderer(model, meshes[0], s_orig, opts) as before:
+        return E.reblend_mesh(before, scene.cameras[t], scene.images[src], edited[src], onehot[src], after)
+
+
+def _target_row(t: int, src: list[int], r: dict, lifted) -> dict:
+    """How much changed inside and outside the object's lifted pixels."""
+    delta = (r["after"] - r["before"]).abs().amax(-1)  # [H, W]
+    diff = delta > 1e-4
+
+    def frac(x, m):
+        return float(x[m].float().mean()) if m.any() else 0.0
+
+    return {"target": t, "sources": src, "object_pixels": int(lifted.sum()),
+            "changed_inside": frac(diff, lifted), "changed_outside": frac(diff, ~lifted),
+            "mean_change_inside": frac(delta, lifted), "mean_change_outside": frac(delta, ~lifted)}
+
+
+def _write_target(stem: Path, img: np.ndarray, r: dict, lifted, first_edited: np.ndarray) -> None:
+    """``<view>_before.png``, ``_after.png``, ``_mask.png`` and ``_panel.png``."""
+    mask_pic = np.where(lifted.numpy()[..., None], 0.5 * img + 0.5 * np.array([1.0, 0.0, 0.0]), img)
+    write_image(Path(f"{stem}_before.png"), r["before"].clamp(0, 1).numpy())
+    write_image(Path(f"{stem}_after.png"), r["after"].clamp(0, 1).numpy())
+    write_image(Path(f"{stem}_mask.png"), mask_pic)
+    tiles = [img, mask_pic, r["before"].clamp(0, 1).numpy(), r["after"].clamp(0, 1).numpy(), first_edited]
+    write_image(Path(f"{stem}_panel.png"), X.panel(tiles))
 
 
 def _mesh_edit(cfg: EditConfig, model, scene, used, views, onehot, cls: int, table, out: Path) -> dict:

@@ -12,10 +12,9 @@ from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set
 from omnirecon.engine.protocols import protocol_for
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
-from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
-from omnirecon.preflight import check_resolution
+from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
 
@@ -69,9 +68,7 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
 
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
     options.check()
-    check_resolution(cfg.resolution)
-    if cfg.num_views < 1:
-        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
+    check_options("export", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if mesh is None and cfg.mesh is not None:
         mesh = read_mesh(cfg.mesh)
     set_threads(cfg.threads)

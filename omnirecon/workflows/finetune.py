@@ -52,7 +52,7 @@ from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
-from omnirecon.preflight import check_resolution
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.render.raster import MeshRasterizer
@@ -248,27 +248,31 @@ def pick_validation(train_views: list[int], sources: list[int], n: int) -> list[
 
 
 # ---------------------------------------------------------------------- the run
-def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
-    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
-    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+@dataclass
+class Setup:
+    """What one run tunes on: the model, the scene, its views, and the mesh's pixels per view."""
 
-    if not cfg.seconds > 0:
-        raise InputError(f"--seconds must be positive, got {cfg.seconds}", None, "use e.g. 60")
-    if cfg.rays < 1 or not cfg.lr > 0:
-        raise InputError("--rays must be >= 1 and --lr positive", None, "use e.g. --rays 2048 --lr 5e-4")
-    if cfg.reg < 0 or not cfg.val_every > 0 or cfg.val_views < 0 or not cfg.tune:
-        raise InputError("--reg must be >= 0, --val-every positive, --val-views >= 0 and --tune non-empty", None,
-                         "use e.g. --reg 0 --val-every 2 --val-views 2 --tune encoder appearance")
-    check_resolution(cfg.resolution)
-    set_threads(cfg.threads)
-    model, meta = load_checkpoint(cfg.ckpt)
-    if not model.capabilities.appearance:
-        raise InputError(f"finetune needs an Omni-Recon checkpoint, got preset {meta['preset']}", cfg.ckpt,
-                         "pass checkpoints/omnirecon-tiny or another omnirecon-* checkpoint")
-    fmt = detect_format(cfg.scene)
-    proto = protocol_for(Path(cfg.scene), fmt)
-    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
+    model: torch.nn.Module
+    meta: dict
+    scene: object
+    views: list[int]
+    """Source views."""
+    targets: list[int]
+    """Held-out views scored at each evaluation."""
+    val_views: list[int]
+    """Training views kept out of tuning to choose the returned state."""
+    sources: Sources
+    background: tuple[float, float, float]
+    mesh: object
+    """The fixed mesh, scene frame (``trimesh.Trimesh``)."""
+    fill: bool
+    train_px: list[ViewPixels]
+    held_px: list[ViewPixels]
+    val_px: list[ViewPixels]
+
+
+def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
+    """``(sources, held-out targets, validation views, tuning views)``; refuses sources that are held out."""
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     targets, pool = targets_and_pool(proto, scene)
     held = sorted(set(views) & (set(targets) | set(scene.splits.get("test", []))))
@@ -281,18 +285,24 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     val_views = pick_validation(train_views, views, cfg.val_views)
     tune_views = [i for i in train_views if i not in set(val_views) | set(views)] or [
         i for i in train_views if i not in set(val_views)]  # sources are targets only when nothing else is left
-    out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
-    sources = Sources.from_scene(scene, views)
+    return views, targets, val_views, tune_views
+
+
+def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
+    """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view."""
+    model, meta = load_checkpoint(cfg.ckpt)
+    if not model.capabilities.appearance:
+        raise InputError(f"finetune needs an Omni-Recon checkpoint, got preset {meta['preset']}", cfg.ckpt,
+                         "pass checkpoints/omnirecon-tiny or another omnirecon-* checkpoint")
+    fmt = detect_format(cfg.scene)
+    proto = protocol_for(Path(cfg.scene), fmt)
+    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
+    views, targets, val_views, tune_views = split_views(cfg, scene, proto)
     background = scene.background if scene.background is not None else (
         (0.0,) * 3 if proto.background == "black" else (1.0,) * 3)
-
-    # the fixed mesh, rasterized once per view
-    if mesh is not None:
-        pass
-    elif cfg.mesh is not None:
-        mesh = read_mesh(cfg.mesh, scene.to_input)
-    else:
-        mesh = mesh_from_model(model, scene, views, MeshOptions()).mesh
+    if mesh is None:
+        mesh = read_mesh(cfg.mesh, scene.to_input) if cfg.mesh is not None else \
+            mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
     fill = cfg.fill == "far" or (cfg.fill == "auto" and scene.background is None)
@@ -301,73 +311,120 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     val_px = rasterize_views(mesh, scene, val_views, fill)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
-    counts = torch.tensor([v.covered for v in train_px], dtype=torch.float64)  # tuning: pixels on the mesh
-    g = torch.Generator().manual_seed(cfg.seed)
-    val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in val_px]
+    return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
+                 fill, train_px, held_px, val_px)
 
-    exposure = Exposure(len(views))
-    modules = {"encoder": model.encoder, "appearance": model.appearance}
-    params = [p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
-    net = params
-    start = [p.detach().clone() for p in net]
-    if "exposure" in cfg.tune:
-        with torch.no_grad():
-            exposure.gain.copy_(estimate_gains(model, sources, train_px, g))
-    for p in model.parameters():
-        p.requires_grad_(False)
-    for p in params:
-        p.requires_grad_(True)
-    opt = torch.optim.Adam(params, lr=cfg.lr) if params else None
-    model.train()
 
-    def features():  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
-        return encode_maps(model, sources, colours=exposure(sources))
+@torch.no_grad()
+def score_held_out(model, feats, scene, held_px: list[ViewPixels], background) -> dict:
+    """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
+    covers; ``coverage``; the ``renders``."""
+    renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
+    gts = [scene.images[v.index].float() for v in held_px]
+    cover = [coverage_mask(scene, v) for v in held_px]
+    r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
+         "per_view": [metrics.psnr(x, y) for x, y in zip(renders, gts)], "renders": renders,
+         "coverage": float(torch.stack(cover).float().mean())}
+    if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
+        masks = [scene.masks[v.index].bool() for v in held_px]
+        r["psnr_masked"] = float(np.mean([metrics.psnr(x, y, m) for x, y, m in zip(renders, gts, masks)]))
+        r["coverage_masked"] = float(sum(int((c & m).sum()) for c, m in zip(cover, masks)) /
+                                     max(sum(int(m.sum()) for m in masks), 1))
+        cover = [c & m for c, m in zip(cover, masks)]
+    covered = [metrics.psnr(x, y, c) for x, y, c in zip(renders, gts, cover) if c.any()]
+    if covered:  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
+        r["psnr_covered"] = float(np.mean(covered))
+    return r
+
+
+class Tuner:
+    """The tuned parameters of one run, their optimiser and exposure, and the scores of their current state."""
+
+    def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
+        self.s, self.reg, model = s, cfg.reg, s.model
+        self.exposure = Exposure(len(s.views))
+        modules = {"encoder": model.encoder, "appearance": model.appearance}
+        self.params = [p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
+        self.start = [p.detach().clone() for p in self.params]
+        if "exposure" in cfg.tune:
+            with torch.no_grad():
+                self.exposure.gain.copy_(estimate_gains(model, s.sources, s.train_px, g))
+        for p in model.parameters():
+            p.requires_grad_(False)
+        for p in self.params:
+            p.requires_grad_(True)
+        self.opt = torch.optim.Adam(self.params, lr=cfg.lr) if self.params else None
+        model.train()
+
+    def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
+        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources))
+
+    def step(self, view: ViewPixels, idx: torch.Tensor) -> None:
+        """One Adam step on the MSE of ``view``'s pixels at ``idx`` (plus the pull toward the start)."""
+        rgb = self.s.model.shade(self.features(), view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
+        loss = (rgb - view.target[idx]).square().mean()
+        if self.reg > 0 and self.params:
+            loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
+                p.numel() for p in self.params)
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        self.opt.step()
 
     @torch.no_grad()
-    def validate() -> float:
-        if not val_px:
+    def validate(self, val_idx: list[torch.Tensor]) -> float:
+        """PSNR of the current state on the validation pixels (NaN without validation views)."""
+        if not self.s.val_px:
             return float("nan")
+        model = self.s.model
         model.eval()
-        feats = features()
+        feats = self.features()
         se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
-                        for v, i in zip(val_px, val_idx)])
+                        for v, i in zip(self.s.val_px, val_idx)])
         model.train()
         return float(-10 * torch.log10(se.mean().clamp_min(1e-10)))
 
     @torch.no_grad()
-    def test_scores() -> dict:
-        model.eval()
-        feats = features()
-        renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
-        model.train()
-        gts = [scene.images[v.index].float() for v in held_px]
-        cover = [coverage_mask(scene, v) for v in held_px]
-        r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
-             "per_view": [metrics.psnr(x, y) for x, y in zip(renders, gts)], "renders": renders,
-             "coverage": float(torch.stack(cover).float().mean())}
-        if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
-            masks = [scene.masks[v.index].bool() for v in held_px]
-            r["psnr_masked"] = float(np.mean([metrics.psnr(x, y, m) for x, y, m in zip(renders, gts, masks)]))
-            r["coverage_masked"] = float(sum(int((c & m).sum()) for c, m in zip(cover, masks)) /
-                                         max(sum(int(m.sum()) for m in masks), 1))
-            cover = [c & m for c, m in zip(cover, masks)]
-        covered = [metrics.psnr(x, y, c) for x, y, c in zip(renders, gts, cover) if c.any()]
-        if covered:  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
-            r["psnr_covered"] = float(np.mean(covered))
+    def test_scores(self) -> dict:
+        self.s.model.eval()
+        r = score_held_out(self.s.model, self.features(), self.s.scene, self.s.held_px, self.s.background)
+        self.s.model.train()
         return r
 
-    def swap(state: list[torch.Tensor]) -> list[torch.Tensor]:
+    def state(self) -> list[torch.Tensor]:
+        return [p.detach().clone() for p in self.params]
+
+    def swap(self, state: list[torch.Tensor]) -> list[torch.Tensor]:
         """Load ``state`` into the tuned parameters; returns the state they had."""
-        old = [p.detach().clone() for p in params]
+        old = self.state()
         with torch.no_grad():
-            for p, s in zip(params, state):
+            for p, s in zip(self.params, state):
                 p.copy_(s)
         return old
 
+
+@dataclass
+class Tuned:
+    """What the tuning loop measured and returns."""
+
+    curve: list[dict]
+    validation: list[dict]
+    before: dict
+    after: dict
+    best_val: float
+    best_at: tuple[float, int]
+    steps: int
+
+
+def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_idx: list[torch.Tensor]) -> Tuned:
+    """Tune for ``cfg.seconds``, validating every ``--val-every`` and scoring the held-out views at every
+    ``--eval-at``; leaves the best state on validation in the model."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    counts = torch.tensor([v.covered for v in s.train_px], dtype=torch.float64)  # tuning: pixels on the mesh
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
     curve, validation, before, step = [], [], None, 0
-    best_state, best_val, best_at = [p.detach().clone() for p in params], -float("inf"), (0.0, 0)
+    best_state, best_val, best_at = tuner.state(), -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
@@ -375,50 +432,44 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
         task = bar.add_task("finetune", total=cfg.seconds, psnr="")
         for t_check in checks:
             clock.start()
-            while opt is not None and clock.now() < t_check:
-                view = train_px[int(torch.multinomial(counts, 1, generator=g))]
-                idx = torch.randint(view.covered, (min(cfg.rays, view.covered),), generator=g)
-                rgb = model.shade(features(), view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
-                loss = (rgb - view.target[idx]).square().mean()
-                if cfg.reg > 0 and net:
-                    loss = loss + cfg.reg * sum((p - p0).square().sum() for p, p0 in zip(net, start)) / sum(
-                        p.numel() for p in net)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
+            while tuner.opt is not None and clock.now() < t_check:
+                view = s.train_px[int(torch.multinomial(counts, 1, generator=g))]
+                tuner.step(view, torch.randint(view.covered, (min(cfg.rays, view.covered),), generator=g))
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
-            val = validate()
+            val = tuner.validate(val_idx)
             validation.append({"seconds": t_check, "steps": step, "psnr": val})
-            if not val_px or val > best_val or step == 0:  # without validation views: the latest state
-                best_state, best_val, best_at = [p.detach().clone() for p in params], val, (t_check, step)
+            if not s.val_px or val > best_val or step == 0:  # without validation views: the latest state
+                best_state, best_val, best_at = tuner.state(), val, (t_check, step)
             if t_check not in eval_at:
                 continue
-            current = swap(best_state)  # score what tuning returns if it stopped here
-            r = test_scores()
-            swap(current)
+            current = tuner.swap(best_state)  # score what tuning returns if it stopped here
+            r = tuner.test_scores()
+            tuner.swap(current)
             before = before or r
             curve.append({"seconds": t_check, "steps": step, "psnr": r["psnr"], "per_view": r["per_view"],
                           "val_psnr": best_val, "val_psnr_now": val, "returned_from": {"seconds": best_at[0], "steps": best_at[1]},
                           **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}})
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
-    after = r
-    swap(best_state)  # the returned (and saved) state: the best on validation
+    tuner.swap(best_state)  # the returned (and saved) state: the best on validation
+    return Tuned(curve, validation, before, r, best_val, best_at, step)
 
-    # outputs
+
+def plot_curve(cfg: FinetuneConfig, s: Setup, t: Tuned, out: Path) -> None:
+    """``curve.png``: held-out (and validation) PSNR against seconds of tuning."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
-    ax.plot([c["seconds"] for c in curve], [c["psnr"] for c in curve], "o-", label="held-out test views")
-    if val_px:
-        ax.plot([c["seconds"] for c in validation], [c["psnr"] for c in validation], ".:", label="validation (current)")
+    ax.plot([c["seconds"] for c in t.curve], [c["psnr"] for c in t.curve], "o-", label="held-out test views")
+    if s.val_px:
+        ax.plot([c["seconds"] for c in t.validation], [c["psnr"] for c in t.validation], ".:", label="validation (current)")
     ax.set_xlabel(f"seconds of fine-tuning ({cfg.clock} clock)")
     ax.set_ylabel("PSNR (dB)")
-    ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(held_px)} held-out views, coverage {after['coverage']:.0%}",
+    ax.set_title(f"{Path(cfg.scene).name}: mesh path, {len(s.held_px)} held-out views, coverage {t.after['coverage']:.0%}",
                  fontsize=9)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7)
@@ -427,24 +478,51 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     with atomic_path(out / "curve.png") as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
-    gt = scene.images[held_px[0].index].float()
+
+
+def write_before_after(s: Setup, t: Tuned, out: Path) -> None:
+    """``before_after.png``: GT | before | after for the first held-out view."""
+    gt = s.scene.images[s.held_px[0].index].float()
     white = torch.ones(gt.shape[0], 2, 3)
-    write_image(out / "before_after.png", torch.cat([gt, white, before["renders"][0], white, after["renders"][0]], 1).numpy())
-    result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": meta["preset"], "sources": views,
-              "held_out": targets, "validation_views": val_views, "train_views": len(train_px), "faces": len(mesh.faces),
-              "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr, "reg": cfg.reg,
-              "fill": "far" if fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
-              "tuned_parameters": sum(p.numel() for p in params), "resolution": [scene.width, scene.height],
-              "coverage": after["coverage"], "curve": curve, "validation": validation,
-              "returned_from": {"seconds": best_at[0], "steps": best_at[1], "val_psnr": best_val},
-              "gain_db": curve[-1]["psnr"] - curve[0]["psnr"],
+    write_image(out / "before_after.png", torch.cat([gt, white, t.before["renders"][0], white, t.after["renders"][0]], 1).numpy())
+
+
+def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path) -> dict:
+    """The record written to ``curve.json``."""
+    result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
+              "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
+              "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
+              "reg": cfg.reg, "fill": "far" if s.fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
+              "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
+              "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
+              "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val},
+              "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
     if "exposure" in cfg.tune:
-        result["exposure"] = {"gain": exposure.gain.detach().reshape(-1, 3).tolist(),
-                              "offset": exposure.offset.detach().reshape(-1, 3).tolist()}
+        result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
+                              "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
+    return result
+
+
+def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
+    """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
+    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
+    check_options("finetune", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+    if not cfg.tune:
+        raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
+    set_threads(cfg.threads)
+    s = prepare(cfg, mesh)
+    out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
+    g = torch.Generator().manual_seed(cfg.seed)
+    val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in s.val_px]
+    tuner = Tuner(cfg, s, g)
+    tuned = tune(cfg, s, tuner, g, val_idx)
+    plot_curve(cfg, s, tuned, out)
+    write_before_after(s, tuned, out)
+    result = make_record(cfg, s, tuner, tuned, out)
     write_json(out / "curve.json", result)
     if cfg.save:
-        save_checkpoint(out / "checkpoint", model, meta["preset"], step=step,
+        save_checkpoint(out / "checkpoint", s.model, s.meta["preset"], step=tuned.steps,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
                                "returned_from": result["returned_from"], **({"exposure": result["exposure"]}
                                                                             if "exposure" in result else {})})

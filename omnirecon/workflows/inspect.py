@@ -29,6 +29,7 @@ from omnirecon.data import Format, ReadOptions, load_scene
 from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 
 
 @dataclass
@@ -52,18 +53,25 @@ class InspectConfig:
     """How many neighbouring view pairs the consistency scores average over."""
     seed: int = 0
     """Seed for pixel sampling in the scores."""
-def run_inspect(cfg: InspectConfig) -> dict:
+def default_out(cfg: InspectConfig) -> Path:
+    """The output folder when --out is not given."""
+    return Path("outputs/inspect") / Path(cfg.path).resolve().name
+
+
+def run_inspect(cfg: InspectConfig, folder: Path | None = None) -> dict:
+    """Validate and summarise the scene; pictures and ``summary.json`` go to ``folder`` (default: --out; the
+    command passes the temporary twin that :func:`omnirecon.outputs.claim` swaps in), messages name --out."""
     from rich.console import Console
     from rich.table import Table
 
     console = Console()
-    if cfg.downscale <= 0:
-        raise InputError(f"--downscale must be positive, got {cfg.downscale}", fix="pass e.g. --downscale 2")
+    check_options("inspect", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     scene = load_scene(cfg.path, cfg.format, ReadOptions(downscale=cfg.downscale, max_views=cfg.max_views))
     if len(scene) < 2:
         raise InputError(f"scene has {len(scene)} view(s); inspection needs at least 2", cfg.path,
                          "add views, or raise --max-views")
-    out = cfg.out or Path("outputs/inspect") / Path(cfg.path).resolve().name
+    out = cfg.out or default_out(cfg)
+    folder = folder or out
     summary = scene.summary()
     pairs = neighbour_pairs(scene, cfg.num_pairs)
     a, b = cfg.pair if cfg.pair is not None else pairs[0]
@@ -80,9 +88,9 @@ def run_inspect(cfg: InspectConfig) -> dict:
         scores["hull_fraction"] = visual_hull_score(scene, g)
     summary["consistency"] = scores
 
-    draw_cameras(scene, out / "cameras.png")
-    draw_epipolar(scene, a, b, out / "epipolar.png")
-    write_json(out / "summary.json", summary)
+    draw_cameras(scene, folder / "cameras.png")
+    draw_epipolar(scene, a, b, folder / "epipolar.png")
+    write_json(folder / "summary.json", summary)
 
     table = Table(title=f"{scene.path}", show_header=False)
     for k, v in summary.items():
@@ -249,22 +257,36 @@ def draw_cameras(scene: Scene, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
     cams = scene.cameras.to(dtype=torch.float64)
     extent = float(np.ptp(torch.cat([cams.centers, scene.bounds.double()]).numpy(), axis=0).max())
     lines = _frustum_lines(cams, 0.06 * extent)
     split_of = np.full(len(scene), "all", dtype=object)
-    colours = {"train": "tab:blue", "val": "tab:orange", "test": "tab:red", "all": "tab:blue"}
     for name in ("train", "val", "test"):
         for i in scene.splits.get(name, []):
             split_of[i] = name
     box = _box_lines(scene.bounds.double())
     fig = plt.figure(figsize=(12, 6), dpi=100)
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    _cameras_3d(fig.add_subplot(1, 2, 1, projection="3d"), lines, box, split_of)
+    _cameras_top(fig.add_subplot(1, 2, 2), cams, lines, box, split_of)
+    fig.suptitle(f"{scene.format}: {len(scene)} views, {scene.width}x{scene.height}, rig={scene.rig}")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+SPLIT_COLOURS = {"train": "tab:blue", "val": "tab:orange", "test": "tab:red", "all": "tab:blue"}
+"""Frustum colour per split in :func:`draw_cameras`."""
+
+
+def _cameras_3d(ax, lines: np.ndarray, box: np.ndarray, split_of: np.ndarray) -> None:
+    """The frustums (``lines``, ``# [N, L, 2, 3]``) and the bounds' ``box`` in a 3-D view."""
+    from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
     for name in dict.fromkeys(split_of):
         sel = split_of == name
-        ax.add_collection3d(Line3DCollection(lines[sel].reshape(-1, 2, 3), colors=colours[name], linewidths=0.8,
+        ax.add_collection3d(Line3DCollection(lines[sel].reshape(-1, 2, 3), colors=SPLIT_COLOURS[name], linewidths=0.8,
                                              label=f"{name} ({sel.sum()})"))
     ax.add_collection3d(Line3DCollection(box, colors="k", linewidths=1.0, label="bounds"))
     allp = np.concatenate([lines.reshape(-1, 3), box.reshape(-1, 3)])
@@ -275,27 +297,40 @@ def draw_cameras(scene: Scene, path: Path) -> None:
     ax.set_xlabel("x"), ax.set_ylabel("y"), ax.set_zlabel("z")
     ax.legend(loc="upper left", fontsize=8)
     ax.set_title("cameras (OpenCV frustums) and bounds, scene frame")
-    # top view: the two axes with the largest camera spread
+
+
+def _cameras_top(ax2, cams, lines: np.ndarray, box: np.ndarray, split_of: np.ndarray) -> None:
+    """Top view: the two axes with the largest camera spread, with view indices."""
+    from matplotlib.collections import LineCollection
+
     spread = np.ptp(cams.centers.numpy(), axis=0) if len(cams) > 1 else np.ones(3)
     i, j = sorted(np.argsort(spread)[-2:])
-    ax2 = fig.add_subplot(1, 2, 2)
     for name in dict.fromkeys(split_of):
         sel = split_of == name
         seg = lines[sel][..., [i, j]].reshape(-1, 2, 2)
-        from matplotlib.collections import LineCollection
-
-        ax2.add_collection(LineCollection(seg, colors=colours[name], linewidths=0.8))
+        ax2.add_collection(LineCollection(seg, colors=SPLIT_COLOURS[name], linewidths=0.8))
     ax2.add_collection(LineCollection(box[..., [i, j]], colors="k", linewidths=1.0))
     for k in np.linspace(0, len(cams) - 1, min(len(cams), 12)).round().astype(int):
         ax2.annotate(str(k), cams.centers[k, [i, j]].numpy(), fontsize=7)
     ax2.autoscale(), ax2.set_aspect("equal")
     ax2.set_xlabel("xyz"[i]), ax2.set_ylabel("xyz"[j])
     ax2.set_title(f"projection on the {'xyz'[i]}{'xyz'[j]} plane (view indices)")
-    fig.suptitle(f"{scene.format}: {len(scene)} views, {scene.width}x{scene.height}, rig={scene.rig}")
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+
+
+def _corner_points(scene: Scene, a: int, count: int) -> torch.Tensor:
+    """Up to ``count`` strong image corners of view ``a`` (inside its mask when there is one; a grid on a flat
+    image), as continuous pixel coordinates. ``# [P, 2]``"""
+    from skimage.color import rgb2gray
+    from skimage.feature import corner_harris, corner_peaks
+
+    resp = corner_harris(rgb2gray(scene.images[a].numpy()))
+    if scene.masks is not None:
+        resp = resp * scene.masks[a].numpy()
+    peaks = corner_peaks(resp, min_distance=max(3, scene.width // 30), num_peaks=count)
+    if len(peaks) < count:  # flat image: fall back to a grid
+        ys, xs = np.meshgrid(np.linspace(0.2, 0.8, 3) * scene.height, np.linspace(0.2, 0.8, 4) * scene.width)
+        peaks = np.stack([ys.ravel(), xs.ravel()], 1).astype(int)[:count]
+    return torch.from_numpy(peaks[:, ::-1].copy()).double() + 0.5
 
 
 def draw_epipolar(scene: Scene, a: int, b: int, path: Path, count: int = 12) -> None:
@@ -308,26 +343,16 @@ def draw_epipolar(scene: Scene, a: int, b: int, path: Path, count: int = 12) -> 
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from skimage.color import rgb2gray
-    from skimage.feature import corner_harris, corner_peaks
 
-    img_a, img_b = scene.images[a].numpy(), scene.images[b].numpy()
-    resp = corner_harris(rgb2gray(img_a))
-    if scene.masks is not None:
-        resp = resp * scene.masks[a].numpy()
-    peaks = corner_peaks(resp, min_distance=max(3, scene.width // 30), num_peaks=count)
-    if len(peaks) < count:  # flat image: fall back to a grid
-        ys, xs = np.meshgrid(np.linspace(0.2, 0.8, 3) * scene.height, np.linspace(0.2, 0.8, 4) * scene.width)
-        peaks = np.stack([ys.ravel(), xs.ravel()], 1).astype(int)[:count]
-    uv = torch.from_numpy(peaks[:, ::-1].copy()).double() + 0.5
+    uv = _corner_points(scene, a, count)
     F = fundamental(scene.cameras.to(dtype=torch.float64), a, b)
     lines = torch.cat([uv, torch.ones(len(uv), 1, dtype=uv.dtype)], 1) @ F.T  # [P, 3]
     fig, axes = plt.subplots(1, 2, figsize=(12, 6 * scene.height / scene.width + 0.6), dpi=100)
     colours = plt.cm.tab20(np.linspace(0, 1, len(uv)))
     # imshow with extent so that data coordinates are our continuous pixel coordinates
     ext = (0, scene.width, scene.height, 0)
-    axes[0].imshow(img_a, extent=ext)
-    axes[1].imshow(img_b, extent=ext)
+    axes[0].imshow(scene.images[a].numpy(), extent=ext)
+    axes[1].imshow(scene.images[b].numpy(), extent=ext)
     axes[0].scatter(uv[:, 0], uv[:, 1], c=colours, s=30, edgecolors="k")
     xs = np.array([0.0, scene.width])
     for (la, lb, lc), col in zip(lines.numpy(), colours):
@@ -336,13 +361,7 @@ def draw_epipolar(scene: Scene, a: int, b: int, path: Path, count: int = 12) -> 
         else:
             axes[1].axvline(-lc / la, color=col, linewidth=1.2)
     if scene.depths is not None:
-        z = _sample_nearest(scene.depths[a].double(), uv)
-        ok = z > 0
-        if ok.any():
-            cams = scene.cameras.to(dtype=torch.float64)
-            pts = cams[[a]].unproject(uv[ok][None], z[ok][None])
-            pb = cams[[b]].project(pts[0]).uv[0]
-            axes[1].scatter(pb[:, 0], pb[:, 1], c=colours[ok.numpy()], s=30, marker="x")
+        _mark_warped(axes[1], scene, a, b, uv, colours)
     for ax, i in zip(axes, (a, b)):
         ax.set_xlim(0, scene.width), ax.set_ylim(scene.height, 0)
         ax.set_title(f"view {i}: {scene.names[i]}")
@@ -353,3 +372,14 @@ def draw_epipolar(scene: Scene, a: int, b: int, path: Path, count: int = 12) -> 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+def _mark_warped(ax, scene: Scene, a: int, b: int, uv: torch.Tensor, colours) -> None:
+    """Mark where the points ``uv`` of view ``a`` land in view ``b`` by their depth (an ``x`` each)."""
+    z = _sample_nearest(scene.depths[a].double(), uv)
+    ok = z > 0
+    if ok.any():
+        cams = scene.cameras.to(dtype=torch.float64)
+        pts = cams[[a]].unproject(uv[ok][None], z[ok][None])
+        pb = cams[[b]].project(pts[0]).uv[0]
+        ax.scatter(pb[:, 0], pb[:, 1], c=colours[ok.numpy()], s=30, marker="x")

@@ -14,13 +14,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
-from omnirecon.engine.protocols import targets_and_pool
+from omnirecon.engine.protocols import given_targets
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
@@ -31,15 +31,17 @@ from omnirecon.lift.predictors import builtin, from_torchscript, labels_to_class
 from omnirecon.lift.surface import scene_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
+from omnirecon.workflows.folder import FolderVerb
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
                         "oracle-normals", "oracle-depth", "torchscript"]
 
 
 @dataclass
-class LiftConfig(MachineConfig):
+class LiftConfig(MachineConfig, FolderVerb):
     """Lift a 2-D predictor into novel views with a model's own blend weights (predict-then-blend), compare
     with render-then-predict, write label/heat maps, overlays and a metrics table."""
 
@@ -86,16 +88,18 @@ class LiftConfig(MachineConfig):
     cache: Path = Path("outputs/cache")
     """Where synth:eval scenes are generated."""
 
-    def run(self) -> list[str]:
-        """Run the command; returns the lines to print."""
+    command: ClassVar[str] = "lift"
+
+    def default_out(self) -> Path:
+        return Path("outputs/lift") / f"{Path(self.ckpt).name}_{self.predictor}"
+
+    def inputs(self) -> tuple:
+        return self.ckpt, self.scene, self.user_model
+
+    def run(self, folder: Path | None = None) -> list[str]:
         lines: list[str] = []
 
-        if self.num_views < 1:
-            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 3")
-        if not 0.0 <= self.noise <= 1.0:
-            raise InputError(f"--noise must be in [0, 1], got {self.noise}", None, "use e.g. 0.2")
-        if self.chunk < 1:
-            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
+        check_options("lift", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         set_threads(self.threads)
         device = pick_device(self.device)
         model, info = load_model(self.ckpt, None, device)
@@ -107,15 +111,14 @@ class LiftConfig(MachineConfig):
             if not isinstance(model, OmniRecon):
                 raise InputError(f"--path mesh needs an Omni-Recon checkpoint, got {info['name']}", self.ckpt,
                                  "use --path volumetric, or an omnirecon checkpoint")
-        out = self.out or Path("outputs/lift") / f"{Path(self.ckpt).name}_{self.predictor}"
-        if out.exists() and not out.is_dir():
-            raise InputError("output path exists and is not a folder", out, "pass a folder for --out")
+        out = self.out or self.default_out()
+        folder = folder or out
         scenes = prepare_scenes([self.scene], self.synth_count, self.cache, protocol_set=self.protocol_set)
         result = {"model": info, "predictor": self.predictor, "num_views": self.num_views, "path": self.path,
                   "scenes": []}
         for es in scenes:
-            result["scenes"].append(self._scene(model, es, out / es.name, device))
-        _write(result, out)
+            result["scenes"].append(self._scene(model, es, folder / es.name, device))
+        _write(result, folder)
         lines += _summary(result)
         lines.append(f"wrote {out / 'metrics.json'}, {out / 'metrics.md'} and pictures under {out}")
         return lines
@@ -146,68 +149,62 @@ class LiftConfig(MachineConfig):
             raise InputError(str(e), None, "install what it names, or pick another --predictor") from e
 
     def _scene(self, model, es, folder: Path, device: str) -> dict:
-        import torch
-
         scene = es.scene
-        targets, pool = targets_and_pool(es.protocol, scene)
-        if self.targets:
-            bad = [t for t in self.targets if not 0 <= t < len(scene)]
-            if bad:
-                raise InputError(f"--targets {bad} outside the scene's views 0..{len(scene) - 1}", es.path,
-                                 "pick view indices of the scene")
-            targets = list(self.targets)
-            pool = [v for v in range(len(scene)) if v not in set(targets)]
-        if len(pool) < self.num_views:
-            raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {self.num_views}",
-                             es.path, "lower --num-views")
+        targets, pool = given_targets(es.protocol, scene, self.targets, self.num_views, es.path)
         sources = {t: select_sources(scene, scene.cameras[t], pool, self.num_views) for t in targets}
         pred = self._predictor(es, pool, {v for s in sources.values() for v in s})
-        mesh_info = None
+        mesh, mesh_info = None, None
         if self.path == "mesh":
-
             mesh, mesh_source = scene_mesh(model, scene, sorted({v for s in sources.values() for v in s}), self.mesh)
             mesh_info = {"source": mesh_source, "faces": len(mesh.faces), "visibility": self.visibility}
         rows = []
         for t in targets:
             src = sources[t]
             maps = pred.predict_views(scene.images[src], src)
-            if self.path == "mesh":
-
-                bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-                opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
-                with MeshRenderer(model, mesh, Sources.from_scene(scene, src).to(device), opts) as renderer:
-                    lifted = render_lifted_mesh(renderer, scene.cameras[t], {"p": (maps, pred.kind)})
-            else:
-                with torch.no_grad():
-                    feats = model.encode(Sources.from_scene(scene, src).to(device))
-                lifted = render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
+            lifted = self._lift(model, mesh, scene, t, src, maps, pred, device)
             lift_map = lifted.maps["p"]
             rtp = None if pred.needs_view else pred(lifted.rgb)
             metrics = X.score_target(pred, lift_map, rtp, scene, t)
             rows.append({"target": t, "sources": src, **metrics})
-            stem = f"{t:03d}"
-            img = scene.images[t]
             scale = float(maps.max()) if pred.name == "oracle-depth" else None
-            pic = X.colourise(lift_map, pred.kind, pred.name, scale)
-            tiles = [img.numpy(), lifted.rgb.numpy(), pic]
-            write_image(folder / f"{stem}_lift.png", pic)
-            write_image(folder / f"{stem}_overlay.png", X.overlay(img, pic))
-            if rtp is not None:
-                rp = X.colourise(rtp, pred.kind, pred.name, scale)
-                write_image(folder / f"{stem}_render_predict.png", rp)
-                tiles.append(rp)
-            truth = pred(img, t)  # the predictor on the true image (oracles: the ground truth itself)
-            tp = X.colourise(truth, pred.kind, pred.name, scale)
-            write_image(folder / (f"{stem}_gt.png" if pred.needs_view and pred.name != "noisy-labels"
-                                  else f"{stem}_input.png"), tp)
-            tiles.append(tp)
-            if pred.name == "noisy-labels":
-                clean = X.colourise(X.torch_image(np.eye(pred.channels)[_classes(scene, t, pred)]), "probabilities")
-                write_image(folder / f"{stem}_gt.png", clean)
-                tiles.append(clean)
-            write_image(folder / f"{stem}_panel.png", X.panel(tiles))
+            _write_pictures(folder / f"{t:03d}", scene, t, pred, lifted, rtp, scale)
         return {"name": es.name, "path": None if es.path is None else str(es.path), "predictor": pred.description,
                 "mesh": mesh_info, "targets": rows, "mean": X.mean_rows(rows)}
+
+    def _lift(self, model, mesh, scene, t: int, src: list[int], maps, pred, device: str):
+        """The predictor's ``maps`` of the sources blended into target ``t`` (volumetric or through ``mesh``)."""
+        import torch
+
+        if self.path == "mesh":
+            bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+            opts = MeshRenderOptions(background=bg, visibility=self.visibility, cull_back_faces=False)
+            with MeshRenderer(model, mesh, Sources.from_scene(scene, src).to(device), opts) as renderer:
+                return render_lifted_mesh(renderer, scene.cameras[t], {"p": (maps, pred.kind)})
+        with torch.no_grad():
+            feats = model.encode(Sources.from_scene(scene, src).to(device))
+        return render_lifted(model, feats, scene.cameras[t], {"p": (maps, pred.kind)}, self.chunk)
+
+
+def _write_pictures(stem: Path, scene, t: int, pred, lifted, rtp, scale: float | None) -> None:
+    """``<view>_lift.png``, ``_overlay.png``, ``_render_predict.png``, ``_gt.png`` / ``_input.png`` and ``_panel.png``."""
+    img = scene.images[t]
+    pic = X.colourise(lifted.maps["p"], pred.kind, pred.name, scale)
+    tiles = [img.numpy(), lifted.rgb.numpy(), pic]
+    write_image(Path(f"{stem}_lift.png"), pic)
+    write_image(Path(f"{stem}_overlay.png"), X.overlay(img, pic))
+    if rtp is not None:
+        rp = X.colourise(rtp, pred.kind, pred.name, scale)
+        write_image(Path(f"{stem}_render_predict.png"), rp)
+        tiles.append(rp)
+    truth = pred(img, t)  # the predictor on the true image (oracles: the ground truth itself)
+    tp = X.colourise(truth, pred.kind, pred.name, scale)
+    write_image(Path(f"{stem}_gt.png" if pred.needs_view and pred.name != "noisy-labels" else f"{stem}_input.png"), tp)
+    tiles.append(tp)
+    if pred.name == "noisy-labels":
+        clean = X.colourise(X.torch_image(np.eye(pred.channels)[_classes(scene, t, pred)]), "probabilities")
+        write_image(Path(f"{stem}_gt.png"), clean)
+        tiles.append(clean)
+    write_image(Path(f"{stem}_panel.png"), X.panel(tiles))
 
 
 def _classes(scene, t, pred):

@@ -27,7 +27,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
 from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
-from omnirecon.preflight import check_resolution
+from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
@@ -107,14 +107,33 @@ class MeshConfig(MachineConfig):
 
 def run_mesh(cfg: MeshConfig) -> dict:
     """Run ``omnirecon mesh``; returns the record written to ``<out>_metrics.json`` (plus ``files``)."""
-
     cfg.mesh_options().check()  # bad options fail before any work
-    check_resolution(cfg.resolution)
-    if cfg.num_views < 1:
-        raise InputError(f"--num-views must be at least 1, got {cfg.num_views}", None, "use e.g. 3")
+    check_options("mesh", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     outs = check_mesh_paths(cfg.out) if cfg.out else None
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
+    net, info, scene, fmt, load_seconds = load_inputs(cfg, device)
+    views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
+    options = cfg.mesh_options(scene, net is not None)
+    options.check()
+    if outs is None:
+        outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
+    with progress_bar(transient=False) as bar:
+        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+    if len(made.mesh.faces) == 0:
+        raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
+                         "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
+    record = made.info
+    record["seconds"]["load"] = load_seconds
+    record["seconds"]["images_to_mesh"] = sum(v for k, v in record["seconds"].items() if k != "images_to_mesh")
+    record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
+                   "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
+    return write_set(cfg, made, scene, views, outs, record)
+
+
+def load_inputs(cfg: MeshConfig, device: str):
+    """``(model or None, model info, scene, its format, seconds to load the scene)``; a damaged ground-truth mesh is named
+    here, before any mesh is written."""
     fmt = detect_format(cfg.scene)
     if cfg.ckpt is None and cfg.model is None and cfg.depth in ("stereo", "oracle"):
         net, info = None, {"name": cfg.depth, "preset": None, "checkpoint": None}
@@ -124,26 +143,17 @@ def run_mesh(cfg: MeshConfig) -> dict:
     start = time.perf_counter()
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
     load_seconds = time.perf_counter() - start
-    if cfg.metrics and scene.mesh_path is not None:  # a damaged ground truth is named before any mesh is written
+    if cfg.metrics and scene.mesh_path is not None:
         geometry.load_mesh_file(scene.mesh_path, "ground-truth mesh", "fix the scene's mesh file, or remove its "
                                 "mesh_path entry (or pass --no-metrics)")
-    views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
-    options = cfg.mesh_options(scene, net is not None)
-    options.check()
-    if outs is None:
-        outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
-    with progress_bar(transient=False) as bar:
-        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
-    mesh, record = made.mesh, made.info
-    if len(mesh.faces) == 0:
-        raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
-                         "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
-    record["seconds"]["load"] = load_seconds
-    record["seconds"]["images_to_mesh"] = sum(v for k, v in record["seconds"].items() if k != "images_to_mesh")
-    record.update({"scene": str(cfg.scene), "format": fmt, "resolution": [scene.width, scene.height],
-                   "model": info, "device": device, "frame": "input", "to_input": scene.to_input.tolist()})
-    # The set (meshes, preview, metrics) is computed first and renamed into place together, so an interrupt
-    # leaves the previous set or the new one; members of the previous set this run does not write go.
+    return net, info, scene, fmt, load_seconds
+
+
+def write_set(cfg: MeshConfig, made, scene, views: list[int], outs: list[Path], record: dict) -> dict:
+    """Score the mesh and write the set (meshes in the input frame, preview, metrics), renamed into place
+    together, so an interrupt leaves the previous set or the new one; members of the previous set this run
+    does not write go. Returns ``record`` with ``files`` and the meshes in memory (``meshes``)."""
+    mesh = made.mesh
     stem = outs[0].with_suffix("")
     extra = {}
     if cfg.preview:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 
@@ -24,11 +24,13 @@ from omnirecon.lift import tune as T
 from omnirecon.lift.predictors import class_table
 from omnirecon.lift.tune import PETOptions
 from omnirecon.models.omnirecon import OmniRecon
+from omnirecon.options import check_options
 from omnirecon.provenance import provenance
+from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class PETConfig(ThreadsConfig):
+class PETConfig(ThreadsConfig, FolderVerb):
     """Tune LoRA adapters or biases of Omni-Recon's appearance branch with a semantic cross-entropy on a
     few labelled views (leave-one-out lifting); mIoU of lifted labels on held-out targets before/after."""
 
@@ -49,8 +51,12 @@ class PETConfig(ThreadsConfig):
     cache: Path = Path("outputs/cache")
     """Where synth:eval scenes are generated."""
 
-    def run(self) -> list[str]:
-        """Run the command; returns the lines to print."""
+    command: ClassVar[str] = "pet"
+
+    def default_out(self) -> Path:
+        return Path("outputs/pet") / f"{Path(self.ckpt).name}_{self.options.mode}"
+
+    def run(self, folder: Path | None = None) -> list[str]:
         lines: list[str] = []
         import copy
 
@@ -58,25 +64,25 @@ class PETConfig(ThreadsConfig):
         if o.steps < 0 or o.rays < 1 or o.rank < 1 or o.lr <= 0 or o.num_views < 1:
             raise InputError("--options.steps >= 0, --options.rays >= 1, --options.rank >= 1, --options.lr > 0 and "
                              "--options.num-views >= 1 are required", None, "use the defaults")
-        if self.labelled < 2:
-            raise InputError(f"--labelled must be at least 2, got {self.labelled}", None, "use e.g. 6")
+        check_options("pet", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         set_threads(self.threads)
         base, info = load_model(self.ckpt, None, "cpu")
         if not isinstance(base, OmniRecon):
             raise InputError(f"PET tunes Omni-Recon's decoupled appearance branch, got {info['name']}", self.ckpt,
                              "use an omnirecon checkpoint")
-        out = self.out or Path("outputs/pet") / f"{Path(self.ckpt).name}_{o.mode}"
+        out = self.out or self.default_out()
+        folder = folder or out
         scenes = prepare_scenes([self.scene], self.synth_count, self.cache, protocol_set=self.protocol_set)
         rows = []
         for es in scenes:
             if es.scene.labels is None:
                 raise InputError("the scene has no label maps", es.path, "use a procedural scene (synth:eval)")
-            rows.append(run_pet(copy.deepcopy(base), es, o, self.labelled, out / es.name))
+            rows.append(run_pet(copy.deepcopy(base), es, o, self.labelled, folder / es.name))
         gain = float(np.mean([r["after"]["miou"] - r["before"]["miou"] for r in rows]))
         result = {"provenance": provenance(seed=o.seed), "model": info, "options": asdict(o), "labelled": self.labelled,
                   "scenes": rows, "mean_gain_miou": gain, "params": rows[0]["params"],
                   "gain_per_param": gain / max(rows[0]["params"], 1)}
-        write_json(out / "pet.json", result)
+        write_json(folder / "pet.json", result)
         for r in rows:
             lines.append(f"{r['scene']}: mIoU {r['before']['miou']:.2f} -> {r['after']['miou']:.2f} "
                   f"({o.mode}, {r['params']} tuned parameters, {o.steps} steps)")

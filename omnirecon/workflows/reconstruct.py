@@ -39,6 +39,7 @@ from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.workflows.export import ExportConfig, run_export
@@ -96,9 +97,7 @@ def photo_side(scene_path: Path, cap: int = 512) -> int:
 
 def run_reconstruct(cfg: ReconstructConfig) -> dict:
     """Run every stage; returns the record written to ``reconstruct.json`` (plus ``lines``)."""
-    if cfg.finetune_seconds < 0 or cfg.frames < 2 or cfg.num_views < 1:
-        raise InputError("--finetune-seconds must be >= 0, --frames >= 2 and --num-views >= 1", None,
-                         "use e.g. --finetune-seconds 60 --frames 48 --num-views 3")
+    check_options("reconstruct", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not Path(cfg.path).exists():
         raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
     if not (Path(cfg.ckpt) / "meta.json").is_file():
@@ -111,62 +110,104 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     return record
 
 
-def _stages(cfg: ReconstructConfig, out: Path) -> dict:
-    seconds: dict[str, float] = {}
-    lines: list[str] = []
-    clock = time.perf_counter()
+class Laps:
+    """Seconds per stage: ``lap(name)`` closes the stage that ran since the previous lap."""
 
-    def lap(name: str) -> None:
-        nonlocal clock
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self._clock = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
         now = time.perf_counter()
-        seconds[name] = round(now - clock, 2)
-        clock = now
+        self.seconds[name] = round(now - self._clock, 2)
+        self._clock = now
 
-    # ---------------------------------------------------------------- process
+
+def _stages(cfg: ReconstructConfig, out: Path) -> dict:
+    """Every stage into ``out`` (the temporary folder); returns the record (``lines``: what to print)."""
+    lines: list[str] = []
+    lap = Laps()
+    scene_path, processed = process_stage(cfg, out, lines)
+    lap("process")
+    meshed = mesh_stage(cfg, scene_path, out, lines)
+    meshes = meshed.pop("meshes")  # scene and input frame, in memory: the next stages read no file
+    lap("mesh")
+    side = cfg.resolution or photo_side(scene_path)
+    tuned, ckpt = finetune_stage(cfg, scene_path, side, meshes["scene"], out, lines)
+    lap("finetune")
+    exported = export_stage(cfg, scene_path, side, ckpt, meshes["input"], out)
+    lap("export")
+    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines)
+    lap("path")
+    draw_cameras(path["scene"], out / "cameras.png")
+    record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
+              "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
+                                                                         ("vertices", "depth_maps", "views")},
+              "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
+              "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
+                       "fps": path["fps"]},
+              "seconds": lap.seconds}
+    lap("report")
+    record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
+    write_json(out / "reconstruct.json", record)
+    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, lines[-1], out)
+    record["lines"] = lines
+    return record
+
+
+def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[Path, dict | None]:
+    """The scene: PATH itself when it is one, else photos or a video posed into ``out/scene``."""
     try:
         detect_format(Path(cfg.path))
-        scene_path, processed = Path(cfg.path), None
+        return Path(cfg.path), None
     except InputError:
         from omnirecon.capture.colmap_sfm import SfmOptions  # lazy: pycolmap is the optional `capture` extra
         from omnirecon.capture.process import process, summary_lines  # lazy: as above
 
-        scene_path = out / "scene"
-        processed = process(Path(cfg.path), scene_path, SfmOptions(camera_model=cfg.camera_model), fps=cfg.fps,
+        processed = process(Path(cfg.path), out / "scene", SfmOptions(camera_model=cfg.camera_model), fps=cfg.fps,
                             masks=cfg.masks)
         lines += summary_lines(processed)
-    lap("process")
+        return out / "scene", processed
 
-    # ---------------------------------------------------------------- mesh from every view
+
+def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[str]) -> dict:
+    """A mesh from every view (``mesh.ply``); the record holds the meshes in memory under ``meshes``."""
     mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
                           out=(out / "mesh.ply",), resolution=cfg.mesh_resolution, device=cfg.device,
                           threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
-    meshes = meshed.pop("meshes")  # scene and input frame, in memory: the next stages read no file
     lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
-    lap("mesh")
+    return meshed
 
-    # ---------------------------------------------------------------- fine-tune at the photos' resolution
-    side = cfg.resolution or photo_side(scene_path)
-    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(cfg.finetune_seconds, 1e-3),
-                                        eval_at=(0.0, *(t for t in (10.0, 30.0, 60.0) if t < cfg.finetune_seconds), cfg.finetune_seconds), num_views=cfg.num_views,
-                                        mesh=out / "mesh.ply", resolution=side, out=out / "finetune",
-                                        save=cfg.finetune_seconds > 0, threads=cfg.threads), mesh=meshes["scene"])
+
+def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, out: Path,
+                   lines: list[str]) -> tuple[dict, Path]:
+    """Fine-tune at the photos' resolution into ``out/finetune``; returns its record and the checkpoint to use."""
+    budget = cfg.finetune_seconds
+    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(budget, 1e-3),
+                                        eval_at=(0.0, *(t for t in (10.0, 30.0, 60.0) if t < budget), budget),
+                                        num_views=cfg.num_views, mesh=out / "mesh.ply", resolution=side,
+                                        out=out / "finetune", save=budget > 0, threads=cfg.threads), mesh=mesh)
     curve = tuned["curve"]
     lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
                  f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
-    ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
-    lap("finetune")
+    return tuned, out / "finetune" / "checkpoint" if budget > 0 else Path(cfg.ckpt)
 
-    # ---------------------------------------------------------------- export
+
+def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path) -> dict:
+    """``out/export``: the baked mesh and the viewer bundle; marks ``finetune/`` and ``export/`` as outputs."""
     exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
                                        resolution=side, num_views=cfg.num_views, viewer=cfg.viewer,
-                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=meshes["input"])
+                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=mesh)
     for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
         write_marker(out / sub, verb)
-    lap("export")
+    return exported
 
-    # ---------------------------------------------------------------- camera path through the tuned mesh path
-    scene, mesh = load_at_resolution(scene_path, side), meshes["scene"]
+
+def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
+               lines: list[str]) -> dict:
+    """``path.mp4``: a camera path through the tuned mesh path; returns ``{"scene", "cams", "video", "fps"}``."""
+    scene = load_at_resolution(scene_path, side)
     model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
     cams = scene_camera_path(scene, kind, cfg.frames)
@@ -177,25 +218,19 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     fps = 1.0 / statistics.median(times)
     lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, mesh path {fps:.1f} FPS "
                  f"(median frame, source features encoded once per source set)")
-    lap("path")
+    return {"scene": scene, "cams": cams, "video": video, "fps": fps}
 
-    # ---------------------------------------------------------------- report
-    draw_cameras(scene, out / "cameras.png")
-    record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
-              "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
-                                                                         ("vertices", "depth_maps", "views")},
-              "finetune": {"resolution": side, "curve": curve}, "export": exported["files"],
-              "path": {"frames": len(cams), "resolution": [cams.width, cams.height], "fps": fps},
-              "seconds": seconds}
-    lap("report")
-    record["seconds"]["total"] = round(sum(seconds.values()), 2)
-    write_json(out / "reconstruct.json", record)
+
+def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: list[dict], path: dict, record: dict,
+               path_line: str, out: Path) -> None:
+    """``index.html``: the rig, the mesh, the video, the held-out scores and the timings."""
+    scene = path["scene"]
     sections = [
         Section("Capture").text(f"{len(scene)} views of {scene_path.name} ({scene.rig} rig)")
         .figure(out / "cameras.png", out, "camera rig", 480),
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
-        Section("Real-time mesh path").text(lines[-1]).figure(video, out, "camera path", 480),
+        Section("Real-time mesh path").text(path_line).figure(path["video"], out, "camera path", 480),
         Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)", "coverage"],
                                         [[p["seconds"], round(p["psnr"], 2), f"{p['coverage']:.1%}"] for p in curve])
         .figure(out / "finetune" / "curve.png", out, "held-out PSNR vs fine-tuning time", 480)
@@ -203,6 +238,3 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
         Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
     ]
     write_report(out, f"omnirecon reconstruct: {Path(cfg.path).name}", sections)
-    record["lines"] = lines
-    return record
-

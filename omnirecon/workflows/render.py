@@ -27,6 +27,7 @@ from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 
@@ -64,16 +65,7 @@ class RenderConfig(MachineConfig):
     video: bool = True
     """Also write video.mp4 (or video.gif)."""
     def check(self) -> None:
-        if self.frames < 1:
-            raise InputError(f"--frames must be at least 1, got {self.frames}", None, "use e.g. 60")
-        if self.num_views < 1:
-            raise InputError(f"--num-views must be at least 1, got {self.num_views}", None, "use e.g. 10")
-        if self.chunk < 1:
-            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
-        if self.fps < 1:
-            raise InputError(f"--fps must be at least 1, got {self.fps}", None, "use e.g. 24")
-        if not 0 < self.arc <= 360:
-            raise InputError(f"--arc must be in (0, 360], got {self.arc}", None, "use e.g. 360")
+        check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 

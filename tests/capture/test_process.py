@@ -304,23 +304,17 @@ def test_stage_masks(capture, tmp_path):
 
 
 def test_bench_poses_tiny_and_section(tmp_path):
-    """bench/poses.py --tiny measures one procedural scene; run_all renders its "Pose recovery" table."""
+    """`python -m bench poses --tiny` measures one procedural scene; the page renders its "Pose recovery" table."""
     import json
-    import sys
-    from pathlib import Path
 
-    bench = Path(__file__).resolve().parents[2] / "bench"
-    sys.path.insert(0, str(bench))
-    try:
-        import poses
-        import run_all
-    finally:
-        sys.path.remove(str(bench))
+    from bench import poses
+    from bench.report import poses as poses_section
+
     poses.main(["--tiny", "--out", str(tmp_path / "poses.json")])
     r = json.loads((tmp_path / "poses.json").read_text())
     row = r["scenes"][0]
     assert row["registered"] == VIEWS and row["rotation_deg_median"] < 1.0 and "commit" in r["provenance"]
-    text = run_all.section_poses(r)
+    text = poses_section.section(tmp_path)
     assert "## Pose recovery" in text and f"| {VIEWS} / {VIEWS} (100%) |" in text and "Provenance: commit" in text
 
 

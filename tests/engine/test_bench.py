@@ -4,22 +4,28 @@ import sys
 import pytest
 from conftest import ROOT
 
+from bench import peer_ibrnet, throughput
+from bench.__main__ import main as bench_main
+from bench.page import STEPS
+from bench.report import common, speed
+from bench.report import peer as peer_report
+
 
 @pytest.mark.slow
 def test_run_all_tiny_writes_page_with_measured_numbers(tmp_path):
     out = tmp_path / "BENCHMARKS.md"
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "run_all.py"), "--tiny", "--out", str(out),
-                           "--results", str(tmp_path / "results")], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-m", "bench", "page", "--tiny", "--out", str(out),
+                           "--results", str(tmp_path / "results")], capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     text = out.read_text()
     assert "2 x 8" in text and "32²" in text and "Provenance: commit" in text
     assert (tmp_path / "results" / "synth_speed.json").is_file()
-    assert "## Geometry from 3 source views" in text and "| floor |" in text  # bench/geometry.py ran and scored
+    assert "## Geometry from 3 source views" in text and "| floor |" in text  # python -m bench geometry ran and scored
 
 
 def test_quality_tiny_scores_the_floor(tmp_path):
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "quality.py"), "--models", "floor", "--tiny",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, "-m", "bench", "quality", "--models", "floor", "--tiny",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     import json
 
@@ -32,8 +38,9 @@ def test_quality_tiny_scores_the_floor(tmp_path):
 @pytest.mark.slow
 def test_ablation_tiny_trains_and_scores_each_row(tmp_path):
     out = tmp_path / "ablation.json"
-    proc = subprocess.run([sys.executable, str(ROOT / "bench" / "ablation_gpnr.py"), "--tiny", "--rows", "full",
-                           "no ray canonicalization", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([sys.executable, "-m", "bench", "ablation_gpnr", "--tiny", "--rows", "full",
+                           "no ray canonicalization", "--out", str(out)], capture_output=True, text=True, timeout=600,
+                          cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
     import json
 
@@ -43,56 +50,47 @@ def test_ablation_tiny_trains_and_scores_each_row(tmp_path):
         assert row["steps"] >= 1 and 0 < row["metrics"]["psnr"] < 60 and "psnr_aux" in row["metrics"]
 
 
-def test_page_flags_results_measured_with_another_checkpoint(monkeypatch):
-    """run_all marks a section stale when its stored results name other weights than the shipped ones."""
-    monkeypatch.syspath_prepend(str(ROOT / "bench"))
-    import run_all
+def test_one_entry_point_lists_every_benchmark(capsys):
+    """`python -m bench --help` names every benchmark the page runs (and the page); an unknown name exits 2."""
+    assert bench_main(["--help"]) == 0
+    listed = {line.split()[0] for line in capsys.readouterr().out.splitlines() if line.startswith("  ")}
+    aliases = {"synth": "synth_speed", "ablation": "ablation_gpnr"}
+    assert {"page", "train_tiny", "profile_models"} | {aliases.get(s, s) for s in STEPS} <= listed
+    assert bench_main(["no_such_bench"]) == 2 and "python -m bench --help" in capsys.readouterr().err
 
-    if run_all.shipped_fingerprint("omnirecon-tiny") is None:
-        import pytest
 
+def test_page_flags_results_measured_with_another_checkpoint():
+    """The page marks a section stale when its stored results name other weights than the shipped ones."""
+    now = common.shipped_fingerprint("omnirecon-tiny")
+    if now is None:
         pytest.skip("checkpoints/omnirecon-tiny is not in this clone")
-    now = run_all.shipped_fingerprint("omnirecon-tiny")
     assert len(now["sha256"]) == 16 and now["step"] > 0
-    assert run_all.stale_note("omnirecon-tiny", dict(now), "quality.py") == []
-    old = run_all.stale_note("omnirecon-tiny", {"step": 5, "sha256": "0" * 16}, "quality.py")
-    assert "step 5" in old[0] and now["sha256"] in old[0] and "bench/quality.py" in old[0]
-    assert "unrecorded" in run_all.stale_note("omnirecon-tiny", None, "lift.py")[0]
+    assert common.stale_note("omnirecon-tiny", dict(now), "quality") == []
+    old = common.stale_note("omnirecon-tiny", {"step": 5, "sha256": "0" * 16}, "quality")
+    assert "step 5" in old[0] and now["sha256"] in old[0] and "python -m bench quality" in old[0]
+    assert "unrecorded" in common.stale_note("omnirecon-tiny", None, "lift")[0]
 
 
 def test_throughput_compares_reference_twins_and_page_shows_speed(tmp_path):
-    """throughput.py times the reference twins and the defaults in one run; run_all renders the Speed table."""
-    sys.path.insert(0, str(ROOT / "bench"))
-    import run_all
-    import throughput
-
+    """throughput times the reference twins and the defaults in one run; the page renders the Speed table."""
     r = throughput.main(["--quick", "--presets", "floor", "--out", str(tmp_path / "throughput.json")])
     row = r["rows"][0]
     assert row["reference"]["render_rays_per_s"] > 0 and row["speedup_render"] > 0
-    text = run_all.section_speed(tmp_path)
+    text = speed.section(tmp_path)
     assert "## Speed" in text and f"| floor | – | – | –× | {row['reference']['render_rays_per_s']} |" in text
 
 
 def test_peer_ibrnet_without_checkout_measures_our_side_and_says_so(tmp_path):
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peer_ibrnet
-    import run_all
-
     r = peer_ibrnet.main(["--width", "32", "--height", "24", "--train-rays", "16", "--train-steps", "1",
                           "--out", str(tmp_path / "peer_ibrnet.json")])
     assert r["peer_root"] is None and r["ratios"] is None and "no IBRNet checkout" in r["peer_note"]
     ours = r["best"]["ours"]
     assert ours["params"] == 8_957_392 and ours["render_s"] > 0 and ours["train_step_s"] > 0
-    text = run_all.section_peer(tmp_path)
+    text = peer_report.section(tmp_path)
     assert "Reference not measured" in text and "| ours | defaults | 8,957,392 |" in text
 
 
 def test_peer_ibrnet_rejects_a_folder_that_is_no_checkout(tmp_path):
-    import pytest
-
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peer_ibrnet
-
     from omnirecon.errors import InputError
 
     with pytest.raises(InputError, match="not an IBRNet checkout"):
@@ -107,17 +105,11 @@ def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
     fast paths render bit-identically or within float rounding of our reference twin, and the page shows it."""
     import os
 
-    import pytest
-
     if not PEER_ROOT.is_dir():
         if os.environ.get("CI") == "true":
             pytest.fail(f"CI must have {PEER_ROOT}")
         pytest.skip(f"{PEER_ROOT} not found: the official IBRNet code sits beside the clone (../shared/peer)")
     pytest.importorskip("configargparse", reason="the reference's option parser: pip install '.[bench]'")
-    sys.path.insert(0, str(ROOT / "bench"))
-    import peer_ibrnet
-    import run_all
-
     r = peer_ibrnet.main(["--ibrnet-root", str(PEER_ROOT), "--width", "24", "--height", "18", "--train-rays", "16",
                           "--train-steps", "1", "--reference-too", "--out", str(tmp_path / "peer_ibrnet.json")])
     peer, ours = r["best"]["peer"], r["best"]["ours"]
@@ -126,7 +118,7 @@ def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
     assert r["ratios"]["ours"]["render_speedup"] == round(peer["render_cpu_s"] / ours["render_cpu_s"], 2)
     psnr = ours.get("psnr_to_reference_db")
     assert psnr is None or psnr > 60  # None: bit-identical to the reference twin
-    text = run_all.section_peer(tmp_path)
+    text = peer_report.section(tmp_path)
     assert "| peer | official code | 8,957,392 |" in text and "| ours | defaults | 8,957,392 |" in text
 
 
@@ -135,8 +127,7 @@ def test_train_tiny_stage_spans_split_the_cumulative_cpu_time(tmp_path):
     stages' boundaries (the last logged row at or before each)."""
     import json
 
-    sys.path.insert(0, str(ROOT / "bench"))
-    from train_tiny import stage_spans
+    from bench.train_tiny import stage_spans
 
     (tmp_path / "stages.json").write_text(json.dumps([{"from_step": 0}, {"from_step": 250}, {"from_step": 300}]))
     rows = [{"step": s, "cpu_time": 2.0 * s} for s in range(10, 301, 10)] + [{"step": 312, "cpu_time": 700.0}]

@@ -49,10 +49,7 @@ def test_oracle_fusion_gives_the_exact_mesh(scene):
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     if not (ckpt / "model.safetensors").is_file():
         pytest.skip("checkpoints/omnirecon-tiny is not shipped in this clone")
-    import sys
-
-    sys.path.insert(0, str(ROOT / "bench"))
-    from geometry_budget import mesh_path_psnr
+    from bench.geometry_budget import mesh_path_psnr
 
     model, _ = load_checkpoint(ckpt)
     src = [views[0], views[len(views) // 2], views[-1]]

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 
 
@@ -32,13 +33,8 @@ class SynthConfig(SynthOptions):
     overwrite: bool = False
     """Regenerate existing scene folders (by default they are kept: an interrupted run resumes)."""
     def check(self) -> None:
+        check_options("synth", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         super().check()
-        if self.num_scenes < 1:
-            raise InputError(f"--num-scenes must be at least 1, got {self.num_scenes}", None, "ask for 1 or more")
-        if self.seed < 0:
-            raise InputError(f"--seed must be non-negative, got {self.seed}", None, "use a seed >= 0")
-        if self.workers is not None and self.workers < 1:
-            raise InputError(f"--workers must be at least 1, got {self.workers}", None, "use 1 or more")
         if self.out.exists() and not self.out.is_dir():
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 

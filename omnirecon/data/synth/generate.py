@@ -52,6 +52,7 @@ from omnirecon.data.synth.primitives import corner_normals, face_normals
 from omnirecon.data.synth.render import Mesh, render_view
 from omnirecon.data.synth.textures import make_atlas, make_texture
 from omnirecon.errors import InputError
+from omnirecon.outputs import swap_in
 
 GENERATOR_VERSION = "omnirecon-synth/1"
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -156,9 +157,7 @@ def generate_scene(out: Path, seed: int, options: SynthOptions, overwrite: bool 
     shutil.rmtree(tmp, ignore_errors=True)
     try:
         write_scene(tmp, seed, options)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
+        swap_in(tmp, final)  # an interrupt leaves the previous scene or the new one, never neither
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return final

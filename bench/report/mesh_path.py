@@ -1,0 +1,66 @@
+"""BENCHMARKS.md section: Real-time mesh path (`python -m bench mesh_fps`, `python -m bench mesh_path`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bench.report.common import num, prov, stale_note
+
+
+def section(results: Path) -> str | None:
+    fps_file, q_file = results / "mesh_fps.json", results / "mesh_path.json"
+    if not fps_file.is_file() and not q_file.is_file():
+        return None
+    out = ["## Real-time mesh path (`python -m bench mesh_fps`, `python -m bench mesh_path`)", ""]
+    if fps_file.is_file():
+        r = json.loads(fps_file.read_text())
+        c, m, v = r["config"], r["mesh"], r["volumetric"]
+        w, h = m["resolution"]
+        out += [f"Speed: one model ({r['model']['preset']}; {r['model']['weights']}), a procedural scene with "
+                f"{r['scene']['faces']:,} faces, {c['source_views']} source views at {c['source_resolution'][0]}², "
+                f"device {c['device']}, {c['torch_threads']} torch thread(s), rasterizer `{c['rasterizer']}`. Mesh path: "
+                f"median of {c['frames']} full frames after {c['warmup']} warm-up frames, camera moving. Volumetric: "
+                f"`render_rays` on {v['rays_per_batch']}-ray batches of the same view, FPS extrapolated from rays/s.", "",
+                "| path | resolution | FPS (wall) | FPS from CPU time | ms / frame | notes |", "|---|---|---|---|---|---|",
+                f"| mesh (rasterize + appearance branch) | {w}x{h} | {m['fps']:.1f} | {m['fps_from_cpu_time']:.1f} | "
+                f"{m['median_ms']:.1f} | G-buffer surface pass {m['surface_pass_ms']:.1f} ms |",
+                f"| mesh + visibility test | {w}x{h} | {m['visibility_fps']:.1f} | – | {m['visibility_median_ms']:.1f} | |",
+                f"| volumetric (coarse + fine, geometry branch) | {w}x{h} | {v['fps_equivalent']:.4f} | – | "
+                f"{1000 / v['fps_equivalent']:.0f} | {v['rays_per_s']:.0f} rays/s |", "",
+                f"Ratio mesh / volumetric: **{r['ratio']:.0f}x** (goal >= {r['goals']['ratio']:.0f}x: "
+                f"{'met' if r['ratio'] >= r['goals']['ratio'] else 'not met'}). Goal >= {r['goals']['cpu_fps_512']:.0f} FPS "
+                f"at 512x512 on this CPU: {m['fps']:.1f} FPS wall, {m['fps_from_cpu_time']:.1f} from CPU time "
+                f"({'met' if m['fps'] >= r['goals']['cpu_fps_512'] else 'not met'}). No GPU was lent: the 800x600 GPU goal "
+                "is unmeasured.", "", prov(r["provenance"]), ""]
+    if q_file.is_file():
+        r = json.loads(q_file.read_text())
+        out += stale_note("omnirecon-tiny", r.get("checkpoint"), "mesh_path")
+        times = sorted({t for row in r["rows"] for t in row["curve"]}, key=float)
+        out += [f"Quality: held-out PSNR of the mesh path (images at {r['resolution']} px, at most 4 targets per scene, "
+                "3 source views, the mesh of `python -m bench geometry`, cleaned with the source masks so it holds the objects "
+                "only), before fine-tuning and after `omnirecon finetune` for the given seconds of optimisation "
+                f"({r['rows'][0]['clock'] if r['rows'] else 'cpu'} clock: this process's CPU time, 1 thread). "
+                "*Covered*: PSNR over the target pixels the mesh covers (inside the object mask): the appearance that "
+                "fine-tuning can change. *Mask* and *image*: PSNR over the object mask and over the whole image, where "
+                "pixels the mesh misses take the background colour, so they mostly measure the mesh's missing parts. "
+                "Visibility: the object-mask PSNR before tuning without / with the per-source occlusion test.", "",
+                "| scene | " + " | ".join(f"covered {t} s" for t in times) + " | covered gain 60 s | mask 0 -> 60 s | "
+                "image 0 -> 60 s | no visibility test | visibility test | curve |", "|---|" + "---|" * (len(times) + 6)]
+        gains = []
+        for row in r["rows"]:
+            c, cm, cc = row["curve"], row.get("curve_masked") or {}, row.get("curve_covered") or {}
+            ref = cc or cm or c
+            gain = ref.get("60", float("nan")) - ref["0"]
+            gains.append(gain)
+            v = row["visibility"]
+            out.append(f"| {row['name']} | " + " | ".join(num(ref.get(t), 2) for t in times) + f" | {gain:+.2f} | "
+                       + (f"{num(cm.get('0'), 2)} -> {num(cm.get('60'), 2)}" if cm else "–") + " | "
+                       f"{num(c.get('0'), 2)} -> {num(c.get('60'), 2)} | "
+                       f"{num(v.get('without_masked', v['without']), 2)} | {num(v.get('with_masked', v['with']), 2)} | "
+                       f"[png](bench/results/{row['pictures']['curve']}) |")
+        if gains:
+            mean_gain = sum(gains) / len(gains)
+            out += ["", f"Mean gain after 60 s (covered pixels): {mean_gain:+.2f} dB (goal +{r['goal_gain_db_60s']:.0f} dB: "
+                    f"{'met' if mean_gain >= r['goal_gain_db_60s'] else 'not met'}).", "", prov(r["provenance"]), ""]
+    return "\n".join(out)
