@@ -90,7 +90,7 @@ def collect_reconstruct(out: Path, time_file: Path, command: str) -> dict:
     rec = json.loads((Path(out) / "reconstruct.json").read_text())
     curve = rec["finetune"]["curve"]
     run = {"command": command, "whole": read_time(time_file), "stages_cpu_s": stages(rec),
-           "photos": (rec.get("process") or {}).get("registered"), "mesh": rec["mesh"],
+           "photos_registered": (rec.get("process") or {}).get("images_registered"), "mesh": rec["mesh"],
            "psnr_before_after": [round(curve[0]["psnr"], 2), round(curve[-1]["psnr"], 2)],
            "path_fps": round(rec["path"]["fps"], 1)}
     return run | {"verdict": verdict("reconstruct", run)}
