@@ -3,6 +3,8 @@
     python -m bench peer_ibrnet --ibrnet-root ../shared/peer/IBRNet --width 64 --height 48 --rounds 2 --reference-too
     python -m bench peer_ibrnet --ibrnet-root PATH --variant bf16 bf16_render=1   # one more of our sides
     python -m bench peer_ibrnet                                 # no checkout: our side only, the JSON says so
+    python -m bench peer_ibrnet --ibrnet-root PATH --width 1008 --height 756 --views 10 --crop 64 32 \
+        --train-steps 0 --reference-too --out bench/results/peer_ibrnet_eval.json   # its evaluation configuration
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
 https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,
@@ -20,6 +22,14 @@ RSS. Ratios are of CPU seconds: on the shared cores a process's wall time is mos
 With ``--reference-too`` our reference twins (every fast path off) run too and each of our sides' render
 is scored against theirs (PSNR; bit-identical is recorded as ``None``). Writes
 ``bench/results/peer_ibrnet.json`` with a provenance header and the load average at start and end.
+
+At the reference's evaluation configuration (``--width 1008 --height 756 --views 10``) a full view costs
+hours of CPU per side: ``--crop W H`` renders a centred window of the target (the sources stay whole), each
+side's encoder CPU seconds are recorded apart, and the full view is projected as encode + (window - encode)
+x pixels / window pixels. ``--train-steps 0`` renders only (the reference's training step there needs more
+than 11 GB).
+
+Size: the reference's driver, our side's driver and the alternating parent are one measurement.
 """
 
 from __future__ import annotations
