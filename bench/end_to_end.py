@@ -96,6 +96,13 @@ def collect_reconstruct(out: Path, time_file: Path, command: str) -> dict:
     return run | {"verdict": verdict("reconstruct", run)}
 
 
+def collect_mesh(metrics: Path, time_file: Path, command: str) -> dict:
+    """One ``omnirecon mesh`` run (a cheaper depth source for reconstruct's mesh stage): its stage CPU seconds."""
+    m = json.loads(Path(metrics).read_text())
+    return {"command": command, "whole": read_time(time_file) if str(time_file) != "-" else None,
+            "stages_cpu_s": {k: round(v, 1) for k, v in m["seconds"].items()}}
+
+
 def run_demo(tmp: Path) -> dict:
     clone = tmp / "clone"
     subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
@@ -123,6 +130,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--collect-demo", nargs=2, type=Path, metavar=("DEMO_OUT", "TIME_FILE"))
     parser.add_argument("--collect-setup", type=Path, default=None, metavar="TIME_FILE")
     parser.add_argument("--collect-reconstruct", nargs=2, type=Path, metavar=("OUT", "TIME_FILE"))
+    parser.add_argument("--collect-mesh", nargs=3, action="append", default=[],
+                        metavar=("LABEL", "METRICS_JSON", "TIME_FILE"),
+                        help="an `omnirecon mesh` run made as above on reconstruct's scene (a cheaper depth source); "
+                             "its command is taken from the time file (`-`: none, e.g. reconstruct's own mesh)")
     parser.add_argument("--command", default=None, help="with --collect-*: the command that made the run")
     parser.add_argument("--load", nargs="*", type=float, default=None,
                         help="with --collect-*: load averages at the start and end of that run")
@@ -144,6 +155,11 @@ def main(argv: list[str] | None = None) -> dict:
             runs["demo"] = collect_demo(*args.collect_demo, args.collect_setup, args.command or "make demo")
         if args.collect_reconstruct:
             runs["reconstruct"] = collect_reconstruct(*args.collect_reconstruct, args.command or "reconstruct")
+    for label, metrics, time_file in args.collect_mesh:
+        cmd = (re.search(r'Command being timed: "(.*)"', Path(time_file).read_text()).group(1) if time_file != "-"
+               else "inside the reconstruct run above")
+        result.setdefault("mesh_sources", {})[label] = collect_mesh(Path(metrics), Path(time_file), cmd) | {
+            "provenance": provenance(seed=0, threads=1), "load": args.load}
     for name, run in runs.items():
         load = args.load if args.load else load_start + [round(x, 2) for x in os.getloadavg()]
         result[name] = run | {"provenance": provenance(seed=0, threads=1), "load": load}

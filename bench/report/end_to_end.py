@@ -20,6 +20,8 @@ def _end_to_end(r: dict) -> str:
              "every wall budget, e.g. 60 s of tuning, becomes CPU seconds too); whole-command CPU and wall seconds from "
              "`/usr/bin/time` with the load average beside them (wall on the shared cores is mostly the scheduler).", ""]
     for name, run in r.items():
+        if name == "mesh_sources":
+            continue
         v, w = run["verdict"], run["whole"]
         lines += [f"**{name}** (`{run['command']}`): stages {v['stages_total_cpu_s']} CPU s against the goal of "
                   f"{v['goal_s']:.0f} s ({v['over_goal_s']:+.0f} s); the limit is **{v['limiting_stage']}** with "
@@ -31,4 +33,14 @@ def _end_to_end(r: dict) -> str:
         total = v["stages_total_cpu_s"]
         lines += [f"| {k} | {s} | {100 * s / total:.0f} % |" for k, s in run["stages_cpu_s"].items()]
         lines += ["", prov(run["provenance"]), ""]
+    if r.get("mesh_sources"):
+        lines += ["Reconstruct's mesh stage from cheaper depth sources (`omnirecon mesh --views all` on the scene "
+                  "reconstruct processed, one thread, CPU seconds per stage; `render` is the depth source):", "",
+                  "| depth source | images -> mesh CPU s | render | fuse | clean | whole command CPU s |",
+                  "|---|---|---|---|---|---|"]
+        for label, m in r["mesh_sources"].items():
+            st = m["stages_cpu_s"]
+            lines.append(f"| {label} | {st.get('images_to_mesh')} | {st.get('render')} | {st.get('fuse')} | "
+                         f"{st.get('clean')} | {(m['whole'] or {}).get('cpu_s', '–')} |")
+        lines.append("")
     return "\n".join(lines)
