@@ -71,14 +71,15 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
     shutil.rmtree(out, ignore_errors=True)
     row = {"scene": path.name, "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
            "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks}
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()  # CPU seconds of this process (COLMAP runs in it)
     try:
         summary = process(folder, out, options, quiet=True, masks=mask_dir if masks else None)
     except InputError as e:
         row.update(error=e.one_line(), registered=0, registered_fraction=0.0,
-                   seconds=round(time.perf_counter() - t0, 2))
+                   seconds=round(time.perf_counter() - t0, 2), cpu_seconds=round(time.process_time() - c0, 2))
         return row
     row["seconds"] = round(time.perf_counter() - t0, 2)
+    row["cpu_seconds"] = round(time.process_time() - c0, 2)
     est = load_scene(out)
     c2w_est = est.cameras.transformed(est.to_input).c2w.numpy()  # in COLMAP's own frame
     idx = [names[Path(n).name] for n in est.names]
@@ -92,7 +93,7 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
         centre_pct_max=round(err["centre_pct_max"], 4), extent=round(extent, 5),
         points3D=summary["points3D"], reprojection_px=round(summary["mean_reprojection_error_px"], 4),
         models=summary["models"], matcher=summary["matcher"], stage_seconds=summary["seconds"],
-        dropped=summary.get("dropped", []), attempts=summary.get("attempts", []),
+        dropped=summary.get("dropped", []), attempts=summary.get("attempts", []), reachable=summary.get("reachable"),
         detected_rig=est.rig, focal_est=round(float(est.cameras.fx[0]), 2), focal_ref=round(float(ref.cameras.fx[0]), 2),
     )
     return row

@@ -13,20 +13,23 @@ def section(results: Path) -> str:
     if r is None:
         return missing("poses.json")
     c, g = r["config"], r["goals"]
-    rows = ["| scene | rig | images (size) | registered | rotation error median / mean (deg) | "
-            "centre error median / mean (% extent) | 3-D points | reproj. (px) | seconds |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = ["| scene | rig | images (size) | registered | linked | rotation error median / mean (deg) | "
+            "centre error median / mean (% extent) | 3-D points | reproj. (px) | seconds (CPU) |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for x in r["scenes"]:
         name = x["scene"] + (" + masks" if x.get("masks") else "")
         size = f"{x['images']} ({x['size'][0]}x{x['size'][1]})"
         if x.get("error") or "rotation_deg_median" not in x:
-            rows.append(f"| {name} | {x['rig']} | {size} | 0 / {x['images']} | failed: {x.get('error', '')[:80]} | | | | "
+            rows.append(f"| {name} | {x['rig']} | {size} | 0 / {x['images']} | | failed: {x.get('error', '')[:80]} | | | | "
                         f"{x['seconds']:.1f} |")
             continue
+        linked = x.get("reachable")
+        cpu = f" ({x['cpu_seconds']:.1f})" if "cpu_seconds" in x else ""
         rows.append(
             f"| {name} | {x['rig']} | {size} | {x['registered']} / {x['images']} ({100 * x['registered_fraction']:.0f}%) | "
+            f"{'' if linked is None else linked} | "
             f"{x['rotation_deg_median']:.2f} / {x['rotation_deg_mean']:.2f} | {x['centre_pct_median']:.2f} / "
-            f"{x['centre_pct_mean']:.2f} | {x['points3D']} | {x['reprojection_px']:.2f} | {x['seconds']:.1f} |")
+            f"{x['centre_pct_mean']:.2f} | {x['points3D']} | {x['reprojection_px']:.2f} | {x['seconds']:.1f}{cpu} |")
     notes = []  # what process said about the photos it left out, and which retry was kept
     for x in r["scenes"]:
         name = x["scene"] + (" + masks" if x.get("masks") else "")
@@ -48,7 +51,10 @@ def section(results: Path) -> str:
         f"{c['threads']} thread). Errors after a similarity alignment to the given poses (rotation fitted on the camera "
         "centres and axes together, scale and shift on the centres); extent = diagonal of the scene's bounds box. "
         "Scenes marked + masks also get their object masks (features only inside them): ethiopianHead is a turntable "
-        "capture, whose background stands still while the object turns. "
+        "capture (the head turns on a stand; the camera moves a little), so the background barely moves while the object "
+        "turns, and the masked head is shiny metal with few features. Linked = photos joined to the kept ones by pairs of "
+        "15+ verified matches: the most any mapping of these features can pose. Seconds are wall time on a shared "
+        "machine (load in the provenance), CPU seconds of the process in brackets. "
         f"Goals: >= {100 * g['registered']:.0f}% registered, median rotation <= {g['rotation_deg_median']} deg, "
         f"centre <= {g['centre_pct_median']}% of the extent, <= {g['seconds_20']:.0f} s for 20 images.",
         "",

@@ -29,6 +29,36 @@ class MatchGraph:
                 out[b if a == name else a] = k
         return out
 
+    def groups(self, min_matches: int = 15) -> list[list[str]]:
+        """The connected groups of images (sorted names, largest group first) when two images are linked
+        by a pair with at least ``min_matches`` verified matches: images of different groups share no
+        usable match, so no mapping can pose them together."""
+        link: dict[str, set[str]] = {n: set() for n in self.features}
+        for (a, b), k in self.pairs.items():
+            if k >= min_matches:
+                link.setdefault(a, set()).add(b)
+                link.setdefault(b, set()).add(a)
+        seen: set[str] = set()
+        out = []
+        for start in sorted(link):
+            if start in seen:
+                continue
+            group, todo = set(), [start]
+            while todo:
+                n = todo.pop()
+                if n not in group:
+                    group.add(n)
+                    todo.extend(link[n] - group)
+            seen |= group
+            out.append(sorted(group))
+        return sorted(out, key=lambda g: (-len(g), g))
+
+    def reachable(self, names: list[str], min_matches: int = 15) -> list[str]:
+        """Every image in a group (:meth:`groups`) with any of ``names``: the most a model holding
+        ``names`` could pose with these features."""
+        want = set(names)
+        return sorted(n for g in self.groups(min_matches) if want & set(g) for n in g)
+
 
 def match_graph(db_path: Path) -> MatchGraph:
     """Read :class:`MatchGraph` from the COLMAP database ``db_path``."""
@@ -55,11 +85,15 @@ def drop_reasons(names: list[str], registered: list[str], other_models: list[lis
 
     ``other_models``: the images of each model that was not kept. ``min_matches``: the mapper's
     least number of verified matches for a pair to count. Reasons, in this order of precedence: no
-    features; posed in a separate, smaller model; matched no other photo; matched only photos that got
-    no pose either; matched posed photos but could not be posed from them.
+    features; posed in a separate, smaller model (and whether that model's photos share any usable
+    match with the kept ones); matched no other photo; in a group of photos that shares no usable
+    match with the posed ones; matched only photos that got no pose either; matched posed photos but
+    could not be posed from them.
     """
     kept = set(registered)
     in_other = {n: len(m) for m in other_models for n in m if n not in kept}
+    linked = set(graph.reachable(registered, min_matches))
+    group_of = {n: g for g in graph.groups(min_matches) for n in g}
     reasons = {}
     for name in names:
         if name in kept:
@@ -69,6 +103,10 @@ def drop_reasons(names: list[str], registered: list[str], other_models: list[lis
         posed = {n: k for n, k in near.items() if n in kept}
         if feats == 0:
             reasons[name] = "no features found (blank, blurred or fully masked photo)"
+        elif name in in_other and name not in linked:
+            reasons[name] = (f"posed in a separate model of {in_other[name]} photos that shares no pair of "
+                             f"{min_matches}+ verified matches with the kept photos (add photos between the two sets "
+                             "of views)")
         elif name in in_other:
             reasons[name] = (f"posed in a separate model of {in_other[name]} photos that shares too few matches "
                              "with the kept one")
@@ -77,6 +115,11 @@ def drop_reasons(names: list[str], registered: list[str], other_models: list[lis
             most = max(weak.values(), default=0)
             reasons[name] = (f"matched no other photo ({feats} features; best pair {most} verified matches, "
                              f"{min_matches} needed)" if most else f"matched no other photo ({feats} features)")
+        elif name not in linked:
+            group = group_of.get(name, [name])
+            shown = ", ".join(group[:6]) + (" ..." if len(group) > 6 else "")
+            reasons[name] = (f"in a group of {len(group)} photos ({shown}) that shares no pair of {min_matches}+ "
+                             "verified matches with the posed ones (add photos between these views and the rest)")
         elif not posed:
             reasons[name] = f"matched {len(near)} photos, none of which got a pose"
         else:

@@ -19,7 +19,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
-from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm, write_scene
+from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
 from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames
 from omnirecon.data.photo import regular_file
@@ -106,6 +106,11 @@ def summary_lines(s: dict) -> list[str]:
         d = s.get("dropped") or [{"name": n, "reason": ""} for n in s["unregistered"]]
         shown = "; ".join(f"{x['name']} ({x['reason']})" if x["reason"] else x["name"] for x in d[:10])
         lines.append(f"dropped {len(d)} photos (no pose): " + shown + (" ..." if len(d) > 10 else ""))
+        reach = s.get("reachable", s["images_given"])
+        if reach < s["images_given"]:
+            lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
+                         f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
+                         "(add photos between those views and the rest)")
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
     return lines

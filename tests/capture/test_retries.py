@@ -11,7 +11,7 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
 
-from omnirecon.capture.colmap_sfm import AGREE_DEG, SfmOptions, agreement  # noqa: E402
+from omnirecon.capture.colmap_sfm import AGREE_DEG, SfmOptions, agreement, replaces  # noqa: E402
 from omnirecon.capture.dropped import MatchGraph, drop_reasons  # noqa: E402
 from omnirecon.capture.images import stage_images, stage_masks  # noqa: E402
 from omnirecon.capture.process import process, summary_lines  # noqa: E402
@@ -45,8 +45,45 @@ def test_drop_reasons_each_kind():
     assert r["alone"] == "matched no other photo (300 features)"
     assert r["weak"].startswith("matched no other photo (500 features; best pair 9 verified matches, 15 needed")
     assert r["side"].startswith("posed in a separate model of 3 photos")
-    assert r["pair1"] == "matched 1 photos, none of which got a pose"
+    assert r["pair1"].startswith("in a group of 2 photos (pair1, pair2) that shares no pair of 15+")
+    assert r["side"].startswith("posed in a separate model of 3 photos that shares no pair of 15+")
     assert r["leaf"].startswith("matched 1 posed photos (at most 25 verified matches)")
+
+
+def test_match_groups_bound_what_can_be_posed():
+    """Groups of photos linked by pairs of 15+ verified matches: a photo outside the kept model's group
+    can never be posed from these features, and its reason says so; one inside it whose neighbours got
+    no pose is told apart."""
+    g = MatchGraph(features={n: 500 for n in ("a", "b", "c", "x", "y", "p", "q", "r", "lone")},
+                   pairs={("a", "b"): 90, ("b", "c"): 60, ("a", "y"): 20, ("x", "y"): 30, ("p", "q"): 50,
+                          ("q", "r"): 40, ("c", "p"): 14, ("a", "lone"): 3})
+    assert g.groups(15) == [["a", "b", "c", "x", "y"], ["p", "q", "r"], ["lone"]]
+    assert g.groups(10)[0] == ["a", "b", "c", "p", "q", "r", "x", "y"]
+    assert g.reachable(["a", "b"], 15) == ["a", "b", "c", "x", "y"] and g.reachable(["q"], 15) == ["p", "q", "r"]
+    r = drop_reasons(sorted(g.features), ["a", "b", "c"], [], g, min_matches=15)
+    assert r["x"] == "matched 1 photos, none of which got a pose"
+    assert r["y"].startswith("matched 1 posed photos (at most 20 verified matches)")
+    assert all(r[n].startswith("in a group of 3 photos (p, q, r) that shares no pair of 15+ verified matches")
+               for n in "pqr")
+    assert r["lone"].startswith("matched no other photo (500 features; best pair 3 verified matches")
+
+
+def test_retry_replaces_rule():
+    """A retry replaces the current model with more images only when they agree; the affine-feature
+    model also on a tie when they disagree (the first model is then the suspect one); never with fewer."""
+    good, bad = (0.3, 1.2), (9.4, 30.0)
+
+    def rep(current, candidate, agree, affine, total=20):
+        return replaces(current, candidate, agree, affine, total)
+
+    assert rep(None, 5, None, False) and not rep(None, 0, None, True)
+    assert rep(10, 12, good, False) and not rep(10, 12, bad, False) and not rep(10, 12, None, True)
+    assert not rep(12, 12, good, False) and not rep(12, 12, bad, False)
+    assert rep(12, 12, bad, True) and not rep(12, 12, good, True)
+    assert not rep(12, 11, bad, True) and not rep(12, 11, good, False)
+    assert rep(12, 14, (AGREE_DEG[0], AGREE_DEG[1]), True) and not rep(12, 14, (AGREE_DEG[0] + 0.1, 1.0), True)
+    assert rep(4, 11, bad, True) and rep(9, 10, bad, False) and not rep(10, 11, bad, False)  # under half: unprotected
+    assert not rep(4, 4, bad, False) and not rep(4, 3, good, True)
 
 
 def test_retry_and_dropped_record(photos, tmp_path):
