@@ -13,10 +13,12 @@ from bench.report import (
     ablation,
     depth_sources,
     encoder_lever,
+    end_to_end,
     finetune_curves,
     geometry,
     geometry_budget,
     hostile,
+    levers,
     lift,
     mesh_path,
     peer,
@@ -31,7 +33,7 @@ from bench.report import (
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, depth_sources, finetune_curves, hostile,
-            speed, peer, training, quality, geometry, mesh_path, geometry_budget, lift)
+            speed, peer, levers, end_to_end, training, quality, geometry, mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"
           "Every number below is produced by `python -m bench page` (which runs the benchmarks in `bench/`) from "
