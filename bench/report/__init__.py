@@ -13,11 +13,13 @@ from bench.report import (
     ablation,
     depth_sources,
     encoder_lever,
+    end_to_end,
     finetune_curves,
     finetune_levers,
     geometry,
     geometry_budget,
     hostile,
+    levers,
     lift,
     mesh_path,
     peer,
@@ -32,7 +34,8 @@ from bench.report import (
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, depth_sources, finetune_curves,
-            finetune_levers, hostile, speed, peer, training, quality, geometry, mesh_path, geometry_budget, lift)
+            finetune_levers, hostile, speed, peer, levers, end_to_end, training, quality, geometry, mesh_path,
+            geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"
           "Every number below is produced by `python -m bench page` (which runs the benchmarks in `bench/`) from "

@@ -68,7 +68,8 @@ class ReconstructConfig(MachineConfig):
     num_views: int = 3
     """Sources per depth map and per rendered pixel."""
     mesh_resolution: int | None = None
-    """Long side of the images the depth maps are rendered at (default: the eval protocol's, 128)."""
+    """Long side of the images meshed (default: the photos' own, at most 512: stereo matches at it, the model's
+    depth for stereo's holes is rendered at 128)."""
     resolution: int | None = None
     """Long side for fine-tuning, the held-out scores and the video (default: the photos' own, at most 512)."""
     finetune_seconds: float = 60.0
@@ -165,7 +166,8 @@ def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[
 def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[str]) -> dict:
     """A mesh from every view (``mesh.ply``); the record holds the meshes in memory under ``meshes``."""
     mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
-                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution, device=cfg.device,
+                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution or photo_side(scene_path),
+                          device=cfg.device,
                           threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
     lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
