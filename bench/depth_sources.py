@@ -12,6 +12,10 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
 * ``stereo``: classical stereo (``omnirecon/mesh/stereo.py``) at the photos' resolution, no completion;
 * ``stereo+fill``: the same with completion (``omnirecon/mesh/complete.py``): every content pixel of
   every meshed view covered (fill from the view's depth, a backdrop on forward-facing scenes);
+* ``stereo+model``: stereo at the photos' resolution where it matched, omnirecon-tiny's coarse-pass depth
+  (rendered at 128 px, read at the photos' pixels) for the rest, with completion;
+* ``stereo+model+poisson``: the same with screened Poisson over the fused surface, trimmed to the masks
+  (object captures; ``omnirecon/mesh/poisson.py``);
 * ``oracle``: the exact depth (procedural scenes), with completion.
 
 Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -40,8 +45,8 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 DEMO_SEED = 900_999
 SCENES = {"fern": "llff/fern", "dtu_scan24": "neus_dtu/dtu_scan24", "dtu_scan37": "neus_dtu/dtu_scan37", "demo": None}
-SOURCES = ("learned", "floor", "stereo", "stereo+fill", "oracle")
-TUNED = ("stereo+fill",)
+SOURCES = ("learned", "floor", "stereo", "stereo+fill", "stereo+model", "stereo+model+poisson", "oracle")
+TUNED = ("stereo+fill", "stereo+model", "stereo+model+poisson")
 """Sources tuned for ``--seconds`` (the others are scored before tuning only, to keep the run short)."""
 DTU_VIEWS = 14
 
@@ -91,6 +96,10 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
         opts = MeshOptions(depth="model", depth_pass="coarse")
         made = mesh_from_model(models[source], low, views, opts, use_masks=masks)
         return made, low.to_input, time.process_time() - t
+    if source.startswith("stereo+model"):  # stereo at the photos' resolution, the model's coarse depth (128 px)
+        opts = MeshOptions(depth="stereo+model", depth_pass="coarse",  # for the rest
+                           surface="poisson" if source.endswith("+poisson") else "fusion")
+        made = mesh_from_model(models["learned"], scene, views, opts, use_masks=masks)
     else:
         opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo")
         made = mesh_from_model(None, scene, views, opts, use_masks=masks)
@@ -188,6 +197,27 @@ def exact_row(name: str, tiny: bool) -> dict | None:
             **coverage_and_iou(gt, scene, ft["held_out"], False)}
 
 
+def timing_row(source: str, models: dict, photos: int = 20) -> dict:
+    """``photos`` photos of fern (its 20, 336x252 after the reader's downscale to <= 512 px) -> mesh with
+    ``source`` (``stereo`` or ``stereo+model``): CPU seconds of this process (1 thread) per stage, from
+    reading the images to the completed mesh; the goal is <= 60 s on 2 cores."""
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.mesh.build import MeshOptions, mesh_from_model
+
+    t0 = time.process_time()
+    scene = load_at_resolution(SHARED / SCENES["fern"], 512, "white")
+    load_s = time.process_time() - t0
+    views = list(range(min(photos, len(scene))))
+    opts = MeshOptions(depth=source, depth_pass="coarse")
+    t = time.process_time()
+    made = mesh_from_model(models["learned"] if source == "stereo+model" else None, scene, views, opts)
+    mesh_s = time.process_time() - t
+    return {"scene": "fern", "source": source, "timing": True, "photos": len(views),
+            "resolution": [scene.width, scene.height], "cpu_seconds": {"load": load_s, "images_to_mesh": load_s + mesh_s},
+            "stage_wall_seconds": made.info["seconds"], "faces": len(made.mesh.faces),
+            "load_average": list(os.getloadavg())}
+
+
 def main(argv: list[str] | None = None) -> dict:
     from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
     from omnirecon.models.registry import build_model
@@ -197,10 +227,14 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--rows", nargs="+", default=None, help="SCENE:SOURCE pairs (default: every scene x source)")
     p.add_argument("--seconds", type=float, default=60.0, help="CPU seconds of tuning for the tuned sources")
     p.add_argument("--tiny", action="store_true", help="the demo scene at 48 px, oracle and stereo (tests)")
+    p.add_argument("--timing", nargs="*", default=None, metavar="SOURCE",
+                   help="only time 20 fern photos -> mesh with these sources (stereo, stereo+model)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    if a.tiny:
+    if a.timing:
+        rows = []
+    elif a.tiny:
         rows = [("demo", "oracle"), ("demo", "stereo+fill")]
     elif a.rows:
         rows = [tuple(r.split(":", 1)) for r in a.rows]
@@ -208,14 +242,20 @@ def main(argv: list[str] | None = None) -> dict:
         rows = [(s, src) for s in SCENES for src in SOURCES]
     models = {"floor": build_model("floor")}
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
-    if any(src == "learned" for _, src in rows):
+    if any(src == "learned" or src.startswith("stereo+model") for _, src in rows) or a.timing:
         models["learned"] = load_checkpoint(ckpt)[0]
     out_file = a.out / "depth_sources.json"
     old = json.loads(out_file.read_text()) if out_file.is_file() and not a.tiny else {}
-    keep = [r for r in old.get("rows", []) if (r["scene"], r["source"]) not in set(rows)]
+    keep = [r for r in old.get("rows", []) if r.get("timing") or (r["scene"], r["source"]) not in set(rows)]
     result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), "path": "checkpoints/omnirecon-tiny"},
               "tuning_seconds": a.seconds, "tiny": a.tiny, "rows": keep}
     scenes_done = {r["scene"] for r in keep if r["source"] == "exact mesh"}
+    for source in a.timing or []:
+        result["rows"] = [r for r in result["rows"] if not (r.get("timing") and r["source"] == source)]
+        row = timing_row(source, models)
+        result["rows"].append(row)
+        print(f"timing fern x{row['photos']} {source}: {row['cpu_seconds']['images_to_mesh']:.1f} CPU-s", flush=True)
+        write_json(out_file, result)
     for name, source in rows:
         if name not in scenes_done and (name == "demo"):
             ex = exact_row(name, a.tiny)

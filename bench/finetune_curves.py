@@ -1,21 +1,25 @@
 """The mesh path's PSNR against seconds of CPU tuning, with coverage, on real and procedural scenes.
 
-    python -m bench finetune_curves --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply
+    python -m bench finetune_curves --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --seconds 300
     python -m bench finetune_curves --scene demo=PATH --mesh demo=MESH.ply --seconds 300
+    python -m bench finetune_curves --scene fern=... --mesh fern=MESH.ply --collect   # an interrupted run's curve
 
-Per scene: ``omnirecon finetune`` of the 2-D encoder and the appearance branch with the given mesh
-(the project's own ``omnirecon mesh --views all`` meshes; the JSON records which), images at the
-protocol's 128-px long side, the clock this process's CPU time (``--clock cpu``: other jobs on the
-machine do not shrink the budget), scored on the protocol's held-out views at 0, 10, 30, 60 (and 300)
-s. The returned state is the best on validation views (never sources, never held-out views), so the
-held-out curve is what a user gets when tuning stops at that time. Each run merges its scene into
-``bench/results/finetune_curves.json`` (scenes can run in separate processes) and copies the curve
-and the before/after picture to ``bench/results/figures/``.
+Per scene: ``omnirecon finetune`` with its defaults (what is tuned, pixels per step, precision) and the
+given mesh (the project's own ``omnirecon mesh --views all`` meshes; the JSON records the depth source
+from the mesh's ``*_metrics.json``), images at the photos' own resolution, the clock this process's CPU
+time (``--clock cpu --threads 1``: other jobs on the machine do not shrink the budget), scored on the
+protocol's held-out views at 0, 10, 30, 60 (and 300) s: the whole image and, on scenes with masks, the
+objects. The returned state is the best on validation views (never sources, never held-out views; its
+gain is the smaller of the whole-image and object gains), so the held-out curve is what a user gets
+when tuning stops at that time; the validation scores are recorded apart. Each run merges its scene
+into ``bench/results/finetune_curves.json`` under a file lock (scenes can run in separate processes) and
+copies the curve and the before/after picture to ``bench/results/figures/``.
 """
 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import os
 import shutil
@@ -29,24 +33,49 @@ ROOT = Path(__file__).resolve().parents[1]
 TIMES = (0.0, 10.0, 30.0, 60.0)
 
 
-def run_scene(name: str, path: Path, mesh: Path, seconds: float, out: Path, threads: int, resolution: int | None) -> dict:
+def mesh_record(mesh: Path) -> dict:
+    """How the mesh was made, from ``<mesh>_metrics.json`` when ``omnirecon mesh`` wrote one."""
+    file = mesh.with_name(mesh.stem + "_metrics.json")
+    if not file.is_file():
+        return {}
+    m = json.loads(file.read_text())
+    return {"depth": m.get("options", {}).get("depth"), "resolution": m.get("resolution"), "views": m.get("views"),
+            "faces": m.get("faces", {}).get("completed"), "model": m.get("model", {}).get("name"),
+            "images_to_mesh_s": m.get("seconds", {}).get("images_to_mesh")}
+
+
+def work_dir(name: str) -> Path:
+    return ROOT / "outputs" / "bench" / "finetune_curves" / name
+
+
+def run_scene(name: str, path: Path, mesh: Path, seconds: float, threads: int, resolution: int | None,
+              save: bool = False) -> None:
     from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
     times = tuple(t for t in (*TIMES, 300.0) if t <= seconds)
-    work = ROOT / "outputs" / "bench" / "finetune_curves" / name
-    ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh,
-                                     seconds=seconds, eval_at=times, clock="cpu", threads=threads, out=work,
-                                     resolution=resolution, max_held_out=4))
+    run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
+                                eval_at=times, clock="cpu", threads=threads, out=work_dir(name), resolution=resolution,
+                                max_held_out=4, save=save))
+
+
+def scene_row(name: str, mesh: Path, out: Path) -> dict:
+    """The results row of scene ``name`` from its ``curve.json`` (complete, or as far as an interrupted run got)."""
+    work = work_dir(name)
+    ft = json.loads((work / "curve.json").read_text())
     figures = out / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     for f in ("curve.png", "before_after.png"):
         shutil.copy2(work / f, figures / f"finetune_{name}_{f}")
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
-            "val_psnr_now", "returned_from")
-    return {"scene": str(path), "mesh": str(mesh), "faces": ft["faces"], "sources": ft["sources"],
+            "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
+    return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
+            "sources": ft["sources"], "rays": ft["rays"], "tuned": ft["tuned"], "precision": ft["precision"],
             "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
-            "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": os.getloadavg()[0],
+            "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),
+            "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": ft["provenance"].get("loadavg_1min", os.getloadavg()[0]),
+            "objects": ft.get("objects", 0.0),
+            "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
                          "before_after": f"figures/finetune_{name}_before_after.png"}}
 
@@ -64,19 +93,26 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--resolution", type=int, default=None)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--save", action="store_true", help="keep the tuned checkpoint in outputs/bench/finetune_curves/NAME")
+    p.add_argument("--collect", action="store_true",
+                   help="do not tune: record each scene's curve.json as it stands (an interrupted run's curve so far)")
     a = p.parse_args(argv)
     torch.set_num_threads(a.threads)
     scenes = dict(s.split("=", 1) for s in a.scene)
     meshes = dict(s.split("=", 1) for s in a.mesh)
     file = a.out / "finetune_curves.json"
     for name, path in scenes.items():
-        row = run_scene(name, Path(path), Path(meshes[name]), a.seconds, a.out, a.threads, a.resolution)
+        if not a.collect:
+            run_scene(name, Path(path), Path(meshes[name]), a.seconds, a.threads, a.resolution, a.save)
+        row = scene_row(name, Path(meshes[name]), a.out)
         row["mesh_note"] = a.mesh_note
         print(name, [(c["seconds"], round(c["psnr"], 2), round(c["coverage"], 3)) for c in row["curve"]])
-        result = json.loads(file.read_text()) if file.is_file() else {"rows": {}}
-        result["rows"][name] = row
-        result.update(provenance=provenance(seed=0), checkpoint={**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
-                                                                 "path": "checkpoints/omnirecon-tiny"})
-        write_json(file, result)
+        a.out.mkdir(parents=True, exist_ok=True)
+        with open(file.with_suffix(".lock"), "w") as lock:  # scenes run in parallel processes
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            result = json.loads(file.read_text()) if file.is_file() else {"rows": {}}
+            result["rows"][name] = row
+            result.update(provenance=provenance(seed=0),
+                          checkpoint={**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"), "path": "checkpoints/omnirecon-tiny"})
+            write_json(file, result)
     return result
-

@@ -27,7 +27,8 @@ ROOT = HERE.parent
 # Every benchmark behind the page, in the order they run (mesh_path reuses geometry's meshes).
 # The first four make up --tiny (the test); "ablation" retrains four GPNR rows (about 1 h of CPU).
 STEPS = ("synth", "throughput", "quality", "geometry", "mesh_fps", "mesh_path", "lift", "lift_extra", "geometry_budget",
-         "ablation", "poses", "reliability", "fast_paths", "peer_ibrnet")
+         "ablation", "poses", "reliability", "fast_paths", "peer_ibrnet", "tiny_levers", "compile_cache",
+         "end_to_end")
 TINY_STEPS = STEPS[:4]
 
 
@@ -35,6 +36,8 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
     """Run the benchmarks of ``steps``; each writes its JSON into ``results``."""
     from bench import (
         ablation_gpnr,
+        compile_cache,
+        end_to_end,
         fast_paths,
         geometry,
         geometry_budget,
@@ -46,6 +49,7 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         reliability,
         synth_speed,
         throughput,
+        tiny_levers,
     )
     from omnirecon.engine.speed import BenchConfig, measure
 
@@ -79,10 +83,25 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
                                                  *(["--width", "24", "--height", "18", "--train-rays", "32",
                                                     "--train-steps", "1"] if tiny else []), "--reference-too",
                                                  "--out", str(results / "peer_ibrnet.json")]),
+        "tiny_levers": lambda: tiny_levers.main(["--out", str(results / "tiny_levers.json")]),
+        "compile_cache": lambda: compile_cache.main(["--out", str(results / "compile_cache.json")]),
+        "end_to_end": lambda: end_to_end.main(["--demo", "--reconstruct", str(ROOT.parent / "shared" / "data" / "llff"
+                                                                          / "fern" / "images_12"),
+                                               "--out", str(results / "end_to_end.json")]),
+    }
+    then = {  # a second run under the same step name
+        # the reference's evaluation configuration: 10 views of 1008x756, a window rendered, render only
+        "peer_ibrnet": lambda: peer_ibrnet.main([*(["--ibrnet-root", peer_root] if peer_root else []), "--width",
+                                                 "1008", "--height", "756", "--views", "10", "--crop", "64", "32",
+                                                 "--train-steps", "0", "--reference-too",
+                                                 "--out", str(results / "peer_ibrnet_eval.json")]) if not tiny else None,
+        "tiny_levers": lambda: tiny_levers.main(["--switches", "--rounds", "1", "--out", str(results / "switches.json")]),
     }
     for step in steps:
         print(f"== bench step {step}", flush=True)
         runs[step]()
+        if step in then:
+            then[step]()
 
 
 def _run_poses(results: Path, tiny: bool, threads: int) -> None:

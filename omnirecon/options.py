@@ -88,7 +88,7 @@ RULES: dict[str, Rule] = {
     "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
     "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
     "clip": Rule(0, 1e6, above=True, example="e.g. 1.0"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
-    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION,
+    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION,
     # camera paths and video
     "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
     "render.fps": Rule(1, 240, example="e.g. 24"), "fps": Rule(0, 240, above=True, example="e.g. 2"),
@@ -114,6 +114,7 @@ RULES: dict[str, Rule] = {
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
+    "val_margin": Rule(0, 100, example="e.g. 0.1 (dB)"),
     # procedural scenes
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
@@ -207,6 +208,9 @@ RAY_BYTES = 140_000
 """A rendered ray (omnirecon.chunk's measurement)."""
 TRAIN_BYTES_PER_RAY = 3 * RAY_BYTES
 """A training ray: the forward's activations kept for the backward, with gradients (estimate)."""
+FINETUNE_BYTES_PER_RAY_VIEW = 1_000
+"""A fine-tuning pixel of the mesh path, per source view: one surface point through the appearance
+branch, forward and backward (measured ~600 bytes per pixel and view with K = 3; margin for larger K)."""
 
 
 def _sq(v: int) -> float:
@@ -237,9 +241,14 @@ def _train(c) -> list[Need]:
     return [("--rays", str(c.rays), c.rays, lambda v: v * TRAIN_BYTES_PER_RAY)] if c.rays else []
 
 
+def _finetune(c) -> list[Need]:
+    views = max(c.num_views, len(c.views or ()))
+    return [("--rays", str(c.rays), c.rays, lambda v: v * views * FINETUNE_BYTES_PER_RAY_VIEW)]
+
+
 MEMORY: dict[str, Callable[[object], list[Need]]] = {
     "render": _frames, "reconstruct": _frames, "demo": _frames, "synth": _synth, "bench": _bench,
-    "train": _train, "finetune": _train,
+    "train": _train, "finetune": _finetune,
 }
 
 

@@ -13,7 +13,9 @@ from bench.report import (
     ablation,
     depth_sources,
     encoder_lever,
+    end_to_end,
     finetune_curves,
+    finetune_levers,
     geometry,
     geometry_budget,
     hostile,
@@ -27,12 +29,14 @@ from bench.report import (
     speed,
     synth,
     throughput,
+    train_levers,
     training,
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, levers, depth_sources, finetune_curves, hostile,
-            speed, peer, training, quality, geometry, mesh_path, geometry_budget, lift)
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, depth_sources, finetune_curves,
+            finetune_levers, hostile, speed, peer, levers, end_to_end, training, quality, geometry, mesh_path,
+            geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"
           "Every number below is produced by `python -m bench page` (which runs the benchmarks in `bench/`) from "

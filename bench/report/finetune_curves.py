@@ -6,35 +6,58 @@ from pathlib import Path
 
 from bench.report.common import missing, prov, read
 
+TIMES = (0.0, 10.0, 30.0, 60.0, 300.0)
+
+
+def _cells(row: dict, key: str) -> list[str]:
+    by = {c["seconds"]: c for c in row["curve"]}
+    return [f"{by[t][key]:.2f}" if t in by and key in by[t] else "–" for t in TIMES]
+
 
 def section(results: Path) -> str:
-    """The mesh path's held-out PSNR against seconds of CPU tuning, with coverage (python -m bench finetune_curves)."""
+    """The mesh path's held-out PSNR against CPU seconds of tuning, validation and test apart, whole image and
+    objects, with coverage (python -m bench finetune_curves)."""
     r = read(results, "finetune_curves.json")
     if r is None:
         return missing("finetune_curves.json")
-    times = sorted({c["seconds"] for row in r["rows"].values() for c in row["curve"]})
-    rows = ["| scene | mesh | coverage | " + " | ".join(f"{t:g} s" for t in times) + " | covered px, 0 -> end | "
-            "validation, 0 -> end | load |", "|---|---|---:|" + "---:|" * len(times) + "---|---|---:|"]
+    head = "| scene | pixels | " + " | ".join(f"{t:g} s" for t in TIMES) + " |"
+    rows = [head, "|---|---|" + "---:|" * len(TIMES)]
+    notes = []
     for name, row in r["rows"].items():
-        by = {c["seconds"]: c for c in row["curve"]}
-        key = "psnr_masked" if "psnr_masked" in row["curve"][0] else "psnr"
-        first, last = row["curve"][0], row["curve"][-1]
-        cov = f"{first['coverage']:.1%}" + (f" ({first['coverage_masked']:.1%} of mask)" if "coverage_masked" in first else "")
-        cells = [f"{by[t][key]:.2f}" if t in by else "–" for t in times]
-        covd = (f"{first['psnr_covered']:.2f} -> {last['psnr_covered']:.2f}" if "psnr_covered" in first else "–")
-        rows.append(f"| {name} | {row.get('mesh_note', row['mesh'])}, {row['faces']} faces | {cov} | " + " | ".join(cells)
-                    + f" | {covd} | {first['val_psnr']:.2f} -> {last['val_psnr']:.2f} | {row['load_average']:.1f} |")
-    pics = [f"![{n}](bench/results/{row['pictures']['before_after']})" for n, row in r["rows"].items()]
+        first = row["curve"][0]
+        rows.append(f"| **{name}** test | whole image | " + " | ".join(_cells(row, "psnr")) + " |")
+        if "psnr_masked" in first:
+            rows.append(f"| {name} test | objects (masks) | " + " | ".join(_cells(row, "psnr_masked")) + " |")
+        rows.append(f"| {name} validation | shaded pixels | " + " | ".join(_cells(row, "val_psnr")) + " |")
+        if "val_psnr_masked" in first:
+            rows.append(f"| {name} validation | objects | " + " | ".join(_cells(row, "val_psnr_masked")) + " |")
+        made = row.get("mesh_made") or {}
+        cov = f"{first['coverage']:.1%}" + (f" ({first['coverage_masked']:.1%} of the masks)" if "coverage_masked" in first else "")
+        last = row["curve"][-1]
+        notes.append(f"- **{name}**: {row['resolution'][0]}x{row['resolution'][1]}, mesh: {row.get('mesh_note') or row['mesh']}"
+                     f"{' (' + str(made['depth']) + ')' if made.get('depth') else ''}, {row['faces']:,} faces; held-out "
+                     f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
+                     f"({', '.join(row['tuned'])}, {row['precision']}"
+                     + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
+                     + "); returned state from "
+                     f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
+                     + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "") + ".")
+    pics = [f"![{n}: ground truth | before | after](bench/results/{row['pictures']['before_after']})"
+            for n, row in r["rows"].items()]
     return "\n".join([
         "## Fine-tuning curves of the mesh path (`python -m bench finetune_curves`)",
         "",
-        "`omnirecon finetune` (2-D encoder and appearance branch, 1 thread, process CPU seconds) with the project's own "
-        "meshes; held-out PSNR in dB on the protocol's test views of the state tuning returns at that time (the best on "
-        "validation views, the start included), over the whole image (DTU: over the object masks); pixels no surface "
-        "covers get the mesh renderer's far fill (procedural scenes: their background colour). Coverage: held-out "
-        "pixels on real surface. Load: the machine's 1-minute load average during the run.",
+        "`omnirecon finetune` with its defaults (2-D encoder and appearance branch, images at the photos' own "
+        "resolution, 1 thread, `--clock cpu`: process CPU seconds, so other jobs on the machine do not shrink the "
+        "budget) with the project's own meshes. Test: held-out PSNR in dB on the protocol's test views of the state "
+        "tuning returns at that time (the best on validation views, whose gain is the smaller of the whole-image "
+        "and object gains; the start is a candidate), over the whole image and, on scenes with masks, over the "
+        "objects. Validation: the returned state's score on the validation views (training views never tuned on, "
+        "never sources). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
         "",
         *rows,
+        "",
+        *notes,
         "",
         *pics,
         "",

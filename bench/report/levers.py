@@ -1,60 +1,73 @@
-"""BENCHMARKS.md section: Training levers at a small CPU budget (`python -m bench levers`)."""
+"""BENCHMARKS.md sections: render levers of the tiny presets, each fast-path switch against its reference twin,
+and torch.compile's cold and warm start (`python -m bench tiny_levers`, `tiny_levers --switches`, `compile_cache`)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from bench.report.common import missing, prov, read
+from bench.report.common import prov, read
 
 
-def delta(r: dict, b: dict | None, key: str) -> str:
-    if r.get(key) is None:
-        return "-"
-    if b is None or b.get(key) is None:
-        return f"{r[key]:.2f}"
-    return f"{r[key]:.2f} ({r[key] - b[key]:+.2f})"
+def section(results: Path) -> str | None:
+    parts = [f(r) for f, name in ((_levers, "tiny_levers.json"), (_switches, "switches.json"),
+                                  (_compile, "compile_cache.json")) if (r := read(results, name))]
+    return "\n".join(parts) if parts else None
 
 
-def table(result: dict) -> str:
-    """Markdown: mean PSNR (dB, cpu protocol, whole image) on the procedural validation seeds and on the held-out
-    views of the real training scenes, K = 3 and 10; in brackets the change against the lever's baseline."""
-    keys = ("procedural_3", "procedural_10", "real_3", "real_10")
-    lines = ["| run | lever | steps | CPU-s | procedural K=3 | K=10 | real (held-out views) K=3 | K=10 |",
-             "|---|---|---|---|---|---|---|---|"]
-    runs = result.get("runs", {})
-    for name, r in runs.items():
-        b = runs.get(r.get("base") or "")
-        lines.append(f"| {name} | {r['what']} | {r['step']} | {r['cpu_s']:.0f} | "
-                     + " | ".join(delta(r, b, k) for k in keys) + " |")
-    for name, r in {**result.get("shipped", {}), **result.get("extra", {})}.items():
-        cpu = f"{r['cpu_s']:.0f}" if r.get("cpu_s") is not None else "-"
-        lines.append(f"| {name} | {r.get('what', r.get('checkpoint', ''))} | {r.get('step')} | {cpu} | "
-                     + " | ".join(delta(r, None, k) for k in keys) + " |")
-    return "\n".join(lines)
+def _levers(r: dict) -> str:
+    """BENCHMARKS.md section: per tiny preset, each candidate's speed-up over the reference twins and its PSNR."""
+    scenes = ", ".join(f"{s['name']} ({s['size'][0]}x{s['size'][1]})" for s in r["scenes"])
+    lines = ["## Render levers of the tiny presets (`python -m bench tiny_levers`)", "",
+             f"Goal: 3x the render throughput the tiny presets had before the fast paths (their reference twins: fp32 "
+             f"eager, every switch off) at equal quality. Render CPU seconds of every target (encode + `render_view`, "
+             f"one thread, K = {r['k']}, {r['targets_per_scene']} target(s) per scene; candidates interleaved "
+             f"{r['rounds']} times, fastest kept) on {scenes}; speed-up against the reference in the same run; PSNR "
+             "against the ground truth (mean over the scenes) and its difference from the reference render's "
+             "(dPSNR). `fine_N`/`coarse_N`/`samples_N`: the model's sample counts changed at render time, no "
+             "retraining; `coarse_only`: no fine pass; `surface_N`: the fine pass on N importance samples only. "
+             f"Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
+    names = [s["name"] for s in r["scenes"]]
+    lines += ["| preset | candidate | CPU s | speed-up | PSNR (dB) | dPSNR | " + " | ".join(names) + " |",
+              "|---|---|---|---|---|---|" + "---|" * len(names)]
+    for m in r["models"]:
+        for row in m["rows"]:
+            best = row["speedup"] >= 3 and row["dpsnr"] >= -0.1
+            cand = f"**{row['candidate']}**" if best else row["candidate"]
+            lines.append(f"| {m['model']} | {cand} | {row['cpu_s']} | {row['speedup']}× | {row['psnr_mean']} | "
+                         f"{row['dpsnr']:+.3f} | " + " | ".join(str(row["psnr"].get(n, "–")) for n in names) + " |")
+    lines += ["", "Bold: at least 3x the reference with at most 0.1 dB lost.", "", prov(r["provenance"])]
+    return "\n".join(lines) + "\n"
 
 
-def section(results: Path) -> str:
-    """Training levers at a small CPU budget (python -m bench levers)."""
-    r = read(results, "levers.json")
-    if r is None:
-        return missing("levers.json")
-    val = ", ".join(f"{rig} {', '.join(map(str, seeds))}" for rig, seeds in r["val_scenes"].items())
-    return "\n".join([
-        "## Training levers at a small CPU budget (`python -m bench levers`)", "",
-        f"Each lever trained from scratch for {r['cpu_budget']:.0f} process CPU-seconds (1 thread, seed 0, constant "
-        "learning rate after a 50-step warm-up, K drawn from [3, 10], 8 procedural scenes per rig plus the real "
-        f"training scenes {', '.join(r['real_val'])}), against its baseline at the same budget (in brackets: the "
-        "difference). Scored with `omnirecon eval --protocol-set cpu` (64 px, whole image, PSNR in dB) on "
-        f"validation data only: procedural validation seeds ({val}) and the held-out views of the real training "
-        "scenes (test split / every 8th view; never trained on). fern, dtu_scan24/37 and the evaluation seeds are "
-        "not looked at. Realism options: " + ", ".join(f"`--{k.replace('_', '-')} {v}`" for k, v in r["realism"].items())
-        + ". K = 10 is scored only where a number is shown (scoring at K = 10 costs more CPU than a lever's "
-        "training). At this budget a run has taken 60-90 steps, so differences under about 0.5 dB are within "
-        "the noise of one seed. Below the lever rows, the shipped checkpoint and the continued VGG16 run, scored the "
-        "same way at their own budgets.", "",
-        table(r), "",
-        *([f"![validation against CPU-seconds]({r['curves']['figure']})", "",
-           "Monitoring validation (the runs' own `val_psnr`: 2 views of seeds 901000-901001, K = the preset's) against "
-           "training CPU-seconds: the shipped ibrnet-tiny (encoder from scratch) and the continued ibrnet-tiny + VGG16 "
-           "run.", ""] if r.get("curves") else []),
-        prov(r["provenance"]), ""])
+def _switches(r: dict) -> str:
+    """BENCHMARKS.md section: each fast-path switch alone over the reference, and the defaults without it."""
+    lines = ["## Each fast-path switch against its reference twin (`python -m bench tiny_levers --switches`)", "",
+             "Render CPU seconds (encode + `render_view`, random weights, `bench/profile_models.py`'s case, one "
+             f"thread; sides interleaved {r['rounds']} times, fastest kept): `only_X` is the reference with switch "
+             "X on, `without_X` the defaults with X at its reference twin. Speed-up against the reference in the "
+             f"same run. Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
+    for p in r["presets"]:
+        lines += [f"**{p['preset']}** ({p['sources']} sources, {p['target'][0]}x{p['target'][1]} target)", "",
+                  "| side | CPU s | speed-up | max abs diff to the reference |", "|---|---|---|---|"]
+        lines += [f"| {x['side']} | {x['cpu_s']} | {x['speedup']}× | {x['max_abs_vs_reference']:.2g} |" for x in p["rows"]]
+        lines.append("")
+    return "\n".join([*lines, prov(r["provenance"])]) + "\n"
+
+
+def _compile(r: dict) -> str:
+    """BENCHMARKS.md section: cold and warm start of ``OMNIRECON_FAST=compile=1`` and its steady render."""
+    s = r["summary"]
+    w, h = r["size"]
+    repay = s["renders_to_repay_warm"]
+    lines = ["## torch.compile with a persistent cache: cold and warm start (`python -m bench compile_cache`)", "",
+             f"{r['preset']} (random weights), one {w}x{h} view from 3 sources, one thread, each side a fresh "
+             "process in the order eager, cold (empty inductor cache), warm (same cache, new process), eager; CPU "
+             "seconds including inductor's compile workers. First render = compile + render.", "",
+             "| side | first render CPU s (wall) | steady render CPU s |", "|---|---|---|"]
+    lines += [f"| {x['side']} | {x['first_cpu_s']} ({x['first_wall_s']}) | {x['steady_cpu_s']} |" for x in r["runs"]]
+    lines += ["", f"Compiled steady render {s['steady_speedup']}× eager; start-up cost {s['cold_overhead_cpu_s']} CPU s "
+              f"cold, {s['warm_overhead_cpu_s']} CPU s warm"
+              + (f", repaid after {repay} renders (warm)." if repay is not None else ", never repaid (no steady gain).")
+              + f" Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", "",
+              prov(r["provenance"])]
+    return "\n".join(lines) + "\n"

@@ -34,6 +34,13 @@ def load_at_resolution(path: Path, long_side: int, background: str = "white", fm
     return scene.normalized()
 
 
+def photo_side(path: Path, cap: int = 512, fmt: str = "auto") -> int:
+    """The long side of the scene's photos in pixels, at most ``cap`` (what users look at)."""
+    fmt = detect_format(path) if fmt == "auto" else fmt
+    probe = load_scene(path, fmt, ReadOptions(max_views=1))
+    return min(cap, max(probe.width, probe.height))
+
+
 @dataclass
 class EvalScene:
     """A scene ready for evaluation."""

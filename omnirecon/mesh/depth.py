@@ -193,6 +193,39 @@ def oracle_depths(scene, views, shifts=(0.0,)) -> DepthMaps:
                      {"source": "oracle", "seconds": time.perf_counter() - start})
 
 
+def downscaled(scene, long_side: int):
+    """``scene`` with its images (area) and masks (nearest) at most ``long_side`` px on the long side and its
+    cameras rescaled to match (``scene`` itself when it is no larger): the model's depth for
+    ``stereo+model`` is rendered at its eval resolution, not the photos'."""
+    import dataclasses
+
+    import torch.nn.functional as F
+
+    scale = long_side / max(scene.width, scene.height)
+    if scale >= 1:
+        return scene
+    cams = scene.cameras.rescaled(scale)
+    size = (cams.height, cams.width)
+    images = F.interpolate(scene.images.permute(0, 3, 1, 2), size=size, mode="area").permute(0, 2, 3, 1)
+    masks = None if scene.masks is None else \
+        F.interpolate(scene.masks[:, None].float(), size=size, mode="nearest")[:, 0] > 0.5
+    return dataclasses.replace(scene, images=images.contiguous(), cameras=cams, masks=masks, depths=None,
+                               normals=None, labels=None)
+
+
+def upsampled(maps: DepthMaps, cameras: Cameras) -> DepthMaps:
+    """``maps`` read at ``cameras`` (the same views at a higher resolution): nearest depth and confidence
+    (no depth blended across an edge)."""
+    import torch.nn.functional as F
+
+    if maps.depth.shape[-2:] == (cameras.height, cameras.width):
+        return maps
+    size = (cameras.height, cameras.width)
+    depth = F.interpolate(maps.depth[:, None], size=size, mode="nearest")[:, 0]
+    conf = F.interpolate(maps.confidence[:, None], size=size, mode="nearest")[:, 0]
+    return DepthMaps(cameras, depth, conf, maps.views, {**maps.info, "upsampled_from": list(maps.depth.shape[-2:])})
+
+
 def combine(primary: DepthMaps, fallback: DepthMaps, weight: float = 0.5) -> DepthMaps:
     """``primary``'s depth where it has some, ``fallback``'s (confidence scaled by ``weight``) elsewhere:
     stereo where it matched, the model's depth for the rest (same cameras)."""
@@ -205,3 +238,18 @@ def combine(primary: DepthMaps, fallback: DepthMaps, weight: float = 0.5) -> Dep
             "seconds": primary.info.get("seconds", 0.0) + fallback.info.get("seconds", 0.0),
             "parts": [primary.info, fallback.info]}
     return DepthMaps(primary.cameras, depth, conf, primary.views, info)
+
+
+def without_background(maps: DepthMaps, scene, shifts=(0.0,), tol: float = 2 / 255) -> DepthMaps:
+    """``maps`` with no depth where the photo shows the scene's background colour (a scene composited on
+    a known ``background``, e.g. procedural renders on black): there is no surface to make there, and a
+    model's depth in the empty sky made sheets that hid the objects from held-out views (demo scene,
+    ``bench/depth_sources.py``). Unshifted maps only (a shifted map's pixels are not the photo's)."""
+    if scene.background is None or any(s != 0 for s in shifts) or \
+            tuple(maps.depth.shape[-2:]) != (scene.height, scene.width):
+        return maps
+    bg = torch.tensor(scene.background, dtype=scene.images.dtype)
+    empty = (scene.images[maps.views] - bg).abs().amax(-1) <= tol  # [N, H, W]
+    zero = torch.zeros_like(maps.depth)
+    return DepthMaps(maps.cameras, torch.where(empty, zero, maps.depth), torch.where(empty, zero, maps.confidence),
+                     maps.views, {**maps.info, "background_pixels": float(empty.float().mean())})

@@ -21,7 +21,9 @@ similarity between the input frame of ``mesh.glb`` and the normalised model fram
 in), ``mesh_box`` (model frame, for near/far as ``MeshRasterizer.depth_range``), the sources'
 ``proj`` (``K_k [R_k | t_k]`` as 4x4 rows, model frame, float32 values) and ``centers``, the MLP
 weights (``w1 # [h1, C + 3]``, ``b1``, ``w2 # [h2, h1]``, ``b2``, ``w3 # [1, h2]``, ``b3``), the
-background colour, the visibility tolerance and default, and a default camera in the input frame.
+background colour, the visibility tolerance and default, the far fill's box and far z-depth (model frame,
+``MeshRenderOptions.fill="far"``: :mod:`omnirecon.mesh.fill`) and default, and a default camera in the
+input frame.
 """
 
 from __future__ import annotations
@@ -132,7 +134,7 @@ def _box(points: np.ndarray) -> list[list[float]]:
 
 
 def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, background, names=None,
-                 visibility: bool = True, extra: dict | None = None) -> Path:
+                 visibility: bool = True, extra: dict | None = None, fill: bool = True) -> Path:
     """Write a viewer bundle to ``folder`` (replaced as a whole: built beside it, then swapped in).
 
     Args:
@@ -144,6 +146,8 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         background: Colour where no triangle (RGB in [0, 1]).
         names: Source view names (file names of ``sources/``).
         visibility: Whether the viewer starts with the visibility test on (it can toggle it).
+        fill: Whether the viewer starts with the far fill on where no triangle covers a pixel (it can
+            toggle it; off: the background colour).
         extra: More JSON-serialisable entries for ``bundle.json`` (model, bake statistics, ...).
 
     Returns:
@@ -177,6 +181,8 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         "to_input": T.tolist(), "to_model": to_model.tolist(), "mesh_box": _box(used), "mesh_box_input": _box(used_in),
         "background": [float(c) for c in background], "up": up.tolist(),
         "visibility": {"default": bool(visibility), "tol": float(renderer.options.visibility_tol)},
+        "fill": {"default": bool(fill), "far": float(sources.far),
+                 "box": None if sources.bounds is None else sources.bounds.double().cpu().tolist()},
         "camera": _camera_dict(cams_in[0]),
         "sources": {"count": K, "width": W, "height": H, "names": [str(n) for n in names], "images": files,
                     "proj": tables["proj"], "centers": tables["centers"],

@@ -145,7 +145,8 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
             names = [scene.names[i] for i in views] if scene.names else None
             extra = {"model": info or {}, "bake": record["bake"], "scene": record["scene"], "views": views}
             files.append(write_bundle(out / "viewer", renderer, (out / "mesh.glb").read_bytes(), verts, faces,
-                                      scene.to_input, background, names, options.visibility, extra))
+                                      scene.to_input, background, names, options.visibility, extra,
+                                      fill=scene.background is None))  # as finetune's fill="auto"
             seconds["viewer"] = time.perf_counter() - start
     record["seconds"] = seconds
     write_json(out / "export.json", record)

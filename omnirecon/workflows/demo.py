@@ -316,7 +316,7 @@ def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, o
                      lines: list[str]):
     """Fine-tune the mesh path for 30 s (quick: 3 s) and show the held-out gain."""
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
-    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune  # lazy: demo --help stays fast
+    from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune  # lazy: demo --help stays fast
 
     seconds = 3.0 if cfg.quick else 30.0
     r = run_finetune(FinetuneConfig(ckpt=ckpt, scene=path, seconds=seconds, eval_at=(0.0, 10.0, seconds),
@@ -338,8 +338,10 @@ def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, o
                   f"{c[0][key]:.2f} dB before, {c[-1][key]:.2f} dB after ({c[-1][key] - c[0][key]:+.2f} dB, "
                   f"{c[-1]['steps']} steps); over the whole image {c[0]['psnr']:.2f} -> {c[-1]['psnr']:.2f} dB; "
                   f"coverage {r['coverage']:.0%} of the held-out pixels lie on the mesh (the rest: {r['fill']} fill). "
-                  "Tuning returns its best state on validation views, so it never ends below the start there.")
-            .figure(out / "finetune" / "curve.png", out, "held-out PSNR against seconds of tuning", 360)
+                  "Tuning returns its best state on validation views (a state replaces the start only when it gains "
+                  "on the whole image and on the objects there), so it never ends below the start there.")
+            .table(*curve_table(c))
+            .figure(out / "finetune" / "curve.png", out, "test and validation PSNR against seconds of tuning", 360)
             .figure(out / "finetune" / "before_after.png", out, "GT | before | after", 360))
 
 

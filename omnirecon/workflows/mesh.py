@@ -73,9 +73,10 @@ class MeshConfig(MachineConfig):
     default: the preset's, on for fit)."""
     max_faces: int = 200_000
     """Decimate the mesh to at most this many faces (0 = keep every face)."""
-    depth_pass: Literal["coarse", "fine"] = "fine"
+    depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
-    faster; on the demo scene F-score 0.59 instead of 0.67)."""
+    faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py
+    measured), fine otherwise."""
     min_acc: float = 0.5
     """Models that return accumulated opacity (IBRNet): pixels below it get no depth."""
     masks: bool = False
@@ -91,6 +92,9 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
+    surface: Literal["fusion", "poisson"] = "fusion"
+    """With --masks: `poisson` runs screened Poisson over the fused surface, trimmed to the masks (closes
+    holes; needs the `surface` extra, pymeshlab; dtu_scan24 held-out IoU 0.950 -> 0.964)."""
     complete: bool = True
     """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
     forward-facing scenes, hole filling); only with the fit preset."""
@@ -98,10 +102,11 @@ class MeshConfig(MachineConfig):
         given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
                  "trunc": self.trunc, "weights": self.weights}
         depth = self.depth if self.depth != "auto" else default_depth(scene, has_model)
+        depth_pass = self.depth_pass if self.depth_pass != "auto" else "coarse" if depth == "stereo+model" else "fine"
         return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
                                   min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,
                                   min_component=self.min_component, chunk=self.chunk, neighbours=self.num_views,
-                                  max_faces=self.max_faces, depth_pass=self.depth_pass,
+                                  max_faces=self.max_faces, depth_pass=depth_pass, surface=self.surface,
                                   **({} if self.fusion == "reference" else {"complete": self.complete}))
 
 

@@ -36,14 +36,14 @@ from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.report import Section, write_report
-from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.workflows.export import ExportConfig, run_export
-from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune
 from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video, scene_camera_path
@@ -68,7 +68,8 @@ class ReconstructConfig(MachineConfig):
     num_views: int = 3
     """Sources per depth map and per rendered pixel."""
     mesh_resolution: int | None = None
-    """Long side of the images the depth maps are rendered at (default: the eval protocol's, 128)."""
+    """Long side of the images meshed (default: the photos' own, at most 512: stereo matches at it, the model's
+    depth for stereo's holes is rendered at 128)."""
     resolution: int | None = None
     """Long side for fine-tuning, the held-out scores and the video (default: the photos' own, at most 512)."""
     finetune_seconds: float = 60.0
@@ -85,14 +86,6 @@ class ReconstructConfig(MachineConfig):
     """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer)."""
     overwrite: bool = False
     """Replace an existing --out folder."""
-
-
-def photo_side(scene_path: Path, cap: int = 512) -> int:
-    """The long side of the scene's photos in pixels, at most ``cap``."""
-    from omnirecon.data import ReadOptions, load_scene
-
-    probe = load_scene(scene_path, "auto", ReadOptions(max_views=1))
-    return min(cap, max(probe.width, probe.height))
 
 
 def run_reconstruct(cfg: ReconstructConfig) -> dict:
@@ -173,7 +166,8 @@ def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[
 def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[str]) -> dict:
     """A mesh from every view (``mesh.ply``); the record holds the meshes in memory under ``meshes``."""
     mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
-                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution, device=cfg.device,
+                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution or photo_side(scene_path),
+                          device=cfg.device,
                           threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
     lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
@@ -231,9 +225,11 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
         Section("Real-time mesh path").text(path_line).figure(path["video"], out, "camera path", 480),
-        Section("Held-out views").table(["seconds of fine-tuning", "PSNR (dB)", "coverage"],
-                                        [[p["seconds"], round(p["psnr"], 2), f"{p['coverage']:.1%}"] for p in curve])
-        .figure(out / "finetune" / "curve.png", out, "held-out PSNR vs fine-tuning time", 480)
+        Section("Held-out views").text("PSNR of the mesh path against seconds of fine-tuning: held-out test views "
+                                       "(never tuned on) and validation views (training views kept out of tuning; "
+                                       "the state returned is the best there, the start included).")
+        .table(*curve_table(curve))
+        .figure(out / "finetune" / "curve.png", out, "test and validation PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
         Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
     ]

@@ -12,7 +12,7 @@ from bench.report import peer as peer_report
 
 
 @pytest.mark.slow
-def test_run_all_tiny_writes_page_with_measured_numbers(tmp_path):
+def test_page_tiny_writes_page_with_measured_numbers(tmp_path):
     out = tmp_path / "BENCHMARKS.md"
     proc = subprocess.run([sys.executable, "-m", "bench", "page", "--tiny", "--out", str(out),
                            "--results", str(tmp_path / "results")], capture_output=True, text=True, timeout=300, cwd=ROOT)

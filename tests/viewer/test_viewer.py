@@ -201,7 +201,7 @@ def test_export_cli(exported, tmp_path, capsys):
 def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     """Headless Chromium (software WebGL2) draws the exported bundle at a fixed held-out camera, given in
     the input frame; the screenshot matches MeshRenderer.render for the same camera (visibility test
-    on and off) and the baked mode matches the vertex colours drawn in Python; without the float
+    on and off, the far fill on and off) and the baked mode matches the vertex colours drawn in Python; without the float
     feature texture the viewer falls back to the baked colours by itself."""
     reason = browser_missing()
     require(not reason, str(reason))
@@ -214,10 +214,13 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     mm = to_input_frame(exported["mesh"], torch.linalg.inv(scene.to_input.double()))
     sources = Sources.from_scene(scene, SOURCES)
     refs = {}
-    for vis in (True, False):
-        opts = MeshRenderOptions(background=scene.background, visibility=vis, fill="background")  # viewer: no fill yet
+    for vis in (True, False):  # a procedural scene with a background colour: the bundle's fill starts off
+        opts = MeshRenderOptions(background=scene.background, visibility=vis, fill="background")
         with MeshRenderer(model, mm, sources, opts) as r:
             refs[vis] = r.render(cam)["rgb"].numpy()
+    with MeshRenderer(model, mm, sources, MeshRenderOptions(background=scene.background, visibility=True)) as r:
+        refs["fill"], uncovered = r.render(cam)["rgb"].numpy(), ~r.render(cam)["mask"].numpy()
+    assert uncovered.mean() > 0.2  # the fill shades a good part of the view
     refs["baked"] = baked_reference(out, scene, cam)
     cam_in = cam.to(dtype=torch.float64).transformed(scene.to_input)  # what a user passes: the input frame
     camera = {"fx": float(cam_in.fx[0]), "fy": float(cam_in.fy[0]), "cx": float(cam_in.cx[0]),
@@ -250,6 +253,8 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
             img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float64) / 255
             scores["ibr"] = psnr(img, refs[False])
             fps = browser.evaluate("omnirecon.benchmark(10)")
+            url = server.url + "index.html?" + urllib.parse.urlencode({**query, "vis": "1", "fill": "1"})
+            scores["ibr_fill"] = psnr(shot(url, "ibr"), refs["fill"])
             url = server.url + "index.html?" + urllib.parse.urlencode({**query, "mode": "baked"})
             scores["baked"] = psnr(shot(url, "baked"), refs["baked"])
             url = broken_server.url + "index.html?" + urllib.parse.urlencode(query)
@@ -261,3 +266,4 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     print(f"browser vs Python PSNR: {scores}; viewer {fps['fps']:.0f} FPS at {fps['width']}x{fps['height']} ({fps['mode']})")
     assert all(s >= MIN_PSNR for s in scores.values()), scores
     assert psnr(refs[True], refs["baked"]) < min(scores.values())  # the modes differ: each matched its own
+    assert psnr(refs[True], refs["fill"]) < min(scores.values())  # and so do fill and background

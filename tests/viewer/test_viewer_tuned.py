@@ -86,7 +86,7 @@ def test_browser_draws_the_tuned_appearance(bundles):
     sources = Sources.from_scene(scene, SOURCES)
     refs = {}
     for name, model in bundles["models"].items():
-        opts = MeshRenderOptions(background=scene.background, visibility=True, fill="background")  # viewer: no fill yet
+        opts = MeshRenderOptions(background=scene.background, visibility=True)  # the far fill, as the viewer's fill=1
         with MeshRenderer(model, mm, sources, opts) as r:
             refs[name] = r.render(cam)["rgb"].numpy()
     cam_in = cam.to(dtype=torch.float64).transformed(scene.to_input)
@@ -96,7 +96,8 @@ def test_browser_draws_the_tuned_appearance(bundles):
     server.start()
     try:
         with HeadlessChromium(cam.width, cam.height, timeout=30) as browser:
-            browser.goto(server.url + "index.html?" + urllib.parse.urlencode({"camera": json.dumps(camera), "vis": "1"}))
+            browser.goto(server.url + "index.html?" + urllib.parse.urlencode({"camera": json.dumps(camera), "vis": "1",
+                                                                                 "fill": "1"}))
             state = browser.wait_for("document.documentElement.dataset.state !== 'loading' && "
                                      "document.documentElement.dataset.state")
             assert state == "ready", browser.console()

@@ -7,7 +7,10 @@
 //     feature f = bilinear sample of (W F_k + b) (align_corners=False, one-texel border of b)
 //     logit = MLP([ReLU(f); normalize(p - o) - normalize(p - c_k)]), -1e9 where not seen
 //     colour c_k = bilinear sample of source image k (border clamp)
-//   omega = softmax_k(logit); rgb = sum_k omega_k c_k; background where no triangle.
+//   omega = softmax_k(logit); rgb = sum_k omega_k c_k.
+// Where no triangle covers a pixel, the far fill (omnirecon.mesh.fill, MeshRenderOptions.fill="far"): the
+// point where the pixel-centre ray leaves the scene's bounds box, at most at z-depth `far`, shaded by the
+// same blend (a full-screen pass drawn before the mesh); with fill off or in baked mode, the background colour.
 // Baked mode draws the exported per-vertex colours instead (also the automatic fallback when float
 // textures or the IBR shader do not work here).
 //
@@ -15,7 +18,8 @@
 // +0.5). A fixed camera comes from the URL (?camera=<JSON>) or window.omnirecon.setCamera(...):
 //   {"fx", "fy", "cx", "cy", "width", "height", "c2w": 4x4 rows, "frame": "input" (default) | "model"}
 // "input" is the frame of mesh.glb (the user's scene); "model" the normalised frame the model works in.
-// Other URL parameters: mode=ibr|baked, vis=0|1, ui=0|1, scale=<render resolution factor of the interactive view>.
+// Other URL parameters: mode=ibr|baked, vis=0|1, fill=0|1, ui=0|1, scale=<render resolution factor of the
+// interactive view>.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -175,8 +179,31 @@ vec3 toSrgb(vec3 c) {
 }
 void main() { fragColor = vec4(toSrgb(vColor), 1.0); }`;
 
-function ibrFragmentShader(bundle) {
+// fill=false: the mesh's fragments (p = interpolated surface point); fill=true: the far fill's full-screen pass
+function ibrFragmentShader(bundle, fill = false) {
   const K = bundle.sources.count, C4 = Math.ceil(bundle.mlp.feature_dim / 4);
+  const main = fill ? `
+uniform mat4 uC2W;    // target camera-to-world, model frame (orthonormal rotation)
+uniform vec4 uIntr;   // fx, fy, cx, cy (pixels)
+uniform float uHeight; // canvas height (pixels): row v = H - gl_FragCoord.y
+uniform vec3 uBoxLo;
+uniform vec3 uBoxHi;
+uniform float uFar;
+void main() {
+  // omnirecon.mesh.fill.fill_points: the ray's exit from the box, at most at z-depth far (direction with z = 1)
+  vec2 uv = vec2(gl_FragCoord.x, uHeight - gl_FragCoord.y);
+  vec3 d = mat3(uC2W) * vec3((uv.x - uIntr.z) / uIntr.x, (uv.y - uIntr.w) / uIntr.y, 1.0);
+  vec3 o = uC2W[3].xyz;
+  vec3 safe = mix(d, vec3(1e-12), lessThan(abs(d), vec3(1e-12)));
+  vec3 t1 = (uBoxLo - o) / safe, t2 = (uBoxHi - o) / safe;
+  vec3 tmin = min(t1, t2), tmax = max(t1, t2);
+  float tIn = max(max(tmin.x, tmin.y), tmin.z), tOut = min(min(tmax.x, tmax.y), tmax.z);
+  float z = (tOut > max(tIn, 0.0) && tOut > 0.0) ? min(tOut, uFar) : uFar;
+  fragColor = vec4(shade(o + z * d), 1.0);
+}` : `
+in vec3 vModel;
+in vec3 vColor;
+void main() { fragColor = vec4(shade(vModel), 1.0); }`;
   return `
 precision highp float;
 precision highp int;
@@ -193,8 +220,6 @@ uniform vec2 uImageSize;          // W, H
 uniform vec2 uFeatSize;           // w, h (unpadded)
 uniform int uVisibility;
 uniform float uVisTol;
-in vec3 vModel;
-in vec3 vColor;
 out vec4 fragColor;
 
 ${mlpSource(bundle.mlp)}
@@ -217,8 +242,7 @@ vec3 sampleImage(int k, vec2 st) {
   return t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y);
 }
 
-void main() {
-  vec3 p = vModel;
+vec3 shade(vec3 p) {
   vec3 u = unit(p - uOrigin);
   float logits[K];
   vec3 colours[K];
@@ -264,9 +288,15 @@ void main() {
     total += e;
     rgb += e * colours[k];
   }
-  fragColor = vec4(rgb / total, 1.0);
-}`;
+  return rgb / total;
 }
+${main}`;
+}
+
+const FILL_VERTEX_SHADER = `
+precision highp float;
+in vec3 position;
+void main() { gl_Position = vec4(position.xy, 0.0, 1.0); }`;
 
 function arrayTexture(data, width, height, depth, format, type) {
   const t = new THREE.DataArrayTexture(data, width, height, depth);
@@ -292,6 +322,7 @@ class Viewer {
     this.fixed = null;
     this.mode = 'ibr';
     this.visibility = !!bundle.visibility.default;
+    this.fill = !!(bundle.fill && bundle.fill.default);
     this.fallbackReason = null;
 
     const fixed = params.has('camera');
@@ -322,6 +353,7 @@ class Viewer {
     this.mesh.matrixAutoUpdate = false;
     this.scene.add(this.mesh);
     this.ibrMaterial = null;
+    this.fillMesh = null;
     this.common = common;
 
     // orbit camera (three.js convention, input frame)
@@ -358,11 +390,33 @@ class Viewer {
         uVisibility: { value: this.visibility ? 1 : 0 }, uVisTol: { value: b.visibility.tol },
       },
     });
+    if (b.fill) { // the far fill: a full-screen triangle drawn first, the mesh over it
+      const box = b.fill.box || [[-1e30, -1e30, -1e30], [1e30, 1e30, 1e30]];
+      const tri = new THREE.BufferGeometry();
+      tri.setAttribute('position', new THREE.Float32BufferAttribute([-1, -1, 0, 3, -1, 0, -1, 3, 0], 3));
+      const fillMaterial = new THREE.RawShaderMaterial({
+        glslVersion: THREE.GLSL3, side: THREE.DoubleSide, depthTest: false, depthWrite: false,
+        vertexShader: FILL_VERTEX_SHADER, fragmentShader: ibrFragmentShader(b, true),
+        uniforms: {
+          ...this.ibrMaterial.uniforms,
+          uC2W: { value: new THREE.Matrix4() }, uIntr: { value: new THREE.Vector4() }, uHeight: { value: 1 },
+          uBoxLo: { value: new THREE.Vector3(...box[0]) }, uBoxHi: { value: new THREE.Vector3(...box[1]) },
+          uFar: { value: b.fill.far },
+        },
+      });
+      this.fillMesh = new THREE.Mesh(tri, fillMaterial);
+      this.fillMesh.frustumCulled = false;
+      this.fillMesh.renderOrder = -1;
+      this.fillMesh.visible = false;
+      this.scene.add(this.fillMesh);
+    }
     // compile now, so that a shader this GPU cannot take falls back to the baked colours
     this.mesh.material = this.ibrMaterial;
+    if (this.fillMesh) this.fillMesh.visible = true;
     this.renderer.compile(this.scene, this.dummyCamera);
     this.renderer.render(this.scene, this.dummyCamera);
     this.mesh.material = this.bakedMaterial;
+    if (this.fillMesh) this.fillMesh.visible = false;
     if (this.shaderErrors.length) throw new Error(`IBR shader: ${this.shaderErrors[0]}`);
   }
 
@@ -466,6 +520,12 @@ class Viewer {
     return this.render();
   }
 
+  setFill(on) {
+    this.fill = !!on;
+    this.syncUI();
+    return this.render();
+  }
+
   requestRender() {
     if (this.pending) return;
     this.pending = true;
@@ -481,9 +541,17 @@ class Viewer {
     const useIBR = this.mode === 'ibr' && this.ibrMaterial;
     if (useIBR) this.ibrMaterial.uniforms.uOrigin.value.set(cam.c2w[3], cam.c2w[7], cam.c2w[11]);
     this.mesh.material = useIBR ? this.ibrMaterial : this.bakedMaterial;
+    if (this.fillMesh) {
+      this.fillMesh.visible = !!(useIBR && this.fill);
+      const u = this.fillMesh.material.uniforms;
+      u.uC2W.value.copy(mat.three(cam.c2w));
+      u.uIntr.value.set(cam.fx, cam.fy, cam.cx, cam.cy);
+      u.uHeight.value = this.canvas.height;
+    }
     this.renderer.render(this.scene, this.dummyCamera);
     this.frames = (this.frames || 0) + 1;
-    return { mode: useIBR ? 'ibr' : 'baked', width: this.canvas.width, height: this.canvas.height };
+    return { mode: useIBR ? 'ibr' : 'baked', fill: !!(useIBR && this.fillMesh && this.fill), width: this.canvas.width,
+      height: this.canvas.height };
   }
 
   // frames per second of the current mode at the current size, orbiting the camera a little each frame
@@ -521,9 +589,11 @@ class Viewer {
       r.addEventListener('change', () => this.setMode(r.value));
     }
     document.getElementById('vis').addEventListener('change', (e) => this.setVisibility(e.target.checked));
+    document.getElementById('fill').addEventListener('change', (e) => this.setFill(e.target.checked));
     window.addEventListener('keydown', (e) => {
       if (e.key === 'b') this.setMode(this.mode === 'ibr' ? 'baked' : 'ibr');
       if (e.key === 'v') this.setVisibility(!this.visibility);
+      if (e.key === 'f') this.setFill(!this.fill);
     });
     this.syncUI();
   }
@@ -536,6 +606,9 @@ class Viewer {
     const vis = document.getElementById('vis');
     vis.checked = this.visibility;
     vis.disabled = !this.ibrMaterial;
+    const fill = document.getElementById('fill');
+    fill.checked = this.fill && !!this.fillMesh;
+    fill.disabled = !this.fillMesh;
     const b = this.bundle, st = document.getElementById('status');
     const parts = [`${b.faces.toLocaleString()} triangles, ${b.sources.count} source views`];
     if (this.fallbackReason) parts.push(`<span class="note">baked colours only: ${this.fallbackReason}</span>`);
@@ -566,12 +639,14 @@ async function main() {
     setCamera: (c) => viewer.setCamera(c),
     setMode: (m) => viewer.setMode(m),
     setVisibility: (v) => viewer.setVisibility(v),
+    setFill: (f) => viewer.setFill(f),
     render: () => viewer.render(),
     benchmark: (n) => viewer.benchmark(n),
   };
   window.omnirecon = api;
   if (params.get('mode') === 'baked') viewer.mode = 'baked';
   if (params.has('vis')) viewer.visibility = params.get('vis') !== '0';
+  if (params.has('fill')) viewer.fill = params.get('fill') !== '0';
   try {
     const t = bundle.textures;
     const [images, features, depth] = await Promise.all([t.images.file, t.features.file, t.depth.file]

@@ -4,13 +4,13 @@ validation seeds (901000+) and the held-out views of the real training scenes (t
 view, which training never draws). The final held-out scenes (fern, dtu_scan24/37, seeds 900000+) are not
 looked at here.
 
-    python -m bench levers --runs ibrnet_vgg16 gpnr_vgg16 gpnr_scratch --cpu-budget 100
-    python -m bench levers --eval-only --runs ibrnet_vgg16       # rescore finished runs, rewrite the JSON
-    python -m bench levers --eval-only --runs ibrnet_vgg16 --shipped ibrnet-tiny   # also score a shipped checkpoint
+    python -m bench train_levers --runs ibrnet_vgg16 gpnr_vgg16 gpnr_scratch --cpu-budget 100
+    python -m bench train_levers --eval-only --runs ibrnet_vgg16       # rescore finished runs, rewrite the JSON
+    python -m bench train_levers --eval-only --runs ibrnet_vgg16 --shipped ibrnet-tiny   # also score a shipped checkpoint
 
 Every run: ``--schedule constant --warmup 50`` (a run cut by its CPU budget is at the same point of the
 schedule as its rival whatever its cost per step), K drawn from [3, 10], 8 procedural scenes per rig and the
-real training scenes. Runs live in outputs/train/lever_<name>; results go to bench/results/levers.json
+real training scenes. Runs live in outputs/train/lever_<name>; results go to bench/results/train_levers.json
 (provenance header; the table: `python -m bench page --reuse`).
 """
 
@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--extra", nargs="*", default=[], metavar="NAME=CKPT",
                    help="also score other checkpoints (e.g. a continued run) under a name")
     a = p.parse_args(argv)
-    dest = ROOT / "bench" / "results" / "levers.json"
+    dest = ROOT / "bench" / "results" / "train_levers.json"
     result = json.loads(dest.read_text()) if dest.is_file() else {"runs": {}, "shipped": {}, "extra": {}}
     for name in a.runs:
         if not a.eval_only:

@@ -1,0 +1,46 @@
+"""BENCHMARKS.md section: `make demo` on a fresh clone and `reconstruct` of photos, CPU seconds per stage and the
+stage that limits against the goals (`python -m bench end_to_end`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from bench.report.common import prov, read
+
+
+def section(results: Path) -> str | None:
+    r = read(results, "end_to_end.json")
+    return _end_to_end(r) if r else None
+
+
+def _end_to_end(r: dict) -> str:
+    """BENCHMARKS.md section: per command, CPU seconds per stage at one thread, the goal and what limits."""
+    lines = ["## End to end: `make demo` and `reconstruct` (`python -m bench end_to_end`)", "",
+             "One thread, stage clocks reading process CPU seconds (what a quiet machine would take at one thread; "
+             "every wall budget, e.g. 60 s of tuning, becomes CPU seconds too); whole-command CPU and wall seconds from "
+             "`/usr/bin/time` with the load average beside them (wall on the shared cores is mostly the scheduler).", ""]
+    for name, run in r.items():
+        if name == "mesh_sources":
+            continue
+        v, w = run["verdict"], run["whole"]
+        lines += [f"**{name}** (`{run['command']}`): stages {v['stages_total_cpu_s']} CPU s against the goal of "
+                  f"{v['goal_s']:.0f} s ({v['over_goal_s']:+.0f} s); the limit is **{v['limiting_stage']}** with "
+                  f"{v['limiting_stage_cpu_s']} CPU s ({100 * v['limiting_share']:.0f} %). Whole command {w['cpu_s']} "
+                  f"CPU s, {w['wall_s']} s wall at load {run.get('load')}, peak RSS {w['peak_rss_mb']} MB."
+                  + (f" `make setup` before it: {run['setup']['cpu_s']} CPU s, {run['setup']['wall_s']} s wall."
+                     if run.get("setup") else ""), "",
+                  "| stage | CPU s | share |", "|---|---|---|"]
+        total = v["stages_total_cpu_s"]
+        lines += [f"| {k} | {s} | {100 * s / total:.0f} % |" for k, s in run["stages_cpu_s"].items()]
+        lines += ["", prov(run["provenance"]), ""]
+    if r.get("mesh_sources"):
+        lines += ["Reconstruct's mesh stage from cheaper depth sources (`omnirecon mesh --views all` on the scene "
+                  "reconstruct processed, one thread, CPU seconds per stage; `render` is the depth source):", "",
+                  "| depth source | images -> mesh CPU s | render | fuse | clean | whole command CPU s |",
+                  "|---|---|---|---|---|---|"]
+        for label, m in r["mesh_sources"].items():
+            st = m["stages_cpu_s"]
+            lines.append(f"| {label} | {st.get('images_to_mesh')} | {st.get('render')} | {st.get('fuse')} | "
+                         f"{st.get('clean')} | {(m['whole'] or {}).get('cpu_s', '–')} |")
+        lines.append("")
+    return "\n".join(lines)
