@@ -2,6 +2,7 @@
 
     python -m bench tiny_levers                                   # every preset, its candidate levers
     python -m bench tiny_levers --models ibrnet-tiny --scenes synth:eval ../shared/data/llff/fern --rounds 1
+    python -m bench tiny_levers --candidates coarse_only bf16 bf16_samples_24 --targets 2   # the chosen levers only
 
 The issue's goal is a render throughput of 3x what the tiny presets had before the fast paths (their
 reference twins: fp32 eager, every switch off) *at equal quality*. For each shipped tiny checkpoint and
@@ -94,12 +95,12 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(-10 * torch.log10((a.float() - b.float()).square().mean().clamp_min(1e-12)))
 
 
-def measure(model_name: str, plans, rounds: int) -> dict:
+def measure(model_name: str, plans, rounds: int, only: list[str] | None = None) -> dict:
     from omnirecon.models import fast
 
     model, weights = load(model_name)
     base_cfg = {k: getattr(model.cfg, k) for k in CONFIG if hasattr(model.cfg, k)}
-    cands = candidates(model_name)
+    cands = {k: v for k, v in candidates(model_name).items() if not only or k in ("reference", "default", *only)}
     times: dict[str, list[float]] = {c: [] for c in cands}
     outs: dict[str, list] = {}
     with fast.switches(**cands["reference"]):  # warm-up
@@ -179,6 +180,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--k", type=int, default=3, help="source views")
     parser.add_argument("--targets", type=int, default=1, help="targets per scene")
     parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--candidates", nargs="*", default=None, metavar="NAME",
+                        help="only these candidates (besides reference and default), e.g. coarse_only bf16_samples_24")
     parser.add_argument("--switches", nargs="*", default=None, metavar="PRESET",
                         help="instead: each fast-path switch against its reference twin on these presets (random "
                              "weights, bench/profile_models.py's cases); writes --out (default switches.json)")
@@ -202,7 +205,7 @@ def main(argv: list[str] | None = None) -> dict:
               "k": args.k, "targets_per_scene": args.targets, "rounds": args.rounds,
               "scenes": [{"name": es.name, "size": [es.scene.width, es.scene.height], "targets": [t for t, _ in p]}
                          for es, p in plans], "loadavg_start": load_start,
-              "models": [measure(m, plans, args.rounds) for m in args.models]}
+              "models": [measure(m, plans, args.rounds, args.candidates) for m in args.models]}
     result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     write_json(args.out or HERE / "results" / "tiny_levers.json", result)
     return result

@@ -6,7 +6,7 @@ With the shipped checkpoints (``checkpoints/<preset>``) and no per-scene trainin
    ``--data PATH`` (any supported format), and draws its cameras;
 2. renders a novel-view orbit (MP4, or GIF without ffmpeg) with GPNR and with Omni-Recon;
 3. scores held-out views of the scene for the plane-sweep floor and every shipped model;
-4. extracts Omni-Recon's mesh (and the IBRNet-density mesh for comparison) and, on procedural
+4. extracts Omni-Recon's mesh (IBRNet's density mesh when only ibrnet-tiny ships) and, on procedural
    scenes, prints its Chamfer distance to the exact ground-truth mesh;
 5. writes ``<out>/index.html`` with every picture, video and table, and ``demo.json`` with the numbers.
 
@@ -30,12 +30,17 @@ ROOT = Path(__file__).resolve().parents[2]
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
 and not among the first scenes of ``synth:eval``)."""
-RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
-"""Shipped checkpoints whose novel-view orbit the demo renders."""
+RENDER_MODELS = {"gpnr-tiny": {"precision": "bf16", "samples": 24}, "omnirecon-tiny": {"coarse_only": True}}
+"""Shipped checkpoints whose novel-view orbit the demo renders, with the render levers each orbit uses (``omnirecon
+render`` options): gpnr-tiny bf16 + 24 samples (3.8x its reference twin), omnirecon-tiny its coarse pass only
+(4.1x); both within about 0.1 dB of the full render on held-out views (``python -m bench tiny_levers``)."""
 SCORE_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
-"""Models scored on the held-out views (the floor needs no checkpoint)."""
+"""Models scored on the held-out views (the floor needs no checkpoint), at their full render settings."""
 MESH_MODELS = ("omnirecon-tiny", "ibrnet-tiny")
-"""Models meshed (Omni-Recon's SDF and the IBRNet-density baseline)."""
+"""Models the demo may mesh, in order: it meshes the first shipped one only. With stereo depth first (``mesh
+--depth auto``) the two models' meshes were identical wherever stereo matched, and the second all-view mesh cost
+99-173 s of the demo; ``omnirecon mesh --ckpt checkpoints/ibrnet-tiny`` and BENCHMARKS' geometry tables compare
+them."""
 
 
 @dataclass
@@ -135,15 +140,16 @@ def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
     videos = Section("Novel views").text(
         f"An orbit of {frames} frames at a {res}-px long side, each frame rendered from its {cfg.num_views} "
         "nearest source views, with no per-scene training.")
-    for name in RENDER_MODELS:
+    for name, levers in RENDER_MODELS.items():
         ckpt = _checkpoint(cfg, name)
         if ckpt is None:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
         render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                              num_views=cfg.num_views, out=out / f"orbit_{name}")
+                              num_views=cfg.num_views, out=out / f"orbit_{name}", **levers)
         folder, video = timed(numbers, f"orbit_{name}", run_render, render)
-        videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
+        shown = ", ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}") for k, v in levers.items())
+        videos.figure(video, out, f"{name} ({shown}): {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")
     return videos
 
@@ -213,15 +219,15 @@ def meshes_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
     from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines  # lazy: demo --help stays fast
 
     meshes = Section("Mesh").text(
-        f"`omnirecon mesh --views all`: depth at every training view, each rendered from its {min(cfg.num_views, 3)} "
-        "nearest views, fused with confidence weights at a scale fitted to the depth maps, marching cubes, cleaning, "
-        "a face budget; background kept; exported in the input frame (PLY and GLB). The mesh-path and fine-tuning "
-        "sections below use the Omni-Recon mesh.")
+        "`omnirecon mesh --views all`: depth at every training view (`--depth auto`: classical stereo, and the "
+        f"model's depth rendered from the {min(cfg.num_views, 3)} nearest views where stereo finds none), fused with "
+        "confidence weights at a scale fitted to the depth maps, marching cubes, cleaning, a face budget; background "
+        "kept; exported in the input frame (PLY and GLB). The mesh-path and fine-tuning sections below use this mesh; "
+        "`omnirecon mesh --ckpt checkpoints/ibrnet-tiny` meshes the IBRNet-density baseline (identical wherever "
+        "stereo matched, so the demo leaves it out).")
     mesh_rows = []
-    for name in MESH_MODELS:
+    for name in [m for m in MESH_MODELS if _checkpoint(cfg, m) is not None][:1]:
         ckpt = _checkpoint(cfg, name)
-        if ckpt is None:
-            continue
         mesh_cfg = MeshConfig(scene=path, ckpt=ckpt, views=("all",), num_views=min(cfg.num_views, 3),
                               out=(out / f"mesh_{name}.ply", out / f"mesh_{name}.glb"),
                               resolution=48 if cfg.quick else None, voxel=1 / 96 if cfg.quick else None)

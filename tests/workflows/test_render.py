@@ -11,8 +11,10 @@ import torch
 from omnirecon import trajectory
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.cli import main
+from omnirecon.data.io import read_image
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.workflows.demo import ROOT
 from omnirecon.workflows.render import _write_gif
 
 
@@ -137,6 +139,29 @@ def test_render_cli(path, extra, frames, scene, tmp_path, capsys):
         assert meta["frames"][0]["sources"][0] == 0  # a keyframe's nearest source is its own view
 
 
+@pytest.mark.parametrize("preset, levers", [("gpnr-tiny", ["--samples", "8", "--precision", "bf16"]),
+                                            ("omnirecon-tiny", ["--coarse-only"])])
+def test_render_levers_change_the_frame_a_little_and_are_recorded(preset, levers, scene, tmp_path, capsys):
+    ckpt = ROOT / "checkpoints" / preset
+    if not (ckpt / "model.safetensors").is_file():
+        pytest.skip(f"the shipped {preset} checkpoint is not in this clone")
+
+    def run(name: str, extra: list[str]):
+        out = tmp_path / name
+        code = main(["render", "--ckpt", str(ckpt), "--scene", str(scene), "--frames", "1", "--num-views", "3",
+                     "--resolution", "24", "--no-video", "--threads", "1", "--out", str(out), *extra])
+        assert code == 0, capsys.readouterr().err
+        return read_image(out / "frames" / "0000.png").astype(np.float64), json.loads((out / "cameras.json").read_text())
+
+    full, _ = run("full", [])
+    fast, meta = run("fast", levers)
+    assert not np.array_equal(full, fast)  # the levers change what is rendered ...
+    assert np.abs(full - fast).mean() < 0.1  # ... but not into another picture
+    assert meta["model"]["render_options"] == {"coarse_only": "--coarse-only" in levers,
+                                               "precision": "bf16" if "bf16" in levers else "fp32"}
+    assert meta["model"].get("render_samples") == ({"num_samples": 8} if "--samples" in levers else None)
+
+
 def test_gif_fallback(tmp_path):
     frames = [np.full((5, 7, 3), i * 40, np.uint8) for i in range(3)]
     path = _write_gif(tmp_path / "video.gif", frames, fps=10)
@@ -150,6 +175,7 @@ def test_gif_fallback(tmp_path):
     (["--frames", "0"], "--frames"),
     (["--path", "interp", "--keyframes", "0", "99"], "--keyframes"),
     (["--num-views", "99"], "--num-views"),
+    (["--samples", "1"], "--samples"),
 ])
 def test_render_bad_input_exit_2(args, message, scene, tmp_path, capsys):
     code = main(["render", "--model", "floor", "--scene", str(scene), "--out", str(tmp_path / "o"), *args])
