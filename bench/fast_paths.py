@@ -54,11 +54,12 @@ def variants(model_name: str) -> dict[str, dict]:
 
 def load(model_name: str):
     from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.models.registry import build_model
+    from omnirecon.models.registry import build_model, full_render
 
     ckpt = ROOT / "checkpoints" / model_name
     if ckpt.is_dir():
         model, meta = load_checkpoint(ckpt)
+        full_render(model)  # the full render (the checkpoint's render options are not what this compares)
         return model.eval(), f"checkpoints/{model_name} step {meta['step']}"
     torch.manual_seed(0)
     return build_model(model_name).eval(), "random weights (no shipped checkpoint)"
@@ -90,7 +91,8 @@ def render_all(model, es, plan, **options) -> tuple[float, list[dict]]:
         sources = Sources.from_scene(scene, src)
         with torch.no_grad():
             feats = model.encode(sources)
-        out = model.render_view(feats, scene.cameras[[t]], chunk=4096, **options)
+        full = {"fine_pass": True} if model.capabilities.passes else {}  # the full render, not the checkpoint's default
+        out = model.render_view(feats, scene.cameras[[t]], chunk=4096, **(full | options))
         outs.append({k: v for k, v in out.items() if k in ("rgb", "depth", "depth_coarse", "valid")})
     return time.process_time() - t0, outs
 

@@ -10,7 +10,9 @@ each candidate, on every scene (``synth:eval`` seeds under the ``cpu`` protocol 
 by path; K = 3 nearest pool views per target, ``--targets`` targets per scene):
 
 * ``reference``: every fast-path switch at its reference twin (the throughput before the fast paths);
-* ``default``: the defaults of ``FastPaths`` (what every command now runs);
+* ``default``: the defaults of ``FastPaths``, the full render (both passes, every sample, fp32);
+* ``checkpoint``: what every command now runs: the defaults with the checkpoint's own render options
+  (``model_config``: gpnr-tiny's ``render_samples`` / ``render_bf16``, omnirecon-tiny's ``render_fine_pass``);
 * switches (``bf16``: bf16 autocast of the per-sample networks), render options (``coarse_only``:
   ``fine_pass=False``; ``surface_N``: the fine pass on N importance samples only) and sample counts
   (``fine_N`` / ``coarse_N`` / ``samples_N``: the model's config changed at render time, no retraining).
@@ -43,7 +45,7 @@ CONFIG = ("coarse_samples", "fine_samples", "num_samples")
 def candidates(model_name: str) -> dict[str, dict]:
     from omnirecon.models.fast import REFERENCE
 
-    out = {"reference": dict(REFERENCE), "default": {}, "bf16": {"bf16_render": True}}
+    out = {"reference": dict(REFERENCE), "default": {}, "checkpoint": {}, "bf16": {"bf16_render": True}}
     if model_name.startswith("gpnr"):
         out.update({"samples_24": {"num_samples": 24}, "samples_16": {"num_samples": 16},
                     "bf16_samples_24": {"bf16_render": True, "num_samples": 24}})
@@ -57,9 +59,12 @@ def candidates(model_name: str) -> dict[str, dict]:
 
 def load(model_name: str):
     from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.models.registry import full_render
 
     model, meta = load_checkpoint(ROOT / "checkpoints" / model_name)
-    return model.eval(), f"checkpoints/{model_name} step {meta['step']}"
+    own = model.cfg
+    full_render(model)  # the full render; the checkpoint's own render options are the candidate "checkpoint"
+    return model.eval(), f"checkpoints/{model_name} step {meta['step']}", own
 
 
 def jobs(specs: list[str], count: int, k: int, targets: int):
@@ -98,19 +103,24 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 def measure(model_name: str, plans, rounds: int, only: list[str] | None = None) -> dict:
     from omnirecon.models import fast
 
-    model, weights = load(model_name)
+    model, weights, own = load(model_name)
+    full = model.cfg
     base_cfg = {k: getattr(model.cfg, k) for k in CONFIG if hasattr(model.cfg, k)}
-    cands = {k: v for k, v in candidates(model_name).items() if not only or k in ("reference", "default", *only)}
+    cands = {k: v for k, v in candidates(model_name).items()
+             if not only or k in ("reference", "default", "checkpoint", *only)}
     times: dict[str, list[float]] = {c: [] for c in cands}
     outs: dict[str, list] = {}
     with fast.switches(**cands["reference"]):  # warm-up
         render_all(model, plans[:1])
     for _ in range(rounds):
         for name, spec in cands.items():
+            model.cfg = own if name == "checkpoint" else full
             for key, value in base_cfg.items():
                 setattr(model.cfg, key, spec.get(key, value))
+            options = {"fine_pass": True} if model.capabilities.passes and name != "checkpoint" else {}
+            options |= {k: v for k, v in spec.items() if k in OPTIONS}  # the full render unless a lever says otherwise
             with fast.switches(**{k: v for k, v in spec.items() if k not in OPTIONS + CONFIG}):
-                t, o = render_all(model, plans, **{k: v for k, v in spec.items() if k in OPTIONS})
+                t, o = render_all(model, plans, **options)
             times[name].append(t)
             outs[name] = o
     for key, value in base_cfg.items():

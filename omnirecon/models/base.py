@@ -36,9 +36,10 @@ class Capabilities:
     and ``model.appearance`` (the real-time mesh path, export, fine-tuning, PET)."""
     passes: bool = False
     """Two passes, coarse then fine on importance samples (IBRNet, Omni-Recon): ``render_rays`` takes the
-    output-changing options ``fine_pass: bool = True`` (False: outside training, render the coarse pass
+    output-changing options ``fine_pass: bool | None = None`` (False: outside training, render the coarse pass
     only, as a model without a fine pass would: depth maps for meshing, where the coarse depth of both
-    shipped tiny models scored within 5 % of the fine depth at less than half the samples) and
+    shipped tiny models scored within 5 % of the fine depth at less than half the samples; None: the model's
+    default, the fine pass unless its config says otherwise, e.g. Omni-Recon's ``render_fine_pass``) and
     ``surface_samples: int = 0`` (n > 0: outside training, the fine pass evaluates only n importance
     samples around the coarse surface instead of the coarse samples plus the fine ones; both shipped
     models lose 3-12 dB on a held-out scene with it). Both are quality/speed trades measured by
@@ -65,7 +66,7 @@ class GeneralizableModel(nn.Module):
         return render_sub_batches(lambda r: self.render_rays(features, r, **kwargs), rays, FAST.train_batch)
 
     def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None,
-                    fine_pass: bool = True, surface_samples: int = 0) -> dict[str, Tensor]:
+                    fine_pass: bool | None = None, surface_samples: int = 0) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
 
         ``signals # [V, H, W, C]`` (per-source-view 2-D maps) is passed to ``render_rays`` when given

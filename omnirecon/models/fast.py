@@ -70,10 +70,11 @@ class FastPaths:
     """IBRNet's aggregator applies its ELUs in place on the Linear outputs they follow (reference: a new
     tensor each). Same values; out-of-place ELU on 256 rays x 128 samples x 3 views x 64 channels took
     2x the in-place one (one thread), ~1.16x on the whole aggregator."""
-    bf16_render: bool = False
+    bf16_render: bool | None = None
     """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
     appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
-    and everything geometric stays fp32 (reference: fp32 throughout). Off: 1.0-1.1x for IBRNet and
+    and everything geometric stays fp32 (reference, False: fp32 throughout). None: each model's own choice
+    (GPNR's ``render_bf16``, on in the shipped gpnr-tiny; the others fp32): 1.0-1.1x for IBRNet and
     Omni-Recon, 1.4-1.5x for GPNR, at 56-67 dB PSNR to the fp32 render (colour up to 0.14 off)."""
 
 
@@ -126,11 +127,17 @@ def grad_mode():
     return torch.inference_mode() if FAST.inference_mode else _ref.grad_mode()
 
 
-def net_autocast(device: torch.device | str):
-    """bf16 autocast for a model's per-sample networks when ``FAST.bf16_render`` and rendering; else the
-    reference (none). Geometry (projection, sample positions, compositing) stays in the sources' dtype:
-    callers cast the networks' outputs back."""
-    if not (FAST.bf16_render and _RENDERING[0]):
+def is_rendering() -> bool:
+    """Inside ``render_view`` (render options of a model's config apply there only, never in training)."""
+    return _RENDERING[0] > 0
+
+
+def net_autocast(device: torch.device | str, prefer: bool = False):
+    """bf16 autocast for a model's per-sample networks when rendering and ``FAST.bf16_render`` is True, or is
+    None and the model ``prefer``s it (its config); else the reference (none). Geometry (projection, sample
+    positions, compositing) stays in the sources' dtype: callers cast the networks' outputs back."""
+    on = prefer if FAST.bf16_render is None else FAST.bf16_render
+    if not (on and _RENDERING[0]):
         return _ref.net_autocast(device)
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
 

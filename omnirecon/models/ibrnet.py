@@ -256,15 +256,15 @@ class IBRNet(GeneralizableModel):
         return out
 
     def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False,
-                    signals: Tensor | None = None, fine_pass: bool = True, surface_samples: int = 0
+                    signals: Tensor | None = None, fine_pass: bool | None = None, surface_samples: int = 0
                     ) -> dict[str, Tensor]:
         """Coarse then fine pass. ``signals # [V, H, W, C]`` (optional, per-source-view 2-D maps): also
         return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
         ``acc``, see :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the
-        output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``)."""
+        output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: the fine pass)."""
         z = coarse_depths(features.sources, rays, self.cfg.coarse_samples, jitter)
-        fine_net = self.fine if fine_pass or jitter else None  # fine_pass=False: depth maps from the coarse pass
+        fine_net = self.fine if fine_pass is not False or jitter else None  # False: depth maps from the coarse pass
         coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
         if fine_net is None:

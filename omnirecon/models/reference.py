@@ -23,8 +23,8 @@ def grad_mode():
     return torch.no_grad()
 
 
-def net_autocast(device: torch.device | str):
-    """The per-sample networks in the sources' dtype: no autocast."""
+def net_autocast(device: torch.device | str, prefer: bool = False):
+    """The per-sample networks in the sources' dtype: no autocast (whatever the model ``prefer``s)."""
     return nullcontext()
 
 

@@ -51,3 +51,17 @@ def build_model(preset: str, overrides: dict | None = None):
 def model_config_dict(model) -> dict:
     """The model's config as JSON-serialisable data."""
     return dataclasses.asdict(model.cfg)
+
+
+RENDER_OPTIONS = {"render_samples": None, "render_bf16": False, "render_fine_pass": True}
+"""Config fields that choose how a checkpoint renders outside training (measured per weights, e.g. the shipped
+gpnr-tiny's 24 samples in bf16, omnirecon-tiny's coarse pass), at their full-render values."""
+
+
+def full_render(model):
+    """``model`` with every render option of its config at its full-render value (:data:`RENDER_OPTIONS`):
+    what benchmarks compare levers and reference twins against. Returns ``model``."""
+    names = {f.name for f in dataclasses.fields(model.cfg)}
+    model.cfg = dataclasses.replace(model.cfg, **{k: v for k, v in RENDER_OPTIONS.items() if k in names})
+    return model
+

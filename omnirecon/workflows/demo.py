@@ -30,12 +30,12 @@ ROOT = Path(__file__).resolve().parents[2]
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
 and not among the first scenes of ``synth:eval``)."""
-RENDER_MODELS = {"gpnr-tiny": {"precision": "bf16", "samples": 24}, "omnirecon-tiny": {"coarse_only": True}}
-"""Shipped checkpoints whose novel-view orbit the demo renders, with the render levers each orbit uses (``omnirecon
-render`` options): gpnr-tiny bf16 + 24 samples (3.8x its reference twin), omnirecon-tiny its coarse pass only
-(4.1x); both within about 0.1 dB of the full render on held-out views (``python -m bench tiny_levers``)."""
+RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
+"""Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
+(gpnr-tiny: 24 samples in bf16, 3.9x its reference twin; omnirecon-tiny: the coarse pass, 4.2x; both within 0.1 dB
+of the full render on held-out views: ``python -m bench tiny_levers``)."""
 SCORE_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
-"""Models scored on the held-out views (the floor needs no checkpoint), at their full render settings."""
+"""Models scored on the held-out views (the floor needs no checkpoint), each with its checkpoint's render options."""
 MESH_MODELS = ("omnirecon-tiny", "ibrnet-tiny")
 """Models the demo may mesh, in order: it meshes the first shipped one only. With stereo depth first (``mesh
 --depth auto``) the two models' meshes were identical wherever stereo matched, and the second all-view mesh cost
@@ -140,16 +140,15 @@ def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
     videos = Section("Novel views").text(
         f"An orbit of {frames} frames at a {res}-px long side, each frame rendered from its {cfg.num_views} "
         "nearest source views, with no per-scene training.")
-    for name, levers in RENDER_MODELS.items():
+    for name in RENDER_MODELS:
         ckpt = _checkpoint(cfg, name)
         if ckpt is None:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
         render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                              num_views=cfg.num_views, out=out / f"orbit_{name}", **levers)
+                              num_views=cfg.num_views, out=out / f"orbit_{name}")
         folder, video = timed(numbers, f"orbit_{name}", run_render, render)
-        shown = ", ".join(f"--{k.replace('_', '-')}" + ("" if v is True else f" {v}") for k, v in levers.items())
-        videos.figure(video, out, f"{name} ({shown}): {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
+        videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")
     return videos
 

@@ -65,15 +65,16 @@ class RenderConfig(MachineConfig):
     """Output folder (default: outputs/render/<scene>_<path>)."""
     video: bool = True
     """Also write video.mp4 (or video.gif)."""
-    coarse_only: bool = False
-    """Two-pass models (IBRNet, Omni-Recon): render the coarse pass only (ibrnet-tiny 5.4x and omnirecon-tiny
-    4.1x faster, held-out PSNR within about 0.2 dB: `python -m bench tiny_levers`); one-pass models ignore it."""
+    render_pass: Literal["auto", "coarse", "fine"] = "auto"
+    """Two-pass models (IBRNet, Omni-Recon): coarse renders the coarse pass only, fine both; auto: the
+    checkpoint's choice (the shipped omnirecon-tiny: coarse, 4.2x faster at +0.12 dB; ibrnet-tiny: fine, its coarse
+    pass is 5.7x faster but 0.4 dB worse: `python -m bench tiny_levers`). One-pass models ignore it."""
     samples: int | None = None
-    """Samples per ray instead of the checkpoint's (GPNR: all of them; two-pass models: the coarse pass's):
-    fewer is faster (gpnr-tiny 32 -> 24: 1.4x, about -0.1 dB)."""
-    precision: Literal["fp32", "bf16"] = "fp32"
-    """bf16: the per-sample networks under bf16 autocast (gpnr-tiny 1.4x faster on CPUs with avx512_bf16 at
-    the same PSNR within 0.01 dB; IBRNet and Omni-Recon gain nothing)."""
+    """Samples per ray instead of the checkpoint's (GPNR: all of them, gpnr-tiny's default 24; two-pass models:
+    the coarse pass's): fewer is faster."""
+    precision: Literal["auto", "fp32", "bf16"] = "auto"
+    """bf16: the per-sample networks under bf16 autocast (GPNR 1.4x faster on CPUs with avx512_bf16 at the same
+    PSNR within 0.01 dB; IBRNet and Omni-Recon gain nothing); auto: the checkpoint's (gpnr-tiny: bf16)."""
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
@@ -113,12 +114,12 @@ def camera_path(cfg: RenderConfig, scene) -> Cameras:
 def render_levers(net, info: dict, cfg: RenderConfig) -> dict:
     """Apply ``--samples`` to the model's config (recorded in ``info``); returns ``render_view``'s options."""
     if cfg.samples is not None:
-        key = next((k for k in ("num_samples", "coarse_samples") if hasattr(getattr(net, "cfg", None), k)), None)
+        key = next((k for k in ("render_samples", "coarse_samples") if hasattr(getattr(net, "cfg", None), k)), None)
         if key is not None:
             setattr(net.cfg, key, cfg.samples)
             info["render_samples"] = {key: cfg.samples}
-    info["render_options"] = {"coarse_only": cfg.coarse_only, "precision": cfg.precision}
-    return {"fine_pass": False} if cfg.coarse_only else {}
+    info["render_options"] = {"render_pass": cfg.render_pass, "precision": cfg.precision}
+    return {} if cfg.render_pass == "auto" else {"fine_pass": cfg.render_pass == "fine"}
 
 
 def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
@@ -140,7 +141,7 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     frames, records, key, features = [], [], None, None
     start = time.perf_counter()
     with progress_bar("render", "frames") as bar, torch.no_grad(), \
-            switches(**({"bf16_render": True} if cfg.precision == "bf16" else {})):
+            switches(**({} if cfg.precision == "auto" else {"bf16_render": cfg.precision == "bf16"})):
         task = bar.add_task("render", total=len(cams))
         for i in range(len(cams)):
             src = select_sources(scene, cams[i], pool, cfg.num_views, center)

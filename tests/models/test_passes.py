@@ -69,3 +69,25 @@ def test_one_pass_models_ignore_pass_options(name):
     a = model.render_view(feats, target, chunk=100)
     b = model.render_view(feats, target, chunk=100, fine_pass=False, surface_samples=4)
     assert not model.capabilities.passes and torch.equal(a["rgb"], b["rgb"])
+
+
+def test_render_fine_pass_config_sets_the_default_pass():
+    """Omni-Recon's ``render_fine_pass = False`` (the shipped omnirecon-tiny's): ``render_view`` without
+    ``fine_pass`` renders the coarse pass, ``fine_pass=True`` still renders the fine one, training both."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    model = MODELS["omnirecon"]().eval()
+    src, target = scene()
+    with torch.no_grad():
+        feats = model.encode(src)
+        fine = model.render_view(feats, target, chunk=100)
+        model.cfg = dataclasses.replace(model.cfg, render_fine_pass=False)
+        default = model.render_view(feats, target, chunk=100)
+        asked = model.render_view(feats, target, chunk=100, fine_pass=True)
+        rays = Rays.from_image(target)[:16]
+        trained = model.render_rays(feats, rays, jitter=True)
+    torch.testing.assert_close(default["rgb"], fine["rgb_coarse"], atol=1e-6, rtol=1e-6)
+    assert not torch.equal(default["rgb"], fine["rgb"])
+    torch.testing.assert_close(asked["rgb"], fine["rgb"], atol=1e-6, rtol=1e-6)
+    assert not torch.equal(trained["rgb"], trained["rgb_coarse"])

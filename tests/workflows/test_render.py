@@ -139,8 +139,8 @@ def test_render_cli(path, extra, frames, scene, tmp_path, capsys):
         assert meta["frames"][0]["sources"][0] == 0  # a keyframe's nearest source is its own view
 
 
-@pytest.mark.parametrize("preset, levers", [("gpnr-tiny", ["--samples", "8", "--precision", "bf16"]),
-                                            ("omnirecon-tiny", ["--coarse-only"])])
+@pytest.mark.parametrize("preset, levers", [("gpnr-tiny", ["--samples", "8", "--precision", "fp32"]),
+                                            ("omnirecon-tiny", ["--render-pass", "fine"])])
 def test_render_levers_change_the_frame_a_little_and_are_recorded(preset, levers, scene, tmp_path, capsys):
     ckpt = ROOT / "checkpoints" / preset
     if not (ckpt / "model.safetensors").is_file():
@@ -157,9 +157,9 @@ def test_render_levers_change_the_frame_a_little_and_are_recorded(preset, levers
     fast, meta = run("fast", levers)
     assert not np.array_equal(full, fast)  # the levers change what is rendered ...
     assert np.abs(full - fast).mean() < 0.1  # ... but not into another picture
-    assert meta["model"]["render_options"] == {"coarse_only": "--coarse-only" in levers,
-                                               "precision": "bf16" if "bf16" in levers else "fp32"}
-    assert meta["model"].get("render_samples") == ({"num_samples": 8} if "--samples" in levers else None)
+    assert meta["model"]["render_options"] == {"render_pass": "fine" if "fine" in levers else "auto",
+                                               "precision": "fp32" if "fp32" in levers else "auto"}
+    assert meta["model"].get("render_samples") == ({"render_samples": 8} if "--samples" in levers else None)
 
 
 def test_gif_fallback(tmp_path):
