@@ -5,6 +5,8 @@
     python -m bench peer_ibrnet                                 # no checkout: our side only, the JSON says so
     python -m bench peer_ibrnet --ibrnet-root PATH --width 1008 --height 756 --views 10 --crop 64 32 \
         --train-steps 0 --reference-too --out bench/results/peer_ibrnet_eval.json   # its evaluation configuration
+    python -m bench peer_ibrnet --ibrnet-root PATH --width 600 --height 400 --views 10 --crop 16 16 \
+        --train-rays 500 --train-steps 1 --out bench/results/peer_ibrnet_train.json   # its training configuration
 
 The project never contains IBRNet's code: the user provides a checkout (``git clone
 https://github.com/googleinterns/IBRNet``, commit 41807b2; ``pip install '.[bench]'`` for its option parser,

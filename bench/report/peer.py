@@ -9,7 +9,7 @@ from bench.report.common import prov
 
 
 def section(results: Path) -> str | None:
-    parts = [text for text in (_same_config(results), _eval_config(results)) if text]
+    parts = [text for text in (_same_config(results), _eval_config(results), _train_config(results)) if text]
     return "\n\n".join(parts) if parts else None
 
 
@@ -82,3 +82,31 @@ def _eval_config(results: Path) -> str | None:
               f"ratio favours the reference. Ratios of process CPU seconds from this one run, one round; load average "
               f"at the start {r.get('loadavg_start')}, at the end {r.get('loadavg_end')}."]
     return "\n".join([*lines, "", prov(r["provenance"])])
+
+
+def _train_config(results: Path) -> str | None:
+    """A run at the reference's training configuration (``peer_ibrnet_train.json``): training steps side by side,
+    the render of a small window for the encoder's cost."""
+    f = results / "peer_ibrnet_train.json"
+    if not f.is_file():
+        return None
+    r = json.loads(f.read_text())
+    c, q = r["config"], r.get("ratios") or {}
+    lines = ["## IBRNet reference vs ibrnet-paper training at the reference's training configuration "
+             "(`python -m bench peer_ibrnet --width 600 --height 400 --views 10`)", "",
+             f"IBRNet's training step as its `train.py` takes it: {c['views']} source views of {c['width']}x{c['height']} "
+             f"(its 400x600 random crop of LLFF), {c['train_rays']} rays per step (its N_rand), {c['samples']} samples, "
+             "the encoder on every source with gradients, masked MSE on both passes, backward, optimizer step; random "
+             f"weights, one thread, each side in its own process, {c['train_steps']} timed step(s) after a warm-up "
+             "(best kept). Peak RSS is the whole process's (a render of a small window comes first).", "",
+             "| side | switches | train CPU s/step (wall) | train rays/CPU-s | peak RSS (MB) | train × ref. | "
+             "peak RSS / ref. |", "|---|---|---|---|---|---|---|"]
+    for name, b in r["best"].items():
+        ratio = q.get(name) or {}
+        lines.append(f"| {name} | {b.get('switches') if name != 'peer' else 'official code'} | "
+                     f"{b['train_step_cpu_s']} ({b['train_step_s']}) | {b['train_rays_per_s']} | {b['peak_rss_mb']} | "
+                     f"{ratio.get('train_speedup', '–')}× | {ratio.get('peak_rss_ratio', '–')} |")
+    lines += ["", f"Ratios of process CPU seconds from this one run; load average at the start {r.get('loadavg_start')}, "
+              f"at the end {r.get('loadavg_end')}."]
+    return "\n".join([*lines, "", prov(r["provenance"])])
+
