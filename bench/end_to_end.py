@@ -20,6 +20,7 @@ provenance header and the load averages.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
@@ -137,6 +138,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--command", default=None, help="with --collect-*: the command that made the run")
     parser.add_argument("--load", nargs="*", type=float, default=None,
                         help="with --collect-*: load averages at the start and end of that run")
+    parser.add_argument("--keep", type=Path, default=None, help="work in this new folder and keep it (the outputs, "
+                        "to look at their pictures) instead of a temporary one")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "end_to_end.json")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
@@ -144,7 +147,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     result = json.loads(args.out.read_text()) if args.out.is_file() else {}
     load_start = [round(x, 2) for x in os.getloadavg()]
-    with tempfile.TemporaryDirectory(prefix="end_to_end_") as tmp:
+    if args.keep:
+        args.keep.mkdir(parents=True)  # a new folder: never one holding other files
+    with (contextlib.nullcontext(args.keep) if args.keep else tempfile.TemporaryDirectory(prefix="end_to_end_")) as tmp:
         tmp = Path(tmp)
         runs = {}
         if args.demo:

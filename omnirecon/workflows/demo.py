@@ -56,8 +56,9 @@ class DemoConfig(ThreadsConfig):
     checkpoints: Path = ROOT / "checkpoints"
     """Folder of the shipped checkpoints (one sub-folder per preset)."""
     frames: int = 12
-    """Frames of each novel-view orbit (GPNR's volumetric frames cost about 10 s each at 80 px on 2 CPU
-    cores, so the default keeps the whole demo under 10 minutes there; raise it on a GPU)."""
+    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames cost about 3 CPU-s each at 80 px on one
+    thread, so the default keeps the whole demo near 4 CPU-minutes: bench/results/end_to_end.json; raise it on a
+    GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
     num_views: int = 3
