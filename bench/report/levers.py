@@ -23,8 +23,10 @@ def _levers(r: dict) -> str:
              f"one thread, K = {r['k']}, {r['targets_per_scene']} target(s) per scene; candidates interleaved "
              f"{r['rounds']} times, fastest kept) on {scenes}; speed-up against the reference in the same run; PSNR "
              "against the ground truth (mean over the scenes) and its difference from the reference render's "
-             "(dPSNR). `fine_N`/`coarse_N`/`samples_N`: the model's sample counts changed at render time, no "
-             "retraining; `coarse_only`: no fine pass; `surface_N`: the fine pass on N importance samples only. "
+             "(dPSNR). `default`: the full render with today's fast paths; `checkpoint`: what every command now renders, "
+             "the checkpoint's own render options (its `meta.json`). `fine_N`/`coarse_N`/`samples_N`: the model's sample "
+             "counts changed at render time, no retraining; `coarse_only`: no fine pass; `surface_N`: the fine pass on N "
+             "importance samples only. "
              f"Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
     names = [s["name"] for s in r["scenes"]]
     lines += ["| preset | candidate | CPU s | speed-up | PSNR (dB) | dPSNR | " + " | ".join(names) + " |",
