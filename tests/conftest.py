@@ -61,3 +61,28 @@ def run_cli(capsys):
         return code, cap.out, cap.err
 
     return run
+
+
+@pytest.fixture
+def views_with_noise(tmp_path):
+    """``make(photos, noise)``: a folder of the first 6 views of ``photos`` plus ``noise`` images of
+    uniform noise (``noise_<i>.png``, 256x256, seed 0) that no photo matches (the capture tests; here, not in a
+    ``tests/capture/conftest.py``, whose module name ``conftest`` would shadow this file's for ``from conftest
+    import ROOT`` in every folder collected after it)."""
+    import shutil
+
+    import numpy as np
+
+    from omnirecon.data.io import write_image
+
+    def make(photos, noise: int):
+        d = tmp_path / "noisy"
+        d.mkdir()
+        for i in range(6):
+            shutil.copyfile(photos / f"r_{i}.png", d / f"r_{i}.png")
+        g = np.random.default_rng(0)
+        for i in range(noise):
+            write_image(d / f"noise_{i}.png", g.uniform(size=(256, 256, 3)).astype(np.float32))
+        return d
+
+    return make
