@@ -97,7 +97,7 @@ class OmniReconConfig:
     render_fine_pass: bool = True
     """Outside training, render the fine pass unless a caller asks otherwise (``render_rays(fine_pass=None)``);
     False: the coarse pass only, a measured property of some weights (the shipped omnirecon-tiny's coarse pass
-    renders 4.2x faster at +0.12 dB on held-out views: ``python -m bench tiny_levers``). Training renders both."""
+    renders 3.1-4.2x faster at +0.12 dB on held-out views: ``python -m bench tiny_levers``). Training renders both."""
     cnn_channels: tuple[int, int, int, int] = (16, 32, 64, 96)
     """FPN widths: stem (stride 1), layer1 (2), layer2 (4), layer3 (8)."""
     feature_dim: int = 32

@@ -32,7 +32,7 @@ DEMO_SEED = 900_999
 and not among the first scenes of ``synth:eval``)."""
 RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
 """Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
-(gpnr-tiny: 24 samples in bf16, 3.9x its reference twin; omnirecon-tiny: the coarse pass, 4.2x; both within 0.1 dB
+(gpnr-tiny: 24 samples in bf16, 3.3-3.9x its reference twin; omnirecon-tiny: the coarse pass, 3.1-4.2x; within 0.1 dB
 of the full render on held-out views: ``python -m bench tiny_levers``)."""
 SCORE_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 """Models scored on the held-out views (the floor needs no checkpoint), each with its checkpoint's render options."""

@@ -67,7 +67,7 @@ class RenderConfig(MachineConfig):
     """Also write video.mp4 (or video.gif)."""
     render_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Two-pass models (IBRNet, Omni-Recon): coarse renders the coarse pass only, fine both; auto: the
-    checkpoint's choice (the shipped omnirecon-tiny: coarse, 4.2x faster at +0.12 dB; ibrnet-tiny: fine, its coarse
+    checkpoint's choice (the shipped omnirecon-tiny: coarse, 3.1-4.2x faster at +0.12 dB; ibrnet-tiny: fine, its coarse
     pass is 5.7x faster but 0.4 dB worse: `python -m bench tiny_levers`). One-pass models ignore it."""
     samples: int | None = None
     """Samples per ray instead of the checkpoint's (GPNR: all of them, gpnr-tiny's default 24; two-pass models:
