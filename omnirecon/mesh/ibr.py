@@ -262,7 +262,8 @@ class MeshRenderer:
         uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
         z = uvz[:, 2]
         uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project
-        mask = (z > 1e-6) & ((uv >= 0) & (uv < self._size)).all(1)
+        inside = (uv >= 0) & (uv < self._size)  # [K, 2, n]
+        mask = (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
         if self.source_depth_max is not None:
             mask &= self.visible(uv, z)
         return uv, z, mask
