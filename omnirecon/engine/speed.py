@@ -83,7 +83,7 @@ class BenchConfig(DeviceConfig):
     seed: int = 0
     """Procedural scene seed."""
     workers: int | None = None
-    """Mesh path: threads that shade chunks side by side (``MeshRenderOptions.workers``), each op on one torch
+    """Mesh path: threads that shade chunks side by side (`MeshRenderOptions.workers`), each op on one torch
     thread (default: --threads; 1 when --threads is not given). The volumetric path keeps --threads torch
     threads."""
     quick: bool = False
