@@ -169,7 +169,7 @@ def evaluate(ckpt: Path, out: Path, ks: list[str]) -> dict:
     """``omnirecon eval`` (cpu protocol, K in ``ks``) on the validation scenes; PSNR per scene and K. Reuses earlier
     scores of the same checkpoint (folders ``<out>_k...``) and evaluates only the K none of them has."""
     done: dict[str, Path] = {}
-    for d in sorted(out.parent.glob(out.name + "_k*")):
+    for d in [out, *sorted(out.parent.glob(out.name + "_k*"))]:  # <out> itself: folders named by older code
         if (d / "results.json").is_file():
             for k in json.loads((d / "results.json").read_text())["num_views"]:
                 done.setdefault(str(k), d)
@@ -227,7 +227,8 @@ def shipped_row(model: str, ks: list[str]) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", nargs="+", default=list(LEVERS), choices=list(LEVERS))
+    p.add_argument("--runs", nargs="*", default=list(LEVERS), choices=list(LEVERS),
+                   help="lever runs to train and score (none: `--runs` alone, e.g. to score only --shipped / --extra)")
     p.add_argument("--cpu-budget", type=float, default=100.0)
     p.add_argument("--eval-only", action="store_true", help="score finished runs only")
     p.add_argument("--num-views", nargs="+", default=["3"],

@@ -269,7 +269,7 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int, des
            f"{base_cpu:.0f} CPU-s, run in `outputs/train/{model}_bench`). Stage {len(parent_stages(parent)) + 1} is a "
            f"warm start from it (`--init`: its weights, a fresh optimizer, a new learning-rate schedule and data mix; "
            f"dashed line on the curve) in the run `outputs/train/{run.name}`; the card's steps and CPU seconds are "
-           "the sums of both."] if parent else []), "",
+           "the sums of both.", ""] if parent else []),
         *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a different "
            "`--steps` the cosine schedule is recomputed for the new length from where it starts (the learning rate "
            "rises again after an annealed stage: a warm restart; each change is marked on the curve); with the same "
