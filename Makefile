@@ -35,7 +35,7 @@ demo: setup
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -ra --durations=15 tests
+	$(BIN)/python -m pytest -q -ra -n 2 --durations=15 tests
 
 bench: setup
 	$(BIN)/python -m bench page

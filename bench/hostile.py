@@ -331,6 +331,19 @@ def _child(argv: list[str], cwd: Path, err: Path, limit: int) -> None:
     os._exit(rc if isinstance(rc, int) else 1)
 
 
+def http_exchange(port: int, request: bytes) -> tuple[int, bytes]:
+    """Send ``request`` to 127.0.0.1:``port`` exactly as given; the status code and body of the answer."""
+    import socket
+
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(request)
+        data = b""
+        while chunk := s.recv(65536):
+            data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    return int(head.split()[1]), body
+
+
 def _http_case(argv: list[str]) -> int:
     """0 when the viewer answers as it must: 400 for several Host headers; quiet and alive after disconnects."""
     import socket
@@ -345,12 +358,7 @@ def _http_case(argv: list[str]) -> int:
     port = server.server_address[1]
 
     def get(raw: bytes) -> int:
-        with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
-            s.sendall(raw)
-            data = b""
-            while chunk := s.recv(65536):
-                data += chunk
-        return int(data.split()[1])
+        return http_exchange(port, raw)[0]
     try:
         if argv[0] == "http_hosts":
             head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in argv[1:]) + "Connection: close\r\n\r\n"

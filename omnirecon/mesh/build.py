@@ -39,7 +39,9 @@ from omnirecon.mesh.depth import (
     DepthMaps,
     combine,
     downscaled,
+    holes,
     model_depths,
+    needed_at,
     oracle_depths,
     stereo_maps,
     upsampled,
@@ -202,27 +204,32 @@ class MeshResult:
 
 
 # ---------------------------------------------------------------------- depth
-def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_view=None) -> DepthMaps:
-    """The depth maps of ``options.depth`` at ``views`` of ``scene`` (``model`` for model depth)."""
+def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_view=None,
+               masks: Tensor | None = None) -> DepthMaps:
+    """The depth maps of ``options.depth`` at ``views`` of ``scene`` (``model`` for model depth). ``stereo+model``
+    renders the model only at the pixels fusion takes from it (:func:`holes`; inside the dilated ``masks``)."""
     views = list(views)
     if options.depth in ("model", "stereo+model") and model is None:
         raise InputError(f"--depth {options.depth} needs a model", None, "pass --ckpt or --model floor, or --depth stereo")
 
-    def from_model(shifts, at=scene):
+    if options.depth in ("model", "stereo+model"):
         model.to(device).eval()
-        return model_depths(model, at, views, options.neighbours, shifts, options.chunk, options.min_acc,
-                            device, on_view, fine_pass=options.depth_pass == "fine")
-
+    kw = {"device": device, "on_view": on_view, "fine_pass": options.depth_pass == "fine"}
     if options.depth == "model":
-        return from_model(options.shifts)
+        return model_depths(model, scene, views, options.neighbours, options.shifts, options.chunk, options.min_acc, **kw)
     if options.depth == "oracle":
         return oracle_depths(scene, views, options.shifts)
     stereo = stereo_maps(scene, views, options.stereo, on_view)
     if options.depth == "stereo":
         return stereo
-    # the model's depth at its own resolution (at most model_side px), read at the photos' pixels
-    low = from_model((0.0,), downscaled(scene, options.model_side) if options.model_side else scene)
+    # the model's depth at most model_side px, read at the photos' pixels, only where stereo left holes
+    at = downscaled(scene, options.model_side) if options.model_side else scene
+    inside = None if masks is None else \
+        torch.from_numpy(clean.dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * scene.width))
+    need = needed_at(holes(stereo, scene, inside), at.height, at.width)
+    low = model_depths(model, at, views, options.neighbours, (0.0,), options.chunk, options.min_acc, need=need, **kw)
     return combine(stereo, upsampled(low, stereo.cameras))
+
 
 
 # ---------------------------------------------------------------------- the pipeline
@@ -365,9 +372,9 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
             progress.advance(task)
 
     t = time.perf_counter()
-    maps = depth_maps(options, scene, views, model, device, advance)
-    render_s = time.perf_counter() - t
     masks = scene.masks if use_masks and scene.masks is not None else None
+    maps = depth_maps(options, scene, views, model, device, advance, masks)
+    render_s = time.perf_counter() - t
     made = mesh_from_depths(maps, scene, views, options, masks, device, on_stage=on_stage)
     made.info["seconds"] = {"render": render_s, **made.info["seconds"]}
     if "model_calls" in maps.info:

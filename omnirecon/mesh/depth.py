@@ -115,30 +115,47 @@ class ViewGroups:
 
 @torch.no_grad()
 def model_depths(model, scene, views, neighbours: int = 3, shifts=(0.0,), chunk: int = 4096, min_acc: float = 0.5,
-                 device="cpu", on_view=None, fine_pass: bool = True) -> DepthMaps:
+                 device="cpu", on_view=None, fine_pass: bool = True, need: Tensor | None = None) -> DepthMaps:
     """Depth of ``model`` at each of ``views`` shifted by each of ``shifts`` (:func:`shifted_cameras`),
     each rendered from its :class:`ViewGroups` sources (``fine_pass``: a two-pass model's pass, see
     ``render_view``); encodings are shared between views with the same sources. ``info`` counts the
-    ``encode`` and ``render_view`` calls."""
+    ``encode`` and ``render_view`` calls and the rays rendered.
+
+    ``need # [len(views), H, W]`` bool: render only those pixels of each view (all its maps); the rest get
+    no depth, and a view needing none is neither encoded nor rendered (``stereo+model``: the model only
+    fills the pixels stereo left empty)."""
     from omnirecon.models.base import Sources
 
     groups = ViewGroups(scene.cameras, list(views), max(1, neighbours))
     centre = scene.bounds.double().mean(0)
     cams, depths, confs, owners = [], [], [], []
     cache: dict[tuple, object] = {}
-    renders = encodes = 0
+    renders = encodes = rays = 0
     start = time.perf_counter()
-    for view, srcs in zip(groups.views, groups.sources):
+    H, W = scene.height, scene.width
+    for i, (view, srcs) in enumerate(zip(groups.views, groups.sources)):
+        pixels = None if need is None else need[i].reshape(-1).nonzero()[:, 0]
         key = tuple(srcs)
-        if key not in cache:
+        if key not in cache and (pixels is None or len(pixels)):
             if len(cache) > 4:
                 cache.clear()
             cache[key] = model.encode(Sources.from_scene(scene, srcs).to(device))
             encodes += 1
         for cam in shifted_cameras(scene.cameras[[view]], shifts, centre):
+            if pixels is not None and not len(pixels):  # nothing to fill in this view
+                cams.append(cam)
+                depths.append(torch.zeros(H, W))
+                confs.append(torch.zeros(H, W))
+                owners.append(view)
+                if on_view is not None:
+                    on_view()
+                continue
             out = model.render_view(cache[key], cam.to(device=device, dtype=scene.images.dtype), chunk=chunk,
-                                    fine_pass=fine_pass)
+                                    fine_pass=fine_pass, pixels=pixels)
             renders += 1
+            rays += H * W if pixels is None else len(pixels)
+            if pixels is not None:  # back to full maps: the pixels not rendered get nothing
+                out = {k: scattered(v, pixels, H, W) for k, v in out.items()}
             d, v = depth_from_outputs(out, min_acc)
             conf = torch.ones_like(d)
             if "acc" in out:
@@ -154,8 +171,15 @@ def model_depths(model, scene, views, neighbours: int = 3, shifts=(0.0,), chunk:
                 on_view()
     return DepthMaps(Cameras.cat(cams), torch.stack(depths), torch.stack(confs), owners,
                      {"source": "model", "seconds": time.perf_counter() - start,
-                      "model_calls": {"encode": encodes, "render_view": renders},
+                      "model_calls": {"encode": encodes, "render_view": renders, "rays": rays},
                       "sources_per_map": len(groups.sources[0])})
+
+
+def scattered(values: Tensor, pixels: Tensor, height: int, width: int) -> Tensor:
+    """Per-pixel ``values # [M, ...]`` at flat ``pixels # [M]`` of an image, zero elsewhere. ``# [H, W, ...]``"""
+    full = torch.zeros((height * width, *values.shape[1:]), dtype=values.dtype, device=values.device)
+    full[pixels.to(values.device)] = values
+    return full.reshape(height, width, *values.shape[1:])
 
 
 # ---------------------------------------------------------------------- stereo and the oracle
@@ -211,6 +235,34 @@ def downscaled(scene, long_side: int):
         F.interpolate(scene.masks[:, None].float(), size=size, mode="nearest")[:, 0] > 0.5
     return dataclasses.replace(scene, images=images.contiguous(), cameras=cams, masks=masks, depths=None,
                                normals=None, labels=None)
+
+
+def holes(stereo: DepthMaps, scene, inside: Tensor | None = None) -> Tensor:
+    """The pixels of ``stereo``'s (unshifted) maps the mesh pipeline would take from a fallback depth: no
+    stereo depth, and not the scene's background colour (:func:`without_background`; scenes without
+    masks) or, with ``inside # [N, H, W]`` bool (the dilated object masks of all the scene's views),
+    inside them. ``# [len(stereo.views), H, W]`` bool"""
+    need = stereo.depth <= 0
+    if inside is None:
+        probe = DepthMaps(stereo.cameras, torch.ones_like(stereo.depth), torch.ones_like(stereo.depth), stereo.views)
+        return need & (without_background(probe, scene).depth > 0)
+    return need & inside[stereo.views].to(need.device)
+
+
+def needed_at(need: Tensor, height: int, width: int) -> Tensor:
+    """The pixels of a ``height x width`` grid that :func:`upsampled` (nearest) reads to fill the pixels
+    ``need # [N, H, W]`` of the finer grid. ``# [N, height, width]`` bool"""
+    import torch.nn.functional as F
+
+    N, H, W = need.shape
+    if (H, W) == (height, width):
+        return need.clone()
+    index = torch.arange(height * width, dtype=torch.float64).reshape(1, 1, height, width)
+    source = F.interpolate(index, size=(H, W), mode="nearest")[0, 0].long()  # [H, W]: the coarse pixel read
+    out = torch.zeros(N, height * width, dtype=torch.bool)
+    for i in range(N):
+        out[i, source[need[i]]] = True
+    return out.reshape(N, height, width)
 
 
 def upsampled(maps: DepthMaps, cameras: Cameras) -> DepthMaps:

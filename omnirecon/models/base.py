@@ -65,8 +65,11 @@ class GeneralizableModel(nn.Module):
         return render_sub_batches(lambda r: self.render_rays(features, r, **kwargs), rays, FAST.train_batch)
 
     def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None,
-                    fine_pass: bool = True, surface_samples: int = 0) -> dict[str, Tensor]:
+                    fine_pass: bool = True, surface_samples: int = 0, pixels: Tensor | None = None
+                    ) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
+        ``pixels # [M]`` (flat row-major indices): render only those pixels, outputs ``[M, ...]``
+        (every model renders each ray on its own: the same values as the full image's at those pixels).
 
         ``signals # [V, H, W, C]`` (per-source-view 2-D maps) is passed to ``render_rays`` when given
         (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`).
@@ -82,10 +85,13 @@ class GeneralizableModel(nn.Module):
         if src is not None:
             camera = camera.to(device=src.images.device, dtype=src.images.dtype)
         rays = Rays.from_image(camera)
+        height, width = camera.height, camera.width
+        if pixels is not None:
+            rays, height, width = rays[pixels.to(rays.origins.device)], 1, len(pixels)
         extra = {} if signals is None else {"signals": signals}
         if self.capabilities.passes:
             extra.update(fine_pass=fine_pass, surface_samples=surface_samples)
         batch = min(chunk, FAST.render_batch) if FAST.render_batch > 0 else chunk
         with grad_mode(), rendering():
-            return render_batches(lambda r: self.render_rays(features, r, **extra), rays, batch,
-                                  camera.height, camera.width)
+            out = render_batches(lambda r: self.render_rays(features, r, **extra), rays, batch, height, width)
+        return out if pixels is None else {k: v[0] for k, v in out.items()}

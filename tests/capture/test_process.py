@@ -20,7 +20,6 @@ from omnirecon.capture.images import stage_images  # noqa: E402
 from omnirecon.capture.process import process  # noqa: E402
 from omnirecon.cli import main  # noqa: E402
 from omnirecon.data import ReadOptions, load_scene  # noqa: E402
-from omnirecon.data.io import write_image  # noqa: E402
 from omnirecon.data.synth.generate import SynthOptions, generate_scene  # noqa: E402
 from omnirecon.errors import InputError  # noqa: E402
 
@@ -224,16 +223,10 @@ def test_bad_identical(capsys, tmp_path, capture):
     assert_refused(capsys, tmp_path, d, "same", "all 4 images are identical")
 
 
-def test_bad_too_few_registered(capsys, tmp_path, capture):
+def test_bad_too_few_registered(capsys, tmp_path, capture, views_with_noise):
     """6 real views + 8 noise images: the noise never registers; the message says how many and which."""
     photos, _ = capture
-    d = tmp_path / "noisy"
-    d.mkdir()
-    for i in range(6):
-        shutil.copyfile(photos / f"r_{i}.png", d / f"r_{i}.png")
-    g = np.random.default_rng(0)
-    for i in range(8):
-        write_image(d / f"noise_{i}.png", g.uniform(size=(256, 256, 3)).astype(np.float32))
+    d = views_with_noise(photos, 8)
     err = assert_refused(capsys, tmp_path, d, "noisy", "of 14 images registered", "noise_0.png")
     assert "need 7" in err
 

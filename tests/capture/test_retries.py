@@ -16,7 +16,6 @@ from omnirecon.capture.dropped import MatchGraph, drop_reasons  # noqa: E402
 from omnirecon.capture.images import stage_images, stage_masks  # noqa: E402
 from omnirecon.capture.process import process, summary_lines  # noqa: E402
 from omnirecon.data import load_scene  # noqa: E402
-from omnirecon.data.io import write_image  # noqa: E402
 from omnirecon.data.synth.generate import SynthOptions, generate_scene  # noqa: E402
 from omnirecon.errors import InputError  # noqa: E402
 
@@ -86,17 +85,11 @@ def test_retry_replaces_rule():
     assert not rep(4, 4, bad, False) and not rep(4, 3, good, True)
 
 
-def test_retry_and_dropped_record(photos, tmp_path):
+def test_retry_and_dropped_record(photos, tmp_path, views_with_noise):
     """6 views + 2 noise images: the first mapping leaves 2 out, so the retries run (recorded, and
     never with fewer images); the noise images are dropped with their reason in process.json and in
     the summary line, and the views keep their poses."""
-    d = tmp_path / "noisy"
-    d.mkdir()
-    for i in range(6):
-        shutil.copyfile(photos / f"r_{i}.png", d / f"r_{i}.png")
-    g = np.random.default_rng(0)
-    for i in range(2):
-        write_image(d / f"noise_{i}.png", g.uniform(size=(256, 256, 3)).astype(np.float32))
+    d = views_with_noise(photos, 2)
     s = process(d, tmp_path / "scene", SfmOptions(min_registered=0.5), quiet=True)
     assert s["images_registered"] >= 5 and {"noise_0.png", "noise_1.png"} <= set(s["unregistered"]), s
     steps = [a["attempt"] for a in s["attempts"]]

@@ -135,3 +135,30 @@ def test_no_surface_where_the_photos_show_the_background(tmp_path):
     # the background test
     assert (hit & empty).sum() <= 0.25 * empty.sum()
     assert (hit & ~empty).sum() >= 0.9 * (~empty).sum()  # and the content is covered
+
+
+def test_model_depth_only_where_stereo_left_holes(forward_scene):  # noqa: F811
+    """stereo+model renders the model only at the low-resolution pixels that fill stereo's holes: the same
+    depth there as a whole-view render, nothing elsewhere, no model call for a view without holes."""
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.mesh.depth import holes, model_depths, needed_at
+    from omnirecon.models.registry import build_model
+    from tests.mesh.test_fusion import CountingModel
+
+    scene = load_at_resolution(forward_scene, 48)
+    views = scene.splits["train"][:3]
+    stereo = DepthMaps(scene.cameras[views], torch.ones(3, 48, 48), torch.ones(3, 48, 48), views)
+    stereo.depth[0, 10:20, 5:30] = 0  # holes in view 0 only
+    stereo.depth[2, 40:, :] = 0  # and in view 2
+    need = needed_at(holes(stereo, scene), 24, 24)
+    assert need[1].sum() == 0 and need[0].sum() == 5 * 13 and need[2].sum() == 4 * 24
+    # every hole reads a needed pixel through the nearest upsampling
+    probe = DepthMaps(scene.cameras[views].rescaled(0.5), need.float(), need.float(), views)
+    assert bool(upsampled(probe, scene.cameras[views]).depth[stereo.depth == 0].all())
+    low = downscaled(scene, 24)
+    whole = model_depths(build_model("floor"), low, views, 3, (0.0,))
+    counting = CountingModel()
+    part = model_depths(counting, low, views, 3, (0.0,), need=need)
+    assert torch.allclose(part.depth[need], whole.depth[need], atol=1e-5)
+    assert not bool(part.depth[~need].any()) and not bool(part.confidence[~need].any())
+    assert counting.renders == 2 and counting.encodes == 1 and part.info["model_calls"]["rays"] == int(need.sum())

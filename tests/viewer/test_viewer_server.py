@@ -7,19 +7,14 @@ import socket
 
 import pytest
 
+from bench.hostile import http_exchange
 from omnirecon.viewer.server import ViewerServer, host_allowed
 
 
 def raw_get(port: int, target: str, host: str | None = "127.0.0.1") -> tuple[int, bytes]:
     """Send ``GET target`` exactly as given with the given ``Host`` header (None: no header)."""
     head = f"GET {target} HTTP/1.0\r\n" + (f"Host: {host}\r\n" if host is not None else "") + "\r\n"
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
-        s.sendall(head.encode())
-        data = b""
-        while chunk := s.recv(65536):
-            data += chunk
-    head, _, body = data.partition(b"\r\n\r\n")
-    return int(head.split()[1]), body
+    return http_exchange(port, head.encode())
 
 
 @pytest.fixture
@@ -92,21 +87,12 @@ def test_host_allowed():
     assert not host_allowed(None, 8765) and not host_allowed("", 8765)
 
 
-def _raw(port: int, request: bytes) -> int:
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
-        s.sendall(request)
-        data = b""
-        while chunk := s.recv(65536):
-            data += chunk
-    return int(data.split()[1])
-
-
 @pytest.mark.parametrize("hosts", [("127.0.0.1", "evil.example"), ("evil.example", "127.0.0.1"),
                                    ("127.0.0.1", "127.0.0.1")])
 def test_two_host_headers_are_a_bad_request(served, hosts):
     """Which of two Host headers a proxy honours differs: good-then-evil must not be served (400)."""
     head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in hosts) + "Connection: close\r\n\r\n"
-    assert _raw(served, head.encode()) == 400
+    assert http_exchange(served, head.encode())[0] == 400
 
 
 def test_client_disconnect_mid_response_is_quiet(tmp_path, capfd):
