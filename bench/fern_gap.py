@@ -28,12 +28,14 @@ VAL_SEEDS = {"forward": range(901004, 901008), "object": range(901000, 901004)}
 """The two halves of the model cards' validation seeds 901000-901007 (the box changes only the forward ones;
 ``leftover`` changes both)."""
 VARIANTS = {
-    "content": {"forward_box": "content"},
-    "cameras": {"forward_box": "cameras"},
+    "content": {"forward_box": "content", "leftover": "black"},
+    "cameras": {"forward_box": "cameras", "leftover": "black"},
     "cameras+far": {"forward_box": "cameras", "leftover": "far"},
     "cameras+renormalize": {"forward_box": "cameras", "leftover": "renormalize"},
+    "cameras+backdrop": {"forward_box": "cameras", "leftover": "backdrop"},
 }
-"""Config changes of each variant on top of the checkpoint's own config."""
+"""Config changes of each variant on top of the checkpoint's own config (each names both fields, so a variant means
+the same whatever the shipped meta.json holds)."""
 
 
 def val_scenes(rig: str, resolution: int = 64) -> list[Path]:

@@ -166,25 +166,32 @@ def val_scenes() -> list[str]:
 
 
 def evaluate(ckpt: Path, out: Path, ks: list[str]) -> dict:
-    """``omnirecon eval`` (cpu protocol, K in ``ks``) on the validation scenes; PSNR per scene and K. Reuses an
-    earlier score of the same checkpoint that has every K asked for."""
-    done = [d for d in sorted(out.parent.glob(out.name + "*")) if (d / "results.json").is_file()
-            and set(ks) <= {str(k) for k in json.loads((d / "results.json").read_text())["num_views"]}]
-    if done:
-        out = done[0]
-    else:
-        out = out.with_name(f"{out.name}_k{'_'.join(ks)}")
+    """``omnirecon eval`` (cpu protocol, K in ``ks``) on the validation scenes; PSNR per scene and K. Reuses earlier
+    scores of the same checkpoint (folders ``<out>_k...``) and evaluates only the K none of them has."""
+    done: dict[str, Path] = {}
+    for d in [out, *sorted(out.parent.glob(out.name + "_k*"))]:  # <out> itself: folders named by older code
+        if (d / "results.json").is_file():
+            for k in json.loads((d / "results.json").read_text())["num_views"]:
+                done.setdefault(str(k), d)
+    missing = [k for k in ks if k not in done]
+    if missing:
+        new = out.with_name(f"{out.name}_k{'_'.join(missing)}")
         cmd = [sys.executable, "-m", "omnirecon.cli", "eval", "--ckpt", str(ckpt), "--scenes", *val_scenes(),
-               "--protocol-set", "cpu", "--num-views", *ks, "--threads", "1", "--out", str(out), "--no-save-images"]
+               "--protocol-set", "cpu", "--num-views", *missing, "--threads", "1", "--out", str(new), "--no-save-images"]
         t = resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime
-        run(cmd, out.with_suffix(".log"))
+        run(cmd, new.with_suffix(".log"))
         print(f"  eval {resource.getrusage(resource.RUSAGE_CHILDREN).ru_utime - t:.0f} CPU-s", flush=True)
-    res = json.loads((out / "results.json").read_text())
-    scenes = {}
-    for s in res["scenes"]:
-        key = f"synth:{s['name']}" if s["name"].startswith("scene_") else s["name"]
-        scenes[key] = {k: round(v["mean"]["psnr"], 3) for k, v in s["settings"].items()}
-    return {"scenes": scenes, "load": res.get("provenance", {}).get("loadavg_1min")}
+        done.update({k: new for k in missing})
+    scenes: dict = {}
+    load = None
+    for k in ks:
+        res = json.loads((done[k] / "results.json").read_text())
+        load = res.get("provenance", {}).get("loadavg_1min")
+        for s in res["scenes"]:
+            key = f"synth:{s['name']}" if s["name"].startswith("scene_") else s["name"]
+            if k in s["settings"]:
+                scenes.setdefault(key, {})[k] = round(s["settings"][k]["mean"]["psnr"], 3)
+    return {"scenes": scenes, "load": load}
 
 
 def summarize(scenes: dict) -> dict:
@@ -220,7 +227,8 @@ def shipped_row(model: str, ks: list[str]) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--runs", nargs="+", default=list(LEVERS), choices=list(LEVERS))
+    p.add_argument("--runs", nargs="*", default=list(LEVERS), choices=list(LEVERS),
+                   help="lever runs to train and score (none: `--runs` alone, e.g. to score only --shipped / --extra)")
     p.add_argument("--cpu-budget", type=float, default=100.0)
     p.add_argument("--eval-only", action="store_true", help="score finished runs only")
     p.add_argument("--num-views", nargs="+", default=["3"],

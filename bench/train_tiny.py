@@ -31,10 +31,15 @@ REAL = ["blender/lego", "blender/chair", "instant_ngp/fox", "llff/ethiopianHead"
 WEIGHTS = [2.0, 2.0, 2.0, 1.0, 1.0, 1.0, 1.0]
 
 
-def data_args() -> list[str]:
+def weights(real_weight: float = 1.0) -> list[float]:
+    """Mixing weights: procedural rigs as WEIGHTS, each real training scene ``real_weight``."""
+    return WEIGHTS[:len(SYNTH)] + [real_weight] * len(REAL)
+
+
+def data_args(real_weight: float = 1.0) -> list[str]:
     real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
-    weights = WEIGHTS[:len(SYNTH) + len(real)]
-    return ["--data", *SYNTH, *real, "--data-weights", *map(str, weights)]
+    weights_ = weights(real_weight)[:len(SYNTH) + len(real)]
+    return ["--data", *SYNTH, *real, "--data-weights", *map(str, weights_)]
 
 
 def _gen(task):
@@ -60,10 +65,16 @@ def prepare(synth_scenes: int) -> None:
 
 def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps: int, overrides: list[str] = (),
           name: str | None = None, data: list[str] | None = None, stop_at: int | None = None,
-          views: tuple[int, int] | None = None) -> Path:
-    """Run ``omnirecon train`` (resuming an interrupted run) and return its run folder."""
+          views: tuple[int, int] | None = None, tune: dict | None = None) -> Path:
+    """Run ``omnirecon train`` (resuming an interrupted run) and return its run folder. ``tune``: a warm start
+    (``init``: checkpoint folder, ``lr``, ``warmup``) and ``real_weight`` (the real scenes' mixing weight)."""
+    tune = {k: v for k, v in (tune or {}).items() if v is not None}
     out = ROOT / "outputs" / "train" / (name or f"{model}_bench")
-    cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model, *(data or data_args()),
+    cmd = [sys.executable, "-m", "omnirecon.cli", "train", "--model", model,
+           *(data or data_args(tune.get("real_weight", 1.0))),
+           *(["--init", str(tune["init"])] if "init" in tune else []),
+           *(["--lr", str(tune["lr"])] if "lr" in tune else []),
+           *(["--warmup", str(tune["warmup"])] if "warmup" in tune else []),
            *(["--model-overrides", *overrides] if overrides else []),
            "--synth-scenes", str(synth_scenes), "--resolution", str(RESOLUTION), "--steps", str(steps),
            "--cpu-budget", str(cpu_budget), "--threads", str(threads), "--seed", str(SEED), "--cache", str(CACHE),
@@ -77,7 +88,8 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
     record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
                        **({"stop_at": stop_at} if stop_at else {}),
                        **({"model_overrides": list(overrides)} if overrides else {}),
-                       **({"num_views_range": list(views)} if views else {})})
+                       **({"num_views_range": list(views)} if views else {}),
+                       **{k: str(v) for k, v in tune.items()}})
     print(" ".join(cmd), flush=True)
     subprocess.run(cmd, check=True, cwd=ROOT)
     return out
@@ -105,7 +117,28 @@ def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads
             f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "")
             + (" --num-views-range {} {}".format(*st["num_views_range"]) if st.get("num_views_range") else "")
             + "".join(f" --{o.replace('=', ' ', 1)}" for o in st.get("model_overrides", []))
+            + "".join(f" --{k.replace('_', '-')} {st[k]}" for k in ("init", "lr", "warmup", "real_weight") if k in st)
             for st in stages]
+
+
+def parent_stages(parent: dict | None) -> list[tuple[str, dict]]:
+    """(command, span) of each stage of a warm start's parent checkpoint, in the ``python -m bench`` form."""
+    if not parent:
+        return []
+    spans = parent.get("stage_spans") or [None] * len(parent.get("stages") or [])
+    return [(c.replace("python bench/train_tiny.py", "python -m bench train_tiny"), sp)
+            for c, sp in zip(parent.get("stages") or [], spans)]
+
+
+def parent_card(run: Path) -> dict | None:
+    """The card of the checkpoint a warm-started run began from (``--init`` of its first stage), or None."""
+    path = run / "stages.json"
+    stages = json.loads(path.read_text()) if path.is_file() else []
+    if not stages or "init" not in stages[0]:
+        return None
+    card_file = ROOT / stages[0]["init"] / "card.json"
+    card = json.loads(card_file.read_text()) if card_file.is_file() else {}
+    return {"init": stages[0]["init"], **card}
 
 
 def stage_spans(run: Path, rows: list[dict], last_step: int) -> list[dict]:
@@ -124,8 +157,10 @@ def stage_spans(run: Path, rows: list[dict], last_step: int) -> list[dict]:
 
 
 def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (),
-               view_changes: list[tuple[int, list[int] | None]] = ()) -> None:
-    """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG."""
+               view_changes: list[tuple[int, list[int] | None]] = (), before: dict | None = None,
+               warm_at: int | None = None) -> None:
+    """Training PSNR (sampled rays, a running mean over 50 logs) and validation PSNR against step, as a PNG.
+    ``before``: the curve (card.json ``curve``) of the checkpoint a warm-started run began from at ``warm_at``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -135,6 +170,13 @@ def plot_curve(rows: list[dict], path: Path, title: str, restarts: list[int] = (
     train = [(r["step"], r["psnr"]) for r in rows if "psnr" in r and "loss" in r]
     val = [(r["step"], r["val_psnr"]) for r in rows if "val_psnr" in r]
     fig, ax = plt.subplots(figsize=(5, 3.2), dpi=120)
+    if before and before.get("train"):
+        steps, psnr = np.array(before["train"]).T
+        ax.plot(steps, psnr, color="0.6", lw=0.6, label="warm-start checkpoint's run (every 10th log)")
+        if before.get("validation"):
+            ax.plot(*np.array(before["validation"]).T, "o-", color="C3", ms=3, alpha=0.5)
+    if warm_at is not None:
+        ax.axvline(warm_at, color="C1", ls="--", lw=1.0, label="warm start: new data mix and schedule")
     if train:
         steps, psnr = np.array(train).T
         k = min(50, len(psnr))
@@ -166,24 +208,35 @@ def encoder_card(model_config: dict) -> dict:
     return {"name": name, "origin": ORIGIN[name]}
 
 
-def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> Path:
-    """Copy the final checkpoint to checkpoints/<model>/ and write its model card (with the run's
+def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int, dest: Path | None = None) -> Path:
+    """Copy the final checkpoint to checkpoints/<model>/ (or ``dest``) and write its model card (with the run's
     ``notes.md``, when it has one, as a paragraph)."""
-    dest = ROOT / "checkpoints" / model
+    dest = dest or ROOT / "checkpoints" / model
     final = run / "checkpoints" / "final"
     meta = json.loads((final / "meta.json").read_text())
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
     train_rows = [r for r in rows if "loss" in r]
     val_rows = [r for r in rows if any(k.startswith("val") for k in r)]
+    parent = parent_card(run)
+    base_steps = parent.get("steps", 0) if parent else 0
+    base_cpu = parent.get("cpu_seconds", 0.0) if parent else 0.0
+    stages_file = run / "stages.json"
+    stages = json.loads(stages_file.read_text()) if stages_file.is_file() else []
+    real_weight = float(stages[-1].get("real_weight", 1.0)) if stages else 1.0
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     for name in ("model.safetensors", "meta.json"):
         shutil.copy2(final / name, tmp / name)
     card = {
-        "model": model, "steps": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s"),
-        "wall_seconds": meta["extra"].get("elapsed_s"), "cpu_budget_s": cpu_budget, "threads": threads,
-        "resolution": RESOLUTION, "seed": SEED, "data": {"procedural": SYNTH, "real": REAL, "weights": WEIGHTS},
+        "model": model, "steps": base_steps + meta["step"], "cpu_seconds": base_cpu + meta["extra"].get("cpu_s", 0.0),
+        "wall_seconds": (parent.get("wall_seconds") or 0.0 if parent else 0.0) + meta["extra"].get("elapsed_s", 0.0),
+        "cpu_budget_s": cpu_budget, "threads": threads,
+        "resolution": RESOLUTION, "seed": SEED,
+        "data": {"procedural": SYNTH, "real": REAL, "weights": weights(real_weight)},
+        **({"warm_start": {"from": parent["init"], "steps": base_steps, "cpu_seconds": base_cpu,
+                           "stages": parent.get("stages"), "stage_spans": parent.get("stage_spans"),
+                           "data": parent.get("data"), "curve": parent.get("curve")}} if parent else {}),
         "held_out": "procedural seeds 900000-900999, dtu_scan24, dtu_scan37, fern (never trained on)",
         "command": " && ".join(stage_commands(model, run, cpu_budget, steps, threads)),
         "stages": stage_commands(model, run, cpu_budget, steps, threads),
@@ -196,20 +249,27 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
     }
     card["curve"] = {"train": [[r["step"], round(r["psnr"], 3)] for r in train_rows[::10]],
                      "validation": [[r["step"], round(r["val_psnr"], 3)] for r in rows if "val_psnr" in r]}
-    stages_file = run / "stages.json"
-    stages = json.loads(stages_file.read_text()) if stages_file.is_file() else []
-    restarts = [st["from_step"] for prev, st in zip(stages, stages[1:]) if st["steps"] != prev["steps"]]
-    view_changes = [(st["from_step"], st.get("num_views_range")) for prev, st in zip(stages, stages[1:])
+    restarts = [st["from_step"] + base_steps for prev, st in zip(stages, stages[1:]) if st["steps"] != prev["steps"]]
+    view_changes = [(st["from_step"] + base_steps, st.get("num_views_range")) for prev, st in zip(stages, stages[1:])
                     if st.get("num_views_range") != prev.get("num_views_range")]
-    plot_curve(rows, tmp / "training_curve.png", f"{model}: {meta['step']} steps, {card['cpu_seconds']:.0f} CPU-s",
-               restarts, view_changes)
+    shifted = [{**r, "step": r["step"] + base_steps} for r in rows]
+    plot_curve(shifted, tmp / "training_curve.png",
+               f"{model}: {card['steps']} steps, {card['cpu_seconds']:.0f} CPU-s", restarts, view_changes,
+               before=parent.get("curve") if parent else None, warm_at=base_steps if parent else None)
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
     (tmp / "MODEL_CARD.md").write_text("\n".join([
         f"# {model}", "",
         f"Trained (seed {SEED}) for {card['steps']} steps in {card['cpu_seconds']:.0f} CPU seconds "
         f"({card['wall_seconds']:.0f} s wall, {threads} thread) at {RESOLUTION}x{RESOLUTION} by", "",
-        *[f"{i + 1}. `{c}` (steps {sp['from_step']}-{sp['to_step']}, {sp['cpu_s']:.0f} CPU-s)"
-          for i, (c, sp) in enumerate(zip(card["stages"], card["stage_spans"]))], "",
+        *[f"{i + 1}. `{c}`" + (f" (steps {sp['from_step']}-{sp['to_step']}, {sp['cpu_s']:.0f} CPU-s)" if sp else "")
+          for i, (c, sp) in enumerate(parent_stages(parent))],
+        *[f"{i + 1 + len(parent_stages(parent))}. `{c}` (steps {sp['from_step'] + base_steps}-{sp['to_step'] + base_steps}"
+          f", {sp['cpu_s']:.0f} CPU-s)" for i, (c, sp) in enumerate(zip(card["stages"], card["stage_spans"]))], "",
+        *([f"Stages 1-{len(parent_stages(parent))} made the checkpoint shipped before (its card: steps 0-{base_steps}, "
+           f"{base_cpu:.0f} CPU-s, run in `outputs/train/{model}_bench`). Stage {len(parent_stages(parent)) + 1} is a "
+           f"warm start from it (`--init`: its weights, a fresh optimizer, a new learning-rate schedule and data mix; "
+           f"dashed line on the curve) in the run `outputs/train/{run.name}`; the card's steps and CPU seconds are "
+           "the sums of both.", ""] if parent else []),
         *(["Each later command resumes the run (`--resume`, exact optimizer and RNG state). Where it names a different "
            "`--steps` the cosine schedule is recomputed for the new length from where it starts (the learning rate "
            "rises again after an annealed stage: a warm restart; each change is marked on the curve); with the same "
@@ -219,7 +279,9 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int) -> 
               f"{meta['model_config'].get('num_views')}." if view_changes else "")]
           if len(card["stages"]) > 1 else []), "",
         "Data: procedural scenes of the object, frontal and forward rigs (training seeds drawn from 0-899999) and the "
-        "real training scenes " + ", ".join(REAL) + f" with mixing weights {WEIGHTS}. Held out: {card['held_out']}.", "",
+        "real training scenes " + ", ".join(REAL) + f" with mixing weights {card['data']['weights']}"
+        + (f" (the warm-start checkpoint's run: {parent['data']['weights']})" if parent and parent.get("data") else "")
+        + f". Held out: {card['held_out']}.", "",
         f"Image encoder (`encoder={card['encoder']['name']}`): {card['encoder']['origin']}"
         + (" (origin and licence: docs/pretrained.md)." if card["encoder"]["name"] != "scratch" else "."), "",
         f"Training PSNR (sampled rays) {card['train_psnr_first']:.2f} dB at the first log step -> "
@@ -247,6 +309,12 @@ def main(argv: list[str] | None = None) -> None:
                    help="draw the source-view count K uniformly from [LO, HI] at every step (default: the preset's)")
     p.add_argument("--encoder", default="scratch", choices=["scratch", "vgg16", "alexnet"],
                    help="image encoder (docs/pretrained.md): the model's own from scratch, or a frozen pretrained one")
+    p.add_argument("--init", type=Path, default=None,
+                   help="warm start from this checkpoint folder's weights (fresh optimizer and schedule)")
+    p.add_argument("--lr", type=float, default=None, help="peak learning rate (default: the family's, 5e-4)")
+    p.add_argument("--warmup", type=int, default=None, help="warm-up steps (default: 100)")
+    p.add_argument("--real-weight", type=float, default=None,
+                   help="mixing weight of each real training scene (default 1; the procedural rigs keep 2)")
     p.add_argument("--prepare", action="store_true", help="only generate the procedural scenes")
     p.add_argument("--run-name", default=None,
                    help="run folder under outputs/train (default: <model>_bench, the shipped checkpoint's run)")
@@ -265,7 +333,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     overrides = [f"encoder={a.encoder}"] if a.encoder != "scratch" else []
     run = train(a.model, a.cpu_budget, a.threads, a.synth_scenes, a.steps, overrides, name=a.run_name,
-                stop_at=a.stop_at, views=tuple(a.num_views_range) if a.num_views_range else None)
+                stop_at=a.stop_at, views=tuple(a.num_views_range) if a.num_views_range else None,
+                tune=dict(init=a.init, lr=a.lr, warmup=a.warmup, real_weight=a.real_weight))
     if a.no_ship:
         print(f"trained {run} (not shipped: --no-ship)")
         return

@@ -50,8 +50,9 @@ def section(results: Path) -> str:
         "not looked at. Realism options: " + ", ".join(f"`--{k.replace('_', '-')} {v}`" for k, v in r["realism"].items())
         + ". K = 10 is scored only where a number is shown (scoring at K = 10 costs more CPU than a lever's "
         "training). At this budget a run has taken 60-90 steps, so differences under about 0.5 dB are within "
-        "the noise of one seed. Below the lever rows, the shipped checkpoint and the continued VGG16 run, scored the "
-        "same way at their own budgets.", "",
+        "the noise of one seed. Below the lever rows, the shipped checkpoint and the candidates for it (the continued "
+        "VGG16 run; ibrnet-tiny_ft_real3: the shipped ibrnet-tiny warm-started with `--init` for 1000 more steps with "
+        "real-scene weight 3), scored the same way at their own budgets (their CPU-s: the candidate's own run).", "",
         table(r), "",
         *([f"![validation against CPU-seconds]({r['curves']['figure']})", "",
            "Monitoring validation (the runs' own `val_psnr`: 2 views of seeds 901000-901001, K = the preset's) against "

@@ -22,8 +22,18 @@ def section(results: Path) -> str | None:
         out.append(f"| {c['model']} | {c['cpu_budget_s']:.0f} | {c['steps']} | {c['cpu_seconds']:.0f} | "
                    f"{c['wall_seconds']:.0f} | {c['threads']} | {c['resolution']}² | "
                    f"{c['train_psnr_first']:.2f} -> {c['train_psnr_last']:.2f} | {len(c.get('stages', [1]))} |")
+    weights = {c["model"]: c["data"]["weights"] for c in cards}
+    same = all(w == weights[cards[0]["model"]] for w in weights.values())
     out += ["", "Data: " + ", ".join(cards[0]["data"]["procedural"] + cards[0]["data"]["real"])
-            + f" (weights {cards[0]['data']['weights']}); held out: {cards[0]['held_out']}.", ""]
+            + (f" (weights {cards[0]['data']['weights']})" if same else
+               " (weights " + "; ".join(f"{m} {w}" for m, w in weights.items()) + ")")
+            + f"; held out: {cards[0]['held_out']}.", ""]
+    warm = [c for c in cards if c.get("warm_start")]
+    if warm:
+        out += [" ".join(f"{c['model']} was warm-started from the checkpoint shipped before it (step "
+                         f"{c['warm_start']['steps']}, {c['warm_start']['cpu_seconds']:.0f} CPU-s; data weights "
+                         f"{(c['warm_start'].get('data') or {}).get('weights')}); its steps and CPU seconds are the sums."
+                         for c in warm), ""]
     curves = [c["model"] for c in cards if (ROOT / "checkpoints" / c["model"] / "training_curve.png").is_file()]
     if curves:
         out += [" ".join(f"![{m} training curve](checkpoints/{m}/training_curve.png)" for m in curves), "",

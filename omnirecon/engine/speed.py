@@ -82,6 +82,10 @@ class BenchConfig(DeviceConfig):
     """Timed volumetric batches (median)."""
     seed: int = 0
     """Procedural scene seed."""
+    workers: int | None = None
+    """Mesh path: threads that shade chunks side by side (`MeshRenderOptions.workers`), each op on one torch
+    thread (default: --threads; 1 when --threads is not given). The volumetric path keeps --threads torch
+    threads."""
     quick: bool = False
     """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
@@ -177,8 +181,13 @@ def measure(cfg: BenchConfig) -> dict:
     sources = Sources.from_scene(scene, views).to(device)
 
     # ---------------------------------------------------------------- mesh path
+    workers = args.workers or args.threads or 1
+    torch_threads = torch.get_num_threads()
+    if workers > 1:
+        torch.set_num_threads(1)  # parallel over chunks, not inside each op (MeshRenderOptions.workers)
     start = time.perf_counter()
-    renderer = MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background or (1, 1, 1)))
+    renderer = MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background or (1, 1, 1),
+                                                                    workers=workers))
     sync()
     setup_s = time.perf_counter() - start
     frame = [0]
@@ -193,11 +202,12 @@ def measure(cfg: BenchConfig) -> dict:
                           args.warmup)
     coverage = statistics.mean(len(renderer.rasterizer.surface(c).pixels) / (c.width * c.height) for c in targets)
     with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background or (1, 1, 1),
-                                                              visibility=True)) as vis_renderer:
+                                                              visibility=True, workers=workers)) as vis_renderer:
         vis_times = timed(lambda: vis_renderer.render(next_camera(), extras=False), args.frames, args.warmup)
     backend = renderer.rasterizer.backend
     features = renderer.features
     renderer.close()
+    torch.set_num_threads(torch_threads)
 
     # ---------------------------------------------------------------- volumetric path
     cam = targets[0]
@@ -216,6 +226,7 @@ def measure(cfg: BenchConfig) -> dict:
     result = {
         "provenance": provenance(seed=args.seed, lp_num_threads=os.environ.get("LP_NUM_THREADS")),
         "config": {"quick": args.quick, "device": device, "torch_threads": torch.get_num_threads(),
+                   "mesh_path_workers": workers, "mesh_path_torch_threads": 1 if workers > 1 else torch_threads,
                    "llvmpipe_threads": os.environ.get("LP_NUM_THREADS", "default (all cores)"),
                    "rasterizer": backend, "resolution": [width, height],
                    "source_views": args.views, "source_resolution": [scene.width, scene.height],
@@ -253,7 +264,7 @@ def measure(cfg: BenchConfig) -> dict:
     result["provenance"]["loadavg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     write_json(args.out, result)
     print(f"mesh path {width}x{height}, {args.views} sources ({backend}, {device}, "
-          f"{torch.get_num_threads()} torch threads): {mesh_fps:.1f} FPS ({1000 * mesh_s:.1f} ms wall, "
+          f"{workers} shading threads): {mesh_fps:.1f} FPS ({1000 * mesh_s:.1f} ms wall, "
           f"{result['mesh']['cpu_ms']:.1f} ms CPU; surface pass "
           f"{result['mesh']['surface_pass_ms']:.1f} ms, full G-buffer {result['mesh']['gbuffer_ms']:.1f} ms; "
           f"with visibility {result['mesh']['visibility_fps']:.1f} FPS) | volumetric {rays_per_s:.0f} rays/s = "

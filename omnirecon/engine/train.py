@@ -247,10 +247,30 @@ class Trainer:
             self.cpu_used = float(meta["extra"].get("cpu_s", 0.0))
             if meta["extra"].get("scaler"):
                 self.scaler.load_state_dict(meta["extra"]["scaler"])
+        elif c.init is not None:
+            self.warm_start(Path(c.init))
         self.model_config = model_config_dict(self.model)
         check_train_views(self.bank, self.train_sources, max(self.cfg.num_views_range or (self.K,)))  # before any file
         if env.main:
             self.open_logs()
+
+    def warm_start(self, ckpt: Path) -> None:
+        """Load the weights of checkpoint folder ``ckpt`` (same preset and model config) into the fresh model."""
+        from omnirecon.engine.checkpoint_check import read_weights
+
+        if not (ckpt / "model.safetensors").is_file() or not (ckpt / "meta.json").is_file():
+            raise InputError("--init needs a checkpoint folder with model.safetensors and meta.json", ckpt,
+                             "pass e.g. checkpoints/ibrnet-tiny or a run's checkpoints/final")
+        meta = read_meta(ckpt)
+        if meta.get("preset") != self.cfg.model:
+            raise InputError(f"--init checkpoint is a {meta.get('preset')} model, not {self.cfg.model}", ckpt,
+                             f"pass --model {meta.get('preset')} or a {self.cfg.model} checkpoint")
+        try:
+            self.model.load_state_dict(read_weights(ckpt / "model.safetensors", str(self.device)))
+        except RuntimeError as e:
+            raise InputError(f"--init weights do not fit the model ({str(e).splitlines()[0]})", ckpt,
+                             "pass the same --model-overrides as the checkpoint's run (see its meta.json)") from e
+        self.notes.append(f"warm start from {ckpt} (step {meta.get('step')}): fresh optimizer and schedule")
 
     def check_resume(self, meta: dict) -> None:
         saved = meta.get("train_config", {})

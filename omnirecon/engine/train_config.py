@@ -127,6 +127,11 @@ class TrainConfig(DeviceConfig):
     """Run folder (None: outputs/train/<model>)."""
     resume: bool = False
     """Continue exactly from the latest checkpoint in --out."""
+    init: Path | None = None
+    """Warm start: a checkpoint folder (model.safetensors + meta.json of the same preset and model config, e.g.
+    checkpoints/ibrnet-tiny) whose weights the run starts from; the optimizer, the step count and the
+    learning-rate schedule start fresh (fine-tuning a shipped model on a new data mix). Ignored on --resume,
+    which continues from the run's own checkpoint."""
     stop_at: int | None = None
     """Stop (and checkpoint) after this step without finishing the schedule; continue with --resume."""
     seed: int = 0

@@ -18,6 +18,8 @@ SRDF depend on the ray), so meshes are built from depth maps:
 VolRecon's / Omni-Recon's published protocol (``shared/docs/omnirecon.md`` §6: depth at source views
 shifted 25 mm along x, nearest-pixel TSDF at 1/256 of the diagonal, weight 1, cleaned with the source
 masks) is the ``reference`` preset of :class:`MeshOptions`, not a second code path.
+
+Size: the one path and its documented settings (:class:`MeshOptions`, a third of the module) belong together.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ from omnirecon.mesh import clean, fusion
 from omnirecon.mesh.complete import complete_surface
 from omnirecon.mesh.depth import (
     DepthMaps,
+    background_pixels,
     combine,
     downscaled,
     holes,
@@ -86,7 +89,8 @@ class MeshOptions:
     bilinear: bool = True
     """Read depth bilinearly at each voxel's projection (sub-pixel); ``False``: the nearest pixel."""
     carve: bool = True
-    """With masks: pixels outside them mark the voxels they see through as empty."""
+    """Pixels outside the masks (with masks) or showing the scene's known background colour (without)
+    mark the voxels they see through as empty."""
     band: bool = True
     """Integrate only the voxel blocks near some depth sample (the same surface, cost by surface area)."""
     max_voxels: int = 1 << 26
@@ -122,6 +126,11 @@ class MeshOptions:
     fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to)."""
     complete: bool = True
     """Give every content pixel of every view a surface (:mod:`omnirecon.mesh.complete`)."""
+    confirmed_fill: bool = True
+    """Completion takes a view's own depth only where another map confirms it (:func:`fusion.consistency`),
+    the rest is hole-filled from its neighbours; forward-facing captures take every depth (their borders
+    have no second view). Unconfirmed fills on the demo scene were floating quads that held-out views
+    saw in the sky and in front of the objects."""
     model_side: int = 128
     """``stereo+model``: long side (px) the model's depth is rendered at before it fills stereo's holes at
     the photos' resolution (the model's eval resolution; 0 = the photos' own, ~7x the cost on fern)."""
@@ -251,15 +260,19 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     say = on_stage or (lambda name: None)
     say("confidence")
     t = time.perf_counter()
-    if masks is None:
+    empty = None
+    if masks is None:  # the known background colour: no surface there, and (carve) empty space on its rays
+        empty = background_pixels(maps, scene, options.shifts) if options.carve else None
         maps = without_background(maps, scene, options.shifts)
     cams = maps.cameras.to(dtype=torch.float64)
     depth = maps.depth.float().cpu()
     weight = (maps.confidence.float().cpu() if options.confidence else torch.ones_like(depth)) * (depth > 0)
     err = fusion.depth_disagreement(cams, depth) if len(cams) > 1 else None
     rel = max(0.01, 2.0 * (err or 0.0))
-    if options.weights and len(cams) > 1:
-        weight = weight * fusion.geometric_weight(fusion.consistency(cams, depth, rel=rel), len(cams))
+    agree = fusion.consistency(cams, depth, rel=rel) if len(cams) > 1 and (options.weights or options.complete) \
+        else None
+    if options.weights and agree is not None:
+        weight = weight * fusion.geometric_weight(agree, len(cams))
     diag = float((scene.bounds[1] - scene.bounds[0]).double().norm())
     footprint = fusion.pixel_footprint(cams, depth)
     voxel = options.voxel * diag if options.voxel is not None else fusion.auto_scale(cams, depth)[0]
@@ -273,7 +286,9 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     # padding would leave a sheet at the edge of the grid); completion puts them on the backdrop
     depth = torch.where(fusion.outside_bounds(cams, depth, scene.bounds, trunc), torch.zeros_like(depth), depth)
     dilated = None
-    free = None
+    free = empty
+    if empty is not None:
+        weight = torch.where(empty, torch.ones_like(weight), weight)
     if masks is not None:
         dilated = torch.from_numpy(clean.dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * scene.width))
         at_maps = dilated[maps.views]
@@ -324,10 +339,7 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     if options.complete:
         say("complete")
         t = time.perf_counter()
-        own = {v: i for i, v in reversed(list(enumerate(maps.views)))}  # first map of each view
-        unshifted = all(s == 0 for s in options.shifts)
-        view_depths = torch.stack([maps.depth[own[v]] for v in views]) if unshifted and all(v in own for v in views) \
-            else None
+        view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
         mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
                                             forward=scene.rig == "forward")
         counts["completed"] = len(mesh.faces)
@@ -341,6 +353,19 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
             "depth_source": maps.info, "vertices": len(mesh.vertices), "completion": completion,
             "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0}
     return MeshResult(mesh, info, maps.cameras, maps.depth)
+
+
+def completion_depths(maps: DepthMaps, views, options: MeshOptions, agree: Tensor | None = None) -> Tensor | None:
+    """Each of ``views``' own depth map for completion (its first unshifted map; ``None`` for shifted maps or a
+    view without one), with ``options.confirmed_fill`` only where ``agree`` (:func:`fusion.consistency`
+    counts, ``None``: no test) says another map confirms it. ``# [len(views), H, W]``"""
+    own = {v: i for i, v in reversed(list(enumerate(maps.views)))}  # first map of each view
+    if any(s != 0 for s in options.shifts) or not all(v in own for v in views):
+        return None
+    depth = maps.depth
+    if options.confirmed_fill and agree is not None:
+        depth = torch.where(agree >= 1, depth, torch.zeros_like(depth))
+    return torch.stack([depth[own[v]] for v in views])
 
 
 def mesh_from_model(model, scene, views, options: MeshOptions | None = None, device="cpu", use_masks: bool = False,
@@ -393,7 +418,7 @@ def default_depth(scene=None, has_model: bool = True) -> str:
     * dtu_scan24 / 37 (object scans): 17.46 / 13.68 dB over the mask, against 15.21 / 13.65 for stereo and
       15.30 / - for the model (IoU 0.950 / 0.897, against 0.931 / 0.918 and 0.958 / -);
     * the demo's procedural scene: 19.85 dB (F-score 0.945), against 19.29 (0.941) for stereo and 19.61
-      (0.900) for the model; exact mesh 22.19. The cost: 93 CPU-s against 16 for stereo alone there
-      (the model's depth is most of it), so a time-bound run can pass ``--depth stereo`` for -0.56 dB.
+      (0.900) for the model; exact mesh 22.19. The cost: 26 CPU-s against 16 for stereo alone there (93
+      when the model rendered whole views; now only stereo's holes), 47 against 44 for 20 fern photos.
     """
     return "stereo+model" if has_model else "stereo"

@@ -193,7 +193,8 @@ def stereo_maps(scene, views, options=None, on_view=None) -> DepthMaps:
     seconds = time.perf_counter() - start
     return DepthMaps(scene.cameras[views], out["depth"], out["confidence"], views,
                      {"source": "stereo", "seconds": seconds, "seconds_per_view": seconds / max(1, len(views)),
-                      "pairs": out["pairs"], "stereo_options": out["options"]})
+                      "pairs": out["pairs"], "stereo_options": out["options"],
+                      "unconfirmed_dropped": out["unconfirmed_dropped"]})
 
 
 def oracle_depths(scene, views, shifts=(0.0,)) -> DepthMaps:
@@ -292,16 +293,24 @@ def combine(primary: DepthMaps, fallback: DepthMaps, weight: float = 0.5) -> Dep
     return DepthMaps(primary.cameras, depth, conf, primary.views, info)
 
 
+def background_pixels(maps: DepthMaps, scene, shifts=(0.0,), tol: float = 2 / 255) -> Tensor | None:
+    """The pixels of ``maps`` where the photo shows ``scene``'s known background colour (rays through empty
+    space), ``None`` without a background or for shifted or resized maps. ``# [N, H, W]`` bool"""
+    if scene.background is None or any(s != 0 for s in shifts) or \
+            tuple(maps.depth.shape[-2:]) != (scene.height, scene.width):
+        return None
+    bg = torch.tensor(scene.background, dtype=scene.images.dtype)
+    return (scene.images[maps.views] - bg).abs().amax(-1) <= tol  # [N, H, W]
+
+
 def without_background(maps: DepthMaps, scene, shifts=(0.0,), tol: float = 2 / 255) -> DepthMaps:
     """``maps`` with no depth where the photo shows the scene's background colour (a scene composited on
     a known ``background``, e.g. procedural renders on black): there is no surface to make there, and a
     model's depth in the empty sky made sheets that hid the objects from held-out views (demo scene,
     ``bench/depth_sources.py``). Unshifted maps only (a shifted map's pixels are not the photo's)."""
-    if scene.background is None or any(s != 0 for s in shifts) or \
-            tuple(maps.depth.shape[-2:]) != (scene.height, scene.width):
+    empty = background_pixels(maps, scene, shifts, tol)
+    if empty is None:
         return maps
-    bg = torch.tensor(scene.background, dtype=scene.images.dtype)
-    empty = (scene.images[maps.views] - bg).abs().amax(-1) <= tol  # [N, H, W]
     zero = torch.zeros_like(maps.depth)
     return DepthMaps(maps.cameras, torch.where(empty, zero, maps.depth), torch.where(empty, zero, maps.confidence),
                      maps.views, {**maps.info, "background_pixels": float(empty.float().mean())})

@@ -19,27 +19,36 @@ from omnirecon.render.raster import Surface
 def fill_points(camera: Cameras, pixels: Tensor, far: float, bounds: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The background layer at flat pixel indices ``pixels # [M]`` of one camera: where each pixel-centre
     ray leaves the box ``bounds # [2, 3]`` (its far side), at most at z-depth ``far`` (rays that miss the
-    box, or no box: at ``far``). Returns world ``points # [M, 3]`` and their z-depths ``# [M]`` (float32)."""
-    uv = camera.pixel_centers().reshape(-1, 2)[pixels.to(camera.device)]  # [M, 2]
-    o, d = camera.rays(uv[None], normalize=False)  # [1, M, 3]: origin + z * d is at z-depth z
-    o, d = o[0].double(), d[0].double()
-    z = torch.full((len(uv),), float(far), dtype=torch.float64, device=o.device)
+    box, or no box: at ``far``). Returns world ``points # [M, 3]`` and their z-depths ``# [M]`` (float32).
+
+    Per frame this runs on every pixel the mesh misses (up to the whole image), so it is written for
+    speed: the ray direction with camera z = 1 is affine in the pixel centre ``(u, v)``
+    (``R ((u - cx) / fx, (v - cy) / fy, 1)``, as :meth:`Cameras.rays`), one ``[M, 2] @ [2, 3]`` product,
+    and the slab test multiplies by its reciprocal, in float32."""
+    pixels = pixels.to(camera.device)
+    R = camera.R[0].float()  # [3, 3] camera -> world rotation
+    fx, fy, cx, cy = (float(x[0]) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
+    A = torch.stack([R[:, 0] / fx, R[:, 1] / fy, R[:, 2] - R[:, 0] * (cx / fx) - R[:, 1] * (cy / fy)])  # [3, 3]
+    uv = torch.stack([pixels % camera.width, pixels // camera.width], -1).float() + 0.5  # [M, 2] pixel centres
+    d = torch.addmm(A[2], uv, A[:2])  # [M, 3]: origin + z * d is at z-depth z
+    o = camera.centers[0].float()  # [3]
+    z = torch.full((len(uv),), float(far), dtype=torch.float32, device=d.device)
     if bounds is not None:
-        b = bounds.to(o)
-        safe = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)
-        t1, t2 = (b[0] - o) / safe, (b[1] - o) / safe  # [M, 3]
+        b = bounds.to(d) - o  # [2, 3] box corners relative to the origin
+        inv = d.abs().clamp_min(1e-12).copysign(d).reciprocal()  # [M, 3]
+        t1, t2 = inv * b[0], inv * b[1]  # [M, 3]
         t_in, t_out = torch.minimum(t1, t2).amax(-1), torch.maximum(t1, t2).amin(-1)  # [M]
         hit = (t_out > t_in.clamp_min(0)) & (t_out > 0)
         z = torch.where(hit, torch.minimum(t_out, z), z)
-    return (o + z[:, None] * d).float(), z.float()
+    return torch.addcmul(o, z[:, None], d), z
 
 
 def with_fill(surface: Surface, camera: Cameras, far: float, bounds: Tensor | None = None) -> tuple[Surface, int]:
     """``surface`` plus the background layer (:func:`fill_points`) at every pixel it does not cover; the
     first returned count of pixels are the real surface's."""
-    covered = torch.zeros(surface.height * surface.width, dtype=torch.bool)
-    covered[surface.pixels] = True
-    miss = (~covered).nonzero()[:, 0]
+    miss = torch.ones(surface.height * surface.width, dtype=torch.bool)
+    miss[surface.pixels] = False
+    miss = miss.nonzero()[:, 0]
     if not len(miss):
         return surface, len(surface.pixels)
     points, depth = fill_points(camera, miss, far, bounds)

@@ -34,12 +34,19 @@ weighted sum of 4 rows: about 6x faster than ``grid_sample`` for 16 channels on 
 points go through in cache-sized chunks, every MLP layer is one matrix product over all ``K x n``
 point-view pairs (layers 2 and 3 column-major: several times faster than row-major for these narrow
 layers), and the source colours are sampled exactly as the model does. ``fused=False`` calls
-``model.shade`` (any model with ``encode`` and ``shade``).
+``model.shade`` (any model with ``encode`` and ``shade``). With ``MeshRenderOptions.workers`` > 1, chunks
+are shaded by that many threads at once (each writes its own slice of the outputs): on 2 cores with one
+torch thread this parallelises every op of a chunk, where torch's intra-op threads split only the ops
+above its grain size.
+
+Size: the renderer, its fused shader and the texel atlas the shader samples are one real-time path,
+timed and tested together (the fill's geometry is in :mod:`omnirecon.mesh.fill`).
 """
 
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Literal
 
@@ -77,6 +84,10 @@ class MeshRenderOptions:
     """Fused appearance branch (same function, faster; Omni-Recon only) instead of ``model.shade``."""
     chunk: int = 8192
     """Surface points per chunk (``K x chunk`` point-view pairs; a cache-sized working set)."""
+    workers: int = 1
+    """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
+    ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
+    so the two kinds of parallelism do not oversubscribe the cores: ``omnirecon bench --threads N`` does."""
 
 
 @dataclass
@@ -211,6 +222,7 @@ class MeshRenderer:
             self._rgb = TexelAtlas(self._images, "border")
             if self.options.fused:
                 self._feat, self._mlp = self._fold(model.appearance)
+        self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
         self.source_depth_max: Tensor | None = None
         """With ``options.visibility``: per source, the largest rasterized depth of each 2x2 block of
         pixel centres (inf = background or outside), ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers
@@ -250,7 +262,8 @@ class MeshRenderer:
         uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
         z = uvz[:, 2]
         uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project
-        mask = (z > 1e-6) & ((uv >= 0) & (uv < self._size)).all(1)
+        inside = (uv >= 0) & (uv < self._size)  # [K, 2, n]
+        mask = (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
         if self.source_depth_max is not None:
             mask &= self.visible(uv, z)
         return uv, z, mask
@@ -294,8 +307,12 @@ class MeshRenderer:
         coords = torch.empty(K, 2, total, **new) if with_coords else None
         mask_all = torch.empty(K, total, dtype=torch.bool, device=self.device)
         rgb = torch.empty(3, total, **new) if with_rgb else None
-        for s in range(0, total, self.options.chunk):
-            sl = slice(s, s + self.options.chunk)
+
+        def shade_chunk(s: int) -> None:
+            with torch.inference_mode():  # thread-local: the pool's threads need it too
+                shade(slice(s, s + self.options.chunk))
+
+        def shade(sl: slice) -> None:
             p = points[sl].T.contiguous()  # [3, n]
             n = p.shape[1]
             uv, _, mask = self.project(p)  # [K, 2, n], [K, n]
@@ -315,6 +332,13 @@ class MeshRenderer:
                 grid = (st * 2 - 1).transpose(1, 2)[:, None]  # [K, 1, n, 2]
                 c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]
                 rgb[:, sl] = (c * om[:, None]).sum(0)  # [3, n]
+
+        starts = range(0, total, self.options.chunk)
+        if self._pool is None or len(starts) < 2:
+            for s in starts:
+                shade_chunk(s)
+        else:
+            list(self._pool.map(shade_chunk, starts))  # list(): waits, and raises a worker's error here
         return ShadeResult(surf, omega, mask_all, coords, None if rgb is None else rgb.T)
 
     # ------------------------------------------------------------------ images
@@ -365,7 +389,10 @@ class MeshRenderer:
                 "seen": surf.image(shaded.mask.any(0)[:, None].to(self.dtype), 0.0)[..., 0] > 0}
 
     def close(self) -> None:
-        """Free the rasterizer's GL context."""
+        """Free the rasterizer's GL context (and the shading threads)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
         self.rasterizer.close()
 
     def __enter__(self) -> MeshRenderer:

@@ -13,7 +13,8 @@ confidence from that agreement, so an occluded or mismatched pair loses its vote
 Two details that matter on real scenes: the disparity search range comes from the scene bounds (the
 depth range of the bounds box seen by the left camera), and both images are padded on the left by
 the search range, since SGBM leaves that band of the left image unmatched (on DTU 26 % -> 77 % of the
-pixels matched with the padding).
+pixels matched with the padding). Last, each view's depth is checked against the other views' maps
+(``StereoOptions.confirm``): a depth no other view confirms is dropped.
 """
 
 from __future__ import annotations
@@ -63,6 +64,13 @@ class StereoOptions:
     need: int = 2
     """Agreeing pairs for full confidence; a pixel only one pair sees keeps confidence 1/need (coverage,
     not precision, is what the whole-image score punishes)."""
+    confirm: int = 0
+    """Multi-view geometric consistency: keep a pixel's depth only when at least this many other views'
+    stereo maps agree with it (forward-backward reprojection within ``agree`` and 1 px, up to 8 nearest
+    maps; 0 = keep all: the fusion weighs each pixel by that agreement anyway). On the demo scene 25 % of
+    the stereo pixels had no other map agreeing and 70 % of those were > 10 % off the exact depth (1 map:
+    23 %, 2: 4 %), yet with the default mesh settings dropping them (``stereo+model`` fills them from the
+    model) cost the mesh path 0.1 dB whole image and 0.26 dB over the objects on held-out views; off."""
 
     def check(self) -> None:
         """One-line :class:`InputError` for a bad setting."""
@@ -89,6 +97,8 @@ class StereoOptions:
             bad.append(("agree", self.agree, "a relative difference in (0, 1), e.g. 0.02"))
         if not 1 <= self.need <= 16:
             bad.append(("need", self.need, "an integer in 1-16, e.g. 2"))
+        if not 0 <= self.confirm <= 8:
+            bad.append(("confirm", self.confirm, "an integer in 0-8, e.g. 1"))
         if bad:
             name, value, fix = bad[0]
             raise InputError(f"stereo option {name} = {value} is out of range", None, f"use {fix}")
@@ -288,6 +298,15 @@ def vote(depths: np.ndarray, agree: float, need: int) -> tuple[np.ndarray, np.nd
     return depth.astype(np.float32), conf.astype(np.float32), n
 
 
+def unconfirmed(cameras: Cameras, depths: Tensor, rel: float, need: int) -> Tensor:
+    """Pixels of the depth maps ``depths # [N, H, W]`` (at ``cameras``) with a depth that fewer than ``need``
+    of the other maps confirm (:func:`omnirecon.mesh.fusion.consistency`: forward-backward reprojection
+    within ``rel`` and 1 px, 8 nearest maps). ``# [N, H, W]`` bool"""
+    from omnirecon.mesh.fusion import consistency
+
+    return (consistency(cameras, depths, rel=rel) < need) & (depths > 0)
+
+
 def stereo_depths(images: Tensor, cameras: Cameras, views: list[int], bounds: Tensor,
                   options: StereoOptions | None = None, on_view=None) -> dict:
     """Classical stereo depth at each of ``views`` from its :func:`stereo_neighbours` among ``views``.
@@ -301,7 +320,8 @@ def stereo_depths(images: Tensor, cameras: Cameras, views: list[int], bounds: Te
 
     Returns:
         ``depth`` (z-depth, 0 = none) and ``confidence`` in [0, 1] at ``cameras[views]`` (``# [V, H, W]``),
-        ``pairs`` (the neighbours of each view) and ``options``.
+        ``pairs`` (the neighbours of each view), ``options`` and ``unconfirmed_dropped`` (the fraction of
+        the voted depths no other view confirmed, dropped; ``StereoOptions.confirm``).
     """
     options = options or StereoOptions()
     options.check()
@@ -319,5 +339,11 @@ def stereo_depths(images: Tensor, cameras: Cameras, views: list[int], bounds: Te
         confs.append(torch.from_numpy(c))
         if on_view is not None:
             on_view()
-    return {"depth": torch.stack(depths), "confidence": torch.stack(confs), "pairs": neighbours,
-            "options": asdict(options)}
+    depth, conf = torch.stack(depths), torch.stack(confs)
+    dropped = 0.0
+    if options.confirm > 0 and len(views) > 1:  # multi-view geometric consistency
+        lone = unconfirmed(cameras[views], depth, options.agree, options.confirm)
+        dropped = float(lone.sum() / max(1, int((depth > 0).sum())))
+        depth, conf = depth.masked_fill(lone, 0.0), conf.masked_fill(lone, 0.0)
+    return {"depth": depth, "confidence": conf, "pairs": neighbours, "options": asdict(options),
+            "unconfirmed_dropped": dropped}

@@ -56,7 +56,11 @@ Departures (documented choices, each a config field where it matters):
   that finds no surface come out dark (``black``, both presets). ``far`` (the far bound is opaque, as
   NeRF's infinite last interval) and ``renormalize`` (``w / sum w``) are options. On validation seeds
   901000-901007 plus ethiopianHead (K = 3 / 10, ``cpu`` protocol) the shipped tiny checkpoint scores
-  within 0.02 dB mean of ``black`` with either, so ``black`` stays.
+  within 0.02 dB mean of ``black`` with either, so ``black`` stays. ``backdrop`` gives ``far``'s colours but
+  ``black``'s depth and opacity (meshing reads ``acc`` as confidence): with ``forward_box="cameras"`` it scores
+  34.78 / 33.89 dB on forward-rig seeds 901004-901007 (``black`` 34.64 / 33.84) and 23.88 / 22.83 on object
+  seeds 901000-901003 (23.85 / 22.79), and fern 24.49 / 23.32 (23.97 / 22.77; K = 3 / 10, ``python -m bench
+  fern_gap``); not yet in the shipped checkpoint's config.
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 
@@ -138,11 +142,13 @@ class OmniReconConfig:
     """A sample counts towards ray validity when at least min(this, K) views see it."""
     valid_samples: int = 8
     """A ray is valid when more than min(this, S/4) of its samples are seen by enough views."""
-    leftover: Literal["black", "far", "renormalize"] = "black"
+    leftover: Literal["black", "far", "renormalize", "backdrop"] = "black"
     """Where the transmittance left after the last sample goes: nowhere (``black``, the reference: a ray
     that finds no surface comes out dark), to the last sample (``far``: alpha = 1 there, NeRF's infinite
     last interval, so the far bound acts as a backdrop) or spread over the samples (``renormalize``:
-    ``w / sum w``). Applies to rgb, depth, blend and lifted signals alike."""
+    ``w / sum w``). Applies to rgb, depth, blend and lifted signals alike. ``backdrop``: ``far`` for the colours
+    (rgb and lifted signals) only; depth, opacity (``acc``, which meshing reads as confidence), weights and
+    blend stay as ``black``, so a ray that finds no surface shows the far colour but adds no surface."""
     encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
     """2-D encoder: the FPN trained from scratch, or a frozen pretrained backbone (HED's VGG16, ST-LPIPS's
     AlexNet) with small trainable adapters to the appearance feature and the three pyramid maps
@@ -510,17 +516,19 @@ class OmniRecon(GeneralizableModel):
         alpha = alpha_from_sdf(sdf, t, self.sharpness)  # [R, S]
         if self.cfg.leftover == "far":
             alpha = torch.cat([alpha[:, :-1], torch.ones_like(alpha[:, -1:])], -1)
-        w, _ = weights_from_alpha(alpha, eps=1e-7)
+        w, trans = weights_from_alpha(alpha, eps=1e-7)
         if self.cfg.leftover == "renormalize":
             w = w / w.sum(-1, keepdim=True).clamp_min(1e-6)
+        # backdrop: colours only take what "far" would give the last sample; depth, acc and weights stay "black"
+        w_col = torch.cat([w[:, :-1], trans[:, -1:]], -1) if self.cfg.leftover == "backdrop" else w  # [R, S]
         colour = (omega[..., None] * samples.rgb).sum(-2)  # [R, S, 3]
         K, S = samples.mask.shape[-1], z.shape[1]
         seen = samples.mask.sum(-1) >= min(self.cfg.valid_views, K)  # [R, S]
         valid = seen.sum(-1) > min(self.cfg.valid_samples, S // 4)
-        out = {"rgb": composite(w, colour), "depth": (w * z).sum(-1), "weights": w, "z": z, "sdf": sdf,
+        out = {"rgb": composite(w_col, colour), "depth": (w * z).sum(-1), "weights": w, "z": z, "sdf": sdf,
                "blend": (w[..., None] * omega).sum(1), "acc": w.sum(-1), "valid": valid}
         if signals is not None:
-            out["signal"] = composite(w, (omega[..., None] * self.sample_signals(features, points, signals)).sum(-2))
+            out["signal"] = composite(w_col, (omega[..., None] * self.sample_signals(features, points, signals)).sum(-2))
         return out, omega
 
     def render_rays(self, features: OmniReconFeatures, rays: Rays, jitter: bool = False,

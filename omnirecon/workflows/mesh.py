@@ -209,7 +209,10 @@ def summary_lines(record: dict) -> list[str]:
                      f"{comp['coverage_before']:.1%} by the fused mesh, 100% after")
     m = record.get("metrics", {})
     if "mask_iou" in m:
-        lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views: {m['mask_iou']['mean']:.3f}")
+        against = {"masks": "the object masks", "exact depth": "every surface they see"}.get(m["mask_iou"].get("against"),
+                                                                                             "the masks")
+        lines.append(f"silhouette IoU on {len(m['held_out'])} held-out views (against {against}): "
+                     f"{m['mask_iou']['mean']:.3f}")
     for key, what in (("rendered_depth", "model depth maps vs GT mesh"), ("depth", "mesh depth at held-out views")):
         if key in m:
             d = m[key]

@@ -169,7 +169,9 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
 def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24
                     ) -> tuple[Path, list[np.ndarray], list[float]]:
     """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
-    (:class:`~omnirecon.mesh.ibr.MeshRenderer`, the scene's background) and write the video at ``path``.
+    (:class:`~omnirecon.mesh.ibr.MeshRenderer`; pixels no triangle covers: the scene's known background
+    colour where it has one, as ``finetune --fill auto``, else the far fill, which on the demo's black sky
+    drew ghost copies of the objects) and write the video at ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
@@ -184,7 +186,8 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
         while end < len(cameras) and list(sources[end]) == list(sources[start]):
             end += 1
         with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])),
-                          MeshRenderOptions(background=bg)) as r:
+                          MeshRenderOptions(background=bg, fill="background" if scene.background is not None
+                                            else "far")) as r:
             frames, seconds = render_frames(r, cameras[start:end])
         images += frames
         times += seconds

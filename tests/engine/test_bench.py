@@ -136,3 +136,37 @@ def test_train_tiny_stage_spans_split_the_cumulative_cpu_time(tmp_path):
                                                 {"from_step": 300, "to_step": 312, "cpu_s": 100.0}]
     (tmp_path / "stages.json").unlink()  # a run from before stages.json: one stage
     assert stage_spans(tmp_path, rows, 312) == [{"from_step": 0, "to_step": 312, "cpu_s": 700.0}]
+
+
+def test_train_tiny_card_of_a_warm_started_run_adds_the_parent_checkpoint(tmp_path):
+    """A run begun with ``--init`` ships a card whose steps and CPU seconds are the parent's plus its own, listing the
+    parent's stages first and the run's own (with --init, --lr, --real-weight) after them, its data weights as run."""
+    import json
+
+    from bench.train_tiny import ship
+
+    parent = tmp_path / "parent"
+    parent.mkdir()
+    (parent / "card.json").write_text(json.dumps({
+        "steps": 7000, "cpu_seconds": 6700.0, "wall_seconds": 8000.0, "data": {"weights": [2, 2, 2, 1, 1, 1, 1]},
+        "stages": ["python bench/train_tiny.py --model ibrnet-tiny --steps 7000"],
+        "curve": {"train": [[10, 15.0], [7000, 22.0]], "validation": [[7000, 21.0]]}}))
+    run = tmp_path / "run"
+    final = run / "checkpoints" / "final"
+    final.mkdir(parents=True)
+    (final / "model.safetensors").write_bytes(b"weights")
+    (final / "meta.json").write_text(json.dumps({"step": 100, "extra": {"cpu_s": 90.0, "elapsed_s": 200.0},
+                                                 "model_config": {"num_views": 5}}))
+    (run / "stages.json").write_text(json.dumps([{"cpu_budget": 120, "steps": 100, "threads": 1, "from_step": 0,
+                                                  "init": str(parent), "lr": "0.0001", "real_weight": "3.0"}]))
+    (run / "metrics.jsonl").write_text("".join(json.dumps({"step": s, "loss": 0.01, "psnr": 23.0, "cpu_time": 0.9 * s})
+                                               + "\n" for s in range(10, 101, 10)))
+    dest = ship("ibrnet-tiny", run, 120, 1, 100, dest=tmp_path / "shipped")
+    card = json.loads((dest / "card.json").read_text())
+    assert card["steps"] == 7100 and card["cpu_seconds"] == 6790.0 and card["data"]["weights"][-1] == 3.0
+    assert card["warm_start"]["steps"] == 7000 and card["stage_spans"] == [{"from_step": 0, "to_step": 100,
+                                                                            "cpu_s": 90.0}]
+    text = (dest / "MODEL_CARD.md").read_text()
+    assert "1. `python -m bench train_tiny --model ibrnet-tiny --steps 7000`" in text
+    assert f"--init {parent} --lr 0.0001 --real-weight 3.0` (steps 7000-7100, 90 CPU-s)" in text
+    assert (dest / "training_curve.png").stat().st_size > 1000 and (dest / "model.safetensors").read_bytes() == b"weights"

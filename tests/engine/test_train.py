@@ -268,3 +268,34 @@ def test_view_count_range_is_drawn_per_step_and_resumes_exactly(tmp_path, scene)
     a, b = losses(straight), losses(split)
     assert all(a[s] == b[s] for s in range(1, 2 * n + 1)), (a, b)
     assert main(train_args(tmp_path / "bad", str(scene), "gpnr-tiny", 2, "--num-views-range", "6", "2")) == 2
+
+
+def test_init_warm_starts_from_a_checkpoint_with_a_fresh_schedule(tmp_path, scene, capsys):
+    """``--init CKPT``: step 0's weights are the checkpoint's (so the first loss equals the loss the source run
+    would see on the same draw), the step count and optimizer start fresh; a wrong preset or config is refused."""
+    data = str(scene)
+    src = tmp_path / "src"
+    assert main(train_args(src, data, "gpnr-tiny", 30, "--lr", "3e-3", "--warmup", "5")) == 0
+    ckpt = src / "checkpoints" / "final"
+    # zero steps of learning (lr 0 is refused, so compare the weights after a --stop-at 1 with lr ~ 0)
+    warm = tmp_path / "warm"
+    assert main(train_args(warm, data, "gpnr-tiny", 4, "--init", str(ckpt), "--lr", "1e-12")) == 0
+    assert "warm start from" in capsys.readouterr().err
+    w0, w1 = weights(ckpt), weights(warm / "checkpoints" / "final")
+    assert all(torch.allclose(w0[k], w1[k], atol=1e-6) for k in w0)
+    meta = json.loads((warm / "checkpoints" / "final" / "meta.json").read_text())
+    assert meta["step"] == 4 and meta["train_config"]["init"] == str(ckpt)
+    cold = tmp_path / "cold"
+    assert main(train_args(cold, data, "gpnr-tiny", 4, "--lr", "1e-12")) == 0
+    assert losses(warm)[1] < losses(cold)[1]  # the warm start has learned something; the cold one has not
+    # --resume continues from the run's own checkpoint, --init is ignored then
+    assert main(train_args(warm, data, "gpnr-tiny", 5, "--init", str(ckpt), "--lr", "1e-12", "--resume")) == 0
+    assert sorted(losses(warm)) == [1, 2, 3, 4, 5]
+    # refusals: another preset's checkpoint, a different model config, a folder that is no checkpoint
+    assert main(train_args(tmp_path / "r1", data, "ibrnet-tiny", 2, "--init", str(ckpt))) == 2
+    assert "gpnr-tiny model, not ibrnet-tiny" in capsys.readouterr().err
+    assert main(train_args(tmp_path / "r2", data, "gpnr-tiny", 2, "--init", str(ckpt), "--model-overrides",
+                           "dim=16")) == 2
+    assert "do not fit" in capsys.readouterr().err
+    assert main(train_args(tmp_path / "r3", data, "gpnr-tiny", 2, "--init", str(tmp_path))) == 2
+    assert "--init needs a checkpoint folder" in capsys.readouterr().err

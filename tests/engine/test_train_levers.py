@@ -77,3 +77,25 @@ def test_stereo_depth_flag_adds_a_depth_loss_on_scenes_without_depth(tmp_path, f
         assert main(train_args(run, str(bare), "ibrnet-tiny", 1, "--depth-weight", "1", *flag)) == 0
         first[bool(flag)] = json.loads((run / "metrics.jsonl").read_text().splitlines()[0])["loss"]
     assert first[True] > first[False] + 1e-4
+
+
+def test_scores_merge_earlier_evaluations_per_k(tmp_path):
+    """``evaluate`` takes each K from an earlier ``<out>_k...`` folder that has it (no new evaluation), and ignores
+    folders of other checkpoints whose names only start alike."""
+    import json
+
+    from bench.train_levers import evaluate, summarize
+
+    def write(name, ks, psnr):
+        d = tmp_path / name
+        d.mkdir()
+        scenes = [{"name": n, "settings": {str(k): {"mean": {"psnr": psnr + k}} for k in ks}}
+                  for n in ("scene_901000", "lego")]
+        (d / "results.json").write_text(json.dumps({"num_views": ks, "scenes": scenes, "provenance": {}}))
+
+    write("model_k3", [3], 20.0)
+    write("model_k10", [10], 30.0)
+    write("model_step1000_k3", [3], 0.0)  # another checkpoint
+    ev = evaluate(tmp_path / "ckpt", tmp_path / "model", ["3", "10"])
+    assert ev["scenes"] == {"synth:scene_901000": {"3": 23.0, "10": 40.0}, "lego": {"3": 23.0, "10": 40.0}}
+    assert summarize(ev["scenes"])["real_10"] == 40.0

@@ -66,11 +66,11 @@ def test_mesh_path_equals_volumetric_colour_at_the_exact_surface(setup):
     assert torch.allclose(out["blend"].sum(-1)[out["mask"]], torch.ones(int(out["mask"].sum())), atol=1e-5)
 
 
-@pytest.mark.parametrize("visibility", [False, True])
-def test_fused_shader_equals_model_shade(setup, visibility):
+@pytest.mark.parametrize(("visibility", "workers"), [(False, 1), (True, 1), (True, 2)])
+def test_fused_shader_equals_model_shade(setup, visibility, workers):
     scene, mesh, model, sources, target = setup
     opts = dict(background=scene.background, visibility=visibility, chunk=500)  # several chunks
-    with MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts)) as fused, \
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts, workers=workers)) as fused, \
             MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts, fused=False)) as plain:
         a, b = fused.render(target), plain.render(target)
         assert torch.equal(a["mask"], b["mask"]) and torch.equal(a["seen"], b["seen"])
@@ -79,6 +79,9 @@ def test_fused_shader_equals_model_shade(setup, visibility):
         signal = torch.rand(4, 20, 24, 5, generator=torch.Generator().manual_seed(0))  # another resolution
         sa, sb = fused.render_signal(target, signal)["signal"], plain.render_signal(target, signal)["signal"]
         assert (sa - sb).abs().max() < 1e-5
+        if workers > 1:  # chunks shaded side by side: the same image as one at a time
+            with MeshRenderer(model, mesh, sources, MeshRenderOptions(**opts)) as serial:
+                assert torch.equal(a["rgb"], serial.render(target)["rgb"])
 
 
 def test_constant_signal_renders_the_constant(setup):

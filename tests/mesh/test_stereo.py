@@ -72,3 +72,19 @@ def test_stereo_time_per_view_is_recorded_for_the_bench():
     images, cams, _ = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0]])
     out = stereo_depths(images, cams, [0, 1], torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]]))
     assert out["pairs"] == [[1], [0]] and np.isfinite(out["depth"].numpy()).all()
+
+
+def test_a_depth_no_other_view_confirms_is_dropped():
+    """Multi-view geometric consistency (StereoOptions.confirm): a patch of one view's map pushed 20 %
+    off is confirmed by no other view; the exact depth around it is confirmed by all."""
+    from omnirecon.mesh.stereo import unconfirmed
+
+    _, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0], [0.0, 0.3, 0], [0.3, 0.3, 0]])
+    depths = exact.clone()
+    depths[0, 40:60, 60:90] *= 1.2
+    lone = unconfirmed(cams, depths, rel=0.02, need=1)
+    assert bool(lone[0, 42:58, 62:88].all())
+    seen = torch.zeros_like(lone[0])
+    seen[20:100, 30:130] = True  # well inside the other views' images
+    assert not bool(lone[1:, 20:100, 30:130].any()) and not bool(lone[0][seen & (depths[0] == exact[0])].any())
+    assert not bool(unconfirmed(cams, exact, rel=0.02, need=3)[:, 20:100, 30:130].any())

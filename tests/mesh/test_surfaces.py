@@ -162,3 +162,25 @@ def test_model_depth_only_where_stereo_left_holes(forward_scene):  # noqa: F811
     assert torch.allclose(part.depth[need], whole.depth[need], atol=1e-5)
     assert not bool(part.depth[~need].any()) and not bool(part.confidence[~need].any())
     assert counting.renders == 2 and counting.encodes == 1 and part.info["model_calls"]["rays"] == int(need.sum())
+
+
+
+def test_completion_takes_no_depth_that_no_other_view_confirms():
+    """Completion fills a view's uncovered pixels from its own depth only where another map confirms it
+    (MeshOptions.confirmed_fill): on the demo scene the unconfirmed fills floated in the sky and in front
+    of the objects of held-out views (whole image 19.85 -> 20.68 dB without them, bench notes)."""
+    from omnirecon.mesh.build import completion_depths
+    from omnirecon.mesh.fusion import consistency
+
+    cams = ring_cameras(8, res=32)
+    depth = sphere_depth(cams, 0.8)
+    depth[0, 10:14, 10:20] *= 0.7  # floating in front of the sphere, in view 0 only
+    maps = DepthMaps(cams, depth, (depth > 0).float(), list(range(8)))
+    agree = consistency(cams, depth, rel=0.02)
+    fills = completion_depths(maps, [0, 2], MeshOptions(), agree)
+    assert fills.shape == (2, 32, 32) and not bool(fills[0, 10:14, 10:20].any())
+    seen = agree[0] >= 1
+    assert seen.sum() > 0.3 * (depth[0] > 0).sum() and torch.equal(fills[0][seen], depth[0][seen])
+    every = completion_depths(maps, [0, 2], MeshOptions(confirmed_fill=False), agree)
+    assert torch.equal(every, depth[[0, 2]])  # off (and forward-facing captures): every depth
+    assert completion_depths(maps, [0], MeshOptions(shifts=(0.03,)), agree) is None

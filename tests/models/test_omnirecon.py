@@ -84,6 +84,22 @@ def test_leftover_transmittance(leftover):
         assert torch.allclose(out["depth"], black["depth"] / black["acc"])
 
 
+def test_backdrop_gives_far_colours_and_black_geometry():
+    """``leftover="backdrop"``: rgb equals ``far``'s; depth, acc, weights and blend equal ``black``'s (meshing reads
+    acc as confidence, so empty rays add no far-plane surface)."""
+    model, src, rays, _ = setup(small_cfg(leftover="black", fine_samples=4))
+    feats = model.encode(src)
+    out = {}
+    for rule in ("black", "far", "backdrop"):
+        model.cfg = dataclasses.replace(model.cfg, leftover=rule)
+        out[rule] = model.render_rays(feats, rays)
+    assert (out["black"]["acc"] < 0.99).any()
+    assert torch.allclose(out["backdrop"]["rgb"], out["far"]["rgb"], atol=1e-12)
+    assert not torch.allclose(out["backdrop"]["rgb"], out["black"]["rgb"])
+    for key in ("depth", "acc", "weights", "blend", "z"):
+        assert torch.equal(out["backdrop"][key], out["black"][key]), key
+
+
 def test_batchnorm_normalises_each_scene_alike_in_train_and_eval():
     """``bn_running_stats=False``: eval mode uses the scene's own statistics, as training does."""
     model, src, rays, _ = setup(small_cfg())
