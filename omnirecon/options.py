@@ -62,6 +62,7 @@ PIXELS = Rule(8, 16_384, example="e.g. 128")
 RULES: dict[str, Rule] = {
     # sizes (also checked against free memory, see MEMORY)
     "resolution": PIXELS, "mesh_resolution": PIXELS, "source_resolution": PIXELS,
+    "render.samples": Rule(2, 4096, example="e.g. 24"),
     "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
     "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(1, 100_000, example="e.g. 300"),
     "rays": Rule(1, 1_048_576, example="e.g. 1024"), "chunk": Rule(1, 1_048_576, example="e.g. 4096"),

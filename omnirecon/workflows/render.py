@@ -78,8 +78,6 @@ class RenderConfig(MachineConfig):
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
-        if self.samples is not None and self.samples < 2:
-            raise InputError(f"--samples must be at least 2, got {self.samples}", None, "use e.g. 24")
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 
