@@ -4,6 +4,8 @@
     python -m bench end_to_end --reconstruct ../shared/data/llff/fern/images_12
     python -m bench end_to_end --collect-demo CLONE/outputs/demo TIME_FILE [--collect-setup TIME_FILE]
     python -m bench end_to_end --collect-reconstruct OUT TIME_FILE   # a run made as below, already finished
+    python -m bench end_to_end --threads-ab demo                     # 1 vs 2 torch threads per stage (below)
+    python -m bench end_to_end --threads-ab reconstruct --reconstruct ../shared/data/llff/fern/images_12
 
 On the shared cores wall time measures the scheduler, so every command runs at one thread
 (``OMP_NUM_THREADS=1``, ``--threads 1``) with the stage clocks the workflows print and record
@@ -15,6 +17,12 @@ faster than their CPU seconds on two free cores). Goals (issue 27): ``make demo`
 20 photos <= 300 s with 60 s of tuning. ``--collect-*`` reads runs made exactly so (the commands are in the
 JSON) instead of running them. Writes ``bench/results/end_to_end.json`` (merged with an existing one) with a
 provenance header and the load averages.
+
+``--threads-ab demo|reconstruct`` runs the command in this checkout at 1, then 2 torch threads (``--threads N``,
+``OMP_NUM_THREADS=N``), back to back, with the real clocks: each stage's wall and process-CPU seconds (the
+workflows record both) and the ratio wall(1 thread) / wall(2 threads) per stage; a stage is faster with 2 threads
+when that ratio is above 1. Budgets in wall seconds (the tuning stages) take the same wall time either way.
+Stored under ``threads`` with the load average before and after each run.
 """
 
 from __future__ import annotations
@@ -124,6 +132,36 @@ def run_reconstruct(photos: Path, tmp: Path) -> dict:
                                f"OMP_NUM_THREADS=1 PYTHONPATH=<clock> omnirecon reconstruct {photos} --threads 1")
 
 
+def threads_ab(kind: str, photos: Path | None, tmp: Path) -> dict:
+    """``kind`` (demo or reconstruct of ``photos``) at 1 then 2 torch threads: wall and CPU seconds per stage."""
+    from omnirecon.provenance import provenance
+
+    runs = {}
+    for n in (1, 2):
+        out = tmp / f"{kind}_t{n}"
+        cmd = [sys.executable, "-m", "omnirecon.cli", kind]
+        if kind == "reconstruct":
+            src = tmp / "photos"
+            if not src.exists():
+                shutil.copytree(photos, src)
+            cmd.append(str(src))
+        cmd += ["--threads", str(n), "--out", str(out)]
+        env = dict(os.environ, OMP_NUM_THREADS=str(n), MKL_NUM_THREADS=str(n),
+                   PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
+        load0 = [round(x, 2) for x in os.getloadavg()]
+        whole = timed(cmd, ROOT, env, tmp / f"{kind}_t{n}.time", tmp / f"{kind}_t{n}.log")
+        rec = json.loads((out / f"{kind}.json").read_text())
+        runs[n] = {"command": f"OMP_NUM_THREADS={n} omnirecon {kind} {photos or ''} --threads {n}".replace("  ", " "),
+                   "whole": whole, "wall_s": {k: round(v, 2) for k, v in rec["seconds"].items() if k != "total"},
+                   "cpu_s": rec["cpu_seconds"], "load": load0 + [round(x, 2) for x in os.getloadavg()]}
+        print(kind, n, json.dumps(runs[n]), flush=True)
+    per_stage = {k: {"wall_1": w, "wall_2": runs[2]["wall_s"][k], "cpu_1": runs[1]["cpu_s"][k],
+                     "cpu_2": runs[2]["cpu_s"][k], "wall_ratio": round(w / max(runs[2]["wall_s"][k], 1e-9), 2),
+                     "faster_with_2": w > runs[2]["wall_s"][k]}
+                 for k, w in runs[1]["wall_s"].items() if k in runs[2]["wall_s"]}
+    return {"runs": runs, "per_stage": per_stage, "provenance": provenance(seed=0, threads=[1, 2])}
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--demo", action="store_true", help="time make setup + make demo on a fresh clone of HEAD")
@@ -140,6 +178,8 @@ def main(argv: list[str] | None = None) -> dict:
                         help="with --collect-*: load averages at the start and end of that run")
     parser.add_argument("--keep", type=Path, default=None, help="work in this new folder and keep it (the outputs, "
                         "to look at their pictures) instead of a temporary one")
+    parser.add_argument("--threads-ab", choices=["demo", "reconstruct"], default=None,
+                        help="the command in this checkout at 1 then 2 torch threads (reconstruct: of --reconstruct)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "end_to_end.json")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
@@ -152,6 +192,10 @@ def main(argv: list[str] | None = None) -> dict:
     with (contextlib.nullcontext(args.keep) if args.keep else tempfile.TemporaryDirectory(prefix="end_to_end_")) as tmp:
         tmp = Path(tmp)
         runs = {}
+        if args.threads_ab:
+            result.setdefault("threads", {})[args.threads_ab] = threads_ab(args.threads_ab, args.reconstruct, tmp)
+            write_json(args.out, result)
+            return result
         if args.demo:
             runs["demo"] = run_demo(tmp)
         if args.reconstruct:

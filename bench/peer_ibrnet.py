@@ -229,7 +229,9 @@ def run_ours(args) -> dict:
     rendered = {}
     with ctx:
         torch.manual_seed(0)
-        model = build_model("ibrnet-paper", {"num_views": views, "coarse_samples": 64, "fine_samples": 64})
+        model = build_model("ibrnet-paper", {"num_views": views, "coarse_samples": 64, "fine_samples": 64}
+                            | ({"render_coarse_samples": args.render_samples[0], "render_fine_samples": args.render_samples[1]}
+                               if args.render_samples else {}))
         params = sum(p.numel() for p in model.parameters())
         src = Sources(images[:views], cams[list(range(views))], args.near, args.far, "forward")
         target, target_rgb = crop_target(cams, images, views, args.crop)
@@ -327,7 +329,9 @@ def main(argv: list[str] | None = None) -> dict:
                         help="also time our reference twins (fast paths off) in the same run; PSNR of each of our "
                              "sides to it")
     parser.add_argument("--variant", nargs=2, action="append", default=[], metavar=("NAME", "SWITCHES"),
-                        help="one more of our sides with OMNIRECON_FAST=SWITCHES (e.g. bf16 bf16_render=1)")
+                        help="one more of our sides with OMNIRECON_FAST=SWITCHES (e.g. bf16 bf16_render=1); an item "
+                             "samples=C+F renders C + F samples standing for the trained 64 + 64 (render_coarse_samples)")
+    parser.add_argument("--render-samples", type=int, nargs=2, default=None, help=argparse.SUPPRESS)
     parser.add_argument("--out", type=Path, default=HERE / "results" / "peer_ibrnet.json")
     parser.add_argument("--child", choices=["peer", "ours"], help=argparse.SUPPRESS)
     parser.add_argument("--reference", action="store_true", help=argparse.SUPPRESS)
@@ -362,7 +366,11 @@ def main(argv: list[str] | None = None) -> dict:
               "--renders", str(args.renders)] + (["--crop", *map(str, args.crop)] if args.crop else [])
     # (name, child, extra arguments, OMNIRECON_FAST)
     sides = ([("peer", "peer", ["--ibrnet-root", str(root)], "")] if root else []) + [("ours", "ours", [], "")]
-    sides += [(name, "ours", [], spec) for name, spec in args.variant]
+    for name, spec in args.variant:  # samples=C+F is a render option of the model, the rest are switches
+        items = [x for x in spec.split(",") if x]
+        counts = [x.partition("=")[2].split("+") for x in items if x.startswith("samples=")]
+        extra = ["--render-samples", *counts[0]] if counts else []
+        sides.append((name, "ours", extra, ",".join(x for x in items if not x.startswith("samples="))))
     if args.reference_too:
         sides.append(("ours_reference", "ours", ["--reference"], ""))
     runs: dict[str, list[dict]] = {name: [] for name, *_ in sides}
@@ -376,7 +384,7 @@ def main(argv: list[str] | None = None) -> dict:
                                  capture_output=True, text=True)
             if res.returncode:
                 raise SystemExit(f"{name} failed:\n{res.stderr[-3000:]}")
-            label = "reference twins" if "--reference" in extra else spec or "defaults"
+            label = "reference twins" if "--reference" in extra else " ".join([spec or "defaults", *extra])
             runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]) | {"switches": label})
             print(name, runs[name][-1], flush=True)
     best = {name: {"params": rs[0]["params"], "switches": rs[0]["switches"],

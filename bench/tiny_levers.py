@@ -38,7 +38,7 @@ ROOT = HERE.parent
 MODELS = ("ibrnet-tiny", "omnirecon-tiny", "gpnr-tiny")
 OPTIONS = ("fine_pass", "surface_samples")
 """Keys of a candidate that are options of ``render_view`` (they change the output)."""
-CONFIG = ("coarse_samples", "fine_samples", "num_samples")
+CONFIG = ("coarse_samples", "fine_samples", "num_samples", "render_coarse_samples", "render_fine_samples")
 """Keys of a candidate that change the model's config at render time (sample counts)."""
 
 
@@ -53,7 +53,15 @@ def candidates(model_name: str) -> dict[str, dict]:
         out.update({"coarse_only": {"fine_pass": False}, "bf16_coarse_only": {"bf16_render": True, "fine_pass": False},
                     "fine_8": {"fine_samples": 8}, "coarse_16": {"coarse_samples": 16},
                     "coarse_24_fine_8": {"coarse_samples": 24, "fine_samples": 8},
+                    "coarse_24": {"coarse_samples": 24}, "coarse_20_fine_12": {"coarse_samples": 20, "fine_samples": 12},
+                    "coarse_16_fine_8": {"coarse_samples": 16, "fine_samples": 8},
+                    "bf16_coarse_16": {"bf16_render": True, "coarse_samples": 16},
+                    "batch_128": {"render_batch": 128}, "batch_512": {"render_batch": 512},
                     "surface_16": {"surface_samples": 16}})
+    if model_name.startswith("ibrnet"):  # fewer samples standing for the trained ones (index code, density rescaled)
+        out.update({f"render_{c}_{f}": {"render_coarse_samples": c, "render_fine_samples": f}
+                    for c, f in ((16, 16), (16, 12), (16, 8), (20, 10), (24, 8), (12, 8))})
+        out["bf16_render_16_8"] = {"bf16_render": True, "render_coarse_samples": 16, "render_fine_samples": 8}
     return out
 
 

@@ -53,9 +53,10 @@ def model_config_dict(model) -> dict:
     return dataclasses.asdict(model.cfg)
 
 
-RENDER_OPTIONS = {"render_samples": None, "render_bf16": False, "render_fine_pass": True}
+RENDER_OPTIONS = {"render_samples": None, "render_bf16": False, "render_fine_pass": True, "render_coarse_samples": None,
+                  "render_fine_samples": None, "render_rescale_density": True}
 """Config fields that choose how a checkpoint renders outside training (measured per weights, e.g. the shipped
-gpnr-tiny's 24 samples in bf16, omnirecon-tiny's coarse pass), at their full-render values."""
+gpnr-tiny's 24 samples in bf16, omnirecon-tiny's coarse pass, ibrnet-tiny's fewer samples), at their full-render values."""
 
 
 def full_render(model):

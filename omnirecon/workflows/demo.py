@@ -101,11 +101,24 @@ def run_demo(cfg: DemoConfig) -> dict:
     return {"report": str(report), "lines": lines, "numbers": numbers}
 
 
+def clocks() -> tuple[float, float]:
+    """Wall and process CPU seconds now (every thread of the process counts in the CPU clock)."""
+    return time.perf_counter(), time.process_time()
+
+
+def lap(numbers: dict, key: str, start: tuple[float, float]) -> None:
+    """The stage ``key`` started at ``start`` (:func:`clocks`): wall seconds into ``numbers["seconds"]``, CPU
+    seconds into ``numbers["cpu_seconds"]`` (with 2 threads a stage may cost more CPU than wall)."""
+    wall, cpu = clocks()
+    numbers["seconds"][key] = wall - start[0]
+    numbers.setdefault("cpu_seconds", {})[key] = round(cpu - start[1], 2)
+
+
 def timed(numbers: dict, key: str, fn, *args):
-    """``fn(*args)``, its wall seconds stored as ``numbers["seconds"][key]``."""
-    t = time.perf_counter()
+    """``fn(*args)``, its wall and CPU seconds stored under ``key`` (:func:`lap`)."""
+    t = clocks()
     value = fn(*args)
-    numbers["seconds"][key] = time.perf_counter() - t
+    lap(numbers, key, t)
     return value
 
 
@@ -115,7 +128,7 @@ def scene_section(cfg: DemoConfig, out: Path, numbers: dict, lines: list[str]):
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
     from omnirecon.workflows.inspect import draw_cameras  # lazy: demo --help stays fast
 
-    t = time.perf_counter()
+    t = clocks()
     path = demo_scene(cfg)
     scene = load_scene(path)
     if len(scene) < cfg.num_views + 1:
@@ -124,7 +137,7 @@ def scene_section(cfg: DemoConfig, out: Path, numbers: dict, lines: list[str]):
     draw_cameras(scene, out / "cameras.png")
     numbers["scene"] = {"path": str(path), "views": len(scene), "size": [scene.width, scene.height],
                         "format": scene.format, "seed": DEMO_SEED if cfg.data is None else None}
-    numbers["seconds"]["scene"] = time.perf_counter() - t
+    lap(numbers, "scene", t)
     what = f"procedural scene, seed {DEMO_SEED} (held out from training)" if cfg.data is None else str(path)
     lines.append(f"scene: {what}, {len(scene)} views")
     return path, scene, (Section("Scene").text(f"{what}: {len(scene)} views at {scene.width}x{scene.height}, "
@@ -175,7 +188,7 @@ def scores_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
     """Stage 3: held-out view scores of :data:`SCORE_MODELS`, with one panel each."""
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
 
-    t = time.perf_counter()
+    t = clocks()
     rows, panels = [], []
     for name in SCORE_MODELS:
         scored = score_model(cfg, path, out, name)
@@ -192,7 +205,7 @@ def scores_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
         found = sorted(panel.glob(f"{first['index']:03d}_*.png"))
         if found:
             panels.append((found[0], f"{name}: GT | render | error, view {first['index']}"))
-    numbers["seconds"]["scores"] = time.perf_counter() - t
+    lap(numbers, "scores", t)
     scores = Section("Held-out views").text(
         f"Targets and sources by the `cpu` protocol set of `omnirecon eval` (64-px long side), K = {cfg.num_views}. "
         "The floor is the non-learned plane sweep every learned model must beat.")
@@ -264,6 +277,8 @@ def model_sections(cfg: DemoConfig, path: Path, scene, out: Path, numbers: dict,
 
 def finish(out: Path, sections: list, numbers: dict, lines: list[str], start_all: float) -> Path:
     """The overview strip, ``demo.json`` and ``index.html``; returns the report's path."""
+    import torch  # lazy: demo --help stays fast
+
     from omnirecon.data.io import write_json  # lazy: demo --help stays fast
     from omnirecon.engine.report import Section, write_report  # lazy: demo --help stays fast
     from omnirecon.provenance import markdown_header, provenance  # lazy: demo --help stays fast
@@ -272,6 +287,7 @@ def finish(out: Path, sections: list, numbers: dict, lines: list[str], start_all
     if overview is not None:
         sections.insert(0, Section("Overview").figure(overview, out, "one held-out scene: what the demo produced", 900))
     numbers["seconds"]["total"] = time.perf_counter() - start_all
+    numbers["threads"] = torch.get_num_threads()
     numbers["provenance"] = provenance(seed=0)
     write_json(out / "demo.json", numbers)
     footer = (markdown_header(numbers["provenance"]).replace("`", "")
@@ -279,7 +295,8 @@ def finish(out: Path, sections: list, numbers: dict, lines: list[str], start_all
     report = write_report(out, "omnirecon demo", sections, footer)
     lines.append("seconds per stage: " + ", ".join(f"{k} {v:.1f}" for k, v in numbers["seconds"].items()
                                                      if k != "total"))
-    lines.append(f"total {numbers['seconds']['total']:.0f} s")
+    lines.append(f"total {numbers['seconds']['total']:.0f} s ({time.process_time():.0f} CPU-s, "
+                 f"{numbers['threads']} torch threads)")
     return report
 
 

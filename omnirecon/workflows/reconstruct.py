@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import torch
 import tyro
 
 from omnirecon.data import detect_format
@@ -104,16 +105,19 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
 
 
 class Laps:
-    """Seconds per stage: ``lap(name)`` closes the stage that ran since the previous lap."""
+    """Wall and process CPU seconds per stage (``seconds``, ``cpu_seconds``; every thread counts in the CPU
+    clock): ``lap(name)`` closes the stage that ran since the previous lap."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
-        self._clock = time.perf_counter()
+        self.cpu_seconds: dict[str, float] = {}
+        self._clock, self._cpu = time.perf_counter(), time.process_time()
 
     def __call__(self, name: str) -> None:
-        now = time.perf_counter()
+        now, cpu = time.perf_counter(), time.process_time()
         self.seconds[name] = round(now - self._clock, 2)
-        self._clock = now
+        self.cpu_seconds[name] = round(cpu - self._cpu, 2)
+        self._clock, self._cpu = now, cpu
 
 
 def _stages(cfg: ReconstructConfig, out: Path) -> dict:
@@ -139,7 +143,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
                        "fps": path["fps"]},
-              "seconds": lap.seconds}
+              "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)

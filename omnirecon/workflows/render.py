@@ -112,7 +112,7 @@ def camera_path(cfg: RenderConfig, scene) -> Cameras:
 def render_levers(net, info: dict, cfg: RenderConfig) -> dict:
     """Apply ``--samples`` to the model's config (recorded in ``info``); returns ``render_view``'s options."""
     if cfg.samples is not None:
-        key = next((k for k in ("render_samples", "coarse_samples") if hasattr(getattr(net, "cfg", None), k)), None)
+        key = next((k for k in ("render_samples", "render_coarse_samples", "coarse_samples") if hasattr(getattr(net, "cfg", None), k)), None)
         if key is not None:
             setattr(net.cfg, key, cfg.samples)
             info["render_samples"] = {key: cfg.samples}
