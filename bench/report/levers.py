@@ -25,7 +25,9 @@ def _levers(r: dict) -> str:
              "against the ground truth (mean over the scenes) and its difference from the reference render's "
              "(dPSNR). `default`: the full render with today's fast paths; `checkpoint`: what every command now renders, "
              "the checkpoint's own render options (its `meta.json`). `fine_N`/`coarse_N`/`samples_N`: the model's sample "
-             "counts changed at render time, no retraining; `coarse_only`: no fine pass; `surface_N`: the fine pass on N "
+             "counts changed at render time, no retraining; `render_C_F`: IBRNet's `render_coarse_samples` C and "
+             "`render_fine_samples` F, each sample standing for the trained ones it replaces (index code in trained "
+             "positions, density scaled); `coarse_only`: no fine pass; `surface_N`: the fine pass on N "
              "importance samples only. "
              f"Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
     names = [s["name"] for s in r["scenes"]]

@@ -54,16 +54,15 @@ class IBRNetConfig:
     (:mod:`omnirecon.models.pretrained`)."""
     render_coarse_samples: int | None = None
     """Inside ``render_view`` (rendering outside training), the coarse pass's samples instead of
-    ``coarse_samples``; None: ``coarse_samples``. The samples stand for the trained ones: their index code
-    counts in trained positions and their density is scaled by the trained/rendered count ratio (IBRNet's
-    alpha has no interval, so it was learned for the trained spacing). A render option measured per weights
-    (``python -m bench tiny_levers``)."""
+    ``coarse_samples``; None: ``coarse_samples``. Each rendered sample stands for the trained samples of its
+    kind it replaces (coarse: ``coarse_samples / render_coarse_samples``; importance: ``fine_samples /
+    render_fine_samples``): the ray transformer's index code counts in trained positions and its density is
+    scaled by that number (IBRNet's alpha has no interval: it was learned for the trained spacing). Unscaled
+    density measured worse (fox and lego -1 dB). A render option measured per weights (``python -m bench
+    tiny_levers``, ``python -m bench quality``)."""
     render_fine_samples: int | None = None
     """Inside ``render_view``, the fine pass's importance samples instead of ``fine_samples`` (added to the
-    rendered coarse samples; rescaled as ``render_coarse_samples``, against the trained total). None: ``fine_samples``."""
-    render_rescale_density: bool = True
-    """With ``render_coarse_samples`` / ``render_fine_samples``, each rendered sample's density is scaled by the
-    trained/rendered count ratio (False: only the index code counts in trained positions)."""
+    rendered coarse samples and rescaled as ``render_coarse_samples`` says). None: ``fine_samples``."""
 
 
 PRESETS = {
@@ -145,14 +144,18 @@ def _weighted_stats(x: Tensor, w: Tensor) -> Tensor:
     return torch.cat([mean, var], -1)
 
 
-def sample_index_code(num: int, dim: int, device=None, stride: float = 1.0) -> Tensor:
-    """Sinusoidal position code of sample indices ``0..num-1`` (times ``stride``: fewer samples than trained
-    stand at the trained positions). ``# [num, dim]``"""
-    pos = torch.arange(num, dtype=torch.float32, device=device)[:, None] * stride
-    div = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32, device=device) * (-math.log(10000.0) / dim))
-    code = torch.zeros(num, dim, device=device)
-    code[:, 0::2], code[:, 1::2] = torch.sin(pos * div), torch.cos(pos * div)
+def position_code(pos: Tensor, dim: int) -> Tensor:
+    """Sinusoidal code of (possibly fractional) sample positions ``pos # [...]``. ``# [..., dim]``"""
+    div = torch.exp(torch.arange(0, dim, 2, dtype=torch.float32, device=pos.device) * (-math.log(10000.0) / dim))
+    ang = pos.float()[..., None] * div
+    code = torch.zeros(*pos.shape, dim, device=pos.device)
+    code[..., 0::2], code[..., 1::2] = torch.sin(ang), torch.cos(ang)
     return code
+
+
+def sample_index_code(num: int, dim: int, device=None) -> Tensor:
+    """Sinusoidal position code of sample indices ``0..num-1``. ``# [num, dim]``"""
+    return position_code(torch.arange(num, dtype=torch.float32, device=device), dim)
 
 
 class Aggregator(nn.Module):
@@ -172,10 +175,11 @@ class Aggregator(nn.Module):
         self.sigma = nn.Sequential(nn.Linear(16, 16), _ELU(), nn.Linear(16, 1), nn.ReLU())
         self.rgb = _mlp(37, 16, 8, 1)
 
-    def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor, stride: float = 1.0) -> tuple[Tensor, Tensor]:
+    def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor, stands_for: Tensor | None = None
+                ) -> tuple[Tensor, Tensor]:
         """``rgb_feat # [R, S, V, 3+C]``, ``ray_diff # [R, S, V, 4]``, ``mask # [R, S, V]`` ->
-        ``sigma # [R, S]`` and view blend weights ``# [R, S, V]``. ``stride``: of the sample-index code
-        (trained samples per rendered one)."""
+        ``sigma # [R, S]`` and view blend weights ``# [R, S, V]``. ``stands_for # [R, S]``: trained samples
+        each rendered one stands for (the index code counts in trained positions); None: one each."""
         m = mask[..., None].to(rgb_feat.dtype)  # [R, S, V, 1]
         f = rgb_feat + self.dir_mlp(ray_diff)
         e = torch.exp(self.sharpness.abs() * (ray_diff[..., 3:] - 1))  # [R, S, V, 1]
@@ -192,7 +196,9 @@ class Aggregator(nn.Module):
         vw = v / (v.sum(-2, keepdim=True) + 1e-8)
         dens = torch.cat([_weighted_stats(x, vw)[..., 0, :], vw.mean(-2)], -1)  # [R, S, 65] (reference: weight.mean)
         h = self.density_feat(dens)  # [R, S, 16]
-        h = h + sample_index_code(h.shape[1], 16, h.device, stride).to(h.dtype)
+        code = sample_index_code(h.shape[1], 16, h.device) if stands_for is None else \
+            position_code(stands_for.cumsum(-1) - stands_for, 16)  # [S, 16] or [R, S, 16]
+        h = h + code.to(h.dtype)
         seen = mask.any(-1)  # [R, S]
         pad = ~seen & ~(~seen).all(-1, keepdim=True)
         if FAST.sdpa_attention:
@@ -255,14 +261,16 @@ class IBRNet(GeneralizableModel):
         sig = None if signals is None else gather(signals.permute(0, 3, 1, 2).to(pts.dtype), proj, "border")  # [R, S, V, C]
         return rgb_feat, ray_diff, mask, sig
 
-    def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None, stride: float = 1.0):
-        """One pass at depths ``z``; ``stride``: trained samples per rendered one (index code and density)."""
+    def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None,
+              stands_for: Tensor | None = None):
+        """One pass at depths ``z``; ``stands_for # [R, S]``: trained samples per rendered one (index code and
+        density; None: one each, the trained sampling)."""
         rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
         with net_autocast(z.device):
-            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask, stride)
+            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask, stands_for) if stands_for is not None else \
+                compiled(net)(rgb_feat, ray_diff, mask)
         sigma, blend = sigma.to(z.dtype), blend.to(z.dtype)
-        scale = stride if stride != 1.0 and self.cfg.render_rescale_density else None
-        w, _ = weights_from_alpha(alpha_from_density(sigma if scale is None else sigma * scale))
+        w, _ = weights_from_alpha(alpha_from_density(sigma if stands_for is None else sigma * stands_for))
         sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]
         enough = (mask.sum(-1) >= 2).sum(-1) > min(8, z.shape[1] // 4)  # reference: > 8 samples seen twice
         out = {"rgb": composite(w, sample_rgb), "depth": (w * z).sum(-1), "weights": w, "z": z,
@@ -285,14 +293,19 @@ class IBRNet(GeneralizableModel):
             nc, nf = cfg.render_coarse_samples or nc, cfg.render_fine_samples or nf
         z = coarse_depths(features.sources, rays, nc, jitter)
         fine_net = self.fine if fine_pass is not False or jitter else None  # False: depth maps from the coarse pass
+        fewer = (nc, nf) != (cfg.coarse_samples, cfg.fine_samples)  # rendered samples stand for the trained ones
         coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None,
-                            cfg.coarse_samples / nc)
+                            torch.full_like(z, cfg.coarse_samples / nc) if fewer else None)
         out = {f"{k}_coarse": v for k, v in coarse.items()}
         if fine_net is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
-        z_fine = fine_depths(z, coarse["weights"], nf, jitter, surface_samples)
-        fine = self._pass(self.fine, features, rays, z_fine, 1, signals,
-                          1.0 if surface_samples else (cfg.coarse_samples + cfg.fine_samples) / (nc + nf))
+        stands_for = None
+        if fewer and not surface_samples:
+            z_fine, from_coarse = fine_depths(z, coarse["weights"], nf, jitter, origin=True)
+            stands_for = torch.where(from_coarse, cfg.coarse_samples / nc, cfg.fine_samples / nf).to(z.dtype)
+        else:
+            z_fine = fine_depths(z, coarse["weights"], nf, jitter, surface_samples)
+        fine = self._pass(self.fine, features, rays, z_fine, 1, signals, stands_for)
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out

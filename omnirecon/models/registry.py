@@ -54,7 +54,7 @@ def model_config_dict(model) -> dict:
 
 
 RENDER_OPTIONS = {"render_samples": None, "render_bf16": False, "render_fine_pass": True, "render_coarse_samples": None,
-                  "render_fine_samples": None, "render_rescale_density": True}
+                  "render_fine_samples": None}
 """Config fields that choose how a checkpoint renders outside training (measured per weights, e.g. the shipped
 gpnr-tiny's 24 samples in bf16, omnirecon-tiny's coarse pass, ibrnet-tiny's fewer samples), at their full-render values."""
 

@@ -91,3 +91,33 @@ def test_render_fine_pass_config_sets_the_default_pass():
     assert not torch.equal(default["rgb"], fine["rgb"])
     torch.testing.assert_close(asked["rgb"], fine["rgb"], atol=1e-6, rtol=1e-6)
     assert not torch.equal(trained["rgb"], trained["rgb_coarse"])
+
+
+def test_ibrnet_render_samples_stand_for_the_trained():
+    """IBRNet's render_coarse_samples / render_fine_samples: at the trained counts the render is unchanged;
+    fewer samples render finite images that differ; each fine-pass sample is flagged coarse or importance by
+    ``fine_depths(origin=True)``; training (jitter) and the code of trained positions ignore them."""
+    import dataclasses
+
+    from omnirecon.models.ibrnet import position_code, sample_index_code
+    from omnirecon.models.sampler import fine_depths
+
+    torch.manual_seed(0)
+    model = MODELS["ibrnet"]().eval()
+    cfg = model.cfg
+    src, target = scene()
+    out = render(model, src, target)
+    model.cfg = dataclasses.replace(cfg, render_coarse_samples=cfg.coarse_samples, render_fine_samples=cfg.fine_samples)
+    torch.testing.assert_close(render(model, src, target)["rgb"], out["rgb"], atol=0, rtol=0)
+    model.cfg = dataclasses.replace(cfg, render_coarse_samples=cfg.coarse_samples // 2,
+                                    render_fine_samples=max(cfg.fine_samples // 2, 1))
+    fewer = render(model, src, target)
+    assert torch.isfinite(fewer["rgb"]).all() and not torch.equal(fewer["rgb"], out["rgb"])
+    rays = Rays.from_image(target)[:8]
+    with torch.no_grad():
+        trained = model.render_rays(model.encode(src), rays, jitter=True)
+    assert trained["z_coarse"].shape[-1] == cfg.coarse_samples
+    z = torch.linspace(2.0, 4.0, 6).expand(3, 6).contiguous()
+    zf, coarse = fine_depths(z, torch.rand(3, 6), 4, origin=True)
+    assert zf.shape == coarse.shape == (3, 10) and (coarse.sum(-1) == 6).all()
+    torch.testing.assert_close(position_code(torch.arange(9.0), 16), sample_index_code(9, 16), atol=0, rtol=0)
