@@ -384,7 +384,8 @@ def main(argv: list[str] | None = None) -> dict:
                                  capture_output=True, text=True)
             if res.returncode:
                 raise SystemExit(f"{name} failed:\n{res.stderr[-3000:]}")
-            label = "reference twins" if "--reference" in extra else " ".join([spec or "defaults", *extra])
+            label = "reference twins" if "--reference" in extra else \
+                " ".join([spec or "defaults", *(extra if child == "ours" else [])])
             runs[name].append(json.loads(res.stdout.strip().splitlines()[-1]) | {"switches": label})
             print(name, runs[name][-1], flush=True)
     best = {name: {"params": rs[0]["params"], "switches": rs[0]["switches"],
@@ -404,7 +405,7 @@ def main(argv: list[str] | None = None) -> dict:
         b["full_view_cpu_s"] = (round(b["encode_cpu_s"] + (b["render_cpu_s"] - b["encode_cpu_s"]) * n_full / n_render, 1)
                                 if args.crop else b["render_cpu_s"])  # no window: the view itself
         b["train_rays_per_s"] = round(args.train_rays / b["train_step_cpu_s"], 1) if args.train_steps else None
-        if "ours_reference" in best and name.startswith("ours") and name != "ours_reference":
+        if "ours_reference" in best and name not in ("peer", "ours_reference"):  # every side of ours
             b["psnr_to_reference_db"] = _psnr(renders / f"{name}.npy", renders / "ours_reference.npy")
     ratios = None
     if "peer" in best:
