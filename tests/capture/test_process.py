@@ -338,5 +338,6 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
         text = f.read_text()
         assert ".tmp" not in text and str(tmp_path) not in text, (f, re.findall(r'"[^"]*\.tmp[^"]*"', text))
     assert record["scene"] == "scene" and all((out / p).exists() for p in record["export"])
+    assert set(record["cpu_seconds"]) == set(record["seconds"]) - {"total"} and record["threads"] == 1
     assert json.loads((out / "finetune" / "checkpoint" / "meta.json").read_text())["extra"]["finetuned_on"] == "scene"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no lock, no temporary

@@ -30,6 +30,8 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     assert "report:" in printed
     stages = next(line for line in printed.splitlines() if "seconds per stage:" in line)
     assert all(f"{k} " in stages for k in numbers["seconds"] if k != "total")  # every timed stage printed
+    assert set(numbers["cpu_seconds"]) == set(numbers["seconds"]) - {"total"}  # CPU seconds beside wall, per stage
+    assert all(v >= 0 for v in numbers["cpu_seconds"].values()) and numbers["threads"] >= 1
     assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
     if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
         assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0
