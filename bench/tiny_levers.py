@@ -123,8 +123,9 @@ def measure(model_name: str, plans, rounds: int, only: list[str] | None = None) 
     for _ in range(rounds):
         for name, spec in cands.items():
             model.cfg = own if name == "checkpoint" else full
-            for key, value in base_cfg.items():
-                setattr(model.cfg, key, spec.get(key, value))
+            for key, value in base_cfg.items():  # the checkpoint's own config keeps its render options
+                if name != "checkpoint" or key in spec:
+                    setattr(model.cfg, key, spec.get(key, value))
             options = {"fine_pass": True} if model.capabilities.passes and name != "checkpoint" else {}
             options |= {k: v for k, v in spec.items() if k in OPTIONS}  # the full render unless a lever says otherwise
             with fast.switches(**{k: v for k, v in spec.items() if k not in OPTIONS + CONFIG}):
