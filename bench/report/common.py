@@ -45,24 +45,54 @@ def scene_rows(r: dict) -> dict[str, dict[str, dict]]:
 
 _SHIPPED: dict = {}
 
+VOLUMETRIC_ONLY = ("render_samples", "render_bf16", "render_fine_pass", "forward_box")
+"""Model-config keys only the volumetric path reads: the per-checkpoint render options
+(``omnirecon.models.registry.RENDER_OPTIONS``) and Omni-Recon's geometry-volume box for forward scenes
+(``forward_box``: the feature volume, not the appearance maps). The mesh path (2-D encoder maps, appearance
+branch, fine-tuning of both) reads none of them, so results of the mesh path alone are compared with the
+shipped checkpoint without them (:func:`stale_note`'s ``ignore``)."""
 
-def shipped_fingerprint(model: str) -> dict | None:
-    """The fingerprint of ``checkpoints/<model>`` as it ships now (None when absent)."""
+
+def shipped_fingerprint(model: str, ignore: tuple[str, ...] = ()) -> dict | None:
+    """The fingerprint of ``checkpoints/<model>`` as it ships now, without the config keys ``ignore``
+    (None when absent)."""
     from omnirecon.engine.checkpoint import fingerprint
 
-    if model not in _SHIPPED:
+    key = (model, tuple(ignore))
+    if key not in _SHIPPED:
         folder = ROOT / "checkpoints" / model
-        _SHIPPED[model] = fingerprint(folder) if (folder / "model.safetensors").is_file() else None
-    return _SHIPPED[model]
+        _SHIPPED[key] = fingerprint(folder, ignore) if (folder / "model.safetensors").is_file() else None
+    return _SHIPPED[key]
 
 
-def stale_note(model: str, recorded: dict | None, script: str) -> list[str]:
-    """A warning line when stored results were not measured with the checkpoint that ships now."""
+def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str, ...] = ()) -> list[str]:
+    """A warning line when stored results were not measured with the checkpoint that ships now.
+
+    ``ignore``: config keys the section's numbers do not depend on (e.g. :data:`VOLUMETRIC_ONLY` for the
+    mesh path). Then the results are current when their ``sha256_ignoring`` (recorded with the same keys
+    left out) equals the shipped checkpoint's fingerprint without those keys, or, for results recorded
+    before the keys existed, when their full ``sha256`` does (the config then had none of them)."""
     now = shipped_fingerprint(model)
     recorded = recorded or {}
     if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
         return []
+    if ignore:
+        part = shipped_fingerprint(model, ignore)["sha256"]
+        same_keys = sorted(recorded.get("ignored_keys") or []) == sorted(ignore)
+        if recorded.get("sha256") == part or (same_keys and recorded.get("sha256_ignoring") == part):
+            return []
     used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
         f", fingerprint {recorded['sha256']}" if recorded.get("sha256") else "")
     return [f"> **Stale:** the {model} numbers here were measured with {used}; `checkpoints/{model}` is now step "
-            f"{now['step']} (fingerprint {now['sha256']}). Rerun `python -m bench {script}`.", ""]
+            f"{now['step']} (fingerprint {now['sha256']}"
+            + (f"; {part} without the config keys {', '.join(ignore)} these numbers do not depend on" if ignore else "")
+            + f"). Rerun `python -m bench {script}`.", ""]
+
+
+def ignoring(folder: Path, ignore: tuple[str, ...] = VOLUMETRIC_ONLY) -> dict:
+    """What a results file records besides :func:`~omnirecon.engine.checkpoint.fingerprint` so that
+    :func:`stale_note` can compare it without the config keys ``ignore``: ``sha256_ignoring`` and
+    ``ignored_keys``."""
+    from omnirecon.engine.checkpoint import fingerprint
+
+    return {"sha256_ignoring": fingerprint(folder, ignore)["sha256"], "ignored_keys": list(ignore)}

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.report.common import num, prov, stale_note
+from bench.report.common import VOLUMETRIC_ONLY, num, prov, stale_note
 
 
 def section(results: Path) -> str | None:
@@ -35,7 +35,8 @@ def section(results: Path) -> str | None:
                 "is unmeasured.", "", prov(r["provenance"]), ""]
     if q_file.is_file():
         r = json.loads(q_file.read_text())
-        out += stale_note("omnirecon-tiny", r.get("checkpoint"), "mesh_path")
+        # the mesh path reads no volumetric render option: only the weights and the other config keys count
+        out += stale_note("omnirecon-tiny", r.get("checkpoint"), "mesh_path", ignore=VOLUMETRIC_ONLY)
         times = sorted({t for row in r["rows"] for t in row["curve"]}, key=float)
         out += [f"Quality: held-out PSNR of the mesh path (images at {r['resolution']} px, at most 4 targets per scene, "
                 "3 source views, the mesh of `python -m bench geometry`, cleaned with the source masks so it holds the objects "

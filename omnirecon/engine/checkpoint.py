@@ -82,17 +82,21 @@ def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     return model.to(device), meta
 
 
-def fingerprint(folder: Path) -> dict:
+def fingerprint(folder: Path, ignore=()) -> dict:
     """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}``, where ``sha256``
     is the first 16 hex digits of the SHA-256 of the weights file followed by the model config (sorted
     JSON), so a page built from stored results can tell whether they were measured with the checkpoint
-    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count."""
+    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count.
+
+    ``ignore``: model-config keys left out of the hash, for results that do not depend on them (the mesh
+    path reads no volumetric render option: ``bench.report.common.VOLUMETRIC_ONLY``)."""
     import hashlib
 
     folder = Path(folder)
     meta = read_meta(folder)
     h = hashlib.sha256((folder / "model.safetensors").read_bytes())
-    h.update(json.dumps(meta.get("model_config", {}), sort_keys=True).encode())
+    config = {k: v for k, v in meta.get("model_config", {}).items() if k not in set(ignore)}
+    h.update(json.dumps(config, sort_keys=True).encode())
     return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": h.hexdigest()[:16]}
 
 
