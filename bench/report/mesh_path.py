@@ -24,8 +24,10 @@ def section(results: Path) -> str | None:
                 f"`render_rays` on {v['rays_per_batch']}-ray batches of the same view, FPS extrapolated from rays/s.", "",
                 "| path | resolution | FPS (wall) | FPS from CPU time | ms / frame | notes |", "|---|---|---|---|---|---|",
                 f"| mesh (rasterize + appearance branch) | {w}x{h} | {m['fps']:.1f} | {m['fps_from_cpu_time']:.1f} | "
-                f"{m['median_ms']:.1f} | G-buffer surface pass {m['surface_pass_ms']:.1f} ms |",
-                f"| mesh + visibility test | {w}x{h} | {m['visibility_fps']:.1f} | – | {m['visibility_median_ms']:.1f} | |",
+                f"{m['median_ms']:.1f} | " + (f"depth pass {m['depth_pass_ms']:.1f} ms; no visibility test (the renderer's "
+                "default) |" if "depth_pass_ms" in m else f"G-buffer surface pass {m['surface_pass_ms']:.1f} ms |"),
+                f"| mesh + visibility test | {w}x{h} | {m['visibility_fps']:.1f} | – | {m['visibility_median_ms']:.1f} | "
+                "the web viewer's default |",
                 f"| volumetric (coarse + fine, geometry branch) | {w}x{h} | {v['fps_equivalent']:.4f} | – | "
                 f"{1000 / v['fps_equivalent']:.0f} | {v['rays_per_s']:.0f} rays/s |", "",
                 f"Ratio mesh / volumetric: **{r['ratio']:.0f}x** (goal >= {r['goals']['ratio']:.0f}x: "
