@@ -153,12 +153,13 @@ class TexelAtlas:
         self._hi = self._scale - 1  # largest texel-centre coordinate per axis (border mode)
         self._offsets = torch.tensor([0, 1, self._row_len, self._row_len + 1], device=maps.device)
 
-    def taps(self, coords: Tensor, mask: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def taps(self, coords: Tensor, mask: Tensor | None = None, scale: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Rows and weights of the bilinear samples at image fractions ``coords # [K, 2, n]``
         (``u / W, v / H``; map ``k`` for row ``k``). Samples where ``mask # [K, n]`` is False read 0.
-        Returns ``index # [K n, 4]`` int64 and ``weight # [K n, 4]``, map-major."""
+        ``scale # [1, 2, 1]``: texels per unit of ``coords`` instead of the map size (e.g. ``(w / W, h / H)``
+        for pixel coordinates). Returns ``index # [K n, 4]`` int64 and ``weight # [K n, 4]``, map-major."""
         K, _, n = coords.shape
-        xy = coords.to(self._index_dtype) * self._scale  # [K, 2, n]
+        xy = coords.to(self._index_dtype) * (self._scale if scale is None else scale)  # [K, 2, n]
         xy += self._pad - 0.5  # texel-centre coordinates in the padded map
         if self.padding == "border":
             xy.clamp_(min=0)
@@ -222,10 +223,13 @@ class MeshRenderer:
             self._centers = cams.centers.T[:, :, None].contiguous()  # [3, K, 1]
             self._proj = (cams.K @ cams.w2c[:, :3, :]).reshape(-1, 4)  # [3K, 4]: world -> (u z, v z, z)
             self._size = torch.tensor([cams.width, cams.height], dtype=self.dtype, device=self.device)[None, :, None]
+            self._two_over_size = 2 / self._size  # pixel coordinates -> grid_sample's [-1, 1]
+            self._minus_one = torch.tensor(-1.0, dtype=self.dtype, device=self.device)
             self._images = sources.images.permute(0, 3, 1, 2)  # [K, 3, H, W]
             self._rgb = TexelAtlas(self._images, "border")
             if self.options.fused:
                 self._feat, self._mlp = self._fold(model.appearance)
+                self._uv_to_texel = self._feat._scale / self._size  # source pixels -> feature texels
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
         self._centres: dict[tuple[int, int], Tensor] = {}
         self.source_depth_max: Tensor | None = None
@@ -303,44 +307,47 @@ class MeshRenderer:
                                    visible=mask.T if self.options.visibility else None)
             return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
-    def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool,
+                      with_coords: bool = False) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
         """``OmniRecon.shade``, fused (module docstring), at points ``p # [3, n]`` (channel-first) seen along
         ``d_t # [3, n]`` (target -> point, any positive length): blend weights ``omega # [K, n]``, the
-        mask ``# [K, n]``, the source image fractions ``# [K, 2, n]`` and, with ``with_rgb``, the blended
-        source colour ``# [3, n]``."""
+        mask ``# [K, n]``, with ``with_coords`` the source image fractions ``# [K, 2, n]`` and, with
+        ``with_rgb``, the blended source colour ``# [3, n]``."""
         K = self.num_views
         uv, _, mask = self.project(p)  # [K, 2, n], [K, n]
-        st = uv / self._size  # [K, 2, n] image fractions
+        st = uv / self._size if with_coords else None  # [K, 2, n] image fractions
         seen = mask.sum(0)  # [n] sources that see each point
         few = seen < 2
         n_few = int(few.sum())
         if n_few == 0:
-            om = self._blend_logits(p, d_t, st, mask)
+            om = self._blend_logits(p, d_t, uv, mask)
         else:  # omega needs no network where fewer than 2 sources see the point (module docstring)
             om = torch.where(seen == 0, 1.0 / K, mask.to(self.dtype))  # [K, n]
             if n_few < p.shape[1]:
                 if n_few * self.SKIP_BELOW < p.shape[1]:  # few such points: not worth the compaction
-                    om = torch.where(few, om, self._blend_logits(p, d_t, st, mask))
+                    om = torch.where(few, om, self._blend_logits(p, d_t, uv, mask))
                 else:
                     i = (~few).nonzero()[:, 0]
-                    om[:, i] = self._blend_logits(p[:, i], d_t[:, i], st[:, :, i], mask[:, i])
+                    om[:, i] = self._blend_logits(p[:, i], d_t[:, i], uv[:, :, i], mask[:, i])
         rgb = None
         if with_rgb:  # the model's own sampling of the source colours
-            grid = (st * 2 - 1).transpose(1, 2)[:, None]  # [K, 1, n, 2]
-            c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]
-            rgb = (c * om[:, None]).sum(0)  # [3, n]
+            grid = torch.addcmul(self._minus_one, uv, self._two_over_size).transpose(1, 2)[:, None]  # [K, 1, n, 2]
+            c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
+            rgb = c[0].mul_(om[0])  # [3, n]
+            for k in range(1, K):
+                rgb.addcmul_(c[k], om[k])
         return om, mask, st, rgb
 
     SKIP_BELOW = 8
     """:meth:`_shade_points` compacts the points at least two sources see when the others are at least
     ``1 / SKIP_BELOW`` of a chunk (below that, the gather costs more than the network it saves)."""
 
-    def _blend_logits(self, p: Tensor, d_t: Tensor, st: Tensor, mask: Tensor) -> Tensor:
+    def _blend_logits(self, p: Tensor, d_t: Tensor, uv: Tensor, mask: Tensor) -> Tensor:
         """The appearance network's blend weights ``omega # [K, n]`` at points ``p # [3, n]`` seen along
-        ``d_t # [3, n]``, projecting to image fractions ``st # [K, 2, n]`` with ``mask # [K, n]``."""
+        ``d_t # [3, n]``, projecting to source pixels ``uv # [K, 2, n]`` with ``mask # [K, n]``."""
         w1z, w1d, b1, w2, b2, w3, b3 = self._mlp
         K, n = self.num_views, p.shape[1]
-        z = self._feat.sample(*self._feat.taps(st, mask)).relu_()  # [K n, C]: ReLU(W f + b)
+        z = self._feat.sample(*self._feat.taps(uv, mask, self._uv_to_texel)).relu_()  # [K n, C]: ReLU(W f + b)
         d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
         rel = (d_t / _norm(d_t))[:, None] - d_s / _norm(d_s)  # [3, K, n]
         hid = torch.addmm(b1, z, w1z).addmm_(rel.reshape(3, K * n).T, w1d).relu_()  # [K n, h1]
@@ -379,7 +386,7 @@ class MeshRenderer:
 
         def shade(sl: slice) -> None:
             p = points[sl].T.contiguous()  # [3, n]
-            om, mask, st, c = self._shade_points(p, p - origin[:, None], with_rgb)
+            om, mask, st, c = self._shade_points(p, p - origin[:, None], with_rgb, with_coords)
             omega[:, sl], mask_all[:, sl] = om, mask
             if with_coords:
                 coords[:, :, sl] = st
