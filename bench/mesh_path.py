@@ -127,8 +127,7 @@ def main(argv: list[str] | None = None) -> dict:
     for path, name, times in jobs:
         rows.append(run_scene(Path(path), name, times, a.tiny, a.out, a.threads))
         print(name, {k: round(v, 2) for k, v in rows[-1]["curve"].items()}, rows[-1]["visibility"])
-    from bench.report.common import ignoring
-    from omnirecon.engine.checkpoint import fingerprint
+    from omnirecon.engine.checkpoint import fingerprint, ignoring
 
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), **ignoring(ckpt),

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from omnirecon.engine.checkpoint import VOLUMETRIC_ONLY, ignoring  # noqa: F401 - the sections and tests take them from here
+
 ROOT = Path(__file__).resolve().parents[2]
 QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 GEOMETRY_MODELS = ("floor", "ibrnet-tiny", "omnirecon-tiny")
@@ -45,14 +47,6 @@ def scene_rows(r: dict) -> dict[str, dict[str, dict]]:
 
 _SHIPPED: dict = {}
 
-VOLUMETRIC_ONLY = ("render_samples", "render_bf16", "render_fine_pass", "forward_box")
-"""Model-config keys only the volumetric path reads: the per-checkpoint render options
-(``omnirecon.models.registry.RENDER_OPTIONS``) and Omni-Recon's geometry-volume box for forward scenes
-(``forward_box``: the feature volume, not the appearance maps). The mesh path (2-D encoder maps, appearance
-branch, fine-tuning of both) reads none of them, so results of the mesh path alone are compared with the
-shipped checkpoint without them (:func:`stale_note`'s ``ignore``)."""
-
-
 def shipped_fingerprint(model: str, ignore: tuple[str, ...] = ()) -> dict | None:
     """The fingerprint of ``checkpoints/<model>`` as it ships now, without the config keys ``ignore``
     (None when absent)."""
@@ -87,12 +81,3 @@ def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str
             f"{now['step']} (fingerprint {now['sha256']}"
             + (f"; {part} without the config keys {', '.join(ignore)} these numbers do not depend on" if ignore else "")
             + f"). Rerun `python -m bench {script}`.", ""]
-
-
-def ignoring(folder: Path, ignore: tuple[str, ...] = VOLUMETRIC_ONLY) -> dict:
-    """What a results file records besides :func:`~omnirecon.engine.checkpoint.fingerprint` so that
-    :func:`stale_note` can compare it without the config keys ``ignore``: ``sha256_ignoring`` and
-    ``ignored_keys``."""
-    from omnirecon.engine.checkpoint import fingerprint
-
-    return {"sha256_ignoring": fingerprint(folder, ignore)["sha256"], "ignored_keys": list(ignore)}
