@@ -73,7 +73,8 @@ def section(results: Path) -> str:
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
                      f"({', '.join(row['tuned'])}, {row['precision']}"
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
-                     + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects")
+                     + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects"
+                                                            if "psnr_masked" in first else "image")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "") + ".")
