@@ -110,6 +110,13 @@ class MeshOptions:
     """Keep vertices inside the masks of at least this many views (when masks are given)."""
     dilate: float = DTU_DILATE
     """Mask dilation diameter as a fraction of the image width (0 = none)."""
+    hull_misses: int = 1
+    """With masks: drop faces outside the visual hull (:func:`clean.hull_trim`: a vertex outside the masks,
+    dilated by ``hull_dilate``, of more than this many of the views that see it in frame), after cleaning
+    and again after completion; -1 = off. dtu_scan37 held-out silhouette IoU (stereo+fill) 0.934 -> ...:
+    the loss was surface outside the masks (6 % of the mask area), not holes (< 2 %)."""
+    hull_dilate: float = 3 / 400
+    """Dilation of the masks for the visual-hull trim, a fraction of the image width (3 px at DTU's 400)."""
     cull_hidden: bool = True
     """Drop faces that no (in-mask) pixel sample of a view hits first."""
     cull_samples: float = 2.0
@@ -165,6 +172,9 @@ class MeshOptions:
             raise InputError(f"--trunc must be in [1, 100] voxels, got {self.trunc}", None, "use e.g. 3")
         if not 0 <= self.min_acc <= 1:
             raise InputError(f"--min-acc must be in [0, 1], got {self.min_acc}", None, "use e.g. 0.5")
+        if self.hull_misses < -1 or not (math.isfinite(self.hull_dilate) and 0 <= self.hull_dilate < 0.1):
+            raise InputError(f"hull_misses must be >= -1 and hull_dilate in [0, 0.1), got {self.hull_misses}, "
+                             f"{self.hull_dilate}", None, "use e.g. 1 and 0.0075")
         if self.min_views < 1:
             raise InputError(f"--min-views must be at least 1, got {self.min_views}", None, "use e.g. 2")
         if not 0 <= self.min_component < 1:
@@ -190,7 +200,7 @@ PRESETS: dict[str, dict] = {
     "fit": {},
     "reference": {"shifts": (DTU_SHIFT,), "voxel": 1 / 256, "trunc": 3.0, "neighbours": 1 << 30, "confidence": False,
                   "weights": False, "bilinear": False, "carve": False, "band": False, "max_faces": 0,
-                  "cull_samples": 4.0, "grow_rings": 0, "complete": False},
+                  "cull_samples": 4.0, "grow_rings": 0, "complete": False, "hull_misses": -1},
 }
 """Settings per preset (on top of :class:`MeshOptions`' defaults, the ``fit`` preset). ``reference``:
 VolRecon's protocol: every depth map from all the views, rendered at the views shifted 25 mm, nearest-
@@ -318,6 +328,11 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     ss = int(np.clip(np.ceil(options.cull_samples * footprint / voxel), 1, max(1, int(2 * options.cull_samples))))
     mesh, cleaned = clean.clean_mesh(mesh, view_cams, view_masks, options, ss, stages)
     counts.update(cleaned)
+    hull = None if masks is None or options.hull_misses < 0 else \
+        clean.dilate_masks(masks[views].cpu().numpy().astype(bool), options.hull_dilate * scene.width)
+    if hull is not None:
+        mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
+        counts["hull"] = len(mesh.faces)
     seconds["clean"] = time.perf_counter() - t
     t = time.perf_counter()
     mesh = clean.decimate(mesh, options.max_faces)
@@ -342,6 +357,8 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
         mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
                                             forward=scene.rig == "forward")
+        if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
+            mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
         counts["completed"] = len(mesh.faces)
         if stages is not None:
             stages["completed"] = mesh
