@@ -425,17 +425,18 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
     return made
 
 
-def default_depth(scene=None, has_model: bool = True) -> str:
+def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> str:
     """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks, by what
-    ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", PSNR before tuning): with a model,
-    ``stereo+model`` (stereo at the photos' resolution where it matched, the model's coarse depth at 128
-    px for the rest) on every scene kind measured; without one, ``stereo``.
+    ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", held-out PSNR before tuning):
 
-    * fern (forward-facing): 20.66 dB whole image, against 19.17 for stereo alone and 16.00 for the model;
-    * dtu_scan24 / 37 (object scans): 17.46 / 13.68 dB over the mask, against 15.21 / 13.65 for stereo and
-      15.30 / - for the model (IoU 0.950 / 0.897, against 0.931 / 0.918 and 0.958 / -);
-    * the demo's procedural scene: 19.85 dB (F-score 0.945), against 19.29 (0.941) for stereo and 19.61
-      (0.900) for the model; exact mesh 22.19. The cost: 26 CPU-s against 16 for stereo alone there (93
-      when the model rendered whole views; now only stereo's holes), 47 against 44 for 20 fern photos.
+    * an object capture meshed with its masks (``masks``, the scene has them): ``stereo`` with completion.
+      dtu_scan24 / 37 over the mask 18.11 / 14.54 dB, IoU 0.963 / 0.957, 26 / 16 CPU-s, against
+      stereo+model 17.87 / 14.39, IoU 0.972 / 0.958, 48 / 35 CPU-s (session 11, with the hull trim);
+    * otherwise, with a model, ``stereo+model`` (stereo at the photos' resolution where it matched, the
+      model's coarse depth at 128 px for the rest): fern 20.66 dB whole image against 19.17 for stereo alone
+      and 16.00 for the model; the demo's procedural scene 21.04 (F-score 0.978) against 20.38 for stereo;
+    * without a model, ``stereo``.
     """
-    return "stereo+model" if has_model else "stereo"
+    if not has_model or (masks and getattr(scene, "masks", None) is not None):
+        return "stereo"
+    return "stereo+model"

@@ -56,13 +56,18 @@ def hull_trim(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, misses
     inside every view's silhouette, so only floating or fattened surface goes."""
     if len(mesh.faces) == 0:
         return mesh
-    cams = cameras.to(dtype=torch.float64)
-    proj = cams.project(torch.from_numpy(np.asarray(mesh.vertices)).to(cams.c2w))
-    col = proj.uv[..., 0].floor().long().clamp(0, cams.width - 1).numpy()  # [N, P]
-    row = proj.uv[..., 1].floor().long().clamp(0, cams.height - 1).numpy()
-    inside = proj.in_image.numpy()
-    outside = inside & ~masks[np.arange(len(masks))[:, None], row, col]
-    return keep_faces(mesh, (outside.sum(0) <= misses)[mesh.faces].all(1))
+    outside = outside_votes(np.asarray(mesh.vertices), cameras.to(dtype=torch.float64), masks)
+    return keep_faces(mesh, (outside <= misses)[mesh.faces].all(1))
+
+
+def outside_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
+    """Number of views in which each point projects inside the image but outside the mask. ``# [P]``"""
+    proj = cameras.project(torch.from_numpy(points).to(cameras.c2w))
+    col = proj.uv[..., 0].floor().long().clamp(0, cameras.width - 1).numpy()  # [N, P]
+    row = proj.uv[..., 1].floor().long().clamp(0, cameras.height - 1).numpy()
+    inside = proj.in_image.numpy() & (proj.depth.numpy() > 0)
+    hit = masks[np.arange(len(masks))[:, None], row, col]
+    return (inside & ~hit).sum(0)
 
 
 def keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:
