@@ -133,6 +133,9 @@ class MeshOptions:
     fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to)."""
     complete: bool = True
     """Give every content pixel of every view a surface (:mod:`omnirecon.mesh.complete`)."""
+    drop_background: bool = True
+    """Without masks: no depth where the photo shows the scene's known background colour, and (``carve``) free
+    space on those rays; ``False`` keeps the sources' depth there (the "sky kept" rows of the bench)."""
     confirmed_fill: bool = True
     """Completion takes a view's own depth only where another map confirms it (:func:`fusion.consistency`),
     the rest is hole-filled from its neighbours; forward-facing captures take every depth (their borders
@@ -271,7 +274,7 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     say("confidence")
     t = time.perf_counter()
     empty = None
-    if masks is None:  # the known background colour: no surface there, and (carve) empty space on its rays
+    if masks is None and options.drop_background:  # the known background colour: no surface there, and (carve) empty space on its rays
         empty = background_pixels(maps, scene, options.shifts) if options.carve else None
         maps = without_background(maps, scene, options.shifts)
     cams = maps.cameras.to(dtype=torch.float64)
