@@ -60,7 +60,8 @@ Departures (documented choices, each a config field where it matters):
   ``black``'s depth and opacity (meshing reads ``acc`` as confidence): with ``forward_box="cameras"`` it scores
   34.78 / 33.89 dB on forward-rig seeds 901004-901007 (``black`` 34.64 / 33.84) and 23.88 / 22.83 on object
   seeds 901000-901003 (23.85 / 22.79), and fern 24.49 / 23.32 (23.97 / 22.77; K = 3 / 10, ``python -m bench
-  fern_gap``); not yet in the shipped checkpoint's config.
+  fern_gap``). With the shipped coarse pass the lead is gone (forward seeds +0.03 / +0.00, ethiopianHead's held-out
+  views -0.07 / -0.21; ``bench/results/fern_gap_coarse.json``), so the shipped checkpoint keeps ``black``.
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 

@@ -170,3 +170,20 @@ def test_train_tiny_card_of_a_warm_started_run_adds_the_parent_checkpoint(tmp_pa
     assert "1. `python -m bench train_tiny --model ibrnet-tiny --steps 7000`" in text
     assert f"--init {parent} --lr 0.0001 --real-weight 3.0` (steps 7000-7100, 90 CPU-s)" in text
     assert (dest / "training_curve.png").stat().st_size > 1000 and (dest / "model.safetensors").read_bytes() == b"weights"
+
+
+def test_depth3_agreement_counts_only_confident_stereo_pixels_the_model_covers():
+    import numpy as np
+
+    from bench.depth3 import agreement
+
+    stereo = np.array([[2.0, 2.0], [2.0, 0.0]])  # one pixel without confident stereo
+    pred = np.array([[2.0, 2.08], [3.0, 9.0]])  # exact, 4 % off, 50 % off; the last is not scored
+    ok = np.array([[True, True], [True, True]])
+    r = agreement(pred, ok, stereo)
+    assert r["pixels"] == 3 and r["coverage"] == 1.0
+    assert abs(r["abs_rel"] - (0 + 0.04 + 0.5) / 3) < 1e-9
+    assert abs(r["within5"] - 2 / 3) < 1e-9 and abs(r["within25"] - 2 / 3) < 1e-9
+    ok[1, 0] = False  # the model gives no depth there
+    r = agreement(pred, ok, stereo)
+    assert r["pixels"] == 2 and abs(r["coverage"] - 2 / 3) < 1e-9 and r["within5"] == 1.0
