@@ -133,14 +133,15 @@ def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
     return out
 
 
-def picture(src: Path, dst: Path, max_width: int = 720) -> str:
+def picture(src: Path, dst: Path, max_width: int = 480) -> str:
+    """``src`` at most ``max_width`` wide, 256 colours (one row per held-out view: keep the PNG small)."""
     from PIL import Image
 
-    img = Image.open(src)
+    img = Image.open(src).convert("RGB")
     if img.width > max_width:
         img = img.resize((max_width, round(img.height * max_width / img.width)), Image.LANCZOS)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    img.save(dst, optimize=True)
+    img.quantize(256).save(dst, optimize=True)
     return str(dst.relative_to(dst.parents[1]))
 
 

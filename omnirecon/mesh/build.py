@@ -113,8 +113,9 @@ class MeshOptions:
     hull_misses: int = 1
     """With masks: drop faces outside the visual hull (:func:`clean.hull_trim`: a vertex outside the masks,
     dilated by ``hull_dilate``, of more than this many of the views that see it in frame), after cleaning
-    and again after completion; -1 = off. dtu_scan37 held-out silhouette IoU (stereo+fill) 0.934 -> ...:
-    the loss was surface outside the masks (6 % of the mask area), not holes (< 2 %)."""
+    and again after completion; -1 = off. Held-out IoU / mask PSNR before tuning (stereo+fill): dtu_scan37
+    0.934 -> 0.957 / 14.15 -> 14.54 dB, dtu_scan24 0.949 -> 0.963 / 17.96 -> 18.11 dB: the IoU loss was
+    surface outside the masks (6 % of the mask area on scan37), not holes (< 2 %)."""
     hull_dilate: float = 3 / 400
     """Dilation of the masks for the visual-hull trim, a fraction of the image width (3 px at DTU's 400)."""
     cull_hidden: bool = True
@@ -432,14 +433,13 @@ def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> st
     """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks, by what
     ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", held-out PSNR before tuning):
 
-    * an object capture meshed with its masks (``masks``, the scene has them): ``stereo`` with completion.
-      dtu_scan24 / 37 over the mask 18.11 / 14.54 dB, IoU 0.963 / 0.957, 26 / 16 CPU-s, against
-      stereo+model 17.87 / 14.39, IoU 0.972 / 0.958, 48 / 35 CPU-s (session 11, with the hull trim);
-    * otherwise, with a model, ``stereo+model`` (stereo at the photos' resolution where it matched, the
+    * with a model, ``stereo+model``, object captures meshed with their masks included: on dtu_scan24 / 37
+      (14 views, with the hull trim) stereo alone with completion scored 18.11 / 14.54 dB over the mask, IoU
+      0.963 / 0.957, against 17.87 / 14.39, IoU 0.972 / 0.958, but on a 3-view procedural capture stereo
+      alone left the held-out depth coverage at 0.27 (``tests/mesh/test_mesh.py::test_mesh_cli_floor``);
+    * ``stereo+model`` (stereo at the photos' resolution where it matched, the
       model's coarse depth at 128 px for the rest): fern 20.66 dB whole image against 19.17 for stereo alone
       and 16.00 for the model; the demo's procedural scene 21.04 (F-score 0.978) against 20.38 for stereo;
     * without a model, ``stereo``.
     """
-    if not has_model or (masks and getattr(scene, "masks", None) is not None):
-        return "stereo"
-    return "stereo+model"
+    return "stereo+model" if has_model else "stereo"

@@ -66,7 +66,7 @@ class StereoOptions:
     not precision, is what the whole-image score punishes)."""
     match_side: int = 256
     """Match each rectified pair on a grid whose long side is at least this many pixels (finer than
-    photos smaller than that; the disparity is read back at the view's own pixels; 0 = the photos' own
+    photos smaller than that, at most twice as fine; the disparity is read back at the view's own pixels; 0 = the photos' own
     grid): sub-pixel disparity and a block that covers less of a small object. Demo scene (128 px,
     ``bench/depth_sources.py``), stereo+model: matched at 256 px, stereo outliers (> 5 % off the exact
     depth) sphere 30 -> 25 %, box 35 -> 26 %, green object 16 -> 10 %, ground 28 -> 24 %; held-out mesh
@@ -254,7 +254,7 @@ def pair_depth(images: Tensor, cameras: Cameras, i: int, j: int, bounds: Tensor,
     import cv2
 
     ci, cj = cameras[i].to(dtype=torch.float64), cameras[j].to(dtype=torch.float64)
-    rect = rectify_pair(ci, cj, upscale=max(1.0, options.match_side / max(ci.width, ci.height)))
+    rect = rectify_pair(ci, cj, upscale=float(np.clip(options.match_side / max(ci.width, ci.height), 1.0, 2.0)))
     imgs = []
     for cam, k in ((ci, i), (cj, j)):
         mx, my = rect.pixels_of(cam)

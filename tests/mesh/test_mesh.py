@@ -163,7 +163,7 @@ def test_to_input_frame_keeps_outward_winding_under_a_mirror():
 def test_mesh_cli_floor(synth_scene, tmp_path, capsys, run_cli):
     out = tmp_path / "floor.ply"
     code, stdout, err = run_cli(["mesh", "--scene", synth_scene, "--model", "floor", "--out", out, tmp_path / "floor.glb",
-                                 "--threads", 1, "--masks"])
+                                 "--threads", 1, "--masks", "--depth", "model"])  # the floor's own depth
     assert code == 0, err
     assert out.is_file() and (tmp_path / "floor.glb").is_file() and (tmp_path / "floor_preview.png").is_file()
     record = json.loads((tmp_path / "floor_metrics.json").read_text())

@@ -112,7 +112,7 @@ def test_auto_depth_by_scene_kind(forward_scene):  # noqa: F811
     assert default_depth(procedural, has_model=True) == "stereo+model"  # measured best on every kind
     assert default_depth(procedural, has_model=False) == default_depth(photos, has_model=False) == "stereo"
     masked = SimpleNamespace(mesh_path=None, rig="object", masks=torch.ones(2, 4, 4, dtype=torch.bool))
-    assert default_depth(masked, has_model=True, masks=True) == "stereo"  # DTU: better mask PSNR at equal IoU
+    assert default_depth(masked, has_model=True, masks=True) == "stereo+model"  # few views: stereo alone is sparse
     assert default_depth(masked, has_model=True, masks=False) == "stereo+model"
 
 
