@@ -575,10 +575,15 @@ def plot_curve(cfg: FinetuneConfig, s: Setup, t: Tuned, out: Path) -> None:
 
 
 def write_before_after(s: Setup, t: Tuned, out: Path) -> None:
-    """``before_after.png``: GT | before | after for the first held-out view."""
-    gt = s.scene.images[s.held_px[0].index].float()
-    white = torch.ones(gt.shape[0], 2, 3)
-    write_image(out / "before_after.png", torch.cat([gt, white, t.before["renders"][0], white, t.after["renders"][0]], 1).numpy())
+    """``before_after.png``: GT | before | after, one row per scored held-out view (the PSNR is their mean: a
+    first view alone misled, e.g. dtu_scan24's view 0 has a white backdrop, views 35 and 48 a dark one)."""
+    rows = []
+    for i, v in enumerate(s.held_px):
+        gt = s.scene.images[v.index].float()
+        white = torch.ones(gt.shape[0], 2, 3)
+        rows += [torch.cat([gt, white, t.before["renders"][i], white, t.after["renders"][i]], 1),
+                 torch.ones(2, 3 * gt.shape[1] + 4, 3)]
+    write_image(out / "before_after.png", torch.cat(rows[:-1], 0).numpy())
 
 
 def curve_table(curve: list[dict]) -> tuple[list[str], list[list]]:
