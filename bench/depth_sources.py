@@ -16,7 +16,9 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   (rendered at 128 px, read at the photos' pixels) for the rest, with completion;
 * ``stereo+model+poisson``: the same with screened Poisson over the fused surface, trimmed to the masks
   (object captures; ``omnirecon/mesh/poisson.py``);
-* ``oracle``: the exact depth (procedural scenes), with completion.
+* ``oracle``: the exact depth (procedural scenes), with completion;
+* ``<source>, sky kept`` (procedural scenes): the same without dropping depth where the photo shows the
+  scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth.
 
 Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
 them, evenly spaced) by the one pipeline (``omnirecon/mesh/build.py``) and scored like
@@ -90,18 +92,20 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
     from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.build import MeshOptions, mesh_from_model
 
+    source, _, variant = source.partition(", ")
+    keep_sky = {"drop_background": False} if variant == "sky kept" else {}
     t = time.process_time()
     if source in ("learned", "floor"):  # depth at 128 px (as `omnirecon reconstruct --mesh-resolution 128`)
         low = load_at_resolution(path, 128, proto.background) if max(scene.width, scene.height) > 128 else scene
-        opts = MeshOptions(depth="model", depth_pass="coarse")
+        opts = MeshOptions(depth="model", depth_pass="coarse", **keep_sky)
         made = mesh_from_model(models[source], low, views, opts, use_masks=masks)
         return made, low.to_input, time.process_time() - t
     if source.startswith("stereo+model"):  # stereo at the photos' resolution, the model's coarse depth (128 px)
         opts = MeshOptions(depth="stereo+model", depth_pass="coarse",  # for the rest
-                           surface="poisson" if source.endswith("+poisson") else "fusion")
+                           surface="poisson" if source.endswith("+poisson") else "fusion", **keep_sky)
         made = mesh_from_model(models["learned"], scene, views, opts, use_masks=masks)
     else:
-        opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo")
+        opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo", **keep_sky)
         made = mesh_from_model(None, scene, views, opts, use_masks=masks)
     return made, scene.to_input, time.process_time() - t
 
@@ -129,14 +133,15 @@ def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
     return out
 
 
-def picture(src: Path, dst: Path, max_width: int = 720) -> str:
+def picture(src: Path, dst: Path, max_width: int = 480) -> str:
+    """``src`` at most ``max_width`` wide, 256 colours (one row per held-out view: keep the PNG small)."""
     from PIL import Image
 
-    img = Image.open(src)
+    img = Image.open(src).convert("RGB")
     if img.width > max_width:
         img = img.resize((max_width, round(img.height * max_width / img.width)), Image.LANCZOS)
     dst.parent.mkdir(parents=True, exist_ok=True)
-    img.save(dst, optimize=True)
+    img.quantize(256).save(dst, optimize=True)
     return str(dst.relative_to(dst.parents[1]))
 
 
@@ -151,10 +156,12 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     targets, views = held_out(scene, proto)
     masks = scene.masks is not None and proto.name == "dtu"
     made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
-    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{source.replace('+', '_')}"
+    slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
+    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{slug}"
     (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
     mesh = read_mesh(mesh_file, scene.to_input)  # as the scoring sees it
-    tune = seconds if source in TUNED else 1.0
+    tuned = source.partition(", ")[0] in TUNED
+    tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
                                      out=work / "finetune", max_held_out=4))
@@ -162,18 +169,17 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
-           "tuned_seconds": tune if source in TUNED else 0.0,
-           "psnr": {"before": first["psnr"], "after": last["psnr"] if source in TUNED else None},
-           "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if source in TUNED
-                            else None},
+           "tuned_seconds": tune if tuned else 0.0,
+           "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
+           "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
     if masks and "psnr_masked" in first:
-        row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if source in TUNED else None}
+        row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if tuned else None}
     if scene.mesh_path is not None:
         c = geometry.evaluate_mesh(mesh, scene, ft["held_out"])["chamfer"]
         row.update({"chamfer_rel": c["chamfer"] / c["gt_extent"], "fscore": c["fscore"]})
     row["picture"] = picture(work / "finetune" / "before_after.png",
-                             results / "figures" / f"depth_sources_{name}_{source.replace('+', '_')}.png")
+                             results / "figures" / f"depth_sources_{name}_{slug}.png")
     return row
 
 

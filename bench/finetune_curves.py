@@ -10,7 +10,8 @@ from the mesh's ``*_metrics.json``), images at the photos' own resolution, the c
 time (``--clock cpu --threads 1``: other jobs on the machine do not shrink the budget), scored on the
 protocol's held-out views at 0, 10, 30, 60 (and 300) s: the whole image and, on scenes with masks, the
 objects. The returned state is the best on validation views (never sources, never held-out views; its
-gain is the smaller of the whole-image and object gains), so the held-out curve is what a user gets
+gain is on what the scene is scored by, the other score guarded: ``omnirecon finetune --val-guard``), so the
+held-out curve is what a user gets
 when tuning stops at that time; the validation scores are recorded apart. Each run merges its scene
 into ``bench/results/finetune_curves.json`` under a file lock (scenes can run in separate processes) and
 copies the curve and the before/after picture to ``bench/results/figures/``.
@@ -74,7 +75,8 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
             "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),
             "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": ft["provenance"].get("loadavg_1min", os.getloadavg()[0]),
-            "objects": ft.get("objects", 0.0),
+            "objects": ft.get("objects", 0.0), **({"scored_by": ft["scored_by"], "val_guard": ft["val_guard"]}
+                                                  if "scored_by" in ft else {}),
             "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
                          "before_after": f"figures/finetune_{name}_before_after.png"}}
@@ -86,7 +88,9 @@ def main(argv: list[str] | None = None) -> dict:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", action="append", required=True, help="NAME=PATH (repeatable)")
-    p.add_argument("--mesh", action="append", required=True, help="NAME=MESH.ply, in the scene's input frame")
+    p.add_argument("--mesh", action="append", required=True,
+                   help="NAME=MESH.ply, in the scene's input frame; keep it where it persists (outputs/bench/...): "
+                        "the JSON names it")
     p.add_argument("--mesh-note", default="omnirecon mesh --views all (omnirecon-tiny)",
                    help="how the meshes were made (recorded)")
     p.add_argument("--seconds", type=float, default=60.0)

@@ -127,9 +127,10 @@ def main(argv: list[str] | None = None) -> dict:
     for path, name, times in jobs:
         rows.append(run_scene(Path(path), name, times, a.tiny, a.out, a.threads))
         print(name, {k: round(v, 2) for k, v in rows[-1]["curve"].items()}, rows[-1]["visibility"])
-    from omnirecon.engine.checkpoint import fingerprint
+    from omnirecon.engine.checkpoint import fingerprint, ignoring
 
-    result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
+    ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
+    result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), **ignoring(ckpt),
                                                                  "path": "checkpoints/omnirecon-tiny"},
               "rows": rows, "tiny": a.tiny,
               "resolution": 48 if a.tiny else 128, "goal_gain_db_60s": 3.0}

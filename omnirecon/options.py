@@ -116,6 +116,7 @@ RULES: dict[str, Rule] = {
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
     "val_margin": Rule(0, 100, example="e.g. 0.1 (dB)"),
+    "val_guard": Rule(0, 100, example="e.g. 0 (dB)"),
     # procedural scenes
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from omnirecon.engine.checkpoint import VOLUMETRIC_ONLY, ignoring  # noqa: F401 - the sections and tests take them from here
+
 ROOT = Path(__file__).resolve().parents[2]
 QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 GEOMETRY_MODELS = ("floor", "ibrnet-tiny", "omnirecon-tiny")
@@ -45,24 +47,37 @@ def scene_rows(r: dict) -> dict[str, dict[str, dict]]:
 
 _SHIPPED: dict = {}
 
-
-def shipped_fingerprint(model: str) -> dict | None:
-    """The fingerprint of ``checkpoints/<model>`` as it ships now (None when absent)."""
+def shipped_fingerprint(model: str, ignore: tuple[str, ...] = ()) -> dict | None:
+    """The fingerprint of ``checkpoints/<model>`` as it ships now, without the config keys ``ignore``
+    (None when absent)."""
     from omnirecon.engine.checkpoint import fingerprint
 
-    if model not in _SHIPPED:
+    key = (model, tuple(ignore))
+    if key not in _SHIPPED:
         folder = ROOT / "checkpoints" / model
-        _SHIPPED[model] = fingerprint(folder) if (folder / "model.safetensors").is_file() else None
-    return _SHIPPED[model]
+        _SHIPPED[key] = fingerprint(folder, ignore) if (folder / "model.safetensors").is_file() else None
+    return _SHIPPED[key]
 
 
-def stale_note(model: str, recorded: dict | None, script: str) -> list[str]:
-    """A warning line when stored results were not measured with the checkpoint that ships now."""
+def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str, ...] = ()) -> list[str]:
+    """A warning line when stored results were not measured with the checkpoint that ships now.
+
+    ``ignore``: config keys the section's numbers do not depend on (e.g. :data:`VOLUMETRIC_ONLY` for the
+    mesh path). Then the results are current when their ``sha256_ignoring`` (recorded with the same keys
+    left out) equals the shipped checkpoint's fingerprint without those keys, or, for results recorded
+    before the keys existed, when their full ``sha256`` does (the config then had none of them)."""
     now = shipped_fingerprint(model)
     recorded = recorded or {}
     if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
         return []
+    if ignore:
+        part = shipped_fingerprint(model, ignore)["sha256"]
+        same_keys = sorted(recorded.get("ignored_keys") or []) == sorted(ignore)
+        if recorded.get("sha256") == part or (same_keys and recorded.get("sha256_ignoring") == part):
+            return []
     used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
         f", fingerprint {recorded['sha256']}" if recorded.get("sha256") else "")
     return [f"> **Stale:** the {model} numbers here were measured with {used}; `checkpoints/{model}` is now step "
-            f"{now['step']} (fingerprint {now['sha256']}). Rerun `python -m bench {script}`.", ""]
+            f"{now['step']} (fingerprint {now['sha256']}"
+            + (f"; {part} without the config keys {', '.join(ignore)} these numbers do not depend on" if ignore else "")
+            + f"). Rerun `python -m bench {script}`.", ""]

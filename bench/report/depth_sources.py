@@ -59,15 +59,17 @@ def section(results: Path) -> str:
     if r is None:
         return missing("depth_sources.json")
     out = ["## Depth sources: whole image, coverage, geometry (`python -m bench depth_sources`)", "", prov(r["provenance"]), "",
-           "Meshes from the training views minus the held-out ones (DTU: 14 views, with the object masks) by the one "
+           "Meshes from the training views minus the held-out ones (DTU: 14 views, with the object masks, trimmed to "
+           "their visual hull with one view of slack) by the one "
            "mesh pipeline, scored like `omnirecon finetune --mesh M --clock cpu --threads 1` at the photos' resolution "
            "(fern 336x252, DTU 400x300, procedural 128 px). `learned`: omnirecon-tiny's coarse-pass depth at 128 px; "
            "`floor`: the plane sweep; `stereo`: classical stereo (OpenCV SGBM on sideways neighbour pairs rectified "
-           "from the poses, vote over 4 pairs); `+fill`: completion (every content pixel of every meshed view covered, "
+           "from the poses, matched on a grid of at least 256 px, vote over 4 pairs); `+fill`: completion (every content pixel of every meshed view covered, "
            "backdrop on forward-facing scenes; on object rigs only from depth another view confirms); `stereo+model`: "
            "stereo where it matched, omnirecon-tiny's coarse depth (128 px, rendered only at the pixels stereo left "
            "empty) for the rest, with completion (`mesh --depth auto`); `+poisson`: screened Poisson over "
-           f"the fused surface, trimmed to the masks; `oracle`: exact depth. Rows marked tuned got {r['tuning_seconds']:.0f} "
+           f"the fused surface, trimmed to the masks; `oracle`: exact depth; `, sky kept`: without dropping the depth "
+           f"where the photo shows the scene's known background colour. Rows marked tuned got {r['tuning_seconds']:.0f} "
            "CPU-s of tuning. PSNR: whole image (DTU: over the object mask); covered: over the pixels the mesh covers; "
            "coverage: held-out pixels on the mesh (DTU: of the mask); mesh s: CPU seconds images -> mesh (1 thread). "
            "Goals: fern ≥ 24 dB whole image after tuning with coverage ≥ 99 %; DTU ≥ 22 dB over the mask, IoU ≥ 0.95; "

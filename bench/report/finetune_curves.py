@@ -73,7 +73,9 @@ def section(results: Path) -> str:
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
                      f"({', '.join(row['tuned'])}, {row['precision']}"
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
-                     + "); returned state from "
+                     + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects"
+                                                            if "psnr_masked" in first else "image")
+                     + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "") + ".")
     gains = _gains(r["rows"], read(results, "finetune_ceiling.json"), read(results, "finetune_oracle.json"))
@@ -85,9 +87,11 @@ def section(results: Path) -> str:
         "`omnirecon finetune` with its defaults (2-D encoder and appearance branch, images at the photos' own "
         "resolution, 1 thread, `--clock cpu`: process CPU seconds, so other jobs on the machine do not shrink the "
         "budget) with the project's own meshes. Test: held-out PSNR in dB on the protocol's test views of the state "
-        "tuning returns at that time (the best on validation views, whose gain is the smaller of the whole-image "
-        "and object gains; the start is a candidate), over the whole image and, on scenes with masks, over the "
-        "objects. Validation: the returned state's score on the validation views (training views never tuned on, "
+        "tuning returns at that time (the best on validation views; the start is a candidate), over the whole image "
+        "and, on scenes with masks, over the objects. A state's validation gain is on what the scene is scored by "
+        "(DTU: the objects; other scenes: the whole image), with the other score guarded (`--val-guard`: never "
+        "lower than the start by more than that many dB, 0 by default); rows measured before that rule (each "
+        "row's `scored_by` is absent) used the smaller of the whole-image and object gains. Validation: the returned state's score on the validation views (training views never tuned on, "
         "never sources). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
         "",
         *rows,

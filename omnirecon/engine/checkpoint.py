@@ -82,18 +82,35 @@ def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     return model.to(device), meta
 
 
-def fingerprint(folder: Path) -> dict:
+def fingerprint(folder: Path, ignore=()) -> dict:
     """Identify a checkpoint for results files: ``{"path", "preset", "step", "sha256"}``, where ``sha256``
     is the first 16 hex digits of the SHA-256 of the weights file followed by the model config (sorted
     JSON), so a page built from stored results can tell whether they were measured with the checkpoint
-    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count."""
+    that ships now: new weights or a changed render option (e.g. GPNR's ``output``) both count.
+
+    ``ignore``: model-config keys left out of the hash, for results that do not depend on them (the mesh
+    path reads no volumetric render option: :data:`VOLUMETRIC_ONLY`)."""
     import hashlib
 
     folder = Path(folder)
     meta = read_meta(folder)
     h = hashlib.sha256((folder / "model.safetensors").read_bytes())
-    h.update(json.dumps(meta.get("model_config", {}), sort_keys=True).encode())
+    config = {k: v for k, v in meta.get("model_config", {}).items() if k not in set(ignore)}
+    h.update(json.dumps(config, sort_keys=True).encode())
     return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": h.hexdigest()[:16]}
+
+VOLUMETRIC_ONLY = ("render_samples", "render_bf16", "render_fine_pass", "forward_box")
+"""Model-config keys only the volumetric path reads: the per-checkpoint render options
+(``omnirecon.models.registry.RENDER_OPTIONS``) and Omni-Recon's geometry-volume box for forward scenes
+(``forward_box``: the feature volume, not the appearance maps). The mesh path (2-D encoder maps, appearance
+branch, fine-tuning of both) reads none of them, so results of the mesh path alone are compared with the
+shipped checkpoint without them (``bench.report.common.stale_note``'s ``ignore``)."""
+
+
+def ignoring(folder: Path, ignore: tuple[str, ...] = VOLUMETRIC_ONLY) -> dict:
+    """What a results file records besides :func:`fingerprint` so that a page can compare it with the shipped
+    checkpoint without the config keys ``ignore``: ``sha256_ignoring`` and ``ignored_keys``."""
+    return {"sha256_ignoring": fingerprint(folder, ignore)["sha256"], "ignored_keys": list(ignore)}
 
 
 def load_optimizer_state(folder: Path, optimizer: torch.optim.Optimizer) -> None:

@@ -12,11 +12,13 @@ else a randomly initialised ``omnirecon-tiny`` (the JSON says which; speed does 
 weights). Sources: the ``--views`` training views nearest to the first target; source features are
 encoded once (:class:`~omnirecon.mesh.ibr.MeshRenderer`), as both paths allow.
 
-* **Mesh path**: :meth:`MeshRenderer.render` of a full frame (rasterize -> one surface point per
-  pixel -> appearance branch -> image), the camera moving every frame through the scene's held-out
-  views; warm-up, then the median over ``--frames`` frames. Also reported: the G-buffer alone (the
-  compact surface pass the renderer uses, and the full G-buffer with ids, barycentrics and
-  normals) and the same path with the per-source visibility test.
+* **Mesh path**: :meth:`MeshRenderer.render` of a full frame (``extras=False``: :meth:`MeshRenderer.frame`,
+  depth pass -> one surface point per pixel -> appearance branch -> image), the camera moving every frame
+  through the scene's held-out views; warm-up, then the median over ``--frames`` frames; blending without
+  the visibility test (the renderer's default). Also reported: the rasterization alone (the depth pass the
+  frame uses, the compact surface pass of ``render`` with extras, and the full G-buffer with ids,
+  barycentrics and normals) and the same path with the per-source visibility test (the web viewer's
+  default).
 * **Volumetric path**: ``model.render_rays`` (coarse + fine passes, the geometry branch) on batches of
   ``--rays`` random pixels of the same target view at the same resolution; a frame of ``W x H`` rays
   would take ``W H / (rays/s)`` seconds, so its FPS is *extrapolated from rays/s* (a full 512^2 frame
@@ -197,6 +199,7 @@ def measure(cfg: BenchConfig) -> dict:
         return targets[frame[0] % len(targets)]
 
     mesh_times = timed(lambda: renderer.render(next_camera(), extras=False), args.frames, args.warmup)
+    depth_times = timed(lambda: renderer.rasterizer.depth(next_camera()), args.frames, args.warmup)
     surface_times = timed(lambda: renderer.rasterizer.surface(next_camera()), args.frames, args.warmup)
     gbuffer_times = timed(lambda: renderer.rasterizer.rasterize(next_camera(), normals="face"), args.frames,
                           args.warmup)
@@ -239,16 +242,22 @@ def measure(cfg: BenchConfig) -> dict:
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),
                  "median_ms": round(1000 * mesh_s, 2), "min_ms": round(1000 * min(mesh_times), 2),
                  "cpu_ms": cpu_ms(mesh_times), "fps_from_cpu_time": round(1000 / cpu_ms(mesh_times), 3),
+                 "depth_pass_ms": round(1000 * statistics.median(depth_times), 2),
+                 "depth_pass_cpu_ms": cpu_ms(depth_times),
                  "surface_pass_ms": round(1000 * statistics.median(surface_times), 2),
                  "surface_pass_cpu_ms": cpu_ms(surface_times),
                  "gbuffer_ms": round(1000 * statistics.median(gbuffer_times), 2),
                  "gbuffer_cpu_ms": cpu_ms(gbuffer_times),
-                 "shading_ms": round(1000 * (mesh_s - statistics.median(surface_times)), 2),
+                 "shading_ms": round(1000 * (mesh_s - statistics.median(depth_times)), 2),
+                 "blending": "without the visibility test (MeshRenderOptions' default, as `omnirecon render`); the "
+                             "web viewer (`omnirecon export`) starts with it on: visibility_fps",
                  "visibility_fps": round(1.0 / statistics.median(vis_times), 3),
                  "visibility_median_ms": round(1000 * statistics.median(vis_times), 2),
                  "setup_s": round(setup_s, 3),
-                 "note": "full frame per call: rasterize + appearance branch + image; source features encoded "
-                         "once per scene (setup_s); surface_pass_ms is the rasterization inside it, gbuffer_ms "
+                 "note": "full frame per call (MeshRenderer.frame): depth pass + unprojection, fill, appearance "
+                         "branch and image rows in parallel chunks; source features encoded once per scene (setup_s); "
+                         "depth_pass_ms is the rasterization inside it, surface_pass_ms the compact (world, depth) pass "
+                         "the extras path uses, gbuffer_ms "
                          "the full G-buffer (ids, barycentrics, depth, points, face normals). *_ms are wall-clock "
                          "medians; *_cpu_ms the process CPU time per call (all threads, llvmpipe's included), "
                          "which other processes on the same cores do not inflate"},
@@ -265,7 +274,7 @@ def measure(cfg: BenchConfig) -> dict:
     write_json(args.out, result)
     print(f"mesh path {width}x{height}, {args.views} sources ({backend}, {device}, "
           f"{workers} shading threads): {mesh_fps:.1f} FPS ({1000 * mesh_s:.1f} ms wall, "
-          f"{result['mesh']['cpu_ms']:.1f} ms CPU; surface pass "
+          f"{result['mesh']['cpu_ms']:.1f} ms CPU; depth pass {result['mesh']['depth_pass_ms']:.1f} ms, surface pass "
           f"{result['mesh']['surface_pass_ms']:.1f} ms, full G-buffer {result['mesh']['gbuffer_ms']:.1f} ms; "
           f"with visibility {result['mesh']['visibility_fps']:.1f} FPS) | volumetric {rays_per_s:.0f} rays/s = "
           f"{volume_fps:.5f} FPS | ratio {result['ratio']:.0f}x -> {args.out}", file=sys.stderr)

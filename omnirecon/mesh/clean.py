@@ -2,6 +2,8 @@
 
 * :func:`mask_votes`: with object masks, keep vertices inside the (dilated) masks of at least
   ``min_views`` views (VolRecon's ``count > 1`` of 3).
+* :func:`hull_trim`: with object masks, drop faces outside the visual hull: vertices that fall outside
+  the (lightly dilated) masks of more than a given number of the views that see them in frame.
 * :func:`visible_faces`: drop faces that no (in-mask) pixel sample of the views hits first. The
   views are rasterised (both sides of every face) at a few samples per voxel edge, by OpenGL
   (``MeshRasterizer``) when it is there; :func:`grow_faces` restores the sliver faces between kept
@@ -45,6 +47,27 @@ def mask_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.nd
     inside = proj.in_image.numpy()
     hit = masks[np.arange(len(masks))[:, None], row, col] & inside
     return hit.sum(0)
+
+
+def hull_trim(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, misses: int) -> trimesh.Trimesh:
+    """``mesh`` without the faces that have a vertex whose projection lies in frame but outside the mask
+    (``masks # [N, H, W]`` bool) of more than ``misses`` of ``cameras``: the visual hull of the masks, with
+    ``misses`` views of slack for a mask that cuts a thin part off. A surface the object really has lies
+    inside every view's silhouette, so only floating or fattened surface goes."""
+    if len(mesh.faces) == 0:
+        return mesh
+    outside = outside_votes(np.asarray(mesh.vertices), cameras.to(dtype=torch.float64), masks)
+    return keep_faces(mesh, (outside <= misses)[mesh.faces].all(1))
+
+
+def outside_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
+    """Number of views in which each point projects inside the image but outside the mask. ``# [P]``"""
+    proj = cameras.project(torch.from_numpy(points).to(cameras.c2w))
+    col = proj.uv[..., 0].floor().long().clamp(0, cameras.width - 1).numpy()  # [N, P]
+    row = proj.uv[..., 1].floor().long().clamp(0, cameras.height - 1).numpy()
+    inside = proj.in_image.numpy() & (proj.depth.numpy() > 0)
+    hit = masks[np.arange(len(masks))[:, None], row, col]
+    return (inside & ~hit).sum(0)
 
 
 def keep_faces(mesh: trimesh.Trimesh, keep: np.ndarray) -> trimesh.Trimesh:

@@ -16,6 +16,30 @@ from omnirecon.cameras import Cameras
 from omnirecon.render.raster import Surface
 
 
+def ray_basis(camera: Cameras) -> tuple[Tensor, Tensor]:
+    """``A # [3, 3]`` with the ray direction at camera z = 1 through pixel ``(u, v)`` equal to
+    ``u A[0] + v A[1] + A[2]`` (``R ((u - cx) / fx, (v - cy) / fy, 1)``, as :meth:`Cameras.rays`), and the
+    camera centre ``# [3]``, float32, of one camera."""
+    R = camera.R[0].float()  # [3, 3] camera -> world rotation
+    fx, fy, cx, cy = (float(x[0]) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
+    A = torch.stack([R[:, 0] / fx, R[:, 1] / fy, R[:, 2] - R[:, 0] * (cx / fx) - R[:, 1] * (cy / fy)])  # [3, 3]
+    return A, camera.centers[0].float()
+
+
+def exit_depth(d: Tensor, origin: Tensor, far: float, bounds: Tensor | None = None) -> Tensor:
+    """z-depth where rays ``origin + z d`` (``d # [3, M]`` channel-first, camera z = 1) leave the box
+    ``bounds # [2, 3]`` (its far side), at most ``far`` (rays that miss the box, or no box: ``far``). ``# [M]``"""
+    z = torch.full((d.shape[1],), float(far), dtype=d.dtype, device=d.device)
+    if bounds is None:
+        return z
+    b = (bounds.to(d) - origin.to(d))[:, :, None]  # [2, 3, 1] box corners relative to the origin
+    inv = d.abs().clamp_min(1e-12).copysign(d).reciprocal()  # [3, M]
+    t1, t2 = inv * b[0], inv * b[1]  # [3, M]
+    t_in, t_out = torch.minimum(t1, t2).amax(0), torch.maximum(t1, t2).amin(0)  # [M]
+    hit = (t_out > t_in.clamp_min(0)) & (t_out > 0)
+    return torch.where(hit, torch.minimum(t_out, z), z)
+
+
 def fill_points(camera: Cameras, pixels: Tensor, far: float, bounds: Tensor | None = None) -> tuple[Tensor, Tensor]:
     """The background layer at flat pixel indices ``pixels # [M]`` of one camera: where each pixel-centre
     ray leaves the box ``bounds # [2, 3]`` (its far side), at most at z-depth ``far`` (rays that miss the
@@ -23,23 +47,13 @@ def fill_points(camera: Cameras, pixels: Tensor, far: float, bounds: Tensor | No
 
     Per frame this runs on every pixel the mesh misses (up to the whole image), so it is written for
     speed: the ray direction with camera z = 1 is affine in the pixel centre ``(u, v)``
-    (``R ((u - cx) / fx, (v - cy) / fy, 1)``, as :meth:`Cameras.rays`), one ``[M, 2] @ [2, 3]`` product,
-    and the slab test multiplies by its reciprocal, in float32."""
+    (:func:`ray_basis`), one ``[M, 2] @ [2, 3]`` product, and the slab test (:func:`exit_depth`)
+    multiplies by its reciprocal, in float32."""
     pixels = pixels.to(camera.device)
-    R = camera.R[0].float()  # [3, 3] camera -> world rotation
-    fx, fy, cx, cy = (float(x[0]) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
-    A = torch.stack([R[:, 0] / fx, R[:, 1] / fy, R[:, 2] - R[:, 0] * (cx / fx) - R[:, 1] * (cy / fy)])  # [3, 3]
+    A, o = ray_basis(camera)
     uv = torch.stack([pixels % camera.width, pixels // camera.width], -1).float() + 0.5  # [M, 2] pixel centres
     d = torch.addmm(A[2], uv, A[:2])  # [M, 3]: origin + z * d is at z-depth z
-    o = camera.centers[0].float()  # [3]
-    z = torch.full((len(uv),), float(far), dtype=torch.float32, device=d.device)
-    if bounds is not None:
-        b = bounds.to(d) - o  # [2, 3] box corners relative to the origin
-        inv = d.abs().clamp_min(1e-12).copysign(d).reciprocal()  # [M, 3]
-        t1, t2 = inv * b[0], inv * b[1]  # [M, 3]
-        t_in, t_out = torch.minimum(t1, t2).amax(-1), torch.maximum(t1, t2).amin(-1)  # [M]
-        hit = (t_out > t_in.clamp_min(0)) & (t_out > 0)
-        z = torch.where(hit, torch.minimum(t_out, z), z)
+    z = exit_depth(d.T, o, far, bounds)
     return torch.addcmul(o, z[:, None], d), z
 
 

@@ -17,6 +17,7 @@ import trimesh
 
 from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
+from omnirecon.mesh.clean import outside_votes
 
 
 def available() -> bool:
@@ -26,16 +27,6 @@ def available() -> bool:
     except ImportError:
         return False
     return True
-
-
-def outside_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
-    """Number of views in which each point projects inside the image but outside the mask. ``# [P]``"""
-    proj = cameras.project(torch.from_numpy(points).to(cameras.c2w))
-    col = proj.uv[..., 0].floor().long().clamp(0, cameras.width - 1).numpy()  # [N, P]
-    row = proj.uv[..., 1].floor().long().clamp(0, cameras.height - 1).numpy()
-    inside = proj.in_image.numpy() & (proj.depth.numpy() > 0)
-    hit = masks[np.arange(len(masks))[:, None], row, col]
-    return (inside & ~hit).sum(0)
 
 
 def poisson_surface(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, depth: int = 9,

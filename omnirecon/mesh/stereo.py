@@ -64,6 +64,17 @@ class StereoOptions:
     need: int = 2
     """Agreeing pairs for full confidence; a pixel only one pair sees keeps confidence 1/need (coverage,
     not precision, is what the whole-image score punishes)."""
+    match_side: int = 256
+    """Match each rectified pair on a grid whose long side is at least this many pixels (finer than
+    photos smaller than that, at most twice as fine; the disparity is read back at the view's own pixels; 0 = the photos' own
+    grid): sub-pixel disparity and a block that covers less of a small object. Demo scene (128 px,
+    ``bench/depth_sources.py``), stereo+model: matched at 256 px, stereo outliers (> 5 % off the exact
+    depth) sphere 30 -> 25 %, box 35 -> 26 %, green object 16 -> 10 %, ground 28 -> 24 %; held-out mesh
+    path 20.68 -> 21.04 dB whole image, F-score 0.958 -> 0.978 (384 px: 20.92). Photos of 256 px and more
+    (fern, DTU) are matched as they are."""
+    equalize: bool = False
+    """Equalise each rectified pair's contrast (CLAHE on its lightness) before matching. On the demo scene
+    it raised the outliers on every object (dark sphere 30 -> 45 %); off."""
     confirm: int = 0
     """Multi-view geometric consistency: keep a pixel's depth only when at least this many other views'
     stereo maps agree with it (forward-backward reprojection within ``agree`` and 1 px, up to 8 nearest
@@ -97,6 +108,8 @@ class StereoOptions:
             bad.append(("agree", self.agree, "a relative difference in (0, 1), e.g. 0.02"))
         if not 1 <= self.need <= 16:
             bad.append(("need", self.need, "an integer in 1-16, e.g. 2"))
+        if not 0 <= self.match_side <= 2048:
+            bad.append(("match_side", self.match_side, "0 (the photos' grid) or a long side in px up to 2048, e.g. 256"))
         if not 0 <= self.confirm <= 8:
             bad.append(("confirm", self.confirm, "an integer in 0-8, e.g. 1"))
         if bad:
@@ -155,10 +168,10 @@ class Rectified:
         return np.nan_to_num(x, nan=-1e4).astype(np.float32), np.nan_to_num(y, nan=-1e4).astype(np.float32)
 
 
-def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25) -> Rectified:
+def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25, upscale: float = 1.0) -> Rectified:
     """The rectification of cameras ``a`` and ``b`` (one each) from their poses. The left camera is the
     one the baseline leaves along its own +x; the rectified image covers ``a``'s image (whose depth is
-    wanted), at most ``max_scale`` times its size."""
+    wanted), at most ``max_scale`` times its size, with ``upscale`` times its pixel density."""
     a, b = a.to(dtype=torch.float64), b.to(dtype=torch.float64)
     ca, cb = a.centers[0].numpy(), b.centers[0].numpy()
     base = cb - ca
@@ -172,8 +185,8 @@ def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25) -> Rectified:
     z /= np.linalg.norm(z)
     y = np.cross(z, x)
     R = np.stack([x, y, z], 1)
-    f = float(np.mean([float(a.fx[0]), float(a.fy[0]), float(b.fx[0]), float(b.fy[0])]))
-    W, H = a.width, a.height
+    f = upscale * float(np.mean([float(a.fx[0]), float(a.fy[0]), float(b.fx[0]), float(b.fy[0])]))
+    W, H = upscale * a.width, upscale * a.height
     corners = []
     for cam in (a,):
         uv = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], dtype=np.float64)
@@ -219,6 +232,19 @@ def match(left: np.ndarray, right: np.ndarray, dmin: int, num: int, options: Ste
     return disp
 
 
+def equalized(images: list[np.ndarray]) -> list[np.ndarray]:
+    """``images`` (uint8 RGB) with the lightness of each equalised by CLAHE (OpenCV, 8x8 tiles)."""
+    import cv2
+
+    clahe = cv2.createCLAHE(clipLimit=3.0, tileGridSize=(8, 8))
+    out = []
+    for img in images:
+        lab = cv2.cvtColor(img, cv2.COLOR_RGB2LAB)
+        lab[..., 0] = clahe.apply(np.ascontiguousarray(lab[..., 0]))
+        out.append(cv2.cvtColor(lab, cv2.COLOR_LAB2RGB))
+    return out
+
+
 def _uint8(image: Tensor) -> np.ndarray:
     return (image.detach().float().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)
 
@@ -228,11 +254,13 @@ def pair_depth(images: Tensor, cameras: Cameras, i: int, j: int, bounds: Tensor,
     import cv2
 
     ci, cj = cameras[i].to(dtype=torch.float64), cameras[j].to(dtype=torch.float64)
-    rect = rectify_pair(ci, cj)
+    rect = rectify_pair(ci, cj, upscale=float(np.clip(options.match_side / max(ci.width, ci.height), 1.0, 2.0)))
     imgs = []
     for cam, k in ((ci, i), (cj, j)):
         mx, my = rect.pixels_of(cam)
         imgs.append(cv2.remap(_uint8(images[k]), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+    if options.equalize:
+        imgs = equalized(imgs)
     left_cam = ci if rect.left == 0 else cj
     dmin, num = disparity_range(rect, left_cam.centers[0].numpy(), bounds, options)
     if rect.left == 0:  # i is the left image

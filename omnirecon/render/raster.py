@@ -22,7 +22,9 @@ writes three float/int targets read back without conversion:
 
 :meth:`MeshRasterizer.surface` (what a per-pixel shader needs) draws with a second program into one
 ``RGBA32F`` target, ``(world position, z-depth)``, and compacts the covered pixels: about half the
-cost of the full G-buffer on llvmpipe.
+cost of the full G-buffer on llvmpipe. :meth:`MeshRasterizer.depth` draws only the z-depth into one
+``R32F`` target (a quarter of that readback, nothing interpolated): the mesh renderer's frame path
+unprojects it, ``origin + z d(u, v)``, inside its parallel shading chunks.
 
 The projection maps camera points ``(x, y, z)`` to clip space with ``w_clip = z`` and
 ``x_ndc = 2 u / W - 1``, ``y_ndc = 2 v / H - 1`` where ``(u, v) = (fx x / z + cx, fy y / z + cy)``:
@@ -95,6 +97,23 @@ smooth in vec3 v_world;
 layout(location = 0) out vec4 out_world_depth;
 void main() {
     out_world_depth = vec4(v_world, 1.0 / gl_FragCoord.w);
+}
+"""
+
+_DEPTH_VERTEX_SHADER = """
+#version 330 core
+uniform mat4 world_to_clip;
+in vec3 in_pos;
+void main() {
+    gl_Position = world_to_clip * vec4(in_pos, 1.0);
+}
+"""
+
+_DEPTH_FRAGMENT_SHADER = """
+#version 330 core
+layout(location = 0) out float out_depth;
+void main() {
+    out_depth = 1.0 / gl_FragCoord.w;
 }
 """
 
@@ -289,6 +308,7 @@ class MeshRasterizer:
         self._programs = {
             "gbuffer": ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER),
             "surface": ctx.program(vertex_shader=_SURFACE_VERTEX_SHADER, fragment_shader=_SURFACE_FRAGMENT_SHADER),
+            "depth": ctx.program(vertex_shader=_DEPTH_VERTEX_SHADER, fragment_shader=_DEPTH_FRAGMENT_SHADER),
         }
         soup = self.vertices[self.faces].astype("f4")  # [F, 3, 3] unindexed triangle list
         self._vbo = ctx.buffer(soup.tobytes()) if len(self.faces) else None
@@ -309,6 +329,9 @@ class MeshRasterizer:
                           ctx.texture((width, height), 4, dtype="f4")]
                 host = (np.empty((height, width), np.int32), np.empty((height, width, 4), np.float32),
                         np.empty((height, width, 4), np.float32))
+            elif kind == "depth":
+                colors = [ctx.texture((width, height), 1, dtype="f4")]
+                host = (np.empty((height, width), np.float32),)
             else:
                 colors = [ctx.texture((width, height), 4, dtype="f4")]
                 host = (np.empty((height, width, 4), np.float32),)
@@ -317,18 +340,19 @@ class MeshRasterizer:
             self._targets[key] = (fbo, (*colors, depth), host)
         return self._targets[key]
 
-    def _draw(self, K, w2c, width, height, near, far, surface: bool = False):
+    def _draw(self, K, w2c, width, height, near, far, surface: bool | str = False):
         """Draw with GL into reused host buffers (valid until the next draw): ``face + 1 # [H, W]``
         int32 (0 = background), ``(bary, depth) # [H, W, 4]`` and ``(world, 1) # [H, W, 4]`` float32;
-        with ``surface``, only ``(world, depth) # [H, W, 4]`` (depth 0 = background).
+        with ``surface``, only ``(world, depth) # [H, W, 4]`` (depth 0 = background); with
+        ``surface="depth"``, only the z-depth ``# [H, W]``.
 
         This rasterizer's context is made current first: with several rasterizers alive, the last
         created context would otherwise receive the draw calls (and draw the wrong mesh)."""
         with self._ctx:
             return self._draw_current(K, w2c, width, height, near, far, surface)
 
-    def _draw_current(self, K, w2c, width, height, near, far, surface: bool = False):
-        kind = "surface" if surface else "gbuffer"
+    def _draw_current(self, K, w2c, width, height, near, far, surface: bool | str = False):
+        kind = "depth" if surface == "depth" else "surface" if surface else "gbuffer"
         auto_near, auto_far = self.depth_range(w2c)
         near = auto_near if near is None else near
         far = auto_far if far is None else far
@@ -346,6 +370,9 @@ class MeshRasterizer:
                 ctx.disable(mgl.CULL_FACE)
             self._programs[kind]["world_to_clip"].write((P @ w2c).T.astype("f4").tobytes())  # column-major
             self._vaos[kind].render(mgl.TRIANGLES)
+        if kind == "depth":
+            fbo.read_into(host[0], components=1, attachment=0, dtype="f4")
+            return host[0]
         if surface:
             fbo.read_into(host[0], components=4, attachment=0, dtype="f4")
             return host[0]
@@ -436,6 +463,17 @@ class MeshRasterizer:
         world = np.compress(covered, host, axis=0)  # [P, 4] (far faster than fancy indexing)
         return Surface(torch.from_numpy(pixels), torch.from_numpy(world[:, :3].copy()),
                        torch.from_numpy(world[:, 3].copy()), camera.height, camera.width)
+
+    def depth(self, camera: Cameras, near: float | None = None, far: float | None = None) -> Tensor:
+        """Camera z-depth of the mesh at ``camera``'s pixel centres, 0 = background. ``# [H, W]`` float32
+
+        GL: one ``R32F`` target; the returned tensor shares the rasterizer's host buffer, so it is valid
+        until this rasterizer's next draw at the same size (copy it to keep it). Reference backend: the
+        full G-buffer's depth (:meth:`rasterize`, its twin)."""
+        if not self._use_gl():
+            return self.rasterize(camera, normals="none", near=near).depth
+        K, w2c = _camera_arrays(camera)
+        return torch.from_numpy(self._draw(K, w2c, camera.width, camera.height, near, far, surface="depth"))
 
     def _rasterize_reference(self, K, w2c, width, height, near):
         from omnirecon.render.zbuffer import (

@@ -101,7 +101,7 @@ class MeshConfig(MachineConfig):
     def mesh_options(self, scene=None, has_model: bool = True) -> MeshOptions:
         given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
                  "trunc": self.trunc, "weights": self.weights}
-        depth = self.depth if self.depth != "auto" else default_depth(scene, has_model)
+        depth = self.depth if self.depth != "auto" else default_depth(scene, has_model, self.masks)
         depth_pass = self.depth_pass if self.depth_pass != "auto" else "coarse" if depth == "stereo+model" else "fine"
         return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
                                   min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,

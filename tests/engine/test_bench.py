@@ -71,6 +71,47 @@ def test_page_flags_results_measured_with_another_checkpoint():
     assert "unrecorded" in common.stale_note("omnirecon-tiny", None, "lift")[0]
 
 
+def test_mesh_path_results_are_stale_only_by_what_the_mesh_path_reads(tmp_path):
+    """A section that declares the config keys it does not read (the mesh path: the volumetric render options)
+    is current when only those changed, for results recorded before the keys existed (their full
+    fingerprint) and after (``sha256_ignoring``); new weights or another appearance key still mark it stale."""
+    import json
+    import shutil
+
+    from omnirecon.engine.checkpoint import fingerprint
+
+    shipped = common.ROOT / "checkpoints" / "omnirecon-tiny"
+    if not (shipped / "model.safetensors").is_file():
+        pytest.skip("checkpoints/omnirecon-tiny is not in this clone")
+    ignore = common.VOLUMETRIC_ONLY
+    meta = json.loads((shipped / "meta.json").read_text())
+    config = meta["model_config"]
+    assert "render_fine_pass" in config  # what made the section look stale
+    old = tmp_path / "old"  # the checkpoint as it was before the render options were written into its config
+    shutil.copytree(shipped, old)
+    (old / "meta.json").write_text(json.dumps({**meta, "model_config": {k: v for k, v in config.items()
+                                                                          if k not in ignore}}))
+    before = fingerprint(old)
+    assert before["sha256"] != common.shipped_fingerprint("omnirecon-tiny")["sha256"]
+    assert common.stale_note("omnirecon-tiny", before, "quality")  # the volumetric sections: stale
+    assert common.stale_note("omnirecon-tiny", before, "mesh_path", ignore=ignore) == []
+    assert common.stale_note("omnirecon-tiny", {**fingerprint(shipped), **common.ignoring(shipped)}, "mesh_path",
+                             ignore=ignore) == []
+    # a render option flipped after recording: still current for the mesh path, stale for the volumetric path
+    flipped = tmp_path / "flipped"
+    shutil.copytree(shipped, flipped)
+    (flipped / "meta.json").write_text(json.dumps({**meta, "model_config": {**config, "render_fine_pass": True}}))
+    rec = {**fingerprint(flipped), **common.ignoring(flipped)}
+    assert common.stale_note("omnirecon-tiny", rec, "mesh_path", ignore=ignore) == []
+    assert common.stale_note("omnirecon-tiny", rec, "quality")
+    # a key the mesh path reads (the appearance MLP) or other weights: stale
+    other = tmp_path / "other"
+    shutil.copytree(shipped, other)
+    (other / "meta.json").write_text(json.dumps({**meta, "model_config": {**config, "blend_hidden": [16, 4]}}))
+    note = common.stale_note("omnirecon-tiny", {**fingerprint(other), **common.ignoring(other)}, "mesh_path", ignore=ignore)
+    assert note and "python -m bench mesh_path" in note[0]
+
+
 def test_throughput_compares_reference_twins_and_page_shows_speed(tmp_path):
     """throughput times the reference twins and the defaults in one run; the page renders the Speed table."""
     r = throughput.main(["--quick", "--presets", "floor", "--out", str(tmp_path / "throughput.json")])

@@ -97,6 +97,27 @@ def test_mask_cleaning_drops_a_blob_outside_the_masks():
     assert np.linalg.norm(clean.vertices, axis=1).min() > 0.45
 
 
+def test_hull_trim_drops_surface_one_view_sees_outside_its_mask():
+    # a blob inside the masks of all views but one: the mask vote (2 views) keeps it, the visual hull
+    # without slack drops it, one view of slack keeps it; the object itself always stays
+    from omnirecon.mesh.clean import hull_trim, outside_votes
+
+    cams = ring_cameras(4)
+    main_sphere = trimesh.creation.icosphere(3, radius=0.5)
+    masks = dilate_masks(np.stack([geometry.silhouette(main_sphere, cams[i]) for i in range(4)]), 0.1 * cams.width)
+    for p in np.random.default_rng(0).uniform(-1.0, 1.0, (500, 3)):
+        blob = trimesh.creation.icosphere(1, radius=0.03).apply_translation(p)
+        out = outside_votes(np.asarray(blob.vertices), cams, masks)
+        if out.min() == out.max() == 1:
+            break
+    else:
+        raise AssertionError("no blob outside exactly one silhouette")
+    mesh = trimesh.util.concatenate([main_sphere, blob])
+    assert len(hull_trim(mesh, cams, masks, 0).faces) == len(main_sphere.faces)
+    assert len(hull_trim(mesh, cams, masks, 1).faces) == len(mesh.faces)
+    assert len(hull_trim(main_sphere, cams, masks, 0).faces) == len(main_sphere.faces)
+
+
 def transformed(scene, T: torch.Tensor):
     """The same scene in a frame moved by the rigid ``T``; ``to_input`` absorbs the inverse."""
     corners = torch.cartesian_prod(*scene.bounds.double().T)  # [8, 3]
@@ -142,7 +163,7 @@ def test_to_input_frame_keeps_outward_winding_under_a_mirror():
 def test_mesh_cli_floor(synth_scene, tmp_path, capsys, run_cli):
     out = tmp_path / "floor.ply"
     code, stdout, err = run_cli(["mesh", "--scene", synth_scene, "--model", "floor", "--out", out, tmp_path / "floor.glb",
-                                 "--threads", 1, "--masks"])
+                                 "--threads", 1, "--masks", "--depth", "model"])  # the floor's own depth
     assert code == 0, err
     assert out.is_file() and (tmp_path / "floor.glb").is_file() and (tmp_path / "floor_preview.png").is_file()
     record = json.loads((tmp_path / "floor_metrics.json").read_text())

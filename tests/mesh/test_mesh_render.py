@@ -122,6 +122,26 @@ def test_fill_leaves_no_background_pixel_where_the_target_has_content(setup, fus
     assert torch.allclose(a["rgb"][a["mask"]], b["rgb"][b["mask"]], atol=1e-6)
 
 
+@pytest.mark.parametrize(("fill", "visibility", "workers"), [("far", False, 1), ("far", True, 2), ("background", True, 2)])
+def test_frame_equals_its_reference_twin(setup, fill, visibility, workers):
+    """``render(extras=False)`` (depth pass, unprojection, fill and image rows inside the chunks) is the image
+    of ``render()`` (rasterized world points, ``with_fill``, scatter) up to the float rounding of the
+    unprojected points, on a mesh with holes; some of its points are seen by fewer than two sources (the
+    shortcut that skips the network) and some by more."""
+    scene, mesh, model, sources, target = setup
+    keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    opts = MeshRenderOptions(background=scene.background, fill=fill, visibility=visibility, workers=workers,
+                             chunk=700, cull_back_faces=False)
+    with MeshRenderer(model, half, sources, opts) as r:
+        fast, ref = r.render(target, extras=False)["rgb"], r.render(target)
+        seen = r.weights(target, fill=fill == "far").mask.sum(0)
+    assert (seen < 2).any() and (seen >= 2).any()
+    diff = (fast - ref["rgb"]).abs().amax(-1)
+    assert fast.shape == ref["rgb"].shape and 0.2 < ref["mask"].float().mean() < 0.9
+    assert diff.max() < 1e-3 and diff.mean() < 1e-5, (float(diff.max()), float(diff.mean()))
+
+
 def quad(center, half: float) -> tuple[np.ndarray, np.ndarray]:
     """A square in the plane z = center[2], its normal towards -z (facing cameras at smaller z)."""
     c = np.asarray(center, dtype=np.float64)

@@ -60,7 +60,8 @@ def test_neighbours_skip_baselines_along_the_optical_axis():
 
 
 @pytest.mark.parametrize("field,value", [("pairs", 0), ("block_size", 4), ("p2", 100), ("agree", 0.0),
-                                         ("min_axis_angle", math.nan), ("max_disparities", 8)])
+                                         ("min_axis_angle", math.nan), ("max_disparities", 8),
+                                         ("match_side", -1)])
 def test_bad_stereo_options_are_one_line_errors(field, value):
     opts = StereoOptions(**{field: value})
     with pytest.raises(InputError) as e:
@@ -88,3 +89,17 @@ def test_a_depth_no_other_view_confirms_is_dropped():
     seen[20:100, 30:130] = True  # well inside the other views' images
     assert not bool(lone[1:, 20:100, 30:130].any()) and not bool(lone[0][seen & (depths[0] == exact[0])].any())
     assert not bool(unconfirmed(cams, exact, rel=0.02, need=3)[:, 20:100, 30:130].any())
+
+
+def test_matching_on_a_finer_grid_reads_depth_back_at_the_photos_pixels():
+    # the same pair matched on its own 160 px grid and on a 320 px one: depth at the photo's pixels either
+    # way, and the finer grid's sub-pixel disparity is at least as accurate
+    images, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0]])
+    bounds = torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]])
+    err = {}
+    for side in (0, 320):
+        depth = stereo_depths(images, cams, [0, 1], bounds, StereoOptions(match_side=side))["depth"][0]
+        ok = depth > 0
+        assert depth.shape == (H, W) and ok.float().mean() > 0.8
+        err[side] = float(((depth[ok] - exact[0][ok]).abs() / exact[0][ok]).mean())
+    assert err[320] < 0.02 and err[320] <= err[0] * 1.1, err

@@ -96,7 +96,7 @@ def test_poisson_closes_a_hole_and_stays_inside_the_masks():
     closed_px = hole & (d_after > 0) & (d_after < 2.5)  # now the cap, near 3 - 0.8
     assert closed_px.sum() > 0.4 * hole.sum()  # measured: 150 of 318 pixels at octree depths 6-8
     # nothing outside the masks of the views that see it
-    from omnirecon.mesh.poisson import outside_votes
+    from omnirecon.mesh.clean import outside_votes
 
     assert outside_votes(np.asarray(closed.vertices), cams, masks).max() == 0
 
@@ -111,6 +111,9 @@ def test_auto_depth_by_scene_kind(forward_scene):  # noqa: F811
     assert default_depth(photos, has_model=True) == "stereo+model"
     assert default_depth(procedural, has_model=True) == "stereo+model"  # measured best on every kind
     assert default_depth(procedural, has_model=False) == default_depth(photos, has_model=False) == "stereo"
+    masked = SimpleNamespace(mesh_path=None, rig="object", masks=torch.ones(2, 4, 4, dtype=torch.bool))
+    assert default_depth(masked, has_model=True, masks=True) == "stereo+model"  # few views: stereo alone is sparse
+    assert default_depth(masked, has_model=True, masks=False) == "stereo+model"
 
 
 def test_no_surface_where_the_photos_show_the_background(tmp_path):

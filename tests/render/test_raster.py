@@ -142,3 +142,19 @@ def test_two_rasterizers_each_draw_their_own_mesh(scene):
             full_a = a.rasterize(cam, normals="none").face  # after b was created and used
             assert torch.equal(full_a, full_alone)
             assert (half_b >= 0).sum() < (full_a >= 0).sum()
+
+
+@needs_gl
+def test_depth_pass_equals_the_gbuffer_depth(scene):
+    """The depth-only pass (the mesh renderer's frame path) draws the G-buffer's z-depth; its reference
+    twin is the reference rasterizer's depth."""
+    mesh = scene_mesh(scene)
+    gl = MeshRasterizer.from_trimesh(mesh, backend="gl")
+    ref = MeshRasterizer.from_trimesh(mesh, backend="reference")
+    for i in range(3):
+        cam = scene.cameras[i]
+        d = gl.depth(cam).clone()
+        g = gl.rasterize(cam, normals="none")
+        assert d.shape == (cam.height, cam.width) and torch.equal(d > 0, g.mask)
+        assert torch.allclose(d, g.depth, rtol=1e-6, atol=0)
+        assert torch.equal(ref.depth(cam), ref.rasterize(cam, normals="none").depth)

@@ -1,0 +1,102 @@
+"""Where the demo's mesh loses depth: each stage of the mesh pipeline against the exact depth, per region.
+
+    python -m bench depth_regions                    # stereo+model, the default match grid (~1 CPU-min)
+    python -m bench depth_regions --match-side 0     # stereo matched on the photos' own 128-px grid
+
+On the demo's procedural scene (``bench/depth_sources.py``: seed 900999, 24 views at 128 px, the 18
+training views meshed) every training view's depth after each stage is compared with the exact depth,
+split by the scene's labels into regions (the dark sphere, the box, the green object, the other objects,
+the ground, the sky):
+
+* ``stereo``: the voted stereo maps (:mod:`omnirecon.mesh.stereo`), before any confidence;
+* ``stereo+model``: the maps fusion gets (stereo where it matched, the model's coarse depth for the rest);
+* the mesh after each stage (``marching_cubes`` = fusion, ``visible`` / ``components`` = cleaning,
+  ``decimated`` = face budget, ``completed`` = completion), rendered at the training views.
+
+Per region: coverage (pixels with depth), abs-rel, the share of pixels > 5 % off, of those the share in
+front of (``near``) and behind (``far``) the exact surface, and at the region's 2-px edge and interior.
+Sky: the share of pixels with any depth. Writes ``bench/results/depth_regions.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from omnirecon.data.io import write_json
+
+REGIONS = {"sphere": [5], "box": [6], "green object": [1], "other objects": [2, 3, 4], "ground": [255], "sky": [0]}
+"""The demo scene's label ids per region (``scene.json``: 5 sphere, 6 box, 1 the green cylinder)."""
+
+
+def region_scores(depth: np.ndarray, exact: np.ndarray, labels: np.ndarray) -> dict:
+    """``depth`` against ``exact`` (``# [N, H, W]``, 0 = none) per region of ``labels``."""
+    from scipy.ndimage import binary_erosion
+
+    out = {}
+    for name, ids in REGIONS.items():
+        m = np.isin(labels, ids)
+        if name == "sky":
+            out[name] = {"pixels": int(m.sum()), "with_depth": float((depth[m] > 0).mean())}
+            continue
+        inner = np.stack([binary_erosion(x, iterations=2) for x in m])
+        row = {"pixels": int(m.sum())}
+        for part, sel in (("all", m), ("edge", m & ~inner), ("interior", inner)):
+            has = sel & (depth > 0)
+            rel = (depth[has] - exact[has]) / exact[has]
+            row[part] = {"coverage": float(has.sum() / max(1, sel.sum())),
+                         "abs_rel": float(np.abs(rel).mean()) if len(rel) else None,
+                         "outliers": float((np.abs(rel) > 0.05).mean()) if len(rel) else None,
+                         "near": float((rel < -0.05).mean()) if len(rel) else None,
+                         "far": float((rel > 0.05).mean()) if len(rel) else None}
+        out[name] = row
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from bench.depth_sources import ROOT, held_out, load
+    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+    from omnirecon.mesh.build import MeshOptions, depth_maps, mesh_from_depths
+    from omnirecon.mesh.complete import DepthRenderer
+    from omnirecon.mesh.depth import oracle_depths, stereo_maps
+    from omnirecon.mesh.stereo import StereoOptions
+    from omnirecon.provenance import provenance
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--match-side", type=int, default=StereoOptions.match_side,
+                   help="StereoOptions.match_side (0: the photos' own grid)")
+    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    a = p.parse_args(argv)
+    torch.set_num_threads(1)
+    t0 = time.process_time()
+    path, scene, proto, res = load("demo", False)
+    targets, views = held_out(scene, proto)
+    labels = scene.labels[views].numpy()
+    exact = oracle_depths(scene, views).depth.numpy()
+    ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
+    model = load_checkpoint(ckpt)[0]
+    opts = MeshOptions(depth="stereo+model", depth_pass="coarse", stereo=StereoOptions(match_side=a.match_side))
+    stages = {"stereo": region_scores(stereo_maps(scene, views, opts.stereo).depth.numpy(), exact, labels)}
+    maps = depth_maps(opts, scene, views, model)
+    stages["stereo+model"] = region_scores(maps.depth.numpy(), exact, labels)
+    meshes: dict = {}
+    mesh_from_depths(maps, scene, views, opts, None, stages=meshes)
+    for name, mesh in meshes.items():
+        r = DepthRenderer(mesh)
+        d = np.stack([r(scene.cameras[v]) for v in views])
+        r.close()
+        stages[name] = region_scores(d, exact, labels)
+    result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), "path": "checkpoints/omnirecon-tiny"},
+              "scene": "demo", "views": views, "match_side": a.match_side, "stages": stages,
+              "cpu_seconds": time.process_time() - t0, "load_average": list(os.getloadavg())}
+    name = "depth_regions.json" if a.match_side == StereoOptions.match_side else f"depth_regions_match{a.match_side}.json"
+    write_json(a.out / name, result)
+    for stage, regions in stages.items():
+        print(f"{stage:14s} " + " | ".join(
+            f"{k} {v['all']['outliers']:.3f}" if "all" in v else f"{k} {v['with_depth']:.3f}" for k, v in regions.items()))
+    return result
