@@ -35,6 +35,7 @@ def section(results: Path) -> str | None:
                 f"at 512x512 on this CPU: {m['fps']:.1f} FPS wall, {m['fps_from_cpu_time']:.1f} from CPU time "
                 f"({'met' if m['fps'] >= r['goals']['cpu_fps_512'] else 'not met'}). No GPU was lent: the 800x600 GPU goal "
                 "is unmeasured.", "", prov(r["provenance"]), ""]
+    out += _photo_sizes(results / "mesh_fps_runs")
     if q_file.is_file():
         r = json.loads(q_file.read_text())
         # the mesh path reads no volumetric render option: only the weights and the other config keys count
@@ -67,3 +68,30 @@ def section(results: Path) -> str | None:
             out += ["", f"Mean gain after 60 s (covered pixels): {mean_gain:+.2f} dB (goal +{r['goal_gain_db_60s']:.0f} dB: "
                     f"{'met' if mean_gain >= r['goal_gain_db_60s'] else 'not met'}).", "", prov(r["provenance"]), ""]
     return "\n".join(out)
+
+
+# goals at the photos' own sizes (issue: >= 30 FPS at 504x378, >= 60 FPS at 336x252 on 2 cores)
+PHOTO_GOALS = {(504, 378): 30.0, (336, 252): 60.0}
+
+
+def _photo_sizes(runs: Path) -> list[str]:
+    """Rows of the `quiet_*` runs of `python -m bench mesh_fps --size W H --threads 2 --out ...` (a quiet machine)."""
+    files = sorted(runs.glob("quiet_*.json")) if runs.is_dir() else []
+    if not files:
+        return []
+    out = ["At the photos' sizes on 2 cores, measured on a quiet machine (`python -m bench mesh_fps --size W H --threads 2 "
+           "[--ckpt TUNED] --out bench/results/mesh_fps_runs/quiet_*.json`; TUNED is a `finetune --save` checkpoint):", "",
+           "| weights | resolution | FPS (wall) | ms / frame | CPU ms / frame | with visibility test | goal | load (1 min) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for f in files:
+        r = json.loads(f.read_text())
+        m = r["mesh"]
+        w, h = m["resolution"]
+        goal = PHOTO_GOALS.get((w, h))
+        verdict = "–" if goal is None else (f">= {goal:.0f}: " + ("met" if min(m["fps"], m["visibility_fps"]) >= goal
+                                                                   else "met without the visibility test"
+                                                                   if m["fps"] >= goal else "not met"))
+        out.append(f"| {r['model']['weights']} | {w}x{h} | {m['fps']:.1f} | {m['median_ms']:.1f} | {m['cpu_ms']:.1f} | "
+                   f"{m['visibility_fps']:.1f} | {verdict} | {r['provenance'].get('loadavg_1min', '?')} |")
+    out += ["", prov(json.loads(files[-1].read_text())["provenance"]), ""]
+    return out
