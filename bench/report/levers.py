@@ -9,12 +9,31 @@ from bench.report.common import prov, read
 
 
 def section(results: Path) -> str | None:
-    parts = [f(r) for f, name in ((_levers, "tiny_levers.json"), (_switches, "switches.json"),
-                                  (_compile, "compile_cache.json")) if (r := read(results, name))]
+    # later per-model runs (tiny_levers_<model>.json) replace that model's rows of the main run
+    later = [read(results, f.name) for f in sorted(results.glob("tiny_levers_*.json"))]
+    parts = []
+    if r := read(results, "tiny_levers.json"):
+        parts.append(_levers(r, later))
+    parts += [f(r) for f, name in ((_switches, "switches.json"), (_compile, "compile_cache.json"))
+              if (r := read(results, name))]
     return "\n".join(parts) if parts else None
 
 
-def _levers(r: dict) -> str:
+def _table(r: dict) -> list[str]:
+    """Rows of one tiny_levers run: each candidate's speed-up and PSNR per scene."""
+    names = [s["name"] for s in r["scenes"]]
+    lines = ["| preset | candidate | CPU s | speed-up | PSNR (dB) | dPSNR | " + " | ".join(names) + " |",
+             "|---|---|---|---|---|---|" + "---|" * len(names)]
+    for m in r["models"]:
+        for row in m["rows"]:
+            best = row["speedup"] >= 3 and row["dpsnr"] >= -0.1
+            cand = f"**{row['candidate']}**" if best else row["candidate"]
+            lines.append(f"| {m['model']} | {cand} | {row['cpu_s']} | {row['speedup']}× | {row['psnr_mean']} | "
+                         f"{row['dpsnr']:+.3f} | " + " | ".join(str(row["psnr"].get(n, "–")) for n in names) + " |")
+    return lines
+
+
+def _levers(r: dict, later: list[dict]) -> str:
     """BENCHMARKS.md section: per tiny preset, each candidate's speed-up over the reference twins and its PSNR."""
     scenes = ", ".join(f"{s['name']} ({s['size'][0]}x{s['size'][1]})" for s in r["scenes"])
     lines = ["## Render levers of the tiny presets (`python -m bench tiny_levers`)", "",
@@ -30,16 +49,18 @@ def _levers(r: dict) -> str:
              "positions, density scaled); `coarse_only`: no fine pass; `surface_N`: the fine pass on N "
              "importance samples only. "
              f"Load average at the start {r['loadavg_start']}, at the end {r['loadavg_end']}.", ""]
-    names = [s["name"] for s in r["scenes"]]
-    lines += ["| preset | candidate | CPU s | speed-up | PSNR (dB) | dPSNR | " + " | ".join(names) + " |",
-              "|---|---|---|---|---|---|" + "---|" * len(names)]
-    for m in r["models"]:
-        for row in m["rows"]:
-            best = row["speedup"] >= 3 and row["dpsnr"] >= -0.1
-            cand = f"**{row['candidate']}**" if best else row["candidate"]
-            lines.append(f"| {m['model']} | {cand} | {row['cpu_s']} | {row['speedup']}× | {row['psnr_mean']} | "
-                         f"{row['dpsnr']:+.3f} | " + " | ".join(str(row["psnr"].get(n, "–")) for n in names) + " |")
+    redone = {m["model"] for x in later for m in x["models"]}
+    main = {**r, "models": [m for m in r["models"] if m["model"] not in redone]}
+    lines += _table(main)
     lines += ["", "Bold: at least 3x the reference with at most 0.1 dB lost.", "", prov(r["provenance"])]
+    for x in later:
+        models = ", ".join(m["model"] for m in x["models"])
+        scenes = ", ".join(f"{s['name']} ({s['size'][0]}x{s['size'][1]})" for s in x["scenes"])
+        lines += ["", f"{models}, measured again after its checkpoint's render options changed (same protocol: K = "
+                  f"{x['k']}, {x['targets_per_scene']} target(s) per scene, {x['rounds']} round(s); {scenes}; load "
+                  f"{x['loadavg_start']} -> {x['loadavg_end']}), replacing its rows of the first run:", ""]
+        lines += _table(x)
+        lines += ["", prov(x["provenance"])]
     return "\n".join(lines) + "\n"
 
 
