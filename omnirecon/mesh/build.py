@@ -142,6 +142,9 @@ class MeshOptions:
     the rest is hole-filled from its neighbours; forward-facing captures take every depth (their borders
     have no second view). Unconfirmed fills on the demo scene were floating quads that held-out views
     saw in the sky and in front of the objects."""
+    fill_occlusion: bool = True
+    """Completion puts no fill in front of the surface another view sees (:func:`complete.occluding`, within
+    the maps' consistency margin): such fills go to the backdrop (forward-facing scenes) or are left out."""
     model_side: int = 128
     """``stereo+model``: long side (px) the model's depth is rendered at before it fills stereo's holes at
     the photos' resolution (the model's eval resolution; 0 = the photos' own, ~7x the cost on fern)."""
@@ -360,7 +363,8 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         t = time.perf_counter()
         view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
         mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
-                                            forward=scene.rig == "forward")
+                                            forward=scene.rig == "forward",
+                                            occlusion_rel=rel if options.fill_occlusion else None)
         if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
             mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
         counts["completed"] = len(mesh.faces)
