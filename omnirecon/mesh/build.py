@@ -145,6 +145,11 @@ class MeshOptions:
     fill_occlusion: bool = True
     """Completion puts no fill in front of the surface another view sees (:func:`complete.occluding`, within
     the maps' consistency margin): such fills go to the backdrop (forward-facing scenes) or are left out."""
+    backdrop_pad: float = 0.1
+    """Forward-facing scenes: completion adds the backdrop layer as a surface (:func:`complete.backdrop_sheet`:
+    the bounds' far side, behind everything), over each view's image grown by this fraction of the long side
+    (views between the training views see past their borders); -1 = none (the renderer's fill still shades
+    those pixels, but they count as uncovered)."""
     model_side: int = 128
     """``stereo+model``: long side (px) the model's depth is rendered at before it fills stereo's holes at
     the photos' resolution (the model's eval resolution; 0 = the photos' own, ~7x the cost on fern)."""
@@ -364,7 +369,8 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
         mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
                                             forward=scene.rig == "forward",
-                                            occlusion_rel=rel if options.fill_occlusion else None)
+                                            occlusion_rel=rel if options.fill_occlusion else None,
+                                            backdrop_pad=options.backdrop_pad)
         if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
             mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
         counts["completed"] = len(mesh.faces)

@@ -141,6 +141,32 @@ def occluding(camera: Cameras, depth: np.ndarray, region: np.ndarray, others: Ca
     return out
 
 
+def padded_camera(camera: Cameras, pad: int) -> Cameras:
+    """``camera`` (one) with its image grown by ``pad`` pixels on every side (same rays for the old pixels)."""
+    return Cameras(camera.fx, camera.fy, camera.cx + pad, camera.cy + pad, camera.c2w, camera.width + 2 * pad,
+                   camera.height + 2 * pad)
+
+
+def backdrop_sheet(cameras: Cameras, bounds: Tensor, pad: float, cell: int = 8) -> trimesh.Trimesh:
+    """The backdrop layer of a forward-facing scene as a surface: for each view, its image grown by ``pad``
+    (a fraction of the long side) on every side, in cells of ``cell`` pixels, on the bounds box's far side
+    (where each cell's ray leaves the box). Behind every other surface, it is what a ray sees that misses
+    them all: gaps between surfaces seen from between the views, and past the views' borders (on fern,
+    1.7 % of the held-out pixels after the per-pixel fills). About ``2 (W / cell) (H / cell)`` faces a view."""
+    from omnirecon.mesh.fusion import exit_depth
+
+    grow = round(pad * max(cameras.width, cameras.height))
+    sheets = []
+    for i in range(len(cameras)):
+        c = padded_camera(cameras[i], grow)
+        coarse = Cameras(c.fx / cell, c.fy / cell, c.cx / cell, c.cy / cell, c.c2w, -(-c.width // cell),
+                         -(-c.height // cell))
+        d = exit_depth(coarse, bounds)[0].numpy()
+        if (d > 0).any():
+            sheets.append(pixel_grid_surface(coarse, d, d > 0))
+    return trimesh.util.concatenate(sheets) if sheets else trimesh.Trimesh()
+
+
 def content_region(view_depth: Tensor | None, mask: np.ndarray | None, forward: bool, shape) -> np.ndarray:
     """Pixels of a view that should be covered (module docstring). ``# [H, W]`` bool"""
     if mask is not None:
@@ -155,7 +181,7 @@ def content_region(view_depth: Tensor | None, mask: np.ndarray | None, forward: 
 
 def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | None, bounds: Tensor,
                      masks: np.ndarray | None = None, forward: bool = False,
-                     occlusion_rel: float | None = None) -> tuple[trimesh.Trimesh, dict]:
+                     occlusion_rel: float | None = None, backdrop_pad: float = -1.0) -> tuple[trimesh.Trimesh, dict]:
     """``mesh`` plus a fill surface covering every content pixel of every view (module docstring).
 
     Args:
@@ -166,6 +192,8 @@ def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | N
         forward: A forward-facing or unbounded scene: cover every pixel, clamp far depth onto the backdrop.
         occlusion_rel: When given, a fill point in front of the surface another view sees (:func:`occluding`,
             this relative depth margin) goes to the backdrop (forward-facing scenes) or is left out.
+        backdrop_pad: Forward-facing scenes, when ``>= 0``: add the backdrop layer (:func:`backdrop_sheet`) over
+            each view's image grown by this fraction of the long side.
 
     Returns:
         The completed mesh and a record (fill faces, pixels filled per source of depth, coverage of
@@ -224,6 +252,12 @@ def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | N
     base.close()
     current = trimesh.util.concatenate([mesh, *fills]) if fills and len(mesh.faces) else (
         trimesh.util.concatenate(fills) if fills else mesh)
+    if forward and backdrop_pad >= 0:
+        sheet = backdrop_sheet(cameras, bounds, backdrop_pad)
+        stats["backdrop_faces"] = len(sheet.faces)
+        if len(sheet.faces):
+            fills.append(sheet)
+            current = trimesh.util.concatenate([current, sheet]) if len(current.faces) else sheet
     info = {**stats, "fill_faces": int(sum(len(f.faces) for f in fills)),
             "coverage_before": stats["covered_before"] / max(1, stats["content_pixels"])}
     return current, info
