@@ -18,7 +18,10 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   (object captures; ``omnirecon/mesh/poisson.py``);
 * ``oracle``: the exact depth (procedural scenes), with completion;
 * ``<source>, sky kept`` (procedural scenes): the same without dropping depth where the photo shows the
-  scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth.
+  scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth;
+* ``<source>, K sources`` / ``<source>, exposure``: the same mesh scored with ``finetune --num-views K`` (the
+  mesh path blends K source views instead of 3) / tuned with ``--tune encoder appearance exposure``
+  (variants combine: ``stereo+fill, 8 sources, exposure``).
 
 Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
 them, evenly spaced) by the one pipeline (``omnirecon/mesh/build.py``) and scored like
@@ -93,7 +96,7 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
     from omnirecon.mesh.build import MeshOptions, mesh_from_model
 
     source, _, variant = source.partition(", ")
-    keep_sky = {"drop_background": False} if variant == "sky kept" else {}
+    keep_sky = {"drop_background": False} if "sky kept" in variant.split(", ") else {}
     t = time.process_time()
     if source in ("learned", "floor"):  # depth at 128 px (as `omnirecon reconstruct --mesh-resolution 128`)
         low = load_at_resolution(path, 128, proto.background) if max(scene.width, scene.height) > 128 else scene
@@ -145,6 +148,19 @@ def picture(src: Path, dst: Path, max_width: int = 480) -> str:
     return str(dst.relative_to(dst.parents[1]))
 
 
+def scoring(source: str) -> dict:
+    """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring)."""
+    out = {}
+    for part in source.split(", ")[1:]:
+        if part.endswith(" sources"):
+            out["num_views"] = int(part.split()[0])
+        elif part == "exposure":
+            out["tune"] = ("encoder", "appearance", "exposure")
+        elif part != "sky kept":
+            raise ValueError(f"unknown variant {part!r} of {source!r}")
+    return out
+
+
 def run_row(name: str, source: str, seconds: float, models: dict, results: Path, tiny: bool) -> dict | None:
     from omnirecon.mesh import geometry
     from omnirecon.mesh.files import read_mesh, write_mesh
@@ -164,12 +180,12 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4))
+                                     out=work / "finetune", max_held_out=4, **scoring(source)))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
-           "tuned_seconds": tune if tuned else 0.0,
+           "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
