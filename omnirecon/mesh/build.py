@@ -143,8 +143,10 @@ class MeshOptions:
     have no second view). Unconfirmed fills on the demo scene were floating quads that held-out views
     saw in the sky and in front of the objects."""
     fill_occlusion: bool = True
-    """Completion puts no fill in front of the surface another view sees (:func:`complete.occluding`, within
-    the maps' consistency margin): such fills go to the backdrop (forward-facing scenes) or are left out."""
+    """Forward-facing scenes: completion puts no fill in front of the surface another view sees
+    (:func:`complete.occluding`, within the maps' consistency margin); such fills go to the backdrop. fern
+    (stereo+fill, before tuning): 20.68 -> 21.37 dB whole image, stereo alone 21.24. Object rigs keep their
+    fills: there the check cost dtu_scan24 (stereo+fill) mask PSNR 18.11 -> 17.66 dB, coverage 97.4 -> 94.7 %."""
     backdrop_pad: float = 0.1
     """Forward-facing scenes: completion adds the backdrop layer as a surface (:func:`complete.backdrop_sheet`:
     the bounds' far side, behind everything), over each view's image grown by this fraction of the long side
@@ -369,7 +371,7 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
         mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
                                             forward=scene.rig == "forward",
-                                            occlusion_rel=rel if options.fill_occlusion else None,
+                                            occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward" else None,
                                             backdrop_pad=options.backdrop_pad)
         if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
             mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)

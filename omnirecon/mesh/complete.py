@@ -19,6 +19,16 @@ seen from the other views, hid real surface). Views are
 completed in turn, each against the mesh plus the fills before it, so overlapping holes are filled
 once.
 
+Forward-facing scenes get two more rules:
+
+* **No fill hides what another view sees** (:func:`occluding`): a fill point nearer than the surface some
+  other view sees along its ray goes to the backdrop. On fern such fills (from the views' own unconfirmed
+  stereo depth) covered 9 % of the held-out pixels and doubled their error: completion lowered the
+  whole image from 21.24 to 20.68 dB; with the rule it raises it.
+* **A backdrop layer** (:func:`backdrop_sheet`): a coarse surface on the bounds' far side over every view
+  grown by 10 %, behind everything, for the rays that miss every other surface: gaps seen from between
+  the views and what lies past the training views' borders (fern: held-out coverage 98.3 -> 100 %).
+
 "Where the photo has content": inside the (dilated) object masks when the mesh was cleaned with masks;
 everywhere on forward-facing scenes; elsewhere, the pixels where the depth source saw a surface
 (holes in that set closed), so an empty background stays empty.
@@ -119,7 +129,8 @@ def occluding(camera: Cameras, depth: np.ndarray, region: np.ndarray, others: Ca
     """Pixels of ``region # [H, W]`` whose point at ``depth # [H, W]`` (pixel centres) lies in front of the
     surface some other view sees: it projects into one of ``others`` (``M`` cameras, z-depth of the mesh at
     them ``others_depth # [M, H, W]``, 0 = none) at a z-depth more than ``rel`` (relative) nearer than the
-    mesh there. That view sees through the point, so a fill there would hide surface it saw (on fern, such
+    mesh there (the nearest of the four pixels around the projection, so a depth edge flags nothing). That view
+    sees through the point, so a fill there would hide surface it saw (on fern, such
     fills from the views' own unconfirmed stereo depth covered 9 % of the held-out pixels and doubled their
     error). ``# [H, W]`` bool"""
     out = np.zeros(region.shape, dtype=bool)
@@ -133,10 +144,12 @@ def occluding(camera: Cameras, depth: np.ndarray, region: np.ndarray, others: Ca
     for j in range(len(others)):
         pj = others[j].to(dtype=torch.float64).project(X)
         inside = pj.in_image[0].numpy()
-        u = np.clip(pj.uv[0, :, 0].numpy().astype(np.int64), 0, others.width - 1)
-        v = np.clip(pj.uv[0, :, 1].numpy().astype(np.int64), 0, others.height - 1)
-        seen = others_depth[j][v, u]
-        hit |= inside & (seen > 0) & (pj.depth[0].numpy() < (1.0 - rel) * seen)
+        x0 = np.floor(pj.uv[0, :, 0].numpy() - 0.5).astype(np.int64)
+        y0 = np.floor(pj.uv[0, :, 1].numpy() - 0.5).astype(np.int64)
+        near = np.stack([others_depth[j][np.clip(y0 + a, 0, others.height - 1), np.clip(x0 + b, 0, others.width - 1)]
+                         for a in (0, 1) for b in (0, 1)])  # [4, P] the pixels around the projection
+        seen = np.where(near > 0, near, np.inf).min(0)  # the nearest of them: no flags from depth edges
+        hit |= inside & np.isfinite(seen) & (pj.depth[0].numpy() < (1.0 - rel) * seen)
     out[rows[hit], cols[hit]] = True
     return out
 
