@@ -26,3 +26,17 @@ def test_section_splits_each_gap_and_lists_timing(tmp_path):
     assert "uncovered 2.0% cost 1.00 dB" in text
     assert "cost 0.50 dB" in text and "depth costs 2.50 dB" in text  # demo: exact - oracle, oracle - best
     assert "| fern | 20 | 336x252 | stereo | 43.8 | 3.0 |" in text
+
+
+def test_row_variants_set_the_scoring_and_unknown_ones_fail():
+    import pytest
+
+    from bench.depth_sources import scoring
+
+    assert scoring("stereo+fill") == {}
+    assert scoring("stereo+fill, sky kept") == {}
+    assert scoring("stereo+fill, 8 sources") == {"num_views": 8}
+    assert scoring("stereo+fill, 8 sources, exposure") == {"num_views": 8,
+                                                            "tune": ("encoder", "appearance", "exposure")}
+    with pytest.raises(ValueError, match="unknown variant"):
+        scoring("stereo+fill, 8 views")
