@@ -160,7 +160,7 @@ def padded_camera(camera: Cameras, pad: int) -> Cameras:
                    camera.height + 2 * pad)
 
 
-def backdrop_sheet(cameras: Cameras, bounds: Tensor, pad: float, cell: int = 8) -> trimesh.Trimesh:
+def backdrop_sheet(cameras: Cameras, bounds: Tensor, pad: float, cell: int = 16) -> trimesh.Trimesh:
     """The backdrop layer of a forward-facing scene as a surface: for each view, its image grown by ``pad``
     (a fraction of the long side) on every side, in cells of ``cell`` pixels, on the bounds box's far side
     (where each cell's ray leaves the box). Behind every other surface, it is what a ray sees that misses
