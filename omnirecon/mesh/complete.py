@@ -176,7 +176,7 @@ def backdrop_sheet(cameras: Cameras, bounds: Tensor, pad: float, cell: int = 16)
                          -(-c.height // cell))
         d = exit_depth(coarse, bounds)[0].numpy()
         if (d > 0).any():
-            sheets.append(pixel_grid_surface(coarse, d, d > 0))
+            sheets.append(pixel_grid_surface(coarse, d, d > 0, edge=np.inf))  # the exit depth is continuous: one sheet
     return trimesh.util.concatenate(sheets) if sheets else trimesh.Trimesh()
 
 
