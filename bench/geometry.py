@@ -70,7 +70,7 @@ def run(model_name: str, results: Path, tiny: bool, threads: int) -> dict:
     torch.set_num_threads(threads)
     cpu_start = time.process_time()
     model, info = load(model_name)
-    out = ROOT / "outputs" / "bench" / "geometry" / model_name
+    out = (results / "geometry_meshes" if tiny else ROOT / "outputs" / "bench" / "geometry") / model_name  # tests: not ours
     common = dict(model_info=info, protocol_set="full", geometry=True, cache=ROOT / "outputs" / "cache",
                   progress=not tiny, mesh_options=mesh_options(model_name))
     synth = evaluate(model, ["synth:eval"], (3,), out / "synth", synth_count=1 if tiny else 10,
@@ -83,7 +83,7 @@ def run(model_name: str, results: Path, tiny: bool, threads: int) -> dict:
         for s in (res or {}).get("scenes", []):
             ply = out / part / s["name"] / "k3" / "mesh.ply"
             if ply.is_file():
-                meshes[s["name"]] = str(ply.relative_to(ROOT))
+                meshes[s["name"]] = str(ply.relative_to(ROOT) if ply.is_relative_to(ROOT) else ply)
             src = ply.with_name("mesh.png")
             if part == "dtu" and src.is_file():
                 figures.mkdir(parents=True, exist_ok=True)

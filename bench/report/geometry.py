@@ -7,44 +7,76 @@ from pathlib import Path
 
 from bench.report.common import GEOMETRY_MODELS, num, prov, stale_note
 
+ROWS = ("floor", "stereo", *GEOMETRY_MODELS[1:])
+"""Rows in table order: the plane-sweep floor, classical stereo (no model), the shipped checkpoints."""
+NO_RENDER = ("stereo",)
+"""Rows that render no target view (a depth source without a model): no PSNR, no target depth."""
+PARTS = ("target_renders", "depth", "mesh", "score", "write", "other", "total")
+
 
 def section(results: Path) -> str | None:
-    data = {m: json.loads((results / f"geometry_{m}.json").read_text()) for m in GEOMETRY_MODELS
+    data = {m: json.loads((results / f"geometry_{m}.json").read_text()) for m in ROWS
             if (results / f"geometry_{m}.json").is_file()}
     if not data:
         return None
     first = next(iter(data.values()))
     n_synth = len(first["synth"]["scenes"])
+    targets = first.get("synth_targets", 2)
     out = ["## Geometry from 3 source views (`python -m bench geometry`)", "",
-           "`omnirecon eval --geometry`, K = 3, `full` protocols (128-px long side). A mesh per scene by `omnirecon "
-           "mesh`'s protocol (z-depth at the 3 virtually shifted source views, TSDF at 1/256 of the bounds diagonal, "
-           "marching cubes, mask + visibility cleaning). Procedural: Chamfer distance (mean of accuracy and "
-           "completeness, DTU-style sampling, outliers capped) against the exact mesh's observed object surface; "
+           "`omnirecon eval --geometry`, K = 3, `full` protocols (128-px long side). A mesh per scene from the same 3 "
+           "source views for every row, by `omnirecon mesh`'s pipeline with its default `fit` settings (recorded in "
+           "each result as `mesh_options`): depth at the 3 views, confidence-weighted TSDF fusion (voxel from the maps' "
+           "pixel footprint), marching cubes, visibility cleaning, face budget, completion; no masks. Depth per row: "
+           "the model's fine-pass depth, or for **stereo** classical stereo with no model (OpenCV SGBM on pairs "
+           "rectified from the poses, left-right check, sub-pixel disparity, votes across pairs; "
+           "`omnirecon/mesh/stereo.py`), among the same 3 views only. Procedural: Chamfer distance (mean of accuracy "
+           "and completeness, DTU-style sampling, outliers capped) against the exact mesh's observed surface; "
            "`Chamfer / extent` divides by the diagonal of that surface's bounding box; F-score at 1 % of the bounds "
-           f"diagonal; silhouette IoU on {first.get('synth_targets', 2)} held-out views per scene. Seconds: images "
-           "to mesh (encode, render depth, fuse, marching cubes, clean) on this CPU, 1 thread.", "",
+           f"diagonal; silhouette IoU on {targets} held-out views per scene. Seconds: images to mesh (encode, depth, "
+           "fuse, marching cubes, clean, complete) on this CPU, 1 thread. PSNR and target depth are the model's own "
+           "volumetric render of the held-out views, so stereo, which has no model to render with, shows `–` there "
+           "(shading its mesh needs a model: see the mesh-path sections).", "",
            f"**Held-out procedural scenes** (mean of {n_synth}; lengths in the generator's units):", "",
-           "| model | Chamfer | accuracy | completeness | Chamfer / extent | F-score | silhouette IoU | "
-           f"depth abs rel (targets) | images -> mesh (s) | PSNR ({first.get('synth_targets', 2)} targets) |",
+           "| row | Chamfer | accuracy | completeness | Chamfer / extent | F-score | silhouette IoU | "
+           f"depth abs rel (targets) | images -> mesh (s) | PSNR ({targets} targets) |",
            "|---|---|---|---|---|---|---|---|---|---|"]
-    notes = [line for m, r in data.items() if m != "floor" for line in stale_note(m, r.get("model"), "geometry")]
+    notes = [line for m, r in data.items() if m not in ("floor", *NO_RENDER)
+             for line in stale_note(m, r.get("model"), "geometry")]
+    notes += [f"> **Older pipeline:** the {m} row was measured before the one mesh pipeline (commit "
+              f"`{r['synth']['provenance'].get('commit', '?')}`, VolRecon-style fusion without completion); it does "
+              f"not compare with the other rows until `python -m bench geometry --models {m}` re-runs it.\n"
+              for m, r in data.items() if "mesh_options" not in r["synth"]]
     if notes:
         out[2:2] = notes
     means = {m: r["synth"]["means"].get("synth", {}).get("3", {}) for m, r in data.items()}
     for m, mean in means.items():
         g = mean.get("geometry", {})
+        psnr = "–" if m in NO_RENDER else num(mean.get("psnr"), 2)
         out.append(f"| {m} | {num(g.get('chamfer'))} | {num(g.get('accuracy'))} | {num(g.get('completeness'))} | "
                    f"{num(100 * g['chamfer_rel'], 2) + ' %' if 'chamfer_rel' in g else '–'} | {num(g.get('fscore'), 3)} | "
                    f"{num(g.get('mask_iou'), 3)} | {num(mean.get('depth_abs_rel'))} | {num(g.get('seconds'), 1)} | "
-                   f"{num(mean.get('psnr'), 2)} |")
+                   f"{psnr} |")
     names = [s["name"] for s in first["synth"]["scenes"]]
     per = {m: {s["name"]: s["settings"].get("3", {}).get("geometry", {}) for s in r["synth"]["scenes"]}
            for m, r in data.items()}
-    out += ["", "Per scene, Chamfer / extent (%):", "", "| scene | " + " | ".join(data) + " |",
-            "|---|" + "---|" * len(data)]
+    out += ["", "Per scene, Chamfer / extent (%), and the fraction of source-view pixels the depth source gave a depth "
+            "(stereo: only pairs whose optical axes are within 60° match, so a view with no such neighbour among the 3 "
+            "gets none):", "", "| scene | " + " | ".join(data) + " | stereo depth coverage |",
+            "|---|" + "---|" * (len(data) + 1)]
     for n in names:
+        cover = per.get("stereo", {}).get(n, {}).get("valid_depth_fraction")
         out.append(f"| {n} | " + " | ".join(num(100 * per[m].get(n, {}).get("chamfer_rel", float("nan")), 2)
-                                             for m in data) + " |")
+                                             for m in data) + f" | {num(None if cover is None else 100 * cover, 1)} % |")
+    out += ["", *goal_lines(means, per, names)]
+    out += dtu_table(data)
+    out += cpu_table(data)
+    out.append("")
+    for m, r in data.items():
+        out += [f"{m}: " + prov(r["synth"]["provenance"]), ""]
+    return "\n".join(out)
+
+
+def goal_lines(means: dict, per: dict, names: list[str]) -> list[str]:
     goals = []
     if "omnirecon-tiny" in means and "ibrnet-tiny" in means:
         o, i = means["omnirecon-tiny"].get("geometry", {}), means["ibrnet-tiny"].get("geometry", {})
@@ -60,29 +92,53 @@ def section(results: Path) -> str | None:
         if "chamfer_rel" in g:
             goals.append(f"- Goal Chamfer <= 1 % of the extent, {m}: {100 * g['chamfer_rel']:.2f} % "
                          f"({'met' if g['chamfer_rel'] <= 0.01 else 'not met'}).")
-    out += ["", *goals]
+    best = min((m for m in means if "chamfer" in means[m].get("geometry", {})),
+               key=lambda m: means[m]["geometry"]["chamfer"], default=None)
+    if best is not None and "stereo" in means:
+        goals.append(f"- Classical stereo against the rest (the seed's DTU table lists COLMAP's classical MVS as the "
+                     f"best Chamfer at 3 views): the lowest mean Chamfer here is **{best}**'s.")
+    return goals
+
+
+def dtu_table(data: dict) -> list[str]:
     dtu_models = [m for m, r in data.items() if r.get("dtu")]
-    if dtu_models:
-        out += ["", "**DTU, sources 23 24 33** (8 held-out targets: PSNR and the mesh silhouette's IoU against their "
-                "masks; no DTU ground-truth point cloud here):", "",
-                "| scene | model | PSNR | PSNR masked | silhouette IoU | images -> mesh (s) | mesh faces | picture |",
-                "|---|---|---|---|---|---|---|---|"]
-        for s_name in [s["name"] for s in data[dtu_models[0]]["dtu"]["scenes"]]:
-            for m in dtu_models:
-                s = next(x for x in data[m]["dtu"]["scenes"] if x["name"] == s_name)
-                st = s["settings"].get("3", {})
-                g, mean = st.get("geometry", {}), st.get("mean", {})
-                pic = data[m].get("pictures", {}).get(s_name)
-                out.append(f"| {s_name} | {m} | {num(mean.get('psnr'), 2)} | {num(mean.get('psnr_masked'), 2)} | "
-                           f"{num(g.get('mask_iou'), 3)} | {num(g.get('seconds'), 1)} | {g.get('faces', '–')} | "
-                           + (f"[mesh](bench/results/{pic})" if pic else "–") + " |")
-        pics = [(m, n, p) for m in dtu_models for n, p in data[m].get("pictures", {}).items()]
-        if pics:
-            out += ["", " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" in n), "",
-                    " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" not in n),
-                    "", "Pictures: the meshes seen from source view 23 (flat shading), left to right: "
-                    + ", ".join(dtu_models) + "."]
-    out.append("")
-    for m, r in data.items():
-        out += [f"{m}: " + prov(r["synth"]["provenance"]), ""]
-    return "\n".join(out)
+    if not dtu_models:
+        return []
+    out = ["", "**DTU, sources 23 24 33** (8 held-out targets: PSNR of the model's render and the mesh silhouette's "
+           "IoU against their masks; no DTU ground-truth point cloud here, so no Chamfer in mm to set beside the "
+           "seed's):", "",
+           "| scene | row | PSNR | PSNR masked | silhouette IoU | images -> mesh (s) | mesh faces | picture |",
+           "|---|---|---|---|---|---|---|---|"]
+    for s_name in [s["name"] for s in data[dtu_models[0]]["dtu"]["scenes"]]:
+        for m in dtu_models:
+            s = next((x for x in data[m]["dtu"]["scenes"] if x["name"] == s_name), None)
+            if s is None:
+                continue
+            st = s["settings"].get("3", {})
+            g, mean = st.get("geometry", {}), st.get("mean", {})
+            pic = data[m].get("pictures", {}).get(s_name)
+            psnr = ("–", "–") if m in NO_RENDER else (num(mean.get("psnr"), 2), num(mean.get("psnr_masked"), 2))
+            out.append(f"| {s_name} | {m} | {psnr[0]} | {psnr[1]} | {num(g.get('mask_iou'), 3)} | "
+                       f"{num(g.get('seconds'), 1)} | {g.get('faces', '–')} | "
+                       + (f"[mesh](bench/results/{pic})" if pic else "–") + " |")
+    pics = [(m, n, p) for m in dtu_models for n, p in data[m].get("pictures", {}).items()]
+    if pics:
+        out += ["", " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" in n), "",
+                " ".join(f"![{m} {n}](bench/results/{p})" for m, n, p in pics if "scan24" not in n),
+                "", "Pictures: the meshes seen from source view 23 (flat shading), left to right: "
+                + ", ".join(m for m in dtu_models if data[m].get("pictures")) + "."]
+    return out
+
+
+def cpu_table(data: dict) -> list[str]:
+    rows = [(m, r["cpu_seconds"]) for m, r in data.items() if r.get("cpu_seconds")]
+    if not rows:
+        return []
+    out = ["", "**Where each row's CPU time goes** (process CPU seconds, 1 thread, the whole row: 10 procedural "
+           "scenes + 2 DTU scans): target renders = the model's volumetric render of the held-out views (PSNR); "
+           "depth = the depth source at the 3 source views; mesh = fusion to completion; score = Chamfer, "
+           "silhouettes, depth errors; write = mesh files and the DTU pictures; other = loading, scene preparation, "
+           "image scores.", "", "| row | " + " | ".join(PARTS) + " |", "|---|" + "---|" * len(PARTS)]
+    for m, c in rows:
+        out.append(f"| {m} | " + " | ".join(num(c.get(p), 0) for p in PARTS) + " |")
+    return out

@@ -245,8 +245,9 @@ def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | N
     row = {**base, "faces": len(made.mesh.faces)}
     if "chamfer" in scored:
         c = scored["chamfer"]
-        row.update({"chamfer": c["chamfer"], "accuracy": c["accuracy"], "completeness": c["completeness"],
-                    "fscore": c["fscore"], "threshold": c["threshold"], "chamfer_rel": scored["chamfer_rel"]})
+        row.update({k: c[k] for k in ("chamfer", "accuracy", "completeness", "fscore", "precision", "recall",
+                                      "accuracy_dropped", "completeness_dropped", "threshold")})
+        row["chamfer_rel"] = scored["chamfer_rel"]
     if "mask_iou" in scored:
         row["mask_iou"] = scored["mask_iou"]["mean"]
     if "rendered_depth" in scored:
