@@ -109,13 +109,75 @@ def cpu_parts(runs: list[dict | None], total: float) -> dict:
     return parts
 
 
+def speed_ab(rows: list[str], results: Path) -> dict:
+    """What this section's two speed changes save, measured on the meshes a full run kept (process CPU seconds,
+    one process, old and new side by side): the picture of each procedural mesh (drawn before, not shown by the
+    section, no longer drawn) and the Chamfer search without and with the bound at the cap (the results must
+    be identical, and are checked to be). Writes ``geometry_speed.json``."""
+    import time
+
+    import numpy as np
+
+    from omnirecon.engine.scenes import prepare_scenes
+    from omnirecon.mesh import geometry as geo
+    from omnirecon.mesh.files import read_mesh
+    from omnirecon.provenance import provenance
+
+    torch.set_num_threads(1)
+    scenes = {es.name: es.scene for es in prepare_scenes(["synth:eval"], 10, ROOT / "outputs" / "cache", None, "full")}
+    out = {"provenance": provenance(), "rows": {}}
+    for row in rows:
+        folder = ROOT / "outputs" / "bench" / "geometry" / row / "synth"
+        t = {"picture": 0.0, "chamfer_unbounded": 0.0, "chamfer_bounded": 0.0, "scenes": 0}
+        for name, scene in scenes.items():
+            ply = folder / name / "k3" / "mesh.ply"
+            if not ply.is_file():
+                continue
+            mesh = read_mesh(ply, scene.to_input)
+            cam = scene.cameras[0]
+            c0 = time.process_time()
+            geo.shaded_image(mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
+            c1 = time.process_time()
+            scales = geo.scene_scales(scene)
+            gt = geo.sample_points(geo.ground_truth_mesh(scene), 100_000, 1)
+            gt = gt[geo.observed(gt, scene)]
+            pred = geo.sample_points(mesh, 100_000, 0)
+            lo, hi = scene.bounds.double().numpy() + np.array([[-1.0], [1.0]]) * scales["max_dist"]
+            pred = pred[((pred >= lo) & (pred <= hi)).all(1)]
+            c2 = time.process_time()
+            d_acc, d_comp = geo.nearest_distances(pred, gt), geo.nearest_distances(gt, pred)  # the old search
+            c3 = time.process_time()
+            new = geo.chamfer_fscore(pred, gt, scales["threshold"], scales["max_dist"])
+            c4 = time.process_time()
+            cap = scales["max_dist"]
+            same = all(np.isclose(new[k], v) or new[k] == v for k, v in {
+                "accuracy": float(d_acc[d_acc < cap].mean()) if (d_acc < cap).any() else float("inf"),
+                "completeness": float(d_comp[d_comp < cap].mean()) if (d_comp < cap).any() else float("inf"),
+                "precision": float((d_acc < scales["threshold"]).mean()) if len(d_acc) else 0.0,
+                "completeness_dropped": float((d_comp >= cap).mean())}.items())
+            if not same:
+                raise AssertionError(f"bounded Chamfer search differs on {row} {name}")
+            t["picture"] += c1 - c0
+            t["chamfer_unbounded"] += c3 - c2
+            t["chamfer_bounded"] += c4 - c3
+            t["scenes"] += 1
+        out["rows"][row] = t
+        print(row, {k: round(v, 2) for k, v in t.items()})
+    write_json(results / "geometry_speed.json", out)
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--models", nargs="+", default=["floor", "stereo", "ibrnet-tiny", "omnirecon-tiny"])
     p.add_argument("--tiny", action="store_true", help="one procedural scene, one target (tests)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
+    p.add_argument("--speed-ab", action="store_true", help="time the speed changes on the kept meshes of --models")
     a = p.parse_args(argv)
+    if a.speed_ab:
+        speed_ab(a.models, a.out)
+        return
     for m in a.models:
         r = run(m, a.out, a.tiny, a.threads)
         g = r["synth"]["means"]["synth"]["3"].get("geometry", {})
