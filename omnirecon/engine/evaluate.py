@@ -80,6 +80,7 @@ def evaluate(
     geometry: bool = False,
     mesh_options: MeshOptions | None = None,
     mesh_pictures: bool = True,
+    mesh_masks: bool = False,
 ) -> dict:
     """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
 
@@ -103,6 +104,13 @@ def evaluate(
             against a procedural scene's exact mesh, silhouette IoU against the targets' masks.
             Per-target depth errors are reported whenever the model renders depth and the scene
             has ground-truth depth, with or without this flag.
+        mesh_options: The mesh pipeline's settings for ``geometry`` (default :class:`MeshOptions` with
+            ``chunk``: the model's depth). With a depth source that needs no model (``stereo``, ``oracle``)
+            ``model`` may be ``None``: then nothing is rendered and only the meshes are scored.
+        mesh_pictures: With ``geometry``, also write each mesh's picture (``mesh.png``).
+        mesh_masks: Mesh with the scenes' object masks (carve, clean, complete inside them) and score objects
+            only (Chamfer against the exact mesh's objects); ``False``: the whole scene (``omnirecon mesh``'s
+            default).
 
     Returns:
         ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
@@ -138,13 +146,13 @@ def evaluate(
                 job["views"] = []
                 bar.advance(task, len(job["targets"]))
             if geometry:
-                _mesh_job(model, job, options, device, out, mesh_pictures)
+                _mesh_job(model, job, options, device, out, mesh_pictures, mesh_masks)
     result = eval_report.collect(results, jobs, ks, {
         "provenance": provenance(seed=seed, chunk=chunk, eval_device=device),
         "model": model_info or {"name": type(model).__name__ if model is not None else options.depth},
         "protocol_set": protocol_set,
         "geometry": geometry,
-        **({"mesh_options": asdict(options)} if geometry else {}),
+        **({"mesh_options": asdict(options), "mesh_masks": mesh_masks} if geometry else {}),
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
         "unavailable": {k: r for k, r in (("st_lpips_alex", metrics.unavailable("st_lpips")),
@@ -221,7 +229,8 @@ def geometry_sources(es: EvalScene, k: int) -> list[int]:
     return [pool[i] for i in pick]
 
 
-def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | None, picture: bool = True) -> None:
+def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | None, picture: bool = True,
+              masks: bool = False) -> None:
     """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
     fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and, with ``picture``, ``mesh.png``,
     the mesh seen from the first source view at a 512-px long side). ``cpu_seconds`` splits the process CPU
@@ -230,7 +239,7 @@ def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | N
     es: EvalScene = job["scene"]
     views = geometry_sources(es, job["k"])
     start = time.perf_counter()
-    made = mesh_from_model(model, es.scene, views, options, device)
+    made = mesh_from_model(model, es.scene, views, options, device, use_masks=masks)
     seconds, cpu1 = time.perf_counter() - start, time.process_time()
     cpu = dict(made.info["cpu_seconds"])
     base = {"views": views, "seconds": seconds, "stage_seconds": made.info["seconds"],
