@@ -145,6 +145,13 @@ class MeshOptions:
     model_side: int = 128
     """``stereo+model``: long side (px) the model's depth is rendered at before it fills stereo's holes at
     the photos' resolution (the model's eval resolution; 0 = the photos' own, ~7x the cost on fern)."""
+    occlusion: int = 2
+    """Visibility check before fusion: drop a pixel's depth when at least this many other maps see a confirmed
+    surface in front of it on its ray (:func:`fusion.occlusion_votes`; 0 = off). Stereo's mismatches on
+    dark or textureless objects land on the ground behind them ("far"), and their free space carved the
+    objects: the demo's box rendered semi-transparent, the sphere's edges eroded."""
+    occlusion_rel: float = 0.05
+    """Relative depth margin of that check (a point less far in front is not a violation)."""
     stereo: StereoOptions = field(default_factory=StereoOptions)
     """Settings of the stereo depth source."""
     chunk: int = 4096
@@ -197,6 +204,9 @@ class MeshOptions:
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
             raise InputError(f"cull_samples must be > 0 and grow_rings >= 0, got {self.cull_samples}, {self.grow_rings}",
                              None, "use e.g. 2 and 1")
+        if not 0 <= self.occlusion <= 8 or not (math.isfinite(self.occlusion_rel) and 0 < self.occlusion_rel < 1):
+            raise InputError(f"occlusion must be in 0-8 and occlusion_rel in (0, 1), got {self.occlusion}, "
+                             f"{self.occlusion_rel}", None, "use e.g. 2 and 0.05")
         self.stereo.check()
 
 
@@ -204,7 +214,7 @@ PRESETS: dict[str, dict] = {
     "fit": {},
     "reference": {"shifts": (DTU_SHIFT,), "voxel": 1 / 256, "trunc": 3.0, "neighbours": 1 << 30, "confidence": False,
                   "weights": False, "bilinear": False, "carve": False, "band": False, "max_faces": 0,
-                  "cull_samples": 4.0, "grow_rings": 0, "complete": False, "hull_misses": -1},
+                  "cull_samples": 4.0, "grow_rings": 0, "complete": False, "hull_misses": -1, "occlusion": 0},
 }
 """Settings per preset (on top of :class:`MeshOptions`' defaults, the ``fit`` preset). ``reference``:
 VolRecon's protocol: every depth map from all the views, rendered at the views shifted 25 mm, nearest-
@@ -285,6 +295,9 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     rel = max(0.01, 2.0 * (err or 0.0))
     agree = fusion.consistency(cams, depth, rel=rel) if len(cams) > 1 and (options.weights or options.complete) \
         else None
+    occluded = 0.0
+    if options.occlusion > 0 and agree is not None:  # depth behind a surface other maps see: too far
+        depth, weight, agree, occluded = drop_occluded(cams, depth, weight, agree, options)
     if options.weights and agree is not None:
         weight = weight * fusion.geometric_weight(agree, len(cams))
     diag = float((scene.bounds[1] - scene.bounds[0]).double().norm())
@@ -372,8 +385,21 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
             "options": asdict(options), "depth_maps": len(maps.cameras),
             "valid_depth_fraction": float((maps.depth > 0).float().mean()), "masks": masks is not None,
             "depth_source": maps.info, "vertices": len(mesh.vertices), "completion": completion,
-            "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0}
+            "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0,
+            "occluded_dropped": occluded}
     return MeshResult(mesh, info, maps.cameras, maps.depth)
+
+
+def drop_occluded(cams: Cameras, depth: Tensor, weight: Tensor, agree: Tensor,
+                  options: MeshOptions) -> tuple[Tensor, Tensor, Tensor, float]:
+    """``depth``, ``weight`` and ``agree`` without the pixels at least ``options.occlusion`` other maps see a
+    confirmed surface in front of (:func:`fusion.occlusion_votes`), and the fraction of depth pixels dropped:
+    no observation there (neither surface nor free space), and completion does not take them."""
+    votes = fusion.occlusion_votes(cams, depth, trusted=agree >= 1, rel=options.occlusion_rel)
+    bad = (votes >= options.occlusion) & (depth > 0)
+    frac = float(bad.sum() / max(1, int((depth > 0).sum())))
+    zero = torch.zeros_like(depth)
+    return torch.where(bad, zero, depth), torch.where(bad, zero, weight), torch.where(bad, zero, agree), frac
 
 
 def completion_depths(maps: DepthMaps, views, options: MeshOptions, agree: Tensor | None = None) -> Tensor | None:

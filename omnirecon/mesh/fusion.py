@@ -320,6 +320,42 @@ def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float =
     return agree.reshape(N, H, W)
 
 
+def occlusion_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = None, rel: float = 0.05,
+                    max_pairs: int = 8) -> Tensor:
+    """How many other maps put a surface in front of each pixel's depth (a visibility violation).
+
+    Every pixel of map ``j`` with depth (and ``trusted``, e.g. confirmed by a third map) is unprojected and
+    projected into map ``i`` (z-buffer: the nearest point per pixel); map ``j`` votes against pixel ``p`` of
+    ``i`` when that nearest point lies in front of ``p``'s depth by more than ``rel`` (relative). Real
+    geometry cannot do that: ``i``'s ray would pass through a surface ``j`` sees, so ``i``'s depth is too far
+    (a stereo mismatch onto the background behind an object) or ``j``'s point floats. Each map against its
+    ``max_pairs`` nearest maps. ``# [N, H, W]`` float32
+    """
+    cams = cameras.to(dtype=torch.float64)
+    N, H, W = depths.shape
+    d = depths.double()
+    pix = _pixels(H, W)
+    ok = d > 0 if trusted is None else (d > 0) & trusted
+    votes = torch.zeros(N, H * W)
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
+        di = d[i].reshape(-1)
+        if not (di > 0).any():
+            continue
+        for j in near:
+            has = ok[j].reshape(-1)
+            if not has.any():
+                continue
+            X = cams[j].unproject(pix[has][None], d[j].reshape(-1)[has][None])[0]  # [P, 3] world
+            pi = cams[i].project(X)
+            inside = pi.in_image[0]
+            uv, z = pi.uv[0][inside], pi.depth[0][inside]
+            flat = uv[:, 1].long().clamp(0, H - 1) * W + uv[:, 0].long().clamp(0, W - 1)
+            front = torch.full((H * W,), float("inf"), dtype=torch.float64)
+            front.scatter_reduce_(0, flat, z, reduce="amin")
+            votes[i] += ((di > 0) & (front < di * (1 - rel))).float()
+    return votes.reshape(N, H, W)
+
+
 def geometric_weight(agree: Tensor, num_maps: int, need: int = 2, floor: float = 0.05) -> Tensor:
     """Weight from :func:`consistency` counts: ``min(1, agree / need)`` with ``need`` capped at the
     number of other maps, and at least ``floor`` (a pixel no other map can confirm still counts where
