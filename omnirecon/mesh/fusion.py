@@ -17,6 +17,9 @@ set (:class:`omnirecon.mesh.build.MeshOptions`):
 * **Only near surfaces** (:func:`surface_band`): the grid is split into blocks of 4^3 voxels and only
   the blocks within the truncation of some depth sample are integrated, so
   the cost follows the surface area, not the volume of the bounds.
+* **Visibility violations** (:func:`occlusion_votes`): depth behind a surface other maps see is too far.
+
+Size: the TSDF and the checks between depth maps that set its weights share the projection helpers.
 """
 
 from __future__ import annotations
@@ -325,7 +328,8 @@ def occlusion_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = N
     """How many other maps put a surface in front of each pixel's depth (a visibility violation).
 
     Every pixel of map ``j`` with depth (and ``trusted``, e.g. confirmed by a third map) is unprojected and
-    projected into map ``i`` (z-buffer: the nearest point per pixel); map ``j`` votes against pixel ``p`` of
+    projected into map ``i`` (z-buffer over the four pixel centres around each projection: the nearest point
+    per pixel); map ``j`` votes against pixel ``p`` of
     ``i`` when that nearest point lies in front of ``p``'s depth by more than ``rel`` (relative). Real
     geometry cannot do that: ``i``'s ray would pass through a surface ``j`` sees, so ``i``'s depth is too far
     (a stereo mismatch onto the background behind an object) or ``j``'s point floats. Each map against its
@@ -349,9 +353,11 @@ def occlusion_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = N
             pi = cams[i].project(X)
             inside = pi.in_image[0]
             uv, z = pi.uv[0][inside], pi.depth[0][inside]
-            flat = uv[:, 1].long().clamp(0, H - 1) * W + uv[:, 0].long().clamp(0, W - 1)
             front = torch.full((H * W,), float("inf"), dtype=torch.float64)
-            front.scatter_reduce_(0, flat, z, reduce="amin")
+            c0, r0 = torch.floor(uv[:, 0] - 0.5).long(), torch.floor(uv[:, 1] - 0.5).long()
+            for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):  # the 4 pixel centres around it: no gaps between points
+                flat = (r0 + dr).clamp(0, H - 1) * W + (c0 + dc).clamp(0, W - 1)
+                front.scatter_reduce_(0, flat, z, reduce="amin")
             votes[i] += ((di > 0) & (front < di * (1 - rel))).float()
     return votes.reshape(N, H, W)
 
