@@ -26,12 +26,12 @@ def test_finetune_raises_held_out_psnr_and_writes_curve(setup, capsys):
     root, scene = setup
     out = root / "out"
     args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 4,
-            "--eval-at", 0, 2, "--clock", "cpu", "--resolution", 48, "--out", out, "--save"]
+            "--eval-at", 0, 2, "--clock", "cpu", "--resolution", 48, "--out", out, "--save", "--no-visibility"]
     assert main([str(a) for a in args]) == 0, capsys.readouterr().err
     r = json.loads((out / "curve.json").read_text())
     assert [c["seconds"] for c in r["curve"]] == [0, 2, 4] and r["curve"][-1]["steps"] > 20
     # random weights blend the sources almost uniformly; a few CPU seconds of tuning must beat that
-    # (measured: 23.8 -> 29.7 dB in 6 CPU-s)
+    # (measured: 23.8 -> 29.7 dB in 6 CPU-s; without the occlusion test, which alone starts this scene at 28.1)
     assert r["gain_db"] > 2, r["curve"]
     assert (out / "curve.png").is_file() and (out / "before_after.png").is_file()
     tuned, _ = load_checkpoint(out / "checkpoint")
