@@ -30,13 +30,14 @@ from bench.report import (
     synth,
     throughput,
     train_levers,
+    train_views,
     training,
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, depth_sources, finetune_curves,
-            finetune_levers, hostile, speed, peer, levers, end_to_end, training, quality, geometry, mesh_path,
-            geometry_budget, lift)
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
+            finetune_curves, finetune_levers, hostile, speed, peer, levers, end_to_end, training, quality, geometry,
+            mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"
           "Every number below is produced by `python -m bench page` (which runs the benchmarks in `bench/`) from "

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from omnirecon.engine.checkpoint import VOLUMETRIC_ONLY, ignoring  # noqa: F401 - the sections and tests take them from here
+from omnirecon.engine.checkpoint import VIEW_CAP, VOLUMETRIC_ONLY, ignoring  # noqa: F401 - the sections and tests take them from here
 
 ROOT = Path(__file__).resolve().parents[2]
 QUALITY_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
@@ -65,15 +65,19 @@ def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str
     ``ignore``: config keys the section's numbers do not depend on (e.g. :data:`VOLUMETRIC_ONLY` for the
     mesh path). Then the results are current when their ``sha256_ignoring`` (recorded with the same keys
     left out) equals the shipped checkpoint's fingerprint without those keys, or, for results recorded
-    before the keys existed, when their full ``sha256`` does (the config then had none of them)."""
+    before the keys existed, when their full ``sha256`` does (the config then had none of them). Results recorded
+    without fewer keys (their ``ignored_keys`` a subset of ``ignore``) are current when their ``sha256_ignoring``
+    equals the shipped fingerprint without ``ignore`` (the other keys did not exist then) or without their own."""
     now = shipped_fingerprint(model)
     recorded = recorded or {}
     if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
         return []
     if ignore:
         part = shipped_fingerprint(model, ignore)["sha256"]
-        same_keys = sorted(recorded.get("ignored_keys") or []) == sorted(ignore)
-        if recorded.get("sha256") == part or (same_keys and recorded.get("sha256_ignoring") == part):
+        keys = tuple(sorted(recorded.get("ignored_keys") or []))  # recorded without these; the section reads none
+        fits = bool(keys) and set(keys) <= set(ignore) and recorded.get("sha256_ignoring") in (
+            part, shipped_fingerprint(model, keys)["sha256"])  # ignore's other keys: absent then, or unchanged
+        if recorded.get("sha256") == part or fits:
             return []
     used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
         f", fingerprint {recorded['sha256']}" if recorded.get("sha256") else "")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bench.report.common import prov, stale_note
+from bench.report.common import VIEW_CAP, prov, stale_note
 
 
 def section(results: Path) -> str | None:
@@ -22,7 +22,7 @@ def section(results: Path) -> str | None:
            "(the semantic comparison: an oracle cannot run on a render); edge and keypoint references are the same "
            "predictor on the true target image. mIoU in %.", ""]
     for m, mr in r["models"].items():
-        out += stale_note(m, mr.get("checkpoint"), "lift")
+        out += stale_note(m, mr.get("checkpoint"), "lift", ignore=VIEW_CAP)  # K = 3
     out += lift_table(r)
     models = list(r["models"])
     gains = []
@@ -45,7 +45,7 @@ def section(results: Path) -> str | None:
                 "branch with a leave-one-out semantic cross-entropy on 6 labelled views of the same scene; HED VGG "
                 "features lifted as embeddings and classified by cosine similarity to label prototypes.", ""]
         ck = e.get("checkpoint") or {}
-        out += stale_note(ck.get("preset") or "omnirecon-tiny", ck, "lift_extra")
+        out += stale_note(ck.get("preset") or "omnirecon-tiny", ck, "lift_extra", ignore=VIEW_CAP)  # K = 3
         out += extra_table(e)
         edits = sorted((results / "figures").glob("lift_edit_*.png"))
         if edits:

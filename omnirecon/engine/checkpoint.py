@@ -99,12 +99,16 @@ def fingerprint(folder: Path, ignore=()) -> dict:
     h.update(json.dumps(config, sort_keys=True).encode())
     return {"path": str(folder), "preset": meta.get("preset"), "step": meta.get("step"), "sha256": h.hexdigest()[:16]}
 
-VOLUMETRIC_ONLY = ("render_samples", "render_bf16", "render_fine_pass", "forward_box")
+VOLUMETRIC_ONLY = ("render_samples", "render_bf16", "render_fine_pass", "forward_box", "render_views")
 """Model-config keys only the volumetric path reads: the per-checkpoint render options
 (``omnirecon.models.registry.RENDER_OPTIONS``) and Omni-Recon's geometry-volume box for forward scenes
 (``forward_box``: the feature volume, not the appearance maps). The mesh path (2-D encoder maps, appearance
 branch, fine-tuning of both) reads none of them, so results of the mesh path alone are compared with the
 shipped checkpoint without them (``bench.report.common.stale_note``'s ``ignore``)."""
+
+VIEW_CAP = ("render_views",)
+"""Model-config keys read only when a view is rendered from more sources than the cap they set (the shipped
+omnirecon-tiny: 4): results measured at K = 3 do not depend on them (``stale_note``'s ``ignore``)."""
 
 
 def ignoring(folder: Path, ignore: tuple[str, ...] = VOLUMETRIC_ONLY) -> dict:

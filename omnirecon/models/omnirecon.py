@@ -78,9 +78,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from omnirecon.cameras import Cameras
+from omnirecon.cameras import Cameras, closest_point_to_axes, nearest_views
 from omnirecon.models.base import Capabilities, GeneralizableModel
-from omnirecon.models.fast import compiled, net_autocast
+from omnirecon.models.fast import compiled, grad_mode, net_autocast
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.pretrained import PyramidMaps
 from omnirecon.models.projector import gather, project, sample
@@ -157,6 +157,12 @@ class OmniReconConfig:
     bn_running_stats: bool = False
     """BatchNorm keeps running averages for eval mode (the reference). False: it always normalises with
     the current batch (one scene's K source views; its one volume), so training and test agree."""
+    render_views: int | None = None
+    """Outside training (``render_view``), given more sources than this, render from the ``render_views`` sources
+    nearest the target camera only (angle around the sources' look-at centre on object rigs, distance between
+    centres otherwise, as the evaluation protocols pick sources), encoded on their own; dropped sources get zero
+    ``blend``. None: every source. A render option for weights trained at one K (the shipped omnirecon-tiny:
+    K = 4 only), measured in its model card."""
 
     @property
     def volume_dim(self) -> int:
@@ -423,6 +429,16 @@ class PointSamples(NamedTuple):
     """``[u_k - u_ki; <u_k, u_ki>]``: target vs source viewing directions. ``# [R, S, K, 4]``"""
 
 
+def nearest_sources(sources: Sources, camera: Cameras, n: int) -> Tensor:
+    """Indices of the ``n`` sources nearest the one ``camera``, nearest first: by the angle around the point
+    closest to the sources' optical axes on object rigs, by the distance between centres otherwise. ``# [n]``"""
+    cams = sources.cameras
+    target = camera.to(device=cams.c2w.device, dtype=cams.c2w.dtype)
+    if sources.rig == "object":
+        return nearest_views(target, cams, n, by="angle", center=closest_point_to_axes(cams))[0]
+    return nearest_views(target, cams, n, by="distance")[0]
+
+
 class OmniRecon(GeneralizableModel):
     capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True)
 
@@ -453,6 +469,21 @@ class OmniRecon(GeneralizableModel):
             res = cfg.volume_resolution >> level
             levels.append(mean_var_volume(maps, sources.cameras, lattice(box, res), res))
         return OmniReconFeatures(sources, feat, self.volume(levels), box)
+
+    def render_view(self, features: OmniReconFeatures, camera: Cameras, chunk: int = 4096,
+                    signals: Tensor | None = None, **kw) -> dict[str, Tensor]:
+        """:meth:`GeneralizableModel.render_view`, from the ``cfg.render_views`` sources nearest ``camera`` when
+        there are more (outside training; ``blend`` keeps one channel per given source, zero for the dropped)."""
+        src, n = features.sources, self.cfg.render_views
+        if not n or self.training or len(src.cameras) <= n:
+            return super().render_view(features, camera, chunk, signals, **kw)
+        keep = nearest_sources(src, camera, n)  # [n]
+        with grad_mode():
+            sub = self.encode(Sources(src.images[keep], src.cameras[keep], src.near, src.far, src.rig, src.bounds))
+        out = super().render_view(sub, camera, chunk, None if signals is None else signals[keep], **kw)
+        blend = out["blend"].new_zeros(*out["blend"].shape[:-1], len(src.cameras))  # [..., K]
+        blend[..., keep] = out["blend"]
+        return {**out, "blend": blend}
 
     # ------------------------------------------------------------------ per-sample inputs
     def gather(self, features: OmniReconFeatures, points: Tensor, origins: Tensor) -> PointSamples:

