@@ -69,7 +69,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
 
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     res = 48 if tiny else 128
-    geo = ROOT / "outputs" / "bench" / "geometry_omnirecon-tiny"
+    geo = ROOT / "outputs" / "bench" / "geometry" / "omnirecon-tiny"
     cached = next((p for p in (geo / "synth" / path.name / "k3" / "mesh.ply", geo / "dtu" / path.name / "k3" / "mesh.ply")
                    if p.is_file()), None) if not tiny else None
     out = ROOT / "outputs" / "bench" / "mesh_path" / name

@@ -64,7 +64,7 @@ def run_benchmarks(results: Path, tiny: bool, steps: tuple[str, ...] = STEPS, th
         "throughput": lambda: throughput.main([*(["--quick"] if tiny else []), "--out", str(results / "throughput.json")]),
         "quality": lambda: quality.main(["--models", "floor", *([] if tiny else shipped), *t, "--threads", str(threads),
                                          "--out", str(results)]),
-        "geometry": lambda: geometry.main(["--models", "floor", *([] if tiny else [m for m in GEOMETRY_MODELS[1:]
+        "geometry": lambda: geometry.main(["--models", "floor", "stereo", *([] if tiny else [m for m in GEOMETRY_MODELS[1:]
                                                                                   if m in shipped]),
                                            *t, "--threads", str(threads), "--out", str(results)]),
         "mesh_fps": lambda: measure(BenchConfig(quick=tiny, threads=2, out=results / "mesh_fps.json")),

@@ -23,7 +23,7 @@ ERROR_VMAX = 0.25
 DIGITS = {"psnr": 2, "psnr_masked": 2, "ssim": 4, "st_lpips_alex": 4, "lpips_alex": 4, "depth_abs_rel": 4,
           "depth_delta1": 3}
 GEOMETRY_KEYS = ("chamfer", "accuracy", "completeness", "chamfer_rel", "fscore", "mask_iou", "fused_depth_abs_rel",
-                 "seconds")
+                 "seconds", "completeness_dropped")
 """Columns of the geometry table (``omnirecon eval --geometry``), lengths in input units."""
 
 

@@ -78,6 +78,9 @@ def evaluate(
     seed: int = 0,
     protocol_set: str = "full",
     geometry: bool = False,
+    mesh_options: MeshOptions | None = None,
+    mesh_pictures: bool = True,
+    mesh_masks: bool = False,
 ) -> dict:
     """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
 
@@ -101,6 +104,13 @@ def evaluate(
             against a procedural scene's exact mesh, silhouette IoU against the targets' masks.
             Per-target depth errors are reported whenever the model renders depth and the scene
             has ground-truth depth, with or without this flag.
+        mesh_options: The mesh pipeline's settings for ``geometry`` (default :class:`MeshOptions` with
+            ``chunk``: the model's depth). With a depth source that needs no model (``stereo``, ``oracle``)
+            ``model`` may be ``None``: then nothing is rendered and only the meshes are scored.
+        mesh_pictures: With ``geometry``, also write each mesh's picture (``mesh.png``).
+        mesh_masks: Mesh with the scenes' object masks (carve, clean, complete inside them) and score objects
+            only (Chamfer against the exact mesh's objects); ``False``: the whole scene (``omnirecon mesh``'s
+            default).
 
     Returns:
         ``{"provenance", "model", "protocols", "num_views", "scenes": [...], "means": {protocol: {K: {...}}},
@@ -114,8 +124,13 @@ def evaluate(
         raise InputError(f"--chunk must be at least 1, got {chunk}", None, "use e.g. 4096")
     if max_targets is not None and max_targets < 1:
         raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
+    options = mesh_options or MeshOptions(chunk=chunk)
+    if model is None and not (geometry and options.depth in ("stereo", "oracle")):
+        raise InputError("evaluating without a model needs geometry with a depth source that needs none", None,
+                         "pass a model, or geometry=True with MeshOptions(depth='stereo')")
     torch.manual_seed(seed)
-    model = model.to(device).eval()
+    if model is not None:
+        model = model.to(device).eval()
     with progress_bar(disable=not progress, transient=False) as bar:
         prepared = [s for s in scenes if isinstance(s, EvalScene)]
         prepared += prepare_scenes([s for s in scenes if not isinstance(s, EvalScene)], synth_count, cache, bar,
@@ -125,14 +140,19 @@ def evaluate(
         total = sum(len(job["targets"]) for job in jobs)
         task = bar.add_task("eval", total=total)
         for job in jobs:
-            _run_job(model, job, chunk, device, out if save_images else None, bar, task)
+            if model is not None:
+                _run_job(model, job, chunk, device, out if save_images else None, bar, task)
+            else:
+                job["views"] = []
+                bar.advance(task, len(job["targets"]))
             if geometry:
-                _mesh_job(model, job, chunk, device, out)
+                _mesh_job(model, job, options, device, out, mesh_pictures, mesh_masks)
     result = eval_report.collect(results, jobs, ks, {
         "provenance": provenance(seed=seed, chunk=chunk, eval_device=device),
-        "model": model_info or {"name": type(model).__name__},
+        "model": model_info or {"name": type(model).__name__ if model is not None else options.depth},
         "protocol_set": protocol_set,
         "geometry": geometry,
+        **({"mesh_options": asdict(options), "mesh_masks": mesh_masks} if geometry else {}),
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
         "unavailable": {k: r for k, r in (("st_lpips_alex", metrics.unavailable("st_lpips")),
@@ -173,15 +193,15 @@ def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, t
     features, key = None, None
     views = []
     for t, src in zip(job["targets"], job["sources"]):
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         if tuple(src) != key:  # DTU's fixed sources are encoded once
             features, key = model.encode(Sources.from_scene(scene, src).to(device)), tuple(src)
         camera = scene.cameras[t].to(device=device, dtype=scene.images.dtype)
         rendered = model.render_view(features, camera, chunk=chunk)
-        seconds = time.perf_counter() - start
+        seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         gt = scene.images[t]
         mask = scene.masks[t] if es.protocol.masked and scene.masks is not None else None
-        row = {"index": t, "name": scene.names[t], "sources": src, "seconds": seconds}
+        row = {"index": t, "name": scene.names[t], "sources": src, "seconds": seconds, "cpu_seconds": cpu}
         if "depth" in rendered and scene.depths is not None:
             depth, _ = depth_from_outputs(rendered)
             err = depth_errors(depth, scene.depths[t], None if mask is None else mask.bool())
@@ -209,25 +229,34 @@ def geometry_sources(es: EvalScene, k: int) -> list[int]:
     return [pool[i] for i in pick]
 
 
-def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> None:
+def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | None, picture: bool = True,
+              masks: bool = False) -> None:
     """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
-    fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and ``mesh.png``, the mesh
-    seen from the first source view at a 512-px long side)."""
+    fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and, with ``picture``, ``mesh.png``,
+    the mesh seen from the first source view at a 512-px long side). ``cpu_seconds`` splits the process CPU
+    time by part: ``depth`` (the depth source), ``mesh`` (fusion to completion), ``score``, ``write``."""
 
     es: EvalScene = job["scene"]
     views = geometry_sources(es, job["k"])
     start = time.perf_counter()
-    made = mesh_from_model(model, es.scene, views, MeshOptions(chunk=chunk), device)
-    seconds = time.perf_counter() - start
+    made = mesh_from_model(model, es.scene, views, options, device, use_masks=masks)
+    seconds, cpu1 = time.perf_counter() - start, time.process_time()
+    cpu = dict(made.info["cpu_seconds"])
+    base = {"views": views, "seconds": seconds, "stage_seconds": made.info["seconds"],
+            "depth_source": made.info["depth_source"].get("source"),
+            "valid_depth_fraction": made.info["valid_depth_fraction"]}
     if len(made.mesh.faces) == 0:
-        job["geometry"] = {"views": views, "empty": True, "seconds": seconds}
+        job["geometry"] = {**base, "empty": True, "cpu_seconds": cpu}
         return
     scored = geo.score_mesh(made, es.scene, job["targets"])
-    row = {"views": views, "faces": len(made.mesh.faces), "seconds": seconds}
+    cpu2 = time.process_time()
+    cpu["score"] = cpu2 - cpu1
+    row = {**base, "faces": len(made.mesh.faces)}
     if "chamfer" in scored:
         c = scored["chamfer"]
-        row.update({"chamfer": c["chamfer"], "accuracy": c["accuracy"], "completeness": c["completeness"],
-                    "fscore": c["fscore"], "threshold": c["threshold"], "chamfer_rel": scored["chamfer_rel"]})
+        row.update({k: c[k] for k in ("chamfer", "accuracy", "completeness", "fscore", "precision", "recall",
+                                      "accuracy_dropped", "completeness_dropped", "threshold")})
+        row["chamfer_rel"] = scored["chamfer_rel"]
     if "mask_iou" in scored:
         row["mask_iou"] = scored["mask_iou"]["mean"]
     if "rendered_depth" in scored:
@@ -236,6 +265,9 @@ def _mesh_job(model, job: dict, chunk: int, device: str, out: Path | None) -> No
         folder = Path(out) / es.name / f"k{job['k']}"
 
         write_mesh(made.mesh, [folder / "mesh.ply"], es.scene.to_input)
-        cam = es.scene.cameras[views[0]]
-        geo.save_picture(folder / "mesh.png", made.mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
+        if picture:
+            cam = es.scene.cameras[views[0]]
+            geo.save_picture(folder / "mesh.png", made.mesh, cam.rescaled(max(1.0, 512 / max(cam.width, cam.height))))
+    cpu["write"] = time.process_time() - cpu2
+    row["cpu_seconds"] = cpu
     job["geometry"] = row

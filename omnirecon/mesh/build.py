@@ -458,12 +458,13 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
             progress.update(task, description=name)
             progress.advance(task)
 
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     masks = scene.masks if use_masks and scene.masks is not None else None
     maps = depth_maps(options, scene, views, model, device, advance, masks)
-    render_s = time.perf_counter() - t
+    render_s, depth_cpu = time.perf_counter() - t, time.process_time() - cpu
     made = mesh_from_depths(maps, scene, views, options, masks, device, on_stage=on_stage)
     made.info["seconds"] = {"render": render_s, **made.info["seconds"]}
+    made.info["cpu_seconds"] = {"depth": depth_cpu, "mesh": time.process_time() - cpu - depth_cpu}
     if "model_calls" in maps.info:
         made.info["model_calls"] = maps.info["model_calls"]
         made.info["sources_per_map"] = maps.info["sources_per_map"]

@@ -60,15 +60,17 @@ def sample_points(mesh: trimesh.Trimesh, count: int, seed: int = 0) -> np.ndarra
     return t[:, 0] + r1[:, None] * (t[:, 1] - t[:, 0]) + r2[:, None] * (t[:, 2] - t[:, 0])
 
 
-def nearest_distances(query: np.ndarray, points: np.ndarray, workers: int = 1) -> np.ndarray:
-    """Distance from each ``query # [Q, 3]`` point to its nearest neighbour in ``points`` (scipy cKDTree)."""
+def nearest_distances(query: np.ndarray, points: np.ndarray, workers: int = 1, upper: float = np.inf) -> np.ndarray:
+    """Distance from each ``query # [Q, 3]`` point to its nearest neighbour in ``points`` (scipy cKDTree);
+    ``inf`` for a point with none closer than ``upper`` (exact below it: the tree stops searching there,
+    2-4x faster when many points are far, as a mesh's background is from an objects-only ground truth)."""
     from scipy.spatial import cKDTree
 
     if len(query) == 0:
         return np.zeros(0)
     if len(points) == 0:
         return np.full(len(query), np.inf)
-    return cKDTree(points).query(query, k=1, workers=workers)[0]
+    return cKDTree(points).query(query, k=1, workers=workers, distance_upper_bound=upper)[0]
 
 
 def chamfer_fscore(pred: np.ndarray, gt: np.ndarray, threshold: float, max_dist: float = np.inf,
@@ -80,8 +82,11 @@ def chamfer_fscore(pred: np.ndarray, gt: np.ndarray, threshold: float, max_dist:
     (fraction of points at ``max_dist`` or more); ``precision``, ``recall``, ``fscore`` at
     ``threshold``. With no predicted point, the means are ``inf`` and the F-score 0.
     """
-    d_acc = nearest_distances(pred, gt, workers)
-    d_comp = nearest_distances(gt, pred, workers)
+    # every number below only asks "closer than max_dist?" or "closer than threshold?": distances beyond both
+    # may come back as inf (the same results, a faster search)
+    bound = float(np.nextafter(max(max_dist, threshold), np.inf))
+    d_acc = nearest_distances(pred, gt, workers, bound)
+    d_comp = nearest_distances(gt, pred, workers, bound)
 
     def capped_mean(d):
         d = d[d < max_dist]

@@ -261,3 +261,33 @@ def test_depth3_agreement_counts_only_confident_stereo_pixels_the_model_covers()
     ok[1, 0] = False  # the model gives no depth there
     r = agreement(pred, ok, stereo)
     assert r["pixels"] == 2 and abs(r["coverage"] - 2 / 3) < 1e-9 and r["within5"] == 1.0
+
+
+def test_geometry_tiny_scores_the_stereo_row(tmp_path):
+    """The classical-stereo row: no model, the same 3 source views as the model rows, a scored mesh kept on disk,
+    no target render, and the section shows it with no PSNR."""
+    import json
+    from pathlib import Path
+
+    from bench.report import geometry as geometry_report
+
+    proc = subprocess.run([sys.executable, "-m", "bench", "geometry", "--models", "stereo", "floor", "--tiny",
+                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    stereo = json.loads((tmp_path / "geometry_stereo.json").read_text())
+    floor = json.loads((tmp_path / "geometry_floor.json").read_text())
+    s, f = stereo["synth"]["scenes"][0]["settings"]["3"], floor["synth"]["scenes"][0]["settings"]["3"]
+    g = s["geometry"]
+    assert stereo["synth"]["mesh_options"]["depth"] == "stereo" and g["depth_source"] == "stereo"
+    assert f["geometry"]["depth_source"] == "model" and g["views"] == f["geometry"]["views"]  # the same 3 views
+    assert s["views"] == [] and "psnr" not in stereo["synth"]["means"]["synth"]["3"]  # nothing rendered
+    # stereo matched a real part of the views and the mesh is scored against the exact one
+    assert 0.02 < g["valid_depth_fraction"] <= 1 and g["faces"] > 100
+    assert 0 < g["chamfer"] < g["threshold"] * 10 and 0 < g["fscore"] <= 1 and 0 < g["mask_iou"] <= 1
+    assert stereo["cpu_seconds"]["target_renders"] == 0 < stereo["cpu_seconds"]["depth"]
+    assert stereo["cpu_seconds"]["total"] >= sum(v for k, v in stereo["cpu_seconds"].items() if k not in ("total", "other"))
+    mesh = Path(next(iter(stereo["meshes"].values())))
+    assert mesh.is_file() and tmp_path in mesh.parents  # a tiny run never overwrites the real run's meshes
+    text = geometry_report.section(tmp_path)
+    row = next(line for line in text.splitlines() if line.startswith("| stereo |"))
+    assert row.rstrip(" |").endswith("–") and "| floor |" in text  # no PSNR without a model to render

@@ -165,3 +165,24 @@ def test_eval_geometry_scores_a_mesh_and_depth(synth_scene, tmp_path):
     assert all(0 <= v["depth_abs_rel"] < 1 and 0 < v["depth_delta1"] <= 1 for v in setting["views"])
     assert (out / result["scenes"][0]["name"] / "k3" / "mesh.ply").is_file()
     assert "## Geometry" in (out / "results.md").read_text()
+
+
+def test_eval_geometry_without_a_model_meshes_stereo(synth_scene):
+    """A depth source that needs no model: nothing rendered, the same mesh sources as a model's row, a scored
+    mesh; without geometry (or with a depth source that needs a model) no model is a one-line error."""
+    from omnirecon.errors import InputError
+    from omnirecon.mesh.build import MeshOptions
+
+    result = evaluate(None, [synth_scene], num_views=(3,), out=None, progress=False, geometry=True,
+                      mesh_options=MeshOptions(depth="stereo"))
+    floor = evaluate(build_model("floor"), [synth_scene], num_views=(3,), out=None, progress=False, geometry=True)
+    setting = result["scenes"][0]["settings"]["3"]
+    geo = setting["geometry"]
+    assert setting["views"] == [] and result["mesh_options"]["depth"] == "stereo" and geo["depth_source"] == "stereo"
+    assert geo["views"] == floor["scenes"][0]["settings"]["3"]["geometry"]["views"]
+    assert set(geo["cpu_seconds"]) >= {"depth", "mesh"} and geo["cpu_seconds"]["depth"] >= 0
+    if not geo.get("empty"):
+        assert geo["faces"] > 0 and 0 <= geo["fscore"] <= 1 and geo["completeness_dropped"] <= 1
+    for kwargs in ({}, {"geometry": True}):
+        with pytest.raises(InputError, match="without a model"):
+            evaluate(None, [synth_scene], num_views=(3,), out=None, progress=False, **kwargs)
