@@ -17,6 +17,9 @@ set (:class:`omnirecon.mesh.build.MeshOptions`):
 * **Only near surfaces** (:func:`surface_band`): the grid is split into blocks of 4^3 voxels and only
   the blocks within the truncation of some depth sample are integrated, so
   the cost follows the surface area, not the volume of the bounds.
+* **Visibility violations** (:func:`occlusion_votes`): depth behind a surface other maps see is too far.
+
+Size: the TSDF and the checks between depth maps that set its weights share the projection helpers.
 """
 
 from __future__ import annotations
@@ -318,6 +321,45 @@ def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float =
             drel = (back.depth[0] - di[has]).abs() / di[has]
             agree[i, idx] += (ok & back.in_front[0] & (err <= px) & (drel <= rel)).float()
     return agree.reshape(N, H, W)
+
+
+def occlusion_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = None, rel: float = 0.05,
+                    max_pairs: int = 8) -> Tensor:
+    """How many other maps put a surface in front of each pixel's depth (a visibility violation).
+
+    Every pixel of map ``j`` with depth (and ``trusted``, e.g. confirmed by a third map) is unprojected and
+    projected into map ``i`` (z-buffer over the four pixel centres around each projection: the nearest point
+    per pixel); map ``j`` votes against pixel ``p`` of
+    ``i`` when that nearest point lies in front of ``p``'s depth by more than ``rel`` (relative). Real
+    geometry cannot do that: ``i``'s ray would pass through a surface ``j`` sees, so ``i``'s depth is too far
+    (a stereo mismatch onto the background behind an object) or ``j``'s point floats. Each map against its
+    ``max_pairs`` nearest maps. ``# [N, H, W]`` float32
+    """
+    cams = cameras.to(dtype=torch.float64)
+    N, H, W = depths.shape
+    d = depths.double()
+    pix = _pixels(H, W)
+    ok = d > 0 if trusted is None else (d > 0) & trusted
+    votes = torch.zeros(N, H * W)
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
+        di = d[i].reshape(-1)
+        if not (di > 0).any():
+            continue
+        for j in near:
+            has = ok[j].reshape(-1)
+            if not has.any():
+                continue
+            X = cams[j].unproject(pix[has][None], d[j].reshape(-1)[has][None])[0]  # [P, 3] world
+            pi = cams[i].project(X)
+            inside = pi.in_image[0]
+            uv, z = pi.uv[0][inside], pi.depth[0][inside]
+            front = torch.full((H * W,), float("inf"), dtype=torch.float64)
+            c0, r0 = torch.floor(uv[:, 0] - 0.5).long(), torch.floor(uv[:, 1] - 0.5).long()
+            for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1)):  # the 4 pixel centres around it: no gaps between points
+                flat = (r0 + dr).clamp(0, H - 1) * W + (c0 + dc).clamp(0, W - 1)
+                front.scatter_reduce_(0, flat, z, reduce="amin")
+            votes[i] += ((di > 0) & (front < di * (1 - rel))).float()
+    return votes.reshape(N, H, W)
 
 
 def geometric_weight(agree: Tensor, num_maps: int, need: int = 2, floor: float = 0.05) -> Tensor:

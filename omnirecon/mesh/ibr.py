@@ -199,6 +199,25 @@ def _norm(d: Tensor) -> Tensor:
     return sq.sqrt_().clamp_min_(1e-12)[None]
 
 
+def block_depth_max(depth: Tensor) -> Tensor:
+    """Per source, the largest of the z-depths ``depth # [K, H, W]`` (0 = background: infinitely far) of each
+    2x2 block of pixel centres, for :func:`unoccluded`. ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers rows
+    ``a - 1, a`` and columns ``b - 1, b``."""
+    d = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
+    d = F.pad(d[:, None], (1, 1, 1, 1), value=float("inf"))  # [K, 1, H + 2, W + 2]
+    return F.max_pool2d(d, 2, stride=1)[:, 0].contiguous()
+
+
+def unoccluded(dmax: Tensor, uv: Tensor, z: Tensor, tol: float) -> Tensor:
+    """The occlusion test (module docstring) of points at source pixel coordinates ``uv # [K, 2, n]`` with
+    source z-depths ``z # [K, n]`` against :func:`block_depth_max` ``dmax``. ``# [K, n]`` bool"""
+    K, Hp, Wp = dmax.shape
+    b = torch.floor(uv[:, 0] - 0.5).clamp(-1, Wp - 2).long() + 1  # [K, n] block column
+    a = torch.floor(uv[:, 1] - 0.5).clamp(-1, Hp - 2).long() + 1  # [K, n] block row
+    flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
+    return z <= dmax.reshape(-1)[flat] * (1 + tol)
+
+
 class MeshRenderer:
     """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
 
@@ -244,10 +263,7 @@ class MeshRenderer:
         pixel centres (inf = background or outside), ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers
         rows ``a - 1, a`` and columns ``b - 1, b``."""
         if self.options.visibility:
-            depth = self.source_depths().to(self.device, self.dtype)  # [K, H, W]
-            d = torch.where(depth > 0, depth, torch.full_like(depth, float("inf")))
-            d = F.pad(d[:, None], (1, 1, 1, 1), value=float("inf"))  # [K, 1, H + 2, W + 2]
-            self.source_depth_max = F.max_pool2d(d, 2, stride=1)[:, 0].contiguous()
+            self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype))
 
     def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
         """The appearance branch prepared for :meth:`_fused` (module docstring): the texel table of
@@ -287,14 +303,9 @@ class MeshRenderer:
     def visible(self, uv: Tensor, z: Tensor) -> Tensor:
         """Occlusion test (module docstring) of points at source pixel coordinates ``uv # [K, 2, n]``
         with source z-depths ``z # [K, n]``. ``# [K, n]`` bool"""
-        dmax = self.source_depth_max
-        if dmax is None:
+        if self.source_depth_max is None:
             raise ValueError("the occlusion test needs MeshRenderOptions(visibility=True)")
-        K, Hp, Wp = dmax.shape
-        b = torch.floor(uv[:, 0] - 0.5).clamp(-1, Wp - 2).long() + 1  # [K, n] block column
-        a = torch.floor(uv[:, 1] - 0.5).clamp(-1, Hp - 2).long() + 1  # [K, n] block row
-        flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
-        return z <= dmax.reshape(-1)[flat] * (1 + self.options.visibility_tol)
+        return unoccluded(self.source_depth_max, uv, z, self.options.visibility_tol)
 
     def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True, fill: bool = False) -> ShadeResult:
         """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels

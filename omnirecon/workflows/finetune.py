@@ -128,6 +128,13 @@ class FinetuneConfig(ThreadsConfig):
     """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend;
     `background`, the scene's background colour; `auto`: `background` for scenes that declare their
     background colour (procedural), else `far`. Tuning samples only pixels on the mesh."""
+    visibility: bool = True
+    """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
+    source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
+    source. Held-out PSNR before tuning, without -> with: demo scene, exact mesh 22.19 -> 25.66 dB whole image
+    (without it a source that sees the ground behind the box painted the box with ground texture), the
+    project's stereo+model mesh 21.04 -> 22.53; fern's stereo+model mesh 20.66 -> 20.93; dtu_scan24's 13.92 ->
+    13.96 (covered pixels 18.19 -> 18.38)."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -155,21 +162,36 @@ class ViewPixels:
     """Ground-truth colour of those pixels. ``# [P, 3]``"""
     covered: int
     """The first ``covered`` pixels lie on the mesh."""
+    visible: torch.Tensor | None = None
+    """Which sources see each point (the occlusion test; fill points: all), ``None`` = no test. ``# [P, K]`` bool"""
 
 
-def rasterize_views(mesh, scene, indices, fill: bool = True) -> list[ViewPixels]:
+def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
+                    tol: float = 0.01) -> list[ViewPixels]:
     """Rasterize ``mesh`` (scene frame) at each of ``indices`` once; with ``fill``, every pixel the mesh
-    misses gets the mesh renderer's background layer."""
+    misses gets the mesh renderer's background layer; with ``sources`` (scene views), each mesh point gets the
+    occlusion test against those views (:func:`omnirecon.mesh.ibr.unoccluded`, relative tolerance ``tol``)."""
+    from omnirecon.mesh.ibr import block_depth_max, unoccluded
+
     out = []
     far, bounds = float(scene.far.max()), scene.bounds.float()
     with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
+        dmax = None
+        if sources:
+            dmax = block_depth_max(torch.stack([rast.rasterize(scene.cameras[k], normals="none").depth
+                                                for k in sources]).float())
         for i in indices:
             cam = scene.cameras[i]
             surf = rast.surface(cam)
             surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, bounds) if fill else (surf, len(surf.pixels))
             img = scene.images[i].reshape(-1, 3)
+            visible = None
+            if dmax is not None:
+                proj = scene.cameras[sources].to(dtype=torch.float32).project(surf.points.float())
+                visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
+                visible[covered:] = True
             out.append(ViewPixels(i, cam.centers[0].float(), surf.points.float(), surf.pixels,
-                                  img[surf.pixels].float(), covered))
+                                  img[surf.pixels].float(), covered, visible))
     return out
 
 
@@ -222,8 +244,17 @@ def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = 
     out = []
     for s in range(0, len(points), chunk):
         pts = points[s:s + chunk]
-        out.append(model.shade(features, pts, view.origin.expand_as(pts))["rgb"])
+        out.append(model.shade(features, pts, view.origin.expand_as(pts), visible_at(view, idx, s, s + chunk))["rgb"])
     return torch.cat(out) if out else view.target.new_zeros(0, 3)
+
+
+def visible_at(view: ViewPixels, idx: torch.Tensor | None = None, start: int = 0, stop: int | None = None):
+    """``view.visible`` at ``idx`` (all pixels when ``None``), rows ``start:stop`` of that; ``None`` without the
+    test. ``# [n, K]`` bool"""
+    if view.visible is None:
+        return None
+    vis = view.visible if idx is None else view.visible[idx]
+    return vis[start:stop]
 
 
 def full_image(scene, view: ViewPixels, rgb: torch.Tensor, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
@@ -329,9 +360,10 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
     fill = cfg.fill == "far" or (cfg.fill == "auto" and scene.background is None)
-    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill) if len(v.points)]
-    held_px = rasterize_views(mesh, scene, targets, fill)
-    val_px = rasterize_views(mesh, scene, val_views, fill)
+    vis = views if cfg.visibility else None
+    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis) if len(v.points)]
+    held_px = rasterize_views(mesh, scene, targets, fill, vis)
+    val_px = rasterize_views(mesh, scene, val_views, fill, vis)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
@@ -407,7 +439,7 @@ class Tuner:
         """One Adam step on the MSE of ``view``'s pixels at ``idx`` (plus the pull toward the start)."""
         with self.autocast:
             feats = self.features() if self.frozen is None else self.frozen
-            rgb = self.s.model.shade(feats, view.points[idx], view.origin.expand(len(idx), 3))["rgb"]
+            rgb = self.s.model.shade(feats, view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx))["rgb"]
         loss = (rgb.float() - view.target[idx]).square().mean()
         if self.reg > 0 and self.params:
             loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(

@@ -169,7 +169,9 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
     (:class:`~omnirecon.mesh.ibr.MeshRenderer`; pixels no triangle covers: the scene's known background
     colour where it has one, as ``finetune --fill auto``, else the far fill, which on the demo's black sky
-    drew ghost copies of the objects) and write the video at ``path``.
+    drew ghost copies of the objects; the occlusion test on, as ``finetune --visibility``: without it a source
+    that saw the ground behind an object painted the object's colour onto the ground) and write the video at
+    ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
@@ -185,7 +187,7 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
             end += 1
         with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])),
                           MeshRenderOptions(background=bg, fill="background" if scene.background is not None
-                                            else "far")) as r:
+                                            else "far", visibility=True)) as r:
             frames, seconds = render_frames(r, cameras[start:end])
         images += frames
         times += seconds

@@ -12,8 +12,9 @@ from conftest import ROOT
 from omnirecon.cli import main
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.errors import InputError
 from omnirecon.mesh import fusion, geometry
-from omnirecon.mesh.build import MeshOptions, mesh_from_depths
+from omnirecon.mesh.build import MeshOptions, drop_occluded, mesh_from_depths
 from omnirecon.mesh.clean import decimate
 from omnirecon.mesh.depth import ViewGroups, model_depths, oracle_depths
 from omnirecon.models.registry import build_model
@@ -173,3 +174,51 @@ def test_silhouette_iou_of_the_exact_mesh_is_one(scene):
     assert objects["against"] == "masks" and objects["mean"] > 0.9, objects
     sky = geometry.evaluate_mesh(trimesh.creation.icosphere(3, radius=20.0), scene, held_out)["mask_iou"]
     assert sky["mean"] < 0.9  # a mesh over the whole view is not complete, it is wrong
+
+
+def test_occlusion_votes_flag_depth_behind_a_surface_other_maps_see():
+    """A patch of one of 16 sphere maps reads 30 % too far (a stereo mismatch onto what lies behind): the other
+    maps, which see the sphere's front there, vote against it; a patch read 20 % too near (in front of the
+    surface: no ray of another map passes through it) and the exact pixels get no such votes. The pipeline's
+    check drops exactly the far patch."""
+    cams = ring_cameras(16, res=48, f=60.0)
+    depth = sphere_depth(cams, 1.0)
+    far, near = (slice(18, 26), slice(18, 26)), (slice(28, 34), slice(18, 26))
+    assert (depth[0][far] > 0).all() and (depth[0][near] > 0).all()
+    depth[0][far] *= 1.3
+    depth[0][near] *= 0.8
+    votes = fusion.occlusion_votes(cams, depth)
+    rest = (depth[0] > 0).clone()
+    rest[far] = rest[near] = False
+    assert (votes[0][far] >= 2).float().mean() > 0.9, votes[0][far]
+    assert (votes[0][near] >= 2).float().mean() < 0.05 and (votes[0][rest] >= 2).float().mean() < 0.02
+    assert (votes[1:][depth[1:] > 0] >= 2).float().mean() < 0.02
+    agree = fusion.consistency(cams, depth, rel=0.01)
+    d, w, a, frac = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2))
+    assert (d[0][far] == 0).float().mean() > 0.9 and (w[0][far] == 0).float().mean() > 0.9
+    assert (d[0][near] > 0).all() and 0 < frac < 0.03  # the patch, and some grazing pixels at the outline
+
+
+def test_bad_occlusion_options_are_refused():
+    for kw in ({"occlusion": 9}, {"occlusion": -1}, {"occlusion_rel": 0.0}, {"occlusion_rel": float("nan")}):
+        with pytest.raises(InputError, match="occlusion"):
+            MeshOptions(**kw).check()
+
+
+def test_close_small_holes_closes_pinholes_and_keeps_large_openings():
+    """An icosphere with two single faces removed (3-edge holes) and a cap of faces removed (a loop of many
+    edges): the two pinholes are closed with faces wound like their neighbours, the cap stays open."""
+    from omnirecon.mesh.clean import close_small_holes
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    z = sphere.triangles_center[:, 2]
+    keep = z < 0.8  # a cap around the pole: its border has far more than 8 edges
+    keep[[10, 200]] = False
+    assert z[10] < 0.8 and z[200] < 0.8
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[keep], process=False)
+    closed, n = close_small_holes(holed, 8)
+    assert n == 2 and len(closed.faces) == len(holed.faces) + 6
+    assert not closed.is_watertight  # the cap
+    capped, m = close_small_holes(trimesh.Trimesh(sphere.vertices, sphere.faces[np.r_[0:len(sphere.faces)] != 10],
+                                                  process=False), 8)
+    assert m == 1 and capped.is_watertight and capped.is_winding_consistent
