@@ -186,6 +186,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
            "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
+           "visibility": ft.get("visibility", False),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}

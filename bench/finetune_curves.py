@@ -77,6 +77,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": ft["provenance"].get("loadavg_1min", os.getloadavg()[0]),
             "objects": ft.get("objects", 0.0), **({"scored_by": ft["scored_by"], "val_guard": ft["val_guard"]}
                                                   if "scored_by" in ft else {}),
+            **({"visibility": ft["visibility"]} if "visibility" in ft else {}),
             "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
                          "before_after": f"figures/finetune_{name}_before_after.png"}}

@@ -51,7 +51,7 @@ def run_row(scene: str, path: Path, mesh: Path, row: str, seconds: float, thread
             "before": {k: first[k] for k in KEEP if k in first}, "after": {k: last[k] for k in KEEP if k in last},
             "gain_db": last["psnr"] - first["psnr"],
             **({"gain_masked_db": last["psnr_masked"] - first["psnr_masked"]} if "psnr_masked" in last else {}),
-            "load_average": os.getloadavg()[0]}
+            "visibility": ft.get("visibility", False), "load_average": os.getloadavg()[0]}
 
 
 def merge(file: Path, key: str, row: dict) -> dict:

@@ -77,7 +77,10 @@ def section(results: Path) -> str:
                                                             if "psnr_masked" in first else "image")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
-                     + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "") + ".")
+                     + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "")
+                     + ("" if row.get("visibility") else "; scored before the visibility test (every source blended "
+                        "at every point; `finetune` now blends only the sources that see it, which raises the start: "
+                        "see Depth sources)") + ".")
     gains = _gains(r["rows"], read(results, "finetune_ceiling.json"), read(results, "finetune_oracle.json"))
     pics = [f"![{n}: ground truth | before | after](bench/results/{row['pictures']['before_after']})"
             for n, row in r["rows"].items()]

@@ -23,7 +23,10 @@ def section(results: Path) -> str | None:
     if levers:
         out += ["`omnirecon finetune` for 60 CPU-seconds (1 thread, `--clock cpu`) per row, same mesh, sources, validation "
                 "and held-out views, images at the photos' own resolution; held-out test PSNR in dB before -> after "
-                "(objects: over the masks).", "",
+                "(objects: over the masks)."
+                + ("" if all(r.get("visibility") for r in levers["rows"].values()) else
+                   " Scored before `finetune`'s visibility test (every source blended at every point; it now blends "
+                   "only the sources that see the point)."), "",
                 "| scene | what is tuned | steps | whole image | objects | gain | load |", "|---|---|---:|---|---|---:|---:|"]
         for key, row in levers["rows"].items():
             b, a = row["before"], row["after"]
