@@ -50,12 +50,13 @@ def section(results: Path) -> str:
         "not looked at. Realism options: " + ", ".join(f"`--{k.replace('_', '-')} {v}`" for k, v in r["realism"].items())
         + ". K = 10 is scored only where a number is shown (scoring at K = 10 costs more CPU than a lever's "
         "training). At this budget a run has taken 60-90 steps, so differences under about 0.5 dB are within "
-        "the noise of one seed. Below the lever rows, the shipped checkpoint and the candidates for it (the continued "
-        "VGG16 run; ibrnet-tiny_ft_real3: the shipped ibrnet-tiny warm-started with `--init` for 1000 more steps with "
-        "real-scene weight 3), scored the same way at their own budgets (their CPU-s: the candidate's own run).", "",
+        "the noise of one seed. Below the lever rows, the shipped checkpoint (rendering as shipped) and the candidates "
+        "that were scored for it (the VGG16 run's states with its trained sample counts, shipped since 2026-11-24; "
+        "ibrnet-tiny_ft_real3: the encoder-from-scratch ibrnet-tiny warm-started with `--init` for 1000 more steps "
+        "with real-scene weight 3), scored the same way at their own budgets (their CPU-s: the candidate's own run).", "",
         table(r), "",
         *([f"![validation against CPU-seconds]({r['curves']['figure']})", "",
            "Monitoring validation (the runs' own `val_psnr`: 2 views of seeds 901000-901001, K = the preset's) against "
-           "training CPU-seconds: the shipped ibrnet-tiny (encoder from scratch) and the continued ibrnet-tiny + VGG16 "
-           "run.", ""] if r.get("curves") else []),
+           "training CPU-seconds: ibrnet-tiny with its encoder from scratch (shipped until 2026-11-24) and the "
+           "ibrnet-tiny + VGG16 run (shipped since).", ""] if r.get("curves") else []),
         prov(r["provenance"]), ""])
