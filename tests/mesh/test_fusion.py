@@ -222,3 +222,31 @@ def test_close_small_holes_closes_pinholes_and_keeps_large_openings():
     capped, m = close_small_holes(trimesh.Trimesh(sphere.vertices, sphere.faces[np.r_[0:len(sphere.faces)] != 10],
                                                   process=False), 8)
     assert m == 1 and capped.is_watertight and capped.is_winding_consistent
+
+
+def test_close_holes_closes_holes_the_simple_loop_closer_leaves():
+    """Two faces of an icosphere removed that share one vertex but no edge: one hole whose boundary passes that
+    vertex twice (fusion's holes beside outlines look like this). ``close_small_holes`` leaves it open;
+    ``close_holes`` (pymeshlab) makes the sphere watertight again, and leaves a hole larger than its limit open."""
+    pytest.importorskip("pymeshlab")
+    from omnirecon.mesh.clean import close_holes, close_small_holes
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    f = sphere.faces
+    a = 10
+    shares_vertex = np.isin(f, f[a]).sum(1) == 1  # exactly one vertex in common: no shared edge
+    b = int(np.nonzero(shares_vertex)[0][0])
+    keep = np.ones(len(f), bool)
+    keep[[a, b]] = False
+    holed = trimesh.Trimesh(sphere.vertices, f[keep], process=False)
+    assert close_small_holes(holed, 8)[1] == 0
+    closed, added = close_holes(holed, 8)
+    assert added >= 2 and closed.is_watertight
+    cap = sphere.triangles_center[:, 2] < 0.8  # a cap around the pole: far more than 8 boundary edges
+    still, _ = close_holes(trimesh.Trimesh(sphere.vertices, f[cap], process=False), 8)
+    assert not still.is_watertight
+
+
+def test_bad_fill_holes_is_refused():
+    with pytest.raises(InputError, match="fill_holes"):
+        MeshOptions(fill_holes=-1).check()
