@@ -3,6 +3,7 @@
     python -m bench depth_regions                    # stereo+model, the default match grid (~1 CPU-min)
     python -m bench depth_regions --match-side 0     # stereo matched on the photos' own 128-px grid
     python -m bench depth_regions --occlusion 0      # no visibility check before fusion
+    python -m bench depth_regions --fill-holes 0     # fusion's holes left open (only marching cubes' pinholes closed)
 
 On the demo's procedural scene (``bench/depth_sources.py``: seed 900999, 24 views at 128 px, the 18
 training views meshed) every training view's depth after each stage is compared with the exact depth,
@@ -102,6 +103,8 @@ def main(argv: list[str] | None = None) -> dict:
                    help="StereoOptions.match_side (0: the photos' own grid)")
     p.add_argument("--occlusion", type=int, default=MeshOptions.occlusion,
                    help="MeshOptions.occlusion (0: no visibility check before fusion)")
+    p.add_argument("--fill-holes", type=int, default=MeshOptions.fill_holes,
+                   help="MeshOptions.fill_holes (0: fusion's holes left open)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -113,7 +116,7 @@ def main(argv: list[str] | None = None) -> dict:
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     model = load_checkpoint(ckpt)[0]
     opts = MeshOptions(depth="stereo+model", depth_pass="coarse", stereo=StereoOptions(match_side=a.match_side),
-                       occlusion=a.occlusion)
+                       occlusion=a.occlusion, fill_holes=a.fill_holes)
     stages = {"stereo": region_scores(stereo_maps(scene, views, opts.stereo).depth.numpy(), exact, labels)}
     maps = depth_maps(opts, scene, views, model)
     stages["stereo+model"] = region_scores(maps.depth.numpy(), exact, labels)
@@ -128,11 +131,14 @@ def main(argv: list[str] | None = None) -> dict:
 
     psnr = held_out_psnr(model, scene, targets, {"exact mesh": ground_truth_mesh(scene), "completed": meshes["completed"]})
     result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), "path": "checkpoints/omnirecon-tiny"},
-              "scene": "demo", "views": views, "match_side": a.match_side, "occlusion": a.occlusion, "stages": stages,
+              "scene": "demo", "views": views, "match_side": a.match_side, "occlusion": a.occlusion,
+              "fill_holes": a.fill_holes, "stages": stages,
               "held_out": targets, "held_out_psnr": psnr, "cpu_seconds": time.process_time() - t0, "load_average": list(os.getloadavg())}
     name = "depth_regions.json" if a.match_side == StereoOptions.match_side else f"depth_regions_match{a.match_side}.json"
     if a.occlusion != MeshOptions.occlusion:
         name = name.replace(".json", f"_occlusion{a.occlusion}.json")
+    if a.fill_holes != MeshOptions.fill_holes:
+        name = name.replace(".json", f"_fill{a.fill_holes}.json")
     write_json(a.out / name, result)
     for stage, regions in stages.items():
         print(f"{stage:14s} " + " | ".join(

@@ -173,7 +173,7 @@ class MeshOptions:
     edges, else the simple loops of :func:`clean.close_small_holes`; 0 = off). Fusion leaves holes where stereo's
     mismatches on dark objects and beside outlines were dropped or carved, and completion's per-pixel fills
     leave cracks between themselves and the fused surface when seen from between the training views: on the
-    demo scene 297 held-out pixels (of 49k) saw no surface before completion, 173 after; with this 124 / 12.
+    demo scene 297 held-out pixels (of 49k) saw no surface before completion, 173 after; with this 75 / 35.
     Demo scene, stereo+model, held-out mesh path (occlusion test on): whole image 22.73 -> 23.66 dB, ground 21.06
     -> 22.19, box 20.09 -> 20.75, sphere 20.78 -> 20.96; 300 edges gave 23.34, 5000 23.73. Not on forward-facing
     scenes (their backdrop layer covers the gaps) nor with object masks (DTU: not measured; the hull trim and
