@@ -36,6 +36,7 @@ def section(results: Path) -> str | None:
                 f"({'met' if m['fps'] >= r['goals']['cpu_fps_512'] else 'not met'}). No GPU was lent: the 800x600 GPU goal "
                 "is unmeasured.", "", prov(r["provenance"]), ""]
     out += _photo_sizes(results / "mesh_fps_runs")
+    out += _capture_meshes(results / "mesh_fps_runs")
     if q_file.is_file():
         r = json.loads(q_file.read_text())
         # the mesh path reads no volumetric render option: only the weights and the other config keys count
@@ -95,3 +96,27 @@ def _photo_sizes(runs: Path) -> list[str]:
                    f"{m['visibility_fps']:.1f} | {verdict} | {r['provenance'].get('loadavg_1min', '?')} |")
     out += ["", prov(json.loads(files[-1].read_text())["provenance"]), ""]
     return out
+
+
+def _capture_meshes(runs: Path) -> list[str]:
+    """Rows of the `mesh_*` runs of `python -m bench mesh_fps --scene S --mesh M --threads 1 --out ...`: a capture's
+    own completed mesh (fills and backdrop included) at its photos' size, one core, beside other jobs (and the
+    procedural exact mesh at the same size, `--size W H`, for scale)."""
+    files = sorted(runs.glob("mesh_*.json")) if runs.is_dir() else []
+    if not files:
+        return []
+    out = ["A capture's own mesh at its photos' size (`python -m bench mesh_fps --scene S --mesh M --threads 1 --frames 10 "
+           "--out bench/results/mesh_fps_runs/mesh_*.json`; 1 thread, measured beside other jobs: compare the CPU ms "
+           "within this table, not with the quiet rows above):", "",
+           "| scene | mesh | faces | resolution | ms / frame | CPU ms / frame | depth pass CPU ms | with visibility test "
+           "(ms) | load (1 min) |", "|---|---|---|---|---|---|---|---|---|"]
+    for f in files:
+        r = json.loads(f.read_text())
+        m, sc = r["mesh"], r["scene"]
+        w, h = m["resolution"]
+        where = Path(sc["path"]).name if "path" in sc else f"procedural seed {sc.get('seed')}"
+        what = f"{Path(sc['mesh']).parent.name}/{Path(sc['mesh']).name}" if "path" in sc else sc["mesh"]
+        out.append(f"| {where} | {what} | "
+                   f"{sc['faces']:,} | {w}x{h} | {m['median_ms']:.1f} | {m['cpu_ms']:.1f} | {m['depth_pass_cpu_ms']:.1f} | "
+                   f"{m['visibility_median_ms']:.1f} | {r['provenance'].get('loadavg_1min', '?')} |")
+    return out + ["", prov(json.loads(files[-1].read_text())["provenance"]), ""]

@@ -5,9 +5,11 @@ path: one model, one scene, one resolution, one run.
     omnirecon bench --threads 1              # one torch thread and one llvmpipe thread
     omnirecon bench --quick                  # 128x128, 3 frames, a 64-ray volumetric batch (tests)
     python -m bench mesh_fps ...             # the same, writing bench/results/mesh_fps.json
+    omnirecon bench --scene S --mesh M       # a capture's own mesh at its photos' size (e.g. fern's 327k faces)
 
 Scene: a procedural scene (``--seed``), normalised as in training, rendered with its exact mesh
-(the triangles its images were rendered from). Model: ``checkpoints/omnirecon-tiny`` when it exists,
+(the triangles its images were rendered from); or, with ``--scene`` and ``--mesh``, a capture and its mesh
+file (targets its test views at the photos' size). Model: ``checkpoints/omnirecon-tiny`` when it exists,
 else a randomly initialised ``omnirecon-tiny`` (the JSON says which; speed does not depend on the
 weights). Sources: the ``--views`` training views nearest to the first target; source features are
 encoded once (:class:`~omnirecon.mesh.ibr.MeshRenderer`), as both paths allow.
@@ -45,7 +47,9 @@ from omnirecon.data.io import write_json
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import DeviceConfig, pick_device
+from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.errors import InputError
+from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
@@ -88,6 +92,12 @@ class BenchConfig(DeviceConfig):
     """Mesh path: threads that shade chunks side by side (`MeshRenderOptions.workers`), each op on one torch
     thread (default: --threads; 1 when --threads is not given). The volumetric path keeps --threads torch
     threads."""
+    scene: Path | None = None
+    """A real scene folder to time instead of the procedural scene, with --mesh (e.g. fern and its
+    `omnirecon mesh` file): read with its long side at --size's (default: the photos' own, at most 512),
+    targets its test views at that size, sources the --views training views nearest the first target."""
+    mesh: Path | None = None
+    """With --scene: the mesh file to time (in the input scene's frame, as `omnirecon mesh` writes it)."""
     quick: bool = False
     """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
@@ -98,11 +108,31 @@ class BenchConfig(DeviceConfig):
         if self.resolution < 16 or self.views < 1 or self.frames < 1 or (self.size and min(self.size) < 16):
             raise InputError("--resolution and --size must be >= 16, --views and --frames >= 1", None,
                              "use e.g. --resolution 512 --views 3 --frames 30, or --size 504 378")
+        if (self.scene is None) != (self.mesh is None):
+            raise InputError("--scene and --mesh go together", self.scene or self.mesh,
+                             "pass both, e.g. --scene ../shared/data/llff/fern --mesh outputs/mesh/fern.ply")
         if self.size and not self.quick:
             return replace(self, source_resolution=max(self.size))
         if self.quick:
             return replace(self, resolution=128, source_resolution=64, frames=3, warmup=1, rays=64, volume_repeats=1)
         return self
+
+
+def procedural_scene(seed: int, resolution: int):
+    """The procedural scene ``seed`` (16 views at ``resolution``, normalised) and its exact mesh in that frame."""
+    import numpy as np
+    import trimesh
+
+    folder = Path(tempfile.mkdtemp(prefix="mesh_fps_"))
+    try:
+        scene_dir = generate_scene(folder, seed, SynthOptions(rig="object", views=16, resolution=resolution))
+        scene = load_scene(scene_dir).normalized()
+        raw = trimesh.load(scene.mesh_path, process=False, force="mesh")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    T = scene.mesh_to_scene.double().numpy()
+    return scene, trimesh.Trimesh(np.asarray(raw.vertices) @ T[:3, :3].T + T[:3, 3], np.asarray(raw.faces),
+                                  process=False)
 
 
 def target_camera(camera, width: int, height: int):
@@ -160,25 +190,23 @@ def measure(cfg: BenchConfig) -> dict:
         weights = "random init (no shipped checkpoints/omnirecon-tiny); speed does not depend on the weights"
     model.eval()
 
-    folder = Path(tempfile.mkdtemp(prefix="mesh_fps_"))
-    try:
-        scene_dir = generate_scene(folder, args.seed, SynthOptions(rig="object", views=16,
-                                                                  resolution=args.source_resolution))
-        scene = load_scene(scene_dir).normalized()
-        import numpy as np
-        import trimesh
-
-        raw = trimesh.load(scene.mesh_path, process=False, force="mesh")
-    finally:
-        shutil.rmtree(folder, ignore_errors=True)
-    T = scene.mesh_to_scene.double().numpy()
-    mesh = trimesh.Trimesh(np.asarray(raw.vertices) @ T[:3, :3].T + T[:3, 3], np.asarray(raw.faces), process=False)
-
-    held_out = scene.splits.get("test", []) + scene.splits.get("val", [])
-    train = scene.splits["train"]
-    width, height = args.size or (args.resolution, args.resolution)
-    targets = [target_camera(scene.cameras[i], width, height).to(device=device, dtype=torch.float32) for i in held_out]
-    pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], args.views, by="angle")[0]
+    if args.scene is not None:  # a real capture and its mesh, at the photos' size
+        scene = load_at_resolution(args.scene, max(args.size) if args.size else photo_side(args.scene))
+        mesh = read_mesh(args.mesh, scene.to_input)
+        width, height = scene.width, scene.height
+        held_out = scene.splits.get("test") or [0]
+        train = [i for i in (scene.splits.get("train") or range(len(scene))) if i not in held_out]
+        targets = [scene.cameras[i].to(device=device, dtype=torch.float32) for i in held_out]
+        by = "distance" if scene.rig == "forward" else "angle"
+    else:
+        scene, mesh = procedural_scene(args.seed, args.source_resolution)
+        held_out = scene.splits.get("test", []) + scene.splits.get("val", [])
+        train = scene.splits["train"]
+        width, height = args.size or (args.resolution, args.resolution)
+        targets = [target_camera(scene.cameras[i], width, height).to(device=device, dtype=torch.float32)
+                   for i in held_out]
+        by = "angle"
+    pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], args.views, by=by)[0]
     views = [train[i] for i in pick.tolist()]
     sources = Sources.from_scene(scene, views).to(device)
 
@@ -236,8 +264,10 @@ def measure(cfg: BenchConfig) -> dict:
                    "frames": args.frames, "warmup": args.warmup},
         "model": {"preset": "omnirecon-tiny", "weights": weights,
                   "samples_per_ray": model.cfg.coarse_samples + model.cfg.fine_samples},
-        "scene": {"kind": "procedural", "seed": args.seed, "rig": "object", "frame": "normalised (training frame)",
-                  "mesh": "exact procedural mesh", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
+        "scene": {**({"kind": "procedural", "seed": args.seed, "rig": "object", "mesh": "exact procedural mesh"}
+                     if args.scene is None else {"kind": "capture", "path": str(args.scene), "rig": scene.rig,
+                                                 "mesh": str(args.mesh)}),
+                  "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),
                  "median_ms": round(1000 * mesh_s, 2), "min_ms": round(1000 * min(mesh_times), 2),

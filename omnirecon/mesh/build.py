@@ -498,16 +498,26 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
 
 def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> str:
-    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks, by what
-    ``bench/depth_sources.py`` measured (BENCHMARKS "Depth sources", held-out PSNR before tuning):
+    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks per scene kind,
+    by what ``python -m bench depth_sources`` measured (BENCHMARKS "Depth sources", all training views but the
+    held-out ones, scored with finetune's visibility test; held-out PSNR before -> after 60 CPU-s of tuning).
+    ``stereo`` below is stereo with completion (``MeshOptions.complete``, on by default; the bench's
+    ``stereo+fill`` row):
 
-    * with a model, ``stereo+model``, object captures meshed with their masks included: on dtu_scan24 / 37
-      (14 views, with the hull trim) stereo alone with completion scored 18.11 / 14.54 dB over the mask, IoU
-      0.963 / 0.957, against 17.87 / 14.39, IoU 0.972 / 0.958, but on a 3-view procedural capture stereo
-      alone left the held-out depth coverage at 0.27 (``tests/mesh/test_mesh.py::test_mesh_cli_floor``);
-    * ``stereo+model`` (stereo at the photos' resolution where it matched, the
-      model's coarse depth at 128 px for the rest): fern 20.66 dB whole image against 19.17 for stereo alone
-      and 16.00 for the model; the demo's procedural scene 21.04 (F-score 0.978) against 20.38 for stereo;
+    * forward-facing captures (``scene.rig == "forward"``): ``stereo``, model or not. fern
+      (``--rows fern:stereo+fill fern:stereo+model``), whole image 21.84 -> 22.13 dB against 21.76 -> 22.06 for
+      ``stereo+model``, both at 100 % coverage, and no model pass (render stage 2.5 s against 6.3 s);
+    * object captures meshed with their masks (``--masks``): ``stereo``. dtu_scan24 / dtu_scan37 (14 views,
+      ``--rows dtu_scan24:stereo+fill dtu_scan24:stereo+model ...``) over the mask 18.45 / 14.92 -> 15.19 dB,
+      IoU 0.966 / 0.956, against 18.26 / 14.66 dB, IoU 0.972 / 0.957 for ``stereo+model``;
+    * other scenes with a model (object rigs without masks, unknown rigs): ``stereo+model`` (stereo where it
+      matched, the model's coarse depth at 128 px for the rest). The demo's procedural scene
+      (``--rows demo:stereo+fill demo:stereo+model``) 22.73 -> 23.13 dB against 22.56 -> 22.96 for ``stereo``;
+      and on a 3-view procedural capture stereo alone left the held-out depth coverage at 0.27
+      (``tests/mesh/test_mesh.py::test_mesh_cli_floor``): stereo pairs only views within 60 degrees;
     * without a model, ``stereo``.
     """
-    return "stereo+model" if has_model else "stereo"
+    rig = getattr(scene, "rig", "unknown")
+    if not has_model or rig == "forward" or (masks and getattr(scene, "masks", None) is not None):
+        return "stereo"
+    return "stereo+model"

@@ -57,7 +57,8 @@ class MeshConfig(MachineConfig):
     depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
     """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
     no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
-    depth; `auto`: the measured best for the scene kind (omnirecon.mesh.build.default_depth)."""
+    depth; `auto`: the measured best for the scene kind: stereo on forward-facing captures and with --masks,
+    stereo+model on other object rigs, stereo without a model (omnirecon.mesh.build.default_depth)."""
     shifts: tuple[float, ...] | None = None
     """Virtual views per view: shifts along the camera x axis as fractions of its distance to the
     scene centre (default: the preset's: 0 for fit, VolRecon's 25 mm on DTU for reference)."""
@@ -72,7 +73,8 @@ class MeshConfig(MachineConfig):
     """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
     default: the preset's, on for fit)."""
     max_faces: int = 200_000
-    """Decimate the mesh to at most this many faces (0 = keep every face)."""
+    """Decimate the fused surface to at most this many faces (0 = keep every face); completion's fills and a
+    forward-facing scene's backdrop sheet come on top (fern, 17 views at 336x252: 200k -> 327k faces)."""
     depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
     faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py

@@ -147,7 +147,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)
-    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, lines[-1], out)
+    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, lines[-1], out, tuned["line"])
     record["lines"] = lines
     return record
 
@@ -187,8 +187,9 @@ def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, ou
                                         num_views=cfg.num_views, mesh=out / "mesh.ply", resolution=side,
                                         out=out / "finetune", save=budget > 0, threads=cfg.threads), mesh=mesh)
     curve = tuned["curve"]
-    lines.append(f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
-                 f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
+    tuned["line"] = (f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
+                     f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
+    lines.append(tuned["line"])
     return tuned, out / "finetune" / "checkpoint" if budget > 0 else Path(cfg.ckpt)
 
 
@@ -220,8 +221,8 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
 
 
 def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: list[dict], path: dict, record: dict,
-               path_line: str, out: Path) -> None:
-    """``index.html``: the rig, the mesh, the video, the held-out scores and the timings."""
+               path_line: str, out: Path, tuned_line: str = "") -> None:
+    """``index.html``: the rig, the mesh, the video, the held-out scores (PSNR beside coverage) and the timings."""
     scene = path["scene"]
     sections = [
         Section("Capture").text(f"{len(scene)} views of {scene_path.name} ({scene.rig} rig)")
@@ -229,9 +230,11 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
         Section("Real-time mesh path").text(path_line).figure(path["video"], out, "camera path", 480),
-        Section("Held-out views").text("PSNR of the mesh path against seconds of fine-tuning: held-out test views "
-                                       "(never tuned on) and validation views (training views kept out of tuning; "
-                                       "the state returned is the best there, the start included).")
+        Section("Held-out views").text(f"{tuned_line[:1].upper()}{tuned_line[1:]}: coverage is the fraction of "
+                                       "held-out pixels on real surface. PSNR of the mesh path against seconds of "
+                                       "fine-tuning: held-out test views (never tuned on) and validation views "
+                                       "(training views kept out of tuning; the state returned is the best there, "
+                                       "the start included).")
         .table(*curve_table(curve))
         .figure(out / "finetune" / "curve.png", out, "test and validation PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),

@@ -330,6 +330,8 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
     assert {"cameras.png", "mesh_preview.png", "finetune/curve.png", "finetune/before_after.png",
             "path.mp4"} <= set(pictures)
     assert all((out / p).is_file() and (out / p).stat().st_size > 1000 for p in pictures)
+    assert "<th>coverage</th>" in page  # PSNR beside coverage, in the table and in the summary line
+    assert re.search(r"PSNR [\d.]+ dB before, [\d.]+ dB after [\d.]+ s of fine-tuning \(coverage \d+%\)", page)
     record = json.loads((out / "reconstruct.json").read_text())
     assert record["process"]["images_registered"] == VIEWS and (out / "scene" / "sparse" / "0").is_dir()
     assert (out / "export" / "mesh.glb").is_file() and (out / "finetune" / "checkpoint").is_dir()

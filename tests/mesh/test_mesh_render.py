@@ -223,3 +223,29 @@ def test_bench_refuses_a_non_omnirecon_checkpoint(tmp_path, capsys):
     assert main(["bench", "--quick", "--ckpt", str(tmp_path / "gpnr"), "--out", str(tmp_path / "x.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs an Omni-Recon checkpoint" in err[0]
+
+
+def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path):
+    """`omnirecon bench --scene S --mesh M` times the mesh path on that capture's own mesh, its test views at
+    the photos' size (fern's completed meshes are what users render); --scene without --mesh is refused."""
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.mesh.build import MeshOptions, mesh_from_model
+    from omnirecon.mesh.files import write_mesh
+
+    scene_dir = generate_scene(tmp_path / "fwd", 900_321, SynthOptions(rig="forward", resolution=48, views=12))
+    scene = load_at_resolution(scene_dir, 48)
+    made = mesh_from_model(None, scene, scene.splits["train"], MeshOptions(depth="oracle", max_faces=4000))
+    (mesh_file,) = write_mesh(made.mesh, [tmp_path / "mesh.ply"], scene.to_input)
+    out = tmp_path / "fps.json"
+    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--threads", "1", "--scene",
+                           str(scene_dir), "--mesh", str(mesh_file), "--out", str(out)],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    r = json.loads(out.read_text())
+    assert r["scene"]["kind"] == "capture" and r["scene"]["rig"] == "forward"
+    assert r["scene"]["faces"] == len(made.mesh.faces) and r["mesh"]["resolution"] == [48, 48]
+    assert r["scene"]["target_view_ids"] == scene.splits["test"] and r["scene"]["coverage"] == 1.0
+    assert not set(r["scene"]["source_view_ids"]) & set(scene.splits["test"])
+    bad = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--scene", str(scene_dir)],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--mesh" in bad.stderr

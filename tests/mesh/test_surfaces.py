@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -102,18 +104,27 @@ def test_poisson_closes_a_hole_and_stays_inside_the_masks():
 
 
 def test_auto_depth_by_scene_kind(forward_scene):  # noqa: F811
+    """`--depth auto` follows the Depth-sources rows (default_depth's docstring): stereo with completion on
+    forward-facing captures (fern) and masked object captures (DTU), stereo+model on the other object rigs
+    (the demo scene)."""
     from types import SimpleNamespace
 
     from omnirecon.mesh.build import default_depth
+    from omnirecon.workflows.mesh import MeshConfig
 
     photos = SimpleNamespace(mesh_path=None, rig="forward")
     procedural = SimpleNamespace(mesh_path="mesh.ply", rig="object")
-    assert default_depth(photos, has_model=True) == "stereo+model"
-    assert default_depth(procedural, has_model=True) == "stereo+model"  # measured best on every kind
+    assert default_depth(photos, has_model=True) == "stereo"  # fern: stereo+fill >= stereo+model
+    assert default_depth(procedural, has_model=True) == "stereo+model"  # the demo scene
     assert default_depth(procedural, has_model=False) == default_depth(photos, has_model=False) == "stereo"
     masked = SimpleNamespace(mesh_path=None, rig="object", masks=torch.ones(2, 4, 4, dtype=torch.bool))
-    assert default_depth(masked, has_model=True, masks=True) == "stereo+model"  # few views: stereo alone is sparse
+    assert default_depth(masked, has_model=True, masks=True) == "stereo"  # DTU with --masks
     assert default_depth(masked, has_model=True, masks=False) == "stereo+model"
+    unmasked = SimpleNamespace(mesh_path=None, rig="object", masks=None)
+    assert default_depth(unmasked, has_model=True, masks=True) == "stereo+model"  # --masks but none to read
+    # what `omnirecon mesh` and `reconstruct` (through MeshConfig) do with a forward-facing scene
+    opts = MeshConfig(scene=forward_scene, ckpt=Path("unused")).mesh_options(photos, has_model=True)
+    assert opts.depth == "stereo" and opts.complete
 
 
 def test_no_surface_where_the_photos_show_the_background(tmp_path):
