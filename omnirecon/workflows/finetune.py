@@ -132,9 +132,10 @@ class FinetuneConfig(ThreadsConfig):
     """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
     camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
     source. Without --views the sources are then every training view except the validation views. DTU's wide
-    rig (held-out views 0 13 35 48; stereo+fill mesh of dtu_scan24 / 37, before tuning): the fixed 23 24 33,
-    whose nearest is 11-57 degrees from a held-out view, 18.45 / 14.92 dB over the masks; the 3 nearest of the
-    41 training views (about 10 degrees), 23.97 / 19.99."""
+    rig (held-out views 0 13 35 48, stereo+fill mesh of 14 views, dtu_scan24 / 37 over the masks before tuning,
+    `python -m bench depth_sources`): the fixed 23 24 33 (15-57 degrees from a held-out view) 18.45 / 14.92 dB;
+    --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
+    24.69 / 21.10."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
