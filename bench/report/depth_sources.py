@@ -73,7 +73,7 @@ def section(results: Path) -> str:
            f"where the photo shows the scene's known background colour; `, K sources`: scored with `finetune --num-views K` "
            f"(3 otherwise); `, exposure`: tuned with `--tune encoder appearance exposure`; `, nearest K`: scored with "
            "`finetune --nearest K` (every training view but validation a source, each pixel blending the K nearest its "
-           "view, never the view itself); `, all views` (DTU): meshed from all 41 training views. Rows marked tuned got {r['tuning_seconds']:.0f} "
+           f"view, never the view itself); `, all views` (DTU): meshed from all 41 training views. Rows marked tuned got {r['tuning_seconds']:.0f} "
            "CPU-s of tuning. PSNR: whole image (DTU: over the object mask); covered: over the pixels the mesh covers; "
            "coverage: held-out pixels on the mesh (DTU: of the mask); mesh s: CPU seconds images -> mesh (1 thread). "
            "Goals: fern ≥ 24 dB whole image after tuning with coverage ≥ 99 %; DTU ≥ 22 dB over the mask, IoU ≥ 0.95; "
