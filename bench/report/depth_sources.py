@@ -36,7 +36,8 @@ def loss_split(rows: list[dict]) -> list[str]:
         cov = best.get("psnr_covered") or {}
         line = f"- **{scene}**: best `{best['source']}` {f(b)} → {f(a)} dB"
         if scene in GOALS:
-            line += f" ({GOALS[scene][0]}: short by {GOALS[scene][1] - (a or b):.2f} dB)"
+            gap = GOALS[scene][1] - (a or b)
+            line += f" ({GOALS[scene][0]}: " + (f"short by {gap:.2f} dB)" if gap > 0 else f"met, {-gap:.2f} dB over)")
         exact = next((r for r in rs if r["source"] == "exact mesh"), None)
         oracle = next((r for r in rs if r["source"] == "oracle"), None)
         if cov.get("before") is not None and "psnr_masked" not in best and exact is None:  # photos with content everywhere

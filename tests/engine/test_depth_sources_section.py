@@ -55,3 +55,15 @@ def test_nearest_and_all_views_variants():
     _, every = held_out(scene, PROTOCOLS["dtu"], every_view=True)
     assert len(few) == 14 and len(every) == 41 and set(few) < set(every)
     assert not set(every) & {0, 6, 13, 19, 28, 35, 42, 48} and set(targets) == {0, 13, 35, 48}
+
+
+def test_a_goal_met_says_so(tmp_path):
+    """A best row above its goal reads "met", never "short by" a negative number."""
+    from omnirecon.provenance import provenance
+
+    rows = [{"scene": "dtu_scan24", "source": "stereo+fill, nearest 4", "psnr": {"before": 19.0, "after": 19.0},
+             "psnr_masked": {"before": 24.5, "after": 24.5}, "coverage": 0.98, "silhouette_iou": 0.98}]
+    (tmp_path / "depth_sources.json").write_text(json.dumps({"provenance": provenance(seed=0), "tuning_seconds": 60,
+                                                              "rows": rows}))
+    text = section(tmp_path)
+    assert "met, 2.50 dB over" in text and "short by -" not in text
