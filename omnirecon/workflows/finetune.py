@@ -53,7 +53,7 @@ from omnirecon.engine.views import check_views, default_views, select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.fill import with_fill
+from omnirecon.mesh.fill import layer_box, with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -191,7 +191,8 @@ def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] 
         for i in indices:
             cam = scene.cameras[i]
             surf = rast.surface(cam)
-            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, bounds) if fill else (surf, len(surf.pixels))
+            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
+                else (surf, len(surf.pixels))
             img = scene.images[i].reshape(-1, 3)
             visible = None
             if dmax is not None:
