@@ -65,7 +65,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.mesh.fill import exit_depth, ray_basis, with_fill
+from omnirecon.mesh.fill import exit_depth, layer_box, ray_basis, with_fill
 from omnirecon.rays import Sources
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
@@ -315,7 +315,7 @@ class MeshRenderer:
         with torch.inference_mode():
             surf, covered = self.rasterizer.surface(camera), None
             if fill:
-                surf, covered = with_fill(surf, camera, self.sources.far, self.sources.bounds)
+                surf, covered = with_fill(surf, camera, self.sources.far, layer_box(self.sources.rig, self.sources.bounds))
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
             if self.options.fused:
@@ -443,7 +443,7 @@ class MeshRenderer:
         out = torch.empty(H * W, 3, dtype=self.dtype, device=self.device)
         fill = self.options.fill == "far"
         background = torch.tensor(self.options.background, dtype=self.dtype, device=self.device)
-        far, bounds = self.sources.far, self.sources.bounds
+        far, bounds = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
 
         def shade(sl: slice) -> None:
             z = depth[sl]  # [n]

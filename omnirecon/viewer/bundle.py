@@ -39,6 +39,7 @@ import torch
 
 from omnirecon.data.io import write_image
 from omnirecon.errors import InputError
+from omnirecon.mesh.fill import layer_box
 
 FORMAT = "omnirecon-viewer"
 VERSION = 1
@@ -182,7 +183,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         "background": [float(c) for c in background], "up": up.tolist(),
         "visibility": {"default": bool(visibility), "tol": float(renderer.options.visibility_tol)},
         "fill": {"default": bool(fill), "far": float(sources.far),
-                 "box": None if sources.bounds is None else sources.bounds.double().cpu().tolist()},
+                 "box": None if layer_box(sources.rig, sources.bounds) is None else sources.bounds.double().cpu().tolist()},
         "camera": _camera_dict(cams_in[0]),
         "sources": {"count": K, "width": W, "height": H, "names": [str(n) for n in names], "images": files,
                     "proj": tables["proj"], "centers": tables["centers"],

@@ -49,11 +49,11 @@ from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
 from omnirecon.engine.machine import ThreadsConfig, set_threads
 from omnirecon.engine.protocols import protocol_for, targets_and_pool
 from omnirecon.engine.scenes import load_at_resolution, photo_side
-from omnirecon.engine.views import check_views, default_views
+from omnirecon.engine.views import check_views, default_views, select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.fill import with_fill
+from omnirecon.mesh.fill import layer_box, with_fill
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -128,6 +128,14 @@ class FinetuneConfig(ThreadsConfig):
     """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend;
     `background`, the scene's background colour; `auto`: `background` for scenes that declare their
     background colour (procedural), else `far`. Tuning samples only pixels on the mesh."""
+    nearest: int = 0
+    """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
+    camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
+    source. Without --views the sources are then every training view except the validation views. DTU's wide
+    rig (held-out views 0 13 35 48, stereo+fill mesh of 14 views, dtu_scan24 / 37 over the masks before tuning,
+    `python -m bench depth_sources`): the fixed 23 24 33 (15-57 degrees from a held-out view) 18.45 / 14.92 dB;
+    --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
+    24.69 / 21.10."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
@@ -183,7 +191,8 @@ def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] 
         for i in indices:
             cam = scene.cameras[i]
             surf = rast.surface(cam)
-            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, bounds) if fill else (surf, len(surf.pixels))
+            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
+                else (surf, len(surf.pixels))
             img = scene.images[i].reshape(-1, 3)
             visible = None
             if dmax is not None:
@@ -290,6 +299,35 @@ class Clock:
         return self.spent + (self.read() - self._start if self._start is not None else 0.0)
 
 
+def every_training_view(pool: list[int], targets: list[int], scene, n_val: int) -> list[int]:
+    """The sources of ``--nearest`` without ``--views``: the training views (the protocol's pool, never a
+    held-out or test view) but the ``n_val`` validation views :func:`pick_validation` would pick from them."""
+    train = [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]
+    val = set(pick_validation(train, [], n_val))
+    return [i for i in train if i not in val]
+
+
+def nearest_blend(scene, view: int, sources: list[int], k: int) -> torch.Tensor:
+    """Which of ``sources`` view ``view`` blends under ``--nearest k``: the ``k`` nearest to it, never
+    ``view`` itself (a tuning view that is also a source learns from the others). ``# [K]`` bool"""
+    others = [s for s in sources if s != view]
+    keep = set(select_sources(scene, scene.cameras[view], others, min(k, len(others)))) if others else set()
+    return torch.tensor([s in keep for s in sources], dtype=torch.bool)
+
+
+def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
+    """Mask every pixel of each view in ``pixels`` to its :func:`nearest_blend` sources (in place; ``k`` = 0:
+    unchanged). A point the occlusion test hides from all of them blends those ``k`` (not every source)."""
+    if k <= 0:
+        return
+    for v in pixels:
+        near = nearest_blend(scene, v.index, sources, k)  # [K]
+        vis = v.visible if v.visible is not None else torch.ones(len(v.points), len(sources), dtype=torch.bool)
+        vis = vis & near  # [P, K]
+        vis[~vis.any(-1)] = near
+        v.visible = vis
+
+
 def pick_validation(train_views: list[int], sources: list[int], n: int) -> list[int]:
     """``n`` training views, evenly spaced, never a source; always leaves a view to tune on."""
     cand = [i for i in train_views if i not in set(sources)]
@@ -327,8 +365,13 @@ class Setup:
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
     """``(sources, held-out targets, validation views, tuning views)``; refuses sources that are held out."""
-    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     targets, pool = targets_and_pool(proto, scene)
+    if cfg.views:
+        views = check_views(cfg.views, len(scene), cfg.scene)
+    elif cfg.nearest:  # every training view a source, but the validation views
+        views = every_training_view(pool, targets, scene, cfg.val_views)
+    else:
+        views = default_views(scene, cfg.num_views)
     held = sorted(set(views) & (set(targets) | set(scene.splits.get("test", []))))
     if held:
         raise InputError(f"--views names held-out view(s) {held}: they are scored, never used as sources", cfg.scene,
@@ -364,6 +407,8 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis) if len(v.points)]
     held_px = rasterize_views(mesh, scene, targets, fill, vis)
     val_px = rasterize_views(mesh, scene, val_views, fill, vis)
+    for px in (train_px, held_px, val_px):
+        restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,

@@ -40,3 +40,30 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
                                                             "tune": ("encoder", "appearance", "exposure")}
     with pytest.raises(ValueError, match="unknown variant"):
         scoring("stereo+fill, 8 views")
+
+
+def test_nearest_and_all_views_variants():
+    """``, nearest K`` scores with ``finetune --nearest K``; ``, all views`` (DTU) meshes every training view, never a
+    held-out one."""
+    from bench.depth_sources import held_out, scoring
+    from omnirecon.engine.protocols import PROTOCOLS
+
+    assert scoring("stereo+fill, nearest 4") == {"nearest": 4}
+    assert scoring("stereo+fill, nearest 4, all views") == {"nearest": 4}
+    scene = type("S", (), {"splits": {}, "path": "dtu", "__len__": lambda self: 49})()
+    targets, few = held_out(scene, PROTOCOLS["dtu"])
+    _, every = held_out(scene, PROTOCOLS["dtu"], every_view=True)
+    assert len(few) == 14 and len(every) == 41 and set(few) < set(every)
+    assert not set(every) & {0, 6, 13, 19, 28, 35, 42, 48} and set(targets) == {0, 13, 35, 48}
+
+
+def test_a_goal_met_says_so(tmp_path):
+    """A best row above its goal reads "met", never "short by" a negative number."""
+    from omnirecon.provenance import provenance
+
+    rows = [{"scene": "dtu_scan24", "source": "stereo+fill, nearest 4", "psnr": {"before": 19.0, "after": 19.0},
+             "psnr_masked": {"before": 24.5, "after": 24.5}, "coverage": 0.98, "silhouette_iou": 0.98}]
+    (tmp_path / "depth_sources.json").write_text(json.dumps({"provenance": provenance(seed=0), "tuning_seconds": 60,
+                                                              "rows": rows}))
+    text = section(tmp_path)
+    assert "met, 2.50 dB over" in text and "short by -" not in text

@@ -249,3 +249,28 @@ def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path):
     bad = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--scene", str(scene_dir)],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--mesh" in bad.stderr
+
+
+def test_the_far_layer_of_an_object_rig_lies_at_the_far_depth(setup):
+    """Object rigs put the background layer at the sources' far z-depth (the bounds hug the object, and a layer on
+    their far side painted the object beside itself from sources far apart); other rigs keep it on the bounds' far
+    side (``finetune``'s pixels; the renderer calls the same ``layer_box``)."""
+    from dataclasses import replace
+
+    from omnirecon.mesh.fill import layer_box
+    from omnirecon.workflows.finetune import rasterize_views
+
+    scene, mesh, *_ = setup
+    assert scene.rig == "object"
+    assert layer_box("object", scene.bounds) is None and layer_box("forward", scene.bounds) is scene.bounds
+    keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    far = float(scene.far.max())
+    for rig, at_far in (("object", True), ("forward", False)):
+        s = replace(scene, rig=rig)
+        (v,) = rasterize_views(half, s, [0], fill=True)
+        z = s.cameras[0].project(v.points[v.covered:].double()).depth[0]  # [M] the layer's z-depths
+        assert len(z) > 100
+        assert torch.allclose(z, torch.full_like(z, far), rtol=1e-4) == at_far
+        if not at_far:
+            assert (z < 0.99 * far).float().mean() > 0.5  # the bounds' far side, in front of the far depth

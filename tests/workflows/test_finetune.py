@@ -203,3 +203,55 @@ def test_visibility_masks_the_sources_that_see_something_else(setup):
     assert (view.visible == truth).float().mean() > 0.9
     (filled,) = rasterize_views(mesh, scene, [13], fill=True, sources=sources)
     assert bool(filled.visible[filled.covered:].all()) and np.isfinite(filled.points.numpy()).all()
+
+
+def test_nearest_sources_blend_only_the_views_nearest_each_view(setup):
+    """``--nearest k``: each view's pixels blend only the ``k`` sources nearest that view, never the view's
+    own photo (a tuning view that is a source), and a point the occlusion test hides from all of them blends those
+    ``k``; ``k`` = 0 changes nothing."""
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.engine.views import select_sources
+    from omnirecon.mesh.files import read_mesh
+    from omnirecon.workflows.finetune import rasterize_views, restrict_to_nearest
+
+    _, path = setup
+    scene = load_at_resolution(path, 48)
+    mesh = read_mesh(path / "mesh.ply", scene.to_input)
+    sources = [0, 2, 5, 8, 10, 12, 13, 14]
+    (view,) = rasterize_views(mesh, scene, [13], fill=True, sources=sources)
+    view.visible[:5] = False  # points hidden from every source
+    before = view.visible.clone()
+    restrict_to_nearest([view], scene, sources, 0)
+    assert torch.equal(view.visible, before)
+    restrict_to_nearest([view], scene, sources, 2)
+    near = select_sources(scene, scene.cameras[13], [s for s in sources if s != 13], 2)
+    allowed = torch.tensor([s in near for s in sources])
+    assert 13 not in near and len(near) == 2
+    assert not view.visible[:, ~allowed].any()  # only the 2 nearest, never view 13 itself
+    assert view.visible.any(-1).all()  # every point blends at least one of them
+    hidden = ~(before & allowed).any(-1)  # the occlusion test left none of the nearest: both are blended
+    assert hidden.any() and view.visible[hidden][:, allowed].all()
+    kept = ~hidden
+    assert torch.equal(view.visible[kept], (before & allowed)[kept])
+
+
+def test_nearest_sources_without_views_use_every_training_view_but_validation(setup):
+    """Without ``--views``, ``--nearest`` makes every training view a source except the validation views;
+    no held-out view is a source, and validation is still chosen."""
+    from omnirecon.data import detect_format
+    from omnirecon.engine.protocols import protocol_for
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.workflows.finetune import FinetuneConfig, split_views
+
+    root, path = setup
+    scene = load_at_resolution(path, 48)
+    proto = protocol_for(path, detect_format(path))
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=path, nearest=3, val_views=2)
+    views, targets, val_views, tune_views = split_views(cfg, scene, proto)
+    train = scene.splits.get("train") or [i for i in range(len(scene)) if i not in targets]
+    assert len(val_views) == 2 and not set(val_views) & set(views)
+    assert not set(views) & (set(targets) | set(scene.splits.get("test", [])))
+    assert sorted(views + val_views) == sorted(i for i in train if i not in targets)
+    assert tune_views and set(tune_views) <= set(views)  # tuning views are sources (each blends the others)
+    default, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path), scene, proto)
+    assert len(default) == 3
