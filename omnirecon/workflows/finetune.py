@@ -106,10 +106,11 @@ class FinetuneConfig(ThreadsConfig):
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels). Default: the appearance branch alone (737 weights; the source features are
     encoded once). With the visibility test the encoder (154k weights) over-fits the tuning views and its pass over
-    the sources makes steps 15-30x dearer: dtu_scan24 in 30 CPU-s, tuning views +0.22 dB, validation -0.26 dB; at
-    60 CPU-s (`python -m bench depth_sources` meshes, held-out views, encoder + appearance at 5e-4 -> appearance at
-    3e-3): fern 3 sources +0.29 -> +0.42 dB, fern 8 sources +0.00 -> +0.60 (120 -> 1772 steps), dtu_scan24 objects
-    +0.00 -> +0.36; the demo scene +0.28 -> +0.04 (the one scene where the encoder helped)."""
+    the sources makes steps 15-30x dearer: dtu_scan24 in 30 CPU-s, tuning views +0.22 dB, validation -0.26 dB.
+    Held-out gain at 60 CPU-s, encoder + appearance at 5e-4 -> appearance at 3e-3 (`python -m bench finetune_levers`,
+    the stereo+fill meshes): fern +0.28 -> +0.37 dB (296 -> 3837 steps), dtu_scan24 objects +0.00 -> +0.33; fern with
+    8 sources +0.00 -> +0.60 (120 -> 1772 steps). Worse on the demo scene, the one scene where the encoder helped:
+    +0.28 -> -0.02 at 60 s (`finetune_curves`' mesh), `omnirecon demo`'s 30 s +0.41 -> +0.17 dB."""
     reg: float = 0.0
     """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
     val_views: int = 2
