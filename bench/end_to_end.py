@@ -88,8 +88,12 @@ def verdict(kind: str, run: dict) -> dict:
 
 
 def collect_demo(out: Path, time_file: Path, setup_file: Path | None, command: str) -> dict:
-    run = {"command": command, "whole": read_time(time_file),
-           "stages_cpu_s": stages(json.loads((Path(out) / "demo.json").read_text()))}
+    numbers = json.loads((Path(out) / "demo.json").read_text())
+    run = {"command": command, "whole": read_time(time_file), "stages_cpu_s": stages(numbers)}
+    if numbers.get("finetune"):  # the mesh path's held-out PSNR before -> after the demo's tuning, and its coverage
+        ft = numbers["finetune"]
+        run["finetune"] = {"whole_image": [round(x, 2) for x in ft["whole_image"]], ft["metric"]: [
+            round(ft["before"], 2), round(ft["after"], 2)], "coverage": round(ft["coverage"], 3), "steps": ft["steps"]}
     if setup_file:
         run["setup"] = read_time(setup_file)
     return run | {"verdict": verdict("demo", run)}

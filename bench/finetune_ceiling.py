@@ -12,6 +12,9 @@ held-out views, sources, resolution and fill as ``omnirecon finetune`` (PSNR per
 subset of ``PIXELS`` pixels of the image and of the object mask, averaged over views) and reports it beside
 the pretrained model's on the same pixels: the gap is the ceiling of every tuning lever that changes blend weights. (Per-source
 exposure scales the colours and can exceed it slightly; ``exposure`` rows of ``python -m bench finetune_levers`` measure it.)
+With the visibility test (``omnirecon finetune``'s default; ``--no-visibility`` to drop it) the model blends, and
+the ceiling chooses among, only the sources that see each point, as ``finetune`` does; ``ceiling_all`` is the best blend
+over every source the point projects into (occluded ones too): what the test itself gives up.
 Results merge into ``bench/results/finetune_ceiling.json``.
 """
 
@@ -57,7 +60,8 @@ def best_blend(colours: torch.Tensor, allowed: torch.Tensor, target: torch.Tenso
 
 
 @torch.no_grad()
-def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_views: int = 3, max_held_out: int = 4) -> dict:
+def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_views: int = 3, max_held_out: int = 4,
+            visibility: bool = True) -> dict:
     from omnirecon.data import detect_format
     from omnirecon.engine.checkpoint import load_checkpoint
     from omnirecon.engine.protocols import protocol_for, targets_and_pool
@@ -65,7 +69,7 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
     from omnirecon.engine.views import default_views
     from omnirecon.mesh.files import read_mesh
     from omnirecon.rays import Sources
-    from omnirecon.workflows.finetune import encode_maps, rasterize_views
+    from omnirecon.workflows.finetune import encode_maps, rasterize_views, visible_at
 
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
     model.eval()
@@ -79,10 +83,12 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
     sources = Sources.from_scene(scene, views)
     background = scene.background if scene.background is not None else (
         (0.0,) * 3 if proto.background == "black" else (1.0,) * 3)
-    held = rasterize_views(read_mesh(mesh_file, scene.to_input), scene, targets, scene.background is None)
+    held = rasterize_views(read_mesh(mesh_file, scene.to_input), scene, targets, scene.background is None,
+                           views if visibility else None)
     feats = encode_maps(model, sources)
     g = torch.Generator().manual_seed(0)
-    scores = {"model": {"psnr": [], "psnr_masked": []}, "ceiling": {"psnr": [], "psnr_masked": []}}
+    names = ("model", "ceiling", "ceiling_all") if visibility else ("model", "ceiling")
+    scores = {name: {"psnr": [], "psnr_masked": []} for name in names}
     for v in held:
         gt = scene.images[v.index].reshape(-1, 3).float()
         where = torch.full((len(gt),), -1, dtype=torch.long)
@@ -95,15 +101,20 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
             shaded = where[pix] >= 0
             sub = where[pix][shaded]
             seen = model.gather(feats, v.points[sub][:, None], v.origin.expand(len(sub), 3))
-            colours = {"model": model.shade(feats, v.points[sub], v.origin.expand(len(sub), 3))["rgb"].clamp(0, 1),
-                       "ceiling": best_blend(seen.rgb[:, 0].float(), seen.mask[:, 0], v.target[sub])}
+            vis = visible_at(v, sub)  # [n, K] the occlusion test (None without it)
+            allowed = seen.mask[:, 0] if vis is None else seen.mask[:, 0] & vis
+            colours = {"model": model.shade(feats, v.points[sub], v.origin.expand(len(sub), 3), vis)["rgb"].clamp(0, 1),
+                       "ceiling": best_blend(seen.rgb[:, 0].float(), allowed, v.target[sub])}
+            if vis is not None:
+                colours["ceiling_all"] = best_blend(seen.rgb[:, 0].float(), seen.mask[:, 0], v.target[sub])
             for name, rgb in colours.items():
                 img = torch.tensor(background, dtype=torch.float32).expand(len(pix), 3).clone()
                 img[shaded] = rgb.float()
                 scores[name][key].append(float(-10 * torch.log10((img - gt[pix]).square().mean().clamp_min(1e-10))))
     out = {"scene": str(path), "mesh": str(mesh_file), "sources": views, "held_out": targets,
-           "resolution": [scene.width, scene.height], "pixels_per_view": PIXELS, "load_average": os.getloadavg()[0]}
-    for name in ("model", "ceiling"):
+           "resolution": [scene.width, scene.height], "pixels_per_view": PIXELS, "load_average": os.getloadavg()[0],
+           "visibility": visibility}
+    for name in names:
         out[name] = {k: float(np.mean(x)) for k, x in scores[name].items() if x}
     return out
 
@@ -111,10 +122,14 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
 def main(argv: list[str] | None = None) -> dict:
     from bench.finetune_levers import merge, scene_parser, scenes_and_meshes
 
-    a = scene_parser(__doc__).parse_args(argv)
+    p = scene_parser(__doc__)
+    p.add_argument("--num-views", type=int, default=3, help="sources K (as omnirecon finetune --num-views)")
+    p.add_argument("--no-visibility", dest="visibility", action="store_false",
+                   help="blend every source the point projects into (finetune --no-visibility)")
+    a = p.parse_args(argv)
     result = {}
     for name, path, mesh in scenes_and_meshes(a):
-        row = ceiling(path, mesh)
+        row = ceiling(path, mesh, num_views=a.num_views, visibility=a.visibility)
         print(name, row["model"], "->", row["ceiling"])
         result = merge(a.out / "finetune_ceiling.json", name, row)
     return result

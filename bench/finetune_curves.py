@@ -70,7 +70,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
             "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
     return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
-            "sources": ft["sources"], "rays": ft["rays"], "tuned": ft["tuned"], "precision": ft["precision"],
+            "sources": ft["sources"], "rays": ft["rays"], "tuned": ft["tuned"], "lr": ft["lr"], "precision": ft["precision"],
             "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
             "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),

@@ -24,13 +24,15 @@ from omnirecon.data.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = {
-    "base": {"tune": ("encoder", "appearance"), "rays": 2048},
-    "rays8k": {"tune": ("encoder", "appearance"), "rays": 8192},
-    "bf16": {"tune": ("encoder", "appearance"), "rays": 8192, "precision": "bf16"},
+    "base": {"tune": ("encoder", "appearance"), "rays": 2048, "lr": 5e-4},
+    "rays8k": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4},
+    "bf16": {"tune": ("encoder", "appearance"), "rays": 8192, "precision": "bf16", "lr": 5e-4},
     "lr2e-3": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 2e-3},
-    "appearance": {"tune": ("appearance",), "rays": 8192},
-    "encoder": {"tune": ("encoder",), "rays": 8192},
-    "exposure": {"tune": ("encoder", "appearance", "exposure"), "rays": 8192},
+    "appearance": {"tune": ("appearance",), "rays": 8192, "lr": 5e-4},
+    "appearance_lr3e-3": {"tune": ("appearance",), "rays": 8192, "lr": 3e-3},
+    "encoder": {"tune": ("encoder",), "rays": 8192, "lr": 5e-4},
+    "exposure": {"tune": ("encoder", "appearance", "exposure"), "rays": 8192, "lr": 5e-4},
+    "appearance_exposure": {"tune": ("appearance", "exposure"), "rays": 8192, "lr": 3e-3},
 }
 """Lever rows: overrides of :class:`~omnirecon.workflows.finetune.FinetuneConfig`."""
 KEEP = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",

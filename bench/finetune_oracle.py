@@ -4,9 +4,9 @@
 
 An oracle that never ships: ``omnirecon finetune``'s loop (same model, mesh, sources, resolution, pixels per
 step, CPU clock, 1 thread) tunes on the held-out views' own pixels, with no validation views (the state at
-each time is scored). Its test PSNR is the most these tuned weights (encoder + appearance branch) can give
-on those views in that time; beside the real run (tuned on the training views, ``python -m bench
-finetune_curves``) and the blend ceiling (the best per-pixel convex blend of the source colours, ``python -m
+each time is scored), tuning what ``finetune`` tunes by default (its ``--tune`` and ``--lr``). Its test PSNR
+is the most these tuned weights can give on those views in that time; beside the real run (tuned on the
+training views, ``python -m bench finetune_curves``) and the blend ceiling (the best per-pixel convex blend of the source colours, ``python -m
 bench finetune_ceiling``), it splits the missing gain in two: **generalisation** (oracle minus real: what
 the training views do not teach about the held-out views) and **capacity** (ceiling minus oracle: per-pixel
 blends that a network of the encoder's and appearance branch's form cannot produce in that time).
@@ -57,7 +57,7 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
     cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                          eval_at=tuple(t for t in TIMES if t <= seconds), clock="cpu", threads=threads,
                          max_held_out=4, val_views=0 if mode == "oracle" else 2,
-                         tune=("encoder", "appearance") if mode == "oracle" else ("appearance",),
+                         **({} if mode == "oracle" else {"tune": ("appearance",), "lr": 5e-4}),
                          out=ROOT / "outputs" / "bench" / "finetune_oracle")
     set_threads(threads)
     s = prepare(cfg)
@@ -73,7 +73,8 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "val_psnr", "returned_from")
     return {"scene": str(path), "mesh": str(mesh), "mode": mode, "held_out": s.targets, "sources": s.views,
             "resolution": [s.scene.width, s.scene.height], "tuned": list(cfg.tune) + (["maps"] if mode == "maps" else []),
-            "rays": cfg.rays, "clock": cfg.clock, "threads": threads, "budget_s": seconds,
+            "rays": cfg.rays, "lr": cfg.lr, "visibility": cfg.visibility, "clock": cfg.clock, "threads": threads,
+            "budget_s": seconds,
             "curve": [{k: c[k] for k in keep if k in c} for c in t.curve]}
 
 

@@ -28,7 +28,11 @@ def _end_to_end(r: dict) -> str:
                   f"{v['limiting_stage_cpu_s']} CPU s ({100 * v['limiting_share']:.0f} %). Whole command {w['cpu_s']} "
                   f"CPU s, {w['wall_s']} s wall at load {run.get('load')}, peak RSS {w['peak_rss_mb']} MB."
                   + (f" `make setup` before it: {run['setup']['cpu_s']} CPU s, {run['setup']['wall_s']} s wall."
-                     if run.get("setup") else ""), "",
+                     if run.get("setup") else "")
+                  + (" Fine-tuning (held-out, mesh path, visibility test): whole image "
+                     + " -> ".join(f"{x:.2f}" for x in run["finetune"]["whole_image"]) + " dB at coverage "
+                     f"{run['finetune']['coverage']:.0%}, {run['finetune']['steps']} steps." if run.get("finetune") else ""),
+                  "",
                   "| stage | CPU s | share |", "|---|---|---|"]
         total = v["stages_total_cpu_s"]
         lines += [f"| {k} | {s} | {100 * s / total:.0f} % |" for k, s in run["stages_cpu_s"].items()]

@@ -71,24 +71,25 @@ def section(results: Path) -> str:
         notes.append(f"- **{name}**: {row['resolution'][0]}x{row['resolution'][1]}, mesh: {row.get('mesh_note') or row['mesh']}"
                      f"{' (' + str(made['depth']) + ')' if made.get('depth') else ''}, {row['faces']:,} faces; held-out "
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
-                     f"({', '.join(row['tuned'])}, {row['precision']}"
+                     f"({', '.join(row['tuned'])}{', lr %g' % row['lr'] if 'lr' in row else ''}, {row['precision']}"
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
                      + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects"
                                                             if "psnr_masked" in first else "image")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "")
-                     + ("" if row.get("visibility") else "; scored before the visibility test (every source blended "
-                        "at every point; `finetune` now blends only the sources that see it, which raises the start: "
-                        "see Depth sources)") + ".")
+                     + ("" if row.get("visibility") else "; **scored before the visibility test** (every source "
+                        "blended at every point; `finetune` now blends only the sources that see it, which raises the "
+                        "start: see Depth sources)") + ".")
     gains = _gains(r["rows"], read(results, "finetune_ceiling.json"), read(results, "finetune_oracle.json"))
     pics = [f"![{n}: ground truth | before | after](bench/results/{row['pictures']['before_after']})"
             for n, row in r["rows"].items()]
     return "\n".join([
         "## Fine-tuning curves of the mesh path (`python -m bench finetune_curves`)",
         "",
-        "`omnirecon finetune` with its defaults (2-D encoder and appearance branch, images at the photos' own "
-        "resolution, 1 thread, `--clock cpu`: process CPU seconds, so other jobs on the machine do not shrink the "
+        "`omnirecon finetune` with its defaults (since session 13 the appearance branch alone at lr 3e-3, before "
+        "that the 2-D encoder and the appearance branch at 5e-4: each row's notes say what was tuned; images at the "
+        "photos' own resolution, 1 thread, `--clock cpu`: process CPU seconds, so other jobs on the machine do not shrink the "
         "budget) with the project's own meshes. Test: held-out PSNR in dB on the protocol's test views of the state "
         "tuning returns at that time (the best on validation views; the start is a candidate), over the whole image "
         "and, on scenes with masks, over the objects. A state's validation gain is on what the scene is scored by "

@@ -356,7 +356,7 @@ def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, o
                  f"whole image {c[0]['psnr']:.2f} -> {c[-1]['psnr']:.2f} dB (coverage {r['coverage']:.0%}; the best "
                  "state on validation views is kept)")
     return (Section("Fine-tuning the mesh path")
-            .text(f"`omnirecon finetune` for {seconds:.0f} s (wall clock): the 2-D encoder and the appearance branch, "
+            .text(f"`omnirecon finetune` for {seconds:.0f} s (wall clock): {' + '.join(r['tuned'])} (lr {r['lr']:g}), "
                   f"on the training views through the fixed mesh. Held-out PSNR over the pixels the mesh covers "
                   f"{c[0][key]:.2f} dB before, {c[-1][key]:.2f} dB after ({c[-1][key] - c[0][key]:+.2f} dB, "
                   f"{c[-1]['steps']} steps); over the whole image {c[0]['psnr']:.2f} -> {c[-1]['psnr']:.2f} dB; "

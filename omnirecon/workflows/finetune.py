@@ -6,11 +6,12 @@ curve and pictures); its pieces are small functions here because nothing else us
 The mesh is fixed (``--mesh`` or extracted from the model at the source views); every training view
 of the scene is rasterized once, giving one surface point per covered pixel, and every pixel the mesh
 misses a point on the fill's background layer (:func:`omnirecon.mesh.ibr.fill_points`, as the mesh
-renderer does), so every pixel is shaded. Each step samples ``--rays`` mesh pixels of the tuning views,
-encodes the source views with the 2-D encoder (the feature volume and the geometry branch are not used
-by the mesh path and are not computed), colours the points with the appearance branch
-(``OmniRecon.shade``) and takes an Adam step on the MSE to the training images. The 2-D encoder and the
-appearance branch change (``--tune``), optionally with a per-source affine colour (``exposure``) and
+renderer does), so every pixel is shaded. Each step samples ``--rays`` shaded pixels of the tuning views
+(mesh and fill), colours the points with the appearance branch (``OmniRecon.shade``, over the sources that
+see each point: ``--visibility``) from the source views' 2-D encoder features (the feature volume and the
+geometry branch are not used by the mesh path and are not computed; the features are encoded once unless the
+encoder is tuned) and takes an Adam step on the MSE to the training images. What changes is ``--tune``: the
+appearance branch by default, optionally the 2-D encoder and a per-source affine colour (``exposure``), with
 an L2 pull toward the pretrained weights (``--reg``).
 
 **Tuning never ends worse than it started.** ``--val-views`` training views (never sources) are kept
@@ -97,12 +98,19 @@ class FinetuneConfig(ThreadsConfig):
     step cost little: `python -m bench finetune_levers`)."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
-    lr: float = 5e-4
-    """Adam learning rate."""
-    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
+    lr: float = 3e-3
+    """Adam learning rate (3e-3 for the appearance branch alone; with the encoder tuned 5e-4 was the measured
+    default before the visibility test)."""
+    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("appearance",)
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
-    from the tuning views' mesh pixels)."""
+    from the tuning views' mesh pixels). Default: the appearance branch alone (737 weights; the source features are
+    encoded once). With the visibility test the encoder (154k weights) over-fits the tuning views and its pass over
+    the sources makes steps 15-30x dearer: dtu_scan24 in 30 CPU-s, tuning views +0.22 dB, validation -0.26 dB.
+    Held-out gain at 60 CPU-s, encoder + appearance at 5e-4 -> appearance at 3e-3 (`python -m bench finetune_levers`,
+    the stereo+fill meshes): fern +0.28 -> +0.37 dB (296 -> 3837 steps), dtu_scan24 objects +0.00 -> +0.33; fern with
+    8 sources +0.00 -> +0.60 (120 -> 1772 steps). Worse on the demo scene, the one scene where the encoder helped:
+    +0.28 -> -0.02 at 60 s (`finetune_curves`' mesh), `omnirecon demo`'s 30 s +0.41 -> +0.17 dB."""
     reg: float = 0.0
     """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
     val_views: int = 2
@@ -127,7 +135,10 @@ class FinetuneConfig(ThreadsConfig):
     fill: Literal["auto", "far", "background"] = "auto"
     """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend;
     `background`, the scene's background colour; `auto`: `background` for scenes that declare their
-    background colour (procedural), else `far`. Tuning samples only pixels on the mesh."""
+    background colour (procedural), else `far`. With `far`, tuning samples the fill's pixels too (they are
+    scored: on dtu_scan24 tuning only the mesh's pixels lowered the whole image on validation while raising the
+    objects, so the guard (--val-guard) returned the start; sampling them too: held-out objects +0.36 dB, whole
+    image +0.10)."""
     nearest: int = 0
     """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
     camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
@@ -546,12 +557,13 @@ class Tuned:
 
 
 class PixelSampler:
-    """Each step's pixels: a tuning view drawn by its mesh pixel count, then ``--rays`` of its mesh pixels
-    (a ``--objects`` share of them inside the object masks)."""
+    """Each step's pixels: a tuning view drawn by its shaded pixel count, then ``--rays`` of its shaded pixels
+    (on the mesh and, with ``--fill far``, on the fill's layer: both are scored; a ``--objects`` share of them
+    on the mesh inside the object masks)."""
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
         self.cfg, self.views, self.g = cfg, s.train_px, g
-        self.counts = torch.tensor([v.covered for v in s.train_px], dtype=torch.float64)  # pixels on the mesh
+        self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
         masks = s.scene.masks
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
                        else v.pixels[:0] for v in s.train_px]  # mesh pixels on the objects, per tuning view
@@ -559,8 +571,8 @@ class PixelSampler:
     def __call__(self) -> tuple[ViewPixels, torch.Tensor]:
         pick = int(torch.multinomial(self.counts, 1, generator=self.g))
         view, inside = self.views[pick], self.inside[pick]
-        n = min(self.cfg.rays, view.covered)
-        idx = torch.randint(view.covered, (n,), generator=self.g)
+        n = min(self.cfg.rays, len(view.points))
+        idx = torch.randint(len(view.points), (n,), generator=self.g)
         if self.cfg.objects > 0 and len(inside):
             k = int(round(self.cfg.objects * n))
             idx[:k] = inside[torch.randint(len(inside), (k,), generator=self.g)]

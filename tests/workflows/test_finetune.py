@@ -255,3 +255,32 @@ def test_nearest_sources_without_views_use_every_training_view_but_validation(se
     assert tune_views and set(tune_views) <= set(views)  # tuning views are sources (each blends the others)
     default, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path), scene, proto)
     assert len(default) == 3
+
+
+def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
+    """With ``--fill far`` the fill's pixels are scored, so tuning samples them too, in proportion to their share
+    of the tuning views' shaded pixels (tuning only the mesh's pixels lowered dtu_scan24's whole image on
+    validation, so the guard returned the start every time)."""
+    import trimesh
+
+    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, prepare
+
+    root, scene = setup
+    mesh = trimesh.load(scene / "mesh.ply", process=False, force="mesh")
+    c = mesh.vertices.mean(0)
+    small = trimesh.Trimesh(c + 0.5 * (mesh.vertices - c), mesh.faces, process=False)  # leaves most pixels to the fill
+    small.export(tmp_path / "small.ply")
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=tmp_path / "small.ply", resolution=48, fill="far",
+                         objects=0.0, rays=256)
+    s = prepare(cfg)
+    shaded = sum(len(v.points) for v in s.train_px)
+    fill_share = 1 - sum(v.covered for v in s.train_px) / shaded
+    assert 0.2 < fill_share < 0.95, fill_share
+    sample = PixelSampler(cfg, s, torch.Generator().manual_seed(0))
+    on_fill = total = 0
+    for _ in range(200):
+        view, idx = sample()
+        assert int(idx.max()) < len(view.points)
+        on_fill += int((idx >= view.covered).sum())
+        total += len(idx)
+    assert abs(on_fill / total - fill_share) < 0.05, (on_fill / total, fill_share)
