@@ -20,7 +20,7 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
 * ``<source>, sky kept`` (procedural scenes): the same without dropping depth where the photo shows the
   scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth;
 * ``<source>, K sources`` / ``<source>, exposure``: the same mesh scored with ``finetune --num-views K`` (the
-  mesh path blends K source views instead of 3) / tuned with ``--tune encoder appearance exposure``
+  mesh path blends K source views instead of 3) / tuned with ``--tune appearance exposure``
   (variants combine: ``stereo+fill, 8 sources, exposure``);
 * ``<source>, nearest K``: scored with ``finetune --nearest K``: every training view but the validation
   views is a source, and each pixel blends the K sources nearest its view (DTU: about 10 degrees away, against
@@ -162,7 +162,7 @@ def scoring(source: str) -> dict:
         elif part.startswith("nearest "):
             out["nearest"] = int(part.split()[1])
         elif part == "exposure":
-            out["tune"] = ("encoder", "appearance", "exposure")
+            out["tune"] = ("appearance", "exposure")
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out

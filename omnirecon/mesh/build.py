@@ -421,6 +421,7 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         if stages is not None:
             stages["completed"] = mesh
         seconds["complete"] = time.perf_counter() - t
+    counts["final"] = len(mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
     info = {"voxel": voxel, "trunc": trunc, "grid": list(volume.shape), "depth_disagreement": err,
             "consistency_rel": rel, "faces": counts, "seconds": seconds, "views": views,
             "options": asdict(options), "depth_maps": len(maps.cameras),

@@ -221,7 +221,7 @@ def mesh_numbers(rec: dict) -> dict:
     """The demo's numbers of one ``omnirecon mesh`` record."""
     met = rec.get("metrics", {})
     ch = met.get("chamfer", {})
-    return {"faces": rec["faces"]["components"], "chamfer": ch.get("chamfer"), "fscore": ch.get("fscore"),
+    return {"faces": rec["faces"].get("final", rec["faces"]["components"]), "chamfer": ch.get("chamfer"), "fscore": ch.get("fscore"),
             "chamfer_rel": met.get("chamfer_rel"), "mask_iou": met.get("mask_iou", {}).get("mean"),
             "seconds": rec["seconds"]["images_to_mesh"]}
 

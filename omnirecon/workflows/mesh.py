@@ -199,7 +199,7 @@ def previous_set(stem: Path) -> set[Path]:
 def summary_lines(record: dict) -> list[str]:
     """Human-readable lines about a :func:`run_mesh` record."""
     s = record["seconds"]
-    faces = record["faces"].get("completed", record["faces"].get("decimated", record["faces"]["components"]))
+    faces = record["faces"].get("final", record["faces"].get("decimated", record["faces"]["components"]))
     lines = [f"{record['vertices']:,} vertices, {faces:,} faces from "
              f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
              f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import trimesh
 
 from omnirecon.cli import main
 from omnirecon.workflows.demo import ROOT
@@ -21,6 +22,8 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     meshed = "omnirecon-tiny" if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file() else "ibrnet-tiny"
     assert set(numbers["mesh"]) == {meshed}  # one all-view mesh: the first shipped of demo.MESH_MODELS
     assert numbers["mesh"][meshed]["faces"] > 0 and numbers["mesh"][meshed]["chamfer"] > 0
+    written = trimesh.load(out / f"mesh_{meshed}.ply", process=False, force="mesh")
+    assert numbers["mesh"][meshed]["faces"] == len(written.faces)  # the mesh written, not the count before decimation
     page = (out / "index.html").read_text()
     for name in ("cameras.png", "orbit_gpnr-tiny/video", f"mesh_{meshed}.glb", "eval_floor/"):
         assert name in page, name
