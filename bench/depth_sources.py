@@ -20,7 +20,7 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
 * ``<source>, sky kept`` (procedural scenes): the same without dropping depth where the photo shows the
   scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth;
 * ``<source>, K sources`` / ``<source>, exposure``: the same mesh scored with ``finetune --num-views K`` (the
-  mesh path blends K source views instead of 3) / tuned with ``--tune appearance exposure``
+  mesh path blends K source views instead of 3) / tuned with ``--tune encoder appearance exposure``
   (variants combine: ``stereo+fill, 8 sources, exposure``);
 * ``<source>, nearest K``: scored with ``finetune --nearest K``: every training view but the validation
   views is a source, and each pixel blends the K sources nearest its view (DTU: about 10 degrees away, against
@@ -154,15 +154,16 @@ def picture(src: Path, dst: Path, max_width: int = 480) -> str:
 
 
 def scoring(source: str) -> dict:
-    """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring)."""
-    out = {}
+    """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring). Rows
+    without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``)."""
+    out = {"nearest": 0}
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
             out["num_views"] = int(part.split()[0])
         elif part.startswith("nearest "):
             out["nearest"] = int(part.split()[1])
         elif part == "exposure":
-            out["tune"] = ("appearance", "exposure")
+            out["tune"] = ("encoder", "appearance", "exposure")
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
@@ -193,7 +194,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
            "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
-           "visibility": ft.get("visibility", False),
+           "visibility": ft.get("visibility", False), "tuned": ft.get("tuned"), "lr": ft.get("lr"),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
@@ -221,7 +222,7 @@ def exact_row(name: str, tiny: bool) -> dict | None:
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4))
+                                     out=work / "finetune", max_held_out=4, nearest=0))
     return {"scene": name, "source": "exact mesh", "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
             **coverage_and_iou(gt, scene, ft["held_out"], False)}

@@ -56,7 +56,7 @@ def run_scene(name: str, path: Path, mesh: Path, seconds: float, threads: int, r
     times = tuple(t for t in (*TIMES, 300.0) if t <= seconds)
     run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                                 eval_at=times, clock="cpu", threads=threads, out=work_dir(name), resolution=resolution,
-                                max_held_out=4, save=save))
+                                max_held_out=4, save=save, nearest=0, tune=("appearance",), lr=3e-3))  # as measured
 
 
 def scene_row(name: str, mesh: Path, out: Path) -> dict:

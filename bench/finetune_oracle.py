@@ -57,7 +57,7 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
     cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                          eval_at=tuple(t for t in TIMES if t <= seconds), clock="cpu", threads=threads,
                          max_held_out=4, val_views=0 if mode == "oracle" else 2,
-                         **({} if mode == "oracle" else {"tune": ("appearance",), "lr": 5e-4}),
+                         nearest=0, tune=("appearance",), lr=3e-3 if mode == "oracle" else 5e-4,  # as measured
                          out=ROOT / "outputs" / "bench" / "finetune_oracle")
     set_threads(threads)
     s = prepare(cfg)

@@ -74,7 +74,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
                    if p.is_file()), None) if not tiny else None
     out = ROOT / "outputs" / "bench" / "mesh_path" / name
     cfg = FinetuneConfig(ckpt=ckpt, scene=path, seconds=max(times), eval_at=tuple(times), clock="cpu",
-                         mesh=cached, resolution=res, out=out, threads=threads, max_held_out=4)
+                         mesh=cached, resolution=res, out=out, threads=threads, max_held_out=4, nearest=0)
     ft = run_finetune(cfg)
     # the visibility ablation on the same mesh and held-out views, before tuning
     model, _ = load_checkpoint(ckpt)

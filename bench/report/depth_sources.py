@@ -72,7 +72,7 @@ def section(results: Path) -> str:
            "empty) for the rest, with completion (`mesh --depth auto` on object rigs without masks; auto is `stereo+fill` on forward-facing scenes and with masks); `+poisson`: screened Poisson over "
            f"the fused surface, trimmed to the masks; `oracle`: exact depth; `, sky kept`: without dropping the depth "
            f"where the photo shows the scene's known background colour; `, K sources`: scored with `finetune --num-views K` "
-           f"(3 otherwise); `, exposure`: tuned with `--tune appearance exposure`; `, nearest K`: scored with "
+           f"(3 otherwise); `, exposure`: tuned with `--tune encoder appearance exposure`; `, nearest K`: scored with "
            "`finetune --nearest K` (every training view but validation a source, each pixel blending the K nearest its "
            f"view, never the view itself); `, all views` (DTU): meshed from all 41 training views. Rows marked tuned got {r['tuning_seconds']:.0f} "
            "CPU-s of tuning. PSNR: whole image (DTU: over the object mask); covered: over the pixels the mesh covers; "

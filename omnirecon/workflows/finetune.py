@@ -85,9 +85,10 @@ class FinetuneConfig(ThreadsConfig):
     clock: Literal["wall", "cpu"] = "wall"
     """Budget clock: wall time, or this process's CPU time (fair when other jobs share the machine)."""
     views: tuple[int, ...] | None = None
-    """Source views (default: DTU's 23 24 33, else --num-views evenly spaced train views); never a held-out view."""
+    """Source views (default: every training view but the validation views with --nearest; with --nearest 0 DTU's
+    23 24 33, else --num-views evenly spaced train views); never a held-out view."""
     num_views: int = 3
-    """Source views K when --views is not given."""
+    """Source views K when neither --views nor --nearest is given."""
     mesh: Path | None = None
     """Mesh file in the input scene's frame (default: `omnirecon mesh`'s mesh from the model at the sources)."""
     resolution: int | None = None
@@ -98,19 +99,19 @@ class FinetuneConfig(ThreadsConfig):
     step cost little: `python -m bench finetune_levers`)."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
-    lr: float = 3e-3
-    """Adam learning rate (3e-3 for the appearance branch alone; with the encoder tuned 5e-4 was the measured
-    default before the visibility test)."""
-    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("appearance",)
+    lr: float = 5e-4
+    """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
+    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
-    from the tuning views' mesh pixels). Default: the appearance branch alone (737 weights; the source features are
-    encoded once). With the visibility test the encoder (154k weights) over-fits the tuning views and its pass over
-    the sources makes steps 15-30x dearer: dtu_scan24 in 30 CPU-s, tuning views +0.22 dB, validation -0.26 dB.
-    Held-out gain at 60 CPU-s, encoder + appearance at 5e-4 -> appearance at 3e-3 (`python -m bench finetune_levers`,
-    the stereo+fill meshes): fern +0.28 -> +0.37 dB (296 -> 3837 steps), dtu_scan24 objects +0.00 -> +0.33; fern with
-    8 sources +0.00 -> +0.60 (120 -> 1772 steps). Worse on the demo scene, the one scene where the encoder helped:
-    +0.28 -> -0.02 at 60 s (`finetune_curves`' mesh), `omnirecon demo`'s 30 s +0.41 -> +0.17 dB."""
+    from the tuning views' mesh pixels). With each pixel's nearest sources (the --nearest default) there is little
+    left to tune, and tuning the appearance branch alone at 3e-3 raised validation while lowering held-out views:
+    held-out whole image before -> after 60 CPU-s at --nearest 6, appearance at 3e-3 -> encoder + appearance at
+    5e-4: demo scene (`python -m bench depth_sources`' stereo+model mesh) 25.64 -> 25.18 against 25.64 -> 25.68;
+    fern (stereo+fill) 24.01 -> 24.01 both; dtu_scan24 at --nearest 4 over the mask 24.70 -> 24.57 against 24.70 ->
+    24.70. With 3 fixed sources (--nearest 0) the appearance branch alone gained more on the real scenes (fern
+    +0.28 -> +0.37 dB, dtu_scan24 objects +0.00 -> +0.33, `python -m bench finetune_levers`) and less on the demo
+    scene (+0.28 -> -0.02)."""
     reg: float = 0.0
     """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
     val_views: int = 2
@@ -139,14 +140,17 @@ class FinetuneConfig(ThreadsConfig):
     scored: on dtu_scan24 tuning only the mesh's pixels lowered the whole image on validation while raising the
     objects, so the guard (--val-guard) returned the start; sampling them too: held-out objects +0.36 dB, whole
     image +0.10)."""
-    nearest: int = 0
+    nearest: int = 6
     """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
     camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
-    source. Without --views the sources are then every training view except the validation views. DTU's wide
+    source. Without --views the sources are then every training view except the validation views. Held-out
+    whole image before tuning, 3 fixed sources -> --nearest 4 -> 6 (`python -m bench depth_sources`): fern
+    stereo+fill 21.84 -> 23.90 -> 24.01 dB; the demo scene's stereo+model mesh 23.66 -> 25.31 -> 25.64. DTU's wide
     rig (held-out views 0 13 35 48, stereo+fill mesh of 14 views, dtu_scan24 / 37 over the masks before tuning,
     `python -m bench depth_sources`): the fixed 23 24 33 (15-57 degrees from a held-out view) 18.45 / 14.92 dB;
     --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
-    24.69 / 21.10."""
+    24.69 / 21.10; dtu_scan37 at --nearest 5 / 6 20.78 / 20.60 against 20.95 at 4 (14-view mesh), so DTU's
+    wide rig does slightly better at 4."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every

@@ -119,7 +119,7 @@ def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path,
     out = tmp_path / "out"
     args = ["finetune", "--ckpt", root / "omni", "--scene", dark, "--mesh", dark / "mesh.ply", "--clock", "cpu",
             "--resolution", 48, "--seconds", 1, "--eval-at", 0, "--tune", "exposure", "--val-views", 0,
-            "--out", out]
+            "--nearest", 0, "--out", out]  # the 3 fixed sources of default_views
     assert main([str(a) for a in args]) == 0, capsys.readouterr().err
     r = json.loads((out / "curve.json").read_text())
     gain = np.array(r["exposure"]["gain"]).mean(1)  # [K]
@@ -253,8 +253,10 @@ def test_nearest_sources_without_views_use_every_training_view_but_validation(se
     assert not set(views) & (set(targets) | set(scene.splits.get("test", [])))
     assert sorted(views + val_views) == sorted(i for i in train if i not in targets)
     assert tune_views and set(tune_views) <= set(views)  # tuning views are sources (each blends the others)
+    fixed, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path, nearest=0), scene, proto)
+    assert len(fixed) == 3  # --nearest 0: the 3 fixed sources
     default, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path), scene, proto)
-    assert len(default) == 3
+    assert FinetuneConfig.nearest == 6 and default == views  # the default blends each view's 6 nearest
 
 
 def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
