@@ -513,7 +513,8 @@ def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> st
       IoU 0.966 / 0.956, against 18.26 / 14.66 dB, IoU 0.972 / 0.957 for ``stereo+model``;
     * other scenes with a model (object rigs without masks, unknown rigs): ``stereo+model`` (stereo where it
       matched, the model's coarse depth at 128 px for the rest). The demo's procedural scene
-      (``--rows demo:stereo+fill demo:stereo+model``) 22.73 -> 23.13 dB against 22.56 -> 22.96 for ``stereo``;
+      (``--rows demo:stereo+fill demo:stereo+model``, 3 fixed sources) 23.66 -> 24.08 dB against 23.29 -> 23.68
+      for ``stereo``;
       and on a 3-view procedural capture stereo alone left the held-out depth coverage at 0.27
       (``tests/mesh/test_mesh.py::test_mesh_cli_floor``): stereo pairs only views within 60 degrees;
     * without a model, ``stereo``.

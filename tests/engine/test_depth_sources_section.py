@@ -33,11 +33,12 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
 
     from bench.depth_sources import scoring
 
-    assert scoring("stereo+fill") == {}
-    assert scoring("stereo+fill, sky kept") == {}
-    assert scoring("stereo+fill, 8 sources") == {"num_views": 8}
-    assert scoring("stereo+fill, 8 sources, exposure") == {"num_views": 8,
+    assert scoring("stereo+fill") == {"nearest": 0}  # rows without `, nearest K`: the 3 fixed sources
+    assert scoring("stereo+fill, sky kept") == {"nearest": 0}
+    assert scoring("stereo+fill, 8 sources") == {"nearest": 0, "num_views": 8}
+    assert scoring("stereo+fill, 8 sources, exposure") == {"nearest": 0, "num_views": 8,
                                                             "tune": ("encoder", "appearance", "exposure")}
+    assert scoring("exact mesh, nearest 6") == {"nearest": 6}
     with pytest.raises(ValueError, match="unknown variant"):
         scoring("stereo+fill, 8 views")
 
