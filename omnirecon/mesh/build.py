@@ -13,7 +13,9 @@ SRDF depend on the ray), so meshes are built from depth maps:
 4. **Surface**: marching cubes between observed voxels.
 5. **Cleaning** (:mod:`omnirecon.mesh.clean`): mask votes, hidden faces, small components.
 6. **Face budget**: quadric decimation.
-7. **Completion** (:mod:`omnirecon.mesh.complete`): every content pixel of every view gets a surface.
+7. **Completion** (:mod:`omnirecon.mesh.complete`): every content pixel of every view gets a surface. When the
+   fills push the mesh over the budget, the fused surface is decimated to what they leave and completed again
+   (:func:`fit_budget`): the written mesh holds ``max_faces``.
 
 VolRecon's / Omni-Recon's published protocol (``shared/docs/omnirecon.md`` §6: depth at source views
 shifted 25 mm along x, nearest-pixel TSDF at 1/256 of the diagonal, weight 1, cleaned with the source
@@ -97,7 +99,9 @@ class MeshOptions:
     """Derived voxel size: at least the size that puts this many voxels over the bounds (memory: 8 bytes
     per voxel)."""
     max_faces: int = 200_000
-    """Decimate to at most this many faces before completion (0 = no limit)."""
+    """Face budget of the written mesh, completion's fills and backdrop included (0 = no limit): the fused
+    surface is decimated to it, and when the fills push the total over, to what they leave (:func:`fit_budget`).
+    Decimation has a floor (meshes of a few hundred faces may stay above it)."""
     depth_pass: str = "fine"
     """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"fine"`` (coarse +
     importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, about 5x
@@ -387,40 +391,45 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         counts["hull"] = len(mesh.faces)
     seconds["clean"] = time.perf_counter() - t
     t = time.perf_counter()
-    mesh = clean.decimate(mesh, options.max_faces)
-    counts["decimated"] = len(mesh.faces)
-    if options.close_holes:
-        mesh, counts["holes_closed"] = clean.close_small_holes(mesh, options.close_holes)
-    if options.fill_holes and scene.rig != "forward" and masks is None:
-        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes)
+    fused = within_budget(mesh, options.max_faces, options, counts, fill=scene.rig != "forward" and masks is None)
     if stages is not None:
-        stages["decimated"] = mesh
+        stages["decimated"] = fused
     seconds["decimate"] = time.perf_counter() - t
 
-    if options.surface == "poisson" and view_masks is not None:
-        from omnirecon.mesh.poisson import poisson_surface
+    def surface_and_fills(fused: trimesh.Trimesh):
+        """``fused`` -> (Poisson, when asked) -> completion: the written mesh and completion's record."""
+        mesh, completion = fused, None
+        if options.surface == "poisson" and view_masks is not None:
+            from omnirecon.mesh.poisson import poisson_surface
 
-        say("poisson")
-        t = time.perf_counter()
-        mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
-        if stages is not None:
-            stages["poisson"] = mesh
-        seconds["poisson"] = time.perf_counter() - t
-    completion = None
-    if options.complete:
-        say("complete")
-        t = time.perf_counter()
-        view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
-        mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
-                                            forward=scene.rig == "forward",
-                                            occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward" else None,
-                                            backdrop_pad=options.backdrop_pad)
-        if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
-            mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
-        counts["completed"] = len(mesh.faces)
-        if stages is not None:
-            stages["completed"] = mesh
-        seconds["complete"] = time.perf_counter() - t
+            say("poisson")
+            t = time.perf_counter()
+            mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
+            if stages is not None:
+                stages["poisson"] = mesh
+            seconds["poisson"] = seconds.get("poisson", 0.0) + time.perf_counter() - t
+        if options.complete:
+            say("complete")
+            t = time.perf_counter()
+            view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
+            surface = len(mesh.faces)
+            mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
+                                                forward=scene.rig == "forward",
+                                                occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward"
+                                                else None, backdrop_pad=options.backdrop_pad)
+            completion["surface_faces"] = surface
+            if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
+                mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
+            counts["completed"] = len(mesh.faces)
+            if stages is not None:
+                stages["completed"] = mesh
+            seconds["complete"] = seconds.get("complete", 0.0) + time.perf_counter() - t
+        return mesh, completion
+
+    mesh, completion = surface_and_fills(fused)
+    if options.max_faces and len(mesh.faces) > options.max_faces:  # the budget holds for the written mesh
+        mesh, completion = fit_budget(mesh, fused, completion, surface_and_fills, options, counts,
+                                      fill=scene.rig != "forward" and masks is None)
     counts["final"] = len(mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
     info = {"voxel": voxel, "trunc": trunc, "grid": list(volume.shape), "depth_disagreement": err,
             "consistency_rel": rel, "faces": counts, "seconds": seconds, "views": views,
@@ -430,6 +439,48 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
             "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0,
             "occluded_dropped": occluded}
     return MeshResult(mesh, info, maps.cameras, maps.depth)
+
+
+def within_budget(mesh: trimesh.Trimesh, max_faces: int, options: MeshOptions, counts: dict,
+                  fill: bool) -> trimesh.Trimesh:
+    """``mesh`` decimated to ``max_faces`` (0 = no limit), then its small holes closed (``options.close_holes``;
+    ``options.fill_holes`` when ``fill``: object captures without masks); ``counts`` gets the face counts."""
+    mesh = clean.decimate(mesh, max_faces)
+    counts["decimated"] = len(mesh.faces)
+    if options.close_holes:
+        mesh, counts["holes_closed"] = clean.close_small_holes(mesh, options.close_holes)
+    if options.fill_holes and fill:
+        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes)
+    return mesh
+
+
+def fit_budget(mesh: trimesh.Trimesh, fused: trimesh.Trimesh, completion: dict | None, complete_fn,
+               options: MeshOptions, counts: dict, fill: bool) -> tuple[trimesh.Trimesh, dict | None]:
+    """The completed ``mesh`` over ``options.max_faces``: the fused surface gets what completion leaves of the
+    budget and completion runs again on it (its fills match the surface that is written). fern, 17 views at
+    336x252: 200,000 fused + 3,664 closing + 105,354 fill + 17,680 backdrop = 326,698 faces without this.
+    ``complete_fn(fused) -> (mesh, completion)`` is the pipeline after the face budget."""
+    budget = options.max_faces
+    extra = len(mesh.faces) - len(fused.faces)  # completion's faces (and Poisson's change)
+    added = len(fused.faces) - counts["decimated"]  # the hole closers' faces
+    room = budget - extra - added - budget // 50  # a margin: the fills of a coarser surface differ a little
+    counts["over_budget"] = len(mesh.faces)
+    if room >= budget // 4:  # the fused surface keeps at least a quarter of the budget
+        fused = within_budget(fused, room, options, counts, fill)
+        mesh, completion = complete_fn(fused)
+    if len(mesh.faces) > budget:  # still over: trim the fused part only (forward-facing: it comes first)
+        n = completion["surface_faces"] if completion is not None and "hull" not in counts and "poisson" not in counts \
+            else 0
+        rest = len(mesh.faces) - n
+        if n > 0 and budget - rest >= budget // 8:
+            part = clean.decimate(trimesh.Trimesh(mesh.vertices, mesh.faces[:n], process=False), budget - rest)
+            fills = trimesh.Trimesh(mesh.vertices, mesh.faces[n:], process=False)
+            fills.remove_unreferenced_vertices()
+            mesh = trimesh.util.concatenate([part, fills])
+        else:  # the fills alone fill the budget (or the order is unknown): decimate everything
+            mesh = clean.decimate(mesh, budget)
+    counts["budgeted"] = len(mesh.faces)
+    return mesh, completion
 
 
 def drop_occluded(cams: Cameras, depth: Tensor, weight: Tensor, agree: Tensor,

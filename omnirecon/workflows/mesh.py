@@ -73,8 +73,9 @@ class MeshConfig(MachineConfig):
     """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
     default: the preset's, on for fit)."""
     max_faces: int = 200_000
-    """Decimate the fused surface to at most this many faces (0 = keep every face); completion's fills and a
-    forward-facing scene's backdrop sheet come on top (fern, 17 views at 336x252: 200k -> 327k faces)."""
+    """Face budget of the written mesh (0 = keep every face): completion's fills and a forward-facing scene's
+    backdrop sheet count, the fused surface gets what they leave (fern, 17 views at 336x252: 122k fill and
+    backdrop faces, so 78k for the fused surface)."""
     depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
     faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py
