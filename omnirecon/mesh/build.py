@@ -417,9 +417,10 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
                                                 forward=scene.rig == "forward",
                                                 occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward"
                                                 else None, backdrop_pad=options.backdrop_pad)
-            completion["surface_faces"] = surface
             if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
-                mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
+                keep = clean.hull_keep(mesh, view_cams, hull, options.hull_misses)
+                mesh, surface = clean.keep_faces(mesh, keep), int(keep[:surface].sum())
+            completion["surface_faces"] = surface  # the fused (or Poisson) surface's faces come first
             counts["completed"] = len(mesh.faces)
             if stages is not None:
                 stages["completed"] = mesh
@@ -473,9 +474,8 @@ def fit_budget(mesh: trimesh.Trimesh, fused: trimesh.Trimesh, completion: dict |
     if room >= budget // 4:  # the fused surface keeps at least a quarter of the budget
         fused = within_budget(fused, room, options, counts, fill)
         mesh, completion = complete_fn(fused)
-    if len(mesh.faces) > budget:  # still over: trim the fused part only (forward-facing: it comes first)
-        n = completion["surface_faces"] if completion is not None and "hull" not in counts and "poisson" not in counts \
-            else 0
+    if len(mesh.faces) > budget:  # still over: trim the fused part only (it comes first)
+        n = completion["surface_faces"] if completion is not None else 0
         rest = len(mesh.faces) - n
         if n > 0 and budget - rest >= budget // 8:
             part = clean.decimate(trimesh.Trimesh(mesh.vertices, mesh.faces[:n], process=False), budget - rest)

@@ -54,8 +54,9 @@ class MeshConfig(MachineConfig):
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
     """Long side of the images meshed, in pixels (default: the photos' own, at most 512, as `reconstruct`). fern,
-    every training view (`python -m bench mesh_resolution`): at 336x252 held-out 23.92 dB in 35.9 CPU-s, at 128x96
-    23.16 dB in 38.2 CPU-s (stereo's matching is cheap; fusion and completion cost the same)."""
+    every training view (`python -m bench mesh_resolution`, scored at the photos' size): at 336x252 held-out 23.92 dB in
+    35.9 CPU-s, at 128x96 23.16 dB in 38.2 CPU-s; dtu_scan24 (stereo+model, no masks) over the mask 18.86 dB in 130
+    CPU-s at 400x300, 17.50 dB in 94 CPU-s at 128x96."""
     depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
     """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
     no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
