@@ -303,11 +303,11 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     if options.depth == "oracle":
         return oracle_depths(scene, views, options.shifts)
     stereo = stereo_maps(scene, views, options.stereo, on_view)
-    refine = options.refine != "none" and scene.rig != "forward" and masks is None
-    if refine and options.refine == "stereo" or options.depth == "stereo":
-        stereo = refined(stereo, scene, options) if refine else stereo
-        if options.depth == "stereo":
-            return stereo
+    refine = options.refine if scene.rig != "forward" and masks is None else "none"  # object captures without masks
+    if refine == "stereo" or (refine == "all" and options.depth == "stereo"):
+        stereo = refined(stereo, scene, options)
+    if options.depth == "stereo":
+        return stereo
     # the model's depth at most model_side px, read at the photos' pixels, only where stereo left holes
     at = downscaled(scene, options.model_side) if options.model_side else scene
     inside = None if masks is None else \
@@ -315,7 +315,7 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     need = needed_at(holes(stereo, scene, inside), at.height, at.width)
     low = model_depths(model, at, views, options.neighbours, (0.0,), options.chunk, options.min_acc, need=need, **kw)
     both = combine(stereo, upsampled(low, stereo.cameras))
-    return refined(both, scene, options) if refine and options.refine == "all" else both
+    return refined(both, scene, options) if refine == "all" else both
 
 
 def refined(maps: DepthMaps, scene, options: MeshOptions) -> DepthMaps:

@@ -17,7 +17,15 @@ views agree with best:
   point loses its vote), then the arg-min with a parabola through its two neighbours (sub-step).
 
 Pixels without depth stay without; the shift ``0`` is one of the tested ones, so a pixel only moves
-when some other depth explains the photos better.
+when some other depth explains the photos better. Gross errors (the ground's depth on an object, > 6 %)
+are out of its reach: fusion's consistency and occlusion checks deal with those.
+
+Measured on the demo scene (``MeshOptions.refine``, where the numbers are): the voted maps' median bias
+at the training views, sphere +1.37 -> +0.28 %, cone +0.69 -> +0.33 %, ground +0.23 -> +0.08 %; the held-out
+mesh path at ``--nearest 6`` 25.64 -> 25.92 dB whole image, the dark cone 15.39 -> 17.92 dB, but the box
+22.13 -> 19.89 dB (with the box's pixels left unrefined, a diagnostic that reads the scene's labels: box 21.36,
+whole 26.12; the box is not less textured than the cone by the weighted colour spread of its windows, so
+no texture test separates it). 3-5 CPU-s for 18 views of 128 px.
 """
 
 from __future__ import annotations

@@ -33,3 +33,11 @@ def test_bad_refine_options_are_one_line_errors(field, value):
     with pytest.raises(InputError) as e:
         RefineOptions(**{field: value}).check()
     assert "\n" not in str(e.value) and "refine option" in str(e.value) and "use" in str(e.value)
+
+
+def test_bad_refine_mode_is_a_one_line_error():
+    from omnirecon.mesh.build import MeshOptions
+
+    with pytest.raises(InputError) as e:
+        MeshOptions(refine="everything").check()
+    assert "\n" not in str(e.value) and "refine" in str(e.value)
