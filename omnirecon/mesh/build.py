@@ -190,10 +190,10 @@ class MeshOptions:
     masks only: ``none``, ``stereo`` (the stereo maps before the model fills their holes) or ``all`` (the maps
     fusion gets). It removes stereo's bias toward the ground behind dark objects (demo scene, voted stereo at the
     training views: sphere +1.37 -> +0.28 % median, cone +0.69 -> +0.33 %). Demo scene, stereo+model, held-out
-    mesh path at ``finetune --nearest 6`` before tuning, ``none`` -> ``stereo`` -> ``all``: whole image 25.64 ->
-    25.92 -> 25.58 dB; cone 15.39 -> 17.92, sphere 21.10 -> 23.39, green cylinder 23.61 -> 24.56, ground 25.02 ->
-    25.33, but box 22.13 -> 19.89 (its lower edges recede); +3-5 CPU-s. Not on forward-facing scenes nor with
-    masks (not measured there)."""
+    mesh path at ``finetune --nearest 6`` before tuning, ``none`` -> ``stereo``: whole image 25.64 -> 25.99 dB;
+    cone 15.39 -> 17.85, sphere 21.10 -> 24.12, green cylinder 23.61 -> 24.41, ground 25.02 -> 25.00, box 22.13
+    -> 21.73 (its lower edges recede). ``all`` (with an older span of 0.06, where ``stereo`` gave 25.92): 25.58.
+    +3-5 CPU-s. Not on forward-facing scenes nor with masks (not measured there)."""
     refine_options: RefineOptions = field(default_factory=RefineOptions)
     """Settings of that refinement."""
     chunk: int = 4096

@@ -22,10 +22,11 @@ are out of its reach: fusion's consistency and occlusion checks deal with those.
 
 Measured on the demo scene (``MeshOptions.refine``, where the numbers are): the voted maps' median bias
 at the training views, sphere +1.37 -> +0.28 %, cone +0.69 -> +0.33 %, ground +0.23 -> +0.08 %; the held-out
-mesh path at ``--nearest 6`` 25.64 -> 25.92 dB whole image, the dark cone 15.39 -> 17.92 dB, but the box
-22.13 -> 19.89 dB (with the box's pixels left unrefined, a diagnostic that reads the scene's labels: box 21.36,
-whole 26.12; the box is not less textured than the cone by the weighted colour spread of its windows, so
-no texture test separates it). 3-5 CPU-s for 18 views of 128 px.
+mesh path at ``--nearest 6`` 25.64 -> 25.99 dB whole image, the dark cone 15.39 -> 17.85 dB, sphere 21.10 ->
+24.12, but the box 22.13 -> 21.73 dB (at ``span`` 0.06 the box fell to 19.89; with the box's pixels left
+unrefined, a diagnostic that reads the scene's labels, box 21.36 and whole 26.12 at 0.06: the box is not less
+textured than the cone by the weighted colour spread of its windows, so no texture test separates it).
+A few CPU-s for 18 views of 128 px.
 """
 
 from __future__ import annotations
@@ -45,10 +46,11 @@ from omnirecon.errors import InputError
 class RefineOptions:
     """Settings of :func:`refine_depths`."""
 
-    span: float = 0.06
-    """Largest relative depth change tested (each side)."""
-    steps: int = 25
-    """Shifts tested over ``[-span, span]`` (odd, so that 0 is one of them)."""
+    span: float = 0.04
+    """Largest relative depth change tested (each side). Demo scene, held-out whole image at ``--nearest 6``
+    (box): 0.02 25.95 dB (21.94), 0.03 26.00 (21.39), 0.04 25.99 (21.73), 0.06 25.92 (19.89); none 25.64 (22.13)."""
+    steps: int = 17
+    """Shifts tested over ``[-span, span]`` (odd, so that 0 is one of them; 0.5 % apart by default)."""
     neighbours: int = 4
     """Views scoring each view: the nearest by viewing direction."""
     best: int = 2
@@ -72,9 +74,9 @@ class RefineOptions:
     def check(self) -> None:
         bad = []
         if not (math.isfinite(self.span) and 0 < self.span < 0.5):
-            bad.append(("span", self.span, "a relative depth change in (0, 0.5), e.g. 0.06"))
+            bad.append(("span", self.span, "a relative depth change in (0, 0.5), e.g. 0.04"))
         if not (3 <= self.steps <= 101 and self.steps % 2 == 1):
-            bad.append(("steps", self.steps, "an odd integer in 3-101, e.g. 25"))
+            bad.append(("steps", self.steps, "an odd integer in 3-101, e.g. 17"))
         if not 1 <= self.best <= self.neighbours <= 16:
             bad.append(("best/neighbours", (self.best, self.neighbours), "1 <= best <= neighbours <= 16, e.g. 2 and 4"))
         if not (1 <= self.window <= 15 and self.window % 2 == 1):
