@@ -99,7 +99,7 @@ class MeshOptions:
     max_voxels: int = 1 << 26
     """Derived voxel size: at least the size that puts this many voxels over the bounds (memory: 8 bytes
     per voxel)."""
-    max_faces: int = 200_000
+    max_faces: int = 400_000
     """Face budget of the written mesh, completion's fills and backdrop included (0 = no limit): the fused
     surface is decimated to it, and when the fills push the total over, to what they leave (:func:`fit_budget`).
     Decimation has a floor (meshes of a few hundred faces may stay above it)."""
@@ -486,7 +486,7 @@ def fit_budget(mesh: trimesh.Trimesh, fused: trimesh.Trimesh, completion: dict |
                options: MeshOptions, counts: dict, fill: bool) -> tuple[trimesh.Trimesh, dict | None]:
     """The completed ``mesh`` over ``options.max_faces``: the fused surface gets what completion leaves of the
     budget and completion runs again on it (its fills match the surface that is written); a last small overshoot
-    (the coarser surface needs a few more fills) comes off the fused part. fern, 17 views at 336x252: 200,000 fused
+    (the coarser surface needs a few more fills) comes off the fused part. fern, 17 views at 336x252, 200k budget: 200,000 fused
     + 3,664 closing + 105,354 fill + 17,680 backdrop = 326,698 faces without this; with it 69,071 fused + 113,248
     fill + 17,680 backdrop = 199,999. Held-out whole image (``python -m bench depth_sources --rows "fern:stereo+fill,
     nearest 6"``, before tuning) 24.01 -> 23.92 dB; a 300k budget (167k fused) 24.00. Mesh path at 336x252, one

@@ -75,10 +75,12 @@ class MeshConfig(MachineConfig):
     weights: bool | None = None
     """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
     default: the preset's, on for fit)."""
-    max_faces: int = 200_000
+    max_faces: int = 400_000
     """Face budget of the written mesh (0 = keep every face): completion's fills and a forward-facing scene's
-    backdrop sheet count, the fused surface gets what they leave (fern, 17 views at 336x252: 131k fill and
-    backdrop faces, 69k fused; held-out 24.01 -> 23.92 dB against the 327k faces of not counting the fills)."""
+    backdrop sheet count, the fused surface gets what they leave. 400k because a smaller budget costs the real
+    captures held-out PSNR for little speed: fern, 17 views at 336x252, writes 326,698 faces (24.01 dB held-out,
+    87 CPU-ms per mesh-path frame); at 200k the fills and backdrop take 131k and the fused part keeps 69k
+    (23.92 dB, 75 CPU-ms), at 300k 23.996 dB (BENCHMARKS "Depth sources", "Real-time mesh path")."""
     depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
     faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py
