@@ -11,10 +11,11 @@ renderer does), so every pixel is shaded. Each step samples ``--rays`` shaded pi
 see each point: ``--visibility``) from the source views' 2-D encoder features (the feature volume and the
 geometry branch are not used by the mesh path and are not computed; the features are encoded once unless the
 encoder is tuned) and takes an Adam step on the MSE to the training images. What changes is ``--tune``: the
-appearance branch by default, optionally the 2-D encoder and a per-source affine colour (``exposure``), with
+2-D encoder and the appearance branch by default, optionally a per-source affine colour (``exposure``), with
 an L2 pull toward the pretrained weights (``--reg``).
 
-**Tuning never ends worse than it started.** ``--val-views`` training views (never sources) are kept
+**Tuning never ends worse than it started.** ``--val-views`` training views (``--val-choice``: by default those
+farthest from the other training views, as held-out views are; never blending their own photo) are kept
 out of tuning and scored every ``--val-every`` seconds; the state with the best validation gain (the
 start is a candidate) is what is returned, saved and scored. A state's validation gain is its gain on what the
 scene is scored by (:func:`scored_by`: the object pixels on scenes whose protocol scores the masks, e.g. DTU;
@@ -85,7 +86,7 @@ class FinetuneConfig(ThreadsConfig):
     clock: Literal["wall", "cpu"] = "wall"
     """Budget clock: wall time, or this process's CPU time (fair when other jobs share the machine)."""
     views: tuple[int, ...] | None = None
-    """Source views (default: every training view but the validation views with --nearest; with --nearest 0 DTU's
+    """Source views (default: every training view with --nearest, the validation views too; with --nearest 0 DTU's
     23 24 33, else --num-views evenly spaced train views); never a held-out view."""
     num_views: int = 3
     """Source views K when neither --views nor --nearest is given."""
@@ -151,7 +152,7 @@ class FinetuneConfig(ThreadsConfig):
     nearest: int = 6
     """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
     camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
-    source. Without --views the sources are then every training view except the validation views. Held-out
+    source. Without --views the sources are then every training view (the validation views too). Held-out
     whole image before tuning, 3 fixed sources -> --nearest 4 -> 6 (`python -m bench depth_sources`): fern
     stereo+fill 21.84 -> 23.90 -> 24.01 dB; the demo scene's stereo+model mesh 23.66 -> 25.31 -> 25.64. DTU's wide
     rig (held-out views 0 13 35 48, stereo+fill mesh of 14 views, dtu_scan24 / 37 over the masks before tuning,
@@ -732,7 +733,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
-              "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "scored_by": s.scored_by, "visibility": cfg.visibility,
+              "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by, "visibility": cfg.visibility,
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
               "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
