@@ -8,7 +8,7 @@ from pathlib import Path
 from bench.report.common import prov, read
 
 LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
-          "rays8k": "encoder + appearance, 8192 px/step (the default)", "bf16": "encoder + appearance, 8192 px/step, bf16",
+          "rays8k": "encoder + appearance, 8192 px/step", "bf16": "encoder + appearance, 8192 px/step, bf16",
           "lr2e-3": "encoder + appearance, 8192 px/step, lr 2e-3", "appearance": "appearance branch only, 8192 px/step",
           "encoder": "encoder only, 8192 px/step", "exposure": "encoder + appearance + exposure, 8192 px/step",
           "appearance_lr3e-3": "appearance branch only, 8192 px/step, lr 3e-3 (the default during session 13)",
