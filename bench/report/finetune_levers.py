@@ -30,8 +30,9 @@ def section(results: Path) -> str | None:
     out = ["## What fine-tuning tunes, and how far it can go (`python -m bench finetune_levers`, "
            "`python -m bench finetune_ceiling`)", ""]
     if levers:
-        out += ["`omnirecon finetune` for 60 CPU-seconds (1 thread, `--clock cpu`) per row, same mesh, sources, validation "
-                "and held-out views, images at the photos' own resolution; held-out test PSNR in dB before -> after "
+        out += ["`omnirecon finetune` for 60 CPU-seconds (1 thread, `--clock cpu`) per row, the same held-out views; "
+                "`nearest 6` rows: today's defaults and the Fine-tuning curves row's mesh; `3 fixed` rows: the 3 fixed "
+                "sources and the older mesh they were measured with (session 13); images at the photos' own resolution; held-out test PSNR in dB before -> after "
                 "(objects: over the masks)."
                 + ("" if all(r.get("visibility") for r in levers["rows"].values()) else
                    " Rows marked" + BEFORE + " were scored before `finetune`'s visibility test (every source blended "
@@ -46,10 +47,10 @@ def section(results: Path) -> str | None:
             out.append(f"| {key.split('/')[0]} | {sources(row)} | {label} | {row['steps']} | "
                        f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {row['gain_db']:+.2f} | {row['load_average']:.0f} |")
         curves = read(results, "finetune_curves.json") or {"rows": {}}
-        meshes = {key.split("/")[0]: row["mesh"] for key, row in levers["rows"].items() if row.get("visibility")}
+        meshes = {(key.split("/")[0], row["mesh"]) for key, row in levers["rows"].items() if row.get("visibility")}
         for name, row in curves["rows"].items():  # the default's row: the curve's 60 s point (same settings and mesh)
             at = {c["seconds"]: c for c in row["curve"]}
-            if meshes.get(name) == row["mesh"] and 60.0 in at and row.get("rays") == 8192 and row.get("precision") == "fp32":
+            if (name, row["mesh"]) in meshes and 60.0 in at and row.get("rays") == 8192 and row.get("precision") == "fp32":
                 b, a = row["curve"][0], at[60.0]
                 obj = f"{b['psnr_masked']:.2f} -> {a['psnr_masked']:.2f}" if "psnr_masked" in b else "–"
                 what = " + ".join(row["tuned"]) + (f", lr {row['lr']:g}" if "lr" in row else "")
