@@ -4,6 +4,7 @@
     python -m bench depth_regions --match-side 0     # stereo matched on the photos' own 128-px grid
     python -m bench depth_regions --occlusion 0      # no visibility check before fusion
     python -m bench depth_regions --fill-holes 0     # fusion's holes left open (only marching cubes' pinholes closed)
+    python -m bench depth_regions --refine none      # no photometric refinement of the stereo maps
 
 On the demo's procedural scene (``bench/depth_sources.py``: seed 900999, 24 views at 128 px, the 18
 training views meshed) every training view's depth after each stage is compared with the exact depth,
@@ -11,6 +12,7 @@ split by the scene's labels into regions (the dark sphere, the box, the green ob
 the ground, the sky):
 
 * ``stereo``: the voted stereo maps (:mod:`omnirecon.mesh.stereo`), before any confidence;
+* ``stereo refined``: the same after the photometric refinement (:mod:`omnirecon.mesh.stereo_refine`);
 * ``stereo+model``: the maps fusion gets (stereo where it matched, the model's coarse depth for the rest);
 * the mesh after each stage (``marching_cubes`` = fusion, ``visible`` / ``components`` = cleaning,
   ``decimated`` = face budget, ``completed`` = completion), rendered at the training views.
@@ -92,7 +94,7 @@ def held_out_psnr(model, scene, targets: list[int], meshes: dict) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     from bench.depth_sources import ROOT, held_out, load
     from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
-    from omnirecon.mesh.build import MeshOptions, depth_maps, mesh_from_depths
+    from omnirecon.mesh.build import MeshOptions, depth_maps, mesh_from_depths, refined
     from omnirecon.mesh.complete import DepthRenderer
     from omnirecon.mesh.depth import oracle_depths, stereo_maps
     from omnirecon.mesh.stereo import StereoOptions
@@ -105,6 +107,8 @@ def main(argv: list[str] | None = None) -> dict:
                    help="MeshOptions.occlusion (0: no visibility check before fusion)")
     p.add_argument("--fill-holes", type=int, default=MeshOptions.fill_holes,
                    help="MeshOptions.fill_holes (0: fusion's holes left open)")
+    p.add_argument("--refine", default=MeshOptions.refine, choices=("none", "stereo", "all"),
+                   help="MeshOptions.refine (none: no photometric refinement of the stereo maps)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
@@ -116,8 +120,11 @@ def main(argv: list[str] | None = None) -> dict:
     ckpt = ROOT / "checkpoints" / "omnirecon-tiny"
     model = load_checkpoint(ckpt)[0]
     opts = MeshOptions(depth="stereo+model", depth_pass="coarse", stereo=StereoOptions(match_side=a.match_side),
-                       occlusion=a.occlusion, fill_holes=a.fill_holes)
-    stages = {"stereo": region_scores(stereo_maps(scene, views, opts.stereo).depth.numpy(), exact, labels)}
+                       occlusion=a.occlusion, fill_holes=a.fill_holes, refine=a.refine)
+    voted = stereo_maps(scene, views, opts.stereo)
+    stages = {"stereo": region_scores(voted.depth.numpy(), exact, labels)}
+    if a.refine != "none":
+        stages["stereo refined"] = region_scores(refined(voted, scene, opts).depth.numpy(), exact, labels)
     maps = depth_maps(opts, scene, views, model)
     stages["stereo+model"] = region_scores(maps.depth.numpy(), exact, labels)
     meshes: dict = {}
@@ -132,13 +139,15 @@ def main(argv: list[str] | None = None) -> dict:
     psnr = held_out_psnr(model, scene, targets, {"exact mesh": ground_truth_mesh(scene), "completed": meshes["completed"]})
     result = {"provenance": provenance(seed=0), "checkpoint": {**fingerprint(ckpt), "path": "checkpoints/omnirecon-tiny"},
               "scene": "demo", "views": views, "match_side": a.match_side, "occlusion": a.occlusion,
-              "fill_holes": a.fill_holes, "stages": stages,
+              "fill_holes": a.fill_holes, "refine": a.refine, "stages": stages,
               "held_out": targets, "held_out_psnr": psnr, "cpu_seconds": time.process_time() - t0, "load_average": list(os.getloadavg())}
     name = "depth_regions.json" if a.match_side == StereoOptions.match_side else f"depth_regions_match{a.match_side}.json"
     if a.occlusion != MeshOptions.occlusion:
         name = name.replace(".json", f"_occlusion{a.occlusion}.json")
     if a.fill_holes != MeshOptions.fill_holes:
         name = name.replace(".json", f"_fill{a.fill_holes}.json")
+    if a.refine != MeshOptions.refine:
+        name = name.replace(".json", f"_refine_{a.refine}.json")
     write_json(a.out / name, result)
     for stage, regions in stages.items():
         print(f"{stage:14s} " + " | ".join(

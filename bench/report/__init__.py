@@ -23,6 +23,7 @@ from bench.report import (
     levers,
     lift,
     mesh_path,
+    mesh_resolution,
     peer,
     poses,
     quality,
@@ -37,7 +38,8 @@ from bench.report import (
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
-            finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer, levers, end_to_end, training, quality, geometry,
+            mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer, levers,
+            end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"

@@ -13,7 +13,9 @@ SRDF depend on the ray), so meshes are built from depth maps:
 4. **Surface**: marching cubes between observed voxels.
 5. **Cleaning** (:mod:`omnirecon.mesh.clean`): mask votes, hidden faces, small components.
 6. **Face budget**: quadric decimation.
-7. **Completion** (:mod:`omnirecon.mesh.complete`): every content pixel of every view gets a surface.
+7. **Completion** (:mod:`omnirecon.mesh.complete`): every content pixel of every view gets a surface. When the
+   fills push the mesh over the budget, the fused surface is decimated to what they leave and completed again
+   (:func:`fit_budget`): the written mesh holds ``max_faces``.
 
 VolRecon's / Omni-Recon's published protocol (``shared/docs/omnirecon.md`` §6: depth at source views
 shifted 25 mm along x, nearest-pixel TSDF at 1/256 of the diagonal, weight 1, cleaned with the source
@@ -51,6 +53,7 @@ from omnirecon.mesh.depth import (
     without_background,
 )
 from omnirecon.mesh.stereo import StereoOptions
+from omnirecon.mesh.stereo_refine import RefineOptions, refine_depths
 
 DTU_SHIFT = 25.0 / 684.0
 """VolRecon's virtual-view shift (25 mm along the camera x axis) over DTU's camera distance to the
@@ -97,7 +100,9 @@ class MeshOptions:
     """Derived voxel size: at least the size that puts this many voxels over the bounds (memory: 8 bytes
     per voxel)."""
     max_faces: int = 200_000
-    """Decimate to at most this many faces before completion (0 = no limit)."""
+    """Face budget of the written mesh, completion's fills and backdrop included (0 = no limit): the fused
+    surface is decimated to it, and when the fills push the total over, to what they leave (:func:`fit_budget`).
+    Decimation has a floor (meshes of a few hundred faces may stay above it)."""
     depth_pass: str = "fine"
     """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"fine"`` (coarse +
     importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, about 5x
@@ -184,6 +189,17 @@ class MeshOptions:
     background specks on the demo's ground."""
     stereo: StereoOptions = field(default_factory=StereoOptions)
     """Settings of the stereo depth source."""
+    refine: str = "stereo"
+    """Photometric refinement of the stereo maps (:mod:`omnirecon.mesh.stereo_refine`), object captures without
+    masks only: ``none``, ``stereo`` (the stereo maps before the model fills their holes) or ``all`` (the maps
+    fusion gets). It removes stereo's bias toward the ground behind dark objects (demo scene, voted stereo at the
+    training views: sphere +1.37 -> +0.28 % median, cone +0.69 -> +0.33 %). Demo scene, stereo+model, held-out
+    mesh path at ``finetune --nearest 6`` before tuning, ``none`` -> ``stereo``: whole image 25.64 -> 25.99 dB;
+    cone 15.39 -> 17.85, sphere 21.10 -> 24.12, green cylinder 23.61 -> 24.41, ground 25.02 -> 25.00, box 22.13
+    -> 21.73 (its lower edges recede). ``all`` (with an older span of 0.06, where ``stereo`` gave 25.92): 25.58.
+    +3-5 CPU-s. Not on forward-facing scenes nor with masks (not measured there)."""
+    refine_options: RefineOptions = field(default_factory=RefineOptions)
+    """Settings of that refinement."""
     chunk: int = 4096
     """Rays per rendering chunk."""
     voxel_chunk: int = 1 << 20
@@ -242,6 +258,9 @@ class MeshOptions:
             raise InputError(f"occlusion must be in 0-8 and occlusion_rel in (0, 1), got {self.occlusion}, "
                              f"{self.occlusion_rel}", None, "use e.g. 2 and 0.05")
         self.stereo.check()
+        self.refine_options.check()
+        if self.refine not in ("none", "stereo", "all"):
+            raise InputError(f"refine must be none, stereo or all, got {self.refine!r}", None, "use refine='stereo'")
 
 
 PRESETS: dict[str, dict] = {
@@ -288,6 +307,9 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     if options.depth == "oracle":
         return oracle_depths(scene, views, options.shifts)
     stereo = stereo_maps(scene, views, options.stereo, on_view)
+    refine = options.refine if scene.rig != "forward" and masks is None else "none"  # object captures without masks
+    if refine == "stereo" or (refine == "all" and options.depth == "stereo"):
+        stereo = refined(stereo, scene, options)
     if options.depth == "stereo":
         return stereo
     # the model's depth at most model_side px, read at the photos' pixels, only where stereo left holes
@@ -296,7 +318,16 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
         torch.from_numpy(clean.dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * scene.width))
     need = needed_at(holes(stereo, scene, inside), at.height, at.width)
     low = model_depths(model, at, views, options.neighbours, (0.0,), options.chunk, options.min_acc, need=need, **kw)
-    return combine(stereo, upsampled(low, stereo.cameras))
+    both = combine(stereo, upsampled(low, stereo.cameras))
+    return refined(both, scene, options) if refine == "all" else both
+
+
+def refined(maps: DepthMaps, scene, options: MeshOptions) -> DepthMaps:
+    """``maps`` (unshifted, at the photos' resolution) refined photometrically (:func:`refine_depths`)."""
+    t = time.perf_counter()
+    depth = refine_depths(scene.images, scene.cameras, maps.views, maps.depth, options.refine_options)
+    return DepthMaps(maps.cameras, depth, maps.confidence, maps.views,
+                     {**maps.info, "refined": options.refine, "refine_seconds": time.perf_counter() - t})
 
 
 
@@ -387,40 +418,46 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         counts["hull"] = len(mesh.faces)
     seconds["clean"] = time.perf_counter() - t
     t = time.perf_counter()
-    mesh = clean.decimate(mesh, options.max_faces)
-    counts["decimated"] = len(mesh.faces)
-    if options.close_holes:
-        mesh, counts["holes_closed"] = clean.close_small_holes(mesh, options.close_holes)
-    if options.fill_holes and scene.rig != "forward" and masks is None:
-        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes)
+    fused = within_budget(mesh, options.max_faces, options, counts, fill=scene.rig != "forward" and masks is None)
     if stages is not None:
-        stages["decimated"] = mesh
+        stages["decimated"] = fused
     seconds["decimate"] = time.perf_counter() - t
 
-    if options.surface == "poisson" and view_masks is not None:
-        from omnirecon.mesh.poisson import poisson_surface
+    def surface_and_fills(fused: trimesh.Trimesh):
+        """``fused`` -> (Poisson, when asked) -> completion: the written mesh and completion's record."""
+        mesh, completion = fused, None
+        if options.surface == "poisson" and view_masks is not None:
+            from omnirecon.mesh.poisson import poisson_surface
 
-        say("poisson")
-        t = time.perf_counter()
-        mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
-        if stages is not None:
-            stages["poisson"] = mesh
-        seconds["poisson"] = time.perf_counter() - t
-    completion = None
-    if options.complete:
-        say("complete")
-        t = time.perf_counter()
-        view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
-        mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
-                                            forward=scene.rig == "forward",
-                                            occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward" else None,
-                                            backdrop_pad=options.backdrop_pad)
-        if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
-            mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
-        counts["completed"] = len(mesh.faces)
-        if stages is not None:
-            stages["completed"] = mesh
-        seconds["complete"] = time.perf_counter() - t
+            say("poisson")
+            t = time.perf_counter()
+            mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
+            if stages is not None:
+                stages["poisson"] = mesh
+            seconds["poisson"] = seconds.get("poisson", 0.0) + time.perf_counter() - t
+        if options.complete:
+            say("complete")
+            t = time.perf_counter()
+            view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
+            surface = len(mesh.faces)
+            mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
+                                                forward=scene.rig == "forward",
+                                                occlusion_rel=rel if options.fill_occlusion and scene.rig == "forward"
+                                                else None, backdrop_pad=options.backdrop_pad)
+            if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
+                keep = clean.hull_keep(mesh, view_cams, hull, options.hull_misses)
+                mesh, surface = clean.keep_faces(mesh, keep), int(keep[:surface].sum())
+            completion["surface_faces"] = surface  # the fused (or Poisson) surface's faces come first
+            counts["completed"] = len(mesh.faces)
+            if stages is not None:
+                stages["completed"] = mesh
+            seconds["complete"] = seconds.get("complete", 0.0) + time.perf_counter() - t
+        return mesh, completion
+
+    mesh, completion = surface_and_fills(fused)
+    if options.max_faces and len(mesh.faces) > options.max_faces:  # the budget holds for the written mesh
+        mesh, completion = fit_budget(mesh, fused, completion, surface_and_fills, options, counts,
+                                      fill=scene.rig != "forward" and masks is None)
     counts["final"] = len(mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
     info = {"voxel": voxel, "trunc": trunc, "grid": list(volume.shape), "depth_disagreement": err,
             "consistency_rel": rel, "faces": counts, "seconds": seconds, "views": views,
@@ -430,6 +467,52 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
             "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0,
             "occluded_dropped": occluded}
     return MeshResult(mesh, info, maps.cameras, maps.depth)
+
+
+def within_budget(mesh: trimesh.Trimesh, max_faces: int, options: MeshOptions, counts: dict,
+                  fill: bool) -> trimesh.Trimesh:
+    """``mesh`` decimated to ``max_faces`` (0 = no limit), then its small holes closed (``options.close_holes``;
+    ``options.fill_holes`` when ``fill``: object captures without masks); ``counts`` gets the face counts."""
+    mesh = clean.decimate(mesh, max_faces)
+    counts["decimated"] = len(mesh.faces)
+    if options.close_holes:
+        mesh, counts["holes_closed"] = clean.close_small_holes(mesh, options.close_holes)
+    if options.fill_holes and fill:
+        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes)
+    return mesh
+
+
+def fit_budget(mesh: trimesh.Trimesh, fused: trimesh.Trimesh, completion: dict | None, complete_fn,
+               options: MeshOptions, counts: dict, fill: bool) -> tuple[trimesh.Trimesh, dict | None]:
+    """The completed ``mesh`` over ``options.max_faces``: the fused surface gets what completion leaves of the
+    budget and completion runs again on it (its fills match the surface that is written); a last small overshoot
+    (the coarser surface needs a few more fills) comes off the fused part. fern, 17 views at 336x252: 200,000 fused
+    + 3,664 closing + 105,354 fill + 17,680 backdrop = 326,698 faces without this; with it 69,071 fused + 113,248
+    fill + 17,680 backdrop = 199,999. Held-out whole image (``python -m bench depth_sources --rows "fern:stereo+fill,
+    nearest 6"``, before tuning) 24.01 -> 23.92 dB; a 300k budget (167k fused) 24.00. Mesh path at 336x252, one
+    thread: 87 -> 75 CPU-ms a frame. Decimating the completed mesh as a whole instead: 23.90 dB (23.86 with the
+    fills' shared corners merged first). ``complete_fn(fused) -> (mesh, completion)`` is the pipeline after the
+    face budget."""
+    budget = options.max_faces
+    extra = len(mesh.faces) - len(fused.faces)  # completion's faces (and Poisson's change)
+    added = len(fused.faces) - counts["decimated"]  # the hole closers' faces
+    room = budget - extra - added - budget // 50  # a margin: the fills of a coarser surface differ a little
+    counts["over_budget"] = len(mesh.faces)
+    if room >= budget // 4:  # the fused surface keeps at least a quarter of the budget
+        fused = within_budget(fused, room, options, counts, fill)
+        mesh, completion = complete_fn(fused)
+    if len(mesh.faces) > budget:  # still over: trim the fused part only (it comes first)
+        n = completion["surface_faces"] if completion is not None else 0
+        rest = len(mesh.faces) - n
+        if n > 0 and budget - rest >= budget // 8:
+            part = clean.decimate(trimesh.Trimesh(mesh.vertices, mesh.faces[:n], process=False), budget - rest)
+            fills = trimesh.Trimesh(mesh.vertices, mesh.faces[n:], process=False)
+            fills.remove_unreferenced_vertices()
+            mesh = trimesh.util.concatenate([part, fills])
+        else:  # the fills alone fill the budget (or the order is unknown): decimate everything
+            mesh = clean.decimate(mesh, budget)
+    counts["budgeted"] = len(mesh.faces)
+    return mesh, completion
 
 
 def drop_occluded(cams: Cameras, depth: Tensor, weight: Tensor, agree: Tensor,

@@ -56,8 +56,15 @@ def hull_trim(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, misses
     inside every view's silhouette, so only floating or fattened surface goes."""
     if len(mesh.faces) == 0:
         return mesh
+    return keep_faces(mesh, hull_keep(mesh, cameras, masks, misses))
+
+
+def hull_keep(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, misses: int) -> np.ndarray:
+    """The faces :func:`hull_trim` keeps. ``# [F]`` bool"""
+    if len(mesh.faces) == 0:
+        return np.zeros(0, dtype=bool)
     outside = outside_votes(np.asarray(mesh.vertices), cameras.to(dtype=torch.float64), masks)
-    return keep_faces(mesh, (outside <= misses)[mesh.faces].all(1))
+    return (outside <= misses)[mesh.faces].all(1)
 
 
 def outside_votes(points: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:

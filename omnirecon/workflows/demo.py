@@ -243,7 +243,7 @@ def meshes_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
         ckpt = _checkpoint(cfg, name)
         mesh_cfg = MeshConfig(scene=path, ckpt=ckpt, views=("all",), num_views=min(cfg.num_views, 3),
                               out=(out / f"mesh_{name}.ply", out / f"mesh_{name}.glb"),
-                              resolution=48 if cfg.quick else None, voxel=1 / 96 if cfg.quick else None)
+                              resolution=48 if cfg.quick else 128, voxel=1 / 96 if cfg.quick else None)
         rec = timed(numbers, f"mesh_{name}", run_mesh, mesh_cfg)
         nm = numbers.setdefault("mesh", {})[name] = mesh_numbers(rec)
         mesh_rows.append([name, nm["faces"], "–" if nm["chamfer"] is None else nm["chamfer"],

@@ -21,7 +21,7 @@ from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import protocol_for
-from omnirecon.engine.scenes import load_at_resolution
+from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
@@ -40,7 +40,7 @@ class MeshConfig(MachineConfig):
     surface); written in the input scene's frame with its metrics."""
 
     scene: Path
-    """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
+    """Scene folder (any supported format); read at --resolution, normalised."""
     ckpt: Path | None = None
     """Checkpoint folder written by `omnirecon train` (its model must render depth)."""
     model: Literal["floor"] | None = None
@@ -53,7 +53,10 @@ class MeshConfig(MachineConfig):
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
-    """Long side of the images in pixels (default: the scene's eval protocol, 128)."""
+    """Long side of the images meshed, in pixels (default: the photos' own, at most 512, as `reconstruct`). fern,
+    every training view (`python -m bench mesh_resolution`, scored at the photos' size): at 336x252 held-out 23.92 dB in
+    35.9 CPU-s, at 128x96 23.16 dB in 38.2 CPU-s; dtu_scan24 (stereo+model, no masks) over the mask 18.86 dB in 130
+    CPU-s at 400x300, 17.50 dB in 94 CPU-s at 128x96."""
     depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
     """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
     no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
@@ -73,8 +76,9 @@ class MeshConfig(MachineConfig):
     """Weight each pixel by how many other depth maps agree with it (forward-backward reprojection;
     default: the preset's, on for fit)."""
     max_faces: int = 200_000
-    """Decimate the fused surface to at most this many faces (0 = keep every face); completion's fills and a
-    forward-facing scene's backdrop sheet come on top (fern, 17 views at 336x252: 200k -> 327k faces)."""
+    """Face budget of the written mesh (0 = keep every face): completion's fills and a forward-facing scene's
+    backdrop sheet count, the fused surface gets what they leave (fern, 17 views at 336x252: 131k fill and
+    backdrop faces, 69k fused; held-out 24.01 -> 23.92 dB against the 327k faces of not counting the fills)."""
     depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
     faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py
@@ -148,7 +152,7 @@ def load_inputs(cfg: MeshConfig, device: str):
         net, info = load_model(cfg.ckpt, cfg.model, device)
     proto = protocol_for(Path(cfg.scene), fmt)
     start = time.perf_counter()
-    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, proto.background, fmt)
+    scene = load_at_resolution(cfg.scene, cfg.resolution or photo_side(Path(cfg.scene), fmt=fmt), proto.background, fmt)
     load_seconds = time.perf_counter() - start
     if cfg.metrics and scene.mesh_path is not None:
         geometry.load_mesh_file(scene.mesh_path, "ground-truth mesh", "fix the scene's mesh file, or remove its "

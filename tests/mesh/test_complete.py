@@ -34,6 +34,10 @@ def test_a_forward_scene_is_meshed_with_full_coverage_of_its_training_views(forw
     r.close()
     assert min(covered) == 1.0, covered  # every pixel of every training view
     assert comp["coverage_before"] < 1.0 and comp["fill_faces"] > 0  # the completion did the work
+    faces = made.info["faces"]  # the face budget holds for the written mesh, fills and backdrop included
+    assert len(made.mesh.faces) == faces["final"] <= 20_000
+    if depth == "stereo":  # fused 20k + fills and backdrop went over: the fused surface got what the fills left
+        assert faces["over_budget"] > 20_000 and faces["decimated"] < 20_000 - comp["fill_faces"]
     if depth == "oracle":  # the fill sits on the exact surface where the exact depth exists
         d = made.mesh.vertices
         lo, hi = scene.bounds.numpy()
