@@ -12,9 +12,10 @@ held-out views, sources, resolution and fill as ``omnirecon finetune`` (PSNR per
 subset of ``PIXELS`` pixels of the image and of the object mask, averaged over views) and reports it beside
 the pretrained model's on the same pixels: the gap is the ceiling of every tuning lever that changes blend weights. (Per-source
 exposure scales the colours and can exceed it slightly; ``exposure`` rows of ``python -m bench finetune_levers`` measure it.)
-With the visibility test (``omnirecon finetune``'s default; ``--no-visibility`` to drop it) the model blends, and
-the ceiling chooses among, only the sources that see each point, as ``finetune`` does; ``ceiling_all`` is the best blend
-over every source the point projects into (occluded ones too): what the test itself gives up.
+With ``finetune``'s defaults (each pixel's ``--nearest 6`` sources among every training view, the visibility test;
+``--no-visibility`` to drop the test, ``--nearest 0 --num-views 3`` for 3 fixed sources) the model blends, and the
+ceiling chooses among, only the nearest sources that see each point, as ``finetune`` does; ``ceiling_all`` is the best
+blend over every source the point projects into (occluded and farther ones too): what those limits give up.
 Results merge into ``bench/results/finetune_ceiling.json``.
 """
 
@@ -60,34 +61,20 @@ def best_blend(colours: torch.Tensor, allowed: torch.Tensor, target: torch.Tenso
 
 
 @torch.no_grad()
-def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_views: int = 3, max_held_out: int = 4,
-            visibility: bool = True) -> dict:
-    from omnirecon.data import detect_format
-    from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.engine.protocols import protocol_for, targets_and_pool
-    from omnirecon.engine.scenes import load_at_resolution, photo_side
-    from omnirecon.engine.views import default_views
-    from omnirecon.mesh.files import read_mesh
-    from omnirecon.rays import Sources
-    from omnirecon.workflows.finetune import encode_maps, rasterize_views, visible_at
+def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, nearest: int = 6, num_views: int = 3,
+            max_held_out: int = 4, visibility: bool = True) -> dict:
+    from omnirecon.workflows.finetune import FinetuneConfig, encode_maps, prepare, visible_at
 
-    model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
+    cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh_file, resolution=resolution,
+                         nearest=nearest, num_views=num_views, max_held_out=max_held_out, visibility=visibility)
+    s = prepare(cfg)  # finetune's sources, held-out views, resolution, fill and per-pixel blend sets
+    model, scene, held, background, views, targets = s.model, s.scene, s.held_px, s.background, s.views, s.targets
     model.eval()
-    fmt = detect_format(path)
-    proto = protocol_for(path, fmt)
-    scene = load_at_resolution(path, resolution or photo_side(path, fmt=fmt), proto.background, fmt)
-    views = default_views(scene, num_views)
-    targets, _ = targets_and_pool(proto, scene)
-    if len(targets) > max_held_out:  # as omnirecon finetune
-        targets = [targets[i] for i in np.unique(np.linspace(0, len(targets) - 1, max_held_out).round().astype(int))]
-    sources = Sources.from_scene(scene, views)
-    background = scene.background if scene.background is not None else (
-        (0.0,) * 3 if proto.background == "black" else (1.0,) * 3)
-    held = rasterize_views(read_mesh(mesh_file, scene.to_input), scene, targets, scene.background is None,
-                           views if visibility else None)
+    sources = s.sources
     feats = encode_maps(model, sources)
     g = torch.Generator().manual_seed(0)
-    names = ("model", "ceiling", "ceiling_all") if visibility else ("model", "ceiling")
+    limited = any(v.visible is not None for v in held)  # the visibility test and/or --nearest limit the blend
+    names = ("model", "ceiling", "ceiling_all") if limited else ("model", "ceiling")
     scores = {name: {"psnr": [], "psnr_masked": []} for name in names}
     for v in held:
         gt = scene.images[v.index].reshape(-1, 3).float()
@@ -111,7 +98,7 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, num_view
                 img = torch.tensor(background, dtype=torch.float32).expand(len(pix), 3).clone()
                 img[shaded] = rgb.float()
                 scores[name][key].append(float(-10 * torch.log10((img - gt[pix]).square().mean().clamp_min(1e-10))))
-    out = {"scene": str(path), "mesh": str(mesh_file), "sources": views, "held_out": targets,
+    out = {"scene": str(path), "mesh": str(mesh_file), "sources": views, "nearest": nearest, "held_out": targets,
            "resolution": [scene.width, scene.height], "pixels_per_view": PIXELS, "load_average": os.getloadavg()[0],
            "visibility": visibility}
     for name in names:
@@ -123,13 +110,14 @@ def main(argv: list[str] | None = None) -> dict:
     from bench.finetune_levers import merge, scene_parser, scenes_and_meshes
 
     p = scene_parser(__doc__)
-    p.add_argument("--num-views", type=int, default=3, help="sources K (as omnirecon finetune --num-views)")
+    p.add_argument("--nearest", type=int, default=6, help="each pixel's nearest sources (as omnirecon finetune --nearest)")
+    p.add_argument("--num-views", type=int, default=3, help="sources K with --nearest 0 (as omnirecon finetune)")
     p.add_argument("--no-visibility", dest="visibility", action="store_false",
                    help="blend every source the point projects into (finetune --no-visibility)")
     a = p.parse_args(argv)
     result = {}
     for name, path, mesh in scenes_and_meshes(a):
-        row = ceiling(path, mesh, num_views=a.num_views, visibility=a.visibility)
+        row = ceiling(path, mesh, nearest=a.nearest, num_views=a.num_views, visibility=a.visibility)
         print(name, row["model"], "->", row["ceiling"])
         result = merge(a.out / "finetune_ceiling.json", name, row)
     return result

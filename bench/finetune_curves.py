@@ -4,7 +4,8 @@
     python -m bench finetune_curves --scene demo=PATH --mesh demo=MESH.ply --seconds 300
     python -m bench finetune_curves --scene fern=... --mesh fern=MESH.ply --collect   # an interrupted run's curve
 
-Per scene: ``omnirecon finetune`` with its defaults (what is tuned, pixels per step, precision) and the
+Per scene: ``omnirecon finetune`` with its defaults (each pixel's ``--nearest 6`` sources, the encoder + appearance
+branch at 5e-4, pixels per step, precision, ``--val-choice``; the row records them) and the
 given mesh (the project's own ``omnirecon mesh --views all`` meshes; the JSON records the depth source
 from the mesh's ``*_metrics.json``), images at the photos' own resolution, the clock this process's CPU
 time (``--clock cpu --threads 1``: other jobs on the machine do not shrink the budget), scored on the
@@ -56,7 +57,7 @@ def run_scene(name: str, path: Path, mesh: Path, seconds: float, threads: int, r
     times = tuple(t for t in (*TIMES, 300.0) if t <= seconds)
     run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                                 eval_at=times, clock="cpu", threads=threads, out=work_dir(name), resolution=resolution,
-                                max_held_out=4, save=save, nearest=0, tune=("appearance",), lr=3e-3))  # as measured
+                                max_held_out=4, save=save))  # finetune's defaults (--nearest 6, encoder + appearance)
 
 
 def scene_row(name: str, mesh: Path, out: Path) -> dict:
@@ -70,7 +71,8 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
             "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
     return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
-            "sources": ft["sources"], "rays": ft["rays"], "tuned": ft["tuned"], "lr": ft["lr"], "precision": ft["precision"],
+            "sources": ft["sources"], "nearest": ft.get("nearest", 0), "val_choice": ft.get("val_choice", "spread"),
+            "rays": ft["rays"], "tuned": ft["tuned"], "lr": ft["lr"], "precision": ft["precision"],
             "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
             "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),

@@ -4,7 +4,8 @@ CPU-seconds of tuning, one row per lever, on real scenes at the photos' own reso
     python -m bench finetune_levers --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --rows base bf16
 
 Rows (``ROWS``): what is tuned (the 2-D encoder, the appearance branch, per-source exposure), pixels per
-step, learning rate and bf16 autocast. Every row is ``omnirecon finetune`` with the same mesh, sources,
+step, learning rate and bf16 autocast; everything else is ``finetune``'s default (each pixel's ``--nearest 6``
+sources, ``--val-choice``), recorded in the row. Every row is ``omnirecon finetune`` with the same mesh, sources,
 validation and held-out views, ``--clock cpu --threads 1`` (other jobs on the machine do not shrink
 the budget), scored before and after. Rows can run in separate processes: each merges its result into
 ``bench/results/finetune_levers.json`` under a file lock.
@@ -45,10 +46,12 @@ def run_row(scene: str, path: Path, mesh: Path, row: str, seconds: float, thread
     work = ROOT / "outputs" / "bench" / "finetune_levers" / f"{scene}_{row}"
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                                      eval_at=(0.0, seconds), clock="cpu", threads=threads, out=work, max_held_out=4,
-                                     nearest=0, **ROWS[row]))  # the 3 fixed sources the rows were measured with
+                                     **ROWS[row]))  # finetune's defaults but the row's settings
     first, last = ft["curve"][0], ft["curve"][-1]
     return {"scene": str(path), "mesh": str(mesh), "row": row, "settings": {k: list(v) if isinstance(v, tuple) else v
                                                                            for k, v in ROWS[row].items()},
+            "nearest": ft["nearest"], "val_choice": ft["val_choice"], "sources": ft["sources"],
+            "validation_views": ft["validation_views"], "returned_from": ft["returned_from"],
             "resolution": ft["resolution"], "tuned_parameters": ft["tuned_parameters"], "steps": last["steps"],
             "before": {k: first[k] for k in KEEP if k in first}, "after": {k: last[k] for k in KEEP if k in last},
             "gain_db": last["psnr"] - first["psnr"],

@@ -4,7 +4,8 @@
 
 An oracle that never ships: ``omnirecon finetune``'s loop (same model, mesh, sources, resolution, pixels per
 step, CPU clock, 1 thread) tunes on the held-out views' own pixels, with no validation views (the state at
-each time is scored), tuning what ``finetune`` tunes by default (its ``--tune`` and ``--lr``). Its test PSNR
+each time is scored), with ``finetune``'s defaults (sources: each pixel's ``--nearest 6`` training views; what is
+tuned: ``--tune``, ``--lr``; the row records them). Its test PSNR
 is the most these tuned weights can give on those views in that time; beside the real run (tuned on the
 training views, ``python -m bench finetune_curves``) and the blend ceiling (the best per-pixel convex blend of the source colours, ``python -m
 bench finetune_ceiling``), it splits the missing gain in two: **generalisation** (oracle minus real: what
@@ -56,8 +57,8 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
 
     cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                          eval_at=tuple(t for t in TIMES if t <= seconds), clock="cpu", threads=threads,
-                         max_held_out=4, val_views=0 if mode == "oracle" else 2,
-                         nearest=0, tune=("appearance",), lr=3e-3 if mode == "oracle" else 5e-4,  # as measured
+                         max_held_out=4, val_views=0 if mode == "oracle" else 2,  # finetune's defaults otherwise
+                         **({} if mode == "oracle" else {"tune": ("appearance",)}),  # maps: + the free feature maps
                          out=ROOT / "outputs" / "bench" / "finetune_oracle")
     set_threads(threads)
     s = prepare(cfg)
@@ -73,7 +74,7 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "val_psnr", "returned_from")
     return {"scene": str(path), "mesh": str(mesh), "mode": mode, "held_out": s.targets, "sources": s.views,
             "resolution": [s.scene.width, s.scene.height], "tuned": list(cfg.tune) + (["maps"] if mode == "maps" else []),
-            "rays": cfg.rays, "lr": cfg.lr, "visibility": cfg.visibility, "clock": cfg.clock, "threads": threads,
+            "rays": cfg.rays, "lr": cfg.lr, "nearest": cfg.nearest, "visibility": cfg.visibility, "clock": cfg.clock, "threads": threads,
             "budget_s": seconds,
             "curve": [{k: c[k] for k in keep if k in c} for c in t.curve]}
 

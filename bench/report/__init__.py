@@ -16,6 +16,7 @@ from bench.report import (
     end_to_end,
     finetune_curves,
     finetune_levers,
+    finetune_validation,
     geometry,
     geometry_budget,
     hostile,
@@ -37,7 +38,8 @@ from bench.report import (
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
-            mesh_resolution, finetune_curves, finetune_levers, hostile, speed, peer, levers, end_to_end, training, quality, geometry,
+            mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer, levers,
+            end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"

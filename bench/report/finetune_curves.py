@@ -72,6 +72,10 @@ def section(results: Path) -> str:
                      f"{' (' + str(made['depth']) + ')' if made.get('depth') else ''}, {row['faces']:,} faces; held-out "
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
                      f"({', '.join(row['tuned'])}{', lr %g' % row['lr'] if 'lr' in row else ''}, {row['precision']}"
+                     + (f"; each pixel's {row['nearest']} nearest of {len(row['sources'])} sources"
+                        if row.get("nearest") else f"; {len(row['sources'])} fixed sources {row['sources']}")
+                     + (f"; validation views {row['validation_views']} ({row['val_choice']})" if row.get("val_choice")
+                        else "")
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
                      + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects"
                                                             if "psnr_masked" in first else "image")
@@ -87,8 +91,9 @@ def section(results: Path) -> str:
     return "\n".join([
         "## Fine-tuning curves of the mesh path (`python -m bench finetune_curves`)",
         "",
-        "`omnirecon finetune` with its defaults (since session 13 the appearance branch alone at lr 3e-3, before "
-        "that the 2-D encoder and the appearance branch at 5e-4: each row's notes say what was tuned; images at the "
+        "`omnirecon finetune` with its defaults (since session 14: each pixel's 6 nearest sources, the 2-D encoder and "
+        "the appearance branch at 5e-4, the validation views the training views farthest from the others; earlier "
+        "rows: 3 fixed sources and other settings; each row's notes say what it used; images at the "
         "photos' own resolution, 1 thread, `--clock cpu`: process CPU seconds, so other jobs on the machine do not shrink the "
         "budget) with the project's own meshes. Test: held-out PSNR in dB on the protocol's test views of the state "
         "tuning returns at that time (the best on validation views; the start is a candidate), over the whole image "
@@ -96,7 +101,7 @@ def section(results: Path) -> str:
         "(DTU: the objects; other scenes: the whole image), with the other score guarded (`--val-guard`: never "
         "lower than the start by more than that many dB, 0 by default); rows measured before that rule (each "
         "row's `scored_by` is absent) used the smaller of the whole-image and object gains. Validation: the returned state's score on the validation views (training views never tuned on, "
-        "never sources). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
+        "never blending their own photo). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
         "",
         *rows,
         "",

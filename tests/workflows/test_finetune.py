@@ -1,6 +1,7 @@
 """``omnirecon finetune``: seconds-scale tuning of the mesh path raises held-out PSNR; bad input."""
 
 import json
+from dataclasses import replace
 
 import pytest
 import torch
@@ -76,7 +77,8 @@ def test_tuning_a_wrong_mesh_returns_a_state_no_worse_than_the_start(setup, caps
     r = json.loads((out / "curve.json").read_text())
     val = r["validation"]
     assert len(val) >= 6 and len(r["validation_views"]) == 2
-    assert not set(r["validation_views"]) & set(r["held_out"] + r["sources"])
+    assert not set(r["validation_views"]) & set(r["held_out"])  # never held out; under --nearest they are sources
+    assert r["val_choice"] == "isolated" and set(r["validation_views"]) <= set(r["sources"])  # (never their own)
     # the returned state: the largest gain on what the scene is scored by (a procedural scene: the whole image)
     # among those reaching the margin with the objects no worse (the guard), else the start
     assert r["scored_by"] == "image" and r["val_guard"] == 0
@@ -235,13 +237,13 @@ def test_nearest_sources_blend_only_the_views_nearest_each_view(setup):
     assert torch.equal(view.visible[kept], (before & allowed)[kept])
 
 
-def test_nearest_sources_without_views_use_every_training_view_but_validation(setup):
-    """Without ``--views``, ``--nearest`` makes every training view a source except the validation views;
-    no held-out view is a source, and validation is still chosen."""
+def test_nearest_sources_without_views_use_every_training_view(setup):
+    """Without ``--views``, ``--nearest`` makes every training view a source, the validation views too (no view
+    blends its own photo); no held-out view is a source, validation is still chosen and never tuned on."""
     from omnirecon.data import detect_format
     from omnirecon.engine.protocols import protocol_for
     from omnirecon.engine.scenes import load_at_resolution
-    from omnirecon.workflows.finetune import FinetuneConfig, split_views
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare, split_views
 
     root, path = setup
     scene = load_at_resolution(path, 48)
@@ -249,14 +251,40 @@ def test_nearest_sources_without_views_use_every_training_view_but_validation(se
     cfg = FinetuneConfig(ckpt=root / "omni", scene=path, nearest=3, val_views=2)
     views, targets, val_views, tune_views = split_views(cfg, scene, proto)
     train = scene.splits.get("train") or [i for i in range(len(scene)) if i not in targets]
-    assert len(val_views) == 2 and not set(val_views) & set(views)
+    assert len(val_views) == 2 and set(val_views) <= set(views)
     assert not set(views) & (set(targets) | set(scene.splits.get("test", [])))
-    assert sorted(views + val_views) == sorted(i for i in train if i not in targets)
-    assert tune_views and set(tune_views) <= set(views)  # tuning views are sources (each blends the others)
-    fixed, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path, nearest=0), scene, proto)
-    assert len(fixed) == 3  # --nearest 0: the 3 fixed sources
+    assert sorted(views) == sorted(i for i in train if i not in targets)
+    assert tune_views and set(tune_views) <= set(views) and not set(tune_views) & set(val_views)
+    fixed, _, fixed_val, _ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path, nearest=0), scene, proto)
+    assert len(fixed) == 3 and not set(fixed) & set(fixed_val)  # --nearest 0: 3 fixed sources, validation apart
     default, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path), scene, proto)
     assert FinetuneConfig.nearest == 6 and default == views  # the default blends each view's 6 nearest
+    s = prepare(replace(cfg, resolution=48, mesh=path / "mesh.ply"))
+    for v in s.val_px:  # a validation view is scored from its neighbours' photos, never its own
+        assert v.visible is not None and not v.visible[:, s.views.index(v.index)].any()
+
+
+def test_isolated_validation_views_are_the_training_views_farthest_from_the_others():
+    """``--val-choice isolated`` picks, one at a time, the training view whose nearest other remaining view is
+    farthest: on a ring of views 10 degrees apart, the two that stand alone; ``spread`` picks evenly spaced ones."""
+    import math
+    from types import SimpleNamespace
+
+    from omnirecon.cameras import Cameras, look_at
+    from omnirecon.workflows.finetune import pick_validation
+
+    az = [*range(0, 100, 10), 135, *range(180, 280, 10), 315]  # degrees: 135 and 315 alone, 45 degrees from the rest
+    eyes = torch.tensor([[2 * math.cos(math.radians(a)), 2 * math.sin(math.radians(a)), 0.5] for a in az],
+                        dtype=torch.float64)
+    c2w = look_at(eyes, torch.zeros(3, dtype=torch.float64), torch.tensor([0, 0, 1.0], dtype=torch.float64))
+    n = len(az)
+    cams = Cameras(torch.full((n,), 50.0), torch.full((n,), 50.0), torch.full((n,), 32.0), torch.full((n,), 32.0),
+                   c2w, 64, 64)
+    scene = SimpleNamespace(cameras=cams, rig="object")
+    train = list(range(len(az)))
+    assert pick_validation(train, [], 2, scene, "isolated") == [10, 21]  # 135 and 315 degrees
+    assert pick_validation(train, [10], 1, scene, "isolated") == [21]  # never a source
+    assert pick_validation(train, [], 2, scene, "spread") == [7, 14]  # evenly spaced
 
 
 def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
