@@ -158,6 +158,13 @@ class FinetuneConfig(ThreadsConfig):
     (without it a source that sees the ground behind the box painted the box with ground texture), the
     project's stereo+model mesh 21.04 -> 22.53; fern's stereo+model mesh 20.66 -> 20.93; dtu_scan24's 13.92 ->
     13.96 (covered pixels 18.19 -> 18.38)."""
+    blend: Literal["network", "angle"] = "network"
+    """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
+    sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
+    see it, weighted by angle alone (:func:`omnirecon.mesh.ibr.angle_weights`, the unstructured lumigraph's
+    blend). With ``angle`` nothing the blend uses is tuned (the encoder and the appearance branch are unused):
+    --seconds only scores. DTU, the mesh from all 41 training views, --nearest 4, over the masks before tuning:
+    see ``python -m bench depth_sources`` (``, angle blend`` rows)."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -187,6 +194,9 @@ class ViewPixels:
     """The first ``covered`` pixels lie on the mesh."""
     visible: torch.Tensor | None = None
     """Which sources see each point (the occlusion test; fill points: all), ``None`` = no test. ``# [P, K]`` bool"""
+    weights: torch.Tensor | None = None
+    """With ``--blend angle``: each point's fixed blend weights (:func:`angle_blend`); ``None``: the network's.
+    ``# [P, K]``"""
 
 
 def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
@@ -265,9 +275,14 @@ def encode_maps(model, sources, colours: Sources | None = None):
 def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384) -> torch.Tensor:
     """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch. ``# [P, 3]``"""
     points = view.points if idx is None else view.points[idx]
+    weights = None if view.weights is None else (view.weights if idx is None else view.weights[idx])
     out = []
     for s in range(0, len(points), chunk):
         pts = points[s:s + chunk]
+        if weights is not None:  # --blend angle: fixed weights over the sources' colours
+            rgb = model.gather(features, pts[:, None], view.origin.expand_as(pts)).rgb[:, 0]  # [n, K, 3]
+            out.append((weights[s:s + chunk, :, None].to(rgb) * rgb).sum(1))
+            continue
         out.append(model.shade(features, pts, view.origin.expand_as(pts), visible_at(view, idx, s, s + chunk))["rgb"])
     return torch.cat(out) if out else view.target.new_zeros(0, 3)
 
@@ -341,6 +356,22 @@ def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: 
         vis = vis & near  # [P, K]
         vis[~vis.any(-1)] = near
         v.visible = vis
+
+
+def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
+    """Give every point of each view in ``pixels`` its ``--blend angle`` weights (in place): the ``k`` sources
+    (``k`` = 0: all) nearest by viewing angle among those in front of it, inside their image and (with the
+    occlusion test) not occluded; ``visible`` becomes the sources with weight."""
+    from omnirecon.mesh.ibr import angle_weights
+
+    cams = scene.cameras[sources].to(dtype=torch.float32)
+    for v in pixels:
+        proj = cams.project(v.points)
+        seen = (proj.in_image & (proj.depth > 0)).T  # [P, K]
+        if v.visible is not None:
+            seen &= v.visible
+        v.weights = angle_weights(v.points, v.origin, cams.centers, seen, k or len(sources))
+        v.visible = v.weights > 0
 
 
 def pick_validation(train_views: list[int], sources: list[int], n: int) -> list[int]:
@@ -423,7 +454,10 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     held_px = rasterize_views(mesh, scene, targets, fill, vis)
     val_px = rasterize_views(mesh, scene, val_views, fill, vis)
     for px in (train_px, held_px, val_px):
-        restrict_to_nearest(px, scene, views, cfg.nearest)
+        if cfg.blend == "angle":
+            angle_blend(px, scene, views, cfg.nearest)
+        else:
+            restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
@@ -474,7 +508,8 @@ class Tuner:
         self.s, self.reg, model = s, cfg.reg, s.model
         self.exposure = Exposure(len(s.views))
         modules = {"encoder": model.encoder, "appearance": model.appearance}
-        self.params = [p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
+        self.params = [] if cfg.blend == "angle" else [  # the angle blend uses neither network
+            p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
             with torch.no_grad():
@@ -701,7 +736,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
-              "val_guard": cfg.val_guard, "scored_by": s.scored_by, "visibility": cfg.visibility,
+              "val_guard": cfg.val_guard, "scored_by": s.scored_by, "visibility": cfg.visibility, "blend": cfg.blend,
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
               "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
