@@ -636,7 +636,8 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
 
     sample = PixelSampler(cfg, s, g)
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
-    checks = sorted(set(eval_at) | {float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)})
+    checks = sorted(set(eval_at) | ({float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)}
+                                    if tuner.opt is not None else set()))  # nothing tuned: nothing to validate
     curve, validation, before, step, start_val = [], [], None, 0, None
     best_state, best_val, best_gain, best_at = tuner.state(), {}, -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
@@ -732,7 +733,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
-              "reg": cfg.reg, "fill": "far" if s.fill else "background", "tuned": list(dict.fromkeys(cfg.tune)),
+              "reg": cfg.reg, "fill": "far" if s.fill else "background",
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,

@@ -286,3 +286,32 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
         on_fill += int((idx >= view.covered).sum())
         total += len(idx)
     assert abs(on_fill / total - fill_share) < 0.05, (on_fill / total, fill_share)
+
+
+def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
+    """``angle_weights``: only the ``k`` seen sources with the smallest viewing angle get weight, the nearer more,
+    weights sum to 1, a source at the (k+1)-th angle gets none, and a point no source sees blends all uniformly."""
+    from omnirecon.mesh.ibr import angle_weights
+
+    angles = torch.tensor([0.05, 0.10, 0.20, 0.30, 0.02])  # radians from the target's ray, source 4 nearest
+    centers = torch.stack([torch.stack([torch.sin(a), torch.zeros(()), -torch.cos(a)]) * 2 for a in angles])
+    points = torch.zeros(2, 3)
+    origin = torch.tensor([0.0, 0.0, -2.0])
+    seen = torch.tensor([[True, True, True, True, False], [False] * 5])  # source 4 occluded; point 1 unseen
+    w = angle_weights(points, origin, centers, seen, 2)
+    assert torch.allclose(w.sum(1), torch.ones(2))
+    assert w[0, 0] > w[0, 1] > 0 and (w[0, 2:] == 0).all()  # 2 nearest seen: 0 and 1; 2 is the (k+1)-th
+    assert torch.allclose(w[1], torch.full((5,), 0.2))
+
+
+def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
+    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), and
+    every point blends only sources with weight."""
+    root, scene = setup
+    out = tmp_path / "angle"
+    args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 1,
+            "--eval-at", 0, "--clock", "cpu", "--resolution", 48, "--out", out, "--blend", "angle", "--nearest", 3]
+    assert main([str(a) for a in args]) == 0, capsys.readouterr().err
+    r = json.loads((out / "curve.json").read_text())
+    assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
+    assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
