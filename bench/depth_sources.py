@@ -28,6 +28,8 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
 * ``<source>, all views`` (DTU): the mesh from every training view (41) instead of 14 of them.
 * ``<source>, angle blend``: scored with ``finetune --blend angle`` (each point's nearest sources by viewing
   angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
+* ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
+  the nearest pixel it covers in the same view, instead of the far layer).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -170,6 +172,8 @@ def scoring(source: str) -> dict:
             out["tune"] = ("encoder", "appearance", "exposure")
         elif part == "angle blend":
             out["blend"] = "angle"
+        elif part == "nearest fill":
+            out["fill"] = "nearest"
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out

@@ -133,8 +133,11 @@ class FinetuneConfig(ThreadsConfig):
     +0.08 dB, so the start was returned."""
     val_every: float = 2.0
     """Seconds of optimisation between validation scores (also scored at every --eval-at)."""
-    fill: Literal["auto", "far", "background"] = "auto"
-    """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend;
+    fill: Literal["auto", "far", "background", "nearest"] = "auto"
+    """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend; `nearest`, the
+    z-depth of the nearest pixel of the same view that the mesh covers (its own rendered depth, never a photo), points
+    on those rays shaded like mesh points with the occlusion test (object captures whose mesh stops short of the
+    silhouette; pixels of a view the mesh misses entirely: `far`);
     `background`, the scene's background colour; `auto`: `background` for scenes that declare their
     background colour (procedural), else `far`. With `far`, tuning samples the fill's pixels too (they are
     scored: on dtu_scan24 tuning only the mesh's pixels lowered the whole image on validation while raising the
@@ -199,10 +202,41 @@ class ViewPixels:
     ``# [P, K]``"""
 
 
+NEAREST_FILL_REACH = 0.15
+"""``--fill nearest`` moves the missed pixels within this fraction of the image's long side of a covered pixel (the
+rest keep the far layer). dtu_scan37, angle blend, nearest 4, held-out mask / whole image: far layer 21.53 / 17.84 dB;
+reach 3 px 21.86 / 18.13, 8 px 21.89 / 18.52, 20 px 21.89 / 19.20, 60 px (0.15) 21.89 / 19.76; every pixel 21.89 / 18.23
+(far background, e.g. the dark table, is better on the far layer)."""
+
+
+def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
+    """``--fill nearest``: for the pixels after the first ``covered`` of ``surf`` (those the mesh misses) within
+    :data:`NEAREST_FILL_REACH` of a covered pixel, the point on each one's ray at the z-depth of the nearest covered
+    pixel. Returns the points ``# [P, 3]`` (the others unchanged) and which rows moved ``# [P]`` bool."""
+    from scipy.ndimage import distance_transform_edt
+
+    points, moved = surf.points.float().clone(), torch.zeros(len(surf.pixels), dtype=torch.bool)
+    if covered == 0 or covered == len(surf.pixels):
+        return points, moved
+    H, W = surf.height, surf.width
+    z = np.zeros(H * W, np.float32)
+    z[surf.pixels[:covered].numpy()] = surf.depth[:covered].float().numpy()
+    dist, (iy, ix) = distance_transform_edt(z.reshape(H, W) <= 0, return_indices=True)
+    near = torch.from_numpy(dist.reshape(-1) <= NEAREST_FILL_REACH * max(H, W))[surf.pixels[covered:]]
+    rows = covered + near.nonzero()[:, 0]
+    holes = surf.pixels[rows]
+    zh = torch.from_numpy(z[(iy * W + ix).reshape(-1)[holes.numpy()]])  # [n]
+    uv = torch.stack([(holes % W).float() + 0.5, (holes // W).float() + 0.5], -1)  # pixel centres
+    points[rows] = cam.to(dtype=torch.float32).unproject(uv[None], zh[None])[0]
+    moved[rows] = True
+    return points, moved
+
+
 def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
-                    tol: float = 0.01) -> list[ViewPixels]:
+                    tol: float = 0.01, nearest_fill: bool = False) -> list[ViewPixels]:
     """Rasterize ``mesh`` (scene frame) at each of ``indices`` once; with ``fill``, every pixel the mesh
-    misses gets the mesh renderer's background layer; with ``sources`` (scene views), each mesh point gets the
+    misses gets the mesh renderer's background layer (with ``nearest_fill``: a point at the nearest covered pixel's
+    depth, :func:`nearest_depth_points`); with ``sources`` (scene views), each mesh point gets the
     occlusion test against those views (:func:`omnirecon.mesh.ibr.unoccluded`, relative tolerance ``tol``)."""
     from omnirecon.mesh.ibr import block_depth_max, unoccluded
 
@@ -219,12 +253,14 @@ def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] 
             surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
                 else (surf, len(surf.pixels))
             img = scene.images[i].reshape(-1, 3)
+            points, moved = nearest_depth_points(surf, covered, cam) if fill and nearest_fill else (
+                surf.points.float(), torch.zeros(len(surf.pixels), dtype=torch.bool))
             visible = None
             if dmax is not None:
-                proj = scene.cameras[sources].to(dtype=torch.float32).project(surf.points.float())
+                proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
                 visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
-                visible[covered:] = True
-            out.append(ViewPixels(i, cam.centers[0].float(), surf.points.float(), surf.pixels,
+                visible[covered:][~moved[covered:]] = True  # the far layer: every source
+            out.append(ViewPixels(i, cam.centers[0].float(), points, surf.pixels,
                                   img[surf.pixels].float(), covered, visible))
     return out
 
@@ -448,11 +484,11 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
             mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
-    fill = cfg.fill == "far" or (cfg.fill == "auto" and scene.background is None)
-    vis = views if cfg.visibility else None
-    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis) if len(v.points)]
-    held_px = rasterize_views(mesh, scene, targets, fill, vis)
-    val_px = rasterize_views(mesh, scene, val_views, fill, vis)
+    fill = cfg.fill in ("far", "nearest") or (cfg.fill == "auto" and scene.background is None)
+    vis, near = views if cfg.visibility else None, cfg.fill == "nearest"
+    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis, nearest_fill=near) if len(v.points)]
+    held_px = rasterize_views(mesh, scene, targets, fill, vis, nearest_fill=near)
+    val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
     for px in (train_px, held_px, val_px):
         if cfg.blend == "angle":
             angle_blend(px, scene, views, cfg.nearest)
@@ -733,7 +769,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
-              "reg": cfg.reg, "fill": "far" if s.fill else "background",
+              "reg": cfg.reg, "fill": cfg.fill if cfg.fill == "nearest" else ("far" if s.fill else "background"),
               "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
