@@ -315,3 +315,31 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     r = json.loads((out / "curve.json").read_text())
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
+
+
+def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
+    """``--fill nearest``: a missed pixel within reach of the covered ones moves onto its own ray at the z-depth of
+    the nearest covered pixel; one beyond reach, and every covered point, stay where they were."""
+    from omnirecon.cameras import Cameras, look_at
+    from omnirecon.render.raster import Surface
+    from omnirecon.workflows.finetune import nearest_depth_points
+
+    W = H = 40
+    c2w = look_at(torch.zeros(1, 3), torch.tensor([[0, 0, 1.0]]), torch.tensor([0, -1.0, 0]))
+    cam = Cameras.from_K(torch.tensor([[40.0, 0, 20], [0, 40, 20], [0, 0, 1]]), c2w, W, H)
+    rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    pix = (rows * W + cols).reshape(-1)
+    hit = cols.reshape(-1) < 10  # the mesh covers the 10 left columns at z = 2; the rest is far layer at z = 9
+    z = torch.where(hit, 2.0, 9.0)
+    uv = torch.stack([cols.reshape(-1) + 0.5, rows.reshape(-1) + 0.5], -1).float()
+    order = torch.cat([pix[hit], pix[~hit]])
+    pts = cam.unproject(uv[order][None], z[order][None])[0].float()
+    surf = Surface(order, pts, z[order], H, W)
+    moved_pts, moved = nearest_depth_points(surf, int(hit.sum()), cam)
+    depth = cam.project(moved_pts).depth[0]
+    col = order % W
+    n = int(hit.sum())
+    assert torch.equal(moved_pts[:n], pts[:n]) and not moved[:n].any()
+    near = (col[n:] - 9) <= 0.15 * W  # within reach of column 9
+    assert moved[n:].eq(near).all() and torch.allclose(depth[n:][near], torch.tensor(2.0), atol=1e-4)
+    assert torch.allclose(moved_pts[n:][~near], pts[n:][~near])
