@@ -166,14 +166,14 @@ def scoring(source: str) -> dict:
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
             out["num_views"] = int(part.split()[0])
+        elif part == "nearest fill":
+            out["fill"] = "nearest"
         elif part.startswith("nearest "):
             out["nearest"] = int(part.split()[1])
         elif part == "exposure":
             out["tune"] = ("encoder", "appearance", "exposure")
         elif part == "angle blend":
             out["blend"] = "angle"
-        elif part == "nearest fill":
-            out["fill"] = "nearest"
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out

@@ -227,7 +227,8 @@ def angle_weights(points: Tensor, origin: Tensor, centers: Tensor, seen: Tensor,
 
     ``points # [P, 3]``, ``origin # [3]`` (the target camera centre), ``centers # [K, 3]`` (the sources'),
     ``seen # [P, K]`` bool. Returns ``# [P, K]``. On DTU's wide rig this blend beat the appearance network's
-    weights over the same visible sources (``Finetune --blend angle``, measured there)."""
+    weights over the same visible sources (``finetune --blend angle``: held-out mask PSNR +0.5 dB on dtu_scan24 and
+    dtu_scan37; the FinetuneConfig field has the numbers)."""
     d_t = F.normalize(points - origin, dim=-1)  # [P, 3] target -> point
     d_s = F.normalize(points[:, None] - centers[None].to(points), dim=-1)  # [P, K, 3] sources -> point
     ang = torch.arccos((d_s * d_t[:, None]).sum(-1).clamp(-1, 1))  # [P, K]
