@@ -26,6 +26,10 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   views is a source, and each pixel blends the K sources nearest its view (DTU: about 10 degrees away, against
   11-57 degrees for the fixed 23 24 33);
 * ``<source>, all views`` (DTU): the mesh from every training view (41) instead of 14 of them.
+* ``<source>, angle blend``: scored with ``finetune --blend angle`` (each point's nearest sources by viewing
+  angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
+* ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
+  the nearest pixel it covers in the same view, instead of the far layer).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -162,10 +166,14 @@ def scoring(source: str) -> dict:
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
             out["num_views"] = int(part.split()[0])
+        elif part == "nearest fill":
+            out["fill"] = "nearest"
         elif part.startswith("nearest "):
             out["nearest"] = int(part.split()[1])
         elif part == "exposure":
             out["tune"] = ("encoder", "appearance", "exposure")
+        elif part == "angle blend":
+            out["blend"] = "angle"
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
@@ -196,7 +204,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
            "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
-           "visibility": ft.get("visibility", False), "tuned": ft.get("tuned"), "lr": ft.get("lr"),
+           "visibility": ft.get("visibility", False), "blend": ft.get("blend", "network"), "tuned": ft.get("tuned"), "lr": ft.get("lr"),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}

@@ -218,6 +218,32 @@ def unoccluded(dmax: Tensor, uv: Tensor, z: Tensor, tol: float) -> Tensor:
     return z <= dmax.reshape(-1)[flat] * (1 + tol)
 
 
+def angle_weights(points: Tensor, origin: Tensor, centers: Tensor, seen: Tensor, k: int) -> Tensor:
+    """Blend weights by viewing angle alone (Buehler et al. 2001, "Unstructured Lumigraph Rendering"; not in the
+    paper): at each point, the ``k`` sources that see it (``seen``) whose rays make the smallest angle ``a_i``
+    with the target's ray get ``(1 - a_i / a_(k+1)) / a_i`` (``a_(k+1)``: the next source's angle, so weights
+    fall to 0 where a source leaves the ``k`` nearest and views change smoothly), normalised to sum 1; a point
+    no source sees blends all ``K`` uniformly, as the network path does.
+
+    ``points # [P, 3]``, ``origin # [3]`` (the target camera centre), ``centers # [K, 3]`` (the sources'),
+    ``seen # [P, K]`` bool. Returns ``# [P, K]``. On DTU's wide rig this blend beat the appearance network's
+    weights over the same visible sources (``finetune --blend angle``: held-out mask PSNR +0.5 dB on dtu_scan24 and
+    dtu_scan37; the FinetuneConfig field has the numbers)."""
+    d_t = F.normalize(points - origin, dim=-1)  # [P, 3] target -> point
+    d_s = F.normalize(points[:, None] - centers[None].to(points), dim=-1)  # [P, K, 3] sources -> point
+    ang = torch.arccos((d_s * d_t[:, None]).sum(-1).clamp(-1, 1))  # [P, K]
+    ang = torch.where(seen, ang, torch.full_like(ang, float("inf")))
+    K = ang.shape[1]
+    k = max(1, min(k, K))
+    near = ang.topk(min(k + 1, K), dim=1, largest=False).values  # [P, k (+1)] ascending
+    thresh = near[:, k:k + 1] if K > k else torch.full_like(near[:, :1], float("inf"))  # [P, 1]
+    w = (1 - ang / thresh).clamp_min(0) / ang.clamp_min(1e-3)  # inf angles -> 0
+    w = torch.where(ang <= near[:, k - 1:k], w, torch.zeros_like(w))  # the k nearest only
+    w = torch.where(torch.isfinite(w), w, torch.zeros_like(w))
+    total = w.sum(1, keepdim=True)
+    return torch.where(total > 0, w / total.clamp_min(1e-12), torch.full_like(w, 1.0 / K))
+
+
 class MeshRenderer:
     """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
 

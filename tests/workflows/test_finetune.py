@@ -314,3 +314,60 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
         on_fill += int((idx >= view.covered).sum())
         total += len(idx)
     assert abs(on_fill / total - fill_share) < 0.05, (on_fill / total, fill_share)
+
+
+def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
+    """``angle_weights``: only the ``k`` seen sources with the smallest viewing angle get weight, the nearer more,
+    weights sum to 1, a source at the (k+1)-th angle gets none, and a point no source sees blends all uniformly."""
+    from omnirecon.mesh.ibr import angle_weights
+
+    angles = torch.tensor([0.05, 0.10, 0.20, 0.30, 0.02])  # radians from the target's ray, source 4 nearest
+    centers = torch.stack([torch.stack([torch.sin(a), torch.zeros(()), -torch.cos(a)]) * 2 for a in angles])
+    points = torch.zeros(2, 3)
+    origin = torch.tensor([0.0, 0.0, -2.0])
+    seen = torch.tensor([[True, True, True, True, False], [False] * 5])  # source 4 occluded; point 1 unseen
+    w = angle_weights(points, origin, centers, seen, 2)
+    assert torch.allclose(w.sum(1), torch.ones(2))
+    assert w[0, 0] > w[0, 1] > 0 and (w[0, 2:] == 0).all()  # 2 nearest seen: 0 and 1; 2 is the (k+1)-th
+    assert torch.allclose(w[1], torch.full((5,), 0.2))
+
+
+def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
+    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), and
+    every point blends only sources with weight."""
+    root, scene = setup
+    out = tmp_path / "angle"
+    args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 1,
+            "--eval-at", 0, "--clock", "cpu", "--resolution", 48, "--out", out, "--blend", "angle", "--nearest", 3]
+    assert main([str(a) for a in args]) == 0, capsys.readouterr().err
+    r = json.loads((out / "curve.json").read_text())
+    assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
+    assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
+
+
+def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
+    """``--fill nearest``: a missed pixel within reach of the covered ones moves onto its own ray at the z-depth of
+    the nearest covered pixel; one beyond reach, and every covered point, stay where they were."""
+    from omnirecon.cameras import Cameras, look_at
+    from omnirecon.render.raster import Surface
+    from omnirecon.workflows.finetune import nearest_depth_points
+
+    W = H = 40
+    c2w = look_at(torch.zeros(1, 3), torch.tensor([[0, 0, 1.0]]), torch.tensor([0, -1.0, 0]))
+    cam = Cameras.from_K(torch.tensor([[40.0, 0, 20], [0, 40, 20], [0, 0, 1]]), c2w, W, H)
+    rows, cols = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    pix = (rows * W + cols).reshape(-1)
+    hit = cols.reshape(-1) < 10  # the mesh covers the 10 left columns at z = 2; the rest is far layer at z = 9
+    z = torch.where(hit, 2.0, 9.0)
+    uv = torch.stack([cols.reshape(-1) + 0.5, rows.reshape(-1) + 0.5], -1).float()
+    order = torch.cat([pix[hit], pix[~hit]])
+    pts = cam.unproject(uv[order][None], z[order][None])[0].float()
+    surf = Surface(order, pts, z[order], H, W)
+    moved_pts, moved = nearest_depth_points(surf, int(hit.sum()), cam)
+    depth = cam.project(moved_pts).depth[0]
+    col = order % W
+    n = int(hit.sum())
+    assert torch.equal(moved_pts[:n], pts[:n]) and not moved[:n].any()
+    near = (col[n:] - 9) <= 0.15 * W  # within reach of column 9
+    assert moved[n:].eq(near).all() and torch.allclose(depth[n:][near], torch.tensor(2.0), atol=1e-4)
+    assert torch.allclose(moved_pts[n:][~near], pts[n:][~near])
