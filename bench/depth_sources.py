@@ -309,8 +309,9 @@ def main(argv: list[str] | None = None) -> dict:
         if row is None:
             continue
         result["rows"].append(row)
+        meshed = f", mesh {row['mesh_cpu_seconds']:.0f} CPU-s" if "mesh_cpu_seconds" in row else ""  # not the exact mesh
         print(f"{name} {source}: PSNR {row['psnr']['before']:.2f} -> {row['psnr']['after'] or float('nan'):.2f} dB, "
-              f"coverage {row['coverage']:.3f}, mesh {row['mesh_cpu_seconds']:.0f} CPU-s", flush=True)
+              f"coverage {row['coverage']:.3f}{meshed}", flush=True)
         write_json(out_file, result)
     write_json(out_file, result)
     return result
