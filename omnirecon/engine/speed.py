@@ -297,7 +297,7 @@ def measure(cfg: BenchConfig) -> dict:
                        "cpu_s_per_batch": round(statistics.median(cpu_times[id(volume_times)]), 4),
                        "note": f"model.render_rays on {args.rays} random pixels of the same target at the same "
                                "resolution; FPS extrapolated as (rays/s) / (W H), not a full frame"},
-        "ratio": round(mesh_fps / volume_fps, 1),
+        "ratio": float(f"{round(mesh_fps, 3) / (round(volume_fps, 6) or volume_fps):.4g}"),  # of the numbers written
         "goals": GOALS,
     }
     result["provenance"]["loadavg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
