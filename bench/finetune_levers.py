@@ -34,6 +34,13 @@ ROWS = {
     "encoder": {"tune": ("encoder",), "rays": 8192, "lr": 5e-4},
     "exposure": {"tune": ("encoder", "appearance", "exposure"), "rays": 8192, "lr": 5e-4},
     "appearance_exposure": {"tune": ("appearance", "exposure"), "rays": 8192, "lr": 3e-3},
+    "mixed": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0},
+    "mixed_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0, "val_views": 0},
+    "latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "val_views": 0},
+    "mixed_lr2e-4": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 2e-4, "step_views": 0},
+    "mixed_uniform": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0, "objects": 0.0},
+    "mixed_uniform_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0,
+                             "objects": 0.0, "val_views": 0},
 }
 """Lever rows: overrides of :class:`~omnirecon.workflows.finetune.FinetuneConfig`."""
 KEEP = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",

@@ -39,7 +39,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import torch
@@ -98,6 +98,9 @@ class FinetuneConfig(ThreadsConfig):
     rays: int = 8192
     """Pixels per step (the encoder's pass over the source photos dominates a step's cost; more pixels per
     step cost little: `python -m bench finetune_levers`)."""
+    step_views: int = 1
+    """Tuning views each step's pixels come from: 1, one view drawn by its shaded pixel count; 0, every tuning view
+    in proportion to it (the step's encoder pass covers every source either way, so mixing views costs nothing)."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
@@ -607,12 +610,12 @@ class Tuner:
     def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
         return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources))
 
-    def step(self, view: ViewPixels, idx: torch.Tensor) -> None:
-        """One Adam step on the MSE of ``view``'s pixels at ``idx`` (plus the pull toward the start)."""
+    def step(self, batch: Batch) -> None:
+        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start)."""
         with self.autocast:
             feats = self.features() if self.frozen is None else self.frozen
-            rgb = self.s.model.shade(feats, view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx))["rgb"]
-        loss = (rgb.float() - view.target[idx]).square().mean()
+            rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
+        loss = (rgb.float() - batch.target).square().mean()
         if self.reg > 0 and self.params:
             loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
                 p.numel() for p in self.params)
@@ -672,10 +675,28 @@ class Tuned:
     steps: int
 
 
+class Batch(NamedTuple):
+    """One step's pixels, from one or several tuning views."""
+
+    points: torch.Tensor
+    """``# [n, 3]``"""
+    origins: torch.Tensor
+    """Camera centre of each pixel's view. ``# [n, 3]``"""
+    visible: torch.Tensor | None
+    """Sources each point may blend (``None``: no test). ``# [n, K]`` bool"""
+    target: torch.Tensor
+    """``# [n, 3]``"""
+
+
+def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
+    """``view``'s pixels at ``idx`` as a :class:`Batch`."""
+    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx])
+
+
 class PixelSampler:
-    """Each step's pixels: a tuning view drawn by its shaded pixel count, then ``--rays`` of its shaded pixels
-    (on the mesh and, with ``--fill far``, on the fill's layer: both are scored; a ``--objects`` share of them
-    on the mesh inside the object masks)."""
+    """Each step's pixels: ``--rays`` shaded pixels (on the mesh and, with ``--fill far``, on the fill's layer: both
+    are scored; a ``--objects`` share of them on the mesh inside the object masks) of one tuning view drawn by its
+    shaded pixel count (``--step-views 1``) or spread over every tuning view in proportion to it (``0``)."""
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
         self.cfg, self.views, self.g = cfg, s.train_px, g
@@ -684,15 +705,32 @@ class PixelSampler:
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
                        else v.pixels[:0] for v in s.train_px]  # mesh pixels on the objects, per tuning view
 
-    def __call__(self) -> tuple[ViewPixels, torch.Tensor]:
-        pick = int(torch.multinomial(self.counts, 1, generator=self.g))
-        view, inside = self.views[pick], self.inside[pick]
-        n = min(self.cfg.rays, len(view.points))
+    def pick(self, k: int, n: int) -> torch.Tensor:
+        """``n`` pixel rows of tuning view ``k`` (the ``--objects`` share inside its masks)."""
+        view, inside = self.views[k], self.inside[k]
+        n = min(n, len(view.points))
         idx = torch.randint(len(view.points), (n,), generator=self.g)
         if self.cfg.objects > 0 and len(inside):
-            k = int(round(self.cfg.objects * n))
-            idx[:k] = inside[torch.randint(len(inside), (k,), generator=self.g)]
-        return view, idx
+            m = int(round(self.cfg.objects * n))
+            idx[:m] = inside[torch.randint(len(inside), (m,), generator=self.g)]
+        return idx
+
+    def views_and_rows(self) -> list[tuple[int, torch.Tensor]]:
+        """This step's ``(tuning view, pixel rows)`` pairs."""
+        if self.cfg.step_views == 1:
+            k = int(torch.multinomial(self.counts, 1, generator=self.g))
+            return [(k, self.pick(k, self.cfg.rays))]
+        per = torch.bincount(torch.multinomial(self.counts, self.cfg.rays, replacement=True, generator=self.g),
+                             minlength=len(self.views))  # [T] pixels per view, by shaded pixel count
+        return [(k, self.pick(k, int(n))) for k, n in enumerate(per.tolist()) if n > 0]
+
+    def __call__(self) -> Batch:
+        parts = [batch_of(self.views[k], idx) for k, idx in self.views_and_rows()]
+        if len(parts) == 1:
+            return parts[0]
+        vis = None if parts[0].visible is None else torch.cat([b.visible for b in parts])
+        return Batch(*(torch.cat([getattr(b, f) for b in parts]) for f in ("points", "origins")), vis,
+                     torch.cat([b.target for b in parts]))
 
 
 def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, best_at: tuple[float, int]) -> dict:
@@ -725,7 +763,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
         for t_check in checks:
             clock.start()
             while tuner.opt is not None and clock.now() < t_check:
-                tuner.step(*sample())
+                tuner.step(sample())
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()

@@ -287,10 +287,12 @@ def test_isolated_validation_views_are_the_training_views_farthest_from_the_othe
     assert pick_validation(train, [], 2, scene, "spread") == [7, 14]  # evenly spaced
 
 
-def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
+@pytest.mark.parametrize("step_views", [1, 0])
+def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path, step_views):
     """With ``--fill far`` the fill's pixels are scored, so tuning samples them too, in proportion to their share
     of the tuning views' shaded pixels (tuning only the mesh's pixels lowered dtu_scan24's whole image on
-    validation, so the guard returned the start every time)."""
+    validation, so the guard returned the start every time); with ``--step-views 0`` each step spans the tuning
+    views, ``--rays`` pixels in all, and its batch carries each pixel's own view (origin, target)."""
     import trimesh
 
     from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, prepare
@@ -301,7 +303,7 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
     small = trimesh.Trimesh(c + 0.5 * (mesh.vertices - c), mesh.faces, process=False)  # leaves most pixels to the fill
     small.export(tmp_path / "small.ply")
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=tmp_path / "small.ply", resolution=48, fill="far",
-                         objects=0.0, rays=256)
+                         objects=0.0, rays=256, step_views=step_views)
     s = prepare(cfg)
     shaded = sum(len(v.points) for v in s.train_px)
     fill_share = 1 - sum(v.covered for v in s.train_px) / shaded
@@ -309,11 +311,20 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path):
     sample = PixelSampler(cfg, s, torch.Generator().manual_seed(0))
     on_fill = total = 0
     for _ in range(200):
-        view, idx = sample()
-        assert int(idx.max()) < len(view.points)
-        on_fill += int((idx >= view.covered).sum())
-        total += len(idx)
+        for k, idx in sample.views_and_rows():
+            view = s.train_px[k]
+            assert int(idx.max()) < len(view.points)
+            on_fill += int((idx >= view.covered).sum())
+            total += len(idx)
     assert abs(on_fill / total - fill_share) < 0.05, (on_fill / total, fill_share)
+    parts = sample.views_and_rows()
+    assert sum(len(i) for _, i in parts) == 256 and (len(parts) > 1) == (step_views == 0 and len(s.train_px) > 1)
+    batch = sample()
+    assert len(batch.points) == len(batch.origins) == len(batch.target) == 256
+    if step_views == 0:  # every pixel keeps its own view's camera centre and photo colour
+        k, idx = parts[-1]
+        view = s.train_px[k]
+        assert {tuple(o) for o in batch.origins.tolist()} >= {tuple(view.origin.tolist())}
 
 
 def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
