@@ -38,6 +38,8 @@ ROWS = {
     "mixed_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0, "val_views": 0},
     "latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "val_views": 0},
     "mixed_lr2e-4": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 2e-4, "step_views": 0},
+    "uniform": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "objects": 0.0},
+    "uniform_exposure": {"tune": ("encoder", "appearance", "exposure"), "rays": 8192, "lr": 5e-4, "objects": 0.0},
     "mixed_uniform": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0, "objects": 0.0},
     "mixed_uniform_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0,
                              "objects": 0.0, "val_views": 0},

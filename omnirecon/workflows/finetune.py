@@ -135,11 +135,15 @@ class FinetuneConfig(ThreadsConfig):
     demo 30 CPU-s 25.66 -> 25.67 (returned from 28 s) against 25.66 -> 25.66 (the start); fern 60 CPU-s 24.12 -> 24.12 (the start)
     against 24.12 -> 24.12 (the start: validation +0.08 < --val-margin); dtu_scan24 60 CPU-s objects 24.55 -> 24.70
     (spread, validation views not sources) against 24.55 -> 24.80, whole image 19.27 -> 19.64."""
-    objects: float = 0.5
-    """Scenes with object masks: the fraction of each step's pixels drawn from the mesh pixels inside the
-    masks (0: uniform over the mesh's pixels). Measured on the demo scene, whose mesh covers the sky with
-    sheets (held-out test, 30 CPU-s, latest state): uniform, whole image +0.37 dB but objects -0.22 dB;
-    0.5, +0.26 and +0.55 dB; 1.0, -0.91 and +1.07 dB."""
+    objects: float | None = None
+    """Scenes with object masks: the fraction of each step's pixels drawn from the mesh pixels inside the masks
+    (0: uniform over the shaded pixels). Default: 0.5 on scenes scored by the objects (:func:`scored_by`, e.g. DTU),
+    0 on scenes scored by the whole image (e.g. the demo scene, whose masks only report the objects apart). The
+    demo scene (`python -m bench finetune_levers`, stereo+model mesh, 30 CPU-s, defaults otherwise), held-out whole
+    image / objects, 0.5 -> 0: the start returned (25.66 / 20.20: on the isolated validation views the whole image
+    fell 0.3-0.7 dB while the objects rose) -> 25.74 / 20.15 (returned from 28 s, validation +0.50 dB); with
+    --step-views 0, the start -> 25.77 / 20.33 (from 4 s). Earlier, with 3 fixed sources (latest state): uniform,
+    whole image +0.37 dB but objects -0.22 dB; 0.5, +0.26 and +0.55 dB; 1.0, -0.91 and +1.07 dB."""
     val_margin: float = 0.1
     """A tuned state is returned instead of the start only when its validation gain (on what the scene is
     scored by: the objects on DTU, else the whole image) is at least this many dB: smaller gains on the validation views did not
@@ -688,6 +692,18 @@ class Batch(NamedTuple):
     """``# [n, 3]``"""
 
 
+OBJECT_SHARE = 0.5
+"""``--objects``' default on scenes scored by the object masks."""
+
+
+def object_share(cfg: FinetuneConfig, scored: str) -> float:
+    """The ``--objects`` share of each step's pixels (its default: :data:`OBJECT_SHARE` when ``scored`` is
+    ``"objects"``, else 0)."""
+    if cfg.objects is not None:
+        return cfg.objects
+    return OBJECT_SHARE if scored == "objects" else 0.0
+
+
 def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
     """``view``'s pixels at ``idx`` as a :class:`Batch`."""
     return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx])
@@ -700,6 +716,7 @@ class PixelSampler:
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
         self.cfg, self.views, self.g = cfg, s.train_px, g
+        self.objects = object_share(cfg, s.scored_by)
         self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
         masks = s.scene.masks
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
@@ -710,8 +727,8 @@ class PixelSampler:
         view, inside = self.views[k], self.inside[k]
         n = min(n, len(view.points))
         idx = torch.randint(len(view.points), (n,), generator=self.g)
-        if self.cfg.objects > 0 and len(inside):
-            m = int(round(self.cfg.objects * n))
+        if self.objects > 0 and len(inside):
+            m = int(round(self.objects * n))
             idx[:m] = inside[torch.randint(len(inside), (m,), generator=self.g)]
         return idx
 
@@ -852,7 +869,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
-              "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
+              "precision": cfg.precision, "objects": object_share(cfg, s.scored_by), "val_margin": cfg.val_margin,
               "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
               "visibility": cfg.visibility, "blend": cfg.blend,
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
