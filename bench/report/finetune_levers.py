@@ -12,7 +12,15 @@ LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
           "lr2e-3": "encoder + appearance, 8192 px/step, lr 2e-3", "appearance": "appearance branch only, 8192 px/step",
           "encoder": "encoder only, 8192 px/step", "exposure": "encoder + appearance + exposure, 8192 px/step",
           "appearance_lr3e-3": "appearance branch only, 8192 px/step, lr 3e-3 (the default during session 13)",
-          "appearance_exposure": "appearance + exposure, 8192 px/step, lr 3e-3"}
+          "appearance_exposure": "appearance + exposure, 8192 px/step, lr 3e-3",
+          "mixed": "encoder + appearance, each step's pixels from every tuning view (`--step-views 0`)",
+          "latest": "encoder + appearance, no validation: the state at the end (diagnostic)",
+          "mixed_latest": "`--step-views 0`, no validation: the state at the end (diagnostic)",
+          "mixed_lr2e-4": "`--step-views 0`, lr 2e-4",
+          "uniform": "encoder + appearance, `--objects 0` (pixels uniform over the shaded ones)",
+          "uniform_exposure": "encoder + appearance + exposure, `--objects 0`",
+          "mixed_uniform": "`--step-views 0 --objects 0`",
+          "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)"}
 BEFORE = " *(before the visibility test, older mesh)*"
 """Marks a row measured before ``finetune``'s visibility test (on an older mesh: not comparable with the others)."""
 
@@ -44,6 +52,8 @@ def section(results: Path) -> str | None:
             b, a = row["before"], row["after"]
             obj = f"{b['psnr_masked']:.2f} -> {a['psnr_masked']:.2f}" if "psnr_masked" in b else "–"
             label = LABELS.get(row["row"], row["row"]) + ("" if row.get("visibility") else BEFORE)
+            if a.get("seconds", 60.0) != 60.0:  # e.g. the demo scene at `make demo`'s 30 s
+                label += f" *({a['seconds']:g} CPU-s)*"
             out.append(f"| {key.split('/')[0]} | {sources(row)} | {label} | {row['steps']} | "
                        f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {row['gain_db']:+.2f} | {row['load_average']:.0f} |")
         curves = read(results, "finetune_curves.json") or {"rows": {}}
