@@ -102,7 +102,7 @@ class FinetuneConfig(ThreadsConfig):
     """Tuning views each step's pixels come from: 1, one view drawn by its shaded pixel count; 0, every tuning view
     in proportion to it (the step's encoder pass covers every source either way, so mixing views costs nothing).
     Held-out before -> after (`python -m bench finetune_levers`, defaults otherwise), 1 -> 0: demo scene 30 CPU-s,
-    whole image 25.66 -> 25.74 against 25.77 (objects 20.15 / 20.33); fern 60 CPU-s, the start (24.12) both
+    with --objects 0, whole image 25.66 -> 25.74 against 25.77 (objects 20.15 / 20.33); fern 60 CPU-s, the start (24.12) both
     (validation at most +0.085 dB); dtu_scan24 60 CPU-s, objects 24.55 -> 24.80 against 24.50 (whole image 19.64
     against 21.16: the table gains, the scored objects do not), so 1 stays the default."""
     precision: Literal["fp32", "bf16"] = "fp32"
@@ -136,18 +136,20 @@ class FinetuneConfig(ThreadsConfig):
     sparse) moved -0.02 to -0.05 (as low as -0.18), and 10 CPU-s returned a state 0.10 dB below the start; `isolated`
     views are harder than the held-out ones (-0.5 against -0.09), so nothing that lowers them is returned. Held-out
     whole image before -> after, `spread` -> `isolated` (`python -m bench finetune_validation`, defaults otherwise):
-    demo 30 CPU-s 25.66 -> 25.67 (returned from 28 s) against 25.66 -> 25.66 (the start); fern 60 CPU-s 24.12 -> 24.12 (the start)
+    demo 30 CPU-s (then --objects 0.5) 25.66 -> 25.67 (returned from 28 s) against 25.66 -> 25.66 (the start; with
+    --objects 0: 25.66 -> 25.75, from 4 s); fern 60 CPU-s 24.12 -> 24.12 (the start)
     against 24.12 -> 24.12 (the start: validation +0.08 < --val-margin); dtu_scan24 60 CPU-s objects 24.55 -> 24.70
     (spread, validation views not sources) against 24.55 -> 24.80, whole image 19.27 -> 19.64."""
-    objects: float | None = None
+    objects: float = 0.5
     """Scenes with object masks: the fraction of each step's pixels drawn from the mesh pixels inside the masks
-    (0: uniform over the shaded pixels). Default: 0.5 on scenes scored by the objects (:func:`scored_by`, e.g. DTU),
-    0 on scenes scored by the whole image (e.g. the demo scene, whose masks only report the objects apart). The
-    demo scene (`python -m bench finetune_levers`, stereo+model mesh, 30 CPU-s, defaults otherwise), held-out whole
-    image / objects, 0.5 -> 0: the start returned (25.66 / 20.20: on the isolated validation views the whole image
-    fell 0.3-0.7 dB while the objects rose) -> 25.74 / 20.15 (returned from 28 s, validation +0.50 dB); with
-    --step-views 0, the start -> 25.77 / 20.33 (from 4 s). Earlier, with 3 fixed sources (latest state): uniform,
-    whole image +0.37 dB but objects -0.22 dB; 0.5, +0.26 and +0.55 dB; 1.0, -0.91 and +1.07 dB."""
+    (0: uniform over the shaded pixels). Earlier, with 3 fixed sources (latest state, the demo scene): uniform, whole
+    image +0.37 dB but objects -0.22 dB; 0.5, +0.26 and +0.55 dB; 1.0, -0.91 and +1.07 dB. At today's defaults (each
+    pixel's --nearest 6, isolated validation views), 30 CPU-s on the demo scene (scored by the whole image), 0.5 -> 0,
+    held-out whole image / objects: `python -m bench finetune_levers` on depth_sources' stereo+model mesh, the start
+    (25.66 / 20.20) -> 25.74 / 20.15 (`finetune_validation` and `finetune_curves` runs of 0: 25.75, 25.76 at 10 s,
+    25.77 / 20.21 at 60 s); a fresh `omnirecon demo` with 0: whole image 26.00 -> 26.07 but its own mesh's object
+    pixels 21.32 -> 21.01 (held-out view 21 -0.26 dB, 23 +0.50). The whole image gains ~0.1 dB, the objects do not,
+    so 0.5 stays the default."""
     val_margin: float = 0.1
     """A tuned state is returned instead of the start only when its validation gain (on what the scene is
     scored by: the objects on DTU, else the whole image) is at least this many dB: smaller gains on the validation views did not
@@ -696,18 +698,6 @@ class Batch(NamedTuple):
     """``# [n, 3]``"""
 
 
-OBJECT_SHARE = 0.5
-"""``--objects``' default on scenes scored by the object masks."""
-
-
-def object_share(cfg: FinetuneConfig, scored: str) -> float:
-    """The ``--objects`` share of each step's pixels (its default: :data:`OBJECT_SHARE` when ``scored`` is
-    ``"objects"``, else 0)."""
-    if cfg.objects is not None:
-        return cfg.objects
-    return OBJECT_SHARE if scored == "objects" else 0.0
-
-
 def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
     """``view``'s pixels at ``idx`` as a :class:`Batch`."""
     return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx])
@@ -720,7 +710,6 @@ class PixelSampler:
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
         self.cfg, self.views, self.g = cfg, s.train_px, g
-        self.objects = object_share(cfg, s.scored_by)
         self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
         masks = s.scene.masks
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
@@ -731,8 +720,8 @@ class PixelSampler:
         view, inside = self.views[k], self.inside[k]
         n = min(n, len(view.points))
         idx = torch.randint(len(view.points), (n,), generator=self.g)
-        if self.objects > 0 and len(inside):
-            m = int(round(self.objects * n))
+        if self.cfg.objects > 0 and len(inside):
+            m = int(round(self.cfg.objects * n))
             idx[:m] = inside[torch.randint(len(inside), (m,), generator=self.g)]
         return idx
 
@@ -873,7 +862,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
-              "precision": cfg.precision, "objects": object_share(cfg, s.scored_by), "val_margin": cfg.val_margin,
+              "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
               "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
               "visibility": cfg.visibility, "blend": cfg.blend,
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],

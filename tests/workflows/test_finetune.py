@@ -2,7 +2,6 @@
 
 import json
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -384,15 +383,3 @@ def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
     assert moved[n:].eq(near).all() and torch.allclose(depth[n:][near], torch.tensor(2.0), atol=1e-4)
     assert torch.allclose(moved_pts[n:][~near], pts[n:][~near])
 
-
-def test_object_share_defaults_to_what_the_scene_is_scored_by():
-    """``--objects`` unset: half of each step's pixels on the objects where the objects are scored (DTU), none where
-    the whole image is (the demo scene: oversampling its objects lowered the whole image on validation); a value
-    given is used as given."""
-    from omnirecon.workflows.finetune import OBJECT_SHARE, FinetuneConfig, object_share
-
-    cfg = FinetuneConfig(ckpt=Path("c"), scene=Path("s"))
-    assert object_share(cfg, "objects") == OBJECT_SHARE == 0.5
-    assert object_share(cfg, "image") == 0.0
-    assert object_share(FinetuneConfig(ckpt=Path("c"), scene=Path("s"), objects=0.25), "image") == 0.25
-    assert object_share(FinetuneConfig(ckpt=Path("c"), scene=Path("s"), objects=0.0), "objects") == 0.0
