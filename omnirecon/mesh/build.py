@@ -563,9 +563,12 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
     task = progress.add_task("depth", total=n_maps + 5) if progress is not None else None
     advance = (lambda: progress.advance(task)) if task is not None else None
 
+    stages_seen = []
+
     def on_stage(name):
         if task is not None:
-            progress.update(task, description=name)
+            stages_seen.append(name)  # completion runs again when the face budget is hit: the bar grows with it
+            progress.update(task, description=name, total=n_maps + max(5, len(stages_seen)))
             progress.advance(task)
 
     t, cpu = time.perf_counter(), time.process_time()
