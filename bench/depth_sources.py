@@ -179,6 +179,11 @@ def scoring(source: str) -> dict:
     return out
 
 
+MESHES: dict = {}
+"""Meshes made in this run, by scene and the variants that change the mesh (``all views``, ``sky kept``): rows that
+differ only in scoring (``nearest K``, ``angle blend``, ``nearest fill``, ...) score the same mesh file."""
+
+
 def run_row(name: str, source: str, seconds: float, models: dict, results: Path, tiny: bool) -> dict | None:
     from omnirecon.mesh import geometry
     from omnirecon.mesh.files import read_mesh, write_mesh
@@ -189,10 +194,15 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
         return None
     targets, views = held_out(scene, proto, every_view="all views" in source.split(", ")[1:])
     masks = scene.masks is not None and proto.name == "dtu"
-    made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
+    variants = source.split(", ")[1:]
+    key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants, tiny)
     slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
     work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{slug}"
-    (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
+    if key not in MESHES:
+        made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
+        (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
+        MESHES[key] = made, mesh_s, mesh_file
+    made, mesh_s, mesh_file = MESHES[key]
     mesh = read_mesh(mesh_file, scene.to_input)  # as the scoring sees it
     tuned = source.partition(", ")[0] in TUNED
     tune = seconds if tuned else 1.0
@@ -202,6 +212,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
+           "mesh_file": str(Path(mesh_file).resolve().relative_to(ROOT)),
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
            "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
            "visibility": ft.get("visibility", False), "blend": ft.get("blend", "network"), "tuned": ft.get("tuned"), "lr": ft.get("lr"),

@@ -220,34 +220,14 @@ class ViewPixels:
     ``# [P, K]``"""
 
 
-NEAREST_FILL_REACH = 0.15
-"""``--fill nearest`` moves the missed pixels within this fraction of the image's long side of a covered pixel (the
-rest keep the far layer). dtu_scan37, angle blend, nearest 4, held-out mask / whole image: far layer 21.53 / 17.84 dB;
-reach 3 px 21.86 / 18.13, 8 px 21.89 / 18.52, 20 px 21.89 / 19.20, 60 px (0.15) 21.89 / 19.76; every pixel 21.89 / 18.23
-(far background, e.g. the dark table, is better on the far layer)."""
-
-
 def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
-    """``--fill nearest``: for the pixels after the first ``covered`` of ``surf`` (those the mesh misses) within
-    :data:`NEAREST_FILL_REACH` of a covered pixel, the point on each one's ray at the z-depth of the nearest covered
-    pixel. Returns the points ``# [P, 3]`` (the others unchanged) and which rows moved ``# [P]`` bool."""
-    from scipy.ndimage import distance_transform_edt
+    """``--fill nearest`` (:func:`omnirecon.mesh.fill.nearest_fill`, the mesh renderer's ``fill="nearest"``): the points
+    ``# [P, 3]`` of ``surf`` with the missed pixels within :data:`~omnirecon.mesh.fill.NEAREST_FILL_REACH` of a covered
+    pixel moved to the nearest covered pixel's z-depth, and which rows moved ``# [P]`` bool."""
+    from omnirecon.mesh.fill import nearest_fill
 
-    points, moved = surf.points.float().clone(), torch.zeros(len(surf.pixels), dtype=torch.bool)
-    if covered == 0 or covered == len(surf.pixels):
-        return points, moved
-    H, W = surf.height, surf.width
-    z = np.zeros(H * W, np.float32)
-    z[surf.pixels[:covered].numpy()] = surf.depth[:covered].float().numpy()
-    dist, (iy, ix) = distance_transform_edt(z.reshape(H, W) <= 0, return_indices=True)
-    near = torch.from_numpy(dist.reshape(-1) <= NEAREST_FILL_REACH * max(H, W))[surf.pixels[covered:]]
-    rows = covered + near.nonzero()[:, 0]
-    holes = surf.pixels[rows]
-    zh = torch.from_numpy(z[(iy * W + ix).reshape(-1)[holes.numpy()]])  # [n]
-    uv = torch.stack([(holes % W).float() + 0.5, (holes // W).float() + 0.5], -1)  # pixel centres
-    points[rows] = cam.to(dtype=torch.float32).unproject(uv[None], zh[None])[0]
-    moved[rows] = True
-    return points, moved
+    filled, moved = nearest_fill(surf, covered, cam)
+    return filled.points, moved
 
 
 def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
