@@ -147,6 +147,21 @@ def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
     return out
 
 
+def training_coverage(mesh, scene, views) -> dict:
+    """Object captures with masks: the fraction of each meshed (training) view's mask pixels the mesh covers (what
+    cleaning must never delete): mean, min and the three lowest views."""
+    from omnirecon.mesh.complete import DepthRenderer
+
+    r = DepthRenderer(mesh)
+    cov = {}
+    for v in views:
+        m = scene.masks[v].numpy().astype(bool)
+        cov[int(v)] = float(((r(scene.cameras[v]) > 0) & m).sum() / max(1, m.sum()))
+    r.close()
+    worst = sorted(cov.items(), key=lambda kv: kv[1])[:3]
+    return {"mean": float(np.mean(list(cov.values()))), "min": worst[0][1], "lowest": [list(w) for w in worst]}
+
+
 def picture(src: Path, dst: Path, max_width: int = 480) -> str:
     """``src`` at most ``max_width`` wide, 256 colours (one row per held-out view: keep the PNG small)."""
     from PIL import Image
@@ -219,6 +234,8 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
+    if masks:
+        row["training_coverage"] = training_coverage(mesh, scene, views)
     if masks and "psnr_masked" in first:
         row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if tuned else None}
     if scene.mesh_path is not None:
