@@ -174,10 +174,13 @@ def picture(src: Path, dst: Path, max_width: int = 480) -> str:
     return str(dst.relative_to(dst.parents[1]))
 
 
-def scoring(source: str) -> dict:
+def scoring(source: str, scene=None) -> dict:
     """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring). Rows
-    without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``)."""
-    out = {"nearest": 0}
+    without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``); without ``, angle
+    blend`` / ``, nearest fill`` the network's blend and the far layer (the scene's background colour where it is
+    known), whatever finetune's per-scene defaults (``omnirecon.mesh.ibr.scene_blend``)."""
+    out = {"nearest": 0, "blend": "network",
+           "fill": "background" if scene is not None and scene.background is not None else "far"}
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
             out["num_views"] = int(part.split()[0])
@@ -223,7 +226,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source)))
+                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
@@ -261,7 +264,7 @@ def exact_row(name: str, tiny: bool, source: str = "exact mesh") -> dict | None:
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source)))
+                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
     return {"scene": name, "source": source, "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
             **coverage_and_iou(gt, scene, ft["held_out"], False)}

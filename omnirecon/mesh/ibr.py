@@ -263,6 +263,24 @@ def lumigraph_weights(ang: Tensor, seen: Tensor, k: int) -> Tensor:
     return torch.where(total > 0, w / total.clamp_min(1e-12), torch.full_like(w, 1.0 / K))
 
 
+def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
+    """The mesh path's default ``(blend, fill)`` per scene kind (``finetune --blend auto --fill auto``, the
+    real-time renders of ``demo`` / ``reconstruct`` and the viewer's start): ``rig`` (``"object"`` or
+    ``"forward"``), whether the scene has object ``masks``, whether its ``background`` colour is known
+    (procedural scenes). Measured at ``finetune``'s ``--nearest 6``, held-out, before tuning (``python -m bench
+    depth_sources``, BENCHMARKS "Depth sources"; numbers in ``FinetuneConfig.blend``):
+
+    * real object captures with masks (DTU): the angle blend and the nearest fill;
+    * a known background colour (procedural scenes): the network's blend and that colour (the nearest fill paints
+      the sky beside the objects: the demo 26.00 -> 23.99 dB; the angle blend measured +0.31 dB on the demo but
+      leaves ``finetune`` nothing to tune, so it is not the default there);
+    * otherwise (forward-facing scenes such as fern, object captures without masks): the network's blend and
+      the far layer."""
+    real_object = rig == "object" and masks and not background
+    fill = "background" if background else ("nearest" if real_object else "far")
+    return ("angle" if real_object else "network"), fill
+
+
 class MeshRenderer:
     """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
 

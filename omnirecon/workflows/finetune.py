@@ -56,6 +56,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import layer_box, with_fill
+from omnirecon.mesh.ibr import scene_blend
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -178,7 +179,7 @@ class FinetuneConfig(ThreadsConfig):
     (without it a source that sees the ground behind the box painted the box with ground texture), the
     project's stereo+model mesh 21.04 -> 22.53; fern's stereo+model mesh 20.66 -> 20.93; dtu_scan24's 13.92 ->
     13.96 (covered pixels 18.19 -> 18.38)."""
-    blend: Literal["network", "angle"] = "network"
+    blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
     sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
     see it, weighted by angle alone (:func:`omnirecon.mesh.ibr.angle_weights`, the unstructured lumigraph's
@@ -463,6 +464,10 @@ class Setup:
     train_px: list[ViewPixels]
     held_px: list[ViewPixels]
     val_px: list[ViewPixels]
+    blend: str = "network"
+    """``--blend``, ``auto`` resolved (:func:`omnirecon.mesh.ibr.scene_blend`)."""
+    fill_mode: str = "far"
+    """``--fill``, ``auto`` resolved: ``far``, ``nearest`` or ``background``."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -505,20 +510,22 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
             mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
-    fill = cfg.fill in ("far", "nearest") or (cfg.fill == "auto" and scene.background is None)
-    vis, near = views if cfg.visibility else None, cfg.fill == "nearest"
+    auto_blend, auto_fill = scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+    blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
+    fill = fill_mode in ("far", "nearest")
+    vis, near = views if cfg.visibility else None, fill_mode == "nearest"
     train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis, nearest_fill=near) if len(v.points)]
     held_px = rasterize_views(mesh, scene, targets, fill, vis, nearest_fill=near)
     val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
     for px in (train_px, held_px, val_px):
-        if cfg.blend == "angle":
+        if blend == "angle":
             angle_blend(px, scene, views, cfg.nearest)
         else:
             restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
-                 fill, scored_by(proto, scene), train_px, held_px, val_px)
+                 fill, scored_by(proto, scene), train_px, held_px, val_px, blend, fill_mode)
 
 
 def scored_by(proto, scene) -> str:
@@ -565,7 +572,7 @@ class Tuner:
         self.s, self.reg, model = s, cfg.reg, s.model
         self.exposure = Exposure(len(s.views))
         modules = {"encoder": model.encoder, "appearance": model.appearance}
-        self.params = [] if cfg.blend == "angle" else [  # the angle blend uses neither network
+        self.params = [] if s.blend == "angle" else [  # the angle blend uses neither network
             p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
@@ -790,13 +797,13 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
-              "reg": cfg.reg, "fill": cfg.fill if cfg.fill == "nearest" else ("far" if s.fill else "background"),
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
+              "reg": cfg.reg, "fill": s.fill_mode,
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
               "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
-              "visibility": cfg.visibility, "blend": cfg.blend,
+              "visibility": cfg.visibility, "blend": s.blend,
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
               "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
