@@ -192,6 +192,8 @@ def scoring(source: str, scene=None) -> dict:
             out["tune"] = ("encoder", "appearance", "exposure")
         elif part == "angle blend":
             out["blend"] = "angle"
+        elif part.startswith("consensus "):
+            out["consensus"] = float(part.split()[1])
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out

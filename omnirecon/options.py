@@ -110,7 +110,7 @@ RULES: dict[str, Rule] = {
     "first_octave": Rule(-3, 1, example="e.g. -1"), "max_ratio": Rule(0, 1, above=True, example="e.g. 0.8"),
     "retry_below": FRACTION, "mask_dilate": Rule(0, 10_000, example="e.g. 0 or 8"),
     # tuning
-    "reg": WEIGHT, "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
+    "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     # verbs that need more than the shared rule
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),

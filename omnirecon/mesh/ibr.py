@@ -263,6 +263,19 @@ def lumigraph_weights(ang: Tensor, seen: Tensor, k: int) -> Tensor:
     return torch.where(total > 0, w / total.clamp_min(1e-12), torch.full_like(w, 1.0 / K))
 
 
+def consensus_weights(rgb: Tensor, w: Tensor, sigma: float) -> Tensor:
+    """Blend weights ``w # [n, K]`` re-weighted by how well each source's colour ``rgb # [n, K, 3]`` agrees with the
+    blend: ``w_k exp(-|c_k - m|^2 / (2 sigma^2))``, ``m`` the ``w``-blended colour, normalised again (a highlight or an
+    occluder that one source sees is an outlier; rows whose weights all vanish keep ``w``). ``sigma <= 0``: ``w``.
+    ``# [n, K]``"""
+    if sigma <= 0:
+        return w
+    m = (w[..., None] * rgb).sum(1, keepdim=True)  # [n, 1, 3]
+    v = w * torch.exp(-((rgb - m) ** 2).sum(-1) / (2 * sigma * sigma))  # [n, K]
+    total = v.sum(1, keepdim=True)
+    return torch.where(total > 1e-12, v / total.clamp_min(1e-12), w)
+
+
 def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
     """The mesh path's default ``(blend, fill)`` per scene kind (``finetune --blend auto --fill auto``, the
     real-time renders of ``demo`` / ``reconstruct`` and the viewer's start): ``rig`` (``"object"`` or

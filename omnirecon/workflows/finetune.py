@@ -56,7 +56,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import layer_box, with_fill
-from omnirecon.mesh.ibr import scene_blend
+from omnirecon.mesh.ibr import consensus_weights, scene_blend
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -187,6 +187,9 @@ class FinetuneConfig(ThreadsConfig):
     --seconds only scores. DTU, stereo+fill mesh from all 41 training views, --nearest 4, held-out mask / whole image
     before tuning (``python -m bench depth_sources``), network -> angle: dtu_scan37 21.03 / 17.95 -> 21.53 / 17.84 dB,
     dtu_scan24 24.70 / 20.15 -> 25.20 / 19.55 (the whole image loses off the objects: ghosts on the table)."""
+    consensus: float = 0.0
+    """With the angle blend: down-weight each source by how far its colour lies from the blended colour
+    (:func:`omnirecon.mesh.ibr.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -219,6 +222,8 @@ class ViewPixels:
     weights: torch.Tensor | None = None
     """With ``--blend angle``: each point's fixed blend weights (:func:`angle_blend`); ``None``: the network's.
     ``# [P, K]``"""
+    consensus: float = 0.0
+    """With ``--blend angle``: ``--consensus`` (:func:`omnirecon.mesh.ibr.consensus_weights`; 0: off)."""
 
 
 def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
@@ -316,7 +321,8 @@ def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = 
         pts = points[s:s + chunk]
         if weights is not None:  # --blend angle: fixed weights over the sources' colours
             rgb = model.gather(features, pts[:, None], view.origin.expand_as(pts)).rgb[:, 0]  # [n, K, 3]
-            out.append((weights[s:s + chunk, :, None].to(rgb) * rgb).sum(1))
+            w = consensus_weights(rgb, weights[s:s + chunk].to(rgb), view.consensus)  # [n, K]
+            out.append((w[:, :, None] * rgb).sum(1))
             continue
         out.append(model.shade(features, pts, view.origin.expand_as(pts), visible_at(view, idx, s, s + chunk))["rgb"])
     return torch.cat(out) if out else view.target.new_zeros(0, 3)
@@ -520,6 +526,8 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     for px in (train_px, held_px, val_px):
         if blend == "angle":
             angle_blend(px, scene, views, cfg.nearest)
+            for v in px:
+                v.consensus = cfg.consensus
         else:
             restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
