@@ -265,15 +265,18 @@ def lumigraph_weights(ang: Tensor, seen: Tensor, k: int) -> Tensor:
 
 def consensus_weights(rgb: Tensor, w: Tensor, sigma: float) -> Tensor:
     """Blend weights ``w # [n, K]`` re-weighted by how well each source's colour ``rgb # [n, K, 3]`` agrees with the
-    blend: ``w_k exp(-|c_k - m|^2 / (2 sigma^2))``, ``m`` the ``w``-blended colour, normalised again (a highlight or an
-    occluder that one source sees is an outlier; rows whose weights all vanish keep ``w``). ``sigma <= 0``: ``w``.
-    ``# [n, K]``"""
+    blend: ``w_k exp(-|c_k - m|^2 / (2 sigma^2))``, ``m`` the blended colour, normalised again (a highlight or an
+    occluder that one source sees is an outlier; rows whose weights all vanish keep ``w``); two rounds, the second
+    around the first's blend (the first ``m`` is pulled toward the outlier). ``sigma <= 0``: ``w``. ``# [n, K]``"""
     if sigma <= 0:
         return w
-    m = (w[..., None] * rgb).sum(1, keepdim=True)  # [n, 1, 3]
-    v = w * torch.exp(-((rgb - m) ** 2).sum(-1) / (2 * sigma * sigma))  # [n, K]
-    total = v.sum(1, keepdim=True)
-    return torch.where(total > 1e-12, v / total.clamp_min(1e-12), w)
+    v = w
+    for _ in range(2):
+        m = (v[..., None] * rgb).sum(1, keepdim=True)  # [n, 1, 3]
+        u = w * torch.exp(-((rgb - m) ** 2).sum(-1) / (2 * sigma * sigma))  # [n, K]
+        total = u.sum(1, keepdim=True)
+        v = torch.where(total > 1e-12, u / total.clamp_min(1e-12), w)
+    return v
 
 
 def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:

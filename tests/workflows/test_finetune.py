@@ -332,6 +332,20 @@ def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
     assert torch.allclose(w[1], torch.full((5,), 0.2))
 
 
+def test_consensus_weights_drop_the_source_whose_colour_disagrees():
+    """``consensus_weights``: three sources agree on grey, one sees a white highlight; the highlight's weight falls
+    and the blend moves to grey; sigma 0 leaves the weights; weights that all vanish are kept."""
+    from omnirecon.mesh.ibr import consensus_weights
+
+    rgb = torch.tensor([[[0.5] * 3, [0.52] * 3, [0.48] * 3, [1.0] * 3]])  # [1, 4, 3]
+    w = torch.full((1, 4), 0.25)
+    c = consensus_weights(rgb, w, 0.1)
+    assert torch.allclose(c.sum(1), torch.ones(1)) and c[0, 3] < 0.01 and (c[0, :3] > 0.3).all()
+    assert abs(float((c[..., None] * rgb).sum(1)[0, 0]) - 0.5) < 0.01
+    assert torch.equal(consensus_weights(rgb, w, 0.0), w)
+    assert torch.equal(consensus_weights(rgb, torch.zeros(1, 4), 0.1), torch.zeros(1, 4))
+
+
 def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), and
     every point blends only sources with weight."""
