@@ -94,6 +94,8 @@ class MeshRenderOptions:
     :func:`angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
     angle_sources: int = 6
     """With ``blend="angle"``: sources blended per point (0: every source that sees it); ``finetune --nearest``."""
+    consensus: float = 0.0
+    """With ``blend="angle"``: :func:`consensus_weights`' width in RGB (0: off); ``finetune --consensus``."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -410,6 +412,9 @@ class MeshRenderer:
             if self.options.blend == "angle":
                 omega = angle_weights(points, origin, self.sources.cameras.centers.to(points), mask.T,
                                       self.options.angle_sources or self.num_views).T  # [K, P]
+                if self.options.consensus > 0:
+                    colours = self._rgb.sample(*self._rgb.taps(uv / self._size)).reshape(self.num_views, -1, 3)
+                    omega = consensus_weights(colours.transpose(0, 1), omega.T, self.options.consensus).T
                 shaded = ShadeResult(surf, omega, mask, uv / self._size, None, covered)
                 return replace(shaded, rgb=self.blend(shaded, self._rgb)) if with_rgb else shaded
             out = self.model.shade(self.features, points, origin.expand_as(points),
@@ -441,9 +446,13 @@ class MeshRenderer:
                     i = (~few).nonzero()[:, 0]
                     om[:, i] = self._blend_logits(p[:, i], d_t[:, i], uv[:, :, i], mask[:, i])
         rgb = None
-        if with_rgb:  # the model's own sampling of the source colours
+        consensus = self.options.blend == "angle" and self.options.consensus > 0
+        if with_rgb or consensus:  # the model's own sampling of the source colours
             grid = torch.addcmul(self._minus_one, uv, self._two_over_size).transpose(1, 2)[:, None]  # [K, 1, n, 2]
             c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
+            if consensus:
+                om = consensus_weights(c.permute(2, 0, 1), om.T, self.options.consensus).T.contiguous()
+        if with_rgb:
             rgb = c[0].mul_(om[0])  # [3, n]
             for k in range(1, K):
                 rgb.addcmul_(c[k], om[k])
