@@ -405,7 +405,7 @@ def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: 
 def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
     """Give every point of each view in ``pixels`` its ``--blend angle`` weights (in place): the ``k`` sources
     (``k`` = 0: all) nearest by viewing angle among those in front of it, inside their image and (with the
-    occlusion test) not occluded; ``visible`` becomes the sources with weight."""
+    occlusion test) not occluded, never the view's own photo; ``visible`` becomes the sources with weight."""
     from omnirecon.mesh.ibr import angle_weights
 
     cams = scene.cameras[sources].to(dtype=torch.float32)
@@ -414,6 +414,8 @@ def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> 
         seen = (proj.in_image & (proj.depth > 0)).T  # [P, K]
         if v.visible is not None:
             seen &= v.visible
+        if v.index in sources:  # a view never blends its own photo (validation views are sources under --nearest)
+            seen[:, sources.index(v.index)] = False
         v.weights = angle_weights(v.points, v.origin, cams.centers, seen, k or len(sources))
         v.visible = v.weights > 0
 

@@ -347,8 +347,8 @@ def test_consensus_weights_drop_the_source_whose_colour_disagrees():
 
 
 def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
-    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), and
-    every point blends only sources with weight."""
+    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), every
+    point blends only sources with weight, and a validation view (a source of the others) never blends itself."""
     root, scene = setup
     out = tmp_path / "angle"
     args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 1,
@@ -357,6 +357,7 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     r = json.loads((out / "curve.json").read_text())
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
+    assert r["validation_views"] and r["curve"][0]["val_psnr"] < 45  # never its own photo (that scored > 60 dB)
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
