@@ -30,10 +30,15 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
 * ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
   the nearest pixel it covers in the same view, instead of the far layer).
+* ``<source>, consensus S``: with the angle blend, ``finetune --consensus S`` (sources whose colour disagrees with
+  the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
-Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
+Rows of one run that differ only in scoring share one mesh (made once; each row records ``mesh_file``). Without
+``, angle blend`` / ``, nearest fill`` a row is scored with the network's blend and the far layer (the scene's
+background colour where known), whatever ``finetune``'s per-scene defaults. DTU rows also record the training views'
+mask coverage (``training_coverage``: what cleaning must never delete). Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
 them, evenly spaced) by the one pipeline (``omnirecon/mesh/build.py``) and scored like
 ``omnirecon finetune --mesh M --clock cpu --threads 1``: held-out PSNR of the mesh path before and after
 ``--seconds`` of tuning (whole image; over the object masks on DTU; over the covered pixels), coverage
