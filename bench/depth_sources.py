@@ -30,6 +30,8 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
 * ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
   the nearest pixel it covers in the same view, instead of the far layer).
+* ``<source>, angle auto``: with the angle blend, ``finetune --angle-sources 3 4 6 8`` (the count that scores best
+  on the validation views).
 * ``<source>, consensus S``: with the angle blend, ``finetune --consensus S`` (sources whose colour disagrees with
   the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
@@ -197,6 +199,8 @@ def scoring(source: str, scene=None) -> dict:
             out["tune"] = ("encoder", "appearance", "exposure")
         elif part == "angle blend":
             out["blend"] = "angle"
+        elif part == "angle auto":
+            out["angle_sources"] = (3, 4, 6, 8)
         elif part.startswith("consensus "):
             out["consensus"] = float(part.split()[1])
         elif part not in ("sky kept", "all views"):

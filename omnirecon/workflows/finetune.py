@@ -192,6 +192,10 @@ class FinetuneConfig(ThreadsConfig):
     --nearest 6 (stereo+model mesh), the demo scene's whole image 26.00 -> 26.31 dB (network after 60 CPU-s of
     tuning: 26.04). ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`): ``angle`` for real object captures with masks
     (DTU), else ``network`` (procedural scenes keep the tunable blend)."""
+    angle_sources: tuple[int, ...] = ()
+    """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
+    the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only
+    choice)."""
     consensus: float = 0.0
     """With the angle blend: down-weight each source by how far its colour lies from the blended colour
     (:func:`omnirecon.mesh.ibr.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
@@ -227,6 +231,8 @@ class ViewPixels:
     weights: torch.Tensor | None = None
     """With ``--blend angle``: each point's fixed blend weights (:func:`angle_blend`); ``None``: the network's.
     ``# [P, K]``"""
+    occlusion: torch.Tensor | None = None
+    """With ``--blend angle``: the occlusion test's ``visible`` before :func:`angle_blend` narrowed it. ``# [P, K]``"""
     consensus: float = 0.0
     """With ``--blend angle``: ``--consensus`` (:func:`omnirecon.mesh.ibr.consensus_weights`; 0: off)."""
 
@@ -412,8 +418,10 @@ def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> 
     for v in pixels:
         proj = cams.project(v.points)
         seen = (proj.in_image & (proj.depth > 0)).T  # [P, K]
-        if v.visible is not None:
-            seen &= v.visible
+        if v.occlusion is None and v.visible is not None:
+            v.occlusion = v.visible  # the occlusion test's result, kept: a second call starts from it again
+        if v.occlusion is not None:
+            seen &= v.occlusion
         if v.index in sources:  # a view never blends its own photo (validation views are sources under --nearest)
             seen[:, sources.index(v.index)] = False
         v.weights = angle_weights(v.points, v.origin, cams.centers, seen, k or len(sources))
@@ -481,6 +489,10 @@ class Setup:
     """``--blend``, ``auto`` resolved (:func:`omnirecon.mesh.ibr.scene_blend`)."""
     fill_mode: str = "far"
     """``--fill``, ``auto`` resolved: ``far``, ``nearest`` or ``background``."""
+    angle_k: int = 0
+    """With the angle blend: sources per point (``--angle-sources`` or ``--nearest``)."""
+    angle_scores: dict | None = None
+    """With several ``--angle-sources``: the validation score of each."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -532,7 +544,7 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
     for px in (train_px, held_px, val_px):
         if blend == "angle":
-            angle_blend(px, scene, views, cfg.nearest)
+            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
             for v in px:
                 v.consensus = cfg.consensus
         else:
@@ -819,6 +831,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
               "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
               "visibility": cfg.visibility, "blend": s.blend,
+              **({"angle_sources": s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
+                  "angle_scores": s.angle_scores} if s.blend == "angle" else {}),
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
               "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
@@ -827,6 +841,21 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
                               "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
     return result
+
+
+def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, val_obj) -> int:
+    """``--angle-sources`` with several values: the one whose angle blend scores best on the validation views (on
+    what the scene is scored by); every view's weights are then set with it. Returns it."""
+    key = "psnr_masked" if s.scored_by == "objects" and val_obj is not None else "psnr"
+    scores = {}
+    for k in cfg.angle_sources:
+        angle_blend(s.val_px, s.scene, s.views, k)
+        scores[k] = tuner.validate(val_idx, val_obj).get(key, float("nan"))
+    best = max(scores, key=lambda k: (scores[k], -k))
+    for px in (s.train_px, s.held_px, s.val_px):
+        angle_blend(px, s.scene, s.views, best)
+    s.angle_scores = scores
+    return best
 
 
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
@@ -843,6 +872,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     val_obj = None if s.scene.masks is None else [s.scene.masks[v.index].reshape(-1).bool()[v.pixels[i]]
                                                    for v, i in zip(s.val_px, val_idx)]  # validation pixels on the objects
     tuner = Tuner(cfg, s, g)
+    if s.blend == "angle" and len(cfg.angle_sources) > 1 and s.val_px:
+        s.angle_k = choose_angle_sources(cfg, s, tuner, val_idx, val_obj)
 
     def write(t: Tuned, partial: bool = False) -> dict:  # at every evaluation: an interrupted run keeps its curve
         plot_curve(cfg, s, t, out)

@@ -358,6 +358,10 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
     assert r["validation_views"] and r["curve"][0]["val_psnr"] < 45  # never its own photo (that scored > 60 dB)
+    chosen = tmp_path / "chosen"  # several --angle-sources: the one the validation views score best
+    assert main([str(a) for a in args[:-6] + ["--out", chosen, "--blend", "angle", "--angle-sources", 1, 3]]) == 0
+    c = json.loads((chosen / "curve.json").read_text())
+    assert set(c["angle_scores"]) == {"1", "3"} and c["angle_sources"] == int(max(c["angle_scores"], key=c["angle_scores"].get))
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
