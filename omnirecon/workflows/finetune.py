@@ -190,8 +190,11 @@ class FinetuneConfig(ThreadsConfig):
     before tuning (``python -m bench depth_sources``), network -> angle: dtu_scan37 21.03 / 17.95 -> 21.53 / 17.84 dB,
     dtu_scan24 24.70 / 20.15 -> 25.20 / 19.55 (the whole image loses off the objects: ghosts on the table). At
     --nearest 6 (stereo+model mesh), the demo scene's whole image 26.00 -> 26.31 dB (network after 60 CPU-s of
-    tuning: 26.04). ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`): ``angle`` for real object captures with masks
-    (DTU), else ``network`` (procedural scenes keep the tunable blend)."""
+    tuning: 26.04; the exact mesh 28.26 -> 28.80), fern's stereo+fill mesh 24.12 -> 24.15; DTU at --nearest 6 (mesh
+    with the hull trim keeping seen surface), mask PSNR network / angle / nearest fill / both: dtu_scan37 20.68 /
+    21.39 / 20.89 / 21.57, dtu_scan24 24.54 / 25.26 / 25.00 / 25.65. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`):
+    ``angle`` for real object captures with masks (DTU), else ``network`` (procedural scenes keep the tunable
+    blend; fern's +0.03 dB is within noise)."""
     angle_sources: tuple[int, ...] = ()
     """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
     the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only
