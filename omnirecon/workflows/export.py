@@ -59,7 +59,7 @@ class ExportConfig(MachineConfig):
     blend: Literal["auto", "network", "angle"] = "auto"
     """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights; `angle`, each
     point's --angle-sources nearest sources by viewing angle (as `finetune --blend angle`); `auto`, per scene kind
-    as `finetune` (angle on object captures, network on forward-facing scenes)."""
+    as `finetune` (angle on real object captures with masks such as DTU, else network)."""
     angle_sources: int = 6
     """Sources per point of the angle blend (0: every source that sees it)."""
 
