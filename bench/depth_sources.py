@@ -185,8 +185,9 @@ def scoring(source: str, scene=None) -> dict:
     """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring). Rows
     without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``); without ``, angle
     blend`` / ``, nearest fill`` the network's blend and the far layer (the scene's background colour where it is
-    known), whatever finetune's per-scene defaults (``omnirecon.mesh.ibr.scene_blend``)."""
-    out = {"nearest": 0, "blend": "network",
+    known), whatever finetune's per-scene defaults (``omnirecon.mesh.ibr.scene_blend``); the angle blend's sources
+    per point are --nearest's count unless ``, angle auto``."""
+    out = {"nearest": 0, "blend": "network", "angle_sources": (),
            "fill": "background" if scene is not None and scene.background is not None else "far"}
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
