@@ -299,6 +299,12 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
     return ("angle" if real_object else "network"), fill
 
 
+def scene_defaults(scene) -> tuple[str, str]:
+    """:func:`scene_blend` for a loaded scene (``rig``, ``masks``, ``background``). Scenes composited on a known colour
+    (procedural ones, Blender's NeRF-synthetic: ``Scene.background`` set) keep the network's blend and that colour."""
+    return scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+
+
 class MeshRenderer:
     """Renders a mesh from any camera with Omni-Recon's appearance branch and cached source features.
 

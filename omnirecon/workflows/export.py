@@ -14,7 +14,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.ibr import scene_blend
+from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
@@ -87,7 +87,7 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
     if cfg.blend == "auto":
-        options.blend = scene_blend(scene.rig, scene.masks is not None, scene.background is not None)[0]
+        options.blend = scene_defaults(scene)[0]
     out = default_out(cfg)
     mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
     if mesh is None:

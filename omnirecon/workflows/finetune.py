@@ -56,7 +56,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import layer_box, with_fill
-from omnirecon.mesh.ibr import consensus_weights, scene_blend
+from omnirecon.mesh.ibr import consensus_weights, scene_defaults
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -540,7 +540,7 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
             mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
-    auto_blend, auto_fill = scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+    auto_blend, auto_fill = scene_defaults(scene)
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"

@@ -177,10 +177,10 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
     ``# [H, W, 3]`` and the seconds of each frame (after one untimed warm-up frame per renderer)."""
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames, scene_blend  # lazy: fast --help
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames, scene_defaults  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    blend, fill = scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+    blend, fill = scene_defaults(scene)
     images, times = [], []
     start = 0
     while start < len(cameras):

@@ -390,3 +390,25 @@ def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
     near = (col[n:] - 9) <= 0.15 * W  # within reach of column 9
     assert moved[n:].eq(near).all() and torch.allclose(depth[n:][near], torch.tensor(2.0), atol=1e-4)
     assert torch.allclose(moved_pts[n:][~near], pts[n:][~near])
+
+
+def test_blend_and_fill_defaults_per_scene_kind():
+    """``--blend auto --fill auto``: object captures with masks over photographed backgrounds (DTU) get the angle blend
+    and the nearest fill; scenes with a known background colour (procedural, Blender) the network's blend and that
+    colour; forward-facing scenes and object captures without masks the network's blend and the far layer."""
+    from types import SimpleNamespace
+
+    from omnirecon.mesh.ibr import scene_defaults
+
+    g = torch.Generator().manual_seed(0)
+    masks = torch.zeros(2, 8, 8)
+    masks[:, 2:6, 2:6] = 1
+    photo = torch.rand(2, 8, 8, 3, generator=g)
+
+    def scene(rig="object", m=masks, images=photo, background=None):
+        return SimpleNamespace(rig=rig, masks=m, images=images, background=background)
+
+    assert scene_defaults(scene()) == ("angle", "nearest")
+    assert scene_defaults(scene(background=(0.0, 0.0, 0.0))) == ("network", "background")
+    assert scene_defaults(scene(rig="forward")) == ("network", "far")
+    assert scene_defaults(scene(m=None)) == ("network", "far")
