@@ -30,10 +30,17 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
 * ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
   the nearest pixel it covers in the same view, instead of the far layer).
+* ``<source>, angle auto``: with the angle blend, ``finetune --angle-sources 3 4 6 8`` (the count that scores best
+  on the validation views).
+* ``<source>, consensus S``: with the angle blend, ``finetune --consensus S`` (sources whose colour disagrees with
+  the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
-Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
+Rows of one run that differ only in scoring share one mesh (made once; each row records ``mesh_file``). Without
+``, angle blend`` / ``, nearest fill`` a row is scored with the network's blend and the far layer (the scene's
+background colour where known), whatever ``finetune``'s per-scene defaults. DTU rows also record the training views'
+mask coverage (``training_coverage``: what cleaning must never delete). Each mesh is made from the scene's training views minus the protocol's held-out views (DTU: 14 of
 them, evenly spaced) by the one pipeline (``omnirecon/mesh/build.py``) and scored like
 ``omnirecon finetune --mesh M --clock cpu --threads 1``: held-out PSNR of the mesh path before and after
 ``--seconds`` of tuning (whole image; over the object masks on DTU; over the covered pixels), coverage
@@ -147,6 +154,21 @@ def coverage_and_iou(mesh, scene, targets, masks: bool) -> dict:
     return out
 
 
+def training_coverage(mesh, scene, views) -> dict:
+    """Object captures with masks: the fraction of each meshed (training) view's mask pixels the mesh covers (what
+    cleaning must never delete): mean, min and the three lowest views."""
+    from omnirecon.mesh.complete import DepthRenderer
+
+    r = DepthRenderer(mesh)
+    cov = {}
+    for v in views:
+        m = scene.masks[v].numpy().astype(bool)
+        cov[int(v)] = float(((r(scene.cameras[v]) > 0) & m).sum() / max(1, m.sum()))
+    r.close()
+    worst = sorted(cov.items(), key=lambda kv: kv[1])[:3]
+    return {"mean": float(np.mean(list(cov.values()))), "min": worst[0][1], "lowest": [list(w) for w in worst]}
+
+
 def picture(src: Path, dst: Path, max_width: int = 480) -> str:
     """``src`` at most ``max_width`` wide, 256 colours (one row per held-out view: keep the PNG small)."""
     from PIL import Image
@@ -159,10 +181,14 @@ def picture(src: Path, dst: Path, max_width: int = 480) -> str:
     return str(dst.relative_to(dst.parents[1]))
 
 
-def scoring(source: str) -> dict:
+def scoring(source: str, scene=None) -> dict:
     """``FinetuneConfig`` settings of a row's variants (``, K sources``, ``, exposure``; module docstring). Rows
-    without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``)."""
-    out = {"nearest": 0}
+    without ``, nearest K`` keep the 3 fixed sources they were measured with (``--nearest 0``); without ``, angle
+    blend`` / ``, nearest fill`` the network's blend and the far layer (the scene's background colour where it is
+    known), whatever finetune's per-scene defaults (``omnirecon.mesh.ibr.scene_blend``); the angle blend's sources
+    per point are --nearest's count unless ``, angle auto``."""
+    out = {"nearest": 0, "blend": "network", "angle_sources": (),
+           "fill": "background" if scene is not None and scene.background is not None else "far"}
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
             out["num_views"] = int(part.split()[0])
@@ -174,9 +200,18 @@ def scoring(source: str) -> dict:
             out["tune"] = ("encoder", "appearance", "exposure")
         elif part == "angle blend":
             out["blend"] = "angle"
+        elif part == "angle auto":
+            out["angle_sources"] = (3, 4, 6, 8)
+        elif part.startswith("consensus "):
+            out["consensus"] = float(part.split()[1])
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
+
+
+MESHES: dict = {}
+"""Meshes made in this run, by scene and the variants that change the mesh (``all views``, ``sky kept``): rows that
+differ only in scoring (``nearest K``, ``angle blend``, ``nearest fill``, ...) score the same mesh file."""
 
 
 def run_row(name: str, source: str, seconds: float, models: dict, results: Path, tiny: bool) -> dict | None:
@@ -189,25 +224,33 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
         return None
     targets, views = held_out(scene, proto, every_view="all views" in source.split(", ")[1:])
     masks = scene.masks is not None and proto.name == "dtu"
-    made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
+    variants = source.split(", ")[1:]
+    key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants, tiny)
     slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
     work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{slug}"
-    (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
+    if key not in MESHES:
+        made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
+        (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
+        MESHES[key] = made, mesh_s, mesh_file
+    made, mesh_s, mesh_file = MESHES[key]
     mesh = read_mesh(mesh_file, scene.to_input)  # as the scoring sees it
     tuned = source.partition(", ")[0] in TUNED
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source)))
+                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
+           "mesh_file": str(Path(mesh_file).resolve().relative_to(ROOT)),
            "seconds": made.info["seconds"], "completion": made.info.get("completion"),
            "tuned_seconds": tune if tuned else 0.0, "source_views": ft.get("sources"),
            "visibility": ft.get("visibility", False), "blend": ft.get("blend", "network"), "tuned": ft.get("tuned"), "lr": ft.get("lr"),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
            **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
+    if masks:
+        row["training_coverage"] = training_coverage(mesh, scene, views)
     if masks and "psnr_masked" in first:
         row["psnr_masked"] = {"before": first["psnr_masked"], "after": last["psnr_masked"] if tuned else None}
     if scene.mesh_path is not None:
@@ -233,7 +276,7 @@ def exact_row(name: str, tiny: bool, source: str = "exact mesh") -> dict | None:
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source)))
+                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
     return {"scene": name, "source": source, "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
             **coverage_and_iou(gt, scene, ft["held_out"], False)}

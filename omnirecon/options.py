@@ -70,7 +70,7 @@ RULES: dict[str, Rule] = {
     "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),
     "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
     "synth_count": Rule(1, 10_000, example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
-    "max_views": COUNT, "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
+    "max_views": COUNT, "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
     "max_faces": Rule(0, example="e.g. 200000"), "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
     "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
     "min_views": Rule(1, 10_000, example="e.g. 2"), "num_pairs": Rule(1, 1_000, example="e.g. 4"),
@@ -110,7 +110,7 @@ RULES: dict[str, Rule] = {
     "first_octave": Rule(-3, 1, example="e.g. -1"), "max_ratio": Rule(0, 1, above=True, example="e.g. 0.8"),
     "retry_below": FRACTION, "mask_dilate": Rule(0, 10_000, example="e.g. 0 or 8"),
     # tuning
-    "reg": WEIGHT, "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
+    "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     "step_views": Rule(0, 1_000_000, example="e.g. 1, or 0 for every tuning view"),
     # verbs that need more than the shared rule
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),

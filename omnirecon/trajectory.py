@@ -5,7 +5,10 @@ Every path is built from a scene's cameras and returns OpenCV camera-to-world ma
 ``# [F, 4, 4]`` (rigid, ``det R = +1``), in float64; :func:`path_cameras` adds intrinsics.
 
 * :func:`orbit` circles the scene centre at the mean distance and mean elevation of the cameras
-  (elevation measured from the plane orthogonal to the cameras' mean up direction).
+  (elevation measured from the plane orthogonal to the cameras' mean up direction); with ``arc_degrees=None``
+  it sweeps only the azimuths the photos cover (:func:`captured_arc`), there and back, when they leave a gap
+  wider than :data:`ORBIT_GAP_DEGREES` (a capture of a wall-mounted or half-seen object), so the video never
+  circles to where no photo looks.
 * :func:`spiral` is the NeRF/LLFF render path: around the mean pose, radii = 90th percentile of
   the camera offsets in the mean camera's frame, looking at a focus point at the harmonic blend
   of near and far depths (``1 / (0.25 / (0.9 near) + 0.75 / (5 far))``), two turns.
@@ -29,6 +32,13 @@ from omnirecon.cameras import Cameras, closest_point_to_axes, look_at
 PathKind = Literal["orbit", "spiral", "interp"]
 """The kinds of :func:`camera_path`."""
 
+ORBIT_GAP_DEGREES = 60.0
+"""An orbit with ``arc_degrees=None`` circles fully only when no gap between the cameras' azimuths is wider
+than this; else it sweeps the arc they cover. instant-ngp's fox (67 photos of a head mounted on a wall, posed by
+`omnirecon process`) covers 93 degrees: `reconstruct`'s full orbit put 32 of its 48 frames more than 20 degrees from
+the nearest photo (median 44, at most 127: behind the wall, rendered as shards), the covered arc none (median 7, at
+most 11)."""
+
 MAX_DEFAULT_KEYFRAMES = 8
 """``interp`` without ``keyframes`` uses at most this many views, evenly spaced in index order."""
 
@@ -42,15 +52,15 @@ def default_keyframes(n: int) -> list[int]:
 
 def camera_path(cameras: Cameras, kind: PathKind, frames: int, center: Tensor | None = None,
                 near: float | None = None, far: float | None = None, keyframes: list[int] | None = None,
-                arc: float = 360.0, rots: float = 2.0) -> Cameras:
+                arc: float | None = 360.0, rots: float = 2.0) -> Cameras:
     """``frames`` cameras along a path of ``kind`` built from ``cameras`` (their resolution and the
     intrinsics of camera 0; interp: interpolated intrinsics), float64.
 
     Args:
         cameras: The scene's cameras.
         kind: ``"orbit"`` (:func:`orbit` around ``center``, default the point closest to all optical
-            axes, over ``arc`` degrees), ``"spiral"`` (:func:`spiral` with ``rots`` turns; needs the
-            scene's ``near`` and ``far`` z-depths) or ``"interp"`` (:func:`interpolate` through the
+            axes, over ``arc`` degrees; ``None``: the arc the cameras cover), ``"spiral"`` (:func:`spiral` with
+            ``rots`` turns; needs the scene's ``near`` and ``far`` z-depths) or ``"interp"`` (:func:`interpolate` through the
             views ``keyframes``, default :func:`default_keyframes`).
     Raises:
         ValueError: a spiral without ``near``/``far``, fewer than 2 keyframes or one out of range, or an
@@ -76,12 +86,14 @@ def mean_up(cams: Cameras) -> Tensor:
     return up / up.norm().clamp_min(1e-12)
 
 
-def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float = 360.0) -> Tensor:
+def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float | None = 360.0) -> Tensor:
     """``frames`` cameras circling ``center`` (default: the point closest to all optical axes).
 
     The circle lies at the cameras' mean distance and mean elevation and starts at the azimuth of
     camera 0. A full turn (360 degrees) leaves out the end point, so the video loops; a partial
-    arc includes both ends. ``# [F, 4, 4]``
+    arc includes both ends. ``arc_degrees=None``: the arc the cameras cover (:func:`captured_arc`): a full
+    turn when they go around, else from one end of their azimuths to the other and back (eased at the ends,
+    so the video loops). ``# [F, 4, 4]``
     """
     center = (closest_point_to_axes(cams) if center is None else center).double()
     up = mean_up(cams)
@@ -94,12 +106,41 @@ def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees:
         e1 = torch.linalg.svd(up[None]).Vh[1]
     e1 = e1 / e1.norm()
     e2 = torch.linalg.cross(up, e1)
-    full = abs(arc_degrees - 360.0) < 1e-9
-    phi = torch.linspace(0, math.radians(arc_degrees), frames + 1 if full else frames, dtype=torch.float64)
-    phi = phi[:frames]
+    if arc_degrees is None:
+        start, span = captured_arc(off, up, e1, e2)
+        if span < 2 * math.pi:  # there and back over the covered azimuths
+            t = torch.arange(frames, dtype=torch.float64) / frames
+            phi = start + span * (1 - torch.cos(2 * math.pi * t)) / 2
+        else:
+            phi = torch.linspace(0, 2 * math.pi, frames + 1, dtype=torch.float64)[:frames]
+    else:
+        full = abs(arc_degrees - 360.0) < 1e-9
+        phi = torch.linspace(0, math.radians(arc_degrees), frames + 1 if full else frames, dtype=torch.float64)
+        phi = phi[:frames]
     horiz = torch.cos(phi)[:, None] * e1 + torch.sin(phi)[:, None] * e2  # [F, 3]
     eye = center + radius * (torch.cos(elevation) * horiz + torch.sin(elevation) * up)
     return look_at(eye, center.expand_as(eye), up)
+
+
+def captured_arc(off: Tensor, up: Tensor, e1: Tensor, e2: Tensor,
+                 gap_degrees: float = ORBIT_GAP_DEGREES) -> tuple[float, float]:
+    """``(start, span)`` in radians, azimuths measured from ``e1`` toward ``e2`` about ``up``: the arc the camera
+    offsets from the centre ``off # [N, 3]`` cover, i.e. the circle less its widest gap between neighbouring
+    azimuths; ``(0, 2 pi)`` when no gap is wider than ``gap_degrees`` (the cameras go around)."""
+    az = torch.atan2(off @ e2, off @ e1).remainder(2 * math.pi).sort().values  # [N]
+    gaps = torch.diff(torch.cat([az, az[:1] + 2 * math.pi]))  # [N]: gap after each azimuth
+    k = int(gaps.argmax())
+    if len(az) < 2 or float(gaps[k]) <= math.radians(gap_degrees):
+        return 0.0, 2 * math.pi
+    return float(az[(k + 1) % len(az)]), 2 * math.pi - float(gaps[k])
+
+
+def nearest_photo_degrees(path: Tensor, cams: Cameras, center: Tensor) -> Tensor:
+    """Per path pose ``path # [F, 4, 4]``: the angle at ``center`` between its camera and the nearest of
+    ``cams`` (degrees; how far a frame extrapolates beyond the photos). ``# [F]``"""
+    a = torch.nn.functional.normalize(path[:, :3, 3].double() - center.double(), dim=-1)  # [F, 3]
+    b = torch.nn.functional.normalize(cams.centers.double() - center.double(), dim=-1)  # [N, 3]
+    return torch.rad2deg(torch.acos((a @ b.T).clamp(-1, 1))).min(-1).values
 
 
 def mean_pose(cams: Cameras) -> Tensor:

@@ -31,7 +31,10 @@ def _end_to_end(r: dict) -> str:
                      if run.get("setup") else "")
                   + (" Fine-tuning (held-out, mesh path, visibility test): whole image "
                      + " -> ".join(f"{x:.2f}" for x in run["finetune"]["whole_image"]) + " dB at coverage "
-                     f"{run['finetune']['coverage']:.0%}, {run['finetune']['steps']} steps." if run.get("finetune") else ""),
+                     f"{run['finetune']['coverage']:.0%}, {run['finetune']['steps']} steps." if run.get("finetune") else "")
+                  + (f" Held-out mesh-path PSNR (whole image) {run['psnr_before_after'][0]:.2f} -> "
+                     f"{run['psnr_before_after'][1]:.2f} dB; {run['photos_registered']} photos posed; camera path "
+                     f"{run['path_fps']} FPS." if run.get("psnr_before_after") else ""),
                   "",
                   "| stage | CPU s | share |", "|---|---|---|"]
         total = v["stages_total_cpu_s"]

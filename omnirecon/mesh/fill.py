@@ -3,12 +3,18 @@
 A pixel the mesh misses is given the point where its ray leaves the scene's bounds box (the box's far
 side), never farther than the sources' far z-depth; the mesh renderer then shades it with the same
 image-based blend as the surface, so no pixel is left at a background colour.
+
+**Nearest fill** (``MeshRenderOptions.fill="nearest"``, ``finetune --fill nearest``): a missed pixel within
+:data:`NEAREST_FILL_REACH` of a pixel the mesh covers takes that pixel's rendered z-depth (:func:`nearest_depth`; never
+a photo), the others keep the background layer: an object whose mesh stops short of its silhouette is continued
+at its own depth instead of showing the far layer there.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -78,3 +84,48 @@ def with_fill(surface: Surface, camera: Cameras, far: float, bounds: Tensor | No
     points, depth = fill_points(camera, miss, far, bounds)
     return replace(surface, pixels=torch.cat([surface.pixels, miss]), points=torch.cat([surface.points, points]),
                    depth=torch.cat([surface.depth, depth])), len(surface.pixels)
+
+
+NEAREST_FILL_REACH = 0.15
+"""The nearest fill moves the missed pixels within this fraction of the image's long side of a covered pixel (the
+rest keep the far layer). dtu_scan37, angle blend, nearest 4, held-out mask / whole image: far layer 21.53 / 17.84 dB;
+reach 3 px 21.86 / 18.13, 8 px 21.89 / 18.52, 20 px 21.89 / 19.20, 60 px (0.15) 21.89 / 19.76; every pixel 21.89 / 18.23
+(far background, e.g. the dark table, is better on the far layer)."""
+
+
+def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH) -> np.ndarray:
+    """``depth # [H, W]`` (z-depth, 0 = no surface) with every empty pixel within ``reach`` times the long side of a
+    covered pixel given the z-depth of the nearest covered pixel (Euclidean distance transform); farther ones stay 0.
+    ``# [H, W]``"""
+    from scipy.ndimage import distance_transform_edt
+
+    empty = depth <= 0
+    if empty.all() or not empty.any():
+        return depth
+    dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
+    near = depth[iy, ix]
+    return np.where(empty & (dist <= reach * max(depth.shape)), near, depth).astype(depth.dtype, copy=False)
+
+
+def nearest_fill(surface: Surface, covered: int, camera: Cameras, reach: float = NEAREST_FILL_REACH
+                 ) -> tuple[Surface, Tensor]:
+    """``surface`` (its first ``covered`` pixels on the mesh, the rest e.g. :func:`with_fill`'s layer) with the
+    rest's points within ``reach`` (:func:`nearest_depth`) moved onto their rays at the nearest covered pixel's
+    z-depth. Returns the surface (float32 points) and which rows moved ``# [P]`` bool."""
+    points, moved = surface.points.float().clone(), torch.zeros(len(surface.pixels), dtype=torch.bool)
+    if covered == 0 or covered == len(surface.pixels):
+        return replace(surface, points=points), moved
+    H, W = surface.height, surface.width
+    z = np.zeros(H * W, np.float32)
+    z[surface.pixels[:covered].numpy()] = surface.depth[:covered].float().numpy()
+    filled = torch.from_numpy(nearest_depth(z.reshape(H, W), reach).reshape(-1))
+    holes = surface.pixels[covered:]
+    rows = covered + (filled[holes] > 0).nonzero()[:, 0]
+    px = surface.pixels[rows]
+    zh = filled[px]  # [n]
+    uv = torch.stack([(px % W).float() + 0.5, (px // W).float() + 0.5], -1)  # pixel centres
+    points[rows] = camera.to(dtype=torch.float32).unproject(uv[None], zh[None])[0]
+    moved[rows] = True
+    depth = surface.depth.clone()
+    depth[rows] = zh.to(depth.dtype)
+    return replace(surface, points=points, depth=depth), moved

@@ -18,7 +18,14 @@ projects outside of (``OmniRecon.shade``'s ``visible`` argument): a point no vie
 views uniformly, as in the volumetric path.
 
 **Fill** (``MeshRenderOptions.fill``, not in the paper): pixels no triangle covers get the background
-layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``mask`` is the coverage.
+layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``mask`` is the coverage. With
+``fill="nearest"``, those within reach of a covered pixel first take its rendered z-depth
+(:func:`omnirecon.mesh.fill.nearest_depth`), as ``finetune --fill nearest`` scores them.
+
+**Blend** (``MeshRenderOptions.blend``): ``"network"``, the appearance branch's weights (the paper);
+``"angle"``, each point's ``angle_sources`` nearest sources by viewing angle among those that see it, weighted by
+angle alone (:func:`angle_weights`, the unstructured lumigraph's blend; no network runs per frame), as
+``finetune --blend angle`` scores them.
 
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
@@ -65,7 +72,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.mesh.fill import exit_depth, layer_box, ray_basis, with_fill
+from omnirecon.mesh.fill import exit_depth, layer_box, nearest_depth, nearest_fill, ray_basis, with_fill
 from omnirecon.rays import Sources
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
@@ -77,9 +84,18 @@ class MeshRenderOptions:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     """Colour of pixels no triangle covers when ``fill="background"`` (DTU: white; procedural scenes:
     ``Scene.background``); also what :meth:`MeshRenderer.render_signal` leaves there."""
-    fill: Literal["far", "background"] = "far"
+    fill: Literal["far", "background", "nearest"] = "far"
     """Where no triangle covers a pixel, :meth:`MeshRenderer.render` shades ``"far"``: the background layer
-    of :mod:`omnirecon.mesh.fill` (no pixel left blank), or puts ``"background"``: that colour."""
+    of :mod:`omnirecon.mesh.fill` (no pixel left blank), ``"nearest"``: the nearest covered pixel's z-depth within
+    :data:`omnirecon.mesh.fill.NEAREST_FILL_REACH` of it and the background layer beyond, or puts ``"background"``:
+    that colour."""
+    blend: Literal["network", "angle"] = "network"
+    """How a point mixes its sources: ``"network"``, the appearance branch's weights; ``"angle"``,
+    :func:`angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
+    angle_sources: int = 6
+    """With ``blend="angle"``: sources blended per point (0: every source that sees it); ``finetune --nearest``."""
+    consensus: float = 0.0
+    """With ``blend="angle"``: :func:`consensus_weights`' width in RGB (0: off); ``finetune --consensus``."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -231,7 +247,12 @@ def angle_weights(points: Tensor, origin: Tensor, centers: Tensor, seen: Tensor,
     dtu_scan37; the FinetuneConfig field has the numbers)."""
     d_t = F.normalize(points - origin, dim=-1)  # [P, 3] target -> point
     d_s = F.normalize(points[:, None] - centers[None].to(points), dim=-1)  # [P, K, 3] sources -> point
-    ang = torch.arccos((d_s * d_t[:, None]).sum(-1).clamp(-1, 1))  # [P, K]
+    return lumigraph_weights(torch.arccos((d_s * d_t[:, None]).sum(-1).clamp(-1, 1)), seen, k)
+
+
+def lumigraph_weights(ang: Tensor, seen: Tensor, k: int) -> Tensor:
+    """:func:`angle_weights` from the angles ``ang # [P, K]`` (radians) between each source's ray and the target's
+    at each point. ``# [P, K]``"""
     ang = torch.where(seen, ang, torch.full_like(ang, float("inf")))
     K = ang.shape[1]
     k = max(1, min(k, K))
@@ -242,6 +263,46 @@ def angle_weights(points: Tensor, origin: Tensor, centers: Tensor, seen: Tensor,
     w = torch.where(torch.isfinite(w), w, torch.zeros_like(w))
     total = w.sum(1, keepdim=True)
     return torch.where(total > 0, w / total.clamp_min(1e-12), torch.full_like(w, 1.0 / K))
+
+
+def consensus_weights(rgb: Tensor, w: Tensor, sigma: float) -> Tensor:
+    """Blend weights ``w # [n, K]`` re-weighted by how well each source's colour ``rgb # [n, K, 3]`` agrees with the
+    blend: ``w_k exp(-|c_k - m|^2 / (2 sigma^2))``, ``m`` the blended colour, normalised again (a highlight or an
+    occluder that one source sees is an outlier; rows whose weights all vanish keep ``w``); two rounds, the second
+    around the first's blend (the first ``m`` is pulled toward the outlier). ``sigma <= 0``: ``w``. ``# [n, K]``"""
+    if sigma <= 0:
+        return w
+    v = w
+    for _ in range(2):
+        m = (v[..., None] * rgb).sum(1, keepdim=True)  # [n, 1, 3]
+        u = w * torch.exp(-((rgb - m) ** 2).sum(-1) / (2 * sigma * sigma))  # [n, K]
+        total = u.sum(1, keepdim=True)
+        v = torch.where(total > 1e-12, u / total.clamp_min(1e-12), w)
+    return v
+
+
+def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
+    """The mesh path's default ``(blend, fill)`` per scene kind (``finetune --blend auto --fill auto``, the
+    real-time renders of ``demo`` / ``reconstruct`` and the viewer's start): ``rig`` (``"object"`` or
+    ``"forward"``), whether the scene has object ``masks``, whether its ``background`` colour is known
+    (procedural scenes). Measured at ``finetune``'s ``--nearest 6``, held-out, before tuning (``python -m bench
+    depth_sources``, BENCHMARKS "Depth sources"; numbers in ``FinetuneConfig.blend``):
+
+    * real object captures with masks (DTU): the angle blend and the nearest fill;
+    * a known background colour (procedural scenes): the network's blend and that colour (the nearest fill paints
+      the sky beside the objects: the demo 26.00 -> 23.99 dB; the angle blend measured +0.31 dB on the demo but
+      leaves ``finetune`` nothing to tune, so it is not the default there);
+    * otherwise (forward-facing scenes such as fern, object captures without masks): the network's blend and
+      the far layer."""
+    real_object = rig == "object" and masks and not background
+    fill = "background" if background else ("nearest" if real_object else "far")
+    return ("angle" if real_object else "network"), fill
+
+
+def scene_defaults(scene) -> tuple[str, str]:
+    """:func:`scene_blend` for a loaded scene (``rig``, ``masks``, ``background``). Scenes composited on a known colour
+    (procedural ones, Blender's NeRF-synthetic: ``Scene.background`` set) keep the network's blend and that colour."""
+    return scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
 
 
 class MeshRenderer:
@@ -312,10 +373,11 @@ class MeshRenderer:
         return torch.stack([self.rasterizer.rasterize(cams[i], normals="none").depth for i in range(len(cams))])
 
     # ------------------------------------------------------------------ per point
-    def project(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def project(self, points: Tensor, layer: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Project ``points # [3, n]`` (channel-first) into every source: pixel coordinates
         ``uv # [K, 2, n]``, camera z-depth ``z # [K, n]`` and ``mask # [K, n]`` (in front, inside the
-        image and, with the visibility test on, not occluded)."""
+        image and, with the visibility test on, not occluded; points where ``layer # [n]`` bool is True, the fill's
+        background layer, skip the occlusion test, as ``finetune`` scores them)."""
         K = self.num_views
         uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
         z = uvz[:, 2]
@@ -323,7 +385,8 @@ class MeshRenderer:
         inside = (uv >= 0) & (uv < self._size)  # [K, 2, n]
         mask = (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
         if self.source_depth_max is not None:
-            mask &= self.visible(uv, z)
+            vis = self.visible(uv, z)
+            mask &= vis if layer is None else vis | layer  # the fill's far layer: every source that frames it
         return uv, z, mask
 
     def visible(self, uv: Tensor, z: Tensor) -> Tensor:
@@ -339,31 +402,46 @@ class MeshRenderer:
         source coordinates that :meth:`blend` needs; with ``fill``, every other pixel too, on the
         background layer of :func:`omnirecon.mesh.fill.with_fill`)."""
         with torch.inference_mode():
-            surf, covered = self.rasterizer.surface(camera), None
+            surf, covered, layer = self.rasterizer.surface(camera), None, None
             if fill:
                 surf, covered = with_fill(surf, camera, self.sources.far, layer_box(self.sources.rig, self.sources.bounds))
+                layer = torch.arange(len(surf.pixels)) >= covered  # [P] on the far layer
+                if self.options.fill == "nearest":
+                    surf, moved = nearest_fill(surf, covered, camera)
+                    layer &= ~moved
+                layer = layer.to(self.device)
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
             if self.options.fused:
-                return replace(self._fused(surf, points, origin, with_rgb, with_coords), covered=covered)
-            uv, _, mask = self.project(points.T)
+                return replace(self._fused(surf, points, origin, with_rgb, with_coords, layer), covered=covered)
+            uv, _, mask = self.project(points.T, layer)
+            if self.options.blend == "angle":
+                omega = angle_weights(points, origin, self.sources.cameras.centers.to(points), mask.T,
+                                      self.options.angle_sources or self.num_views).T  # [K, P]
+                if self.options.consensus > 0:
+                    colours = self._rgb.sample(*self._rgb.taps(uv / self._size)).reshape(self.num_views, -1, 3)
+                    omega = consensus_weights(colours.transpose(0, 1), omega.T, self.options.consensus).T
+                shaded = ShadeResult(surf, omega, mask, uv / self._size, None, covered)
+                return replace(shaded, rgb=self.blend(shaded, self._rgb)) if with_rgb else shaded
             out = self.model.shade(self.features, points, origin.expand_as(points),
                                    visible=mask.T if self.options.visibility else None)
             return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
     def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool,
-                      with_coords: bool = False) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+                      with_coords: bool = False, layer: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
         """``OmniRecon.shade``, fused (module docstring), at points ``p # [3, n]`` (channel-first) seen along
         ``d_t # [3, n]`` (target -> point, any positive length): blend weights ``omega # [K, n]``, the
         mask ``# [K, n]``, with ``with_coords`` the source image fractions ``# [K, 2, n]`` and, with
         ``with_rgb``, the blended source colour ``# [3, n]``."""
         K = self.num_views
-        uv, _, mask = self.project(p)  # [K, 2, n], [K, n]
+        uv, _, mask = self.project(p, layer)  # [K, 2, n], [K, n]
         st = uv / self._size if with_coords else None  # [K, 2, n] image fractions
         seen = mask.sum(0)  # [n] sources that see each point
         few = seen < 2
         n_few = int(few.sum())
-        if n_few == 0:
+        if self.options.blend == "angle":
+            om = self._angle_omega(p, d_t, mask)
+        elif n_few == 0:
             om = self._blend_logits(p, d_t, uv, mask)
         else:  # omega needs no network where fewer than 2 sources see the point (module docstring)
             om = torch.where(seen == 0, 1.0 / K, mask.to(self.dtype))  # [K, n]
@@ -374,9 +452,13 @@ class MeshRenderer:
                     i = (~few).nonzero()[:, 0]
                     om[:, i] = self._blend_logits(p[:, i], d_t[:, i], uv[:, :, i], mask[:, i])
         rgb = None
-        if with_rgb:  # the model's own sampling of the source colours
+        consensus = self.options.blend == "angle" and self.options.consensus > 0
+        if with_rgb or consensus:  # the model's own sampling of the source colours
             grid = torch.addcmul(self._minus_one, uv, self._two_over_size).transpose(1, 2)[:, None]  # [K, 1, n, 2]
             c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
+            if consensus:
+                om = consensus_weights(c.permute(2, 0, 1), om.T, self.options.consensus).T.contiguous()
+        if with_rgb:
             rgb = c[0].mul_(om[0])  # [3, n]
             for k in range(1, K):
                 rgb.addcmul_(c[k], om[k])
@@ -385,6 +467,14 @@ class MeshRenderer:
     SKIP_BELOW = 8
     """:meth:`_shade_points` compacts the points at least two sources see when the others are at least
     ``1 / SKIP_BELOW`` of a chunk (below that, the gather costs more than the network it saves)."""
+
+    def _angle_omega(self, p: Tensor, d_t: Tensor, mask: Tensor) -> Tensor:
+        """``blend="angle"``: :func:`lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
+        sources of ``mask # [K, n]``. ``# [K, n]``"""
+        d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
+        cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0)  # [K, n]
+        k = self.options.angle_sources or self.num_views
+        return lumigraph_weights(torch.arccos(cos.clamp_(-1, 1)).T, mask.T, k).T.contiguous()
 
     def _blend_logits(self, p: Tensor, d_t: Tensor, uv: Tensor, mask: Tensor) -> Tensor:
         """The appearance network's blend weights ``omega # [K, n]`` at points ``p # [3, n]`` seen along
@@ -419,7 +509,8 @@ class MeshRenderer:
         else:
             list(self._pool.map(one, starts))  # list(): waits, and raises a worker's error here
 
-    def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool) -> ShadeResult:
+    def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool,
+               layer: Tensor | None = None) -> ShadeResult:
         """``OmniRecon.shade`` for one point per pixel, fused (module docstring)."""
         K, total = self.num_views, points.shape[0]
         new = dict(dtype=self.dtype, device=self.device)
@@ -430,7 +521,8 @@ class MeshRenderer:
 
         def shade(sl: slice) -> None:
             p = points[sl].T.contiguous()  # [3, n]
-            om, mask, st, c = self._shade_points(p, p - origin[:, None], with_rgb, with_coords)
+            om, mask, st, c = self._shade_points(p, p - origin[:, None], with_rgb, with_coords,
+                                                 None if layer is None else layer[sl])
             omega[:, sl], mask_all[:, sl] = om, mask
             if with_coords:
                 coords[:, :, sl] = st
@@ -462,12 +554,15 @@ class MeshRenderer:
         :meth:`render` with ``extras=True`` (rasterized world points, :func:`~omnirecon.mesh.fill.with_fill`,
         :meth:`Surface.image`); fused shader only."""
         H, W = camera.height, camera.width
-        depth = self.rasterizer.depth(camera).reshape(-1).to(self.device, self.dtype)  # [H W]; 0 = background
+        depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
+        if self.options.fill == "nearest":  # one distance transform per frame, before the chunks
+            depth = torch.from_numpy(nearest_depth(depth.float().cpu().numpy()))
+        depth = depth.reshape(-1).to(self.device, self.dtype)  # [H W]
         A, origin = (t.to(self.device, self.dtype) for t in ray_basis(camera))  # [3, 3], [3]
         A2, Auv, o = A[2][:, None], A[:2].T.contiguous(), origin[:, None]  # [3, 1], [3, 2], [3, 1]
         centres = self._pixel_centres(W, H)
         out = torch.empty(H * W, 3, dtype=self.dtype, device=self.device)
-        fill = self.options.fill == "far"
+        fill = self.options.fill != "background"
         background = torch.tensor(self.options.background, dtype=self.dtype, device=self.device)
         far, bounds = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
 
@@ -476,12 +571,13 @@ class MeshRenderer:
             d = torch.addmm(A2, Auv, centres[:, sl])  # [3, n]: the ray through each pixel centre, camera z = 1
             target = out[sl]  # [n, 3] (a view)
             hole = z <= 0
-            keep = None
+            keep, layer = None, None
             if bool(hole.any()):
                 miss = hole.nonzero()[:, 0]
                 if fill:
                     z = z.clone()
                     z[miss] = exit_depth(d[:, miss], origin, far, bounds)
+                    layer = hole  # the far layer skips the occlusion test (weights())
                 else:
                     target[miss] = background
                     keep = (~hole).nonzero()[:, 0]
@@ -489,7 +585,7 @@ class MeshRenderer:
                         return
                     d, z = d[:, keep], z[keep]
             p = torch.addcmul(o, d, z[None])  # [3, n] surface points
-            rgb = self._shade_points(p, d, True)[3]  # [3, n]
+            rgb = self._shade_points(p, d, True, layer=layer)[3]  # [3, n]
             if keep is None:
                 target.copy_(rgb.T)
             else:
@@ -521,7 +617,7 @@ class MeshRenderer:
             return {"rgb": self.frame(camera)}
         with torch.inference_mode():
             shaded = self.weights(camera, with_rgb=True, with_coords=not self.options.fused,
-                                  fill=self.options.fill == "far")
+                                  fill=self.options.fill != "background")
             rgb = shaded.rgb if shaded.rgb is not None else self.blend(shaded, self._rgb)
             rgb = shaded.surface.image(rgb, self.options.background)
             return self._outputs(shaded, rgb=rgb) if extras else {"rgb": rgb}

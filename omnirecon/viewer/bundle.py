@@ -22,8 +22,8 @@ in), ``mesh_box`` (model frame, for near/far as ``MeshRasterizer.depth_range``),
 ``proj`` (``K_k [R_k | t_k]`` as 4x4 rows, model frame, float32 values) and ``centers``, the MLP
 weights (``w1 # [h1, C + 3]``, ``b1``, ``w2 # [h2, h1]``, ``b2``, ``w3 # [1, h2]``, ``b3``), the
 background colour, the visibility tolerance and default, the far fill's box and far z-depth (model frame,
-``MeshRenderOptions.fill="far"``: :mod:`omnirecon.mesh.fill`) and default, and a default camera in the
-input frame.
+``MeshRenderOptions.fill="far"``: :mod:`omnirecon.mesh.fill`) and default, the blend (``MeshRenderOptions.blend``:
+``network`` or ``angle``, and ``angle_sources``) the viewer starts with, and a default camera in the input frame.
 """
 
 from __future__ import annotations
@@ -184,6 +184,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         "visibility": {"default": bool(visibility), "tol": float(renderer.options.visibility_tol)},
         "fill": {"default": bool(fill), "far": float(sources.far),
                  "box": None if layer_box(sources.rig, sources.bounds) is None else sources.bounds.double().cpu().tolist()},
+        "blend": {"default": renderer.options.blend, "sources": int(renderer.options.angle_sources)},
         "camera": _camera_dict(cams_in[0]),
         "sources": {"count": K, "width": W, "height": H, "names": [str(n) for n in names], "images": files,
                     "proj": tables["proj"], "centers": tables["centers"],

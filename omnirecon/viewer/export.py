@@ -44,6 +44,10 @@ class ExportOptions:
     """Relative depth tolerance of the occlusion test."""
     viewer: bool = True
     """Write the viewer bundle (needs three.js from npm)."""
+    blend: str = "network"
+    """The blend the viewer starts with (``MeshRenderOptions.blend``: ``network`` or ``angle``; it can switch)."""
+    angle_sources: int = 6
+    """Sources per point of the angle blend (``MeshRenderOptions.angle_sources``; 0: all)."""
     max_edge: float = 0.0
     """Subdivide triangles until no edge is longer than this fraction of the scene bounds' diagonal
     before baking (0: keep the mesh as it is). Vertex colours can only be as fine as the vertices: a
@@ -54,6 +58,10 @@ class ExportOptions:
             raise InputError(f"--bake-views must be at least 1, got {self.bake_views}", None, "use e.g. 3")
         if not 0 <= self.visibility_tol < 1:
             raise InputError(f"--visibility-tol must be in [0, 1), got {self.visibility_tol}", None, "use e.g. 0.01")
+        if self.blend not in ("network", "angle"):
+            raise InputError(f"--blend must be network or angle, got {self.blend!r}", None, "use e.g. --blend angle")
+        if self.angle_sources < 0:
+            raise InputError(f"--angle-sources must be >= 0, got {self.angle_sources}", None, "use e.g. 6 (0: all)")
         if not (self.max_edge == 0 or 1e-4 <= self.max_edge <= 1):
             raise InputError(f"--max-edge must be 0 (off) or in [1e-4, 1], got {self.max_edge}", None, "use e.g. 0.005")
 
@@ -129,7 +137,8 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
     model = model.to(device).eval()
     sources = Sources.from_scene(scene, views).to(device)
     start = time.perf_counter()
-    render_opts = MeshRenderOptions(background=background, visibility=True, visibility_tol=options.visibility_tol)
+    render_opts = MeshRenderOptions(background=background, visibility=True, visibility_tol=options.visibility_tol,
+                                    blend=options.blend, angle_sources=options.angle_sources)
     with MeshRenderer(model, (verts, faces), sources, render_opts) as renderer:
         seconds["encode"] = time.perf_counter() - start
         start = time.perf_counter()

@@ -14,6 +14,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
+from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
@@ -55,6 +56,12 @@ class ExportConfig(MachineConfig):
     """Without --mesh: clean the mesh with the source views' object masks when the scene has them."""
     background: Literal["white", "black"] = "white"
     """Colour RGBA inputs are composited on."""
+    blend: Literal["auto", "network", "angle"] = "auto"
+    """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights; `angle`, each
+    point's --angle-sources nearest sources by viewing angle (as `finetune --blend angle`); `auto`, per scene kind
+    as `finetune` (angle on real object captures with masks such as DTU, else network)."""
+    angle_sources: int = 6
+    """Sources per point of the angle blend (0: every source that sees it)."""
 
 
 def default_out(cfg: ExportConfig) -> Path:
@@ -66,7 +73,8 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``). ``mesh``: a
     ``trimesh.Trimesh`` in the input frame handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
 
-    options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, cfg.max_edge)
+    options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, max_edge=cfg.max_edge,
+                            blend="network" if cfg.blend == "auto" else cfg.blend, angle_sources=cfg.angle_sources)
     options.check()
     check_options("export", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if mesh is None and cfg.mesh is not None:
@@ -78,6 +86,8 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     proto = protocol_for(Path(cfg.scene), fmt)
     scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
     views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
+    if cfg.blend == "auto":
+        options.blend = scene_defaults(scene)[0]
     out = default_out(cfg)
     mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
     if mesh is None:

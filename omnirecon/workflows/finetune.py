@@ -56,6 +56,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import layer_box, with_fill
+from omnirecon.mesh.ibr import consensus_weights, scene_defaults
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
 from omnirecon.provenance import provenance
@@ -168,8 +169,10 @@ class FinetuneConfig(ThreadsConfig):
     silhouette; pixels of a view the mesh misses entirely: `far`; held-out mask / whole image before tuning, DTU
     stereo+fill all-view meshes, --nearest 4, far -> nearest: dtu_scan37 network blend 21.03 / 17.95 -> 21.35 / 18.56,
     angle blend 21.53 / 17.84 -> 21.89 / 19.76; dtu_scan24 angle blend 25.20 / 19.55 -> 25.87 / 21.05);
-    `background`, the scene's background colour; `auto`: `background` for scenes that declare their
-    background colour (procedural), else `far`. With `far`, tuning samples the fill's pixels too (they are
+    `background`, the scene's background colour; `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`):
+    `background` for scenes that declare their background colour (procedural: `nearest` paints the sky beside the
+    objects, the demo at --nearest 6 26.00 -> 23.99 dB), `nearest` for real object captures with masks (DTU), else
+    `far`. With `far`, tuning samples the fill's pixels too (they are
     scored: on dtu_scan24 tuning only the mesh's pixels lowered the whole image on validation while raising the
     objects, so the guard (--val-guard) returned the start; sampling them too: held-out objects +0.36 dB, whole
     image +0.10)."""
@@ -191,14 +194,29 @@ class FinetuneConfig(ThreadsConfig):
     (without it a source that sees the ground behind the box painted the box with ground texture), the
     project's stereo+model mesh 21.04 -> 22.53; fern's stereo+model mesh 20.66 -> 20.93; dtu_scan24's 13.92 ->
     13.96 (covered pixels 18.19 -> 18.38)."""
-    blend: Literal["network", "angle"] = "network"
+    blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
     sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
     see it, weighted by angle alone (:func:`omnirecon.mesh.ibr.angle_weights`, the unstructured lumigraph's
     blend). With ``angle`` nothing the blend uses is tuned (the encoder and the appearance branch are unused):
     --seconds only scores. DTU, stereo+fill mesh from all 41 training views, --nearest 4, held-out mask / whole image
     before tuning (``python -m bench depth_sources``), network -> angle: dtu_scan37 21.03 / 17.95 -> 21.53 / 17.84 dB,
-    dtu_scan24 24.70 / 20.15 -> 25.20 / 19.55 (the whole image loses off the objects: ghosts on the table)."""
+    dtu_scan24 24.70 / 20.15 -> 25.20 / 19.55 (the whole image loses off the objects: ghosts on the table). At
+    --nearest 6 (stereo+model mesh), the demo scene's whole image 26.00 -> 26.31 dB (network after 60 CPU-s of
+    tuning: 26.04; the exact mesh 28.26 -> 28.80), fern's stereo+fill mesh 24.12 -> 24.15; DTU at --nearest 6 (mesh
+    with the hull trim keeping seen surface), mask PSNR network / angle / nearest fill / both: dtu_scan37 20.68 /
+    21.39 / 20.89 / 21.57, dtu_scan24 24.54 / 25.26 / 25.00 / 25.65. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`):
+    ``angle`` for real object captures with masks (DTU), else ``network`` (procedural scenes keep the tunable
+    blend; fern's +0.03 dB is within noise)."""
+    angle_sources: tuple[int, ...] = (3, 4, 6, 8)
+    """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
+    the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only
+    choice). DTU at --nearest 6, angle blend + nearest fill, held-out mask PSNR with 6 -> chosen (4 on both; their
+    validation mask scores 3 / 4 / 6 / 8: dtu_scan37 20.57 / 20.70 / 20.58 / 20.42, dtu_scan24 25.21 / 25.54 / 25.40 /
+    25.10): dtu_scan37 21.57 -> 21.72 dB (whole image 19.06 -> 19.68), dtu_scan24 25.65 -> 25.71 (20.58 -> 21.04)."""
+    consensus: float = 0.0
+    """With the angle blend: down-weight each source by how far its colour lies from the blended colour
+    (:func:`omnirecon.mesh.ibr.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -231,36 +249,20 @@ class ViewPixels:
     weights: torch.Tensor | None = None
     """With ``--blend angle``: each point's fixed blend weights (:func:`angle_blend`); ``None``: the network's.
     ``# [P, K]``"""
-
-
-NEAREST_FILL_REACH = 0.15
-"""``--fill nearest`` moves the missed pixels within this fraction of the image's long side of a covered pixel (the
-rest keep the far layer). dtu_scan37, angle blend, nearest 4, held-out mask / whole image: far layer 21.53 / 17.84 dB;
-reach 3 px 21.86 / 18.13, 8 px 21.89 / 18.52, 20 px 21.89 / 19.20, 60 px (0.15) 21.89 / 19.76; every pixel 21.89 / 18.23
-(far background, e.g. the dark table, is better on the far layer)."""
+    occlusion: torch.Tensor | None = None
+    """With ``--blend angle``: the occlusion test's ``visible`` before :func:`angle_blend` narrowed it. ``# [P, K]``"""
+    consensus: float = 0.0
+    """With ``--blend angle``: ``--consensus`` (:func:`omnirecon.mesh.ibr.consensus_weights`; 0: off)."""
 
 
 def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
-    """``--fill nearest``: for the pixels after the first ``covered`` of ``surf`` (those the mesh misses) within
-    :data:`NEAREST_FILL_REACH` of a covered pixel, the point on each one's ray at the z-depth of the nearest covered
-    pixel. Returns the points ``# [P, 3]`` (the others unchanged) and which rows moved ``# [P]`` bool."""
-    from scipy.ndimage import distance_transform_edt
+    """``--fill nearest`` (:func:`omnirecon.mesh.fill.nearest_fill`, the mesh renderer's ``fill="nearest"``): the points
+    ``# [P, 3]`` of ``surf`` with the missed pixels within :data:`~omnirecon.mesh.fill.NEAREST_FILL_REACH` of a covered
+    pixel moved to the nearest covered pixel's z-depth, and which rows moved ``# [P]`` bool."""
+    from omnirecon.mesh.fill import nearest_fill
 
-    points, moved = surf.points.float().clone(), torch.zeros(len(surf.pixels), dtype=torch.bool)
-    if covered == 0 or covered == len(surf.pixels):
-        return points, moved
-    H, W = surf.height, surf.width
-    z = np.zeros(H * W, np.float32)
-    z[surf.pixels[:covered].numpy()] = surf.depth[:covered].float().numpy()
-    dist, (iy, ix) = distance_transform_edt(z.reshape(H, W) <= 0, return_indices=True)
-    near = torch.from_numpy(dist.reshape(-1) <= NEAREST_FILL_REACH * max(H, W))[surf.pixels[covered:]]
-    rows = covered + near.nonzero()[:, 0]
-    holes = surf.pixels[rows]
-    zh = torch.from_numpy(z[(iy * W + ix).reshape(-1)[holes.numpy()]])  # [n]
-    uv = torch.stack([(holes % W).float() + 0.5, (holes // W).float() + 0.5], -1)  # pixel centres
-    points[rows] = cam.to(dtype=torch.float32).unproject(uv[None], zh[None])[0]
-    moved[rows] = True
-    return points, moved
+    filled, moved = nearest_fill(surf, covered, cam)
+    return filled.points, moved
 
 
 def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
@@ -348,7 +350,8 @@ def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = 
         pts = points[s:s + chunk]
         if weights is not None:  # --blend angle: fixed weights over the sources' colours
             rgb = model.gather(features, pts[:, None], view.origin.expand_as(pts)).rgb[:, 0]  # [n, K, 3]
-            out.append((weights[s:s + chunk, :, None].to(rgb) * rgb).sum(1))
+            w = consensus_weights(rgb, weights[s:s + chunk].to(rgb), view.consensus)  # [n, K]
+            out.append((w[:, :, None] * rgb).sum(1))
             continue
         out.append(model.shade(features, pts, view.origin.expand_as(pts), visible_at(view, idx, s, s + chunk))["rgb"])
     return torch.cat(out) if out else view.target.new_zeros(0, 3)
@@ -426,15 +429,19 @@ def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: 
 def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
     """Give every point of each view in ``pixels`` its ``--blend angle`` weights (in place): the ``k`` sources
     (``k`` = 0: all) nearest by viewing angle among those in front of it, inside their image and (with the
-    occlusion test) not occluded; ``visible`` becomes the sources with weight."""
+    occlusion test) not occluded, never the view's own photo; ``visible`` becomes the sources with weight."""
     from omnirecon.mesh.ibr import angle_weights
 
     cams = scene.cameras[sources].to(dtype=torch.float32)
     for v in pixels:
         proj = cams.project(v.points)
         seen = (proj.in_image & (proj.depth > 0)).T  # [P, K]
-        if v.visible is not None:
-            seen &= v.visible
+        if v.occlusion is None and v.visible is not None:
+            v.occlusion = v.visible  # the occlusion test's result, kept: a second call starts from it again
+        if v.occlusion is not None:
+            seen &= v.occlusion
+        if v.index in sources:  # a view never blends its own photo (validation views are sources under --nearest)
+            seen[:, sources.index(v.index)] = False
         v.weights = angle_weights(v.points, v.origin, cams.centers, seen, k or len(sources))
         v.visible = v.weights > 0
 
@@ -496,6 +503,14 @@ class Setup:
     train_px: list[ViewPixels]
     held_px: list[ViewPixels]
     val_px: list[ViewPixels]
+    blend: str = "network"
+    """``--blend``, ``auto`` resolved (:func:`omnirecon.mesh.ibr.scene_blend`)."""
+    fill_mode: str = "far"
+    """``--fill``, ``auto`` resolved: ``far``, ``nearest`` or ``background``."""
+    angle_k: int = 0
+    """With the angle blend: sources per point (``--angle-sources`` or ``--nearest``)."""
+    angle_scores: dict | None = None
+    """With several ``--angle-sources``: the validation score of each."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -538,20 +553,24 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
             mesh_from_model(model, scene, views, MeshOptions()).mesh
     if len(mesh.faces) == 0:
         raise InputError("the mesh is empty", cfg.mesh or cfg.ckpt, "check the mesh (or the model's depth)")
-    fill = cfg.fill in ("far", "nearest") or (cfg.fill == "auto" and scene.background is None)
-    vis, near = views if cfg.visibility else None, cfg.fill == "nearest"
+    auto_blend, auto_fill = scene_defaults(scene)
+    blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
+    fill = fill_mode in ("far", "nearest")
+    vis, near = views if cfg.visibility else None, fill_mode == "nearest"
     train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis, nearest_fill=near) if len(v.points)]
     held_px = rasterize_views(mesh, scene, targets, fill, vis, nearest_fill=near)
     val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
     for px in (train_px, held_px, val_px):
-        if cfg.blend == "angle":
-            angle_blend(px, scene, views, cfg.nearest)
+        if blend == "angle":
+            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
+            for v in px:
+                v.consensus = cfg.consensus
         else:
             restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
-                 fill, scored_by(proto, scene), train_px, held_px, val_px)
+                 fill, scored_by(proto, scene), train_px, held_px, val_px, blend, fill_mode)
 
 
 def scored_by(proto, scene) -> str:
@@ -598,7 +617,7 @@ class Tuner:
         self.s, self.reg, model = s, cfg.reg, s.model
         self.exposure = Exposure(len(s.views))
         modules = {"encoder": model.encoder, "appearance": model.appearance}
-        self.params = [] if cfg.blend == "angle" else [  # the angle blend uses neither network
+        self.params = [] if s.blend == "angle" else [  # the angle blend uses neither network
             p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
@@ -858,13 +877,15 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
-              "reg": cfg.reg, "fill": cfg.fill if cfg.fill == "nearest" else ("far" if s.fill else "background"),
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if cfg.blend != "angle" or t == "exposure"],
+              "reg": cfg.reg, "fill": s.fill_mode,
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t == "exposure"],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
               "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
-              "visibility": cfg.visibility, "blend": cfg.blend,
+              "visibility": cfg.visibility, "blend": s.blend,
+              **({"angle_sources": s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
+                  "angle_scores": s.angle_scores} if s.blend == "angle" else {}),
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
               "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
@@ -873,6 +894,21 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
                               "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
     return result
+
+
+def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, val_obj) -> int:
+    """``--angle-sources`` with several values: the one whose angle blend scores best on the validation views (on
+    what the scene is scored by); every view's weights are then set with it. Returns it."""
+    key = "psnr_masked" if s.scored_by == "objects" and val_obj is not None else "psnr"
+    scores = {}
+    for k in cfg.angle_sources:
+        angle_blend(s.val_px, s.scene, s.views, k)
+        scores[k] = tuner.validate(val_idx, val_obj).get(key, float("nan"))
+    best = max(scores, key=lambda k: (scores[k], -k))
+    for px in (s.train_px, s.held_px, s.val_px):
+        angle_blend(px, s.scene, s.views, best)
+    s.angle_scores = scores
+    return best
 
 
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
@@ -889,6 +925,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     val_obj = None if s.scene.masks is None else [s.scene.masks[v.index].reshape(-1).bool()[v.pixels[i]]
                                                    for v, i in zip(s.val_px, val_idx)]  # validation pixels on the objects
     tuner = Tuner(cfg, s, g)
+    if s.blend == "angle" and len(cfg.angle_sources) > 1 and s.val_px:
+        s.angle_k = choose_angle_sources(cfg, s, tuner, val_idx, val_obj)
 
     def write(t: Tuned, partial: bool = False) -> dict:  # at every evaluation: an interrupted run keeps its curve
         plot_curve(cfg, s, t, out)

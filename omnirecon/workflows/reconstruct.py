@@ -32,6 +32,7 @@ from typing import Literal
 import torch
 import tyro
 
+from omnirecon.cameras import closest_point_to_axes
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint
@@ -43,6 +44,7 @@ from omnirecon.errors import InputError
 from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
+from omnirecon.trajectory import nearest_photo_degrees
 from omnirecon.workflows.export import ExportConfig, run_export
 from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune
 from omnirecon.workflows.inspect import draw_cameras
@@ -142,7 +144,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
                                                                          ("vertices", "depth_maps", "views")},
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
-                       "fps": path["fps"]},
+                       "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"]},
               "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
@@ -209,15 +211,19 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     scene = load_at_resolution(scene_path, side)
     model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
-    cams = scene_camera_path(scene, kind, cfg.frames)
+    cams = scene_camera_path(scene, kind, cfg.frames, arc=None)  # an orbit sweeps only the azimuths photographed
     train = scene.splits.get("train") or list(range(len(scene)))
     picks = [sorted(select_sources(scene, cams[i], train, cfg.num_views)) for i in range(len(cams))]
     video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4")
     write_image(out / "path_first_frame.png", images[0])
     fps = 1.0 / statistics.median(times)
-    lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, mesh path {fps:.1f} FPS "
+    center = closest_point_to_axes(scene.cameras) if scene.rig == "object" else scene.bounds.double().mean(0)
+    away = nearest_photo_degrees(cams.c2w, scene.cameras[train], center)  # [F]: how far frames extrapolate
+    reach = {"median": round(float(away.median()), 1), "max": round(float(away.max()), 1)}
+    lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, {reach['median']:g} "
+                 f"degrees from the nearest photo (median; at most {reach['max']:g}), mesh path {fps:.1f} FPS "
                  f"(median frame, source features encoded once per source set)")
-    return {"scene": scene, "cams": cams, "video": video, "fps": fps}
+    return {"scene": scene, "cams": cams, "video": video, "fps": fps, "kind": kind, "nearest_photo_degrees": reach}
 
 
 def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: list[dict], path: dict, record: dict,

@@ -88,10 +88,10 @@ def default_out(cfg: RenderConfig) -> Path:
 
 
 def scene_camera_path(scene, kind: trajectory.PathKind, frames: int, keyframes: list[int] | None = None,
-                      arc: float = 360.0, rots: float = 2.0) -> Cameras:
+                      arc: float | None = 360.0, rots: float = 2.0) -> Cameras:
     """:func:`omnirecon.trajectory.camera_path` through a :class:`~omnirecon.data.scene.Scene`: an orbit
-    circles the point closest to the optical axes (object rigs) or the bounds centre, a spiral spans the
-    scene's near and far depths."""
+    circles the point closest to the optical axes (object rigs) or the bounds centre (over ``arc`` degrees;
+    ``None``: the arc the photos cover), a spiral spans the scene's near and far depths."""
     cams = scene.cameras
     center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
     return trajectory.camera_path(cams, kind, frames, center, float(scene.near.min()), float(scene.far.max()),
@@ -167,18 +167,20 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
 def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24
                     ) -> tuple[Path, list[np.ndarray], list[float]]:
     """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
-    (:class:`~omnirecon.mesh.ibr.MeshRenderer`; pixels no triangle covers: the scene's known background
-    colour where it has one, as ``finetune --fill auto``, else the far fill, which on the demo's black sky
-    drew ghost copies of the objects; the occlusion test on, as ``finetune --visibility``: without it a source
-    that saw the ground behind an object painted the object's colour onto the ground) and write the video at
-    ``path``.
+    (:class:`~omnirecon.mesh.ibr.MeshRenderer`; the blend and the fill ``finetune --blend auto --fill auto`` scores
+    with (:func:`~omnirecon.mesh.ibr.scene_blend`: pixels no triangle covers take the scene's known background
+    colour where it has one, else the far fill, which on the demo's black sky drew ghost copies of the objects;
+    the angle blend of the 6 nearest sources on object captures); the occlusion test on, as ``finetune
+    --visibility``: without it a source that saw the ground behind an object painted the object's colour onto the
+    ground) and write the video at ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
     ``# [H, W, 3]`` and the seconds of each frame (after one untimed warm-up frame per renderer)."""
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames  # lazy: --help stays fast
+    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames, scene_defaults  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    blend, fill = scene_defaults(scene)
     images, times = [], []
     start = 0
     while start < len(cameras):
@@ -186,8 +188,7 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
         while end < len(cameras) and list(sources[end]) == list(sources[start]):
             end += 1
         with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])),
-                          MeshRenderOptions(background=bg, fill="background" if scene.background is not None
-                                            else "far", visibility=True)) as r:
+                          MeshRenderOptions(background=bg, fill=fill, blend=blend, visibility=True)) as r:
             frames, seconds = render_frames(r, cameras[start:end])
         images += frames
         times += seconds

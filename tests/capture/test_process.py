@@ -341,5 +341,7 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
         assert ".tmp" not in text and str(tmp_path) not in text, (f, re.findall(r'"[^"]*\.tmp[^"]*"', text))
     assert record["scene"] == "scene" and all((out / p).exists() for p in record["export"])
     assert set(record["cpu_seconds"]) == set(record["seconds"]) - {"total"} and record["threads"] == 1
+    reach = record["path"]["nearest_photo_degrees"]  # how far the video's frames are from the photos
+    assert 0 <= reach["median"] <= reach["max"] <= 180 and "from the nearest photo" in page
     assert json.loads((out / "finetune" / "checkpoint" / "meta.json").read_text())["extra"]["finetuned_on"] == "scene"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no lock, no temporary

@@ -33,12 +33,17 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
 
     from bench.depth_sources import scoring
 
-    assert scoring("stereo+fill") == {"nearest": 0}  # rows without `, nearest K`: the 3 fixed sources
-    assert scoring("stereo+fill, sky kept") == {"nearest": 0}
-    assert scoring("stereo+fill, 8 sources") == {"nearest": 0, "num_views": 8}
-    assert scoring("stereo+fill, 8 sources, exposure") == {"nearest": 0, "num_views": 8,
+    base = {"nearest": 0, "blend": "network", "angle_sources": (), "fill": "far"}  # not finetune's per-scene defaults
+    assert scoring("stereo+fill") == base  # rows without `, nearest K`: the 3 fixed sources
+    assert scoring("stereo+fill, sky kept") == base
+    assert scoring("stereo+fill, 8 sources") == {**base, "num_views": 8}
+    assert scoring("stereo+fill, 8 sources, exposure") == {**base, "num_views": 8,
                                                             "tune": ("encoder", "appearance", "exposure")}
-    assert scoring("exact mesh, nearest 6") == {"nearest": 6}
+    assert scoring("exact mesh, nearest 6") == {**base, "nearest": 6}
+    assert scoring("stereo+fill, nearest 6, angle blend, nearest fill, angle auto, consensus 0.1") == {
+        **base, "nearest": 6, "blend": "angle", "fill": "nearest", "angle_sources": (3, 4, 6, 8), "consensus": 0.1}
+    procedural = type("S", (), {"background": (0.0, 0.0, 0.0)})()
+    assert scoring("stereo+model", procedural)["fill"] == "background"
     with pytest.raises(ValueError, match="unknown variant"):
         scoring("stereo+fill, 8 views")
 
@@ -49,8 +54,9 @@ def test_nearest_and_all_views_variants():
     from bench.depth_sources import held_out, scoring
     from omnirecon.engine.protocols import PROTOCOLS
 
-    assert scoring("stereo+fill, nearest 4") == {"nearest": 4}
-    assert scoring("stereo+fill, nearest 4, all views") == {"nearest": 4}
+    base = {"blend": "network", "angle_sources": (), "fill": "far"}
+    assert scoring("stereo+fill, nearest 4") == {**base, "nearest": 4}
+    assert scoring("stereo+fill, nearest 4, all views") == {**base, "nearest": 4}
     scene = type("S", (), {"splits": {}, "path": "dtu", "__len__": lambda self: 49})()
     targets, few = held_out(scene, PROTOCOLS["dtu"])
     _, every = held_out(scene, PROTOCOLS["dtu"], every_view=True)

@@ -155,3 +155,32 @@ def test_the_backdrop_layer_covers_views_between_and_past_the_training_views(for
     ok = (d > 0) & (far > 0)
     rel = np.abs(d[ok] - far[ok]) / far[ok]  # other views' sheets may lie in front where the box's faces meet
     assert ok.mean() > 0.95 and np.quantile(rel, 0.9) < 0.05 and np.median(rel) < 0.005  # corners sit on neighbouring rays
+
+
+def test_the_hull_trim_never_deletes_surface_a_view_sees_and_nothing_else_covers():
+    """``clean.restore_seen``: after a trim that dropped a wall (z = 4), a square in front of it (z = 2) and a quad
+    beside them, the faces camera 0 sees first at its mask's pixels that the kept faces leave uncovered come back
+    (the square, the wall around it), never faces outside the mask (the side quad) nor faces hidden behind kept ones."""
+    from omnirecon.cameras import Cameras, look_at
+    from omnirecon.mesh.clean import restore_seen
+    from tests.mesh.test_mesh_render import quad
+
+    parts = [quad([0, 0, 4], 2.0), quad([0, 0, 2], 0.3), quad([0, 0, 6], 0.5), quad([1.5, 0, 3], 0.1)]
+    mesh = trimesh.Trimesh(np.concatenate([v for v, _ in parts]),
+                           np.concatenate([f + 4 * i for i, (_, f) in enumerate(parts)]), process=False)
+    W = H = 32
+    eye = torch.tensor([[0.0, 0, 0]])
+    c2w = look_at(eye, eye + torch.tensor([0, 0, 1.0]), torch.tensor([0, -1.0, 0]))
+    f = torch.full((1,), 20.0, dtype=torch.float64)
+    cams = Cameras(f, f, f * 0 + W / 2, f * 0 + H / 2, c2w.double(), W, H)
+    masks = np.zeros((1, H, W), dtype=bool)
+    masks[0, 8:24, 8:24] = True  # the wall covers all of it, the square pixels 11-20, the side quad lies at u ~ 26
+    keep = np.array([False] * 4 + [True] * 2 + [False] * 2)  # the trim kept only the small far quad, behind the square
+    restored = restore_seen(mesh, keep, cams, masks)
+    assert restored[:4].all()  # the wall and the square: seen first in the mask, nothing kept covers those pixels
+    assert restored[4:6].all()  # the far quad stays
+    assert not restored[6:].any()  # the side quad: outside the mask
+    keep = np.array([False, False, True, True, True, True, False, False])  # wall dropped, square kept
+    masks[0] = False
+    masks[0, 13:19, 13:19] = True  # inside the square's silhouette only
+    assert restore_seen(mesh, keep, cams, masks).tolist() == keep.tolist()  # the mask is covered: nothing comes back

@@ -122,8 +122,10 @@ def test_fill_leaves_no_background_pixel_where_the_target_has_content(setup, fus
     assert torch.allclose(a["rgb"][a["mask"]], b["rgb"][b["mask"]], atol=1e-6)
 
 
-@pytest.mark.parametrize(("fill", "visibility", "workers"), [("far", False, 1), ("far", True, 2), ("background", True, 2)])
-def test_frame_equals_its_reference_twin(setup, fill, visibility, workers):
+@pytest.mark.parametrize(("fill", "visibility", "workers", "blend"),
+                         [("far", False, 1, "network"), ("far", True, 2, "network"), ("background", True, 2, "network"),
+                          ("nearest", True, 2, "network"), ("nearest", True, 1, "angle"), ("far", False, 2, "angle")])
+def test_frame_equals_its_reference_twin(setup, fill, visibility, workers, blend):
     """``render(extras=False)`` (depth pass, unprojection, fill and image rows inside the chunks) is the image
     of ``render()`` (rasterized world points, ``with_fill``, scatter) up to the float rounding of the
     unprojected points, on a mesh with holes; some of its points are seen by fewer than two sources (the
@@ -132,14 +134,50 @@ def test_frame_equals_its_reference_twin(setup, fill, visibility, workers):
     keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
     half = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
     opts = MeshRenderOptions(background=scene.background, fill=fill, visibility=visibility, workers=workers,
-                             chunk=700, cull_back_faces=False)
+                             chunk=700, cull_back_faces=False, blend=blend, angle_sources=2)
     with MeshRenderer(model, half, sources, opts) as r:
         fast, ref = r.render(target, extras=False)["rgb"], r.render(target)
-        seen = r.weights(target, fill=fill == "far").mask.sum(0)
+        seen = r.weights(target, fill=fill != "background").mask.sum(0)
     assert (seen < 2).any() and (seen >= 2).any()
     diff = (fast - ref["rgb"]).abs().amax(-1)
     assert fast.shape == ref["rgb"].shape and 0.2 < ref["mask"].float().mean() < 0.9
     assert diff.max() < 1e-3 and diff.mean() < 1e-5, (float(diff.max()), float(diff.mean()))
+
+
+@pytest.mark.parametrize(("fill", "consensus"), [("far", 0.0), ("nearest", 0.0), ("nearest", 0.1)])
+def test_real_time_angle_blend_and_nearest_fill_render_what_finetune_scores(setup, fill, consensus):
+    """One implementation: the mesh renderer with ``blend="angle"`` and ``fill="nearest"`` (or ``"far"``), the
+    occlusion test on, gives the colours ``finetune --blend angle --fill nearest`` scores (its rasterized pixels,
+    per-point angle weights over the same sources, the far layer seen by every source) on a mesh with holes; the
+    nearest fill moves pixels next to the mesh onto its depth, so it differs from the far layer there."""
+    from omnirecon.workflows.finetune import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
+
+    scene, mesh, model, sources, target = setup
+    keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
+    half = trimesh.Trimesh(mesh.vertices, mesh.faces[keep], process=False)
+    px = rasterize_views(half, scene, [0], fill=True, sources=SOURCES, nearest_fill=fill == "nearest")
+    angle_blend(px, scene, SOURCES, 3)
+    px[0].consensus = consensus
+    with torch.no_grad():
+        scored = full_image(scene, px[0], render_pixels(model, encode_maps(model, sources), px[0]))
+    opts = MeshRenderOptions(fill=fill, visibility=True, blend="angle", angle_sources=3, cull_back_faces=False,
+                             consensus=consensus)
+    with MeshRenderer(model, half, sources, opts) as r:
+        fast, ref = r.render(target, extras=False)["rgb"], r.render(target)
+    assert 0.2 < ref["mask"].float().mean() < 0.9
+    for img in (fast, ref["rgb"]):
+        diff = (img.float().clamp(0, 1) - scored).abs().amax(-1)
+        assert diff.mean() < 2e-3 and (diff > 0.05).float().mean() < 0.01, (float(diff.mean()), float(diff.max()))
+    if fill == "nearest" and not consensus:
+        with MeshRenderer(model, half, sources, replace_fill(opts, "far")) as r:
+            far = r.render(target, extras=False)["rgb"]
+        assert (far - fast).abs().amax(-1).gt(0.05).float().mean() > 0.01
+
+
+def replace_fill(opts: MeshRenderOptions, fill: str) -> MeshRenderOptions:
+    from dataclasses import replace
+
+    return replace(opts, fill=fill)
 
 
 def quad(center, half: float) -> tuple[np.ndarray, np.ndarray]:

@@ -60,7 +60,7 @@ def exported(tmp_path_factory):
         model = build_model("omnirecon-tiny")
     model.eval()
     viewer = three_unavailable_reason() is None
-    record = export_scene(model, scene, SOURCES, tmp / "out", mesh, options=ExportOptions(viewer=viewer))
+    record = export_scene(model, scene, SOURCES, tmp / "out", mesh, options=ExportOptions(viewer=viewer, angle_sources=3))
     return {"scene": scene, "scene_path": scene_path, "mesh": mesh, "model": model, "out": tmp / "out",
             "record": record, "tmp": tmp}
 
@@ -201,7 +201,7 @@ def test_export_cli(exported, tmp_path, capsys):
 def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     """Headless Chromium (software WebGL2) draws the exported bundle at a fixed held-out camera, given in
     the input frame; the screenshot matches MeshRenderer.render for the same camera (visibility test
-    on and off, the far fill on and off) and the baked mode matches the vertex colours drawn in Python; without the float
+    on and off, the far fill on and off, the network and the angle blend) and the baked mode matches the vertex colours drawn in Python; without the float
     feature texture the viewer falls back to the baked colours by itself."""
     reason = browser_missing()
     require(not reason, str(reason))
@@ -220,6 +220,9 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
             refs[vis] = r.render(cam)["rgb"].numpy()
     with MeshRenderer(model, mm, sources, MeshRenderOptions(background=scene.background, visibility=True)) as r:
         refs["fill"], uncovered = r.render(cam)["rgb"].numpy(), ~r.render(cam)["mask"].numpy()
+    angle = MeshRenderOptions(background=scene.background, visibility=True, blend="angle", angle_sources=3)
+    with MeshRenderer(model, mm, sources, angle) as r:
+        refs["angle_fill"] = r.render(cam)["rgb"].numpy()
     assert uncovered.mean() > 0.2  # the fill shades a good part of the view
     refs["baked"] = baked_reference(out, scene, cam)
     cam_in = cam.to(dtype=torch.float64).transformed(scene.to_input)  # what a user passes: the input frame
@@ -255,6 +258,10 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
             fps = browser.evaluate("omnirecon.benchmark(10)")
             url = server.url + "index.html?" + urllib.parse.urlencode({**query, "vis": "1", "fill": "1"})
             scores["ibr_fill"] = psnr(shot(url, "ibr"), refs["fill"])
+            browser.evaluate("omnirecon.setBlend('angle'), 1")  # the bundle's angle_sources: 3 (export_scene)
+            png = browser.screenshot(None, cam.width, cam.height, redraw="omnirecon.render(), 1")
+            img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float64) / 255
+            scores["ibr_angle_fill"] = psnr(img, refs["angle_fill"])
             url = server.url + "index.html?" + urllib.parse.urlencode({**query, "mode": "baked"})
             scores["baked"] = psnr(shot(url, "baked"), refs["baked"])
             url = broken_server.url + "index.html?" + urllib.parse.urlencode(query)
@@ -267,3 +274,4 @@ def test_browser_viewer_matches_python_renderer(exported, tmp_path):
     assert all(s >= MIN_PSNR for s in scores.values()), scores
     assert psnr(refs[True], refs["baked"]) < min(scores.values())  # the modes differ: each matched its own
     assert psnr(refs[True], refs["fill"]) < min(scores.values())  # and so do fill and background
+    assert psnr(refs["fill"], refs["angle_fill"]) < min(scores.values())  # and the two blends

@@ -343,9 +343,23 @@ def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
     assert torch.allclose(w[1], torch.full((5,), 0.2))
 
 
+def test_consensus_weights_drop_the_source_whose_colour_disagrees():
+    """``consensus_weights``: three sources agree on grey, one sees a white highlight; the highlight's weight falls
+    and the blend moves to grey; sigma 0 leaves the weights; weights that all vanish are kept."""
+    from omnirecon.mesh.ibr import consensus_weights
+
+    rgb = torch.tensor([[[0.5] * 3, [0.52] * 3, [0.48] * 3, [1.0] * 3]])  # [1, 4, 3]
+    w = torch.full((1, 4), 0.25)
+    c = consensus_weights(rgb, w, 0.1)
+    assert torch.allclose(c.sum(1), torch.ones(1)) and c[0, 3] < 0.01 and (c[0, :3] > 0.3).all()
+    assert abs(float((c[..., None] * rgb).sum(1)[0, 0]) - 0.5) < 0.01
+    assert torch.equal(consensus_weights(rgb, w, 0.0), w)
+    assert torch.equal(consensus_weights(rgb, torch.zeros(1, 4), 0.1), torch.zeros(1, 4))
+
+
 def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
-    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), and
-    every point blends only sources with weight."""
+    """``--blend angle``: the held-out views are scored with the angle weights, nothing is tuned (no step), every
+    point blends only sources with weight, and a validation view (a source of the others) never blends itself."""
     root, scene = setup
     out = tmp_path / "angle"
     args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 1,
@@ -354,6 +368,11 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     r = json.loads((out / "curve.json").read_text())
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
+    assert r["validation_views"] and r["curve"][0]["val_psnr"] < 45  # never its own photo (that scored > 60 dB)
+    chosen = tmp_path / "chosen"  # several --angle-sources: the one the validation views score best
+    assert main([str(a) for a in args[:-6] + ["--out", chosen, "--blend", "angle", "--angle-sources", 1, 3]]) == 0
+    c = json.loads((chosen / "curve.json").read_text())
+    assert set(c["angle_scores"]) == {"1", "3"} and c["angle_sources"] == int(max(c["angle_scores"], key=c["angle_scores"].get))
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
@@ -383,3 +402,24 @@ def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
     assert moved[n:].eq(near).all() and torch.allclose(depth[n:][near], torch.tensor(2.0), atol=1e-4)
     assert torch.allclose(moved_pts[n:][~near], pts[n:][~near])
 
+
+def test_blend_and_fill_defaults_per_scene_kind():
+    """``--blend auto --fill auto``: object captures with masks over photographed backgrounds (DTU) get the angle blend
+    and the nearest fill; scenes with a known background colour (procedural, Blender) the network's blend and that
+    colour; forward-facing scenes and object captures without masks the network's blend and the far layer."""
+    from types import SimpleNamespace
+
+    from omnirecon.mesh.ibr import scene_defaults
+
+    g = torch.Generator().manual_seed(0)
+    masks = torch.zeros(2, 8, 8)
+    masks[:, 2:6, 2:6] = 1
+    photo = torch.rand(2, 8, 8, 3, generator=g)
+
+    def scene(rig="object", m=masks, images=photo, background=None):
+        return SimpleNamespace(rig=rig, masks=m, images=images, background=background)
+
+    assert scene_defaults(scene()) == ("angle", "nearest")
+    assert scene_defaults(scene(background=(0.0, 0.0, 0.0))) == ("network", "background")
+    assert scene_defaults(scene(rig="forward")) == ("network", "far")
+    assert scene_defaults(scene(m=None)) == ("network", "far")

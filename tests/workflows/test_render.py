@@ -52,6 +52,25 @@ def test_orbit_circles_at_mean_distance_and_elevation():
     assert torch.allclose(half[-1, :3, 3], cams.centers[3], atol=1e-6)  # a partial arc includes its end
 
 
+
+def test_orbit_sweeps_only_the_arc_the_photos_cover():
+    """arc_degrees=None: cameras on a 90-degree arc (a wall-mounted object) give a path that stays on that arc,
+    there and back, never behind the object; cameras all around give the full orbit unchanged."""
+    ring = hemisphere_cameras(n=24)
+    part = ring[list(range(7))]  # azimuths 0..90 degrees
+    c2w = trajectory.orbit(part, 16, torch.zeros(3, dtype=torch.float64), None)
+    assert_rigid(c2w)
+    az = torch.rad2deg(torch.atan2(c2w[:, 1, 3], c2w[:, 0, 3]))  # the mean up tilts a little toward the arc
+    assert az.min() > -2.0 and az.max() < 92.0 and az.max() > 88.0  # spans the arc, never leaves it
+    assert abs(float(az[0])) < 2.0 and abs(float(az[8]) - 90) < 2.0  # one end, then the other ...
+    assert torch.allclose(c2w[1, :3, 3], c2w[15, :3, 3], atol=1e-6)  # ... and back: the video loops
+    away = trajectory.nearest_photo_degrees(c2w, part, torch.zeros(3, dtype=torch.float64))
+    assert away.max() < 7.6  # within half the 15-degree spacing
+    full = trajectory.nearest_photo_degrees(trajectory.orbit(part, 16, torch.zeros(3, dtype=torch.float64)), part,
+                                            torch.zeros(3, dtype=torch.float64))
+    assert full.max() > 90  # the full orbit goes behind
+    assert torch.allclose(trajectory.orbit(ring, 10, None, None), trajectory.orbit(ring, 10))
+
 def test_spiral_around_mean_pose():
     # Forward-facing grid: parallel cameras looking along +z.
     xy = torch.stack(torch.meshgrid(torch.linspace(-1, 1, 3), torch.linspace(-0.5, 0.5, 3), indexing="ij"), -1)

@@ -8,9 +8,13 @@
 //     logit = MLP([ReLU(f); normalize(p - o) - normalize(p - c_k)]), -1e9 where not seen
 //     colour c_k = bilinear sample of source image k (border clamp)
 //   omega = softmax_k(logit); rgb = sum_k omega_k c_k.
+// With blend=angle (MeshRenderOptions.blend="angle", omnirecon.mesh.ibr.angle_weights): no network; each point's
+//   `sources` seen sources with the smallest angle a_k between normalize(p - c_k) and normalize(p - o) get
+//   (1 - a_k / a_next) / a_k (a_next: the next seen source's angle, infinite when there is none), normalised.
 // Where no triangle covers a pixel, the far fill (omnirecon.mesh.fill, MeshRenderOptions.fill="far"): the
 // point where the pixel-centre ray leaves the scene's bounds box, at most at z-depth `far`, shaded by the
-// same blend (a full-screen pass drawn before the mesh); with fill off or in baked mode, the background colour.
+// same blend without the occlusion test (a full-screen pass drawn before the mesh); with fill off or in baked
+// mode, the background colour. (The Python renderer's fill="nearest" is not drawn here: the far fill instead.)
 // Baked mode draws the exported per-vertex colours instead (also the automatic fallback when float
 // textures or the IBR shader do not work here).
 //
@@ -18,8 +22,8 @@
 // +0.5). A fixed camera comes from the URL (?camera=<JSON>) or window.omnirecon.setCamera(...):
 //   {"fx", "fy", "cx", "cy", "width", "height", "c2w": 4x4 rows, "frame": "input" (default) | "model"}
 // "input" is the frame of mesh.glb (the user's scene); "model" the normalised frame the model works in.
-// Other URL parameters: mode=ibr|baked, vis=0|1, fill=0|1, ui=0|1, scale=<render resolution factor of the
-// interactive view>.
+// Other URL parameters: mode=ibr|baked, vis=0|1, fill=0|1, blend=network|angle, ui=0|1, scale=<render resolution
+// factor of the interactive view>.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -199,11 +203,11 @@ void main() {
   vec3 tmin = min(t1, t2), tmax = max(t1, t2);
   float tIn = max(max(tmin.x, tmin.y), tmin.z), tOut = min(min(tmax.x, tmax.y), tmax.z);
   float z = (tOut > max(tIn, 0.0) && tOut > 0.0) ? min(tOut, uFar) : uFar;
-  fragColor = vec4(shade(o + z * d), 1.0);
+  fragColor = vec4(shade(o + z * d, true), 1.0);
 }` : `
 in vec3 vModel;
 in vec3 vColor;
-void main() { fragColor = vec4(shade(vModel), 1.0); }`;
+void main() { fragColor = vec4(shade(vModel, false), 1.0); }`;
   return `
 precision highp float;
 precision highp int;
@@ -220,6 +224,8 @@ uniform vec2 uImageSize;          // W, H
 uniform vec2 uFeatSize;           // w, h (unpadded)
 uniform int uVisibility;
 uniform float uVisTol;
+uniform int uBlend;               // 0: the appearance network, 1: the angle blend
+uniform int uAngleK;              // the angle blend's sources per point (0: all)
 out vec4 fragColor;
 
 ${mlpSource(bundle.mlp)}
@@ -242,9 +248,30 @@ vec3 sampleImage(int k, vec2 st) {
   return t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y);
 }
 
-vec3 shade(vec3 p) {
+// angle_weights: the blend weights from each source's viewing angle (1e30 = not seen)
+void angleWeights(float ang[K], out float w[K]) {
+  int kk = uAngleK > 0 ? min(uAngleK, K) : K;
+  float aK = 1.0e30, aNext = 1.0e30;  // the kk-th and (kk + 1)-th smallest angles
+  for (int i = 0; i < K; i++) {
+    int rank = 0;
+    for (int j = 0; j < K; j++) rank += (ang[j] < ang[i] || (ang[j] == ang[i] && j < i)) ? 1 : 0;
+    if (rank == kk - 1) aK = ang[i];
+    if (rank == kk) aNext = ang[i];
+  }
+  float total = 0.0;
+  for (int k = 0; k < K; k++) {
+    float a = ang[k];
+    float fall = aNext >= 1.0e29 ? 1.0 : max(1.0 - a / aNext, 0.0);
+    w[k] = (a < 1.0e29 && a <= aK) ? fall / max(a, 1e-3) : 0.0;
+    total += w[k];
+  }
+  for (int k = 0; k < K; k++) w[k] = total > 0.0 ? w[k] / total : 1.0 / float(K);
+}
+
+vec3 shade(vec3 p, bool layer) {
   vec3 u = unit(p - uOrigin);
   float logits[K];
+  float ang[K];
   vec3 colours[K];
   float top = -3.0e38;
   for (int k = 0; k < K; k++) {
@@ -253,14 +280,15 @@ vec3 shade(vec3 p) {
     vec2 uv = uvz.xy / max(z, 1e-6);
     vec2 st = uv / uImageSize;
     bool seen = z > 1e-6 && uv.x >= 0.0 && uv.y >= 0.0 && uv.x < uImageSize.x && uv.y < uImageSize.y;
-    if (seen && uVisibility != 0) {
+    if (seen && uVisibility != 0 && !layer) {
       int b = int(clamp(floor(uv.x - 0.5), -1.0, uImageSize.x - 1.0)) + 1;
       int a = int(clamp(floor(uv.y - 0.5), -1.0, uImageSize.y - 1.0)) + 1;
       seen = z <= texelFetch(uDepth, ivec3(b, a, k), 0).r * (1.0 + uVisTol);
     }
     colours[k] = sampleImage(k, st);
+    ang[k] = seen ? acos(clamp(dot(u, unit(p - uCenter[k])), -1.0, 1.0)) : 1.0e30;
     float l = -1.0e9;
-    if (seen) {
+    if (seen && uBlend == 0) {
       vec2 xy = st * uFeatSize + 0.5;  // texel-centre coordinates in the padded map
       vec2 c = floor(xy);
       vec2 f = xy - c;
@@ -281,8 +309,14 @@ vec3 shade(vec3 p) {
     logits[k] = l;
     top = max(top, l);
   }
-  float total = 0.0;
   vec3 rgb = vec3(0.0);
+  if (uBlend == 1) {
+    float w[K];
+    angleWeights(ang, w);
+    for (int k = 0; k < K; k++) rgb += w[k] * colours[k];
+    return rgb;
+  }
+  float total = 0.0;
   for (int k = 0; k < K; k++) {
     float e = exp(logits[k] - top);
     total += e;
@@ -323,6 +357,7 @@ class Viewer {
     this.mode = 'ibr';
     this.visibility = !!bundle.visibility.default;
     this.fill = !!(bundle.fill && bundle.fill.default);
+    this.blend = bundle.blend && bundle.blend.default === 'angle' ? 'angle' : 'network';
     this.fallbackReason = null;
 
     const fixed = params.has('camera');
@@ -388,6 +423,7 @@ class Viewer {
         uProj: { value: proj }, uCenter: { value: centers }, uOrigin: { value: new THREE.Vector3() },
         uImageSize: { value: new THREE.Vector2(W, H) }, uFeatSize: { value: new THREE.Vector2(f[3] - 2, f[2] - 2) },
         uVisibility: { value: this.visibility ? 1 : 0 }, uVisTol: { value: b.visibility.tol },
+        uBlend: { value: this.blend === 'angle' ? 1 : 0 }, uAngleK: { value: b.blend ? b.blend.sources : 0 },
       },
     });
     if (b.fill) { // the far fill: a full-screen triangle drawn first, the mesh over it
@@ -520,6 +556,15 @@ class Viewer {
     return this.render();
   }
 
+  setBlend(blend) {
+    if (blend !== 'network' && blend !== 'angle') throw new Error(`blend must be network or angle, got ${blend}`);
+    this.blend = blend;
+    for (const m of [this.ibrMaterial, this.fillMesh && this.fillMesh.material]) {
+      if (m && m.uniforms.uBlend) m.uniforms.uBlend.value = blend === 'angle' ? 1 : 0;
+    }
+    return this.render();
+  }
+
   setFill(on) {
     this.fill = !!on;
     this.syncUI();
@@ -550,7 +595,7 @@ class Viewer {
     }
     this.renderer.render(this.scene, this.dummyCamera);
     this.frames = (this.frames || 0) + 1;
-    return { mode: useIBR ? 'ibr' : 'baked', fill: !!(useIBR && this.fillMesh && this.fill), width: this.canvas.width,
+    return { mode: useIBR ? 'ibr' : 'baked', fill: !!(useIBR && this.fillMesh && this.fill), blend: this.blend, width: this.canvas.width,
       height: this.canvas.height };
   }
 
@@ -640,6 +685,7 @@ async function main() {
     setMode: (m) => viewer.setMode(m),
     setVisibility: (v) => viewer.setVisibility(v),
     setFill: (f) => viewer.setFill(f),
+    setBlend: (b) => viewer.setBlend(b),
     render: () => viewer.render(),
     benchmark: (n) => viewer.benchmark(n),
   };
@@ -647,6 +693,7 @@ async function main() {
   if (params.get('mode') === 'baked') viewer.mode = 'baked';
   if (params.has('vis')) viewer.visibility = params.get('vis') !== '0';
   if (params.has('fill')) viewer.fill = params.get('fill') !== '0';
+  if (params.has('blend')) viewer.blend = params.get('blend') === 'angle' ? 'angle' : 'network';
   try {
     const t = bundle.textures;
     const [images, features, depth] = await Promise.all([t.images.file, t.features.file, t.depth.file]
