@@ -113,7 +113,8 @@ class FinetuneConfig(ThreadsConfig):
     tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
-    from the tuning views' mesh pixels). With each pixel's nearest sources (the --nearest default) there is little
+    from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
+    --val-margin; the record's ``before`` is the input's held-out score). With each pixel's nearest sources (the --nearest default) there is little
     left to tune, and tuning the appearance branch alone at 3e-3 raised validation while lowering held-out views:
     held-out whole image before -> after 60 CPU-s at --nearest 6, appearance at 3e-3 -> encoder + appearance at
     5e-4: demo scene (`python -m bench depth_sources`' stereo+model mesh) 25.64 -> 25.18 against 25.64 -> 25.68;
@@ -636,6 +637,13 @@ class Tuner:
                 self.frozen = self.features()
         self.autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
 
+    def set_gains(self, gain: torch.Tensor) -> None:
+        """Load exposure gains ``# [K, 1, 1, 3]`` (re-encoding the frozen features that mix them)."""
+        with torch.no_grad():
+            self.exposure.gain.copy_(gain)
+            if self.frozen is not None:
+                self.frozen = self.features()
+
     def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
         return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources))
 
@@ -783,6 +791,14 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
     checks = sorted(set(eval_at) | ({float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)}
                                     if tuner.opt is not None else set()))  # nothing tuned: nothing to validate
     curve, validation, before, step, start_val = [], [], None, 0, None
+    if "exposure" in cfg.tune and s.val_px:  # the estimated gains compete with the input (no gains) on validation
+        gains = tuner.exposure.gain.detach().clone()
+        tuner.set_gains(torch.ones_like(gains))
+        start_val, before = tuner.validate(val_idx, val_obj), tuner.test_scores()  # the input: what tuning must beat
+        tuner.set_gains(gains)
+        gain, guarded = validation_gain(tuner.validate(val_idx, val_obj), start_val, s.scored_by, cfg.val_guard)
+        if not (gain >= cfg.val_margin and guarded):
+            tuner.set_gains(torch.ones_like(gains))
     best_state, best_val, best_gain, best_at = tuner.state(), {}, -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
@@ -888,7 +904,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
                   "angle_scores": s.angle_scores} if s.blend == "angle" else {}),
               "returned_from": {"seconds": t.best_at[0], "steps": t.best_at[1], "val_psnr": t.best_val["psnr"],
                                 "val_gain": t.best_gain},
-              "gain_db": t.curve[-1]["psnr"] - t.curve[0]["psnr"],
+              "gain_db": t.curve[-1]["psnr"] - t.before["psnr"],
+              "before": {k: t.before[k] for k in ("psnr", "psnr_masked", "psnr_covered") if k in t.before},
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
     if "exposure" in cfg.tune:
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),

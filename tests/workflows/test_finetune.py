@@ -133,6 +133,43 @@ def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path,
     assert abs(r["curve"][0]["psnr"] - json.loads((original / "curve.json").read_text())["curve"][0]["psnr"]) < 0.15
 
 
+@pytest.mark.parametrize("darken", [True, False])
+def test_exposure_gains_are_kept_only_when_they_beat_the_input_on_validation(setup, tmp_path, capsys, darken):
+    """The estimated gains compete with the input (no gains) on the validation views: a source darkened to 60 %
+    keeps its correction; on the unchanged scene gains are kept only with a validation gain over the input."""
+    import shutil
+
+    import numpy as np
+
+    from omnirecon.data import load_scene
+    from omnirecon.data.io import read_image, write_image
+    from omnirecon.engine.views import default_views
+
+    root, scene = setup
+    dark = tmp_path / "scene"
+    shutil.copytree(scene, dark)
+    if darken:
+        s = load_scene(dark)
+        path = dark / s.names[default_views(s, 3)[1]]
+        img = read_image(path)
+        img[..., :3] = img[..., :3] * 0.6
+        write_image(path, img)
+    out = tmp_path / "out"
+    args = ["finetune", "--ckpt", root / "omni", "--scene", dark, "--mesh", dark / "mesh.ply", "--clock", "cpu",
+            "--resolution", 48, "--seconds", 1, "--eval-at", 0, "--tune", "exposure", "--val-views", 2,
+            "--nearest", 0, "--out", out]
+    assert main([str(a) for a in args]) == 0, capsys.readouterr().err
+    r = json.loads((out / "curve.json").read_text())
+    gain = np.array(r["exposure"]["gain"]).mean(1)  # [K]
+    kept = not np.allclose(gain, 1.0)
+    assert not kept or r["validation"][0]["gain"] >= r["val_margin"], (gain, r["validation"][0])
+    if darken:  # the correction is kept and what it gained over the input is counted
+        assert kept and abs(gain[1] - 1 / 0.6) < 0.12, gain
+        assert r["curve"][0]["psnr"] > r["before"]["psnr"] + 0.1, (r["curve"][0]["psnr"], r["before"])
+    else:
+        assert r["curve"][0]["psnr"] == pytest.approx(r["before"]["psnr"], abs=0.3) or kept
+
+
 def test_bf16_appearance_only_with_object_pixels_runs_and_never_ends_below_the_start(setup, tmp_path, capsys):
     """The cheap levers together: bf16 steps, the encoder frozen (encoded once), every pixel on the objects."""
     root, scene = setup
