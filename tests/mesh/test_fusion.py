@@ -212,7 +212,7 @@ def test_free_space_votes_flag_depth_in_front_of_a_surface_other_maps_see_past()
     """Nine cameras over a wall at z = 3: a patch of the centre map read 20 % too near floats in front of the
     wall, and the other maps' rays pass through it to the wall (free-space votes); a patch read 30 % too far
     and the exact pixels get none (the far patch gets occlusion votes instead). The pipeline's check drops the
-    near patch only when asked (object captures without masks)."""
+    near patch only when asked (``free_space`` > 0, object captures without masks)."""
     cams = plane_rig()
     depth = torch.full((9, 48, 48), 3.0)
     near, far = (slice(20, 28), slice(20, 28)), (slice(5, 12), slice(5, 12))
@@ -226,7 +226,8 @@ def test_free_space_votes_flag_depth_in_front_of_a_surface_other_maps_see_past()
     assert (torch.cat([votes[:4], votes[5:]]) >= 2).float().mean() < 0.02
     assert (fusion.occlusion_votes(cams, depth)[4][near] == 0).all()
     agree = fusion.consistency(cams, depth, rel=0.01)
-    d, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2), free_space=True)
+    d, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2, free_space=2),
+                               free_space=True)
     assert (d[4][near] == 0).all() and (d[4][far] == 0).all() and (d[4][rest] > 0).float().mean() > 0.98
     d, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2))
     assert (d[4][near] > 0).all()
