@@ -17,7 +17,8 @@ set (:class:`omnirecon.mesh.build.MeshOptions`):
 * **Only near surfaces** (:func:`surface_band`): the grid is split into blocks of 4^3 voxels and only
   the blocks within the truncation of some depth sample are integrated, so
   the cost follows the surface area, not the volume of the bounds.
-* **Visibility violations** (:func:`occlusion_votes`): depth behind a surface other maps see is too far.
+* **Visibility violations** (:func:`occlusion_votes`): depth behind a surface other maps see is too far;
+  (:func:`free_space_votes`) depth in front of a surface other maps see past is too near.
 
 Size: the TSDF and the checks between depth maps that set its weights share the projection helpers.
 """
@@ -359,6 +360,44 @@ def occlusion_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = N
                 flat = (r0 + dr).clamp(0, H - 1) * W + (c0 + dc).clamp(0, W - 1)
                 front.scatter_reduce_(0, flat, z, reduce="amin")
             votes[i] += ((di > 0) & (front < di * (1 - rel))).float()
+    return votes.reshape(N, H, W)
+
+
+def free_space_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = None, rel: float = 0.03,
+                     max_pairs: int = 8, reach: int = 2) -> Tensor:
+    """How many other maps see past each pixel's point (a free-space violation, the mirror of
+    :func:`occlusion_votes`).
+
+    Each pixel of map ``i`` with depth is unprojected and projected into map ``j``; ``j`` votes against it when
+    the ``2 reach x 2 reach`` pixels of ``j`` around the projection all hold (``trusted``) depth farther than the
+    point by more than ``rel`` (relative; a wider ``reach`` spares points beside ``j``'s outlines): ``j``'s rays
+    pass through the point, so it floats in space ``j`` saw empty (stereo giving the ground beside an object's
+    base the object's depth). Each map against its ``max_pairs`` nearest maps. ``# [N, H, W]`` float32
+    """
+    cams = cameras.to(dtype=torch.float64)
+    N, H, W = depths.shape
+    d = depths.double()
+    pix = _pixels(H, W)
+    ok = d > 0 if trusted is None else (d > 0) & trusted
+    around = [(a, b) for a in range(1 - reach, reach + 1) for b in range(1 - reach, reach + 1)]
+    votes = torch.zeros(N, H * W)
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
+        di = d[i].reshape(-1)
+        has = di > 0
+        if not has.any():
+            continue
+        idx = torch.nonzero(has)[:, 0]
+        X = cams[i].unproject(pix[has][None], di[has][None])[0]  # [P, 3] world
+        for j in near:
+            pj = cams[j].project(X)
+            uv, z = pj.uv[0], pj.depth[0]  # [P, 2], [P]
+            c0, r0 = torch.floor(uv[:, 0] - 0.5).long(), torch.floor(uv[:, 1] - 0.5).long()
+            inside = pj.in_image[0] & (c0 >= reach - 1) & (r0 >= reach - 1) & (c0 < W - reach) & (r0 < H - reach)
+            dj = torch.where(ok[j], d[j], torch.zeros_like(d[j])).reshape(-1)  # untrusted: sees nothing past
+            least = torch.full_like(z, float("inf"))
+            for dr, dc in around:
+                least = torch.minimum(least, dj[(r0 + dr).clamp(0, H - 1) * W + (c0 + dc).clamp(0, W - 1)])
+            votes[i, idx] += (inside & (z > 0) & (least > z * (1 + rel))).float()
     return votes.reshape(N, H, W)
 
 

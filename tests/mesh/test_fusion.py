@@ -9,6 +9,7 @@ import torch
 import trimesh
 from conftest import ROOT
 
+from omnirecon.cameras import Cameras
 from omnirecon.cli import main
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
@@ -197,6 +198,45 @@ def test_occlusion_votes_flag_depth_behind_a_surface_other_maps_see():
     d, w, a, frac = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2))
     assert (d[0][far] == 0).float().mean() > 0.9 and (w[0][far] == 0).float().mean() > 0.9
     assert (d[0][near] > 0).all() and 0 < frac < 0.03  # the patch, and some grazing pixels at the outline
+
+
+def plane_rig(n: int = 3, res: int = 48, f: float = 60.0, step: float = 0.3) -> Cameras:
+    """``n x n`` cameras ``step`` apart on the plane z = 0, all looking down +z (OpenCV axes)."""
+    c2w = torch.eye(4, dtype=torch.float64).repeat(n * n, 1, 1)
+    grid = torch.meshgrid(torch.arange(n) - n // 2, torch.arange(n) - n // 2, indexing="ij")
+    c2w[:, :2, 3] = step * torch.stack(grid, -1).reshape(-1, 2).double()
+    return Cameras(torch.full((n * n,), f), torch.full((n * n,), f), res / 2, res / 2, c2w, res, res)
+
+
+def test_free_space_votes_flag_depth_in_front_of_a_surface_other_maps_see_past():
+    """Nine cameras over a wall at z = 3: a patch of the centre map read 20 % too near floats in front of the
+    wall, and the other maps' rays pass through it to the wall (free-space votes); a patch read 30 % too far
+    and the exact pixels get none (the far patch gets occlusion votes instead). The pipeline's check drops the
+    near patch only when asked (``free_space`` > 0, object captures without masks)."""
+    cams = plane_rig()
+    depth = torch.full((9, 48, 48), 3.0)
+    near, far = (slice(20, 28), slice(20, 28)), (slice(5, 12), slice(5, 12))
+    depth[4][near] *= 0.8
+    depth[4][far] *= 1.3
+    votes = fusion.free_space_votes(cams, depth)
+    rest = torch.ones(48, 48, dtype=torch.bool)
+    rest[near] = rest[far] = False
+    assert (votes[4][near] >= 2).all(), votes[4][near]
+    assert (votes[4][far] == 0).all() and (votes[4][rest] >= 2).float().mean() < 0.02
+    assert (torch.cat([votes[:4], votes[5:]]) >= 2).float().mean() < 0.02
+    assert (fusion.occlusion_votes(cams, depth)[4][near] == 0).all()
+    agree = fusion.consistency(cams, depth, rel=0.01)
+    d, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2, free_space=2),
+                               free_space=True)
+    assert (d[4][near] == 0).all() and (d[4][far] == 0).all() and (d[4][rest] > 0).float().mean() > 0.98
+    d, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2))
+    assert (d[4][near] > 0).all()
+
+
+def test_bad_free_space_options_are_refused():
+    for kw in ({"free_space": 9}, {"free_space": -1}, {"free_space_rel": 0.0}, {"free_space_rel": float("inf")}):
+        with pytest.raises(InputError, match="free_space"):
+            MeshOptions(**kw).check()
 
 
 def test_bad_occlusion_options_are_refused():
