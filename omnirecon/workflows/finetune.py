@@ -783,6 +783,22 @@ def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, b
             **{k: r[k] for k in ("psnr_masked", "psnr_covered", "coverage", "coverage_masked") if k in r}}
 
 
+def settle_exposure(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, val_obj) -> tuple[dict | None, dict | None]:
+    """With ``--tune exposure`` and validation views, the estimated gains compete with the input (no gains): kept
+    only when they gain ``--val-margin`` on validation. Returns the input's (validation, held-out scores), what
+    tuning must beat, or ``(None, None)`` (then the first check's state is the start)."""
+    if "exposure" not in cfg.tune or not s.val_px:
+        return None, None
+    gains = tuner.exposure.gain.detach().clone()
+    tuner.set_gains(torch.ones_like(gains))
+    start_val, before = tuner.validate(val_idx, val_obj), tuner.test_scores()
+    tuner.set_gains(gains)
+    gain, guarded = validation_gain(tuner.validate(val_idx, val_obj), start_val, s.scored_by, cfg.val_guard)
+    if not (gain >= cfg.val_margin and guarded):
+        tuner.set_gains(torch.ones_like(gains))
+    return start_val, before
+
+
 def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_idx: list[torch.Tensor],
          val_obj: list[torch.Tensor] | None = None, on_eval=None) -> Tuned:
     """Tune for ``cfg.seconds``, validating every ``--val-every`` and scoring the held-out views at every
@@ -793,15 +809,8 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
     eval_at = sorted({float(t) for t in cfg.eval_at if 0 <= t < cfg.seconds} | {0.0, float(cfg.seconds)})
     checks = sorted(set(eval_at) | ({float(t) for t in np.arange(0.0, cfg.seconds, cfg.val_every)}
                                     if tuner.opt is not None else set()))  # nothing tuned: nothing to validate
-    curve, validation, before, step, start_val = [], [], None, 0, None
-    if "exposure" in cfg.tune and s.val_px:  # the estimated gains compete with the input (no gains) on validation
-        gains = tuner.exposure.gain.detach().clone()
-        tuner.set_gains(torch.ones_like(gains))
-        start_val, before = tuner.validate(val_idx, val_obj), tuner.test_scores()  # the input: what tuning must beat
-        tuner.set_gains(gains)
-        gain, guarded = validation_gain(tuner.validate(val_idx, val_obj), start_val, s.scored_by, cfg.val_guard)
-        if not (gain >= cfg.val_margin and guarded):
-            tuner.set_gains(torch.ones_like(gains))
+    curve, validation, step = [], [], 0
+    start_val, before = settle_exposure(cfg, s, tuner, val_idx, val_obj)
     best_state, best_val, best_gain, best_at = tuner.state(), {}, -float("inf"), (0.0, 0)
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),

@@ -19,13 +19,16 @@ def test_section_splits_each_gap_and_lists_timing(tmp_path):
         {"scene": "demo", "source": "stereo+fill", "psnr": {"before": 19.0, "after": 19.5}, "coverage": 0.6},
         {"scene": "fern", "source": "stereo", "timing": True, "photos": 20, "resolution": [336, 252],
          "cpu_seconds": {"images_to_mesh": 43.8}, "load_average": [3.0, 3.0, 3.0]},
+        {"scene": "fern", "source": "stereo", "timing": True, "photos": 20, "resolution": [336, 252], "threads": 2,
+         "cpu_seconds": {"images_to_mesh": 61.2}, "wall_seconds": 41.5, "load_average": [1.0, 1.0, 1.0]},
     ]
     (tmp_path / "depth_sources.json").write_text(json.dumps({"provenance": prov, "tuning_seconds": 60, "rows": rows}))
     text = section(tmp_path)
     assert "short by 3.00 dB" in text  # fern: 24 - 21
     assert "uncovered 2.0% cost 1.00 dB" in text
     assert "cost 0.50 dB" in text and "depth costs 2.50 dB" in text  # demo: exact - oracle, oracle - best
-    assert "| fern | 20 | 336x252 | stereo | 43.8 | 3.0 |" in text
+    assert "| fern | 20 | 336x252 | stereo | 1 | 43.8 | – | 3.0 |" in text  # an older row: no threads, no wall
+    assert "| fern | 20 | 336x252 | stereo | 2 | 61.2 | 41.5 | 1.0 |" in text
 
 
 def test_row_variants_set_the_scoring_and_unknown_ones_fail():
