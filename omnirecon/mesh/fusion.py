@@ -289,6 +289,17 @@ def _near_maps(cams: Cameras, k: int) -> list[list[int]]:
     return nearest_views(cams, cams, k, exclude=torch.arange(n)).tolist()
 
 
+def _map_points(cams: Cameras, d: Tensor, pix: Tensor, max_pairs: int):
+    """For each map ``i`` with depth: ``(i, its nearest maps, flat indices of its pixels with depth # [P],
+    those pixels unprojected to world points # [P, 3])``; ``d # [N, H, W]`` float64, ``pix`` from :func:`_pixels`."""
+    for i, near in enumerate(_near_maps(cams, max_pairs)):
+        di = d[i].reshape(-1)
+        has = di > 0
+        if not has.any():
+            continue
+        yield i, near, torch.nonzero(has)[:, 0], cams[i].unproject(pix[has][None], di[has][None])[0]
+
+
 def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float = 1.0, max_pairs: int = 8) -> Tensor:
     """Forward-backward reprojection agreement between depth maps (MVS fusion's geometric check).
 
@@ -305,21 +316,16 @@ def consistency(cameras: Cameras, depths: Tensor, rel: float = 0.01, px: float =
     d = depths.double()
     pix = _pixels(H, W)
     agree = torch.zeros(N, H * W)
-    for i, near in enumerate(_near_maps(cams, max_pairs)):
-        di = d[i].reshape(-1)
-        has = di > 0
-        if not has.any():
-            continue
-        idx = torch.nonzero(has)[:, 0]
-        Xi = cams[i].unproject(pix[has][None], di[has][None])[0]  # [P, 3] world
+    for i, near, idx, Xi in _map_points(cams, d, pix, max_pairs):  # Xi: [P, 3] world
         for j in near:
             pj = cams[j].project(Xi)
             uvj = pj.uv[0]  # [P, 2]
             dj = sample_depth(d[j], uvj[:, 0], uvj[:, 1], rel * float(pj.depth[0].median()))
             ok = pj.in_image[0] & (dj > 0)
             back = cams[i].project(cams[j].unproject(uvj[None], dj[None])[0])
-            err = (back.uv[0] - pix[has]).norm(dim=-1)
-            drel = (back.depth[0] - di[has]).abs() / di[has]
+            err = (back.uv[0] - pix[idx]).norm(dim=-1)
+            di = d[i].reshape(-1)[idx]  # [P]
+            drel = (back.depth[0] - di).abs() / di
             agree[i, idx] += (ok & back.in_front[0] & (err <= px) & (drel <= rel)).float()
     return agree.reshape(N, H, W)
 
@@ -381,13 +387,7 @@ def free_space_votes(cameras: Cameras, depths: Tensor, trusted: Tensor | None = 
     ok = d > 0 if trusted is None else (d > 0) & trusted
     around = [(a, b) for a in range(1 - reach, reach + 1) for b in range(1 - reach, reach + 1)]
     votes = torch.zeros(N, H * W)
-    for i, near in enumerate(_near_maps(cams, max_pairs)):
-        di = d[i].reshape(-1)
-        has = di > 0
-        if not has.any():
-            continue
-        idx = torch.nonzero(has)[:, 0]
-        X = cams[i].unproject(pix[has][None], di[has][None])[0]  # [P, 3] world
+    for i, near, idx, X in _map_points(cams, d, pix, max_pairs):  # X: [P, 3] world
         for j in near:
             pj = cams[j].project(X)
             uv, z = pj.uv[0], pj.depth[0]  # [P, 2], [P]

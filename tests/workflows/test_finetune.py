@@ -98,26 +98,32 @@ def test_tuning_a_wrong_mesh_returns_a_state_no_worse_than_the_start(setup, caps
     assert np.isfinite(r2["curve"][0]["psnr"])
 
 
-def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path, capsys):
-    """One source photo darkened to 60 %: the per-source exposure gains bring it back (about 1 / 0.6,
-    the others about 1), and the held-out views then render as from the photos before the change."""
+def copy_with_a_dark_source(scene, dest, factor: float = 0.6):
+    """A copy of ``scene`` at ``dest`` whose second fixed source (``default_views(scene, 3)[1]``) has its colours
+    scaled by ``factor`` (1: an unchanged copy)."""
     import shutil
-
-    import numpy as np
 
     from omnirecon.data import load_scene
     from omnirecon.data.io import read_image, write_image
     from omnirecon.engine.views import default_views
 
+    shutil.copytree(scene, dest)
+    if factor != 1.0:
+        s = load_scene(dest)
+        path = dest / s.names[default_views(s, 3)[1]]
+        img = read_image(path)
+        img[..., :3] = img[..., :3] * factor
+        write_image(path, img)
+    return dest
+
+
+def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path, capsys):
+    """One source photo darkened to 60 %: the per-source exposure gains bring it back (about 1 / 0.6,
+    the others about 1), and the held-out views then render as from the photos before the change."""
+    import numpy as np
+
     root, scene = setup
-    dark = tmp_path / "scene"
-    shutil.copytree(scene, dark)
-    s = load_scene(dark)
-    views = default_views(s, 3)
-    path = dark / s.names[views[1]]
-    img = read_image(path)
-    img[..., :3] = img[..., :3] * 0.6
-    write_image(path, img)
+    dark = copy_with_a_dark_source(scene, tmp_path / "scene")
     out = tmp_path / "out"
     args = ["finetune", "--ckpt", root / "omni", "--scene", dark, "--mesh", dark / "mesh.ply", "--clock", "cpu",
             "--resolution", 48, "--seconds", 1, "--eval-at", 0, "--tune", "exposure", "--val-views", 0,
@@ -137,23 +143,10 @@ def test_per_view_exposure_recovers_a_synthetic_exposure_change(setup, tmp_path,
 def test_exposure_gains_are_kept_only_when_they_beat_the_input_on_validation(setup, tmp_path, capsys, darken):
     """The estimated gains compete with the input (no gains) on the validation views: a source darkened to 60 %
     keeps its correction; on the unchanged scene gains are kept only with a validation gain over the input."""
-    import shutil
-
     import numpy as np
 
-    from omnirecon.data import load_scene
-    from omnirecon.data.io import read_image, write_image
-    from omnirecon.engine.views import default_views
-
     root, scene = setup
-    dark = tmp_path / "scene"
-    shutil.copytree(scene, dark)
-    if darken:
-        s = load_scene(dark)
-        path = dark / s.names[default_views(s, 3)[1]]
-        img = read_image(path)
-        img[..., :3] = img[..., :3] * 0.6
-        write_image(path, img)
+    dark = copy_with_a_dark_source(scene, tmp_path / "scene", 0.6 if darken else 1.0)
     out = tmp_path / "out"
     args = ["finetune", "--ckpt", root / "omni", "--scene", dark, "--mesh", dark / "mesh.ply", "--clock", "cpu",
             "--resolution", 48, "--seconds", 1, "--eval-at", 0, "--tune", "exposure", "--val-views", 2,
