@@ -34,6 +34,8 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   on the validation views).
 * ``<source>, consensus S``: with the angle blend, ``finetune --consensus S`` (sources whose colour disagrees with
   the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
+* ``<source>, no source masks``: with the angle blend, ``finetune --no-source-masks`` (each source weighted by angle
+  alone, not also by :func:`omnirecon.mesh.ibr.mask_falloff` at its pixel; the default before session 16).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -187,7 +189,7 @@ def scoring(source: str, scene=None) -> dict:
     blend`` / ``, nearest fill`` the network's blend and the far layer (the scene's background colour where it is
     known), whatever finetune's per-scene defaults (``omnirecon.mesh.ibr.scene_blend``); the angle blend's sources
     per point are --nearest's count unless ``, angle auto``."""
-    out = {"nearest": 0, "blend": "network", "angle_sources": (),
+    out = {"nearest": 0, "blend": "network", "angle_sources": (), "source_masks": True,
            "fill": "background" if scene is not None and scene.background is not None else "far"}
     for part in source.split(", ")[1:]:
         if part.endswith(" sources"):
@@ -204,6 +206,8 @@ def scoring(source: str, scene=None) -> dict:
             out["angle_sources"] = (3, 4, 6, 8)
         elif part.startswith("consensus "):
             out["consensus"] = float(part.split()[1])
+        elif part == "no source masks":
+            out["source_masks"] = False
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out

@@ -28,10 +28,15 @@ class Sources:
     """``"forward"`` (forward-facing: models may sample in inverse depth), ``"object"`` or ``"unknown"``."""
     bounds: Tensor | None = None
     """Axis-aligned box holding the content, ``[min, max]`` (Omni-Recon's feature volume). ``# [2, 3]``"""
+    masks: Tensor | None = None
+    """Object masks of the sources (True: the object; object captures such as DTU), ``None`` when the scene has
+    none. The mesh path's angle blend down-weights a source whose pixel lies off its object
+    (:func:`omnirecon.mesh.ibr.mask_falloff`). ``# [V, H, W]`` bool"""
 
     def to(self, device) -> Sources:
         bounds = None if self.bounds is None else self.bounds.to(device)
-        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig, bounds)
+        masks = None if self.masks is None else self.masks.to(device)
+        return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig, bounds, masks)
 
     @staticmethod
     def from_scene(scene, indices) -> Sources:
@@ -40,7 +45,8 @@ class Sources:
         idx = torch.as_tensor(list(indices), dtype=torch.long)
         return Sources(scene.images[idx], scene.cameras[idx].to(dtype=scene.images.dtype),
                        float(scene.near.min()), float(scene.far.max()), scene.rig,
-                       scene.bounds.to(dtype=scene.images.dtype))
+                       scene.bounds.to(dtype=scene.images.dtype),
+                       None if scene.masks is None else scene.masks[idx].bool())
 
 
 @dataclass

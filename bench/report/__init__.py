@@ -27,6 +27,7 @@ from bench.report import (
     peer,
     poses,
     quality,
+    realtime_blend,
     reliability,
     speed,
     synth,
@@ -38,8 +39,8 @@ from bench.report import (
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
-            mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer, levers,
-            end_to_end, training, quality, geometry,
+            realtime_blend, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer,
+            levers, end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"

@@ -25,7 +25,8 @@ layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``ma
 **Blend** (``MeshRenderOptions.blend``): ``"network"``, the appearance branch's weights (the paper);
 ``"angle"``, each point's ``angle_sources`` nearest sources by viewing angle among those that see it, weighted by
 angle alone (:func:`angle_weights`, the unstructured lumigraph's blend; no network runs per frame), as
-``finetune --blend angle`` scores them.
+``finetune --blend angle`` scores them; where the sources carry object masks (DTU), each source's weight times
+:func:`mask_falloff` at the point's pixel (``MeshRenderOptions.source_masks``).
 
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
@@ -92,10 +93,16 @@ class MeshRenderOptions:
     blend: Literal["network", "angle"] = "network"
     """How a point mixes its sources: ``"network"``, the appearance branch's weights; ``"angle"``,
     :func:`angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
-    angle_sources: int = 6
-    """With ``blend="angle"``: sources blended per point (0: every source that sees it); ``finetune --nearest``."""
+    angle_sources: int = 4
+    """With ``blend="angle"``: sources blended per point (0: every source that sees it); ``finetune --angle-sources``
+    (:data:`REALTIME_ANGLE_SOURCES`)."""
     consensus: float = 0.0
     """With ``blend="angle"``: :func:`consensus_weights`' width in RGB (0: off); ``finetune --consensus``."""
+    source_masks: bool = False
+    """With ``blend="angle"`` and sources that carry object masks (``Sources.masks``): each source's weight times
+    :func:`mask_falloff` at the point's pixel (a source that sees its background there blends little), as
+    ``finetune --source-masks`` scores real object captures (:func:`masks_hold_scene`: DTU). Only for masks that
+    hold everything photographed (a procedural scene's masks leave out its ground); the web viewer does not do it."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -265,6 +272,45 @@ def lumigraph_weights(ang: Tensor, seen: Tensor, k: int) -> Tensor:
     return torch.where(total > 0, w / total.clamp_min(1e-12), torch.full_like(w, 1.0 / K))
 
 
+MASK_REACH = 2.0
+""":func:`mask_falloff`: pixels of a source this far (or farther) inside its object mask keep their full weight."""
+MASK_FLOOR = 0.1
+""":func:`mask_falloff`: the factor of a source whose pixel lies off its object mask."""
+
+
+def mask_falloff(masks: Tensor, reach: float = MASK_REACH, floor: float = MASK_FLOOR) -> Tensor:
+    """Per source pixel, the factor the angle blend multiplies that source's weight by (not in the paper): its
+    distance to the nearest pixel off the object mask ``masks # [K, H, W]`` (bool, True: the object) over ``reach``,
+    clamped to ``[floor, 1]`` (off the mask: ``floor``). A surface point whose projection in a source lands on that
+    source's background (white or black on DTU) or on its silhouette's edge takes the background's colour there: the
+    mesh's silhouette overshoots the object's by a pixel or two. On dtu_scan37 (41 sources, held-out mask PSNR, the
+    angle blend of 4 sources) that light rim carried the ghost on the brick's edges; ``python -m bench
+    depth_sources``: BENCHMARKS "Depth sources", the ``, no source masks`` rows. ``# [K, H, W]``"""
+    from scipy.ndimage import distance_transform_edt
+
+    m = masks.bool().cpu().numpy()
+    dist = np.stack([distance_transform_edt(k) if k.any() else np.zeros(k.shape) for k in m])  # [K, H, W] px
+    return torch.from_numpy(np.clip(dist / reach, floor, 1.0)).to(torch.float32)
+
+
+def mask_factor(falloff: Tensor, uv: Tensor) -> Tensor:
+    """:func:`mask_falloff` ``# [K, H, W]`` at source pixel coordinates ``uv # [K, 2, n]`` (the pixel each point falls
+    in; outside the image: the nearest border pixel). ``# [K, n]``"""
+    K, H, W = falloff.shape
+    col = uv[:, 0].floor().clamp(0, W - 1).long()
+    row = uv[:, 1].floor().clamp(0, H - 1).long()
+    flat = (torch.arange(K, device=uv.device)[:, None] * H + row) * W + col  # [K, n]
+    return falloff.reshape(-1)[flat]
+
+
+def apply_mask_factor(w: Tensor, factor: Tensor) -> Tensor:
+    """Blend weights ``w # [n, K]`` times ``factor # [n, K]`` (:func:`mask_factor`), normalised again; rows whose
+    weights all vanish keep ``w``. ``# [n, K]``"""
+    u = w * factor.to(w)
+    total = u.sum(1, keepdim=True)
+    return torch.where(total > 0, u / total.clamp_min(1e-12), w)
+
+
 def consensus_weights(rgb: Tensor, w: Tensor, sigma: float) -> Tensor:
     """Blend weights ``w # [n, K]`` re-weighted by how well each source's colour ``rgb # [n, K, 3]`` agrees with the
     blend: ``w_k exp(-|c_k - m|^2 / (2 sigma^2))``, ``m`` the blended colour, normalised again (a highlight or an
@@ -297,6 +343,41 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
     real_object = rig == "object" and masks and not background
     fill = "background" if background else ("nearest" if real_object else "far")
     return ("angle" if real_object else "network"), fill
+
+
+def masks_hold_scene(scene) -> bool:
+    """The scene's object masks hold everything it photographs (a real object capture with masks, DTU: an object
+    rig, masks, no known background colour), so a source pixel off its mask shows background, never surface: where
+    the angle blend weighs sources by :func:`mask_falloff` (``finetune --source-masks``,
+    ``MeshRenderOptions.source_masks``)."""
+    return scene.rig == "object" and scene.masks is not None and scene.background is None
+
+
+REALTIME_SOURCES = 6
+"""Source views per frame of the real-time mesh path when no ``finetune`` record says otherwise: ``finetune
+--nearest``'s default (each view blends its 6 nearest sources; the videos blended 3 before session 16)."""
+REALTIME_ANGLE_SOURCES = 4
+"""Sources per point of the real-time angle blend when no ``finetune`` record says otherwise: what ``finetune
+--angle-sources 3 4 6 8`` chose on its validation views on dtu_scan24 and dtu_scan37 (6 before session 16)."""
+
+
+def realtime_setting(scene, record: dict | None = None) -> dict:
+    """The real-time mesh path's blend for ``scene``: ``finetune``'s record of what it scored with (``curve.json``'s
+    ``"render"``: blend, fill, sources per frame, angle sources, source masks) where there is one, else finetune's
+    defaults for the scene kind (:func:`scene_defaults`, :data:`REALTIME_SOURCES`, :data:`REALTIME_ANGLE_SOURCES`,
+    :func:`masks_hold_scene`). One setting, so a video, ``render --mesh`` and the scores blend alike."""
+    blend, fill = scene_defaults(scene)
+    out = {"blend": blend, "fill": fill, "sources": REALTIME_SOURCES, "angle_sources": REALTIME_ANGLE_SOURCES,
+           "source_masks": masks_hold_scene(scene)}
+    out.update({k: v for k, v in ((record or {}).get("render") or {}).items() if k in out})
+    out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
+    return out
+
+
+def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
+    """:class:`MeshRenderOptions` of a :func:`realtime_setting` (plus ``kwargs``: background, visibility, ...)."""
+    return MeshRenderOptions(blend=setting["blend"], fill=setting["fill"], angle_sources=int(setting["angle_sources"]),
+                             source_masks=bool(setting["source_masks"]), **kwargs)
 
 
 def scene_defaults(scene) -> tuple[str, str]:
@@ -345,6 +426,11 @@ class MeshRenderer:
                 self._uv_to_texel = self._feat._scale / self._size  # source pixels -> feature texels
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
         self._centres: dict[tuple[int, int], Tensor] = {}
+        self.mask_falloff: Tensor | None = None
+        """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`mask_falloff`.
+        ``# [K, H, W]``"""
+        if self.options.blend == "angle" and self.options.source_masks and sources.masks is not None:
+            self.mask_falloff = mask_falloff(sources.masks).to(self.device, self.dtype)
         self.source_depth_max: Tensor | None = None
         """With ``options.visibility``: per source, the largest rasterized depth of each 2x2 block of
         pixel centres (inf = background or outside), ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers
@@ -412,12 +498,16 @@ class MeshRenderer:
                 layer = layer.to(self.device)
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
+            on_mesh = None if covered is None else (torch.arange(len(surf.pixels)) < covered).to(self.device)  # [P]
             if self.options.fused:
-                return replace(self._fused(surf, points, origin, with_rgb, with_coords, layer), covered=covered)
+                return replace(self._fused(surf, points, origin, with_rgb, with_coords, layer, on_mesh), covered=covered)
             uv, _, mask = self.project(points.T, layer)
             if self.options.blend == "angle":
                 omega = angle_weights(points, origin, self.sources.cameras.centers.to(points), mask.T,
-                                      self.options.angle_sources or self.num_views).T  # [K, P]
+                                      self.options.angle_sources or self.num_views)  # [P, K]
+                if self.mask_falloff is not None:
+                    omega = apply_mask_factor(omega, self._mask_factor(uv, on_mesh).T)
+                omega = omega.T  # [K, P]
                 if self.options.consensus > 0:
                     colours = self._rgb.sample(*self._rgb.taps(uv / self._size)).reshape(self.num_views, -1, 3)
                     omega = consensus_weights(colours.transpose(0, 1), omega.T, self.options.consensus).T
@@ -428,11 +518,13 @@ class MeshRenderer:
             return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
     def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool,
-                      with_coords: bool = False, layer: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+                      with_coords: bool = False, layer: Tensor | None = None, on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
         """``OmniRecon.shade``, fused (module docstring), at points ``p # [3, n]`` (channel-first) seen along
         ``d_t # [3, n]`` (target -> point, any positive length): blend weights ``omega # [K, n]``, the
         mask ``# [K, n]``, with ``with_coords`` the source image fractions ``# [K, 2, n]`` and, with
-        ``with_rgb``, the blended source colour ``# [3, n]``."""
+        ``with_rgb``, the blended source colour ``# [3, n]``. ``layer # [n]`` bool: points on the fill's far layer (no
+        occlusion test); ``on_mesh # [n]`` bool: points on the mesh (the only ones the source masks weigh; ``None``:
+        all)."""
         K = self.num_views
         uv, _, mask = self.project(p, layer)  # [K, 2, n], [K, n]
         st = uv / self._size if with_coords else None  # [K, 2, n] image fractions
@@ -440,7 +532,7 @@ class MeshRenderer:
         few = seen < 2
         n_few = int(few.sum())
         if self.options.blend == "angle":
-            om = self._angle_omega(p, d_t, mask)
+            om = self._angle_omega(p, d_t, mask, uv, on_mesh)
         elif n_few == 0:
             om = self._blend_logits(p, d_t, uv, mask)
         else:  # omega needs no network where fewer than 2 sources see the point (module docstring)
@@ -468,13 +560,23 @@ class MeshRenderer:
     """:meth:`_shade_points` compacts the points at least two sources see when the others are at least
     ``1 / SKIP_BELOW`` of a chunk (below that, the gather costs more than the network it saves)."""
 
-    def _angle_omega(self, p: Tensor, d_t: Tensor, mask: Tensor) -> Tensor:
+    def _mask_factor(self, uv: Tensor, on_mesh: Tensor | None) -> Tensor:
+        """:func:`mask_factor` at source pixels ``uv # [K, 2, n]``, 1 at the points not on the mesh (``on_mesh # [n]``
+        bool False: the fill's points, off the object where the target sees no surface). ``# [K, n]``"""
+        fac = mask_factor(self.mask_falloff, uv)
+        return fac if on_mesh is None else torch.where(on_mesh, fac, torch.ones_like(fac))
+
+    def _angle_omega(self, p: Tensor, d_t: Tensor, mask: Tensor, uv: Tensor, on_mesh: Tensor | None = None) -> Tensor:
         """``blend="angle"``: :func:`lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
-        sources of ``mask # [K, n]``. ``# [K, n]``"""
+        sources of ``mask # [K, n]`` (times :meth:`_mask_factor` at their pixels ``uv # [K, 2, n]`` when the sources
+        carry masks; ``on_mesh # [n]``: which points lie on the mesh). ``# [K, n]``"""
         d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
         cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0)  # [K, n]
         k = self.options.angle_sources or self.num_views
-        return lumigraph_weights(torch.arccos(cos.clamp_(-1, 1)).T, mask.T, k).T.contiguous()
+        w = lumigraph_weights(torch.arccos(cos.clamp_(-1, 1)).T, mask.T, k)  # [n, K]
+        if self.mask_falloff is not None:
+            w = apply_mask_factor(w, self._mask_factor(uv, on_mesh).T)
+        return w.T.contiguous()
 
     def _blend_logits(self, p: Tensor, d_t: Tensor, uv: Tensor, mask: Tensor) -> Tensor:
         """The appearance network's blend weights ``omega # [K, n]`` at points ``p # [3, n]`` seen along
@@ -510,8 +612,9 @@ class MeshRenderer:
             list(self._pool.map(one, starts))  # list(): waits, and raises a worker's error here
 
     def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool,
-               layer: Tensor | None = None) -> ShadeResult:
-        """``OmniRecon.shade`` for one point per pixel, fused (module docstring)."""
+               layer: Tensor | None = None, on_mesh: Tensor | None = None) -> ShadeResult:
+        """``OmniRecon.shade`` for one point per pixel, fused (module docstring); ``layer``, ``on_mesh`` ``# [P]`` bool:
+        the points on the fill's far layer, on the mesh (:meth:`_shade_points`)."""
         K, total = self.num_views, points.shape[0]
         new = dict(dtype=self.dtype, device=self.device)
         omega = torch.empty(K, total, **new)
@@ -522,7 +625,8 @@ class MeshRenderer:
         def shade(sl: slice) -> None:
             p = points[sl].T.contiguous()  # [3, n]
             om, mask, st, c = self._shade_points(p, p - origin[:, None], with_rgb, with_coords,
-                                                 None if layer is None else layer[sl])
+                                                 None if layer is None else layer[sl],
+                                                 None if on_mesh is None else on_mesh[sl])
             omega[:, sl], mask_all[:, sl] = om, mask
             if with_coords:
                 coords[:, :, sl] = st
@@ -555,6 +659,7 @@ class MeshRenderer:
         :meth:`Surface.image`); fused shader only."""
         H, W = camera.height, camera.width
         depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
+        hit = (depth > 0).reshape(-1).to(self.device) if self.mask_falloff is not None else None  # [H W] on the mesh
         if self.options.fill == "nearest":  # one distance transform per frame, before the chunks
             depth = torch.from_numpy(nearest_depth(depth.float().cpu().numpy()))
         depth = depth.reshape(-1).to(self.device, self.dtype)  # [H W]
@@ -571,7 +676,7 @@ class MeshRenderer:
             d = torch.addmm(A2, Auv, centres[:, sl])  # [3, n]: the ray through each pixel centre, camera z = 1
             target = out[sl]  # [n, 3] (a view)
             hole = z <= 0
-            keep, layer = None, None
+            keep, layer, on_mesh = None, None, None if hit is None else hit[sl]
             if bool(hole.any()):
                 miss = hole.nonzero()[:, 0]
                 if fill:
@@ -584,8 +689,9 @@ class MeshRenderer:
                     if not len(keep):
                         return
                     d, z = d[:, keep], z[keep]
+                    on_mesh = None if on_mesh is None else on_mesh[keep]
             p = torch.addcmul(o, d, z[None])  # [3, n] surface points
-            rgb = self._shade_points(p, d, True, layer=layer)[3]  # [3, n]
+            rgb = self._shade_points(p, d, True, layer=layer, on_mesh=on_mesh)[3]  # [3, n]
             if keep is None:
                 target.copy_(rgb.T)
             else:

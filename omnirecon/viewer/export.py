@@ -46,8 +46,9 @@ class ExportOptions:
     """Write the viewer bundle (needs three.js from npm)."""
     blend: str = "network"
     """The blend the viewer starts with (``MeshRenderOptions.blend``: ``network`` or ``angle``; it can switch)."""
-    angle_sources: int = 6
-    """Sources per point of the angle blend (``MeshRenderOptions.angle_sources``; 0: all)."""
+    angle_sources: int = 4
+    """Sources per point of the angle blend (``MeshRenderOptions.angle_sources``; 0: all); the default is
+    ``omnirecon.mesh.ibr.REALTIME_ANGLE_SOURCES``, what finetune chose on the DTU scans."""
     max_edge: float = 0.0
     """Subdivide triangles until no edge is longer than this fraction of the scene bounds' diagonal
     before baking (0: keep the mesh as it is). Vertex colours can only be as fine as the vertices: a

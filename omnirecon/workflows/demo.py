@@ -310,22 +310,26 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     from omnirecon.data.io import write_image  # lazy: demo --help stays fast
     from omnirecon.engine.checkpoint import load_checkpoint  # lazy: demo --help stays fast
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
-    from omnirecon.engine.views import default_views  # lazy: demo --help stays fast
+    from omnirecon.engine.views import select_sources  # lazy: demo --help stays fast
+    from omnirecon.mesh.ibr import realtime_setting  # lazy: demo --help stays fast
     from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: demo --help stays fast
     from omnirecon.workflows.render import mesh_path_video, scene_camera_path  # lazy: demo --help stays fast
 
     side = 128 if cfg.quick else 256
     scene, mesh = scene_frame_mesh(path, mesh_file, 128)
-    views = default_views(scene, min(cfg.num_views, 3))
+    setting = realtime_setting(scene)  # each frame blends its nearest sources, as finetune scores (--nearest)
+    train = scene.splits.get("train") or list(range(len(scene)))
     model, _ = load_checkpoint(ckpt)
     frames = 8 if cfg.quick else 48
     cams = scene_camera_path(scene, "orbit", frames)
     cams = cams.rescaled(side / max(cams.width, cams.height))
-    video, images, times = mesh_path_video(model, mesh, scene, cams, [views] * len(cams), out / "mesh_path" / "orbit.mp4")
+    picks = [sorted(select_sources(scene, cams[i], train, setting["sources"])) for i in range(len(cams))]
+    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
+                                           setting=setting)
     fps = 1.0 / statistics.median(times)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
-                            "threads": torch.get_num_threads(), "source_views": views}
+                            "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads)")
     return (Section("Real-time mesh path")
             .text(f"The Omni-Recon mesh rendered with the appearance branch, one surface point per pixel, source "

@@ -60,8 +60,9 @@ class ExportConfig(MachineConfig):
     """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights; `angle`, each
     point's --angle-sources nearest sources by viewing angle (as `finetune --blend angle`); `auto`, per scene kind
     as `finetune` (angle on real object captures with masks such as DTU, else network)."""
-    angle_sources: int = 6
-    """Sources per point of the angle blend (0: every source that sees it)."""
+    angle_sources: int = 4
+    """Sources per point of the angle blend (0: every source that sees it): what `finetune --angle-sources 3 4 6 8`
+    chose on its validation views on the DTU scans (`reconstruct` passes its own finetune's choice)."""
 
 
 def default_out(cfg: ExportConfig) -> Path:

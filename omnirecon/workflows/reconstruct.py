@@ -134,9 +134,9 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     side = cfg.resolution or photo_side(scene_path)
     tuned, ckpt = finetune_stage(cfg, scene_path, side, meshes["scene"], out, lines)
     lap("finetune")
-    exported = export_stage(cfg, scene_path, side, ckpt, meshes["input"], out)
+    exported = export_stage(cfg, scene_path, side, ckpt, meshes["input"], out, tuned)
     lap("export")
-    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines)
+    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines, tuned)
     lap("path")
     draw_cameras(path["scene"], out / "cameras.png")
     record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
@@ -144,7 +144,8 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
                                                                          ("vertices", "depth_maps", "views")},
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
-                       "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"]},
+                       "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
+                       "blend": path["setting"]},
               "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
@@ -195,10 +196,13 @@ def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, ou
     return tuned, out / "finetune" / "checkpoint" if budget > 0 else Path(cfg.ckpt)
 
 
-def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path) -> dict:
-    """``out/export``: the baked mesh and the viewer bundle; marks ``finetune/`` and ``export/`` as outputs."""
+def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
+                 tuned: dict | None = None) -> dict:
+    """``out/export``: the baked mesh and the viewer bundle (the angle blend's sources per point as ``tuned``, the
+    finetune record, chose); marks ``finetune/`` and ``export/`` as outputs."""
+    angle = {"angle_sources": tuned["render"]["angle_sources"]} if tuned and "render" in tuned else {}
     exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
-                                       resolution=side, num_views=cfg.num_views, viewer=cfg.viewer,
+                                       resolution=side, num_views=cfg.num_views, viewer=cfg.viewer, **angle,
                                        device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=mesh)
     for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
         write_marker(out / sub, verb)
@@ -206,15 +210,20 @@ def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path
 
 
 def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
-               lines: list[str]) -> dict:
-    """``path.mp4``: a camera path through the tuned mesh path; returns ``{"scene", "cams", "video", "fps"}``."""
+               lines: list[str], tuned: dict | None = None) -> dict:
+    """``path.mp4``: a camera path through the tuned mesh path, blended as ``tuned`` (the finetune record) scored
+    (:func:`~omnirecon.mesh.ibr.realtime_setting`: each frame's nearest sources, the blend, the fill); returns
+    ``{"scene", "cams", "video", "fps", "setting"}``."""
+    from omnirecon.mesh.ibr import realtime_setting  # lazy: fast --help
+
     scene = load_at_resolution(scene_path, side)
     model, _ = load_checkpoint(ckpt)
     kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
     cams = scene_camera_path(scene, kind, cfg.frames, arc=None)  # an orbit sweeps only the azimuths photographed
     train = scene.splits.get("train") or list(range(len(scene)))
-    picks = [sorted(select_sources(scene, cams[i], train, cfg.num_views)) for i in range(len(cams))]
-    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4")
+    setting = realtime_setting(scene, tuned)
+    picks = [sorted(select_sources(scene, cams[i], train, setting["sources"])) for i in range(len(cams))]
+    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
     write_image(out / "path_first_frame.png", images[0])
     fps = 1.0 / statistics.median(times)
     center = closest_point_to_axes(scene.cameras) if scene.rig == "object" else scene.bounds.double().mean(0)
@@ -223,7 +232,8 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, {reach['median']:g} "
                  f"degrees from the nearest photo (median; at most {reach['max']:g}), mesh path {fps:.1f} FPS "
                  f"(median frame, source features encoded once per source set)")
-    return {"scene": scene, "cams": cams, "video": video, "fps": fps, "kind": kind, "nearest_photo_degrees": reach}
+    return {"scene": scene, "cams": cams, "video": video, "fps": fps, "kind": kind, "nearest_photo_degrees": reach,
+            "setting": setting}
 
 
 def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: list[dict], path: dict, record: dict,

@@ -166,31 +166,31 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     return out, video
 
 
-def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24
-                    ) -> tuple[Path, list[np.ndarray], list[float]]:
+def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24,
+                    setting: dict | None = None) -> tuple[Path, list[np.ndarray], list[float]]:
     """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
     (:class:`~omnirecon.mesh.ibr.MeshRenderer`; the blend and the fill ``finetune --blend auto --fill auto`` scores
     with (:func:`~omnirecon.mesh.ibr.scene_blend`: pixels no triangle covers take the scene's known background
     colour where it has one, else the far fill, which on the demo's black sky drew ghost copies of the objects;
-    the angle blend of the 6 nearest sources on object captures); the occlusion test on, as ``finetune
+    the angle blend on object captures), or ``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`: what finetune
+    scored with); the occlusion test on, as ``finetune
     --visibility``: without it a source that saw the ground behind an object painted the object's colour onto the
     ground) and write the video at ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
     ``# [H, W, 3]`` and the seconds of each frame (after one untimed warm-up frame per renderer)."""
-    from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_frames, scene_defaults  # lazy: fast --help
+    from omnirecon.mesh.ibr import MeshRenderer, realtime_options, realtime_setting, render_frames  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    blend, fill = scene_defaults(scene)
+    opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True)
     images, times = [], []
     start = 0
     while start < len(cameras):
         end = start + 1
         while end < len(cameras) and list(sources[end]) == list(sources[start]):
             end += 1
-        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])),
-                          MeshRenderOptions(background=bg, fill=fill, blend=blend, visibility=True)) as r:
+        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])), opts) as r:
             frames, seconds = render_frames(r, cameras[start:end])
         images += frames
         times += seconds

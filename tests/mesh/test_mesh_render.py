@@ -312,3 +312,73 @@ def test_the_far_layer_of_an_object_rig_lies_at_the_far_depth(setup):
         assert torch.allclose(z, torch.full_like(z, far), rtol=1e-4) == at_far
         if not at_far:
             assert (z < 0.99 * far).float().mean() > 0.5  # the bounds' far side, in front of the far depth
+
+
+def test_mask_falloff_weighs_sources_by_their_masks():
+    """``mask_falloff``: 1 from ``reach`` pixels inside a source's mask, less toward its edge, ``floor`` off it;
+    ``apply_mask_factor`` renormalises and keeps rows whose weights all vanish."""
+    from omnirecon.mesh.ibr import apply_mask_factor, mask_factor, mask_falloff
+
+    masks = torch.zeros(2, 9, 9, dtype=torch.bool)
+    masks[0, 1:8, 1:8] = True  # source 1 sees no object at all
+    f = mask_falloff(masks, reach=2.0, floor=0.1)
+    assert f[0, 4, 4] == 1 and f[0, 1, 4] == 0.5 and f[0, 0, 4] == 0.1 and (f[1] == 0.1).all()
+    uv = torch.tensor([[[4.5, 1.2, -3.0], [4.5, 4.9, 4.0]]]).expand(2, 2, 3)  # [K, 2, n]: centre, edge, outside
+    assert torch.allclose(mask_factor(f, uv)[0], torch.tensor([1.0, 0.5, 0.1]))
+    w = torch.tensor([[0.5, 0.5], [1.0, 0.0], [0.0, 0.0]])
+    fac = torch.tensor([[1.0, 0.1], [0.5, 0.1], [1.0, 1.0]])
+    out = apply_mask_factor(w, fac)
+    assert torch.allclose(out[0], torch.tensor([1 / 1.1, 0.1 / 1.1])) and torch.allclose(out[1], w[1])
+    assert torch.equal(out[2], w[2])
+
+
+def test_real_time_source_masks_render_what_finetune_scores(setup):
+    """On a real object capture with masks (the scene without its background colour: ``masks_hold_scene``) the
+    renderer with ``source_masks`` gives the colours ``finetune --blend angle`` scores with its source masks (both
+    paths), and the masks change the image near the objects' edges; a procedural scene's masks (no ground in them)
+    are never used."""
+    from dataclasses import replace
+
+    from omnirecon.mesh.ibr import masks_hold_scene
+    from omnirecon.workflows.finetune import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
+
+    scene, mesh, model, sources, target = setup
+    assert scene.masks is not None and not masks_hold_scene(scene)
+    obj = replace(scene, background=None, rig="object")
+    assert masks_hold_scene(obj) and sources.masks is not None
+    px = rasterize_views(mesh, obj, [0], fill=True, sources=SOURCES, nearest_fill=True)
+    angle_blend(px, obj, SOURCES, 3)
+    with torch.no_grad():
+        scored = full_image(obj, px[0], render_pixels(model, encode_maps(model, sources), px[0]))
+    opts = MeshRenderOptions(fill="nearest", visibility=True, blend="angle", angle_sources=3, cull_back_faces=False,
+                             source_masks=True)
+    with MeshRenderer(model, mesh, sources, opts) as r:
+        fast, ref = r.render(target, extras=False)["rgb"], r.render(target)["rgb"]
+    for img in (fast, ref):
+        diff = (img.float().clamp(0, 1) - scored).abs().amax(-1)
+        assert diff.mean() < 2e-3 and (diff > 0.05).float().mean() < 0.01, (float(diff.mean()), float(diff.max()))
+    with MeshRenderer(model, mesh, sources, replace(opts, source_masks=False)) as r:
+        plain = r.render(target, extras=False)["rgb"]
+    assert (plain - fast).abs().amax(-1).gt(0.02).any()
+    px_plain = rasterize_views(mesh, scene, [0], fill=True, sources=SOURCES, nearest_fill=True)
+    angle_blend(px_plain, scene, SOURCES, 3)  # the procedural scene itself: its masks are not used
+    angle_blend(px, obj, SOURCES, 3, source_masks=False)
+    assert torch.allclose(px_plain[0].weights, px[0].weights)
+
+
+def test_realtime_setting_takes_finetunes_record(setup):
+    """``realtime_setting``: finetune's defaults for the scene kind without a record, the record's blend, sources
+    per frame and angle sources with one; source masks only where the masks hold the scene."""
+    from dataclasses import replace
+
+    from omnirecon.mesh.ibr import REALTIME_SOURCES, realtime_options, realtime_setting
+
+    scene = setup[0]
+    s = realtime_setting(scene)
+    assert s["blend"] == "network" and s["fill"] == "background" and s["sources"] == REALTIME_SOURCES
+    assert not s["source_masks"]
+    rec = {"render": {"blend": "angle", "fill": "nearest", "sources": 5, "angle_sources": 3, "source_masks": True}}
+    s = realtime_setting(scene, rec)
+    assert (s["blend"], s["sources"], s["angle_sources"], s["source_masks"]) == ("angle", 5, 3, False)
+    s = realtime_setting(replace(scene, background=None, rig="object"), rec)
+    assert s["source_masks"] and realtime_options(s, visibility=True).angle_sources == 3
