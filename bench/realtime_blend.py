@@ -12,6 +12,8 @@ videos, ``render --mesh`` and the viewer's Python twin draw), each frame from it
   angle blend's 6 sources per point, no source masks (the per-scene blend and fill as ``scene_defaults``);
 * ``finetune``: :func:`omnirecon.mesh.ibr.realtime_setting` of the record: the sources per frame finetune scored
   with (``--nearest``), the angle sources it chose on its validation views, its source masks.
+* ``every_source`` (the angle blend, when the record's sources per frame are fewer than the training views): the same
+  with every training view a source of every frame, as finetune's angle blend picks each point's nearest among all.
 
 Held-out PSNR (whole image; over the object masks on DTU) beside the record's own score of the same views, and the
 CPU milliseconds per frame (this process, 1 thread, after one warm-up frame; ratios within one run compare).
@@ -49,7 +51,7 @@ def render_views(model, mesh, scene, targets: list[int], pool: list[int], settin
     psnr, masked, ms = [], [], []
     for t in targets:
         cam = scene.cameras[t].to(dtype=torch.float32)
-        picks = sorted(select_sources(scene, cam, pool, setting["sources"]))
+        picks = sorted(select_sources(scene, cam, pool, setting["sources"] or len(pool)))
         with MeshRenderer(model, mesh, Sources.from_scene(scene, picks),
                           realtime_options(setting, background=bg, visibility=True)) as r:
             r.render(cam, extras=False)  # warm-up
@@ -80,13 +82,16 @@ def run_scene(name: str, folder: Path) -> dict:
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
     targets, pool = record["held_out"], record["sources"]
     blend, fill = scene_defaults(scene)
+    setting = realtime_setting(scene, record)
     before = {"blend": blend, "fill": fill, "sources": 3, "angle_sources": 6, "source_masks": False}
     row = {"scene": name, "mesh_file": str((folder / "mesh.ply").relative_to(ROOT)), "held_out": targets,
            "resolution": record["resolution"], "finetune_record": {
                "render": record.get("render"), "psnr": record["curve"][0]["psnr"],
                **({"psnr_masked": record["curve"][0]["psnr_masked"]} if "psnr_masked" in record["curve"][0] else {})},
            "before": render_views(model, mesh, scene, targets, pool, before),
-           "finetune": render_views(model, mesh, scene, targets, pool, realtime_setting(scene, record))}
+           "finetune": render_views(model, mesh, scene, targets, pool, setting)}
+    if setting["blend"] == "angle" and 0 < setting["sources"] < len(pool):  # an older record: also every source
+        row["every_source"] = render_views(model, mesh, scene, targets, pool, {**setting, "sources": len(pool)})
     return row
 
 
@@ -108,8 +113,8 @@ def main(argv: list[str] | None = None) -> dict:
         row["load_average"] = list(os.getloadavg())
         result["rows"].append(row)
         key = "psnr_masked" if "psnr_masked" in row["before"] else "psnr"
-        print(f"{name}: finetune scored {row['finetune_record'].get(key):.2f}; real-time before "
-              f"{row['before'][key]:.2f} ({row['before']['cpu_ms_per_frame']:.0f} CPU-ms), with finetune's setting "
-              f"{row['finetune'][key]:.2f} ({row['finetune']['cpu_ms_per_frame']:.0f} CPU-ms)", flush=True)
+        print(f"{name}: finetune scored {row['finetune_record'].get(key):.2f}; real-time " + ", ".join(
+            f"{k} {row[k][key]:.2f} ({row[k]['cpu_ms_per_frame']:.0f} CPU-ms)"
+            for k in ("before", "finetune", "every_source") if k in row), flush=True)
         write_json(out_file, result)
     return result

@@ -281,11 +281,14 @@ MASK_FLOOR = 0.1
 def mask_falloff(masks: Tensor, reach: float = MASK_REACH, floor: float = MASK_FLOOR) -> Tensor:
     """Per source pixel, the factor the angle blend multiplies that source's weight by (not in the paper): its
     distance to the nearest pixel off the object mask ``masks # [K, H, W]`` (bool, True: the object) over ``reach``,
-    clamped to ``[floor, 1]`` (off the mask: ``floor``). A surface point whose projection in a source lands on that
-    source's background (white or black on DTU) or on its silhouette's edge takes the background's colour there: the
-    mesh's silhouette overshoots the object's by a pixel or two. On dtu_scan37 (41 sources, held-out mask PSNR, the
-    angle blend of 4 sources) that light rim carried the ghost on the brick's edges; ``python -m bench
-    depth_sources``: BENCHMARKS "Depth sources", the ``, no source masks`` rows. ``# [K, H, W]``"""
+    clamped to ``[floor, 1]`` (off the mask: ``floor``). Only points on the mesh are weighed (the fill's points lie
+    off the objects). A surface point whose projection in a source lands on that source's background (DTU's white
+    table or black backdrop) or on its object's edge takes the background's colour there: the mesh's silhouette and
+    thin parts (handles, blade edges) miss the object's by a pixel or two, and the blend drew a light rim on the brick's
+    edges. Measured (``python -m bench depth_sources``, the ``, no source masks`` rows; BENCHMARKS "Depth sources"):
+    dtu_scan37 held-out mask PSNR 21.72 -> 22.02 dB at the defaults (whole image 19.68 -> 19.67; weighing the fill's
+    points too gave mask 22.06 but whole image 18.93). Reach 1-3 px and floor 0.02-0.2 scored within 0.05 dB of
+    each other; the mesh's own silhouette in each source instead of its mask gained half as much. ``# [K, H, W]``"""
     from scipy.ndimage import distance_transform_edt
 
     m = masks.bool().cpu().numpy()
@@ -354,8 +357,12 @@ def masks_hold_scene(scene) -> bool:
 
 
 REALTIME_SOURCES = 6
-"""Source views per frame of the real-time mesh path when no ``finetune`` record says otherwise: ``finetune
---nearest``'s default (each view blends its 6 nearest sources; the videos blended 3 before session 16)."""
+"""Source views per frame of the real-time mesh path's network blend when no ``finetune`` record says otherwise:
+``finetune --nearest``'s default (each view blends its 6 nearest sources; the videos blended 3 before session 16).
+The angle blend takes every training view (``"sources": 0``), each point its nearest among them, as finetune scores
+it: ``python -m bench realtime_blend`` (BENCHMARKS "Real-time mesh path"), the held-out DTU views rendered frame by
+frame with 6 sources per frame scored dtu_scan37 / dtu_scan24 mask 21.97 / 25.49 dB, with every source 22.04 / 25.82
+(finetune: 22.02 / 25.82) at about 4x the CPU per frame (91 -> 361 ms at 400x300, one thread)."""
 REALTIME_ANGLE_SOURCES = 4
 """Sources per point of the real-time angle blend when no ``finetune`` record says otherwise: what ``finetune
 --angle-sources 3 4 6 8`` chose on its validation views on dtu_scan24 and dtu_scan37 (6 before session 16)."""
@@ -363,12 +370,13 @@ REALTIME_ANGLE_SOURCES = 4
 
 def realtime_setting(scene, record: dict | None = None) -> dict:
     """The real-time mesh path's blend for ``scene``: ``finetune``'s record of what it scored with (``curve.json``'s
-    ``"render"``: blend, fill, sources per frame, angle sources, source masks) where there is one, else finetune's
+    ``"render"``: blend, fill, sources per frame (0: every training view), angle sources, source masks) where there is
+    one, else finetune's
     defaults for the scene kind (:func:`scene_defaults`, :data:`REALTIME_SOURCES`, :data:`REALTIME_ANGLE_SOURCES`,
     :func:`masks_hold_scene`). One setting, so a video, ``render --mesh`` and the scores blend alike."""
     blend, fill = scene_defaults(scene)
-    out = {"blend": blend, "fill": fill, "sources": REALTIME_SOURCES, "angle_sources": REALTIME_ANGLE_SOURCES,
-           "source_masks": masks_hold_scene(scene)}
+    out = {"blend": blend, "fill": fill, "sources": 0 if blend == "angle" else REALTIME_SOURCES,
+           "angle_sources": REALTIME_ANGLE_SOURCES, "source_masks": masks_hold_scene(scene)}
     out.update({k: v for k, v in ((record or {}).get("render") or {}).items() if k in out})
     out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
     return out

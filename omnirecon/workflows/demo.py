@@ -323,7 +323,8 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     frames = 8 if cfg.quick else 48
     cams = scene_camera_path(scene, "orbit", frames)
     cams = cams.rescaled(side / max(cams.width, cams.height))
-    picks = [sorted(select_sources(scene, cams[i], train, setting["sources"])) for i in range(len(cams))]
+    picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
+             range(len(cams))]
     video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
                                            setting=setting)
     fps = 1.0 / statistics.median(times)

@@ -226,8 +226,9 @@ class FinetuneConfig(ThreadsConfig):
     each source's weight times
     :func:`omnirecon.mesh.ibr.mask_falloff` at the point's pixel in it (a source whose pixel is its background, or
     within 2 px of it, blends little: the mesh's silhouette overshoots the object's by a pixel or two and took the white
-    or black background's colour). Held-out mask PSNR at the defaults (cached probe, 4 held-out views): dtu_scan37
-    21.72 -> 22.06 dB, dtu_scan24 25.71 -> 25.86; the bench rows are in BENCHMARKS "Depth sources"."""
+    or black background's colour; the fill's points are not weighed). Held-out mask PSNR at the defaults (``python
+    -m bench depth_sources``, the ``, no source masks`` rows): dtu_scan37 21.72 -> 22.02 dB, dtu_scan24 25.71 ->
+    25.82 (whole image 19.68 -> 19.67, 21.04 -> 21.03)."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
@@ -943,14 +944,16 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
 
 def render_record(cfg: FinetuneConfig, s: Setup) -> dict:
     """What the scores blended with, for the real-time mesh path to blend alike
-    (:func:`omnirecon.mesh.ibr.realtime_setting`): the blend, the fill, the sources per view (``--nearest``: the
-    nearest of every training view; else the fixed ``sources`` count), the angle blend's sources per point (the
-    validation choice) and whether sources were weighted by their masks."""
+    (:func:`omnirecon.mesh.ibr.realtime_setting`): the blend, the fill, the sources per view (the network's blend under
+    ``--nearest``: the view's nearest training views; the angle blend: every source, each point picking its nearest
+    among them; else the fixed ``sources`` count), the angle blend's sources per point (the validation choice) and
+    whether sources were weighted by their masks."""
     from omnirecon.mesh.ibr import masks_hold_scene
 
     k = s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
-    return {"blend": s.blend, "fill": s.fill_mode, "sources": cfg.nearest if cfg.nearest and not cfg.views else
-            len(s.views), "angle_sources": k, "source_masks": cfg.source_masks and masks_hold_scene(s.scene)}
+    per_view = cfg.nearest if cfg.nearest and not cfg.views and s.blend != "angle" else len(s.views)
+    return {"blend": s.blend, "fill": s.fill_mode, "sources": per_view, "angle_sources": k,
+            "source_masks": cfg.source_masks and masks_hold_scene(s.scene)}
 
 
 def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, val_obj) -> int:

@@ -222,7 +222,8 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     cams = scene_camera_path(scene, kind, cfg.frames, arc=None)  # an orbit sweeps only the azimuths photographed
     train = scene.splits.get("train") or list(range(len(scene)))
     setting = realtime_setting(scene, tuned)
-    picks = [sorted(select_sources(scene, cams[i], train, setting["sources"])) for i in range(len(cams))]
+    picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
+             range(len(cams))]
     video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
     write_image(out / "path_first_frame.png", images[0])
     fps = 1.0 / statistics.median(times)

@@ -36,7 +36,8 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
 
     from bench.depth_sources import scoring
 
-    base = {"nearest": 0, "blend": "network", "angle_sources": (), "fill": "far"}  # not finetune's per-scene defaults
+    base = {"nearest": 0, "blend": "network", "angle_sources": (), "fill": "far",  # not finetune's per-scene defaults
+            "source_masks": True}
     assert scoring("stereo+fill") == base  # rows without `, nearest K`: the 3 fixed sources
     assert scoring("stereo+fill, sky kept") == base
     assert scoring("stereo+fill, 8 sources") == {**base, "num_views": 8}
@@ -45,6 +46,8 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
     assert scoring("exact mesh, nearest 6") == {**base, "nearest": 6}
     assert scoring("stereo+fill, nearest 6, angle blend, nearest fill, angle auto, consensus 0.1") == {
         **base, "nearest": 6, "blend": "angle", "fill": "nearest", "angle_sources": (3, 4, 6, 8), "consensus": 0.1}
+    assert scoring("stereo+fill, nearest 6, angle blend, no source masks") == {
+        **base, "nearest": 6, "blend": "angle", "source_masks": False}
     procedural = type("S", (), {"background": (0.0, 0.0, 0.0)})()
     assert scoring("stereo+model", procedural)["fill"] == "background"
     with pytest.raises(ValueError, match="unknown variant"):
@@ -57,7 +60,7 @@ def test_nearest_and_all_views_variants():
     from bench.depth_sources import held_out, scoring
     from omnirecon.engine.protocols import PROTOCOLS
 
-    base = {"blend": "network", "angle_sources": (), "fill": "far"}
+    base = {"blend": "network", "angle_sources": (), "fill": "far", "source_masks": True}
     assert scoring("stereo+fill, nearest 4") == {**base, "nearest": 4}
     assert scoring("stereo+fill, nearest 4, all views") == {**base, "nearest": 4}
     scene = type("S", (), {"splits": {}, "path": "dtu", "__len__": lambda self: 49})()

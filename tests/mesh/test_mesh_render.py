@@ -382,3 +382,5 @@ def test_realtime_setting_takes_finetunes_record(setup):
     assert (s["blend"], s["sources"], s["angle_sources"], s["source_masks"]) == ("angle", 5, 3, False)
     s = realtime_setting(replace(scene, background=None, rig="object"), rec)
     assert s["source_masks"] and realtime_options(s, visibility=True).angle_sources == 3
+    s = realtime_setting(replace(scene, background=None, rig="object"))  # no record: the angle blend, every source
+    assert (s["blend"], s["sources"], s["source_masks"]) == ("angle", 0, True)

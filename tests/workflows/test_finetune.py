@@ -403,6 +403,10 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     assert main([str(a) for a in args[:-6] + ["--out", chosen, "--blend", "angle", "--angle-sources", 1, 3]]) == 0
     c = json.loads((chosen / "curve.json").read_text())
     assert set(c["angle_scores"]) == {"1", "3"} and c["angle_sources"] == int(max(c["angle_scores"], key=c["angle_scores"].get))
+    # what the real-time path blends with (omnirecon.mesh.ibr.realtime_setting): the scored blend, fill and counts
+    assert c["render"] == {"blend": "angle", "fill": c["fill"], "sources": len(c["sources"]),  # each point: nearest of all
+                           "angle_sources": c["angle_sources"],
+                           "source_masks": False}  # a procedural scene: its masks leave out the ground
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
