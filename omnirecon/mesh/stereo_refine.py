@@ -81,7 +81,8 @@ class RefineOptions:
     diagnostic) took the held-out mesh path at ``--nearest 6`` from 26.00 to 27.86 dB (the exact mesh 28.26): the
     loss is at outlines. Held-out whole image, 0 -> 1 / 2 / 4 / 8 px: 26.00 -> 26.14 / 26.36 / 26.21 / 26.22 dB
     (2 px, two passes: 26.21); procedural seed 900998: 32.86 -> 32.88 (2 px) / 33.04 (4 px), exact mesh 35.31.
-    The maps' CPU time did not change measurably (19.8-20.0 CPU-s for 18 views of 128 px, stereo+model)."""
+    It doubles the refinement's cost: 2.1 -> 4.1 CPU-s for the demo's 18 views of 128 px (one thread); refining
+    the model-filled maps too (``MeshOptions.refine="all"``) gave 26.33."""
     propagate_passes: int = 1
     """Passes of that propagation (each pass offers the depths the previous one chose: errors wider than the
     distance are reached)."""
