@@ -275,31 +275,44 @@ def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] 
     misses gets the mesh renderer's background layer (with ``nearest_fill``: a point at the nearest covered pixel's
     depth, :func:`nearest_depth_points`); with ``sources`` (scene views), each mesh point gets the
     occlusion test against those views (:func:`omnirecon.mesh.ibr.unoccluded`, relative tolerance ``tol``)."""
-    from omnirecon.mesh.ibr import block_depth_max, unoccluded
+    return rasterize_groups(mesh, scene, [indices], fill, sources, tol, nearest_fill)[0]
 
-    out = []
+
+def rasterize_groups(mesh, scene, groups: list[list[int]], fill: bool = True, sources: list[int] | None = None,
+                     tol: float = 0.01, nearest_fill: bool = False) -> list[list[ViewPixels]]:
+    """:func:`rasterize_views` for several groups of views (tuning, held-out, validation) with one rasterizer and
+    the sources' depth maps rasterized once for all of them."""
+    from omnirecon.mesh.ibr import block_depth_max
+
     far, bounds = float(scene.far.max()), scene.bounds.float()
     with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
         dmax = None
         if sources:
             dmax = block_depth_max(torch.stack([rast.rasterize(scene.cameras[k], normals="none").depth
                                                 for k in sources]).float())
-        for i in indices:
-            cam = scene.cameras[i]
-            surf = rast.surface(cam)
-            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
-                else (surf, len(surf.pixels))
-            img = scene.images[i].reshape(-1, 3)
-            points, moved = nearest_depth_points(surf, covered, cam) if fill and nearest_fill else (
-                surf.points.float(), torch.zeros(len(surf.pixels), dtype=torch.bool))
-            visible = None
-            if dmax is not None:
-                proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
-                visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
-                visible[covered:][~moved[covered:]] = True  # the far layer: every source
-            out.append(ViewPixels(i, cam.centers[0].float(), points, surf.pixels,
-                                  img[surf.pixels].float(), covered, visible))
-    return out
+        return [[view_pixels(rast, scene, i, far, bounds, fill, sources, dmax, tol, nearest_fill) for i in indices]
+                for indices in groups]
+
+
+def view_pixels(rast, scene, i: int, far: float, bounds, fill: bool, sources, dmax, tol: float,
+                nearest_fill: bool) -> ViewPixels:
+    """One view of :func:`rasterize_groups`: its surface (and fill) points and, given ``dmax`` (the sources'
+    block depth maxima), which sources see each point."""
+    from omnirecon.mesh.ibr import unoccluded
+
+    cam = scene.cameras[i]
+    surf = rast.surface(cam)
+    surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
+        else (surf, len(surf.pixels))
+    img = scene.images[i].reshape(-1, 3)
+    points, moved = nearest_depth_points(surf, covered, cam) if fill and nearest_fill else (
+        surf.points.float(), torch.zeros(len(surf.pixels), dtype=torch.bool))
+    visible = None
+    if dmax is not None:
+        proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
+        visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
+        visible[covered:][~moved[covered:]] = True  # the far layer: every source
+    return ViewPixels(i, cam.centers[0].float(), points, surf.pixels, img[surf.pixels].float(), covered, visible)
 
 
 class Exposure(torch.nn.Module):
@@ -561,9 +574,9 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"
-    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis, nearest_fill=near) if len(v.points)]
-    held_px = rasterize_views(mesh, scene, targets, fill, vis, nearest_fill=near)
-    val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
+    train_px, held_px, val_px = rasterize_groups(mesh, scene, [tune_views, targets, val_views], fill, vis,
+                                                 nearest_fill=near)  # the sources' depth rasterized once
+    train_px = [v for v in train_px if len(v.points)]
     for px in (train_px, held_px, val_px):
         if blend == "angle":
             angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
@@ -633,27 +646,53 @@ class Tuner:
             p.requires_grad_(True)
         self.opt = torch.optim.Adam(self.params, lr=cfg.lr) if self.params else None
         model.train()
+        self.exposed = "exposure" in cfg.tune
+        """Whether the blend mixes exposure-corrected colours (else the photos as they are: no identity pass)."""
         self.frozen = None
         """The features when the encoder is not tuned (they do not change: encoded once)."""
-        if "encoder" not in cfg.tune:
+        if "encoder" not in cfg.tune or self.opt is None:
             with torch.no_grad():
                 self.frozen = self.features()
         self.autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+        self.pending = None
+        """The features of the current state with their graph, encoded for a score: the next step reuses them
+        (fp32 only: a bf16 step encodes under autocast) and charges ``pending_cost`` to the budget."""
+        self.pending_cost = 0.0
+        self.reuse = cfg.precision == "fp32" and self.frozen is None
+        self.read = time.perf_counter if cfg.clock == "wall" else time.process_time
 
     def set_gains(self, gain: torch.Tensor) -> None:
         """Load exposure gains ``# [K, 1, 1, 3]`` (re-encoding the frozen features that mix them)."""
+        self.pending, self.pending_cost = None, 0.0  # encoded with the old gains
         with torch.no_grad():
             self.exposure.gain.copy_(gain)
             if self.frozen is not None:
                 self.frozen = self.features()
 
     def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
-        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources))
+        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources) if self.exposed else None)
 
-    def step(self, batch: Batch) -> None:
-        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start)."""
+    def scoring_features(self):
+        """The current state's features for a score (no graph). Encoded with their graph when the next step can
+        reuse them (:attr:`pending`): a score between steps costs no encoder pass of its own."""
+        if self.frozen is not None:
+            return self.frozen
+        if not self.reuse:
+            return self.features()
+        if self.pending is None:
+            start = self.read()
+            with torch.enable_grad():
+                self.pending = self.features()
+            self.pending_cost = self.read() - start
+        return OmniReconFeatures(self.pending.sources, self.pending.maps.detach(), self.pending.volume, self.pending.box)
+
+    def step(self, batch: Batch) -> float:
+        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start). Returns the seconds of a
+        reused encoder pass (:meth:`scoring_features`), which the budget is charged."""
+        reused, self.pending, charge = self.pending, None, self.pending_cost
+        self.pending_cost = 0.0
         with self.autocast:
-            feats = self.features() if self.frozen is None else self.frozen
+            feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
             rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
         loss = (rgb.float() - batch.target).square().mean()
         if self.reg > 0 and self.params:
@@ -662,6 +701,7 @@ class Tuner:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+        return charge if reused is not None else 0.0
 
     @torch.no_grad()
     def validate(self, val_idx: list[torch.Tensor], val_obj: list[torch.Tensor] | None = None) -> dict[str, float]:
@@ -671,7 +711,7 @@ class Tuner:
             return {"psnr": float("nan")}
         model = self.s.model
         model.eval()
-        feats = self.features()
+        feats = self.scoring_features()
         se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
                         for v, i in zip(self.s.val_px, val_idx)])
         model.train()
@@ -683,7 +723,7 @@ class Tuner:
     @torch.no_grad()
     def test_scores(self) -> dict:
         self.s.model.eval()
-        r = score_held_out(self.s.model, self.features(), self.s.scene, self.s.held_px, self.s.background)
+        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background)
         self.s.model.train()
         return r
 
@@ -691,7 +731,9 @@ class Tuner:
         return [p.detach().clone() for p in self.params]
 
     def swap(self, state: list[torch.Tensor]) -> list[torch.Tensor]:
-        """Load ``state`` into the tuned parameters; returns the state they had."""
+        """Load ``state`` into the tuned parameters; returns the state they had. Drops :attr:`pending` (its graph
+        holds the weights this overwrites)."""
+        self.pending, self.pending_cost = None, 0.0
         old = self.state()
         with torch.no_grad():
             for p, s in zip(self.params, state):
@@ -815,16 +857,19 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
+    scored = None  # (the returned state's steps, its held-out scores): a state is scored once
     with Progress(*columns) as bar:
         task = bar.add_task("finetune", total=cfg.seconds, psnr="")
         for t_check in checks:
             clock.start()
             while tuner.opt is not None and clock.now() < t_check:
-                tuner.step(sample())
+                clock.spent += tuner.step(sample())  # a step's reused encoder pass counts against the budget
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
-            val = tuner.validate(val_idx, val_obj)
+            same = bool(validation) and validation[-1]["steps"] == step  # no step since: the same state
+            val = {k: validation[-1][k] for k in ("psnr", "psnr_masked") if k in validation[-1]} if same else \
+                tuner.validate(val_idx, val_obj)
             start_val = start_val or val
             # a state's gain: on what the scene is scored by, the other score guarded (validation_gain)
             gain, guarded = validation_gain(val, start_val, s.scored_by, cfg.val_guard) if s.val_px else (0.0, True)
@@ -833,9 +878,10 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
                 best_state, best_val, best_gain, best_at = tuner.state(), val, gain, (t_check, step)  # no validation: the latest
             if t_check not in eval_at:
                 continue
-            current = tuner.swap(best_state)  # score what tuning returns if it stopped here
-            r = tuner.test_scores()
-            tuner.swap(current)
+            if scored is None or scored[0] != best_at[1]:  # score what tuning returns if it stopped here
+                r = tuner.test_scores() if best_at[1] == step else held_out_of(tuner, best_state)
+                scored = (best_at[1], r)
+            r = scored[1]
             before = before or r
             curve.append(curve_point(t_check, step, r, val, best_val, best_at))
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
@@ -843,6 +889,14 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
                 on_eval(Tuned(curve, validation, before, r, best_val, best_gain, best_at, step))
     tuner.swap(best_state)  # the returned (and saved) state: the best on validation
     return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step)
+
+
+def held_out_of(tuner: Tuner, state: list[torch.Tensor]) -> dict:
+    """The held-out scores of ``state`` (the tuned parameters are put back after)."""
+    current = tuner.swap(state)
+    r = tuner.test_scores()
+    tuner.swap(current)
+    return r
 
 
 def plot_curve(cfg: FinetuneConfig, s: Setup, t: Tuned, out: Path) -> None:

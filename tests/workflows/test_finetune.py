@@ -453,3 +453,37 @@ def test_blend_and_fill_defaults_per_scene_kind():
     assert scene_defaults(scene(background=(0.0, 0.0, 0.0))) == ("network", "background")
     assert scene_defaults(scene(rig="forward")) == ("network", "far")
     assert scene_defaults(scene(m=None)) == ("network", "far")
+
+
+def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setup):
+    """A score between two steps encodes the sources with their graph and the next step reuses that pass (charging
+    its seconds to the budget): validation scores and the tuned weights are exactly those of a run that encodes
+    for each of them; a swapped-in state drops the reusable pass; the sources' depth is rasterized once for the
+    tuning, held-out and validation views alike."""
+    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, rasterize_views
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256,
+                         clock="cpu")
+    runs = []
+    for reuse in (True, False):
+        s = prepare(cfg)
+        g = torch.Generator().manual_seed(0)
+        tuner = Tuner(cfg, s, g)
+        tuner.reuse = reuse
+        sample, idx = PixelSampler(cfg, s, g), [torch.arange(len(v.points)) for v in s.val_px]
+        vals, charged = [], 0.0
+        for _ in range(3):
+            vals.append(tuner.validate(idx))
+            charged += tuner.step(sample())
+        assert (charged > 0) == reuse and tuner.pending is None
+        runs.append((vals, [p.detach().clone() for p in tuner.params], s))
+    (va, pa, s), (vb, pb, _) = runs
+    assert va == vb and all(torch.equal(a, b) for a, b in zip(pa, pb))
+    again = rasterize_views(s.mesh, s.scene, [v.index for v in s.held_px], s.fill, s.views)
+    assert all(torch.equal(a.points, b.points) and torch.equal(a.pixels, b.pixels) for a, b in zip(s.held_px, again))
+    tuner = Tuner(cfg, s, torch.Generator().manual_seed(0))
+    tuner.validate(idx)
+    assert tuner.pending is not None
+    tuner.swap(tuner.state())
+    assert tuner.pending is None
