@@ -755,6 +755,8 @@ class Tuned:
     """Its validation gain over the start (0: the start is returned)."""
     best_at: tuple[float, int]
     steps: int
+    budget_spent: float = 0.0
+    """Seconds of optimisation on the budget's clock (steps, and the encoder passes they reused)."""
 
 
 class Batch(NamedTuple):
@@ -888,7 +890,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
             if on_eval is not None and t_check < eval_at[-1]:
                 on_eval(Tuned(curve, validation, before, r, best_val, best_gain, best_at, step))
     tuner.swap(best_state)  # the returned (and saved) state: the best on validation
-    return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step)
+    return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step, clock.spent)
 
 
 def held_out_of(tuner: Tuner, state: list[torch.Tensor]) -> dict:
@@ -994,6 +996,14 @@ def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, v
     return best
 
 
+def cpu_split(cpu: dict, budget: float, end: float) -> dict:
+    """This run's process CPU-seconds: ``prepare`` (loading, rasterizing), ``budget`` (the tuning steps, on
+    ``--clock cpu`` the budget itself), ``outside_budget`` (validation and held-out scores, pictures and records),
+    ``process`` (everything since the process started, imports too)."""
+    return {"prepare": cpu["prepared"] - cpu["start"], "budget": budget,
+            "outside_budget": end - cpu["prepared"] - budget, "process": end}
+
+
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
     ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
@@ -1001,7 +1011,9 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     if not cfg.tune:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
     set_threads(cfg.threads)
+    cpu = {"start": time.process_time()}
     s = prepare(cfg, mesh)
+    cpu["prepared"] = time.process_time()
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
     g = torch.Generator().manual_seed(cfg.seed)
     val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in s.val_px]
@@ -1019,7 +1031,10 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
         return result
 
     tuned = tune(cfg, s, tuner, g, val_idx, val_obj, on_eval=lambda t: write(t, partial=True))
+    cpu["tuned"] = time.process_time()
     result = write(tuned)
+    result["cpu_seconds"] = cpu_split(cpu, tuned.budget_spent, time.process_time())
+    write_json(out / "curve.json", result)
     if cfg.save:
         save_checkpoint(out / "checkpoint", s.model, s.meta["preset"], step=tuned.steps,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
