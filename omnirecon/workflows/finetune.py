@@ -553,8 +553,10 @@ def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int]
     return views, targets, val_views, tune_views
 
 
-def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
-    """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view."""
+def prepare(cfg: FinetuneConfig, mesh=None, choose_later: bool = False) -> Setup:
+    """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view.
+    ``choose_later``: the caller runs :func:`choose_angle_sources` (several ``--angle-sources``), so under the angle
+    blend only the validation views get weights here (the others get them once, with the chosen count)."""
     model, meta = load_checkpoint(cfg.ckpt)
     if not model.capabilities.appearance:
         raise InputError(f"finetune needs an Omni-Recon checkpoint, got preset {meta['preset']}", cfg.ckpt,
@@ -577,11 +579,14 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     train_px, held_px, val_px = rasterize_groups(mesh, scene, [tune_views, targets, val_views], fill, vis,
                                                  nearest_fill=near)  # the sources' depth rasterized once
     train_px = [v for v in train_px if len(v.points)]
+    chosen_later = choose_later and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
     for px in (train_px, held_px, val_px):
         if blend == "angle":
-            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
             for v in px:
                 v.consensus = cfg.consensus
+            if chosen_later and px is not val_px:
+                continue  # their weights are set once, with the chosen count
+            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
         else:
             restrict_to_nearest(px, scene, views, cfg.nearest)
     if not train_px or not any(v.covered for v in train_px):
@@ -1012,7 +1017,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
     set_threads(cfg.threads)
     cpu = {"start": time.process_time()}
-    s = prepare(cfg, mesh)
+    s = prepare(cfg, mesh, choose_later=True)
     cpu["prepared"] = time.process_time()
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
     g = torch.Generator().manual_seed(cfg.seed)
