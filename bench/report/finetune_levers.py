@@ -20,7 +20,10 @@ LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
           "uniform": "encoder + appearance, `--objects 0` (pixels uniform over the shaded ones)",
           "uniform_exposure": "encoder + appearance + exposure, `--objects 0`",
           "mixed_uniform": "`--step-views 0 --objects 0`",
-          "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)"}
+          "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)",
+          "skip1": "encoder + appearance, tuning views skip their nearest source (`--skip-nearest 1`)",
+          "skip2": "encoder + appearance, `--skip-nearest 2`",
+          "skip1_latest": "`--skip-nearest 1`, no validation: the state at the end (diagnostic)"}
 BEFORE = " *(before the visibility test, older mesh)*"
 """Marks a row measured before ``finetune``'s visibility test (on an older mesh: not comparable with the others)."""
 

@@ -191,6 +191,11 @@ class FinetuneConfig(ThreadsConfig):
     --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
     24.69 / 21.10; dtu_scan37 at --nearest 5 / 6 20.78 / 20.60 against 20.95 at 4 (14-view mesh), so DTU's
     wide rig does slightly better at 4."""
+    skip_nearest: int = 0
+    """Tuning views blend their --nearest sources after skipping this many nearest (validation and held-out views
+    never skip): a held-out view lies farther from its sources than a training view from its neighbours, so tuning
+    on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
+    finetune_levers`, rows skip1 / skip2)."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
@@ -422,21 +427,23 @@ def every_training_view(pool: list[int], targets: list[int], scene) -> list[int]
     return [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]
 
 
-def nearest_blend(scene, view: int, sources: list[int], k: int) -> torch.Tensor:
+def nearest_blend(scene, view: int, sources: list[int], k: int, skip: int = 0) -> torch.Tensor:
     """Which of ``sources`` view ``view`` blends under ``--nearest k``: the ``k`` nearest to it, never
-    ``view`` itself (a tuning view that is also a source learns from the others). ``# [K]`` bool"""
+    ``view`` itself (a tuning view that is also a source learns from the others); with ``skip``, the ``k`` after the
+    ``skip`` nearest (fewer skipped when too few sources are left). ``# [K]`` bool"""
     others = [s for s in sources if s != view]
-    keep = set(select_sources(scene, scene.cameras[view], others, min(k, len(others)))) if others else set()
+    near = select_sources(scene, scene.cameras[view], others, min(k + skip, len(others))) if others else []
+    keep = set(near[max(0, len(near) - k):])
     return torch.tensor([s in keep for s in sources], dtype=torch.bool)
 
 
-def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
+def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int, skip: int = 0) -> None:
     """Mask every pixel of each view in ``pixels`` to its :func:`nearest_blend` sources (in place; ``k`` = 0:
     unchanged). A point the occlusion test hides from all of them blends those ``k`` (not every source)."""
     if k <= 0:
         return
     for v in pixels:
-        near = nearest_blend(scene, v.index, sources, k)  # [K]
+        near = nearest_blend(scene, v.index, sources, k, skip)  # [K]
         vis = v.visible if v.visible is not None else torch.ones(len(v.points), len(sources), dtype=torch.bool)
         vis = vis & near  # [P, K]
         vis[~vis.any(-1)] = near
@@ -588,7 +595,7 @@ def prepare(cfg: FinetuneConfig, mesh=None, choose_later: bool = False) -> Setup
                 continue  # their weights are set once, with the chosen count
             angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
         else:
-            restrict_to_nearest(px, scene, views, cfg.nearest)
+            restrict_to_nearest(px, scene, views, cfg.nearest, cfg.skip_nearest if px is train_px else 0)
     if not train_px or not any(v.covered for v in train_px):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
