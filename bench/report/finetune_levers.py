@@ -23,7 +23,9 @@ LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
           "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)",
           "skip1": "encoder + appearance, tuning views skip their nearest source (`--skip-nearest 1`)",
           "skip2": "encoder + appearance, `--skip-nearest 2`",
-          "skip1_latest": "`--skip-nearest 1`, no validation: the state at the end (diagnostic)"}
+          "skip1_latest": "`--skip-nearest 1`, no validation: the state at the end (diagnostic)",
+          "residual": "a 3-D residual colour grid only (`--tune residual`, 16³, lr 1e-2; the blend fixed)",
+          "residual_latest": "`--tune residual`, no validation: the state at the end (diagnostic)"}
 BEFORE = " *(before the visibility test, older mesh)*"
 """Marks a row measured before ``finetune``'s visibility test (on an older mesh: not comparable with the others)."""
 

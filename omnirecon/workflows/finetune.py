@@ -110,7 +110,7 @@ class FinetuneConfig(ThreadsConfig):
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
     """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
-    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
+    tune: tuple[Literal["encoder", "appearance", "exposure", "residual"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
@@ -122,6 +122,12 @@ class FinetuneConfig(ThreadsConfig):
     24.70. With 3 fixed sources (--nearest 0) the appearance branch alone gained more on the real scenes (fern
     +0.28 -> +0.37 dB, dtu_scan24 objects +0.00 -> +0.33, `python -m bench finetune_levers`) and less on the demo
     scene (+0.28 -> -0.02)."""
+    residual_res: int = 16
+    """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
+    (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
+    every view, so what tuning views teach it reaches held-out views at the same surface)."""
+    residual_lr: float = 1e-2
+    """With ``--tune residual``: the residual grid's Adam learning rate."""
     reg: float = 0.0
     """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
     val_views: int = 2
@@ -320,6 +326,23 @@ def view_pixels(rast, scene, i: int, far: float, bounds, fill: bool, sources, dm
     return ViewPixels(i, cam.centers[0].float(), points, surf.pixels, img[surf.pixels].float(), covered, visible)
 
 
+class ResidualColour(torch.nn.Module):
+    """``--tune residual``: a colour offset over the scene's box, a coarse 3-D grid sampled trilinearly at each
+    shaded point (zero outside the box, e.g. on the far layer) and added to the blend; zero at start."""
+
+    def __init__(self, box: torch.Tensor, res: int):
+        super().__init__()
+        self.grid = torch.nn.Parameter(torch.zeros(1, 3, res, res, res), requires_grad=False)
+        """RGB offsets, z-major. ``# [1, 3, R, R, R]``"""
+        self.register_buffer("box", box.float())  # [2, 3]
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        lo, hi = self.box
+        g = ((points.float() - lo) / (hi - lo).clamp_min(1e-9) * 2 - 1).reshape(1, 1, 1, -1, 3)
+        v = torch.nn.functional.grid_sample(self.grid, g, align_corners=False, padding_mode="zeros")  # [1, 3, 1, 1, n]
+        return v.reshape(3, -1).T  # [n, 3]
+
+
 class Exposure(torch.nn.Module):
     """An affine colour per source view: ``gain_k * rgb + offset_k`` (per channel), identity at start."""
 
@@ -363,8 +386,13 @@ def encode_maps(model, sources, colours: Sources | None = None):
     return OmniReconFeatures(colours or sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
 
 
-def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384) -> torch.Tensor:
-    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch. ``# [P, 3]``"""
+def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,
+                  residual: ResidualColour | None = None) -> torch.Tensor:
+    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch (plus ``residual``, ``--tune
+    residual``). ``# [P, 3]``"""
+    if residual is not None:
+        points = view.points if idx is None else view.points[idx]
+        return render_pixels(model, features, view, idx, chunk) + residual(points)
     points = view.points if idx is None else view.points[idx]
     weights = None if view.weights is None else (view.weights if idx is None else view.weights[idx])
     out = []
@@ -618,10 +646,10 @@ def validation_gain(val: dict, start: dict, scored: str, guard: float) -> tuple[
 
 
 @torch.no_grad()
-def score_held_out(model, feats, scene, held_px: list[ViewPixels], background) -> dict:
+def score_held_out(model, feats, scene, held_px: list[ViewPixels], background, residual=None) -> dict:
     """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
     covers; ``coverage``; the ``renders``."""
-    renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
+    renders = [full_image(scene, v, render_pixels(model, feats, v, residual=residual), background) for v in held_px]
     gts = [scene.images[v.index].float() for v in held_px]
     cover = [coverage_mask(scene, v) for v in held_px]
     r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
@@ -643,11 +671,13 @@ class Tuner:
     """The tuned parameters of one run, their optimiser and exposure, and the scores of their current state."""
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
-        self.s, self.reg, model = s, cfg.reg, s.model
+        self.s, self.reg, model, self.consensus = s, cfg.reg, s.model, cfg.consensus
         self.exposure = Exposure(len(s.views))
         modules = {"encoder": model.encoder, "appearance": model.appearance}
-        self.params = [] if s.blend == "angle" else [  # the angle blend uses neither network
-            p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
+        nets = [] if s.blend == "angle" else [  # the angle blend uses neither network
+            p for name in dict.fromkeys(cfg.tune) if name in modules for p in modules[name].parameters()]
+        self.residual = ResidualColour(s.scene.bounds, cfg.residual_res) if "residual" in cfg.tune else None
+        self.params = nets + ([self.residual.grid] if self.residual is not None else [])
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
             with torch.no_grad():
@@ -656,13 +686,15 @@ class Tuner:
             p.requires_grad_(False)
         for p in self.params:
             p.requires_grad_(True)
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr) if self.params else None
+        groups = [g for g in ({"params": nets, "lr": cfg.lr},
+                              {"params": self.params[len(nets):], "lr": cfg.residual_lr}) if g["params"]]
+        self.opt = torch.optim.Adam(groups) if groups else None
         model.train()
         self.exposed = "exposure" in cfg.tune
         """Whether the blend mixes exposure-corrected colours (else the photos as they are: no identity pass)."""
         self.frozen = None
         """The features when the encoder is not tuned (they do not change: encoded once)."""
-        if "encoder" not in cfg.tune or self.opt is None:
+        if "encoder" not in cfg.tune or s.blend == "angle":  # the encoder is not tuned: encoded once
             with torch.no_grad():
                 self.frozen = self.features()
         self.autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
@@ -705,7 +737,13 @@ class Tuner:
         self.pending_cost = 0.0
         with self.autocast:
             feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
-            rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
+            if batch.weights is not None:  # --blend angle (with --tune residual): the fixed weights
+                rgb = self.s.model.gather(feats, batch.points[:, None], batch.origins).rgb[:, 0]  # [n, K, 3]
+                rgb = (consensus_weights(rgb, batch.weights.to(rgb), self.consensus)[:, :, None] * rgb).sum(1)
+            else:
+                rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
+        if self.residual is not None:
+            rgb = rgb.float() + self.residual(batch.points)
         loss = (rgb.float() - batch.target).square().mean()
         if self.reg > 0 and self.params:
             loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
@@ -724,7 +762,7 @@ class Tuner:
         model = self.s.model
         model.eval()
         feats = self.scoring_features()
-        se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
+        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual).clamp(0, 1) - v.target[i]).square().mean(-1)
                         for v, i in zip(self.s.val_px, val_idx)])
         model.train()
         out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
@@ -735,7 +773,8 @@ class Tuner:
     @torch.no_grad()
     def test_scores(self) -> dict:
         self.s.model.eval()
-        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background)
+        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background,
+                           self.residual)
         self.s.model.train()
         return r
 
@@ -782,11 +821,14 @@ class Batch(NamedTuple):
     """Sources each point may blend (``None``: no test). ``# [n, K]`` bool"""
     target: torch.Tensor
     """``# [n, 3]``"""
+    weights: torch.Tensor | None = None
+    """With ``--blend angle``: each point's fixed blend weights (``ViewPixels.weights``). ``# [n, K]``"""
 
 
 def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
     """``view``'s pixels at ``idx`` as a :class:`Batch`."""
-    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx])
+    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx],
+                 None if view.weights is None else view.weights[idx])
 
 
 class PixelSampler:
@@ -826,7 +868,8 @@ class PixelSampler:
             return parts[0]
         vis = None if parts[0].visible is None else torch.cat([b.visible for b in parts])
         return Batch(*(torch.cat([getattr(b, f) for b in parts]) for f in ("points", "origins")), vis,
-                     torch.cat([b.target for b in parts]))
+                     torch.cat([b.target for b in parts]),
+                     None if parts[0].weights is None else torch.cat([b.weights for b in parts]))
 
 
 def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, best_at: tuple[float, int]) -> dict:
@@ -974,7 +1017,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
               "reg": cfg.reg, "fill": s.fill_mode,
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t == "exposure"],
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual")],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,

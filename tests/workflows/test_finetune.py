@@ -487,3 +487,31 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
     assert tuner.pending is not None
     tuner.swap(tuner.state())
     assert tuner.pending is None
+
+
+@pytest.mark.parametrize("blend", ["network", "angle"])
+def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
+    """``--tune residual``: a 3-D colour offset added to the blend, zero at start (the start's colours unchanged);
+    under the angle blend too (whose weights are fixed: the steps use them), steps lower the tuning loss."""
+    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, render_pixels
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=512,
+                         tune=("residual",), blend=blend, angle_sources=())
+    s = prepare(cfg)
+    g = torch.Generator().manual_seed(0)
+    tuner = Tuner(cfg, s, g)
+    assert tuner.params == [tuner.residual.grid] and tuner.frozen is not None  # nothing else is tuned or encoded
+    v = s.train_px[0]
+    start = render_pixels(s.model, tuner.frozen, v)
+    assert torch.equal(render_pixels(s.model, tuner.frozen, v, residual=tuner.residual), start)
+
+    def loss() -> float:
+        with torch.no_grad():
+            return float(sum((render_pixels(s.model, tuner.frozen, w, residual=tuner.residual) - w.target).square().mean()
+                             for w in s.train_px))
+
+    before, sample = loss(), PixelSampler(cfg, s, g)
+    for _ in range(30):
+        tuner.step(sample())
+    assert loss() < 0.9 * before and float(tuner.residual.grid.abs().max()) > 0
