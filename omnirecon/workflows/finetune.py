@@ -924,9 +924,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
-            same = bool(validation) and validation[-1]["steps"] == step  # no step since: the same state
-            val = {k: validation[-1][k] for k in ("psnr", "psnr_masked") if k in validation[-1]} if same else \
-                tuner.validate(val_idx, val_obj)
+            val = validate_once(tuner, validation, step, val_idx, val_obj)
             start_val = start_val or val
             # a state's gain: on what the scene is scored by, the other score guarded (validation_gain)
             gain, guarded = validation_gain(val, start_val, s.scored_by, cfg.val_guard) if s.val_px else (0.0, True)
@@ -935,9 +933,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
                 best_state, best_val, best_gain, best_at = tuner.state(), val, gain, (t_check, step)  # no validation: the latest
             if t_check not in eval_at:
                 continue
-            if scored is None or scored[0] != best_at[1]:  # score what tuning returns if it stopped here
-                r = tuner.test_scores() if best_at[1] == step else held_out_of(tuner, best_state)
-                scored = (best_at[1], r)
+            scored = returned_scores(tuner, scored, best_state, best_at[1], step)  # what tuning returns if it stopped here
             r = scored[1]
             before = before or r
             curve.append(curve_point(t_check, step, r, val, best_val, best_at))
@@ -948,12 +944,25 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
     return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step, clock.spent)
 
 
-def held_out_of(tuner: Tuner, state: list[torch.Tensor]) -> dict:
-    """The held-out scores of ``state`` (the tuned parameters are put back after)."""
+def validate_once(tuner: Tuner, validation: list[dict], step: int, val_idx, val_obj) -> dict:
+    """The current state's validation scores; the last check's when no step was taken since (the same state)."""
+    if validation and validation[-1]["steps"] == step:
+        return {k: validation[-1][k] for k in ("psnr", "psnr_masked") if k in validation[-1]}
+    return tuner.validate(val_idx, val_obj)
+
+
+def returned_scores(tuner: Tuner, scored: tuple[int, dict] | None, state: list[torch.Tensor], best_step: int,
+                    step: int) -> tuple[int, dict]:
+    """``(best_step, held-out scores)`` of the returned ``state`` (reached after ``best_step`` steps): ``scored`` when it
+    already is that state's, else scored now (the current state's features reused when it is the current one)."""
+    if scored is not None and scored[0] == best_step:
+        return scored
+    if best_step == step:
+        return step, tuner.test_scores()
     current = tuner.swap(state)
     r = tuner.test_scores()
     tuner.swap(current)
-    return r
+    return best_step, r
 
 
 def plot_curve(cfg: FinetuneConfig, s: Setup, t: Tuned, out: Path) -> None:
