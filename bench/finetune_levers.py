@@ -48,6 +48,8 @@ ROWS = {
     "skip1_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "skip_nearest": 1, "val_views": 0},
     "residual": {"tune": ("residual",), "rays": 8192},
     "residual_latest": {"tune": ("residual",), "rays": 8192, "val_views": 0},
+    "residual_uniform": {"tune": ("residual",), "rays": 8192, "objects": 0.0},
+    "residual_uniform_latest": {"tune": ("residual",), "rays": 8192, "objects": 0.0, "val_views": 0},
 }
 """Lever rows: overrides of :class:`~omnirecon.workflows.finetune.FinetuneConfig`."""
 LAST_MERGE = "the last merge into this file; each row names the commit it ran at (its own provenance)"

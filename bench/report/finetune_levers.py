@@ -25,7 +25,9 @@ LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
           "skip2": "encoder + appearance, `--skip-nearest 2`",
           "skip1_latest": "`--skip-nearest 1`, no validation: the state at the end (diagnostic)",
           "residual": "a 3-D residual colour grid only (`--tune residual`, 16³, lr 1e-2; the blend fixed)",
-          "residual_latest": "`--tune residual`, no validation: the state at the end (diagnostic)"}
+          "residual_latest": "`--tune residual`, no validation: the state at the end (diagnostic)",
+          "residual_uniform": "`--tune residual --objects 0`",
+          "residual_uniform_latest": "`--tune residual --objects 0`, no validation: the state at the end (diagnostic)"}
 BEFORE = " *(before the visibility test, older mesh)*"
 """Marks a row measured before ``finetune``'s visibility test (on an older mesh: not comparable with the others)."""
 
