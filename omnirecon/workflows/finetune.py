@@ -11,8 +11,13 @@ renderer does), so every pixel is shaded. Each step samples ``--rays`` shaded pi
 see each point: ``--visibility``) from the source views' 2-D encoder features (the feature volume and the
 geometry branch are not used by the mesh path and are not computed; the features are encoded once unless the
 encoder is tuned) and takes an Adam step on the MSE to the training images. What changes is ``--tune``: the
-2-D encoder and the appearance branch by default, optionally a per-source affine colour (``exposure``), with
-an L2 pull toward the pretrained weights (``--reg``).
+2-D encoder and the appearance branch by default, optionally a per-source affine colour (``exposure``) or a 3-D
+residual colour grid (``residual``), with an L2 pull toward the pretrained weights (``--reg``).
+
+Scoring costs no encoder pass of its own between steps: a validation encodes the sources with their graph and the
+next step reuses that pass (its seconds charged to the budget); a returned state is scored on the held-out views
+once; the sources' depth is rasterized once for every view group (fern, 60 CPU-s: 98.5 -> 76.6 process CPU-s;
+dtu_scan24: 138.9 -> 63.3; identical held-out PSNRs).
 
 **Tuning never ends worse than it started.** ``--val-views`` training views (``--val-choice``: by default those
 farthest from the other training views, as held-out views are; never blending their own photo) are kept
@@ -125,7 +130,11 @@ class FinetuneConfig(ThreadsConfig):
     residual_res: int = 16
     """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
     (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
-    every view, so what tuning views teach it reaches held-out views at the same surface)."""
+    every view, so what tuning views teach it reaches held-out views at the same surface; the only lever under the
+    angle blend besides exposure). Measured (`python -m bench finetune_levers`, rows residual*): validation returned
+    the start on the demo scene (30 CPU-s; validation whole image -0.7 to -1.2 dB), fern (60; -0.1 to -0.2) and
+    dtu_scan24 under the angle blend (60; objects never above the start); the demo's state at the end, no validation:
+    held-out objects 20.20 -> 21.18 dB but whole image 25.66 -> 25.33. Not saved with --save (not adopted)."""
     residual_lr: float = 1e-2
     """With ``--tune residual``: the residual grid's Adam learning rate."""
     reg: float = 0.0
@@ -201,7 +210,9 @@ class FinetuneConfig(ThreadsConfig):
     """Tuning views blend their --nearest sources after skipping this many nearest (validation and held-out views
     never skip): a held-out view lies farther from its sources than a training view from its neighbours, so tuning
     on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
-    finetune_levers`, rows skip1 / skip2)."""
+    finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene (30 CPU-s) and fern (60) returned the start
+    with 1 and 2 (the demo's state at the end, no validation: whole image 25.66 -> 25.58 against 25.52 without
+    skipping), so 0 stays the default."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
