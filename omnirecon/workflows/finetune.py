@@ -713,7 +713,8 @@ class Tuner:
         """The features of the current state with their graph, encoded for a score: the next step reuses them
         (fp32 only: a bf16 step encodes under autocast) and charges ``pending_cost`` to the budget."""
         self.pending_cost = 0.0
-        self.reuse = cfg.precision == "fp32" and self.frozen is None
+        self.reuse = cfg.precision == "fp32" and self.frozen is None and not any(  # eval-mode BN would differ
+            getattr(m, "track_running_stats", False) for m in model.encoder.modules())
         self.read = time.perf_counter if cfg.clock == "wall" else time.process_time
 
     def set_gains(self, gain: torch.Tensor) -> None:
