@@ -599,10 +599,11 @@ def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int]
     return views, targets, val_views, tune_views
 
 
-def prepare(cfg: FinetuneConfig, mesh=None, choose_later: bool = False) -> Setup:
+def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
     """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view.
-    ``choose_later``: the caller runs :func:`choose_angle_sources` (several ``--angle-sources``), so under the angle
-    blend only the validation views get weights here (the others get them once, with the chosen count)."""
+    ``for_run`` (:func:`run_finetune`): under the angle blend, with nothing it tunes (no exposure, no residual) no
+    tuning view is rasterized, and with several ``--angle-sources`` only the validation views get weights here
+    (:func:`choose_angle_sources` sets the others' once, with the chosen count)."""
     model, meta = load_checkpoint(cfg.ckpt)
     if not model.capabilities.appearance:
         raise InputError(f"finetune needs an Omni-Recon checkpoint, got preset {meta['preset']}", cfg.ckpt,
@@ -622,10 +623,11 @@ def prepare(cfg: FinetuneConfig, mesh=None, choose_later: bool = False) -> Setup
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"
-    train_px, held_px, val_px = rasterize_groups(mesh, scene, [tune_views, targets, val_views], fill, vis,
-                                                 nearest_fill=near)  # the sources' depth rasterized once
+    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual"}  # no step will sample
+    train_px, held_px, val_px = rasterize_groups(mesh, scene, [[] if idle else tune_views, targets, val_views], fill,
+                                                 vis, nearest_fill=near)  # the sources' depth rasterized once
     train_px = [v for v in train_px if len(v.points)]
-    chosen_later = choose_later and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
+    chosen_later = for_run and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
     for px in (train_px, held_px, val_px):
         if blend == "angle":
             for v in px:
@@ -635,7 +637,7 @@ def prepare(cfg: FinetuneConfig, mesh=None, choose_later: bool = False) -> Setup
             angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
         else:
             restrict_to_nearest(px, scene, views, cfg.nearest, cfg.skip_nearest if px is train_px else 0)
-    if not train_px or not any(v.covered for v in train_px):
+    if not any(v.covered for v in (val_px + held_px if idle else train_px)):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
                  fill, scored_by(proto, scene), train_px, held_px, val_px, blend, fill_mode)
@@ -1088,7 +1090,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
     set_threads(cfg.threads)
     cpu = {"start": time.process_time()}
-    s = prepare(cfg, mesh, choose_later=True)
+    s = prepare(cfg, mesh, for_run=True)
     cpu["prepared"] = time.process_time()
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
     g = torch.Generator().manual_seed(cfg.seed)

@@ -397,6 +397,7 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     assert main([str(a) for a in args]) == 0, capsys.readouterr().err
     r = json.loads((out / "curve.json").read_text())
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
+    assert r["train_views"] == 0  # nothing is tuned: no tuning view is rasterized
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
     assert r["validation_views"] and r["curve"][0]["val_psnr"] < 45  # never its own photo (that scored > 60 dB)
     chosen = tmp_path / "chosen"  # several --angle-sources: the one the validation views score best
