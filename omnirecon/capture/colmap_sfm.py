@@ -137,6 +137,8 @@ class SfmResult:
     reachable: int | None = None
     """Images linked to the kept model's by pairs of enough verified matches: the most any mapping of
     these features could pose (None when every image registered)."""
+    motions: dict | None = None
+    """The turntable check on the verified matches (:func:`omnirecon.capture.motions.second_motion`)."""
 
     @property
     def unregistered(self) -> list[str]:
@@ -153,6 +155,7 @@ class SfmResult:
             "models": self.models, "matcher": self.matcher, "pairs": self.pairs,
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
+            "motions": self.motions,
         }
 
 
@@ -353,6 +356,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     static background behind an object on a turntable.
     """
     from omnirecon.capture.dropped import drop_reasons, match_graph
+    from omnirecon.capture.motions import second_motion
 
     source = image_dir if source is None else source
     _quiet_colmap()
@@ -363,6 +367,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
     pairs = image_pairs(n, sequential, options.overlap)
     _match(db, work, names, pairs, options, stages)
+    motions = second_motion(db, seed=options.seed)  # one rigid scene, or an object turning before a still room?
 
     attempts: list[dict] = []
 
@@ -411,7 +416,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "points", source, "take more overlapping, textured photos")
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
-                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts)
+                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
+                       motions=motions)
     if len(registered) < n:
         graph = match_graph(best_db)
         result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], graph, MIN_MATCHES)

@@ -85,6 +85,18 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     return summary
 
 
+def motion_lines(s: dict) -> list[str]:
+    """The turntable hint of a :func:`process` summary (``motions``): empty unless the photos hold two rigid
+    motions and no masks were given."""
+    m = s.get("motions") or {}
+    if not m.get("two_motions") or s.get("masks"):
+        return []
+    return [f"note: the photos hold two rigid motions ({m['second_inliers']} matches of a median image pair follow a "
+            f"second one beside the {m['first_inliers']} kept): an object turning on a stand before a still room? The "
+            "poses cannot fit both; pass --masks DIR (one mask per photo, named like it, white on the object) so they "
+            "follow the object, or photograph it by walking around it"]
+
+
 def summary_lines(s: dict) -> list[str]:
     """Human-readable lines of a :func:`process` summary."""
     sec = s["seconds"]
@@ -111,6 +123,7 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    lines += motion_lines(s)
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
     return lines

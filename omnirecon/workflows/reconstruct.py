@@ -230,8 +230,13 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
                path_line: str, out: Path, tuned_line: str = "") -> None:
     """``index.html``: the rig, the mesh, the video, the held-out scores (PSNR beside coverage) and the timings."""
     scene = path["scene"]
+    notes = []
+    if record.get("process"):  # the photos were posed here: the turntable hint, when it applies
+        from omnirecon.capture.process import motion_lines  # lazy: pycolmap is the optional `capture` extra
+
+        notes = [line.removeprefix("note: ") for line in motion_lines(record["process"])]
     sections = [
-        Section("Capture").text(f"{len(scene)} views of {scene_path.name} ({scene.rig} rig)")
+        Section("Capture").text(" ".join([f"{len(scene)} views of {scene_path.name} ({scene.rig} rig).", *notes]))
         .figure(out / "cameras.png", out, "camera rig", 480),
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
