@@ -138,7 +138,7 @@ class SfmResult:
     """Images linked to the kept model's by pairs of enough verified matches: the most any mapping of
     these features could pose (None when every image registered)."""
     motions: dict | None = None
-    """The turntable check on the verified matches (:func:`omnirecon.capture.motions.second_motion`)."""
+    """The turntable check on the matches and poses (:func:`omnirecon.capture.motions.still_background`)."""
 
     @property
     def unregistered(self) -> list[str]:
@@ -356,7 +356,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     static background behind an object on a turntable.
     """
     from omnirecon.capture.dropped import drop_reasons, match_graph
-    from omnirecon.capture.motions import second_motion
+    from omnirecon.capture.motions import still_background
 
     source = image_dir if source is None else source
     _quiet_colmap()
@@ -367,7 +367,6 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
     pairs = image_pairs(n, sequential, options.overlap)
     _match(db, work, names, pairs, options, stages)
-    motions = second_motion(db, seed=options.seed)  # one rigid scene, or an object turning before a still room?
 
     attempts: list[dict] = []
 
@@ -417,7 +416,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
                        "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
-                       motions=motions)
+                       motions=still_background(best_db, best))  # one rigid scene, or an object turning before a still room?
     if len(registered) < n:
         graph = match_graph(best_db)
         result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], graph, MIN_MATCHES)

@@ -86,15 +86,15 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
 
 
 def motion_lines(s: dict) -> list[str]:
-    """The turntable hint of a :func:`process` summary (``motions``): empty unless the photos hold two rigid
-    motions and no masks were given."""
+    """The turntable hint of a :func:`process` summary (``motions``): empty unless the check found a still
+    background behind a turning object and no masks were given."""
     m = s.get("motions") or {}
-    if not m.get("two_motions") or s.get("masks"):
+    if not m.get("turntable") or s.get("masks"):
         return []
-    return [f"note: the photos hold two rigid motions ({m['second_inliers']} matches of a median image pair follow a "
-            f"second one beside the {m['first_inliers']} kept): an object turning on a stand before a still room? The "
-            "poses cannot fit both; pass --masks DIR (one mask per photo, named like it, white on the object) so they "
-            "follow the object, or photograph it by walking around it"]
+    return [f"note: a turntable capture? In photos posed {m.get('min_turn', 10):g}+ degrees apart, {m['share']:.0%} of "
+            "the matches (median) move together as one piece: a still background behind an object that turns. The "
+            "poses cannot fit both; pass --masks DIR (one mask per photo, named like it, white on the object) so "
+            "they follow the object, or walk around the object instead of turning it"]
 
 
 def summary_lines(s: dict) -> list[str]:
