@@ -107,19 +107,48 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
 
 
 class Laps:
-    """Wall and process CPU seconds per stage (``seconds``, ``cpu_seconds``; every thread counts in the CPU
-    clock): ``lap(name)`` closes the stage that ran since the previous lap."""
+    """Wall and process CPU seconds and peak resident memory per stage (``seconds``, ``cpu_seconds``,
+    ``peak_rss_mb``; every thread counts in the CPU clock): ``lap(name)`` closes the stage that ran since the
+    previous lap. The memory is the kernel's high-water mark (``VmHWM``), reset at each lap (Linux; elsewhere
+    ``peak_rss_mb`` stays empty)."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
         self.cpu_seconds: dict[str, float] = {}
+        self.peak_rss_mb: dict[str, float] = {}
         self._clock, self._cpu = time.perf_counter(), time.process_time()
+        _reset_peak_rss()
 
     def __call__(self, name: str) -> None:
         now, cpu = time.perf_counter(), time.process_time()
         self.seconds[name] = round(now - self._clock, 2)
         self.cpu_seconds[name] = round(cpu - self._cpu, 2)
+        peak = _peak_rss_mb()
+        if peak is not None and _reset_peak_rss():
+            self.peak_rss_mb[name] = peak
         self._clock, self._cpu = now, cpu
+
+
+def _peak_rss_mb() -> float | None:
+    """This process's peak resident memory since the last reset, MB (None off Linux)."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return None
+
+
+def _reset_peak_rss() -> bool:
+    """Reset the kernel's peak-memory mark of this process (``/proc/self/clear_refs``); False where it cannot."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
 
 
 def _stages(cfg: ReconstructConfig, out: Path) -> dict:
@@ -145,7 +174,8 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
                        "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"]},
-              "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "threads": torch.get_num_threads()}
+              "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "peak_rss_mb": lap.peak_rss_mb,
+              "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)
@@ -249,6 +279,7 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         .table(*curve_table(curve))
         .figure(out / "finetune" / "curve.png", out, "test and validation PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
-        Section("Timings").table(["stage", "seconds"], [[k, v] for k, v in record["seconds"].items()]),
+        Section("Timings").table(["stage", "seconds", "peak memory (MB)"],
+                                 [[k, v, record.get("peak_rss_mb", {}).get(k, "")] for k, v in record["seconds"].items()]),
     ]
     write_report(out, f"omnirecon reconstruct: {Path(cfg.path).name}", sections)
