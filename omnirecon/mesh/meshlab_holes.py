@@ -10,6 +10,7 @@ imports only numpy and pymeshlab (no torch), so the child starts in well under a
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -33,8 +34,10 @@ def close_in_child(vertices: np.ndarray, faces: np.ndarray, max_edges: int,
         np.savez(src, vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces, np.int32),
                  max_edges=np.int64(max_edges))
         cmd = [sys.executable, "-m", "omnirecon.mesh.meshlab_holes", str(src), str(dst), repr(float(cpu_seconds))]
+        root = str(Path(__file__).resolve().parents[2])  # the child imports this very package, however it was found
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
         try:
-            done = subprocess.run(cmd, capture_output=True, timeout=WALL_FACTOR * cpu_seconds + WALL_SLACK)
+            done = subprocess.run(cmd, capture_output=True, env=env, timeout=WALL_FACTOR * cpu_seconds + WALL_SLACK)
         except subprocess.TimeoutExpired:  # subprocess.run has killed the child
             return None
         if done.returncode != 0 or not dst.is_file():
