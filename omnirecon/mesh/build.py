@@ -511,8 +511,8 @@ def within_budget(mesh: trimesh.Trimesh, max_faces: int, options: MeshOptions, c
     if options.fill_holes and fill:
         closer: dict = {}
         mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes, options.fill_holes_cpu_seconds, closer)
-        if closer.get("timed_out"):  # the simple-loop closer did it instead
-            counts["holes_filled_timed_out"] = 1
+        if closer["closer"] != "pymeshlab" and "outcome" in closer:  # the simple-loop closer did it instead
+            counts["holes_filled_timed_out" if closer["timed_out"] else "holes_filled_failed"] = 1
     return mesh
 
 

@@ -221,7 +221,8 @@ def close_holes(mesh: trimesh.Trimesh, max_edges: int, cpu_seconds: float = 60.0
     closer found 76 of the demo mesh's 294 boundaries), in a child process limited to ``cpu_seconds`` of CPU
     time (:mod:`omnirecon.mesh.meshlab_holes`: pymeshlab's hole closing once ran for more than ten CPU-minutes
     on a fused mesh). Without pymeshlab, or when the child runs out of time or fails: :func:`close_small_holes`.
-    ``record`` (optional) gets ``{"closer": "pymeshlab" | "simple loops", "timed_out": bool}``."""
+    ``record`` (optional) gets ``closer`` (``"pymeshlab"`` or ``"simple loops"``) and, when pymeshlab ran, its
+    ``outcome``, ``cpu_seconds`` and ``timed_out``."""
     if len(mesh.faces) == 0 or max_edges < 3:
         return mesh, 0
     import importlib.util
@@ -230,9 +231,10 @@ def close_holes(mesh: trimesh.Trimesh, max_edges: int, cpu_seconds: float = 60.0
     if importlib.util.find_spec("pymeshlab") is not None:
         from omnirecon.mesh.meshlab_holes import close_in_child
 
-        closed = close_in_child(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_edges, cpu_seconds)
+        child: dict = {}
+        closed = close_in_child(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_edges, cpu_seconds, child)
         if record is not None:
-            record["timed_out"] = closed is None
+            record.update(child, timed_out=child["outcome"] == "out of time")
     if closed is None:
         out, _ = close_small_holes(mesh, max_edges)
     else:

@@ -11,6 +11,7 @@ imports only numpy and pymeshlab (no torch), so the child starts in well under a
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import tempfile
@@ -24,11 +25,14 @@ WALL_SLACK = 30.0
 """... plus this many (the child's start)."""
 
 
-def close_in_child(vertices: np.ndarray, faces: np.ndarray, max_edges: int,
-                   cpu_seconds: float) -> tuple[np.ndarray, np.ndarray] | None:
+def close_in_child(vertices: np.ndarray, faces: np.ndarray, max_edges: int, cpu_seconds: float,
+                   record: dict | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """pymeshlab's non-manifold edge repair and hole closing (holes of at most ``max_edges`` boundary edges)
     of ``vertices # [V, 3]``, ``faces # [F, 3]`` in a child process limited to ``cpu_seconds`` of CPU time.
-    Returns the closed mesh's vertices and faces, or ``None`` when the child ran out of time or failed."""
+    Returns the closed mesh's vertices and faces, or ``None`` when the child ran out of time or failed;
+    ``record`` (optional) gets ``outcome`` (``"closed"``, ``"out of time"`` or ``"failed: <its last words>"``)
+    and the child's ``cpu_seconds``."""
+    record = {} if record is None else record
     with tempfile.TemporaryDirectory(prefix="omnirecon-holes-") as tmp:
         src, dst = Path(tmp) / "in.npz", Path(tmp) / "out.npz"
         np.savez(src, vertices=np.asarray(vertices, np.float64), faces=np.asarray(faces, np.int32),
@@ -36,12 +40,24 @@ def close_in_child(vertices: np.ndarray, faces: np.ndarray, max_edges: int,
         cmd = [sys.executable, "-m", "omnirecon.mesh.meshlab_holes", str(src), str(dst), repr(float(cpu_seconds))]
         root = str(Path(__file__).resolve().parents[2])  # the child imports this very package, however it was found
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")]))}
+        before = os.times()
         try:
             done = subprocess.run(cmd, capture_output=True, env=env, timeout=WALL_FACTOR * cpu_seconds + WALL_SLACK)
         except subprocess.TimeoutExpired:  # subprocess.run has killed the child
+            record["outcome"] = "out of time"
+            return None
+        finally:
+            after = os.times()
+            record["cpu_seconds"] = round(after.children_user + after.children_system - before.children_user
+                                          - before.children_system, 2)
+        if done.returncode == -signal.SIGXCPU or done.returncode == -signal.SIGKILL:  # the CPU limit ended it
+            record["outcome"] = "out of time"
             return None
         if done.returncode != 0 or not dst.is_file():
+            words = done.stderr.decode(errors="replace").strip().splitlines()
+            record["outcome"] = f"failed: {words[-1] if words else f'exit status {done.returncode}'}"
             return None
+        record["outcome"] = "closed"
         with np.load(dst) as out:
             return out["vertices"], out["faces"].astype(np.int64)
 
