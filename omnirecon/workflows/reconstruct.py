@@ -129,6 +129,20 @@ class Laps:
         self._clock, self._cpu = now, cpu
 
 
+def give_back_memory() -> None:
+    """Collect garbage and hand the freed heap back to the system (glibc's ``malloc_trim``; nothing elsewhere): a
+    stage's large freed arrays otherwise stay in this process's resident memory under the next stages'. On
+    ethiopianHead the process stayed at 4.8 GB after the mesh stage and fine-tuning went past 6.5 GB on top."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+
+
 def _peak_rss_mb() -> float | None:
     """This process's peak resident memory since the last reset, MB (None off Linux)."""
     try:
@@ -159,6 +173,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     lap("process")
     meshed = mesh_stage(cfg, scene_path, out, lines)
     meshes = meshed.pop("meshes")  # scene and input frame, in memory: the next stages read no file
+    give_back_memory()  # the fusion grid and the marching-cubes mesh are gone: the next stages start lower
     lap("mesh")
     side = cfg.resolution or photo_side(scene_path)
     tuned, ckpt = finetune_stage(cfg, scene_path, side, meshes["scene"], out, lines)

@@ -316,3 +316,17 @@ def test_bad_fill_holes_is_refused():
         MeshOptions(fill_holes=-1).check()
     with pytest.raises(InputError, match="fill_holes_cpu_seconds"):
         MeshOptions(fill_holes_cpu_seconds=0).check()
+
+
+def test_block_voxels_lists_every_voxel_of_the_marked_blocks_once_in_order():
+    """The band's voxel list (int32, increasing) equals the voxels of the marked blocks, blocks past the grid's edge
+    (a side that is not a multiple of the block) cut to the grid."""
+    from omnirecon.mesh.fusion import BLOCK, block_voxels
+
+    rng = np.random.default_rng(0)
+    shape = (13, 9, 10)  # 4 x 3 x 3 blocks, the last ones partly outside
+    marked = rng.random((4, 3, 3)) < 0.4
+    got = block_voxels(marked, shape)
+    dense = np.repeat(np.repeat(np.repeat(marked, BLOCK, 0), BLOCK, 1), BLOCK, 2)[:13, :9, :10]
+    assert got.dtype == torch.int32 and np.array_equal(got.numpy(), np.flatnonzero(dense))
+    assert len(block_voxels(np.zeros((4, 3, 3), bool), shape)) == 0
