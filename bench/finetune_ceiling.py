@@ -108,6 +108,7 @@ def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, nearest:
 
 def main(argv: list[str] | None = None) -> dict:
     from bench.finetune_levers import merge, scene_parser, scenes_and_meshes
+    from omnirecon.provenance import provenance
 
     p = scene_parser(__doc__)
     p.add_argument("--nearest", type=int, default=6, help="each pixel's nearest sources (as omnirecon finetune --nearest)")
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> dict:
     a = p.parse_args(argv)
     result = {}
     for name, path, mesh in scenes_and_meshes(a):
+        started = provenance(seed=0)
         row = ceiling(path, mesh, nearest=a.nearest, num_views=a.num_views, visibility=a.visibility)
         print(name, row["model"], "->", row["ceiling"])
-        result = merge(a.out / "finetune_ceiling.json", name, row)
+        result = merge(a.out / "finetune_ceiling.json", name, row, started)
     return result

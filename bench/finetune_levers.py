@@ -43,8 +43,17 @@ ROWS = {
     "mixed_uniform": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0, "objects": 0.0},
     "mixed_uniform_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "step_views": 0,
                              "objects": 0.0, "val_views": 0},
+    "skip1": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "skip_nearest": 1},
+    "skip2": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "skip_nearest": 2},
+    "skip1_latest": {"tune": ("encoder", "appearance"), "rays": 8192, "lr": 5e-4, "skip_nearest": 1, "val_views": 0},
+    "residual": {"tune": ("residual",), "rays": 8192},
+    "residual_latest": {"tune": ("residual",), "rays": 8192, "val_views": 0},
+    "residual_uniform": {"tune": ("residual",), "rays": 8192, "objects": 0.0},
+    "residual_uniform_latest": {"tune": ("residual",), "rays": 8192, "objects": 0.0, "val_views": 0},
 }
 """Lever rows: overrides of :class:`~omnirecon.workflows.finetune.FinetuneConfig`."""
+LAST_MERGE = "the last merge into this file; each row names the commit it ran at (its own provenance)"
+"""The note on a results file's header: rows merged from different runs each keep their own provenance."""
 KEEP = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
         "val_psnr_masked", "returned_from")
 
@@ -68,19 +77,23 @@ def run_row(scene: str, path: Path, mesh: Path, row: str, seconds: float, thread
             "visibility": ft.get("visibility", False), "load_average": os.getloadavg()[0]}
 
 
-def merge(file: Path, key: str, row: dict) -> dict:
-    """Merge ``row`` into ``file``'s rows under a lock (rows run in parallel processes); with the provenance
-    and the checkpoint's fingerprint."""
+def merge(file: Path, key: str, row: dict, started: dict | None = None) -> dict:
+    """Merge ``row`` into ``file``'s rows under a lock (rows run in parallel processes). The row keeps its own
+    provenance: ``started`` (:func:`omnirecon.provenance.provenance` taken when its run began: a commit made while
+    it ran is not its commit), else the provenance now, and the checkpoint's fingerprint. The file's header is the
+    last merge's (its note says so): a row's numbers are those of the commit in its own ``provenance``."""
     from omnirecon.engine.checkpoint import fingerprint
     from omnirecon.provenance import provenance
 
+    checkpoint = {**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"), "path": "checkpoints/omnirecon-tiny"}
+    row = {**row, "provenance": row.get("provenance") or started or provenance(seed=0),
+           "checkpoint": row.get("checkpoint") or checkpoint}
     file.parent.mkdir(parents=True, exist_ok=True)
     with open(file.with_suffix(".lock"), "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         result = json.loads(file.read_text()) if file.is_file() else {"rows": {}}
         result["rows"][key] = row
-        result.update(provenance=provenance(seed=0), checkpoint={**fingerprint(ROOT / "checkpoints" / "omnirecon-tiny"),
-                                                                 "path": "checkpoints/omnirecon-tiny"})
+        result.update(provenance={**provenance(seed=0), "note": LAST_MERGE}, checkpoint=checkpoint)
         write_json(file, result)
     return result
 
@@ -103,6 +116,8 @@ def scenes_and_meshes(a: argparse.Namespace) -> list[tuple[str, Path, Path]]:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from omnirecon.provenance import provenance
+
     p = scene_parser(__doc__)
     p.add_argument("--mesh-note", default="", help="how the meshes were made (recorded)")
     p.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
@@ -111,9 +126,38 @@ def main(argv: list[str] | None = None) -> dict:
     result = {}
     for name, path, mesh in scenes_and_meshes(a):
         for row in a.rows:
+            started = provenance(seed=0)
             r = run_row(name, path, mesh, row, a.seconds, a.threads)
             r["mesh_note"] = a.mesh_note
             print(name, row, f"{r['before']['psnr']:.2f} -> {r['after']['psnr']:.2f} dB, {r['steps']} steps")
-            result = merge(a.out / "finetune_levers.json", f"{name}/{row}", r)
+            result = merge(a.out / "finetune_levers.json", f"{name}/{row}", r, started)
     return result
 
+
+
+def recover_provenance(file: Path) -> dict:
+    """Rows merged before rows kept their own provenance: give each the header of the first committed version of
+    ``file`` (in this branch's history) that holds the row as it is now, marked ``recovered`` (that header is the
+    last merge before that commit: the row ran at its commit or at an earlier one of the same session). Rows
+    found in no committed version keep none. ``python -c "from bench.finetune_levers import recover_provenance as
+    r; from pathlib import Path; r(Path('bench/results/finetune_levers.json'))"``"""
+    import subprocess
+
+    result = json.loads(file.read_text())
+    rel = str(file.resolve().relative_to(ROOT))
+    log = subprocess.run(["git", "log", "--reverse", "--format=%H", "--", rel], cwd=ROOT, capture_output=True, text=True)
+    versions = []
+    for sha in log.stdout.split():
+        text = subprocess.run(["git", "show", f"{sha}:{rel}"], cwd=ROOT, capture_output=True, text=True).stdout
+        if text.strip():
+            versions.append((sha, json.loads(text)))
+    for key, row in result["rows"].items():
+        if row.get("provenance"):
+            continue
+        for sha, old in versions:
+            if old.get("rows", {}).get(key) == row and old.get("provenance"):
+                row["provenance"] = {**old["provenance"], "recovered": f"the header of {sha[:12]}, the first commit "
+                                     "holding this row as it is: the last merge before it (this row's run, a later one, or an edit of the row)"}
+                break
+    write_json(file, result)
+    return result

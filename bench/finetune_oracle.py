@@ -81,6 +81,7 @@ def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "or
 
 def main(argv: list[str] | None = None) -> dict:
     from bench.finetune_levers import merge
+    from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", action="append", required=True, help="NAME=PATH (repeatable)")
@@ -93,7 +94,8 @@ def main(argv: list[str] | None = None) -> dict:
     meshes = dict(s.split("=", 1) for s in a.mesh)
     result = {}
     for name, path in (s.split("=", 1) for s in a.scene):
+        started = provenance(seed=0)
         row = oracle(Path(path), Path(meshes[name]), a.seconds, a.threads, a.mode)
         print(name, a.mode, [(c["seconds"], round(c["psnr"], 2)) for c in row["curve"]])
-        result = merge(a.out / "finetune_oracle.json", name if a.mode == "oracle" else f"{name}:maps", row)
+        result = merge(a.out / "finetune_oracle.json", name if a.mode == "oracle" else f"{name}:maps", row, started)
     return result

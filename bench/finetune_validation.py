@@ -44,6 +44,7 @@ def run_row(scene: str, path: Path, mesh: Path, choice: str, seconds: float, thr
 
 def main(argv: list[str] | None = None) -> dict:
     from bench.finetune_levers import merge, scene_parser, scenes_and_meshes
+    from omnirecon.provenance import provenance
 
     p = scene_parser(__doc__)
     p.add_argument("--choices", nargs="+", default=["isolated", "spread"], choices=["isolated", "spread"])
@@ -52,9 +53,10 @@ def main(argv: list[str] | None = None) -> dict:
     result = {}
     for name, path, mesh in scenes_and_meshes(a):
         for choice in a.choices:
+            started = provenance(seed=0)
             r = run_row(name, path, mesh, choice, a.seconds, a.threads)
             c0, c1 = r["curve"][0], r["curve"][-1]
             print(name, choice, r["validation_views"], f"{c0['psnr']:.2f} -> {c1['psnr']:.2f} dB,",
                   f"returned from {r['returned_from']['seconds']:g} s (validation {r['returned_from']['val_gain']:+.2f})")
-            result = merge(a.out / "finetune_validation.json", f"{name}/{choice}/{a.seconds:g}", r)
+            result = merge(a.out / "finetune_validation.json", f"{name}/{choice}/{a.seconds:g}", r, started)
     return result

@@ -20,7 +20,14 @@ LABELS = {"base": "encoder + appearance, 2048 px/step, fp32",
           "uniform": "encoder + appearance, `--objects 0` (pixels uniform over the shaded ones)",
           "uniform_exposure": "encoder + appearance + exposure, `--objects 0`",
           "mixed_uniform": "`--step-views 0 --objects 0`",
-          "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)"}
+          "mixed_uniform_latest": "`--step-views 0 --objects 0`, no validation: the state at the end (diagnostic)",
+          "skip1": "encoder + appearance, tuning views skip their nearest source (`--skip-nearest 1`)",
+          "skip2": "encoder + appearance, `--skip-nearest 2`",
+          "skip1_latest": "`--skip-nearest 1`, no validation: the state at the end (diagnostic)",
+          "residual": "a 3-D residual colour grid only (`--tune residual`, 16³, lr 1e-2; the blend fixed)",
+          "residual_latest": "`--tune residual`, no validation: the state at the end (diagnostic)",
+          "residual_uniform": "`--tune residual --objects 0`",
+          "residual_uniform_latest": "`--tune residual --objects 0`, no validation: the state at the end (diagnostic)"}
 BEFORE = " *(before the visibility test, older mesh)*"
 """Marks a row measured before ``finetune``'s visibility test (on an older mesh: not comparable with the others)."""
 
@@ -28,6 +35,13 @@ BEFORE = " *(before the visibility test, older mesh)*"
 def sources(row: dict) -> str:
     """Which sources a row blended: each pixel's nearest (``finetune``'s default since session 14) or fixed ones."""
     return f"nearest {row['nearest']}" if row.get("nearest") else "3 fixed"
+
+
+def commit(row: dict) -> str:
+    """The commit a row ran at (its own provenance; ``~`` when recovered from the file's history: that commit or an
+    earlier one), ``?`` when unknown."""
+    p = row.get("provenance") or {}
+    return f"{'~' if p.get('recovered') else ''}`{p['commit']}`" if p.get("commit") else "?"
 
 
 def section(results: Path) -> str | None:
@@ -41,13 +55,14 @@ def section(results: Path) -> str | None:
         out += ["`omnirecon finetune` for 60 CPU-seconds (1 thread, `--clock cpu`) per row, the same held-out views; "
                 "`nearest 6` rows: today's defaults and the Fine-tuning curves row's mesh; `3 fixed` rows: the 3 fixed "
                 "sources and the older mesh they were measured with (session 13); images at the photos' own resolution; held-out test PSNR in dB before -> after "
-                "(objects: over the masks)."
+                "(objects: over the masks); commit: the one each row ran at (`~`: recovered from the results file's history, "
+                "that commit or an earlier one)."
                 + ("" if all(r.get("visibility") for r in levers["rows"].values()) else
                    " Rows marked" + BEFORE + " were scored before `finetune`'s visibility test (every source blended "
                    "at every point; it now blends only the sources that see the point) on an older mesh; the others "
                    "with it, on the mesh of the Fine-tuning curves row."), "",
-                "| scene | sources | what is tuned | steps | whole image | objects | gain | load |",
-                "|---|---|---|---:|---|---|---:|---:|"]
+                "| scene | sources | what is tuned | steps | whole image | objects | gain | load | commit |",
+                "|---|---|---|---:|---|---|---:|---:|---|"]
         for key, row in levers["rows"].items():
             b, a = row["before"], row["after"]
             obj = f"{b['psnr_masked']:.2f} -> {a['psnr_masked']:.2f}" if "psnr_masked" in b else "–"
@@ -55,7 +70,8 @@ def section(results: Path) -> str | None:
             if a.get("seconds", 60.0) != 60.0:  # e.g. the demo scene at `make demo`'s 30 s
                 label += f" *({a['seconds']:g} CPU-s)*"
             out.append(f"| {key.split('/')[0]} | {sources(row)} | {label} | {row['steps']} | "
-                       f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {row['gain_db']:+.2f} | {row['load_average']:.0f} |")
+                       f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {row['gain_db']:+.2f} | {row['load_average']:.0f} | "
+                       f"{commit(row)} |")
         curves = read(results, "finetune_curves.json") or {"rows": {}}
         meshes = {(key.split("/")[0], row["mesh"]) for key, row in levers["rows"].items() if row.get("visibility")}
         for name, row in curves["rows"].items():  # the default's row: the curve's 60 s point (same settings and mesh)
@@ -66,7 +82,7 @@ def section(results: Path) -> str | None:
                 what = " + ".join(row["tuned"]) + (f", lr {row['lr']:g}" if "lr" in row else "")
                 out.append(f"| {name} | {sources(row)} | {what}, 8192 px/step (the default; the curve's 60 s point) | {a['steps']} | "
                            f"{b['psnr']:.2f} -> {a['psnr']:.2f} | {obj} | {a['psnr'] - b['psnr']:+.2f} | "
-                           f"{row['load_average']:.0f} |")
+                           f"{row['load_average']:.0f} | {commit(row)} |")
         out += ["", prov(levers["provenance"]), ""]
     if ceiling:
         out += ["The ceiling: the mesh path colours a pixel with a convex blend of the source colours where its surface "

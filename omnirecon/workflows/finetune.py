@@ -11,8 +11,13 @@ renderer does), so every pixel is shaded. Each step samples ``--rays`` shaded pi
 see each point: ``--visibility``) from the source views' 2-D encoder features (the feature volume and the
 geometry branch are not used by the mesh path and are not computed; the features are encoded once unless the
 encoder is tuned) and takes an Adam step on the MSE to the training images. What changes is ``--tune``: the
-2-D encoder and the appearance branch by default, optionally a per-source affine colour (``exposure``), with
-an L2 pull toward the pretrained weights (``--reg``).
+2-D encoder and the appearance branch by default, optionally a per-source affine colour (``exposure``) or a 3-D
+residual colour grid (``residual``), with an L2 pull toward the pretrained weights (``--reg``).
+
+Scoring costs no encoder pass of its own between steps: a validation encodes the sources with their graph and the
+next step reuses that pass (its seconds charged to the budget); a returned state is scored on the held-out views
+once; the sources' depth is rasterized once for every view group (fern, 60 CPU-s: 98.5 -> 76.6 process CPU-s;
+dtu_scan24: 138.9 -> 63.3; identical held-out PSNRs).
 
 **Tuning never ends worse than it started.** ``--val-views`` training views (``--val-choice``: by default those
 farthest from the other training views, as held-out views are; never blending their own photo) are kept
@@ -110,7 +115,7 @@ class FinetuneConfig(ThreadsConfig):
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
     """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
-    tune: tuple[Literal["encoder", "appearance", "exposure"], ...] = ("encoder", "appearance")
+    tune: tuple[Literal["encoder", "appearance", "exposure", "residual"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
@@ -122,6 +127,16 @@ class FinetuneConfig(ThreadsConfig):
     24.70. With 3 fixed sources (--nearest 0) the appearance branch alone gained more on the real scenes (fern
     +0.28 -> +0.37 dB, dtu_scan24 objects +0.00 -> +0.33, `python -m bench finetune_levers`) and less on the demo
     scene (+0.28 -> -0.02)."""
+    residual_res: int = 16
+    """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
+    (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
+    every view, so what tuning views teach it reaches held-out views at the same surface; the only lever under the
+    angle blend besides exposure). Measured (`python -m bench finetune_levers`, rows residual*): validation returned
+    the start on the demo scene (30 CPU-s; validation whole image -0.7 to -1.2 dB), fern (60; -0.1 to -0.2) and
+    dtu_scan24 under the angle blend (60; objects never above the start); the demo's state at the end, no validation:
+    held-out objects 20.20 -> 21.18 dB but whole image 25.66 -> 25.33. Not saved with --save (not adopted)."""
+    residual_lr: float = 1e-2
+    """With ``--tune residual``: the residual grid's Adam learning rate."""
     reg: float = 0.0
     """Weight of the L2 pull of the tuned network weights toward the pretrained ones (mean squared change)."""
     val_views: int = 2
@@ -191,6 +206,13 @@ class FinetuneConfig(ThreadsConfig):
     --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
     24.69 / 21.10; dtu_scan37 at --nearest 5 / 6 20.78 / 20.60 against 20.95 at 4 (14-view mesh), so DTU's
     wide rig does slightly better at 4."""
+    skip_nearest: int = 0
+    """Tuning views blend their --nearest sources after skipping this many nearest (validation and held-out views
+    never skip): a held-out view lies farther from its sources than a training view from its neighbours, so tuning
+    on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
+    finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene (30 CPU-s) and fern (60) returned the start
+    with 1 and 2 (the demo's state at the end, no validation: whole image 25.66 -> 25.58 against 25.52 without
+    skipping), so 0 stays the default."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
@@ -275,31 +297,61 @@ def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] 
     misses gets the mesh renderer's background layer (with ``nearest_fill``: a point at the nearest covered pixel's
     depth, :func:`nearest_depth_points`); with ``sources`` (scene views), each mesh point gets the
     occlusion test against those views (:func:`omnirecon.mesh.ibr.unoccluded`, relative tolerance ``tol``)."""
-    from omnirecon.mesh.ibr import block_depth_max, unoccluded
+    return rasterize_groups(mesh, scene, [indices], fill, sources, tol, nearest_fill)[0]
 
-    out = []
+
+def rasterize_groups(mesh, scene, groups: list[list[int]], fill: bool = True, sources: list[int] | None = None,
+                     tol: float = 0.01, nearest_fill: bool = False) -> list[list[ViewPixels]]:
+    """:func:`rasterize_views` for several groups of views (tuning, held-out, validation) with one rasterizer and
+    the sources' depth maps rasterized once for all of them."""
+    from omnirecon.mesh.ibr import block_depth_max
+
     far, bounds = float(scene.far.max()), scene.bounds.float()
     with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
         dmax = None
         if sources:
             dmax = block_depth_max(torch.stack([rast.rasterize(scene.cameras[k], normals="none").depth
                                                 for k in sources]).float())
-        for i in indices:
-            cam = scene.cameras[i]
-            surf = rast.surface(cam)
-            surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
-                else (surf, len(surf.pixels))
-            img = scene.images[i].reshape(-1, 3)
-            points, moved = nearest_depth_points(surf, covered, cam) if fill and nearest_fill else (
-                surf.points.float(), torch.zeros(len(surf.pixels), dtype=torch.bool))
-            visible = None
-            if dmax is not None:
-                proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
-                visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
-                visible[covered:][~moved[covered:]] = True  # the far layer: every source
-            out.append(ViewPixels(i, cam.centers[0].float(), points, surf.pixels,
-                                  img[surf.pixels].float(), covered, visible))
-    return out
+        return [[view_pixels(rast, scene, i, far, bounds, fill, sources, dmax, tol, nearest_fill) for i in indices]
+                for indices in groups]
+
+
+def view_pixels(rast, scene, i: int, far: float, bounds, fill: bool, sources, dmax, tol: float,
+                nearest_fill: bool) -> ViewPixels:
+    """One view of :func:`rasterize_groups`: its surface (and fill) points and, given ``dmax`` (the sources'
+    block depth maxima), which sources see each point."""
+    from omnirecon.mesh.ibr import unoccluded
+
+    cam = scene.cameras[i]
+    surf = rast.surface(cam)
+    surf, covered = with_fill(surf, cam.to(dtype=torch.float32), far, layer_box(scene.rig, bounds)) if fill \
+        else (surf, len(surf.pixels))
+    img = scene.images[i].reshape(-1, 3)
+    points, moved = nearest_depth_points(surf, covered, cam) if fill and nearest_fill else (
+        surf.points.float(), torch.zeros(len(surf.pixels), dtype=torch.bool))
+    visible = None
+    if dmax is not None:
+        proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
+        visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
+        visible[covered:][~moved[covered:]] = True  # the far layer: every source
+    return ViewPixels(i, cam.centers[0].float(), points, surf.pixels, img[surf.pixels].float(), covered, visible)
+
+
+class ResidualColour(torch.nn.Module):
+    """``--tune residual``: a colour offset over the scene's box, a coarse 3-D grid sampled trilinearly at each
+    shaded point (zero outside the box, e.g. on the far layer) and added to the blend; zero at start."""
+
+    def __init__(self, box: torch.Tensor, res: int):
+        super().__init__()
+        self.grid = torch.nn.Parameter(torch.zeros(1, 3, res, res, res), requires_grad=False)
+        """RGB offsets, z-major. ``# [1, 3, R, R, R]``"""
+        self.register_buffer("box", box.float())  # [2, 3]
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        lo, hi = self.box
+        g = ((points.float() - lo) / (hi - lo).clamp_min(1e-9) * 2 - 1).reshape(1, 1, 1, -1, 3)
+        v = torch.nn.functional.grid_sample(self.grid, g, align_corners=False, padding_mode="zeros")  # [1, 3, 1, 1, n]
+        return v.reshape(3, -1).T  # [n, 3]
 
 
 class Exposure(torch.nn.Module):
@@ -345,8 +397,13 @@ def encode_maps(model, sources, colours: Sources | None = None):
     return OmniReconFeatures(colours or sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
 
 
-def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384) -> torch.Tensor:
-    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch. ``# [P, 3]``"""
+def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,
+                  residual: ResidualColour | None = None) -> torch.Tensor:
+    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch (plus ``residual``, ``--tune
+    residual``). ``# [P, 3]``"""
+    if residual is not None:
+        points = view.points if idx is None else view.points[idx]
+        return render_pixels(model, features, view, idx, chunk) + residual(points)
     points = view.points if idx is None else view.points[idx]
     weights = None if view.weights is None else (view.weights if idx is None else view.weights[idx])
     out = []
@@ -409,21 +466,23 @@ def every_training_view(pool: list[int], targets: list[int], scene) -> list[int]
     return [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]
 
 
-def nearest_blend(scene, view: int, sources: list[int], k: int) -> torch.Tensor:
+def nearest_blend(scene, view: int, sources: list[int], k: int, skip: int = 0) -> torch.Tensor:
     """Which of ``sources`` view ``view`` blends under ``--nearest k``: the ``k`` nearest to it, never
-    ``view`` itself (a tuning view that is also a source learns from the others). ``# [K]`` bool"""
+    ``view`` itself (a tuning view that is also a source learns from the others); with ``skip``, the ``k`` after the
+    ``skip`` nearest (fewer skipped when too few sources are left). ``# [K]`` bool"""
     others = [s for s in sources if s != view]
-    keep = set(select_sources(scene, scene.cameras[view], others, min(k, len(others)))) if others else set()
+    near = select_sources(scene, scene.cameras[view], others, min(k + skip, len(others))) if others else []
+    keep = set(near[max(0, len(near) - k):])
     return torch.tensor([s in keep for s in sources], dtype=torch.bool)
 
 
-def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int) -> None:
+def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int, skip: int = 0) -> None:
     """Mask every pixel of each view in ``pixels`` to its :func:`nearest_blend` sources (in place; ``k`` = 0:
     unchanged). A point the occlusion test hides from all of them blends those ``k`` (not every source)."""
     if k <= 0:
         return
     for v in pixels:
-        near = nearest_blend(scene, v.index, sources, k)  # [K]
+        near = nearest_blend(scene, v.index, sources, k, skip)  # [K]
         vis = v.visible if v.visible is not None else torch.ones(len(v.points), len(sources), dtype=torch.bool)
         vis = vis & near  # [P, K]
         vis[~vis.any(-1)] = near
@@ -540,8 +599,11 @@ def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int]
     return views, targets, val_views, tune_views
 
 
-def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
-    """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view."""
+def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
+    """Load the checkpoint and the scene, choose the views, and rasterize the fixed mesh once per view.
+    ``for_run`` (:func:`run_finetune`): under the angle blend, with nothing it tunes (no exposure, no residual) no
+    tuning view is rasterized, and with several ``--angle-sources`` only the validation views get weights here
+    (:func:`choose_angle_sources` sets the others' once, with the chosen count)."""
     model, meta = load_checkpoint(cfg.ckpt)
     if not model.capabilities.appearance:
         raise InputError(f"finetune needs an Omni-Recon checkpoint, got preset {meta['preset']}", cfg.ckpt,
@@ -561,17 +623,21 @@ def prepare(cfg: FinetuneConfig, mesh=None) -> Setup:
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"
-    train_px = [v for v in rasterize_views(mesh, scene, tune_views, fill, vis, nearest_fill=near) if len(v.points)]
-    held_px = rasterize_views(mesh, scene, targets, fill, vis, nearest_fill=near)
-    val_px = rasterize_views(mesh, scene, val_views, fill, vis, nearest_fill=near)
+    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual"}  # no step will sample
+    train_px, held_px, val_px = rasterize_groups(mesh, scene, [[] if idle else tune_views, targets, val_views], fill,
+                                                 vis, nearest_fill=near)  # the sources' depth rasterized once
+    train_px = [v for v in train_px if len(v.points)]
+    chosen_later = for_run and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
     for px in (train_px, held_px, val_px):
         if blend == "angle":
-            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
             for v in px:
                 v.consensus = cfg.consensus
+            if chosen_later and px is not val_px:
+                continue  # their weights are set once, with the chosen count
+            angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest)
         else:
-            restrict_to_nearest(px, scene, views, cfg.nearest)
-    if not train_px or not any(v.covered for v in train_px):
+            restrict_to_nearest(px, scene, views, cfg.nearest, cfg.skip_nearest if px is train_px else 0)
+    if not any(v.covered for v in (val_px + held_px if idle else train_px)):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
                  fill, scored_by(proto, scene), train_px, held_px, val_px, blend, fill_mode)
@@ -593,10 +659,10 @@ def validation_gain(val: dict, start: dict, scored: str, guard: float) -> tuple[
 
 
 @torch.no_grad()
-def score_held_out(model, feats, scene, held_px: list[ViewPixels], background) -> dict:
+def score_held_out(model, feats, scene, held_px: list[ViewPixels], background, residual=None) -> dict:
     """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
     covers; ``coverage``; the ``renders``."""
-    renders = [full_image(scene, v, render_pixels(model, feats, v), background) for v in held_px]
+    renders = [full_image(scene, v, render_pixels(model, feats, v, residual=residual), background) for v in held_px]
     gts = [scene.images[v.index].float() for v in held_px]
     cover = [coverage_mask(scene, v) for v in held_px]
     r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
@@ -618,11 +684,13 @@ class Tuner:
     """The tuned parameters of one run, their optimiser and exposure, and the scores of their current state."""
 
     def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
-        self.s, self.reg, model = s, cfg.reg, s.model
+        self.s, self.reg, model, self.consensus = s, cfg.reg, s.model, cfg.consensus
         self.exposure = Exposure(len(s.views))
         modules = {"encoder": model.encoder, "appearance": model.appearance}
-        self.params = [] if s.blend == "angle" else [  # the angle blend uses neither network
-            p for name in dict.fromkeys(cfg.tune) if name != "exposure" for p in modules[name].parameters()]
+        nets = [] if s.blend == "angle" else [  # the angle blend uses neither network
+            p for name in dict.fromkeys(cfg.tune) if name in modules for p in modules[name].parameters()]
+        self.residual = ResidualColour(s.scene.bounds, cfg.residual_res) if "residual" in cfg.tune else None
+        self.params = nets + ([self.residual.grid] if self.residual is not None else [])
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
             with torch.no_grad():
@@ -631,30 +699,65 @@ class Tuner:
             p.requires_grad_(False)
         for p in self.params:
             p.requires_grad_(True)
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr) if self.params else None
+        groups = [g for g in ({"params": nets, "lr": cfg.lr},
+                              {"params": self.params[len(nets):], "lr": cfg.residual_lr}) if g["params"]]
+        self.opt = torch.optim.Adam(groups) if groups else None
         model.train()
+        self.exposed = "exposure" in cfg.tune
+        """Whether the blend mixes exposure-corrected colours (else the photos as they are: no identity pass)."""
         self.frozen = None
         """The features when the encoder is not tuned (they do not change: encoded once)."""
-        if "encoder" not in cfg.tune:
+        if "encoder" not in cfg.tune or s.blend == "angle":  # the encoder is not tuned: encoded once
             with torch.no_grad():
                 self.frozen = self.features()
         self.autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
+        self.pending = None
+        """The features of the current state with their graph, encoded for a score: the next step reuses them
+        (fp32 only: a bf16 step encodes under autocast) and charges ``pending_cost`` to the budget."""
+        self.pending_cost = 0.0
+        self.reuse = cfg.precision == "fp32" and self.frozen is None and not any(  # eval-mode BN would differ
+            getattr(m, "track_running_stats", False) for m in model.encoder.modules())
+        self.read = time.perf_counter if cfg.clock == "wall" else time.process_time
 
     def set_gains(self, gain: torch.Tensor) -> None:
         """Load exposure gains ``# [K, 1, 1, 3]`` (re-encoding the frozen features that mix them)."""
+        self.pending, self.pending_cost = None, 0.0  # encoded with the old gains
         with torch.no_grad():
             self.exposure.gain.copy_(gain)
             if self.frozen is not None:
                 self.frozen = self.features()
 
     def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
-        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources))
+        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources) if self.exposed else None)
 
-    def step(self, batch: Batch) -> None:
-        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start)."""
+    def scoring_features(self):
+        """The current state's features for a score (no graph). Encoded with their graph when the next step can
+        reuse them (:attr:`pending`): a score between steps costs no encoder pass of its own."""
+        if self.frozen is not None:
+            return self.frozen
+        if not self.reuse:
+            return self.features()
+        if self.pending is None:
+            start = self.read()
+            with torch.enable_grad():
+                self.pending = self.features()
+            self.pending_cost = self.read() - start
+        return OmniReconFeatures(self.pending.sources, self.pending.maps.detach(), self.pending.volume, self.pending.box)
+
+    def step(self, batch: Batch) -> float:
+        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start). Returns the seconds of a
+        reused encoder pass (:meth:`scoring_features`), which the budget is charged."""
+        reused, self.pending, charge = self.pending, None, self.pending_cost
+        self.pending_cost = 0.0
         with self.autocast:
-            feats = self.features() if self.frozen is None else self.frozen
-            rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
+            feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
+            if batch.weights is not None:  # --blend angle (with --tune residual): the fixed weights
+                rgb = self.s.model.gather(feats, batch.points[:, None], batch.origins).rgb[:, 0]  # [n, K, 3]
+                rgb = (consensus_weights(rgb, batch.weights.to(rgb), self.consensus)[:, :, None] * rgb).sum(1)
+            else:
+                rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
+        if self.residual is not None:
+            rgb = rgb.float() + self.residual(batch.points)
         loss = (rgb.float() - batch.target).square().mean()
         if self.reg > 0 and self.params:
             loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
@@ -662,6 +765,7 @@ class Tuner:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+        return charge if reused is not None else 0.0
 
     @torch.no_grad()
     def validate(self, val_idx: list[torch.Tensor], val_obj: list[torch.Tensor] | None = None) -> dict[str, float]:
@@ -671,8 +775,8 @@ class Tuner:
             return {"psnr": float("nan")}
         model = self.s.model
         model.eval()
-        feats = self.features()
-        se = torch.cat([(render_pixels(model, feats, v, i).clamp(0, 1) - v.target[i]).square().mean(-1)
+        feats = self.scoring_features()
+        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual).clamp(0, 1) - v.target[i]).square().mean(-1)
                         for v, i in zip(self.s.val_px, val_idx)])
         model.train()
         out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
@@ -683,7 +787,8 @@ class Tuner:
     @torch.no_grad()
     def test_scores(self) -> dict:
         self.s.model.eval()
-        r = score_held_out(self.s.model, self.features(), self.s.scene, self.s.held_px, self.s.background)
+        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background,
+                           self.residual)
         self.s.model.train()
         return r
 
@@ -691,7 +796,9 @@ class Tuner:
         return [p.detach().clone() for p in self.params]
 
     def swap(self, state: list[torch.Tensor]) -> list[torch.Tensor]:
-        """Load ``state`` into the tuned parameters; returns the state they had."""
+        """Load ``state`` into the tuned parameters; returns the state they had. Drops :attr:`pending` (its graph
+        holds the weights this overwrites)."""
+        self.pending, self.pending_cost = None, 0.0
         old = self.state()
         with torch.no_grad():
             for p, s in zip(self.params, state):
@@ -713,6 +820,8 @@ class Tuned:
     """Its validation gain over the start (0: the start is returned)."""
     best_at: tuple[float, int]
     steps: int
+    budget_spent: float = 0.0
+    """Seconds of optimisation on the budget's clock (steps, and the encoder passes they reused)."""
 
 
 class Batch(NamedTuple):
@@ -726,11 +835,14 @@ class Batch(NamedTuple):
     """Sources each point may blend (``None``: no test). ``# [n, K]`` bool"""
     target: torch.Tensor
     """``# [n, 3]``"""
+    weights: torch.Tensor | None = None
+    """With ``--blend angle``: each point's fixed blend weights (``ViewPixels.weights``). ``# [n, K]``"""
 
 
 def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
     """``view``'s pixels at ``idx`` as a :class:`Batch`."""
-    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx])
+    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx],
+                 None if view.weights is None else view.weights[idx])
 
 
 class PixelSampler:
@@ -770,7 +882,8 @@ class PixelSampler:
             return parts[0]
         vis = None if parts[0].visible is None else torch.cat([b.visible for b in parts])
         return Batch(*(torch.cat([getattr(b, f) for b in parts]) for f in ("points", "origins")), vis,
-                     torch.cat([b.target for b in parts]))
+                     torch.cat([b.target for b in parts]),
+                     None if parts[0].weights is None else torch.cat([b.weights for b in parts]))
 
 
 def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, best_at: tuple[float, int]) -> dict:
@@ -815,16 +928,17 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
     clock = Clock(cfg.clock)
     columns = (TextColumn("finetune {task.fields[psnr]}"), BarColumn(), TextColumn("{task.completed:.0f}/{task.total:.0f} s"),
                TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn())
+    scored = None  # (the returned state's steps, its held-out scores): a state is scored once
     with Progress(*columns) as bar:
         task = bar.add_task("finetune", total=cfg.seconds, psnr="")
         for t_check in checks:
             clock.start()
             while tuner.opt is not None and clock.now() < t_check:
-                tuner.step(sample())
+                clock.spent += tuner.step(sample())  # a step's reused encoder pass counts against the budget
                 step += 1
                 bar.update(task, completed=min(clock.now(), cfg.seconds))
             clock.stop()
-            val = tuner.validate(val_idx, val_obj)
+            val = validate_once(tuner, validation, step, val_idx, val_obj)
             start_val = start_val or val
             # a state's gain: on what the scene is scored by, the other score guarded (validation_gain)
             gain, guarded = validation_gain(val, start_val, s.scored_by, cfg.val_guard) if s.val_px else (0.0, True)
@@ -833,16 +947,36 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
                 best_state, best_val, best_gain, best_at = tuner.state(), val, gain, (t_check, step)  # no validation: the latest
             if t_check not in eval_at:
                 continue
-            current = tuner.swap(best_state)  # score what tuning returns if it stopped here
-            r = tuner.test_scores()
-            tuner.swap(current)
+            scored = returned_scores(tuner, scored, best_state, best_at[1], step)  # what tuning returns if it stopped here
+            r = scored[1]
             before = before or r
             curve.append(curve_point(t_check, step, r, val, best_val, best_at))
             bar.update(task, completed=min(t_check, cfg.seconds), psnr=f"{r['psnr']:.2f} dB")
             if on_eval is not None and t_check < eval_at[-1]:
                 on_eval(Tuned(curve, validation, before, r, best_val, best_gain, best_at, step))
     tuner.swap(best_state)  # the returned (and saved) state: the best on validation
-    return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step)
+    return Tuned(curve, validation, before, r, best_val, best_gain, best_at, step, clock.spent)
+
+
+def validate_once(tuner: Tuner, validation: list[dict], step: int, val_idx, val_obj) -> dict:
+    """The current state's validation scores; the last check's when no step was taken since (the same state)."""
+    if validation and validation[-1]["steps"] == step:
+        return {k: validation[-1][k] for k in ("psnr", "psnr_masked") if k in validation[-1]}
+    return tuner.validate(val_idx, val_obj)
+
+
+def returned_scores(tuner: Tuner, scored: tuple[int, dict] | None, state: list[torch.Tensor], best_step: int,
+                    step: int) -> tuple[int, dict]:
+    """``(best_step, held-out scores)`` of the returned ``state`` (reached after ``best_step`` steps): ``scored`` when it
+    already is that state's, else scored now (the current state's features reused when it is the current one)."""
+    if scored is not None and scored[0] == best_step:
+        return scored
+    if best_step == step:
+        return step, tuner.test_scores()
+    current = tuner.swap(state)
+    r = tuner.test_scores()
+    tuner.swap(current)
+    return best_step, r
 
 
 def plot_curve(cfg: FinetuneConfig, s: Setup, t: Tuned, out: Path) -> None:
@@ -906,7 +1040,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
               "reg": cfg.reg, "fill": s.fill_mode,
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t == "exposure"],
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual")],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
@@ -940,6 +1074,14 @@ def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, v
     return best
 
 
+def cpu_split(cpu: dict, budget: float, end: float) -> dict:
+    """This run's process CPU-seconds: ``prepare`` (loading, rasterizing), ``budget`` (the tuning steps, on
+    ``--clock cpu`` the budget itself), ``outside_budget`` (validation and held-out scores, pictures and records),
+    ``process`` (everything since the process started, imports too)."""
+    return {"prepare": cpu["prepared"] - cpu["start"], "budget": budget,
+            "outside_budget": end - cpu["prepared"] - budget, "process": end}
+
+
 def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
     ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
@@ -947,7 +1089,9 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     if not cfg.tune:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
     set_threads(cfg.threads)
-    s = prepare(cfg, mesh)
+    cpu = {"start": time.process_time()}
+    s = prepare(cfg, mesh, for_run=True)
+    cpu["prepared"] = time.process_time()
     out = Path(cfg.out or Path("outputs/finetune") / Path(cfg.scene).name)
     g = torch.Generator().manual_seed(cfg.seed)
     val_idx = [torch.randperm(len(v.points), generator=g)[:VAL_PIXELS] for v in s.val_px]
@@ -965,7 +1109,10 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
         return result
 
     tuned = tune(cfg, s, tuner, g, val_idx, val_obj, on_eval=lambda t: write(t, partial=True))
+    cpu["tuned"] = time.process_time()
     result = write(tuned)
+    result["cpu_seconds"] = cpu_split(cpu, tuned.budget_spent, time.process_time())
+    write_json(out / "curve.json", result)
     if cfg.save:
         save_checkpoint(out / "checkpoint", s.model, s.meta["preset"], step=tuned.steps,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,

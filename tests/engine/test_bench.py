@@ -291,3 +291,18 @@ def test_geometry_tiny_scores_the_stereo_row(tmp_path):
     text = geometry_report.section(tmp_path)
     row = next(line for line in text.splitlines() if line.startswith("| stereo |"))
     assert row.rstrip(" |").endswith("–") and "| floor |" in text  # no PSNR without a model to render
+
+
+def test_finetune_rows_keep_the_provenance_of_their_own_run(tmp_path):
+    from bench.finetune_levers import LAST_MERGE, merge
+    from bench.report.finetune_levers import commit
+
+    file = tmp_path / "finetune_levers.json"
+    merge(file, "fern/a", {"x": 1}, started={"commit": "aaaaaaaaaaaa", "date": "then"})
+    result = merge(file, "fern/b", {"x": 2})  # no start given: stamped when merged
+    rows = result["rows"]
+    assert rows["fern/a"]["provenance"]["commit"] == "aaaaaaaaaaaa"  # a later merge does not restamp it
+    assert rows["fern/b"]["provenance"]["commit"] == result["provenance"]["commit"] != "aaaaaaaaaaaa"
+    assert result["provenance"]["note"] == LAST_MERGE and "sha256" in rows["fern/a"]["checkpoint"]
+    assert commit(rows["fern/a"]) == "`aaaaaaaaaaaa`" and commit({"provenance": {"commit": "b", "recovered": "x"}}) == "~`b`"
+    assert commit({}) == "?"

@@ -397,6 +397,7 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     assert main([str(a) for a in args]) == 0, capsys.readouterr().err
     r = json.loads((out / "curve.json").read_text())
     assert r["blend"] == "angle" and r["tuned_parameters"] == 0 and r["curve"][-1]["steps"] == 0
+    assert r["train_views"] == 0  # nothing is tuned: no tuning view is rasterized
     assert r["curve"][-1]["psnr"] == r["curve"][0]["psnr"] > 15, r["curve"]
     assert r["validation_views"] and r["curve"][0]["val_psnr"] < 45  # never its own photo (that scored > 60 dB)
     chosen = tmp_path / "chosen"  # several --angle-sources: the one the validation views score best
@@ -453,3 +454,65 @@ def test_blend_and_fill_defaults_per_scene_kind():
     assert scene_defaults(scene(background=(0.0, 0.0, 0.0))) == ("network", "background")
     assert scene_defaults(scene(rig="forward")) == ("network", "far")
     assert scene_defaults(scene(m=None)) == ("network", "far")
+
+
+def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setup):
+    """A score between two steps encodes the sources with their graph and the next step reuses that pass (charging
+    its seconds to the budget): validation scores and the tuned weights are exactly those of a run that encodes
+    for each of them; a swapped-in state drops the reusable pass; the sources' depth is rasterized once for the
+    tuning, held-out and validation views alike."""
+    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, rasterize_views
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256,
+                         clock="cpu")
+    runs = []
+    for reuse in (True, False):
+        s = prepare(cfg)
+        g = torch.Generator().manual_seed(0)
+        tuner = Tuner(cfg, s, g)
+        tuner.reuse = reuse
+        sample, idx = PixelSampler(cfg, s, g), [torch.arange(len(v.points)) for v in s.val_px]
+        vals, charged = [], 0.0
+        for _ in range(3):
+            vals.append(tuner.validate(idx))
+            charged += tuner.step(sample())
+        assert (charged > 0) == reuse and tuner.pending is None
+        runs.append((vals, [p.detach().clone() for p in tuner.params], s))
+    (va, pa, s), (vb, pb, _) = runs
+    assert va == vb and all(torch.equal(a, b) for a, b in zip(pa, pb))
+    again = rasterize_views(s.mesh, s.scene, [v.index for v in s.held_px], s.fill, s.views)
+    assert all(torch.equal(a.points, b.points) and torch.equal(a.pixels, b.pixels) for a, b in zip(s.held_px, again))
+    tuner = Tuner(cfg, s, torch.Generator().manual_seed(0))
+    tuner.validate(idx)
+    assert tuner.pending is not None
+    tuner.swap(tuner.state())
+    assert tuner.pending is None
+
+
+@pytest.mark.parametrize("blend", ["network", "angle"])
+def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
+    """``--tune residual``: a 3-D colour offset added to the blend, zero at start (the start's colours unchanged);
+    under the angle blend too (whose weights are fixed: the steps use them), steps lower the tuning loss."""
+    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, render_pixels
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=512,
+                         tune=("residual",), blend=blend, angle_sources=())
+    s = prepare(cfg)
+    g = torch.Generator().manual_seed(0)
+    tuner = Tuner(cfg, s, g)
+    assert tuner.params == [tuner.residual.grid] and tuner.frozen is not None  # nothing else is tuned or encoded
+    v = s.train_px[0]
+    start = render_pixels(s.model, tuner.frozen, v)
+    assert torch.equal(render_pixels(s.model, tuner.frozen, v, residual=tuner.residual), start)
+
+    def loss() -> float:
+        with torch.no_grad():
+            return float(sum((render_pixels(s.model, tuner.frozen, w, residual=tuner.residual) - w.target).square().mean()
+                             for w in s.train_px))
+
+    before, sample = loss(), PixelSampler(cfg, s, g)
+    for _ in range(30):
+        tuner.step(sample())
+    assert loss() < 0.9 * before and float(tuner.residual.grid.detach().abs().max()) > 0
