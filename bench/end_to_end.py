@@ -103,6 +103,7 @@ def collect_reconstruct(out: Path, time_file: Path, command: str) -> dict:
     rec = json.loads((Path(out) / "reconstruct.json").read_text())
     curve = rec["finetune"]["curve"]
     run = {"command": command, "whole": read_time(time_file), "stages_cpu_s": stages(rec),
+           "stages_peak_rss_mb": rec.get("peak_rss_mb"),
            "photos_registered": (rec.get("process") or {}).get("images_registered"), "mesh": rec["mesh"],
            "psnr_before_after": [round(curve[0]["psnr"], 2), round(curve[-1]["psnr"], 2)],
            "path_fps": round(rec["path"]["fps"], 1)}

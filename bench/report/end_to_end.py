@@ -36,9 +36,10 @@ def _end_to_end(r: dict) -> str:
                      f"{run['psnr_before_after'][1]:.2f} dB; {run['photos_registered']} photos posed; camera path "
                      f"{run['path_fps']} FPS." if run.get("psnr_before_after") else ""),
                   "",
-                  "| stage | CPU s | share |", "|---|---|---|"]
+                  "| stage | CPU s | share | peak RSS MB |", "|---|---|---|---|"]
         total = v["stages_total_cpu_s"]
-        lines += [f"| {k} | {s} | {100 * s / total:.0f} % |" for k, s in run["stages_cpu_s"].items()]
+        peaks = run.get("stages_peak_rss_mb") or {}  # the stage's own peak (recorded since reconstruct has it)
+        lines += [f"| {k} | {s} | {100 * s / total:.0f} % | {peaks.get(k, '–')} |" for k, s in run["stages_cpu_s"].items()]
         lines += ["", prov(run["provenance"]), ""]
     if r.get("mesh_sources"):
         lines += ["Reconstruct's mesh stage from cheaper depth sources (`omnirecon mesh --views all` on the scene "

@@ -137,6 +137,8 @@ class SfmResult:
     reachable: int | None = None
     """Images linked to the kept model's by pairs of enough verified matches: the most any mapping of
     these features could pose (None when every image registered)."""
+    motions: dict | None = None
+    """The turntable check on the matches and poses (:func:`omnirecon.capture.motions.still_background`)."""
 
     @property
     def unregistered(self) -> list[str]:
@@ -153,6 +155,7 @@ class SfmResult:
             "models": self.models, "matcher": self.matcher, "pairs": self.pairs,
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
+            "motions": self.motions,
         }
 
 
@@ -353,6 +356,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     static background behind an object on a turntable.
     """
     from omnirecon.capture.dropped import drop_reasons, match_graph
+    from omnirecon.capture.motions import still_background
 
     source = image_dir if source is None else source
     _quiet_colmap()
@@ -411,7 +415,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "points", source, "take more overlapping, textured photos")
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
-                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts)
+                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
+                       motions=still_background(best_db, best))  # one rigid scene, or an object turning before a still room?
     if len(registered) < n:
         graph = match_graph(best_db)
         result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], graph, MIN_MATCHES)

@@ -85,6 +85,18 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     return summary
 
 
+def motion_lines(s: dict) -> list[str]:
+    """The turntable hint of a :func:`process` summary (``motions``): empty unless the check found a still
+    background behind a turning object and no masks were given."""
+    m = s.get("motions") or {}
+    if not m.get("turntable") or s.get("masks"):
+        return []
+    return [f"note: a turntable capture? In photos posed {m.get('min_turn', 10):g}+ degrees apart, {m['share']:.0%} of "
+            "the matches (median) move together as one piece: a still background behind an object that turns. The "
+            "poses cannot fit both; pass --masks DIR (one mask per photo, named like it, white on the object) so "
+            "they follow the object, or walk around the object instead of turning it"]
+
+
 def summary_lines(s: dict) -> list[str]:
     """Human-readable lines of a :func:`process` summary."""
     sec = s["seconds"]
@@ -111,6 +123,7 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    lines += motion_lines(s)
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")
     return lines

@@ -202,6 +202,10 @@ class MeshOptions:
     -> 22.19, box 20.09 -> 20.75, sphere 20.78 -> 20.96; 300 edges gave 23.34, 5000 23.73. Not on forward-facing
     scenes (their backdrop layer covers the gaps) nor with object masks (DTU: not measured; the hull trim and
     completion there work inside the masks)."""
+    fill_holes_cpu_seconds: float = 60.0
+    """CPU-time limit of that hole closing (pymeshlab's, run in a child process: it once ran for more than ten
+    CPU-minutes on a fused mesh); past it the simple-loop closer (:func:`clean.close_small_holes`) does the job and
+    the face counts record ``holes_filled_timed_out``."""
     close_holes: int = 8
     """After the face budget, close every hole whose boundary is a simple loop of at most this many edges
     (:func:`clean.close_small_holes`; 0 = off): marching cubes' pinholes, which the mesh path showed as
@@ -269,6 +273,9 @@ class MeshOptions:
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
             raise InputError(f"cull_samples must be > 0 and grow_rings >= 0, got {self.cull_samples}, {self.grow_rings}",
                              None, "use e.g. 2 and 1")
+        if not (math.isfinite(self.fill_holes_cpu_seconds) and self.fill_holes_cpu_seconds > 0):
+            raise InputError(f"fill_holes_cpu_seconds must be > 0, got {self.fill_holes_cpu_seconds}", None,
+                             "use e.g. 60")
         if self.close_holes < 0 or self.fill_holes < 0:
             raise InputError(f"close_holes and fill_holes must be >= 0 (edges of the largest hole closed), got "
                              f"{self.close_holes}, {self.fill_holes}",
@@ -502,7 +509,10 @@ def within_budget(mesh: trimesh.Trimesh, max_faces: int, options: MeshOptions, c
     if options.close_holes:
         mesh, counts["holes_closed"] = clean.close_small_holes(mesh, options.close_holes)
     if options.fill_holes and fill:
-        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes)
+        closer: dict = {}
+        mesh, counts["holes_filled"] = clean.close_holes(mesh, options.fill_holes, options.fill_holes_cpu_seconds, closer)
+        if closer["closer"] != "pymeshlab" and "outcome" in closer:  # the simple-loop closer did it instead
+            counts["holes_filled_timed_out" if closer["timed_out"] else "holes_filled_failed"] = 1
     return mesh
 
 

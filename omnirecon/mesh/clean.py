@@ -212,25 +212,35 @@ def close_small_holes(mesh: trimesh.Trimesh, max_edges: int) -> tuple[trimesh.Tr
     return out, len(loops)
 
 
-def close_holes(mesh: trimesh.Trimesh, max_edges: int) -> tuple[trimesh.Trimesh, int]:
+def close_holes(mesh: trimesh.Trimesh, max_edges: int, cpu_seconds: float = 60.0,
+                record: dict | None = None) -> tuple[trimesh.Trimesh, int]:
     """``mesh`` with every hole of at most ``max_edges`` boundary edges closed, and the number of faces added.
 
     With pymeshlab (the ``surface`` extra): its non-manifold edge repair, then its hole closing, which also
     closes holes whose boundary passes a vertex twice (most of fusion's holes beside outlines; the simple-loop
-    closer found 76 of the demo mesh's 294 boundaries). Without it: :func:`close_small_holes`."""
+    closer found 76 of the demo mesh's 294 boundaries), in a child process limited to ``cpu_seconds`` of CPU
+    time (:mod:`omnirecon.mesh.meshlab_holes`: pymeshlab's hole closing once ran for more than ten CPU-minutes
+    on a fused mesh). Without pymeshlab, or when the child runs out of time or fails: :func:`close_small_holes`.
+    ``record`` (optional) gets ``closer`` (``"pymeshlab"`` or ``"simple loops"``) and, when pymeshlab ran, its
+    ``outcome``, ``cpu_seconds`` and ``timed_out``."""
     if len(mesh.faces) == 0 or max_edges < 3:
         return mesh, 0
-    try:
-        import pymeshlab
-    except ImportError:
+    import importlib.util
+
+    closed = None
+    if importlib.util.find_spec("pymeshlab") is not None:
+        from omnirecon.mesh.meshlab_holes import close_in_child
+
+        child: dict = {}
+        closed = close_in_child(np.asarray(mesh.vertices), np.asarray(mesh.faces), max_edges, cpu_seconds, child)
+        if record is not None:
+            record.update(child, timed_out=child["outcome"] == "out of time")
+    if closed is None:
         out, _ = close_small_holes(mesh, max_edges)
-        return out, len(out.faces) - len(mesh.faces)
-    ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int32)))
-    ms.meshing_repair_non_manifold_edges()
-    ms.meshing_close_holes(maxholesize=int(max_edges), selfintersection=False)
-    m = ms.current_mesh()
-    out = trimesh.Trimesh(m.vertex_matrix(), m.face_matrix(), process=False)
+    else:
+        out = trimesh.Trimesh(closed[0], closed[1], process=False)
+    if record is not None:
+        record["closer"] = "simple loops" if closed is None else "pymeshlab"
     return out, len(out.faces) - len(mesh.faces)
 
 

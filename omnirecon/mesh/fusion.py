@@ -77,7 +77,7 @@ def surface_band(volume: TSDFVolume, cameras: Cameras, depths: Tensor) -> Tensor
     """Flat indices of the voxels of every block (:data:`BLOCK`^3 voxels) that holds a depth sample
     moved along its ray by up to the truncation: the only voxels a zero crossing can lie in. Pixels
     are sampled at most one block apart on the surface, and along each ray at steps of half the
-    truncation (at most one block), so the marked blocks join up. ``# [P]`` int64, increasing"""
+    truncation (at most one block), so the marked blocks join up. ``# [P]`` int32, increasing"""
     X, Y, Z = volume.shape
     nb = np.array([-(-X // BLOCK), -(-Y // BLOCK), -(-Z // BLOCK)])
     marked = np.zeros(tuple(nb), dtype=bool)
@@ -95,12 +95,31 @@ def surface_band(volume: TSDFVolume, cameras: Cameras, depths: Tensor) -> Tensor
         b = torch.floor((p - origin) / (volume.voxel * BLOCK)).long().numpy()
         b = b[((b >= 0) & (b < nb)).all(1)]
         marked[b[:, 0], b[:, 1], b[:, 2]] = True
-    blocks = np.argwhere(marked)  # [B, 3]
+    return block_voxels(marked, volume.shape)
+
+
+def block_voxels(marked: np.ndarray, shape: tuple[int, int, int]) -> Tensor:
+    """Flat (C-order) indices of the voxels of the marked blocks (``marked # [BX, BY, BZ]`` bool, :data:`BLOCK`^3
+    voxels each) of a grid of ``shape``, increasing, int32 (a grid has at most 2^30 voxels: :func:`empty_volume`).
+    Built from each block's first voxel plus the offsets inside a block (4 bytes per voxel, at most 8 while
+    building): ethiopianHead's band of a 385x372x501 grid took 3 GB as ``[V, 3]`` int64 coordinates. ``# [P]``"""
+    X, Y, Z = shape
     off = np.stack(np.meshgrid(*[np.arange(BLOCK)] * 3, indexing="ij"), -1).reshape(-1, 3)  # [BLOCK^3, 3]
-    ijk = (blocks[:, None] * BLOCK + off[None]).reshape(-1, 3)
-    ijk = ijk[(ijk < np.array([X, Y, Z])).all(1)]
-    flat = (ijk[:, 0] * Y + ijk[:, 1]) * Z + ijk[:, 2]
-    return torch.from_numpy(np.sort(flat))
+    inner = (off[:, 0] * Y + off[:, 1]) * Z + off[:, 2]  # [BLOCK^3]
+    parts = []
+    for bx in range(marked.shape[0]):  # one slab of blocks at a time: increasing flat indices, slab by slab
+        by, bz = np.nonzero(marked[bx])
+        if len(by) == 0:
+            continue
+        first = ((bx * BLOCK * Y + by * BLOCK) * Z + bz * BLOCK).astype(np.int64)  # [B]
+        flat = (first[:, None] + inner[None]).reshape(-1)  # [B * BLOCK^3]
+        edge = (bx * BLOCK + BLOCK > X) | (by * BLOCK + BLOCK > Y) | (bz * BLOCK + BLOCK > Z)  # blocks past the grid
+        if edge.any():
+            ijk = np.stack([np.full(len(by), bx), by, bz], -1)[:, None] * BLOCK + off[None]  # [B, BLOCK^3, 3]
+            flat = flat[(ijk < np.array([X, Y, Z])).all(-1).reshape(-1)]
+        flat.sort()
+        parts.append(flat.astype(np.int32))
+    return torch.from_numpy(np.concatenate(parts) if parts else np.zeros(0, np.int32))
 
 
 # ---------------------------------------------------------------------- integration
@@ -167,7 +186,7 @@ def integrate(volume: TSDFVolume, camera: Cameras, depth: Tensor, weight: Tensor
     total = tsdf.numel() if voxels is None else len(voxels)
     for start in range(0, total, chunk):
         stop = min(start + chunk, total)
-        flat = torch.arange(start, stop, device=dev) if voxels is None else voxels[start:stop].to(dev)
+        flat = torch.arange(start, stop, device=dev) if voxels is None else voxels[start:stop].to(dev, torch.int64)
         ijk = torch.stack([flat // YZ, (flat // Z) % Y, flat % Z], -1).float()
         p = (volume.voxel * ijk) @ Rf.T + t_rel  # [P, 3] camera frame (relative to the grid origin: float32 is exact enough)
         z = p[:, 2]

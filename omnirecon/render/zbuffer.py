@@ -36,7 +36,7 @@ class Fragments:
 
 def rasterize(
     vertices: np.ndarray, faces: np.ndarray, K: np.ndarray, w2c: np.ndarray, width: int, height: int,
-    near: float = 1e-6,
+    near: float = 1e-6, max_candidates: int = 1 << 21,
 ) -> Fragments:
     """Visibility buffer of a triangle mesh seen by one pinhole camera (OpenCV frame).
 
@@ -53,6 +53,8 @@ def rasterize(
         width, height: Image size in samples.
         near: Every vertex must lie at camera z > ``near`` (the generator keeps content in front of
             all cameras; nothing is clipped here).
+        max_candidates: Candidate samples expanded at once (memory: ~150 bytes each); the result does not
+            depend on it.
     """
     cam = vertices @ w2c[:3, :3].T + w2c[:3, 3]  # [V, 3]
     z = cam[:, 2]
@@ -84,36 +86,49 @@ def rasterize(
         A[:, k, 2] = (b[:, 1] - a[:, 1]) * a[:, 0] - (b[:, 0] - a[:, 0]) * a[:, 1]
     A /= area[keep][:, None, None]
 
-    # Expand every bounding box into candidate samples and keep those inside all three edges.
+    # Expand every bounding box into candidate samples and keep those inside all three edges, a run of
+    # triangles at a time (at most `max_candidates` samples, a triangle larger than that alone): the memory is
+    # ~150 bytes per candidate, and a mesh's large triangles (a backdrop, long fills) reached 6 GB in one go.
     counts = (nx * ny)[keep]
-    owner = np.repeat(np.arange(len(keep)), counts)  # [C] index into keep
-    offset = np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts)
-    width_k = nx[keep][owner]
-    col = j0[keep][owner] + offset % width_k
-    row = i0[keep][owner] + offset // width_k
-    M = A[owner]  # [C, 3, 3]
-    bary = M[:, :, 0] * (col[:, None] + 0.5) + M[:, :, 1] * (row[:, None] + 0.5) + M[:, :, 2]  # [C, 3]
-    inside = np.flatnonzero((bary[:, 0] >= -1e-10) & (bary[:, 1] >= -1e-10) & (bary[:, 2] >= -1e-10))
-    owner, bary = owner[inside], bary[inside]
-    pix = row[inside] * width + col[inside]
-    inv_z = bary / tz[keep[owner]]  # [S, 3]; 1/z is affine in the image too
-    depth = 1.0 / (inv_z[:, 0] + inv_z[:, 1] + inv_z[:, 2])
-
-    # Z-buffer: nearest depth per sample, ties to the lowest triangle index.
-    zbuf = np.full(width * height, np.inf)
-    np.minimum.at(zbuf, pix, depth)
-    win = np.flatnonzero(depth == zbuf[pix])
-    first = np.full(width * height, np.iinfo(np.int64).max)
-    np.minimum.at(first, pix[win], win)
-    hit = np.flatnonzero(first < np.iinfo(np.int64).max)
-    best = first[hit]
+    zbuf = np.full(width * height, np.inf)  # nearest depth so far
+    face_k = np.full(width * height, -1, dtype=np.int64)  # its triangle (index into keep)
+    bary_out = np.zeros((width * height, 3))
+    ends = np.cumsum(counts)
+    start = 0
+    while start < len(keep):
+        stop = max(start + 1, int(np.searchsorted(ends, (ends[start - 1] if start else 0) + max_candidates, "right")))
+        sl = np.arange(start, stop)
+        owner = np.repeat(sl, counts[sl])  # [C] index into keep
+        offset = np.arange(len(owner)) - np.repeat(np.cumsum(counts[sl]) - counts[sl], counts[sl])
+        width_k = nx[keep][owner]
+        col = j0[keep][owner] + offset % width_k
+        row = i0[keep][owner] + offset // width_k
+        M = A[owner]  # [C, 3, 3]
+        bary = M[:, :, 0] * (col[:, None] + 0.5) + M[:, :, 1] * (row[:, None] + 0.5) + M[:, :, 2]  # [C, 3]
+        inside = np.flatnonzero((bary[:, 0] >= -1e-10) & (bary[:, 1] >= -1e-10) & (bary[:, 2] >= -1e-10))
+        owner, bary = owner[inside], bary[inside]
+        pix = row[inside] * width + col[inside]
+        inv_z = bary / tz[keep[owner]]  # [S, 3]; 1/z is affine in the image too
+        depth = 1.0 / (inv_z[:, 0] + inv_z[:, 1] + inv_z[:, 2])
+        # Z-buffer of this run: nearest depth per sample, ties to the lowest triangle index; it replaces the
+        # earlier runs' (lower indices) only where strictly nearer, so ties still go to the lowest index.
+        zrun = np.full(width * height, np.inf)
+        np.minimum.at(zrun, pix, depth)
+        win = np.flatnonzero(depth == zrun[pix])
+        first = np.full(width * height, np.iinfo(np.int64).max)
+        np.minimum.at(first, pix[win], win)
+        hit = np.flatnonzero((first < np.iinfo(np.int64).max) & (zrun < zbuf))
+        best = first[hit]
+        zbuf[hit] = depth[best]
+        face_k[hit] = owner[best]
+        bary_out[hit] = inv_z[best] * depth[best][:, None]  # perspective-correct
+        start = stop
+    hit = np.flatnonzero(face_k >= 0)
 
     face = np.full(width * height, -1, dtype=np.int64)
-    face[hit] = keep[owner[best]]
-    bary_out = np.zeros((width * height, 3))
-    bary_out[hit] = inv_z[best] * depth[best][:, None]  # perspective-correct
+    face[hit] = keep[face_k[hit]]
     zout = np.zeros(width * height)
-    zout[hit] = depth[best]
+    zout[hit] = zbuf[hit]
     return Fragments(face.reshape(height, width), bary_out.reshape(height, width, 3), zout.reshape(height, width))
 
 

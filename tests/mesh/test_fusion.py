@@ -287,6 +287,46 @@ def test_close_holes_closes_holes_the_simple_loop_closer_leaves():
     assert not still.is_watertight
 
 
+def test_close_holes_falls_back_when_pymeshlab_runs_out_of_time(monkeypatch):
+    """pymeshlab's hole closing runs in a child process: within its time it returns what pymeshlab gives; a child
+    that does not finish in time is killed (here a wall limit of 10 ms, shorter than its start) and the simple-loop
+    closer's mesh comes back, with the timeout recorded."""
+    pytest.importorskip("pymeshlab")
+    from omnirecon.mesh import meshlab_holes
+    from omnirecon.mesh.clean import close_holes, close_small_holes
+
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    holed = trimesh.Trimesh(sphere.vertices, sphere.faces[1:], process=False)  # one triangular hole
+    record: dict = {}
+    closed, added = close_holes(holed, 8, cpu_seconds=30, record=record)
+    assert record["closer"] == "pymeshlab" and record["outcome"] == "closed" and not record["timed_out"]
+    assert added == 1 and closed.is_watertight and record["cpu_seconds"] > 0
+    monkeypatch.setattr(meshlab_holes, "WALL_FACTOR", 0.0)
+    monkeypatch.setattr(meshlab_holes, "WALL_SLACK", 0.01)
+    assert meshlab_holes.close_in_child(holed.vertices, holed.faces, 8, 30) is None
+    record = {}
+    fallback, added = close_holes(holed, 8, cpu_seconds=30, record=record)
+    assert record["closer"] == "simple loops" and record["outcome"] == "out of time" and record["timed_out"]
+    simple, _ = close_small_holes(holed, 8)
+    assert added == len(simple.faces) - len(holed.faces) == 3 and np.array_equal(fallback.faces, simple.faces)
+
+
 def test_bad_fill_holes_is_refused():
     with pytest.raises(InputError, match="fill_holes"):
         MeshOptions(fill_holes=-1).check()
+    with pytest.raises(InputError, match="fill_holes_cpu_seconds"):
+        MeshOptions(fill_holes_cpu_seconds=0).check()
+
+
+def test_block_voxels_lists_every_voxel_of_the_marked_blocks_once_in_order():
+    """The band's voxel list (int32, increasing) equals the voxels of the marked blocks, blocks past the grid's edge
+    (a side that is not a multiple of the block) cut to the grid."""
+    from omnirecon.mesh.fusion import BLOCK, block_voxels
+
+    rng = np.random.default_rng(0)
+    shape = (13, 9, 10)  # 4 x 3 x 3 blocks, the last ones partly outside
+    marked = rng.random((4, 3, 3)) < 0.4
+    got = block_voxels(marked, shape)
+    dense = np.repeat(np.repeat(np.repeat(marked, BLOCK, 0), BLOCK, 1), BLOCK, 2)[:13, :9, :10]
+    assert got.dtype == torch.int32 and np.array_equal(got.numpy(), np.flatnonzero(dense))
+    assert len(block_voxels(np.zeros((4, 3, 3), bool), shape)) == 0
