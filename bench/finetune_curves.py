@@ -80,6 +80,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             "objects": ft.get("objects", 0.0), **({"scored_by": ft["scored_by"], "val_guard": ft["val_guard"]}
                                                   if "scored_by" in ft else {}),
             **({"visibility": ft["visibility"]} if "visibility" in ft else {}),
+            **({"render": ft["render"]} if "render" in ft else {}),
             "validation": ft["validation"],
             "pictures": {"curve": f"figures/finetune_{name}_curve.png",
                          "before_after": f"figures/finetune_{name}_before_after.png"}}

@@ -9,6 +9,30 @@ from bench.report.common import missing, prov, read
 TIMES = (0.0, 10.0, 30.0, 60.0, 300.0)
 
 
+
+def _tuned(row: dict) -> str:
+    """What a curve's steps tuned (and their learning rate), or that nothing was tuned."""
+    if not row["tuned"]:
+        return "nothing tuned: the angle blend has no parameters" if _angle(row) else "nothing tuned"
+    return ", ".join(row["tuned"]) + (", lr %g" % row["lr"] if "lr" in row else "")
+
+
+def _angle(row: dict) -> bool:
+    return (row.get("render") or {}).get("blend") == "angle"
+
+
+def _blend(row: dict) -> str:
+    """Which sources a curve blended: the angle blend's per-point count (from finetune's render record), each pixel's
+    nearest sources under the network blend, or fixed sources (older rows)."""
+    n = len(row["sources"])
+    if _angle(row):
+        rec = row["render"]
+        return (f"angle blend of each point's {rec['angle_sources']} nearest of {n} sources"
+                + (", weighed by their masks" if rec.get("source_masks") else "") + f", {rec['fill']} fill")
+    if row.get("nearest"):
+        return f"each pixel's {row['nearest']} nearest of {n} sources"
+    return f"{n} fixed sources {row['sources']}"
+
 def _cells(row: dict, key: str) -> list[str]:
     by = {c["seconds"]: c for c in row["curve"]}
     return [f"{by[t][key]:.2f}" if t in by and key in by[t] else "–" for t in TIMES]
@@ -71,9 +95,7 @@ def section(results: Path) -> str:
         notes.append(f"- **{name}**: {row['resolution'][0]}x{row['resolution'][1]}, mesh: {row.get('mesh_note') or row['mesh']}"
                      f"{' (' + str(made['depth']) + ')' if made.get('depth') else ''}, {row['faces']:,} faces; held-out "
                      f"coverage {cov}; {last['steps']} steps of {row['rays']} pixels by {last['seconds']:g} s "
-                     f"({', '.join(row['tuned'])}{', lr %g' % row['lr'] if 'lr' in row else ''}, {row['precision']}"
-                     + (f"; each pixel's {row['nearest']} nearest of {len(row['sources'])} sources"
-                        if row.get("nearest") else f"; {len(row['sources'])} fixed sources {row['sources']}")
+                     f"({_tuned(row)}, {row['precision']}; {_blend(row)}"
                      + (f"; validation views {row['validation_views']} ({row['val_choice']})" if row.get("val_choice")
                         else "")
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
