@@ -87,10 +87,16 @@ def test_a_new_inspect_replaces_the_old_folder_whole(scene, tmp_path, run_cli):
     assert ".tmp" not in (out / "summary.json").read_text()
 
 
+def _terminal_signals() -> None:
+    """The child starts as a terminal's foreground command: Ctrl-C at its default. A suite launched as a background
+    job (``make test &``) ignores SIGINT, children inherit that, and Python then installs no KeyboardInterrupt."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(args: list, cwd: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "omnirecon.cli", *map(str, args)], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_terminal_signals)
 
 
 def _wait_for(pattern: str, folder: Path, proc: subprocess.Popen, seconds: float = 180) -> list[Path]:
