@@ -29,6 +29,17 @@ def prov(p: dict) -> str:
     return text + (f" — {p['note']}" if p.get("note") else "")
 
 
+def table_section(results: Path, name: str, title: str, intro: str, columns: list[str], line) -> str | None:
+    """A section that is one table over ``results/name``'s rows: ``title``, ``intro``, a header of ``columns``, one
+    line per row by ``line(row)`` (the cells between the bars), then the provenance; None when no rows were measured."""
+    r = read(results, name)
+    if not r or not r.get("rows"):
+        return None
+    out = [f"## {title}", "", intro, "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    out += [f"| {line(row)} |" for row in r["rows"]]
+    return "\n".join([*out, "", prov(r["provenance"]), ""])
+
+
 def num(v, digits: int = 4) -> str:
     return "–" if v is None or v != v else f"{v:.{digits}f}"
 
