@@ -236,8 +236,9 @@ def measure(cfg: BenchConfig) -> dict:
                                                               visibility=True, workers=workers)) as vis_renderer:
         vis_times = timed(lambda: vis_renderer.render(next_camera(), extras=False), args.frames, args.warmup)
     backend = renderer.rasterizer.backend
-    features = renderer.features
     renderer.close()
+    with torch.no_grad():
+        features = model.encode(sources)  # the volumetric path reads the feature volume (the mesh renderer's has none)
     torch.set_num_threads(torch_threads)
 
     # ---------------------------------------------------------------- volumetric path

@@ -3,7 +3,7 @@
 Per frame: rasterize the mesh at the target camera (:mod:`omnirecon.render.raster`) -> one surface
 point per covered pixel -> the appearance branch blends the source views there
 (``omega = softmax_i MLP([ReLU(Linear(F_i(x))); u - u_i])``, colour ``sum_i omega_i c_i``) ->
-background colour elsewhere. The geometry branch and the feature volume are not used, and the
+background colour elsewhere. The geometry branch and the feature volume are neither used nor computed, and the
 source features are encoded once per scene by :class:`MeshRenderer`, not per frame.
 
 **Visibility** (not in the paper). With ``MeshRenderOptions.visibility`` the mesh is rasterized at
@@ -26,7 +26,13 @@ layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``ma
 ``"angle"``, each point's ``angle_sources`` nearest sources by viewing angle among those that see it, weighted by
 angle alone (:func:`angle_weights`, the unstructured lumigraph's blend; no network runs per frame), as
 ``finetune --blend angle`` scores them; where the sources carry object masks (DTU), each source's weight times
-:func:`mask_falloff` at the point's pixel (``MeshRenderOptions.source_masks``).
+:func:`mask_falloff` at the point's pixel (``MeshRenderOptions.source_masks``). The fused shader samples the colours
+of only the ``angle_sources`` sources a point weighs (:meth:`MeshRenderer._sparse_rgb`).
+
+**Sets of sources** (:class:`ViewCache`): frames that each blend their own nearest sources (videos, as ``finetune
+--nearest`` scores) share one rasterizer, each view's occlusion depths and mask falloff, and one encoding per set
+of views; the encoding cannot be shared per view, as the encoder normalises with the batch statistics of the views
+it encodes together. The renderer encodes the appearance maps only (``OmniRecon.encode_appearance``: no volume).
 
 **Signals.** The same weights render any per-view signal (:meth:`MeshRenderer.render_signal`,
 :func:`render_signal`): a ``[K, H', W', C]`` tensor (e.g. 2-D predictions to lift into 3-D), sampled
@@ -183,11 +189,13 @@ class TexelAtlas:
         self._hi = self._scale - 1  # largest texel-centre coordinate per axis (border mode)
         self._offsets = torch.tensor([0, 1, self._row_len, self._row_len + 1], device=maps.device)
 
-    def taps(self, coords: Tensor, mask: Tensor | None = None, scale: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def taps(self, coords: Tensor, mask: Tensor | None = None, scale: Tensor | None = None,
+             maps: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Rows and weights of the bilinear samples at image fractions ``coords # [K, 2, n]``
-        (``u / W, v / H``; map ``k`` for row ``k``). Samples where ``mask # [K, n]`` is False read 0.
+        (``u / W, v / H``; map ``k`` for row ``k``, or map ``maps[k, i]`` for sample ``(k, i)`` with
+        ``maps # [K, n]`` int64). Samples where ``mask # [K, n]`` is False read 0.
         ``scale # [1, 2, 1]``: texels per unit of ``coords`` instead of the map size (e.g. ``(w / W, h / H)``
-        for pixel coordinates). Returns ``index # [K n, 4]`` int64 and ``weight # [K n, 4]``, map-major."""
+        for pixel coordinates). Returns ``index # [K n, 4]`` int64 and ``weight # [K n, 4]``, row-major in ``(k, i)``."""
         K, _, n = coords.shape
         xy = coords.to(self._index_dtype) * (self._scale if scale is None else scale)  # [K, 2, n]
         xy += self._pad - 0.5  # texel-centre coordinates in the padded map
@@ -196,7 +204,7 @@ class TexelAtlas:
             xy = torch.minimum(xy, self._hi, out=xy)
         corner = xy.floor()
         frac = (xy - corner).to(coords.dtype)  # [K, 2, n]
-        k = torch.arange(K, dtype=xy.dtype, device=xy.device)[:, None] * self._map_len
+        k = (torch.arange(K, device=xy.device)[:, None] if maps is None else maps).to(xy.dtype) * self._map_len
         base = torch.add(corner[:, 0], corner[:, 1], alpha=self._row_len).add_(k).long()  # [K, n]
         if mask is not None:
             base.masked_fill_(~mask, self._zero_row)
@@ -407,20 +415,28 @@ class MeshRenderer:
         options: :class:`MeshRenderOptions`.
     """
 
-    def __init__(self, model, mesh, sources: Sources, options: MeshRenderOptions | None = None):
+    def __init__(self, model, mesh, sources: Sources, options: MeshRenderOptions | None = None,
+                 shared: tuple[ViewCache, list[int]] | None = None):
         self.options = options or MeshRenderOptions()
         self.model = model.eval()
-        vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
-        self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
-                                         cull_back_faces=self.options.cull_back_faces)
-        """The rasterizer: one GL context and the uploaded mesh, reused by every frame."""
+        self._shared = shared
+        """``(cache, views)``: built by :meth:`ViewCache.renderer` for the scene views ``views`` (``sources``); the
+        rasterizer, each view's occlusion depths and mask falloff and the encoding come from (and stay with) the cache."""
+        if shared is None:
+            vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+            self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
+                                             cull_back_faces=self.options.cull_back_faces)
+            """The rasterizer: one GL context and the uploaded mesh, reused by every frame."""
+        else:
+            self.rasterizer = shared[0].rasterizer
         self.sources = sources
         self.dtype = sources.images.dtype
         self.device = sources.images.device
         self.num_views = len(sources.cameras)
         with torch.inference_mode():
-            self.features = model.encode(sources)
-            """The encoded sources (once per scene)."""
+            encode = getattr(model, "encode_appearance", model.encode)  # the volume is never read here
+            self.features = encode(sources) if shared is None else shared[0].features(shared[1], encode)
+            """The encoded sources (once per scene; :meth:`ViewCache.features`: once per set of views)."""
             cams = sources.cameras.to(device=self.device, dtype=self.dtype)
             self._centers = cams.centers.T[:, :, None].contiguous()  # [3, K, 1]
             self._proj = (cams.K @ cams.w2c[:, :3, :]).reshape(-1, 4)  # [3K, 4]: world -> (u z, v z, z)
@@ -429,6 +445,7 @@ class MeshRenderer:
             self._minus_one = torch.tensor(-1.0, dtype=self.dtype, device=self.device)
             self._images = sources.images.permute(0, 3, 1, 2)  # [K, 3, H, W]
             self._rgb = TexelAtlas(self._images, "border")
+            self._one = torch.ones(1, 2, 1, dtype=self.dtype, device=self.device)  # taps at pixel coordinates
             if self.options.fused:
                 self._feat, self._mlp = self._fold(model.appearance)
                 self._uv_to_texel = self._feat._scale / self._size  # source pixels -> feature texels
@@ -438,13 +455,17 @@ class MeshRenderer:
         """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`mask_falloff`.
         ``# [K, H, W]``"""
         if self.options.blend == "angle" and self.options.source_masks and sources.masks is not None:
-            self.mask_falloff = mask_falloff(sources.masks).to(self.device, self.dtype)
+            self.mask_falloff = (mask_falloff(sources.masks) if shared is None else
+                                 shared[0].per_view("falloff", shared[1], lambda k: mask_falloff(sources.masks[k:k + 1])))
+            self.mask_falloff = self.mask_falloff.to(self.device, self.dtype)
         self.source_depth_max: Tensor | None = None
         """With ``options.visibility``: per source, the largest rasterized depth of each 2x2 block of
         pixel centres (inf = background or outside), ``# [K, H + 1, W + 1]``; entry ``(a, b)`` covers
         rows ``a - 1, a`` and columns ``b - 1, b``."""
         if self.options.visibility:
-            self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype))
+            self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype)) if shared is None \
+                else shared[0].per_view("depth_max", shared[1], lambda k: block_depth_max(
+                    self.rasterizer.rasterize(sources.cameras[k], normals="none").depth[None].to(self.device, self.dtype)))
 
     def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
         """The appearance branch prepared for :meth:`_fused` (module docstring): the texel table of
@@ -553,6 +574,9 @@ class MeshRenderer:
                     om[:, i] = self._blend_logits(p[:, i], d_t[:, i], uv[:, :, i], mask[:, i])
         rgb = None
         consensus = self.options.blend == "angle" and self.options.consensus > 0
+        k_top = min(self.options.angle_sources or K, K)
+        if with_rgb and self.options.blend == "angle" and not consensus and k_top < K:
+            return om, mask, st, self._sparse_rgb(om, uv, k_top)
         if with_rgb or consensus:  # the model's own sampling of the source colours
             grid = torch.addcmul(self._minus_one, uv, self._two_over_size).transpose(1, 2)[:, None]  # [K, 1, n, 2]
             c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
@@ -563,6 +587,27 @@ class MeshRenderer:
             for k in range(1, K):
                 rgb.addcmul_(c[k], om[k])
         return om, mask, st, rgb
+
+    def _sparse_rgb(self, om: Tensor, uv: Tensor, k: int) -> Tensor:
+        """The blended colour ``# [3, n]`` of weights ``om # [K, n]`` that are non-zero for at most ``k`` sources per
+        point (the angle blend), sampling only those: one :class:`TexelAtlas` tap set per (point, source) pair of the
+        ``k`` largest weights, summed by ``embedding_bag`` (bilinear, border padding: ``grid_sample``'s colours up to
+        the float rounding of the coordinates). Points with more non-zero weights (no source sees them: ``1 / K``
+        each) blend every source as :meth:`_shade_points` does. On DTU (41 sources, 4 per point) this sampled about
+        a tenth of the colours."""
+        K, n = om.shape
+        w, idx = om.topk(k, dim=0)  # [k, n]: the largest weights (sorted; which of equal ones: any)
+        sel = uv.gather(0, idx[:, None].expand(k, 2, n))  # [k, 2, n] source pixels
+        index, weight = self._rgb.taps(sel, scale=self._one, maps=idx)  # [k n, 4]
+        weight = weight.reshape(k, n, 4).mul_(w[..., None]).transpose(0, 1).reshape(n, 4 * k)
+        rgb = F.embedding_bag(index.reshape(k, n, 4).transpose(0, 1).reshape(n, 4 * k), self._rgb.rows,
+                              per_sample_weights=weight, mode="sum").T  # [3, n]
+        wide = ((om > 0).sum(0) > k).nonzero()[:, 0]  # [m] points that blend more sources
+        if len(wide):
+            grid = torch.addcmul(self._minus_one, uv[:, :, wide], self._two_over_size).transpose(1, 2)[:, None]
+            c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, m]
+            rgb[:, wide] = (c * om[:, None, wide]).sum(0)
+        return rgb.contiguous()
 
     SKIP_BELOW = 8
     """:meth:`_shade_points` compacts the points at least two sources see when the others are at least
@@ -759,13 +804,76 @@ class MeshRenderer:
                 "seen": surf.image(shaded.mask.any(0)[:, None].to(self.dtype), 0.0)[..., 0] > 0}
 
     def close(self) -> None:
-        """Free the rasterizer's GL context (and the shading threads)."""
+        """Free the rasterizer's GL context (and the shading threads); a :meth:`ViewCache.renderer`'s rasterizer stays
+        open with its cache."""
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
-        self.rasterizer.close()
+        if self._shared is None:
+            self.rasterizer.close()
 
     def __enter__(self) -> MeshRenderer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ViewCache:
+    """The work per source view of one mesh path over one scene's views, shared by the renderers (:class:`MeshRenderer`) of
+    frames that blend different sets of them (a video whose every frame blends its nearest sources, as ``finetune
+    --nearest`` scores): one rasterizer (one GL context, the mesh uploaded once), each view's occlusion depths
+    (:func:`block_depth_max` of its rasterized depth) and :func:`mask_falloff` computed once, and each set of views
+    encoded once (appearance maps only).
+
+    A view's encoding is cached per *set*, not per view: Omni-Recon's encoder normalises with the batch statistics of
+    the views it encodes together (BatchNorm without running averages, :mod:`omnirecon.models.omnirecon`), so a view's
+    features depend on its companions. Every :meth:`renderer` therefore renders exactly what a :class:`MeshRenderer`
+    built for its views alone renders (tested bit for bit). Use as a context manager (:meth:`close` frees the
+    rasterizer).
+
+    Args:
+        model, mesh, options: as :class:`MeshRenderer`.
+        scene: The :class:`~omnirecon.data.scene.Scene` whose views the renderers take as sources
+            (:meth:`Sources.from_scene`); the mesh is in its frame.
+    """
+
+    def __init__(self, model, mesh, scene, options: MeshRenderOptions | None = None):
+        self.model, self.scene = model, scene
+        self.options = options or MeshRenderOptions()
+        vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+        self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
+                                         cull_back_faces=self.options.cull_back_faces)
+        """The one rasterizer of every renderer."""
+        self._views: dict[str, dict[int, Tensor]] = {}
+        self._features: dict[tuple[int, ...], object] = {}
+
+    def renderer(self, views: list[int]) -> MeshRenderer:
+        """A :class:`MeshRenderer` over the scene views ``views`` (in this order) that shares this cache."""
+        views = [int(v) for v in views]
+        return MeshRenderer(self.model, None, Sources.from_scene(self.scene, views), self.options, shared=(self, views))
+
+    def features(self, views: list[int], encode):
+        """``encode(sources)`` of ``views``, computed on the first call for this set (class docstring)."""
+        key = tuple(views)
+        if key not in self._features:
+            self._features[key] = encode(Sources.from_scene(self.scene, views))
+        return self._features[key]
+
+    def per_view(self, kind: str, views: list[int], make) -> Tensor:
+        """Per-view maps ``kind`` of ``views`` stacked on a first axis; ``make(k) # [1, ...]`` computes the map of
+        the ``k``-th of ``views`` on its first request."""
+        cache = self._views.setdefault(kind, {})
+        for k, v in enumerate(views):
+            if v not in cache:
+                cache[v] = make(k)
+        return torch.cat([cache[v] for v in views])
+
+    def close(self) -> None:
+        """Free the rasterizer's GL context."""
+        self.rasterizer.close()
+
+    def __enter__(self) -> ViewCache:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -784,10 +892,11 @@ def render_signal(model, mesh, sources: Sources, camera: Cameras, signal: Tensor
         return renderer.render_signal(camera, signal, background)["signal"]
 
 
-def render_frames(renderer: MeshRenderer, cameras: Cameras) -> tuple[list[np.ndarray], list[float]]:
-    """Render every camera of ``cameras`` with ``renderer`` (one warm-up frame first, untimed): 8-bit
+def render_frames(renderer: MeshRenderer, cameras: Cameras, warmup: bool = True) -> tuple[list[np.ndarray], list[float]]:
+    """Render every camera of ``cameras`` with ``renderer`` (with ``warmup``, one untimed warm-up frame first): 8-bit
     frames ``# [H, W, 3]`` and the wall seconds of each render."""
-    renderer.render(cameras[0].to(dtype=torch.float32), extras=False)
+    if warmup:
+        renderer.render(cameras[0].to(dtype=torch.float32), extras=False)
     images, seconds = [], []
     for i in range(len(cameras)):
         start = time.perf_counter()

@@ -470,6 +470,13 @@ class OmniRecon(GeneralizableModel):
             levels.append(mean_var_volume(maps, sources.cameras, lattice(box, res), res))
         return OmniReconFeatures(sources, feat, self.volume(levels), box)
 
+    def encode_appearance(self, sources: Sources) -> OmniReconFeatures:
+        """What the appearance branch reads (:meth:`shade`, :meth:`gather`: the mesh path, ``finetune``): the maps
+        ``F_i`` of :meth:`encode` (the same encoder pass), without the feature volume, which only
+        :meth:`render_rays` reads (``volume`` and ``box`` are left empty). Differentiable."""
+        feat, _ = self.encoder(sources.images.permute(0, 3, 1, 2))
+        return OmniReconFeatures(sources, feat, feat.new_zeros(0), feat.new_zeros(2, 3))
+
     def render_view(self, features: OmniReconFeatures, camera: Cameras, chunk: int = 4096,
                     signals: Tensor | None = None, **kw) -> dict[str, Tensor]:
         """:meth:`GeneralizableModel.render_view`, from the ``cfg.render_views`` sources nearest ``camera`` when

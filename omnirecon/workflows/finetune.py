@@ -42,7 +42,7 @@ after for the first held-out view) and, with ``--save``, the tuned checkpoint.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, NamedTuple
 
@@ -398,11 +398,10 @@ def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Ge
 
 
 def encode_maps(model, sources, colours: Sources | None = None):
-    """The mesh path's features: the 2-D encoder only (no feature volume). Differentiable. ``colours``:
+    """The mesh path's features: the 2-D encoder only (``OmniRecon.encode_appearance``). Differentiable. ``colours``:
     the sources whose images the blend mixes (default ``sources``; e.g. exposure-corrected)."""
-
-    maps, _ = model.encoder(sources.images.permute(0, 3, 1, 2))
-    return OmniReconFeatures(colours or sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
+    feats = model.encode_appearance(sources)
+    return feats if colours is None else replace(feats, sources=colours)
 
 
 def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,

@@ -178,23 +178,26 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     ground) and write the video at ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
-    share one renderer (one encoding of the sources). Returns the video file, the 8-bit frames
-    ``# [H, W, 3]`` and the seconds of each frame (after one untimed warm-up frame per renderer)."""
-    from omnirecon.mesh.ibr import MeshRenderer, realtime_options, realtime_setting, render_frames  # lazy: fast --help
+    share one renderer, and every renderer one :class:`~omnirecon.mesh.ibr.ViewCache` (one rasterizer, each view's
+    occlusion depths once, each set of views encoded once: the frames are those of a renderer per set, bit for bit).
+    Returns the video file, the 8-bit frames ``# [H, W, 3]`` and the seconds of each frame (after one untimed
+    warm-up frame)."""
+    from omnirecon.mesh.ibr import ViewCache, realtime_options, realtime_setting, render_frames  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True)
     images, times = [], []
     start = 0
-    while start < len(cameras):
-        end = start + 1
-        while end < len(cameras) and list(sources[end]) == list(sources[start]):
-            end += 1
-        with MeshRenderer(model, mesh, Sources.from_scene(scene, list(sources[start])), opts) as r:
-            frames, seconds = render_frames(r, cameras[start:end])
-        images += frames
-        times += seconds
-        start = end
+    with ViewCache(model, mesh, scene, opts) as cache:
+        while start < len(cameras):
+            end = start + 1
+            while end < len(cameras) and list(sources[end]) == list(sources[start]):
+                end += 1
+            with cache.renderer(list(sources[start])) as r:
+                frames, seconds = render_frames(r, cameras[start:end], warmup=start == 0)
+            images += frames
+            times += seconds
+            start = end
     return write_video(path, images, fps), images, times
 
 

@@ -16,7 +16,7 @@ from conftest import ROOT
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
-from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, render_signal
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, ViewCache, render_frames, render_signal
 from omnirecon.models.registry import build_model
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.raster import MeshRasterizer
@@ -172,6 +172,33 @@ def test_real_time_angle_blend_and_nearest_fill_render_what_finetune_scores(setu
         with MeshRenderer(model, half, sources, replace_fill(opts, "far")) as r:
             far = r.render(target, extras=False)["rgb"]
         assert (far - fast).abs().amax(-1).gt(0.05).float().mean() > 0.01
+
+
+def test_angle_blend_samples_only_the_sources_it_weighs(setup):
+    """The angle blend's colour samples only each point's ``angle_sources`` weighted sources (``_sparse_rgb``): the
+    same colour, to float rounding, as sampling every source and summing with the weights, for points seen by some
+    sources (narrow) and by none (every source at ``1 / K``); sampling each pair in the wrong source map would not."""
+    import torch.nn.functional as F
+
+    scene, mesh, model, sources, target = setup
+    opts = MeshRenderOptions(fill="far", visibility=True, blend="angle", angle_sources=2, cull_back_faces=False)
+    with MeshRenderer(model, mesh, sources, opts) as r, torch.inference_mode():
+        depth = r.rasterizer.depth(target).reshape(-1)
+        hit = (depth > 0).nonzero()[:, 0]
+        pts = Rays.from_image(target)
+        z = depth[hit] / pts.z_scale[hit]
+        p = torch.cat([(pts.origins[hit] + pts.directions[hit] * z[:, None]).T,
+                       torch.full((3, 50), 1e3)], 1)  # [3, n]: on the mesh, and far outside every source
+        d = p - target.centers[0][:, None]
+        om, _, _, rgb = r._shade_points(p, d, True)
+        grid = torch.addcmul(r._minus_one, r.project(p)[0], r._two_over_size).transpose(1, 2)[:, None]
+        c = F.grid_sample(r._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
+        dense = (c * om[:, None]).sum(0)
+        spread = (om > 0).sum(0)
+        assert (spread <= 2).any() and (spread == len(SOURCES)).any()
+        assert torch.allclose(rgb, dense, atol=1e-5), float((rgb - dense).abs().max())
+        wrong = (c.roll(1, 0) * om[:, None]).sum(0)  # each weight on its neighbour's colours
+        assert (wrong - dense).abs().max() > 0.05
 
 
 def replace_fill(opts: MeshRenderOptions, fill: str) -> MeshRenderOptions:
@@ -364,6 +391,41 @@ def test_real_time_source_masks_render_what_finetune_scores(setup):
     angle_blend(px_plain, scene, SOURCES, 3)  # the procedural scene itself: its masks are not used
     angle_blend(px, obj, SOURCES, 3, source_masks=False)
     assert torch.allclose(px_plain[0].weights, px[0].weights)
+
+
+@pytest.mark.parametrize("blend", ["network", "angle"])
+def test_view_cache_renders_what_a_renderer_per_view_set_renders(setup, tmp_path, blend):
+    """``ViewCache``: renderers over overlapping sets of views (one set twice, after its renderer closed) share one
+    rasterizer, each view's occlusion depths and mask falloff, and one encoding per set, and render exactly (bit for
+    bit) what a ``MeshRenderer`` built for the set alone renders; each view's depth is rasterized once. The mesh-path
+    video (``mesh_path_video``), which renders its frames through one cache, gives the same frames."""
+    from dataclasses import replace
+
+    from omnirecon.workflows.render import mesh_path_video
+
+    scene, mesh, model, _, _ = setup
+    if blend == "angle":  # an object capture whose masks hold the scene: the falloff is cached too
+        scene = replace(scene, background=None, rig="object")
+    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)  # as mesh_path_video
+    opts = MeshRenderOptions(background=bg, fill="nearest" if blend == "angle" else "background",
+                             visibility=True, blend=blend, angle_sources=2, source_masks=blend == "angle")
+    sets = [[1, 2, 3], [2, 3, 5], [1, 2, 3]]
+    cams = Cameras.cat([scene.cameras[i] for i in (0, 4, 6)]).to(dtype=torch.float32)
+    alone = []
+    for k, views in enumerate(sets):
+        with MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts) as r:
+            alone.append(render_frames(r, cams[k:k + 1], warmup=False)[0][0])
+    with ViewCache(model, mesh, scene, opts) as cache:
+        drawn, rasterize = [], cache.rasterizer.rasterize
+        cache.rasterizer.rasterize = lambda cam, **kw: drawn.append(cam) or rasterize(cam, **kw)
+        for k, views in enumerate(sets):
+            with cache.renderer(views) as r:
+                assert r.mask_falloff is not None or blend == "network"
+                assert np.array_equal(render_frames(r, cams[k:k + 1], warmup=False)[0][0], alone[k])
+        assert len(drawn) == 4 and len(cache._features) == 2  # views 1, 2, 3, 5; two sets
+    setting = {"blend": blend, "fill": opts.fill, "sources": 3, "angle_sources": 2, "source_masks": blend == "angle"}
+    _, frames, _ = mesh_path_video(model, mesh, scene, cams, sets, tmp_path / "v.mp4", setting=setting)
+    assert all(np.array_equal(a, b) for a, b in zip(frames, alone, strict=True))
 
 
 def test_realtime_setting_takes_finetunes_record(setup):
