@@ -465,7 +465,7 @@ class MeshRenderer:
         if self.options.visibility:
             self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype)) if shared is None \
                 else shared[0].per_view("depth_max", shared[1], lambda k: block_depth_max(
-                    self.rasterizer.rasterize(sources.cameras[k], normals="none").depth[None].to(self.device, self.dtype)))
+                    self.rasterizer.depth(sources.cameras[k])[None].to(self.device, self.dtype)))
 
     def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
         """The appearance branch prepared for :meth:`_fused` (module docstring): the texel table of
@@ -483,9 +483,9 @@ class MeshRenderer:
         return TexelAtlas(maps, "zeros", pad_value=b), mlp
 
     def source_depths(self) -> Tensor:
-        """Rasterized z-depth of the mesh at every source camera, 0 = background. ``# [K, H, W]``"""
+        """Rasterized z-depth of the mesh at every source camera, 0 = background (the depth pass). ``# [K, H, W]``"""
         cams = self.sources.cameras
-        return torch.stack([self.rasterizer.rasterize(cams[i], normals="none").depth for i in range(len(cams))])
+        return torch.stack([self.rasterizer.depth(cams[i]).clone() for i in range(len(cams))])
 
     # ------------------------------------------------------------------ per point
     def project(self, points: Tensor, layer: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -560,8 +560,10 @@ class MeshRenderer:
         seen = mask.sum(0)  # [n] sources that see each point
         few = seen < 2
         n_few = int(few.sum())
+        top = None
         if self.options.blend == "angle":
-            om = self._angle_omega(p, d_t, mask, uv, on_mesh)
+            top = self._angle_top(p, d_t, mask, uv, on_mesh)
+            om = self._dense(*top)
         elif n_few == 0:
             om = self._blend_logits(p, d_t, uv, mask)
         else:  # omega needs no network where fewer than 2 sources see the point (module docstring)
@@ -574,9 +576,8 @@ class MeshRenderer:
                     om[:, i] = self._blend_logits(p[:, i], d_t[:, i], uv[:, :, i], mask[:, i])
         rgb = None
         consensus = self.options.blend == "angle" and self.options.consensus > 0
-        k_top = min(self.options.angle_sources or K, K)
-        if with_rgb and self.options.blend == "angle" and not consensus and k_top < K:
-            return om, mask, st, self._sparse_rgb(om, uv, k_top)
+        if with_rgb and top is not None and not consensus:
+            return om, mask, st, self._sparse_rgb(*top, uv)
         if with_rgb or consensus:  # the model's own sampling of the source colours
             grid = torch.addcmul(self._minus_one, uv, self._two_over_size).transpose(1, 2)[:, None]  # [K, 1, n, 2]
             c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
@@ -588,25 +589,21 @@ class MeshRenderer:
                 rgb.addcmul_(c[k], om[k])
         return om, mask, st, rgb
 
-    def _sparse_rgb(self, om: Tensor, uv: Tensor, k: int) -> Tensor:
-        """The blended colour ``# [3, n]`` of weights ``om # [K, n]`` that are non-zero for at most ``k`` sources per
-        point (the angle blend), sampling only those: one :class:`TexelAtlas` tap set per (point, source) pair of the
-        ``k`` largest weights, summed by ``embedding_bag`` (bilinear, border padding: ``grid_sample``'s colours up to
-        the float rounding of the coordinates). Points with more non-zero weights (no source sees them: ``1 / K``
-        each) blend every source as :meth:`_shade_points` does. On DTU (41 sources, 4 per point) this sampled about
-        a tenth of the colours."""
-        K, n = om.shape
-        w, idx = om.topk(k, dim=0)  # [k, n]: the largest weights (sorted; which of equal ones: any)
-        sel = uv.gather(0, idx[:, None].expand(k, 2, n))  # [k, 2, n] source pixels
-        index, weight = self._rgb.taps(sel, scale=self._one, maps=idx)  # [k n, 4]
-        weight = weight.reshape(k, n, 4).mul_(w[..., None]).transpose(0, 1).reshape(n, 4 * k)
-        rgb = F.embedding_bag(index.reshape(k, n, 4).transpose(0, 1).reshape(n, 4 * k), self._rgb.rows,
+    def _sparse_rgb(self, w: Tensor, idx: Tensor, wide: Tensor, wide_om: Tensor, uv: Tensor) -> Tensor:
+        """The angle blend's colour ``# [3, n]`` from :meth:`_angle_top`, sampling only the weighted sources: one
+        :class:`TexelAtlas` tap set per (point, source) pair of ``idx``, summed with the weights by ``embedding_bag``
+        (bilinear, border padding: ``grid_sample``'s colours up to the float rounding of the coordinates); the ``wide``
+        points blend every source as :meth:`_shade_points` does."""
+        k1, n = idx.shape
+        sel = uv.gather(0, idx[:, None].expand(k1, 2, n))  # [k1, 2, n] source pixels
+        index, weight = self._rgb.taps(sel, scale=self._one, maps=idx)  # [k1 n, 4]
+        weight = weight.reshape(k1, n, 4).mul_(w[..., None]).transpose(0, 1).reshape(n, 4 * k1)
+        rgb = F.embedding_bag(index.reshape(k1, n, 4).transpose(0, 1).reshape(n, 4 * k1), self._rgb.rows,
                               per_sample_weights=weight, mode="sum").T  # [3, n]
-        wide = ((om > 0).sum(0) > k).nonzero()[:, 0]  # [m] points that blend more sources
         if len(wide):
             grid = torch.addcmul(self._minus_one, uv[:, :, wide], self._two_over_size).transpose(1, 2)[:, None]
             c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, m]
-            rgb[:, wide] = (c * om[:, None, wide]).sum(0)
+            rgb[:, wide] = (c * wide_om[:, None]).sum(0)
         return rgb.contiguous()
 
     SKIP_BELOW = 8
@@ -619,17 +616,43 @@ class MeshRenderer:
         fac = mask_factor(self.mask_falloff, uv)
         return fac if on_mesh is None else torch.where(on_mesh, fac, torch.ones_like(fac))
 
-    def _angle_omega(self, p: Tensor, d_t: Tensor, mask: Tensor, uv: Tensor, on_mesh: Tensor | None = None) -> Tensor:
+    def _angle_top(self, p: Tensor, d_t: Tensor, mask: Tensor, uv: Tensor,
+                   on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``blend="angle"``: :func:`lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
         sources of ``mask # [K, n]`` (times :meth:`_mask_factor` at their pixels ``uv # [K, 2, n]`` when the sources
-        carry masks; ``on_mesh # [n]``: which points lie on the mesh). ``# [K, n]``"""
+        carry masks; ``on_mesh # [n]``: which points lie on the mesh), computed for the ``k + 1`` sources nearest by
+        angle only (``k`` = ``angle_sources``; the largest cosines, no arccos of the others): weights ``w # [k1, n]`` of
+        sources ``idx # [k1, n]`` (``k1 = min(k + 1, K)``; the last weighs 0 unless ``k1 = K``), the points no source
+        weighs ``wide # [m]`` (``1 / K`` each, times the mask factor: every source) and their weights ``# [K, m]``."""
+        K, n = mask.shape
+        k = max(1, min(self.options.angle_sources or K, K))
         d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
-        cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0)  # [K, n]
-        k = self.options.angle_sources or self.num_views
-        w = lumigraph_weights(torch.arccos(cos.clamp_(-1, 1)).T, mask.T, k)  # [n, K]
+        cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0).clamp_(-1, 1)  # [K, n]
+        cos.masked_fill_(~mask, -2.0)  # sources that do not see the point: after every one that does
+        c, idx = cos.topk(min(k + 1, K), dim=0)  # [k1, n]: ascending angle
+        ang = torch.arccos(c.clamp(-1, 1)).masked_fill_(c < -1.5, float("inf"))  # [k1, n]
+        thresh = ang[k:k + 1] if K > k else torch.full_like(ang[:1], float("inf"))  # [1, n]
+        w = (1 - ang / thresh).clamp_min(0) / ang.clamp_min(1e-3)  # inf angles -> 0 (or NaN, zeroed below)
+        w = torch.where((ang <= ang[k - 1:k]) & torch.isfinite(w), w, torch.zeros_like(w))
+        total = w.sum(0, keepdim=True)  # [1, n]
+        w = w / total.clamp_min(1e-12)
         if self.mask_falloff is not None:
-            w = apply_mask_factor(w, self._mask_factor(uv, on_mesh).T)
-        return w.T.contiguous()
+            fac = self._mask_factor(uv, on_mesh)  # [K, n]
+            u = w * fac.gather(0, idx)
+            t2 = u.sum(0, keepdim=True)
+            w = torch.where(t2 > 0, u / t2.clamp_min(1e-12), w)
+        wide = (total[0] <= 0).nonzero()[:, 0]  # [m]
+        wide_om = torch.full((K, len(wide)), 1.0 / K, dtype=w.dtype, device=w.device)
+        if len(wide) and self.mask_falloff is not None:
+            wide_om = apply_mask_factor(wide_om.T, fac[:, wide].T).T
+        return w, idx, wide, wide_om
+
+    def _dense(self, w: Tensor, idx: Tensor, wide: Tensor, wide_om: Tensor) -> Tensor:
+        """:meth:`_angle_top`'s weights over every source. ``# [K, n]``"""
+        om = torch.zeros(self.num_views, w.shape[1], dtype=w.dtype, device=w.device).scatter_(0, idx, w)
+        if len(wide):
+            om[:, wide] = wide_om
+        return om
 
     def _blend_logits(self, p: Tensor, d_t: Tensor, uv: Tensor, mask: Tensor) -> Tensor:
         """The appearance network's blend weights ``omega # [K, n]`` at points ``p # [3, n]`` seen along

@@ -174,15 +174,26 @@ def test_real_time_angle_blend_and_nearest_fill_render_what_finetune_scores(setu
         assert (far - fast).abs().amax(-1).gt(0.05).float().mean() > 0.01
 
 
-def test_angle_blend_samples_only_the_sources_it_weighs(setup):
-    """The angle blend's colour samples only each point's ``angle_sources`` weighted sources (``_sparse_rgb``): the
-    same colour, to float rounding, as sampling every source and summing with the weights, for points seen by some
-    sources (narrow) and by none (every source at ``1 / K``); sampling each pair in the wrong source map would not."""
+@pytest.mark.parametrize("source_masks", [False, True])
+def test_angle_blend_samples_only_the_sources_it_weighs(setup, source_masks):
+    """The fused angle blend ranks sources by cosine and weighs only each point's ``angle_sources`` nearest
+    (``_angle_top``): the weights of ``angle_weights`` over every source (times the mask falloff), to float rounding;
+    its colour samples only those sources (``_sparse_rgb``): the colour of sampling every source and summing with the
+    weights, for points seen by some sources and by none (every source at ``1 / K``); sampling each pair in the wrong
+    source map would not give it."""
+    from dataclasses import replace
+
     import torch.nn.functional as F
 
+    from omnirecon.mesh.ibr import angle_weights, apply_mask_factor, mask_factor
+
     scene, mesh, model, sources, target = setup
-    opts = MeshRenderOptions(fill="far", visibility=True, blend="angle", angle_sources=2, cull_back_faces=False)
+    if source_masks:  # an object capture whose masks hold the scene
+        sources = Sources.from_scene(replace(scene, background=None, rig="object"), SOURCES)
+    opts = MeshRenderOptions(fill="far", visibility=True, blend="angle", angle_sources=2, cull_back_faces=False,
+                             source_masks=source_masks)
     with MeshRenderer(model, mesh, sources, opts) as r, torch.inference_mode():
+        assert (r.mask_falloff is not None) == source_masks
         depth = r.rasterizer.depth(target).reshape(-1)
         hit = (depth > 0).nonzero()[:, 0]
         pts = Rays.from_image(target)
@@ -190,8 +201,13 @@ def test_angle_blend_samples_only_the_sources_it_weighs(setup):
         p = torch.cat([(pts.origins[hit] + pts.directions[hit] * z[:, None]).T,
                        torch.full((3, 50), 1e3)], 1)  # [3, n]: on the mesh, and far outside every source
         d = p - target.centers[0][:, None]
-        om, _, _, rgb = r._shade_points(p, d, True)
-        grid = torch.addcmul(r._minus_one, r.project(p)[0], r._two_over_size).transpose(1, 2)[:, None]
+        om, mask, _, rgb = r._shade_points(p, d, True)
+        uv = r.project(p)[0]
+        ref = angle_weights(p.T, target.centers[0], sources.cameras.centers, mask.T, 2)  # [n, K]
+        if source_masks:
+            ref = apply_mask_factor(ref, mask_factor(r.mask_falloff, uv).T)
+        assert torch.allclose(om.T, ref, atol=1e-5), float((om.T - ref).abs().max())
+        grid = torch.addcmul(r._minus_one, uv, r._two_over_size).transpose(1, 2)[:, None]
         c = F.grid_sample(r._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, n]
         dense = (c * om[:, None]).sum(0)
         spread = (om > 0).sum(0)
@@ -416,13 +432,13 @@ def test_view_cache_renders_what_a_renderer_per_view_set_renders(setup, tmp_path
         with MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts) as r:
             alone.append(render_frames(r, cams[k:k + 1], warmup=False)[0][0])
     with ViewCache(model, mesh, scene, opts) as cache:
-        drawn, rasterize = [], cache.rasterizer.rasterize
-        cache.rasterizer.rasterize = lambda cam, **kw: drawn.append(cam) or rasterize(cam, **kw)
+        drawn, rasterize = [], cache.rasterizer.depth
+        cache.rasterizer.depth = lambda cam, **kw: drawn.append(cam) or rasterize(cam, **kw)
         for k, views in enumerate(sets):
             with cache.renderer(views) as r:
                 assert r.mask_falloff is not None or blend == "network"
                 assert np.array_equal(render_frames(r, cams[k:k + 1], warmup=False)[0][0], alone[k])
-        assert len(drawn) == 4 and len(cache._features) == 2  # views 1, 2, 3, 5; two sets
+        assert len(drawn) == 4 + len(sets) and len(cache._features) == 2  # views 1, 2, 3, 5 once, each frame; 2 sets
     setting = {"blend": blend, "fill": opts.fill, "sources": 3, "angle_sources": 2, "source_masks": blend == "angle"}
     _, frames, _ = mesh_path_video(model, mesh, scene, cams, sets, tmp_path / "v.mp4", setting=setting)
     assert all(np.array_equal(a, b) for a, b in zip(frames, alone, strict=True))

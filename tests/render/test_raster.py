@@ -158,6 +158,14 @@ def test_depth_pass_equals_the_gbuffer_depth(scene):
         assert d.shape == (cam.height, cam.width) and torch.equal(d > 0, g.mask)
         assert torch.allclose(d, g.depth, rtol=1e-6, atol=0)
         assert torch.equal(ref.depth(cam), ref.rasterize(cam, normals="none").depth)
+    # the depth and surface passes draw shared vertices by index: the same pixels as the same triangles unshared
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    with MeshRasterizer(v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3), backend="gl") as soup:
+        cam = scene.cameras[1]
+        assert torch.equal(gl.depth(cam), soup.depth(cam))
+        a, b = gl.surface(cam), soup.surface(cam)
+        assert len(a.pixels) > 0 and torch.equal(a.pixels, b.pixels) and torch.equal(a.points, b.points)
+        assert torch.equal(a.depth, b.depth)
 
 
 def test_reference_rasterizer_result_does_not_depend_on_its_candidate_runs():
