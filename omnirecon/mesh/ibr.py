@@ -239,13 +239,14 @@ def block_depth_max(depth: Tensor) -> Tensor:
     return F.max_pool2d(d, 2, stride=1)[:, 0].contiguous()
 
 
-def unoccluded(dmax: Tensor, uv: Tensor, z: Tensor, tol: float) -> Tensor:
+def unoccluded(dmax: Tensor, uv: Tensor, z: Tensor, tol: float, maps: Tensor | None = None) -> Tensor:
     """The occlusion test (module docstring) of points at source pixel coordinates ``uv # [K, 2, n]`` with
-    source z-depths ``z # [K, n]`` against :func:`block_depth_max` ``dmax``. ``# [K, n]`` bool"""
+    source z-depths ``z # [K, n]`` against :func:`block_depth_max` ``dmax`` (of source ``k``, or of source
+    ``maps[k, i]`` with ``maps # [K', n]`` int64 for ``uv # [K', 2, n]``). ``# [K, n]`` bool"""
     K, Hp, Wp = dmax.shape
     b = torch.floor(uv[:, 0] - 0.5).clamp(-1, Wp - 2).long() + 1  # [K, n] block column
     a = torch.floor(uv[:, 1] - 0.5).clamp(-1, Hp - 2).long() + 1  # [K, n] block row
-    flat = (torch.arange(K, device=uv.device)[:, None] * Hp + a) * Wp + b
+    flat = ((torch.arange(K, device=uv.device)[:, None] if maps is None else maps) * Hp + a) * Wp + b
     return z <= dmax.reshape(-1)[flat] * (1 + tol)
 
 
@@ -304,13 +305,15 @@ def mask_falloff(masks: Tensor, reach: float = MASK_REACH, floor: float = MASK_F
     return torch.from_numpy(np.clip(dist / reach, floor, 1.0)).to(torch.float32)
 
 
-def mask_factor(falloff: Tensor, uv: Tensor) -> Tensor:
+def mask_factor(falloff: Tensor, uv: Tensor, maps: Tensor | None = None) -> Tensor:
     """:func:`mask_falloff` ``# [K, H, W]`` at source pixel coordinates ``uv # [K, 2, n]`` (the pixel each point falls
-    in; outside the image: the nearest border pixel). ``# [K, n]``"""
+    in; outside the image: the nearest border pixel) of source ``k`` (or of source ``maps[k, i]``, ``maps # [K', n]``
+    int64, for ``uv # [K', 2, n]``). ``# [K, n]``"""
     K, H, W = falloff.shape
     col = uv[:, 0].floor().clamp(0, W - 1).long()
     row = uv[:, 1].floor().clamp(0, H - 1).long()
-    flat = (torch.arange(K, device=uv.device)[:, None] * H + row) * W + col  # [K, n]
+    k = torch.arange(K, device=uv.device)[:, None] if maps is None else maps
+    flat = (k * H + row) * W + col  # [K, n]
     return falloff.reshape(-1)[flat]
 
 
@@ -493,16 +496,21 @@ class MeshRenderer:
         ``uv # [K, 2, n]``, camera z-depth ``z # [K, n]`` and ``mask # [K, n]`` (in front, inside the
         image and, with the visibility test on, not occluded; points where ``layer # [n]`` bool is True, the fill's
         background layer, skip the occlusion test, as ``finetune`` scores them)."""
+        uv, z, mask = self._frame_points(points)
+        if self.source_depth_max is not None:
+            vis = self.visible(uv, z)
+            mask &= vis if layer is None else vis | layer  # the fill's far layer: every source that frames it
+        return uv, z, mask
+
+    def _frame_points(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`project` without the occlusion test: ``uv # [K, 2, n]``, ``z # [K, n]`` and in front and inside the
+        image ``# [K, n]``."""
         K = self.num_views
         uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
         z = uvz[:, 2]
         uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project
         inside = (uv >= 0) & (uv < self._size)  # [K, 2, n]
-        mask = (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
-        if self.source_depth_max is not None:
-            vis = self.visible(uv, z)
-            mask &= vis if layer is None else vis | layer  # the fill's far layer: every source that frames it
-        return uv, z, mask
+        return uv, z, (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
 
     def visible(self, uv: Tensor, z: Tensor) -> Tensor:
         """Occlusion test (module docstring) of points at source pixel coordinates ``uv # [K, 2, n]``
@@ -546,23 +554,30 @@ class MeshRenderer:
                                    visible=mask.T if self.options.visibility else None)
             return ShadeResult(surf, out["blend"].T, mask, uv / self._size, out["rgb"] if with_rgb else None, covered)
 
-    def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool,
-                      with_coords: bool = False, layer: Tensor | None = None, on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None]:
+    def _shade_points(self, p: Tensor, d_t: Tensor, with_rgb: bool, with_coords: bool = False,
+                      layer: Tensor | None = None, on_mesh: Tensor | None = None,
+                      with_mask: bool = True) -> tuple[Tensor | None, Tensor | None, Tensor | None, Tensor | None]:
         """``OmniRecon.shade``, fused (module docstring), at points ``p # [3, n]`` (channel-first) seen along
         ``d_t # [3, n]`` (target -> point, any positive length): blend weights ``omega # [K, n]``, the
         mask ``# [K, n]``, with ``with_coords`` the source image fractions ``# [K, 2, n]`` and, with
         ``with_rgb``, the blended source colour ``# [3, n]``. ``layer # [n]`` bool: points on the fill's far layer (no
         occlusion test); ``on_mesh # [n]`` bool: points on the mesh (the only ones the source masks weigh; ``None``:
-        all)."""
+        all). Without ``with_mask`` (and with the angle blend, no ``with_coords`` nor consensus), only the colour:
+        ``(None, None, None, rgb)``."""
         K = self.num_views
-        uv, _, mask = self.project(p, layer)  # [K, 2, n], [K, n]
+        angle = self.options.blend == "angle"
+        if angle and not (with_mask or with_coords or self.options.consensus > 0):  # the frame path
+            uv, z, framed = self._frame_points(p)
+            top = self._angle_top(p, d_t, uv, z, framed, False, layer, on_mesh)
+            return None, None, None, self._sparse_rgb(*top, uv) if with_rgb else None
+        uv, z, mask = self.project(p, layer)  # [K, 2, n], [K, n]
         st = uv / self._size if with_coords else None  # [K, 2, n] image fractions
         seen = mask.sum(0)  # [n] sources that see each point
         few = seen < 2
         n_few = int(few.sum())
         top = None
-        if self.options.blend == "angle":
-            top = self._angle_top(p, d_t, mask, uv, on_mesh)
+        if angle:
+            top = self._angle_top(p, d_t, uv, z, mask, True, layer, on_mesh)
             om = self._dense(*top)
         elif n_few == 0:
             om = self._blend_logits(p, d_t, uv, mask)
@@ -616,20 +631,40 @@ class MeshRenderer:
         fac = mask_factor(self.mask_falloff, uv)
         return fac if on_mesh is None else torch.where(on_mesh, fac, torch.ones_like(fac))
 
-    def _angle_top(self, p: Tensor, d_t: Tensor, mask: Tensor, uv: Tensor,
-                   on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _angle_top(self, p: Tensor, d_t: Tensor, uv: Tensor, z: Tensor, seen: Tensor, tested: bool,
+                   layer: Tensor | None = None, on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``blend="angle"``: :func:`lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
-        sources of ``mask # [K, n]`` (times :meth:`_mask_factor` at their pixels ``uv # [K, 2, n]`` when the sources
-        carry masks; ``on_mesh # [n]``: which points lie on the mesh), computed for the ``k + 1`` sources nearest by
-        angle only (``k`` = ``angle_sources``; the largest cosines, no arccos of the others): weights ``w # [k1, n]`` of
-        sources ``idx # [k1, n]`` (``k1 = min(k + 1, K)``; the last weighs 0 unless ``k1 = K``), the points no source
-        weighs ``wide # [m]`` (``1 / K`` each, times the mask factor: every source) and their weights ``# [K, m]``."""
-        K, n = mask.shape
+        sources of ``seen # [K, n]`` (times :meth:`_mask_factor` at their pixels ``uv # [K, 2, n]`` when the sources
+        carry masks; ``on_mesh # [n]``: which points lie on the mesh), for the ``k + 1`` sources nearest by angle only
+        (``k`` = ``angle_sources``; the largest cosines, no arccos of the others). Unless ``tested``, ``seen`` is
+        :meth:`_frame_points`' (no occlusion test) and the occlusion test (source z-depths ``z # [K, n]``; ``layer``
+        as :meth:`project`) runs on the ``2 (k + 1)`` nearest only, and on every source for the points where fewer
+        than ``k + 1`` of those pass and more sources frame them (the same sources as testing every one).
+
+        Returns weights ``w # [k1, n]`` of sources ``idx # [k1, n]`` (``k1 = min(k + 1, K)``; the last weighs 0
+        unless ``k1 = K``), the points no source weighs ``wide # [m]`` (every source at ``1 / K``, times the mask
+        factor) and their weights ``# [K, m]``."""
+        K, n = seen.shape
         k = max(1, min(self.options.angle_sources or K, K))
+        k1 = min(k + 1, K)
         d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
         cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0).clamp_(-1, 1)  # [K, n]
-        cos.masked_fill_(~mask, -2.0)  # sources that do not see the point: after every one that does
-        c, idx = cos.topk(min(k + 1, K), dim=0)  # [k1, n]: ascending angle
+        cos.masked_fill_(~seen, -2.0)  # sources that do not see the point: after every one that does
+        if tested or self.source_depth_max is None:
+            c, idx = cos.topk(k1, dim=0)  # [k1, n]: ascending angle
+        else:
+            m = min(2 * k1, K)
+            c, idx = cos.topk(m, dim=0)  # [m, n] the candidates
+            vis = unoccluded(self.source_depth_max, uv.gather(0, idx[:, None].expand(m, 2, n)), z.gather(0, idx),
+                             self.options.visibility_tol, idx)
+            c = c.masked_fill(~(vis if layer is None else vis | layer), -2.0)
+            c, j = c.topk(k1, dim=0)  # sorted again: the occluded ones last
+            idx = idx.gather(0, j)
+            short = ((c[-1] < -1.5) & (seen.sum(0) > m)).nonzero()[:, 0]  # visible sources may lie beyond
+            if len(short):
+                vis = self.visible(uv[:, :, short], z[:, short])
+                c[:, short], idx[:, short] = cos[:, short].masked_fill(
+                    ~(vis if layer is None else vis | layer[short]), -2.0).topk(k1, dim=0)
         ang = torch.arccos(c.clamp(-1, 1)).masked_fill_(c < -1.5, float("inf"))  # [k1, n]
         thresh = ang[k:k + 1] if K > k else torch.full_like(ang[:1], float("inf"))  # [1, n]
         w = (1 - ang / thresh).clamp_min(0) / ang.clamp_min(1e-3)  # inf angles -> 0 (or NaN, zeroed below)
@@ -637,14 +672,17 @@ class MeshRenderer:
         total = w.sum(0, keepdim=True)  # [1, n]
         w = w / total.clamp_min(1e-12)
         if self.mask_falloff is not None:
-            fac = self._mask_factor(uv, on_mesh)  # [K, n]
-            u = w * fac.gather(0, idx)
+            fac = mask_factor(self.mask_falloff, uv.gather(0, idx[:, None].expand(k1, 2, n)), idx)  # [k1, n]
+            if on_mesh is not None:
+                fac = torch.where(on_mesh, fac, torch.ones_like(fac))
+            u = w * fac
             t2 = u.sum(0, keepdim=True)
             w = torch.where(t2 > 0, u / t2.clamp_min(1e-12), w)
         wide = (total[0] <= 0).nonzero()[:, 0]  # [m]
         wide_om = torch.full((K, len(wide)), 1.0 / K, dtype=w.dtype, device=w.device)
         if len(wide) and self.mask_falloff is not None:
-            wide_om = apply_mask_factor(wide_om.T, fac[:, wide].T).T
+            fac = self._mask_factor(uv[:, :, wide], None if on_mesh is None else on_mesh[wide])
+            wide_om = apply_mask_factor(wide_om.T, fac.T).T
         return w, idx, wide, wide_om
 
     def _dense(self, w: Tensor, idx: Tensor, wide: Tensor, wide_om: Tensor) -> Tensor:
@@ -767,7 +805,7 @@ class MeshRenderer:
                     d, z = d[:, keep], z[keep]
                     on_mesh = None if on_mesh is None else on_mesh[keep]
             p = torch.addcmul(o, d, z[None])  # [3, n] surface points
-            rgb = self._shade_points(p, d, True, layer=layer, on_mesh=on_mesh)[3]  # [3, n]
+            rgb = self._shade_points(p, d, True, layer=layer, on_mesh=on_mesh, with_mask=False)[3]  # [3, n]
             if keep is None:
                 target.copy_(rgb.T)
             else:

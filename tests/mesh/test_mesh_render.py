@@ -217,6 +217,43 @@ def test_angle_blend_samples_only_the_sources_it_weighs(setup, source_masks):
         assert (wrong - dense).abs().max() > 0.05
 
 
+def test_angle_blend_tests_occlusion_of_its_nearest_sources_only(setup):
+    """The frame path's angle blend runs the occlusion test on each point's ``2 (k + 1)`` sources nearest by angle
+    only (here 6 of 7), and on every source where fewer than ``k + 1`` of those pass: the colours of testing every
+    source."""
+    scene, mesh, model, _, _ = setup
+    sources = Sources.from_scene(scene, [1, 2, 3, 4, 5, 6, 7])
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(visibility=True, blend="angle", angle_sources=2)) as r, \
+            torch.inference_mode():
+        for target in (scene.cameras[0], scene.cameras[4]):
+            target = target.to(dtype=torch.float32)
+            depth = r.rasterizer.depth(target).reshape(-1).clone()
+            hit = (depth > 0).nonzero()[:, 0]
+            rays = Rays.from_image(target)
+            p = (rays.origins[hit] + rays.directions[hit] * (depth[hit] / rays.z_scale[hit])[:, None]).T.contiguous()
+            d = p - target.centers[0][:, None]
+            full = r._shade_points(p, d, True)[3]
+            fast = r._shade_points(p, d, True, with_mask=False)[3]
+            assert torch.allclose(fast, full, atol=1e-5), float((fast - full).abs().max())
+    # a wall point whose 4 sources nearest by angle an occluder hides: the fifth, far to the side, is its colour
+    wall_v, wall_f = quad([0, 0, 4], 3.0)
+    occ_v, occ_f = quad([0.7, 0, 2], 0.55)
+    mesh = (np.concatenate([wall_v, occ_v]), np.concatenate([wall_f, occ_f + 4]))
+    W = H = 32
+    eye = torch.tensor([[0.6, 0, 0], [0.8, 0, 0], [1.0, 0, 0], [1.2, 0, 0], [-2, 0, 0], [0, 0, 0]])
+    c2w = look_at(eye, eye + torch.tensor([0, 0, 1.0]), torch.tensor([0, -1.0, 0]))
+    f = torch.full((6,), 20.0)
+    cams = Cameras(f, f, f * 0 + W / 2, f * 0 + H / 2, c2w, W, H)
+    colours = torch.eye(3)[[0, 0, 0, 0, 1]] * 0.8  # the hidden four red, the fifth green
+    images = colours[:, None, None].expand(5, H, W, 3).contiguous()
+    sources = Sources(images, cams[[0, 1, 2, 3, 4]], 1.0, 6.0, "object", torch.tensor([[-3.0, -3, 1.5], [3, 3, 4.5]]))
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(visibility=True, blend="angle", angle_sources=1)) as r:
+        x = (H // 2) * W + W // 2  # the pixel that sees (0, 0, 4) at its corner
+        fast, ref = r.render(cams[[5]], extras=False)["rgb"].reshape(-1, 3)[x], r.render(cams[[5]])
+        assert ref["mask"].reshape(-1)[x] and torch.allclose(fast, colours[4], atol=1e-5), fast
+        assert torch.allclose(ref["rgb"].reshape(-1, 3)[x], colours[4], atol=1e-5)
+
+
 def replace_fill(opts: MeshRenderOptions, fill: str) -> MeshRenderOptions:
     from dataclasses import replace
 
