@@ -442,6 +442,8 @@ class MeshRenderer:
             """The encoded sources (once per scene; :meth:`ViewCache.features`: once per set of views)."""
             cams = sources.cameras.to(device=self.device, dtype=self.dtype)
             self._centers = cams.centers.T[:, :, None].contiguous()  # [3, K, 1]
+            self._centers_t = cams.centers.contiguous()  # [K, 3]
+            self._center_sq = (cams.centers * cams.centers).sum(1, keepdim=True)  # [K, 1]
             self._proj = (cams.K @ cams.w2c[:, :3, :]).reshape(-1, 4)  # [3K, 4]: world -> (u z, v z, z)
             self._size = torch.tensor([cams.width, cams.height], dtype=self.dtype, device=self.device)[None, :, None]
             self._two_over_size = 2 / self._size  # pixel coordinates -> grid_sample's [-1, 1]
@@ -647,8 +649,11 @@ class MeshRenderer:
         K, n = seen.shape
         k = max(1, min(self.options.angle_sources or K, K))
         k1 = min(k + 1, K)
-        d_s = p[:, None] - self._centers  # [3, K, n] sources -> point
-        cos = ((d_t / _norm(d_t))[:, None] * (d_s / _norm(d_s))).sum(0).clamp_(-1, 1)  # [K, n]
+        t = d_t / _norm(d_t)  # [3, n] unit target rays
+        # rank by cos = t . (p - c) / |p - c| from two [K, 3] x [3, n] products (no [3, K, n] temporaries); the weights
+        # take the cosines of the chosen sources computed directly, below
+        sq = torch.addmm(self._center_sq, self._centers_t, p, alpha=-2).add_((p * p).sum(0))  # [K, n] |p - c|^2
+        cos = torch.addmm((t * p).sum(0)[None], self._centers_t, t, alpha=-1).mul_(sq.clamp_min_(1e-24).rsqrt_())
         cos.masked_fill_(~seen, -2.0)  # sources that do not see the point: after every one that does
         if tested or self.source_depth_max is None:
             c, idx = cos.topk(k1, dim=0)  # [k1, n]: ascending angle
@@ -665,7 +670,9 @@ class MeshRenderer:
                 vis = self.visible(uv[:, :, short], z[:, short])
                 c[:, short], idx[:, short] = cos[:, short].masked_fill(
                     ~(vis if layer is None else vis | layer[short]), -2.0).topk(k1, dim=0)
-        ang = torch.arccos(c.clamp(-1, 1)).masked_fill_(c < -1.5, float("inf"))  # [k1, n]
+        d_s = p[:, None] - self._centers[:, :, 0].T.gather(0, idx.reshape(-1, 1).expand(-1, 3)).T.reshape(3, k1, n)
+        exact = (t[:, None] * (d_s / _norm(d_s))).sum(0).clamp_(-1, 1)  # [k1, n] the chosen sources' cosines
+        ang = torch.arccos(exact).masked_fill_(c < -1.5, float("inf"))  # [k1, n]
         thresh = ang[k:k + 1] if K > k else torch.full_like(ang[:1], float("inf"))  # [1, n]
         w = (1 - ang / thresh).clamp_min(0) / ang.clamp_min(1e-3)  # inf angles -> 0 (or NaN, zeroed below)
         w = torch.where((ang <= ang[k - 1:k]) & torch.isfinite(w), w, torch.zeros_like(w))
