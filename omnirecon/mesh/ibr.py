@@ -373,7 +373,10 @@ REALTIME_SOURCES = 6
 The angle blend takes every training view (``"sources": 0``), each point its nearest among them, as finetune scores
 it: ``python -m bench realtime_blend`` (BENCHMARKS "Real-time mesh path"), the held-out DTU views rendered frame by
 frame with 6 sources per frame scored dtu_scan37 / dtu_scan24 mask 21.97 / 25.49 dB, with every source 22.04 / 25.82
-(finetune: 22.02 / 25.82) at about 4x the CPU per frame (91 -> 361 ms at 400x300, one thread)."""
+(finetune: 22.02 / 25.82) at about 4x the CPU per frame (91 -> 361 ms at 400x300, one thread); since the fused shader
+tests occlusion and samples colours at each point's nearest sources only (:meth:`MeshRenderer._angle_top`), every
+source costs dtu_scan37 / dtu_scan24 201 / 217 CPU-ms per frame (358 / 400 before, same run and load; the same scores
+to 1e-5 dB over the masks)."""
 REALTIME_ANGLE_SOURCES = 4
 """Sources per point of the real-time angle blend when no ``finetune`` record says otherwise: what ``finetune
 --angle-sources 3 4 6 8`` chose on its validation views on dtu_scan24 and dtu_scan37 (6 before session 16)."""
