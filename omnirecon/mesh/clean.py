@@ -115,7 +115,7 @@ def visible_faces(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray | N
         for i in range(len(cameras)):
             cam = cameras[i].rescaled(supersample) if supersample != 1 else cameras[i]
             if rast is not None:
-                face = rast.rasterize(cam, normals="none").face.numpy()
+                face = rast.face_ids(cam)  # the G-buffer's face ids alone
             else:
                 from omnirecon.mesh.geometry import rasterize_mesh
 

@@ -59,9 +59,8 @@ class DepthRenderer:
         """``# [H, W]`` float32"""
         if len(self.mesh.faces) == 0:
             return np.zeros((camera.height, camera.width), np.float32)
-        if self.rast is not None:
-            g = self.rast.rasterize(camera, normals="none")
-            return np.where(g.face.numpy() >= 0, g.depth.numpy(), 0.0).astype(np.float32)
+        if self.rast is not None:  # the depth pass (the G-buffer's depth to float rounding, 0 where no face)
+            return self.rast.depth(camera).numpy().copy()
         from omnirecon.mesh.geometry import mesh_depth
 
         return mesh_depth(self.mesh, camera).astype(np.float32)

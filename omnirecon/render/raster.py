@@ -12,7 +12,9 @@ display-less machine). The mesh is uploaded once as an *unindexed* triangle list
 shader derives each corner's barycentric unit vector and the triangle id from ``gl_VertexID``
 (no extra attributes, no geometry shader: geometry shaders were 25x slower and wrong on llvmpipe,
 ``shared/docs/deps.md`` §1). The surface and depth passes, which need no ``gl_VertexID``, draw the shared vertices
-by index instead (each vertex shaded once; the same pixels bit for bit, about 30 % less CPU on a 371k-face mesh). Every frame changes only one ``mat4`` uniform. The fragment shader
+by index instead (each vertex shaded once; the same pixels bit for bit, about 30 % less CPU on a 371k-face mesh), and
+:meth:`MeshRasterizer.face_ids` draws only the triangle id, from ``gl_PrimitiveID`` of the indexed mesh (the G-buffer's
+ids bit for bit; 145 -> 55 CPU-ms on the demo's 371k-face mesh two-sided at 256 px: the meshing's visible-face cull). Every frame changes only one ``mat4`` uniform. The fragment shader
 writes three float/int targets read back without conversion:
 
 * ``R32I``: triangle id + 1 (cleared to 0, so background reads as -1 after the shift);
@@ -115,6 +117,14 @@ _DEPTH_FRAGMENT_SHADER = """
 layout(location = 0) out float out_depth;
 void main() {
     out_depth = 1.0 / gl_FragCoord.w;
+}
+"""
+
+_FACE_FRAGMENT_SHADER = """
+#version 330 core
+layout(location = 0) out int out_face;
+void main() {
+    out_face = gl_PrimitiveID + 1;
 }
 """
 
@@ -310,16 +320,18 @@ class MeshRasterizer:
             "gbuffer": ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER),
             "surface": ctx.program(vertex_shader=_SURFACE_VERTEX_SHADER, fragment_shader=_SURFACE_FRAGMENT_SHADER),
             "depth": ctx.program(vertex_shader=_DEPTH_VERTEX_SHADER, fragment_shader=_DEPTH_FRAGMENT_SHADER),
+            "face": ctx.program(vertex_shader=_DEPTH_VERTEX_SHADER, fragment_shader=_FACE_FRAGMENT_SHADER),
         }
         soup = self.vertices[self.faces].astype("f4")  # [F, 3, 3] unindexed triangle list
         self._vbo = ctx.buffer(soup.tobytes()) if len(self.faces) else None
         self._vaos = {} if self._vbo is None else {"gbuffer": ctx.vertex_array(self._programs["gbuffer"],
                                                                               [(self._vbo, "3f", "in_pos")])}
         # the passes that need no gl_VertexID draw the shared vertices by index (each vertex shaded once, not once per
-        # face: the demo's depth pass 48 -> 35 CPU-ms at 256 px, 371k faces; the same depths bit for bit)
+        # face: the demo's depth pass 48 -> 35 CPU-ms at 256 px, 371k faces; the same depths bit for bit); the face pass
+        # reads the triangle id from gl_PrimitiveID (the index of the face in the draw)
         self._indexed = [] if self._vbo is None else [ctx.buffer(self.vertices.astype("f4").tobytes()),
                                                       ctx.buffer(self.faces.astype("i4").tobytes())]
-        for name in () if self._vbo is None else ("surface", "depth"):
+        for name in () if self._vbo is None else ("surface", "depth", "face"):
             self._vaos[name] = ctx.vertex_array(self._programs[name], [(self._indexed[0], "3f", "in_pos")],
                                                 index_buffer=self._indexed[1], index_element_size=4)
         self._targets: dict[tuple, tuple] = {}
@@ -340,6 +352,9 @@ class MeshRasterizer:
             elif kind == "depth":
                 colors = [ctx.texture((width, height), 1, dtype="f4")]
                 host = (np.empty((height, width), np.float32),)
+            elif kind == "face":
+                colors = [ctx.texture((width, height), 1, dtype="i4")]
+                host = (np.empty((height, width), np.int32),)
             else:
                 colors = [ctx.texture((width, height), 4, dtype="f4")]
                 host = (np.empty((height, width, 4), np.float32),)
@@ -352,7 +367,7 @@ class MeshRasterizer:
         """Draw with GL into reused host buffers (valid until the next draw): ``face + 1 # [H, W]``
         int32 (0 = background), ``(bary, depth) # [H, W, 4]`` and ``(world, 1) # [H, W, 4]`` float32;
         with ``surface``, only ``(world, depth) # [H, W, 4]`` (depth 0 = background); with
-        ``surface="depth"``, only the z-depth ``# [H, W]``.
+        ``surface="depth"``, only the z-depth ``# [H, W]``; with ``surface="face"``, only ``face + 1 # [H, W]``.
 
         This rasterizer's context is made current first: with several rasterizers alive, the last
         created context would otherwise receive the draw calls (and draw the wrong mesh)."""
@@ -360,7 +375,7 @@ class MeshRasterizer:
             return self._draw_current(K, w2c, width, height, near, far, surface)
 
     def _draw_current(self, K, w2c, width, height, near, far, surface: bool | str = False):
-        kind = "depth" if surface == "depth" else "surface" if surface else "gbuffer"
+        kind = surface if surface in ("depth", "face") else "surface" if surface else "gbuffer"
         auto_near, auto_far = self.depth_range(w2c)
         near = auto_near if near is None else near
         far = auto_far if far is None else far
@@ -378,8 +393,8 @@ class MeshRasterizer:
                 ctx.disable(mgl.CULL_FACE)
             self._programs[kind]["world_to_clip"].write((P @ w2c).T.astype("f4").tobytes())  # column-major
             self._vaos[kind].render(mgl.TRIANGLES)
-        if kind == "depth":
-            fbo.read_into(host[0], components=1, attachment=0, dtype="f4")
+        if kind in ("depth", "face"):
+            fbo.read_into(host[0], components=1, attachment=0, dtype="f4" if kind == "depth" else "i4")
             return host[0]
         if surface:
             fbo.read_into(host[0], components=4, attachment=0, dtype="f4")
@@ -471,6 +486,17 @@ class MeshRasterizer:
         world = np.compress(covered, host, axis=0)  # [P, 4] (far faster than fancy indexing)
         return Surface(torch.from_numpy(pixels), torch.from_numpy(world[:, :3].copy()),
                        torch.from_numpy(world[:, 3].copy()), camera.height, camera.width)
+
+    def face_ids(self, camera: Cameras, near: float | None = None) -> np.ndarray:
+        """The nearest triangle at ``camera``'s pixel centres, ``-1`` = background: :meth:`rasterize`'s ``face`` alone.
+        ``# [H, W]`` int64
+
+        GL: one ``R32I`` target written with ``gl_PrimitiveID`` from the indexed mesh (no barycentrics, points or depth
+        read back). Reference backend: :meth:`rasterize`'s (its twin)."""
+        if not self._use_gl():
+            return self.rasterize(camera, normals="none", near=near).face.numpy()
+        K, w2c = _camera_arrays(camera)
+        return self._draw(K, w2c, camera.width, camera.height, near, None, surface="face").astype(np.int64) - 1
 
     def depth(self, camera: Cameras, near: float | None = None, far: float | None = None) -> Tensor:
         """Camera z-depth of the mesh at ``camera``'s pixel centres, 0 = background. ``# [H, W]`` float32

@@ -158,6 +158,14 @@ def test_depth_pass_equals_the_gbuffer_depth(scene):
         assert d.shape == (cam.height, cam.width) and torch.equal(d > 0, g.mask)
         assert torch.allclose(d, g.depth, rtol=1e-6, atol=0)
         assert torch.equal(ref.depth(cam), ref.rasterize(cam, normals="none").depth)
+    # the face pass (gl_PrimitiveID of the indexed mesh) gives the G-buffer's triangle ids, culled and two-sided
+    for cull in (True, False):
+        with MeshRasterizer.from_trimesh(mesh, backend="gl", cull_back_faces=cull) as r:
+            for i in range(3):
+                f = r.face_ids(scene.cameras[i].rescaled(2))
+                assert (f >= 0).any() and np.array_equal(f, r.rasterize(scene.cameras[i].rescaled(2)).face.numpy())
+        assert np.array_equal(MeshRasterizer.from_trimesh(mesh, backend="reference").face_ids(scene.cameras[0]),
+                              ref.rasterize(scene.cameras[0]).face.numpy())
     # the depth and surface passes draw shared vertices by index: the same pixels as the same triangles unshared
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     with MeshRasterizer(v[f].reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3), backend="gl") as soup:
