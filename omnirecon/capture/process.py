@@ -127,6 +127,9 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    if s.get("masks"):
+        lines.append("object masks kept in masks/ (undistorted like the photos): mesh --masks, reconstruct and finetune's "
+                     "object scores use them")
     lines += motion_lines(s)
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")

@@ -226,6 +226,29 @@ class FPNEncoder(nn.Module):
         top = F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False) + self.lateral(x2)
         return self.out(top), [conv(m) for conv, m in zip(self.pyramid, (x1, x2, x3))]
 
+    def appearance(self, x: Tensor, checkpoint: bool = False) -> Tensor:
+        """The appearance feature of :meth:`forward` alone (the mesh path's: no pyramid maps), bit for bit. With
+        ``checkpoint`` (and gradients on), each stage and residual block is a ``torch.utils.checkpoint`` segment:
+        backward recomputes its activations instead of keeping them, so the graph of many large source views holds
+        only the segments' outputs (one segment's activations at a time during backward). ``# [V, C, H/4, W/4]``"""
+        if checkpoint and torch.is_grad_enabled():
+            from torch.utils.checkpoint import checkpoint as ckpt
+
+            run = lambda f, *a: ckpt(f, *a, use_reentrant=False)  # noqa: E731
+        else:
+            run = lambda f, *a: f(*a)  # noqa: E731
+        x = run(self.stem, x)
+        levels = []
+        for layer in (self.layer1, self.layer2, self.layer3):
+            for block in layer:
+                x = run(block, x)
+            levels.append(x)
+        return run(self._head, levels[1], levels[2])
+
+    def _head(self, x2: Tensor, x3: Tensor) -> Tensor:
+        top = F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False) + self.lateral(x2)
+        return self.out(top)
+
 
 # ---------------------------------------------------------------------- feature volume (§2.2)
 def volume_box(sources: Sources, mode: str, margin: float, forward: str = "content") -> Tensor:

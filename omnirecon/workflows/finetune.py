@@ -397,11 +397,25 @@ def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Ge
     return torch.stack(gains).reshape(K, 1, 1, 3)
 
 
-def encode_maps(model, sources, colours: Sources | None = None):
-    """The mesh path's features: the 2-D encoder only (no feature volume). Differentiable. ``colours``:
-    the sources whose images the blend mixes (default ``sources``; e.g. exposure-corrected)."""
+ENCODER_GRAPH_MB = 2048
+"""A tuned encoder's pass whose graph would hold more than this is checkpointed (``FPNEncoder.appearance``:
+identical features and gradients, each step's encoder pass about 1.4x the CPU). The graph takes about
+:data:`GRAPH_BYTES_PER_PIXEL` per source pixel: ethiopianHead's 52 sources at 401x401, 3.0 GB (2.1 GB
+checkpointed)."""
+GRAPH_BYTES_PER_PIXEL = 360
+"""omnirecon-tiny's encoder graph per source pixel (measured: 52 x 401 x 401 sources, 3.0 GB)."""
 
-    maps, _ = model.encoder(sources.images.permute(0, 3, 1, 2))
+
+def encode_maps(model, sources, colours: Sources | None = None):
+    """The mesh path's features: the 2-D encoder's appearance feature only (no pyramid maps, no feature volume).
+    Differentiable; a pass with gradients whose graph would exceed :data:`ENCODER_GRAPH_MB` is checkpointed.
+    ``colours``: the sources whose images the blend mixes (default ``sources``; e.g. exposure-corrected)."""
+    images = sources.images.permute(0, 3, 1, 2)  # [K, 3, H, W]
+    if hasattr(model.encoder, "appearance"):
+        big = images[:, 0].numel() * GRAPH_BYTES_PER_PIXEL > ENCODER_GRAPH_MB * 2 ** 20
+        maps = model.encoder.appearance(images, checkpoint=big and torch.is_grad_enabled())
+    else:
+        maps, _ = model.encoder(images)
     return OmniReconFeatures(colours or sources, maps, maps.new_zeros(0), maps.new_zeros(2, 3))
 
 

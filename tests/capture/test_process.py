@@ -372,6 +372,8 @@ def test_process_keeps_the_masks(capture, tmp_path):
 
     from PIL import Image
 
+    from omnirecon.capture.process import summary_lines
+
     photos, _ = capture
     masks = tmp_path / "masks"
     masks.mkdir()
@@ -383,6 +385,7 @@ def test_process_keeps_the_masks(capture, tmp_path):
     out = tmp_path / "scene"
     summary = process(photos, out, SfmOptions(per_image_cameras=True, mask_dilate=8), quiet=True, masks=masks)
     assert summary["images_registered"] == VIEWS and len(list((out / "masks_4").iterdir())) == VIEWS
+    assert any(x.startswith("object masks kept") for x in summary_lines(summary))
     for ds in (1, 2):
         scene = load_scene(out, options=ReadOptions(downscale=ds))
         assert scene.masks is not None and scene.masks.shape == (VIEWS, scene.height, scene.width)
