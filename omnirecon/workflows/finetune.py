@@ -400,8 +400,9 @@ def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Ge
 ENCODER_GRAPH_MB = 2048
 """A tuned encoder's pass whose graph would hold more than this is checkpointed (``FPNEncoder.appearance``:
 identical features and gradients, each step's encoder pass about 1.4x the CPU). The graph takes about
-:data:`GRAPH_BYTES_PER_PIXEL` per source pixel: ethiopianHead's 52 sources at 401x401, 3.0 GB (2.1 GB
-checkpointed)."""
+:data:`GRAPH_BYTES_PER_PIXEL` per source pixel: ethiopianHead's 52 sources at 401x401, 3.0 GB (2.2 GB
+checkpointed); ``finetune`` there (processed without masks, the network blend, encoder tuned, 6 CPU-s, 1 thread)
+peaked at 5.09 GB resident without the checkpoint, 3.61 GB with it, the same step count and PSNR (18.50 dB)."""
 GRAPH_BYTES_PER_PIXEL = 360
 """omnirecon-tiny's encoder graph per source pixel (measured: 52 x 401 x 401 sources, 3.0 GB)."""
 
