@@ -432,12 +432,14 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
 
 
 def write_scene(result: SfmResult, image_dir: Path, work: Path, scene: Path, stages: Stages,
-                threads: int = 1, factors: tuple[int, ...] = (2, 4)) -> dict:
+                threads: int = 1, factors: tuple[int, ...] = (2, 4), masks: Path | None = None) -> dict:
     """Undistort the chosen model to PINHOLE and write the scene folder ``scene`` (must not exist).
 
     With per-image cameras whose undistorted sizes differ, every image is centre-cropped to the
-    smallest size (principal points shifted), since the reader wants one image size. Returns
-    ``{"size": [W, H], "crop": bool}``.
+    smallest size (principal points shifted), since the reader wants one image size. ``masks``: a folder
+    of object masks ``<image name>.png`` at the photos' size, undistorted and cropped like the images into
+    ``scene/masks``, ``scene/masks_<f>`` (:mod:`omnirecon.capture.masks`). Returns ``{"size": [W, H],
+    "crop": bool}``.
     """
     import pycolmap  # lazy: the optional 'capture' extra
 
@@ -455,12 +457,19 @@ def write_scene(result: SfmResult, image_dir: Path, work: Path, scene: Path, sta
     sizes = {(c.width, c.height) for c in rec.cameras.values()}
     w, h = min(s[0] for s in sizes), min(s[1] for s in sizes)
     crop = len(sizes) > 1
+    offsets = {im.name: ((rec.cameras[im.camera_id].width - w) // 2, (rec.cameras[im.camera_id].height - h) // 2)
+               for im in rec.images.values()}
     scene.mkdir(parents=True)
     shutil.move(str(und / "images"), str(scene / "images"))
+    if masks is not None:
+        from omnirecon.capture.masks import write_masks
+
+        with stages.stage("masks", len(rec.images)) as advance:
+            advance(write_masks(masks, result.reconstruction, rec, scene, (w, h), offsets, factors))
     if crop:
         for im in rec.images.values():
             cam = rec.cameras[im.camera_id]
-            x0, y0 = (cam.width - w) // 2, (cam.height - h) // 2
+            x0, y0 = offsets[im.name]
             path = scene / "images" / im.name
             with Image.open(path) as pic:
                 pic.crop((x0, y0, x0 + w, y0 + h)).save(path)

@@ -124,11 +124,14 @@ def stage_images(folder: Path, dest: Path, min_images: int = 3, shared_camera: b
     return StagedImages(dest, sorted(names), sources, sizes, rotated)
 
 
-def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 0) -> Path:
+def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 0, objects: Path | None = None) -> Path:
     """Masks for the staged images, as COLMAP wants them: ``dest/<image name>.png``, 255 where features
     may be detected (the mask's non-zero pixels), 0 elsewhere. Masks are matched to the photos by file
     stem (``IMG_1.jpg`` <- ``IMG_1.png`` or ``IMG_1.jpg.png``) and must have the photo's size.
-    ``dilate``: grow each mask by this many pixels (a square of side ``2 * dilate + 1``)."""
+    ``dilate``: grow each mask by this many pixels (a square of side ``2 * dilate + 1``).
+    ``objects``: also write the object masks the scene keeps there (``<image name>.png``, 0 / 255, not dilated):
+    white where the mask is above 127 (8-bit masks, e.g. a JPEG's), or non-zero when no mask of the set
+    goes above 127 (0 / 1 masks)."""
 
     mask_dir, dest = Path(mask_dir), Path(dest)
     if not mask_dir.is_dir():
@@ -138,6 +141,7 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 
         if p.suffix.lower() in IMAGE_EXTS:
             by_stem.setdefault(Path(p.stem).stem if p.stem.lower().endswith(IMAGE_EXTS) else p.stem, p)
     dest.mkdir(parents=True, exist_ok=True)
+    read = {}
     for name in staged.names:
         stem = staged.sources[name].stem
         src = by_stem.get(stem)
@@ -149,8 +153,14 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 
         if m.size != staged.sizes[name]:
             raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
                              f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")
+        read[name] = m
         m = m.point(lambda v: 255 if v > 0 else 0)
         if dilate > 0:
             m = m.filter(ImageFilter.MaxFilter(2 * dilate + 1))
         m.save(dest / f"{name}.png")
+    if objects is not None:
+        objects.mkdir(parents=True, exist_ok=True)
+        cut = 127 if any(m.getextrema()[1] > 127 for m in read.values()) else 0
+        for name, m in read.items():
+            m.point(lambda v: 255 if v > cut else 0).save(objects / f"{name}.png")
     return dest

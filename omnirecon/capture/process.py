@@ -7,6 +7,8 @@ previous folder or none. The scene holds
 
     images/            undistorted photos (PINHOLE cameras), at full size
     images_2/, images_4/   the same, downscaled by 2 and 4 (area averaging)
+    masks/, masks_2/, masks_4/   with ``masks``: the object masks, undistorted and downscaled like the
+                       photos (:mod:`omnirecon.capture.masks`), so every command reads them as the scene's
     sparse/0/          cameras.bin, images.bin, points3D.bin: the largest model COLMAP found
     process.json       the summary: images registered / given, reprojection error, points, seconds per stage
 """
@@ -31,7 +33,7 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
             overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None) -> dict:
     """Run structure from motion on the photos in folder ``source`` (or the frames of video ``source``)
     and write the scene ``out``. ``masks``: a folder of masks matched to the photos by name; features
-    are detected only inside them (objects on a turntable). Returns the summary that is also saved
+    are detected only inside them (objects on a turntable), and the scene keeps them as its object masks. Returns the summary that is also saved
     as ``out/process.json``."""
     options = options or SfmOptions()
     options.check()
@@ -65,10 +67,12 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
-            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate)
+            objects = None if masks is None else work / "objects"
+            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
+                                                              objects=objects)
             result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
                              mask_dir=mask_dir)
-            info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads)
+            info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads, masks=objects)
             seconds = dict(stages.seconds)
         summary = {
             "input": str(source), "kind": "video" if is_video else "images", **result.stats(),
@@ -123,6 +127,9 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    if s.get("masks"):
+        lines.append("object masks kept in masks/ (undistorted like the photos): mesh --masks, reconstruct and finetune's "
+                     "object scores use them")
     lines += motion_lines(s)
     if s.get("exif_rotated"):
         lines.append(f"{s['exif_rotated']} photos turned upright by their EXIF orientation")

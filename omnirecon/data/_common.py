@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from omnirecon.cameras import Cameras, check_poses, orthonormalize
-from omnirecon.data.io import read_image
+from omnirecon.data.io import list_images, read_image
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
 from omnirecon.splits import DTU_SOURCES, dtu_held_out
@@ -130,6 +130,24 @@ def read_rgb(paths: list[Path], size: tuple[int, int]) -> tuple[np.ndarray, np.n
     if all(a is None for a in alphas):
         return rgb, None
     return rgb, np.stack([np.ones((h, w), np.float32) if a is None else a for a in alphas])
+
+
+def mask_files(root: Path, factor: int, images: list[Path]) -> list[Path] | None:
+    """Mask per image from ``root/masks_<factor>/`` (or ``masks/`` at factor 1), matched by stem (``IMG_1.png``
+    or COLMAP's ``IMG_1.jpg.png`` for ``IMG_1.jpg``); None without that folder."""
+    folder = Path(root) / ("masks" if factor == 1 else f"masks_{factor}")
+    if not folder.is_dir():
+        return None
+    by_stem = {}
+    for p in list_images(folder):
+        by_stem.setdefault(p.stem, p)
+        if Path(p.stem).suffix.lower() in IMAGE_EXTS:
+            by_stem.setdefault(Path(p.stem).stem, p)
+    missing = [p for p in images if Path(p).stem not in by_stem]
+    if missing:
+        raise InputError(f"no mask for image {Path(missing[0]).name}", folder,
+                         f"give one mask per image with the same stem ({', '.join(IMAGE_EXTS[:2])}), or remove the folder")
+    return [by_stem[Path(p).stem] for p in images]
 
 
 def read_masks(paths: list[Path], size: tuple[int, int]) -> np.ndarray:

@@ -24,6 +24,9 @@ Conventions:
   median range of the other views).
 * ``bounds``: per-axis 1st to 99th percentile of all 3-D points in the scene frame, padded by 5%
   of the extent.
+* Masks: ``masks/`` (``masks_<N>/`` with ``images_<N>/``) beside ``images/``, one per image matched by stem
+  (``IMG_1.png`` or ``IMG_1.jpg.png``), > 127 = object: the scene's object masks (``omnirecon process --masks``
+  writes them, undistorted like the photos).
 * ``rig`` from the spread of the optical axes; splits: every 8th view is ``test`` (``llffhold``).
 """
 
@@ -36,7 +39,7 @@ import numpy as np
 import torch
 
 from omnirecon.cameras import Cameras, rigid_inverse
-from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, inside, rigid_poses
+from omnirecon.data._common import assemble, common_size, detect_rig, holdout_splits, inside, mask_files, rigid_poses
 from omnirecon.data.colmap_io import find_model, qvec_to_rotmat, read_model
 from omnirecon.data.frame import upright_frame
 from omnirecon.data.scene import Scene
@@ -125,7 +128,7 @@ def read(path: Path, options) -> Scene:
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=files, near=near, far=far, bounds=bounds,
         splits=holdout_splits(len(images)), options=replace(options, downscale=downscale), rig=detect_rig(cameras),
-        source=img_file, distortion=dist, to_input=torch.linalg.inv(T),
+        source=img_file, distortion=dist, to_input=torch.linalg.inv(T), mask_paths=mask_files(root, factor, files),
         meta={"model": str(model.folder.relative_to(path)) if model.folder != path else ".",
               "points": int(xyz.shape[0]), "image_folder": "images" if factor == 1 else f"images_{factor}"},
     )

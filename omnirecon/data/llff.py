@@ -30,12 +30,12 @@ import torch
 
 from omnirecon.cameras import Cameras
 from omnirecon.data._common import (
-    IMAGE_EXTS,
     assemble,
     common_size,
     detect_rig,
     frustum_box,
     holdout_splits,
+    mask_files,
     rigid_poses,
 )
 from omnirecon.data.io import list_images, read_npy
@@ -116,19 +116,7 @@ def read(path: Path, options) -> Scene:
     return assemble(
         path=path, fmt=NAME, cameras=cameras, image_paths=images, near=near, far=far,
         bounds=frustum_box(cameras, near, far), splits=holdout_splits(n), options=replace(options, downscale=remaining),
-        rig=detect_rig(cameras), source=source, mask_paths=_masks(path, factor, images),
+        rig=detect_rig(cameras), source=source, mask_paths=mask_files(path, factor, images),
         meta={"image_folder": folder.name, "hwf": hwf[0].tolist()},
     )
 
-
-def _masks(path: Path, factor: int, images: list[Path]) -> list[Path] | None:
-    """Mask per image from ``masks_<factor>/`` (or ``masks/`` at factor 1), matched by stem."""
-    folder = path / ("masks" if factor == 1 else f"masks_{factor}")
-    if not folder.is_dir():
-        return None
-    by_stem = {p.stem: p for p in list_images(folder)}
-    missing = [p for p in images if p.stem not in by_stem]
-    if missing:
-        raise InputError(f"no mask for image {missing[0].name}", folder,
-                         f"give one mask per image with the same stem ({', '.join(IMAGE_EXTS[:2])})")
-    return [by_stem[p.stem] for p in images]

@@ -41,6 +41,14 @@ def photo_side(path: Path, cap: int = 512, fmt: str = "auto") -> int:
     return min(cap, max(probe.width, probe.height))
 
 
+def object_masks(path: Path, fmt: str = "auto") -> bool:
+    """The scene is an object capture (``rig == "object"``) with object masks, e.g. photos processed with
+    ``--masks``, DTU, ethiopianHead: what ``reconstruct`` meshes with its masks."""
+    fmt = detect_format(path) if fmt == "auto" else fmt
+    probe = load_scene(path, fmt, ReadOptions(max_views=1))
+    return probe.rig == "object" and probe.masks is not None
+
+
 @dataclass
 class EvalScene:
     """A scene ready for evaluation."""

@@ -226,6 +226,29 @@ class FPNEncoder(nn.Module):
         top = F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False) + self.lateral(x2)
         return self.out(top), [conv(m) for conv, m in zip(self.pyramid, (x1, x2, x3))]
 
+    def appearance(self, x: Tensor, checkpoint: bool = False) -> Tensor:
+        """The appearance feature of :meth:`forward` alone (the mesh path's: no pyramid maps), bit for bit. With
+        ``checkpoint`` (and gradients on), each stage and residual block is a ``torch.utils.checkpoint`` segment:
+        backward recomputes its activations instead of keeping them, so the graph of many large source views holds
+        only the segments' outputs (one segment's activations at a time during backward). ``# [V, C, H/4, W/4]``"""
+        if checkpoint and torch.is_grad_enabled():
+            from torch.utils.checkpoint import checkpoint as ckpt
+
+            run = lambda f, *a: ckpt(f, *a, use_reentrant=False)  # noqa: E731
+        else:
+            run = lambda f, *a: f(*a)  # noqa: E731
+        x = run(self.stem, x)
+        levels = []
+        for layer in (self.layer1, self.layer2, self.layer3):
+            for block in layer:
+                x = run(block, x)
+            levels.append(x)
+        return run(self._head, levels[1], levels[2])
+
+    def _head(self, x2: Tensor, x3: Tensor) -> Tensor:
+        top = F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False) + self.lateral(x2)
+        return self.out(top)
+
 
 # ---------------------------------------------------------------------- feature volume (§2.2)
 def volume_box(sources: Sources, mode: str, margin: float, forward: str = "content") -> Tensor:
@@ -470,11 +493,16 @@ class OmniRecon(GeneralizableModel):
             levels.append(mean_var_volume(maps, sources.cameras, lattice(box, res), res))
         return OmniReconFeatures(sources, feat, self.volume(levels), box)
 
-    def encode_appearance(self, sources: Sources) -> OmniReconFeatures:
+    def encode_appearance(self, sources: Sources, checkpoint: bool = False) -> OmniReconFeatures:
         """What the appearance branch reads (:meth:`shade`, :meth:`gather`: the mesh path, ``finetune``): the maps
-        ``F_i`` of :meth:`encode` (the same encoder pass), without the feature volume, which only
-        :meth:`render_rays` reads (``volume`` and ``box`` are left empty). Differentiable."""
-        feat, _ = self.encoder(sources.images.permute(0, 3, 1, 2))
+        ``F_i`` of :meth:`encode`, bit for bit (:meth:`FPNEncoder.appearance`: no pyramid maps), without the feature
+        volume, which only :meth:`render_rays` reads (``volume`` and ``box`` are left empty). Differentiable;
+        ``checkpoint``: recompute the encoder's activations in backward instead of keeping them (large source sets)."""
+        images = sources.images.permute(0, 3, 1, 2)  # [K, 3, H, W]
+        if isinstance(self.encoder, FPNEncoder):
+            feat = self.encoder.appearance(images, checkpoint=checkpoint)  # [K, C, H/4, W/4]
+        else:  # a pretrained encoder (PyramidMaps): its full pass
+            feat, _ = self.encoder(images)
         return OmniReconFeatures(sources, feat, feat.new_zeros(0), feat.new_zeros(2, 3))
 
     def render_view(self, features: OmniReconFeatures, camera: Cameras, chunk: int = 4096,

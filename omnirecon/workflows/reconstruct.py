@@ -38,7 +38,7 @@ from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.report import Section, write_report
-from omnirecon.engine.scenes import load_at_resolution, photo_side
+from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.options import check_options
@@ -185,7 +185,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     draw_cameras(path["scene"], out / "cameras.png")
     record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
               "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
-                                                                         ("vertices", "depth_maps", "views")},
+                                                                         ("vertices", "depth_maps", "views", "masks")},
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
                        "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
@@ -216,13 +216,16 @@ def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[
 
 
 def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[str]) -> dict:
-    """A mesh from every view (``mesh.ply``); the record holds the meshes in memory under ``meshes``."""
+    """A mesh from every view (``mesh.ply``), carved and cleaned with the object masks on object captures that
+    have them (``mesh --masks``: photos processed with ``--masks``, DTU); the record holds the meshes in memory
+    under ``meshes``."""
+    masks = object_masks(scene_path)
     mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
                           out=(out / "mesh.ply",), resolution=cfg.mesh_resolution or photo_side(scene_path),
-                          device=cfg.device,
-                          threads=cfg.threads, chunk=cfg.chunk)
+                          masks=masks, device=cfg.device, threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
-    lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps")
+    lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps"
+                 + (" (carved and cleaned with the object masks)" if masks else ""))
     return meshed
 
 
@@ -235,8 +238,10 @@ def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, ou
                                         num_views=cfg.num_views, mesh=out / "mesh.ply", resolution=side,
                                         out=out / "finetune", save=budget > 0, threads=cfg.threads), mesh=mesh)
     curve = tuned["curve"]
+    objects = (f"; on the object masks {curve[0]['psnr_masked']:.2f} -> {curve[-1]['psnr_masked']:.2f} dB"
+               if "psnr_masked" in curve[0] else "")
     tuned["line"] = (f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
-                     f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%})")
+                     f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%}{objects})")
     lines.append(tuned["line"])
     return tuned, out / "finetune" / "checkpoint" if budget > 0 else Path(cfg.ckpt)
 

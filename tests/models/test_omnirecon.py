@@ -347,3 +347,23 @@ def test_render_views_renders_from_the_nearest_sources_only():
     assert torch.allclose(two["blend"][..., keep], pair["blend"]) and (two["blend"][..., [0, 3]] == 0).all()
     forward = Sources(src.images, src.cameras, src.near, src.far, "forward", src.bounds)
     assert sorted(nearest_sources(forward, target, 2).tolist()) == keep  # by distance between centres too
+
+
+def test_encoder_appearance_alone_and_checkpointed():
+    """``FPNEncoder.appearance``: the appearance feature of ``forward`` bit for bit, and with ``checkpoint`` the same
+    feature and the same gradients (finetune's tuned encoder on many large sources keeps only segment outputs)."""
+    torch.manual_seed(0)
+    enc = OmniRecon(small_cfg()).encoder.train()
+    x = torch.rand(3, 3, 40, 36)
+    full = enc(x)[0]
+    grads = []
+    for ckpt in (False, True):
+        enc.zero_grad()
+        maps = enc.appearance(x, checkpoint=ckpt)
+        assert torch.equal(maps, full)
+        (maps * torch.linspace(-1, 1, maps.numel()).reshape(maps.shape)).sum().backward()
+        grads.append([p.grad.clone() for p in enc.parameters() if p.grad is not None])
+    with torch.no_grad():
+        assert torch.equal(enc.appearance(x, checkpoint=True), full)
+    assert len(grads[0]) == len(grads[1]) > 10
+    assert all(torch.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(*grads))
