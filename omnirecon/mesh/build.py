@@ -186,8 +186,10 @@ class MeshOptions:
     stereo+model, depth at the 18 training views against the exact depth: correct pixels (within 3 %) dropped
     4,797 -> 2,393, too-far pixels dropped 20,149 -> 19,956 of 28,229; held-out mesh path before tuning
     (``python -m bench depth_sources --rows "demo:stereo+model, nearest 6" "demo:stereo+model, nearest 6, angle
-    blend"``) 26.36 -> 26.52 dB, angle blend 26.62 -> 26.75. Dropping only when the votes exceed twice the
-    confirmations: 26.21 (angle blend); trusting only points two maps confirm: 26.23 / 26.51."""
+    blend"``) 26.36 -> 26.52 dB, angle blend 26.62 -> 26.75; the same maps, synth:eval seeds 900998 / 900997 /
+    900000: 32.88 -> 33.17 / 20.78 -> 21.13 / 25.72 -> 26.03 dB (angle blend 33.29 -> 33.60 / 20.79 -> 21.11 / 25.58
+    -> 25.86); dtu_scan37 (default row, over the mask) 22.02 -> 22.03. Dropping only when the votes exceed twice the
+    confirmations: 26.21 (demo, angle blend); trusting only points two maps confirm: 26.23 / 26.51."""
     free_space: int = 0
     """With that check, object captures without masks: also drop a pixel's depth when at least this many other
     maps see past its point (:func:`fusion.free_space_votes`: all 4x4 pixels around its projection hold trusted
