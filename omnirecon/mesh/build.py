@@ -178,7 +178,10 @@ class MeshOptions:
     mask 18.05 -> 18.26 dB. Not on forward-facing scenes: on fern it dropped 32 % of the depth (thin fronds
     before the background) and cost 0.15 dB."""
     occlusion_rel: float = 0.05
-    """Relative depth margin of that check (a point less far in front is not a violation)."""
+    """Relative depth margin of that check (a point less far in front is not a violation). With
+    ``occlusion_outvoted``, 0.03 instead (held-out mesh path at ``--nearest 6`` before tuning, stereo+model): demo
+    26.52 -> 26.76 dB, synth:eval seed 900000 26.03 -> 28.06, but seed 900998 33.17 -> 33.10 and 900997 21.13 ->
+    20.85 (DTU not measured); 0.02: demo 26.54; 0.08: demo 26.33. Kept at 0.05 until that split is understood."""
     occlusion_outvoted: bool = True
     """That check drops a pixel only when the maps that see a surface in front of it outnumber the maps that confirm
     its depth (:func:`fusion.consistency` counts), not on a fixed count alone: stereo's mismatches near a dark
