@@ -5,7 +5,8 @@
     python -m bench depth_sources --tiny               # the demo scene at 48 px, oracle and stereo (tests)
 
 Per scene (fern at its photos' resolution, 336x252; dtu_scan24/37 at 400x300 with their object masks;
-the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth source:
+the demo's held-out procedural scene, seed 900999, and three scenes of the held-out ``synth:eval`` set, seeds 900998,
+900997 and 900000 (``synth_<seed>``), each 24 views at 128 px) and depth source:
 
 * ``learned``: omnirecon-tiny's coarse-pass depth at 128 px, each view from its 3 nearest views;
 * ``floor``: the plane-sweep floor's depth, the same way;
@@ -68,7 +69,11 @@ from omnirecon.data.io import write_json
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 DEMO_SEED = 900_999
-SCENES = {"fern": "llff/fern", "dtu_scan24": "neus_dtu/dtu_scan24", "dtu_scan37": "neus_dtu/dtu_scan37", "demo": None}
+PROCEDURAL = {"demo": DEMO_SEED, "synth_900998": 900_998, "synth_900997": 900_997, "synth_900000": 900_000}
+"""Procedural scenes by seed (object rig, 24 views at 128 px): the demo's and three of the held-out ``synth:eval`` seeds
+(``omnirecon.splits.EVAL_SEEDS``; 900000 is the set's first scene)."""
+SCENES = {"fern": "llff/fern", "dtu_scan24": "neus_dtu/dtu_scan24", "dtu_scan37": "neus_dtu/dtu_scan37",
+          **{name: None for name in PROCEDURAL}}
 SOURCES = ("learned", "floor", "stereo", "stereo+fill", "stereo+model", "stereo+model+poisson", "oracle")
 TUNED = ("stereo+fill", "stereo+model", "stereo+model+poisson")
 """Sources tuned for ``--seconds`` (the others are scored before tuning only, to keep the run short)."""
@@ -80,11 +85,11 @@ def load(name: str, tiny: bool):
     from omnirecon.engine.protocols import protocol_for
     from omnirecon.engine.scenes import load_at_resolution
 
-    if name == "demo":
+    if name in PROCEDURAL:
         from omnirecon.data.synth.generate import SynthOptions, generate_scene
 
         res = 48 if tiny else 128
-        path = generate_scene(ROOT / "outputs" / "cache" / "depth_sources" / f"demo_{res}", DEMO_SEED,
+        path = generate_scene(ROOT / "outputs" / "cache" / "depth_sources" / f"{name}_{res}", PROCEDURAL[name],
                               SynthOptions(rig="object", views=24, resolution=res))
     else:
         path = SHARED / SCENES[name]
@@ -355,7 +360,7 @@ def main(argv: list[str] | None = None) -> dict:
               f"{row['cpu_seconds']['images_to_mesh']:.1f} CPU-s, {row['wall_seconds']:.1f} s wall", flush=True)
         write_json(out_file, result)
     for name, source in rows:
-        if name not in scenes_done and (name == "demo"):
+        if name not in scenes_done and name in PROCEDURAL:
             ex = exact_row(name, a.tiny)
             scenes_done.add(name)
             if ex:

@@ -233,6 +233,29 @@ def test_free_space_votes_flag_depth_in_front_of_a_surface_other_maps_see_past()
     assert (d[4][near] > 0).all()
 
 
+def test_occlusion_check_keeps_depth_more_maps_confirm_than_contradict():
+    """Nine cameras over a wall at z = 3; three corner maps see a square floating at z = 2.4 that is not there (a
+    mismatch they share, so they confirm each other). Their square hides part of the wall from the centre map's
+    view: three occlusion votes against correct wall pixels that five other maps confirm. The check with
+    ``occlusion_outvoted`` keeps them (the votes do not outnumber the confirmations); the fixed count drops them."""
+    cams = plane_rig()
+    depth = torch.full((9, 48, 48), 3.0)
+    vv, uu = torch.meshgrid(torch.arange(48) + 0.5, torch.arange(48) + 0.5, indexing="ij")
+    for k in (0, 1, 3):  # the wrong maps: the square [-0.15, 0.15]^2 at z = 2.4, seen from each camera
+        x = cams.c2w[k, 0, 3] + (uu - 24) / 60.0 * 2.4
+        y = cams.c2w[k, 1, 3] + (vv - 24) / 60.0 * 2.4
+        depth[k][(x.abs() < 0.15) & (y.abs() < 0.15)] = 2.4
+    behind = torch.zeros(48, 48, dtype=torch.bool)
+    behind[22:26, 22:26] = True  # the centre map's wall pixels straight behind the square
+    agree = fusion.consistency(cams, depth, rel=0.01)
+    votes = fusion.occlusion_votes(cams, depth, trusted=agree >= 1)
+    assert (votes[4][behind] >= 2).all() and (votes[4][behind] < agree[4][behind]).all(), (votes[4][behind], agree[4][behind])
+    kept, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree, MeshOptions(occlusion=2))
+    dropped, _, _, _ = drop_occluded(cams, depth, (depth > 0).float(), agree,
+                                     MeshOptions(occlusion=2, occlusion_outvoted=False))
+    assert (kept[4][behind] == 3.0).all() and (dropped[4][behind] == 0).all()
+
+
 def test_bad_free_space_options_are_refused():
     for kw in ({"free_space": 9}, {"free_space": -1}, {"free_space_rel": 0.0}, {"free_space_rel": float("inf")}):
         with pytest.raises(InputError, match="free_space"):
