@@ -36,6 +36,8 @@ the demo's held-out procedural scene, seed 900999, 24 views at 128 px) and depth
   the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``<source>, no source masks``: with the angle blend, ``finetune --no-source-masks`` (each source weighted by angle
   alone, not also by :func:`omnirecon.mesh.ibr.mask_falloff` at its pixel; the default before session 16).
+* ``<source>, N held-out``: scored on N of the protocol's held-out views (``finetune --max-held-out N``, evenly
+  spaced) instead of 4: DTU's protocol holds out 8 (0 6 13 19 28 35 42 48), the 4-view rows score 0 13 35 48.
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -208,6 +210,8 @@ def scoring(source: str, scene=None) -> dict:
             out["consensus"] = float(part.split()[1])
         elif part == "no source masks":
             out["source_masks"] = False
+        elif part.endswith(" held-out"):
+            out["max_held_out"] = int(part.split()[0])
         elif part not in ("sky kept", "all views"):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
@@ -242,7 +246,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
+                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
@@ -280,7 +284,7 @@ def exact_row(name: str, tiny: bool, source: str = "exact mesh") -> dict | None:
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
+                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}))
     return {"scene": name, "source": source, "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
             **coverage_and_iou(gt, scene, ft["held_out"], False)}
