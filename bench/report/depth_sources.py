@@ -77,7 +77,7 @@ def section(results: Path) -> str:
            "mesh pipeline, scored like `omnirecon finetune --mesh M --clock cpu --threads 1` at the photos' resolution "
            "(fern 336x252, DTU 400x300, procedural 128 px). `learned`: omnirecon-tiny's coarse-pass depth at 128 px; "
            "`floor`: the plane sweep; `stereo`: classical stereo (OpenCV SGBM on sideways neighbour pairs rectified "
-           "from the poses, matched on a grid of at least 256 px, vote over 4 pairs); `+fill`: completion (every content pixel of every meshed view covered, "
+           "from the poses, matched on a grid of at least 640 px, at most twice the photos', vote over 4 pairs); `+fill`: completion (every content pixel of every meshed view covered, "
            "on forward-facing scenes no fill in front of the surface another view sees and a backdrop layer on the "
            "bounds' far side; on object rigs only from depth another view confirms); `stereo+model`: "
            "stereo where it matched, omnirecon-tiny's coarse depth (128 px, rendered only at the pixels stereo left "

@@ -48,6 +48,7 @@ def test_row_variants_set_the_scoring_and_unknown_ones_fail():
         **base, "nearest": 6, "blend": "angle", "fill": "nearest", "angle_sources": (3, 4, 6, 8), "consensus": 0.1}
     assert scoring("stereo+fill, nearest 6, angle blend, no source masks") == {
         **base, "nearest": 6, "blend": "angle", "source_masks": False}
+    assert scoring("stereo+fill, all views, match 640") == base  # changes the mesh, not the scoring
     assert scoring("stereo+fill, nearest 6, angle blend, 8 held-out") == {
         **base, "nearest": 6, "blend": "angle", "max_held_out": 8}
     procedural = type("S", (), {"background": (0.0, 0.0, 0.0)})()
