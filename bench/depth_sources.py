@@ -37,6 +37,10 @@ the demo's held-out procedural scene, seed 900999, and three scenes of the held-
   the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``<source>, no source masks``: with the angle blend, ``finetune --no-source-masks`` (each source weighted by angle
   alone, not also by :func:`omnirecon.mesh.ibr.mask_falloff` at its pixel; the default before session 16).
+* ``<source>, match N``: stereo matched on rectified pairs resampled to a long side of N px (at most twice the
+  photos'; ``StereoOptions.match_side``) instead of the default.
+* ``<source>, N held-out``: scored on N of the protocol's held-out views (``finetune --max-held-out N``, evenly
+  spaced) instead of 4: DTU's protocol holds out 8 (0 6 13 19 28 35 42 48), the 4-view rows score 0 13 35 48.
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -119,21 +123,25 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
     this process."""
     from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.build import MeshOptions, mesh_from_model
+    from omnirecon.mesh.stereo import StereoOptions
 
     source, _, variant = source.partition(", ")
-    keep_sky = {"drop_background": False} if "sky kept" in variant.split(", ") else {}
+    mesh_kw = {"drop_background": False} if "sky kept" in variant.split(", ") else {}
+    match = [int(v.split()[1]) for v in variant.split(", ") if v.startswith("match ")]
+    if match:  # stereo matched on a grid of this long side (StereoOptions.match_side)
+        mesh_kw["stereo"] = StereoOptions(match_side=match[0])
     t = time.process_time()
     if source in ("learned", "floor"):  # depth at 128 px (as `omnirecon reconstruct --mesh-resolution 128`)
         low = load_at_resolution(path, 128, proto.background) if max(scene.width, scene.height) > 128 else scene
-        opts = MeshOptions(depth="model", depth_pass="coarse", **keep_sky)
+        opts = MeshOptions(depth="model", depth_pass="coarse", **mesh_kw)
         made = mesh_from_model(models[source], low, views, opts, use_masks=masks)
         return made, low.to_input, time.process_time() - t
     if source.startswith("stereo+model"):  # stereo at the photos' resolution, the model's coarse depth (128 px)
         opts = MeshOptions(depth="stereo+model", depth_pass="coarse",  # for the rest
-                           surface="poisson" if source.endswith("+poisson") else "fusion", **keep_sky)
+                           surface="poisson" if source.endswith("+poisson") else "fusion", **mesh_kw)
         made = mesh_from_model(models["learned"], scene, views, opts, use_masks=masks)
     else:
-        opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo", **keep_sky)
+        opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo", **mesh_kw)
         made = mesh_from_model(None, scene, views, opts, use_masks=masks)
     return made, scene.to_input, time.process_time() - t
 
@@ -213,13 +221,15 @@ def scoring(source: str, scene=None) -> dict:
             out["consensus"] = float(part.split()[1])
         elif part == "no source masks":
             out["source_masks"] = False
-        elif part not in ("sky kept", "all views"):
+        elif part.endswith(" held-out"):
+            out["max_held_out"] = int(part.split()[0])
+        elif part not in ("sky kept", "all views") and not part.startswith("match "):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
 
 
 MESHES: dict = {}
-"""Meshes made in this run, by scene and the variants that change the mesh (``all views``, ``sky kept``): rows that
+"""Meshes made in this run, by scene and the variants that change the mesh (``all views``, ``sky kept``, ``match N``): rows that
 differ only in scoring (``nearest K``, ``angle blend``, ``nearest fill``, ...) score the same mesh file."""
 
 
@@ -234,7 +244,8 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     targets, views = held_out(scene, proto, every_view="all views" in source.split(", ")[1:])
     masks = scene.masks is not None and proto.name == "dtu"
     variants = source.split(", ")[1:]
-    key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants, tiny)
+    key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants,
+           tuple(v for v in variants if v.startswith("match ")), tiny)
     slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
     work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{slug}"
     if key not in MESHES:
@@ -247,7 +258,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
+                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
@@ -285,7 +296,7 @@ def exact_row(name: str, tiny: bool, source: str = "exact mesh") -> dict | None:
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", max_held_out=4, **scoring(source, scene)))
+                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}))
     return {"scene": name, "source": source, "psnr": {"before": ft["curve"][0]["psnr"], "after": None},
             "psnr_covered": {"before": ft["curve"][0].get("psnr_covered"), "after": None},
             **coverage_and_iou(gt, scene, ft["held_out"], False)}

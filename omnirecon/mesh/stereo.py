@@ -64,14 +64,21 @@ class StereoOptions:
     need: int = 2
     """Agreeing pairs for full confidence; a pixel only one pair sees keeps confidence 1/need (coverage,
     not precision, is what the whole-image score punishes)."""
-    match_side: int = 256
+    match_side: int = 640
     """Match each rectified pair on a grid whose long side is at least this many pixels (finer than
     photos smaller than that, at most twice as fine; the disparity is read back at the view's own pixels; 0 = the photos' own
-    grid): sub-pixel disparity and a block that covers less of a small object. Demo scene (128 px,
+    grid): sub-pixel disparity and a block that covers less of a small object or a thin part. Demo scene (128 px,
     ``bench/depth_sources.py``), stereo+model: matched at 256 px, stereo outliers (> 5 % off the exact
     depth) sphere 30 -> 25 %, box 35 -> 26 %, green object 16 -> 10 %, ground 28 -> 24 %; held-out mesh
-    path 20.68 -> 21.04 dB whole image, F-score 0.958 -> 0.978 (384 px: 20.92). Photos of 256 px and more
-    (fern, DTU) are matched as they are."""
+    path 20.68 -> 21.04 dB whole image, F-score 0.958 -> 0.978 (384 px: 20.92). 256 -> 640 (``python -m bench
+    depth_sources``, the ``, match N`` rows; the demo's 128 px stays at 256, the 2x cap): DTU's 400x300 matched at
+    640x480, held-out mask PSNR at the defaults (angle blend, nearest fill, angle auto) dtu_scan37 22.02 -> 22.47 dB
+    (all 8 held-out views 21.04 -> 21.42), dtu_scan24 25.82 -> 26.10 (8 views: 25.07 -> 25.32; whole image 21.03 -> 20.68, dtu_scan37 19.67 -> 19.86); fern's 336x252
+    matched at 640x480, nearest 6 + angle blend 24.15 -> 24.31 dB whole image. Stereo CPU-s per view (1 thread):
+    dtu_scan37 0.26 -> 0.79; images -> mesh CPU-s (loaded machine) dtu_scan37 56 -> 78, dtu_scan24 82 -> 98, fern
+    50 -> 52. At 800 (800x600): dtu_scan37 22.59 (8 views 21.48), dtu_scan24 26.21 (25.42), fern 24.29, but 1.27
+    CPU-s per view on DTU (the issue's budget is 1 s). A 3-px block at the photos' grid instead (dtu_scan37, 8
+    views): 20.92."""
     equalize: bool = False
     """Equalise each rectified pair's contrast (CLAHE on its lightness) before matching. On the demo scene
     it raised the outliers on every object (dark sphere 30 -> 45 %); off."""
@@ -109,7 +116,7 @@ class StereoOptions:
         if not 1 <= self.need <= 16:
             bad.append(("need", self.need, "an integer in 1-16, e.g. 2"))
         if not 0 <= self.match_side <= 2048:
-            bad.append(("match_side", self.match_side, "0 (the photos' grid) or a long side in px up to 2048, e.g. 256"))
+            bad.append(("match_side", self.match_side, "0 (the photos' grid) or a long side in px up to 2048, e.g. 640"))
         if not 0 <= self.confirm <= 8:
             bad.append(("confirm", self.confirm, "an integer in 0-8, e.g. 1"))
         if bad:

@@ -103,3 +103,17 @@ def test_matching_on_a_finer_grid_reads_depth_back_at_the_photos_pixels():
         assert depth.shape == (H, W) and ok.float().mean() > 0.8
         err[side] = float(((depth[ok] - exact[0][ok]).abs() / exact[0][ok]).mean())
     assert err[320] < 0.02 and err[320] <= err[0] * 1.1, err
+
+
+def test_the_default_matches_small_photos_on_twice_their_grid():
+    """``StereoOptions.match_side``'s default matches photos up to 320 px (fern's 336x252 at 1.9x, DTU's 400x300 at 1.6x)
+    on a grid twice their size: on a 160 px pair its depth is at least as accurate as the photos' own grid's."""
+    images, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0]])
+    bounds = torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]])
+    assert StereoOptions().match_side >= 2 * 320
+    err = {}
+    for opts in (StereoOptions(), StereoOptions(match_side=0)):
+        depth = stereo_depths(images, cams, [0, 1], bounds, opts)["depth"][0]
+        ok = depth > 0
+        err[opts.match_side] = float(((depth[ok] - exact[0][ok]).abs() / exact[0][ok]).mean())
+    assert err[StereoOptions().match_side] <= err[0], err
