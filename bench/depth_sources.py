@@ -37,6 +37,8 @@ the demo's held-out procedural scene, seed 900999, and three scenes of the held-
   the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
 * ``<source>, no source masks``: with the angle blend, ``finetune --no-source-masks`` (each source weighted by angle
   alone, not also by :func:`omnirecon.mesh.ibr.mask_falloff` at its pixel; the default before session 16).
+* ``<source>, no cracks``: scored with ``finetune --cracks 0`` (the missed pixels the mesh encloses keep the fill or
+  the background colour instead of the nearest covered pixel's depth; the default before session 18).
 * ``<source>, match N``: stereo matched on rectified pairs resampled to a long side of N px (at most twice the
   photos'; ``StereoOptions.match_side``) instead of the default.
 * ``<source>, N held-out``: scored on N of the protocol's held-out views (``finetune --max-held-out N``, evenly
@@ -221,6 +223,8 @@ def scoring(source: str, scene=None) -> dict:
             out["consensus"] = float(part.split()[1])
         elif part == "no source masks":
             out["source_masks"] = False
+        elif part == "no cracks":
+            out["cracks"] = 0
         elif part.endswith(" held-out"):
             out["max_held_out"] = int(part.split()[0])
         elif part not in ("sky kept", "all views") and not part.startswith("match "):

@@ -20,7 +20,8 @@ views uniformly, as in the volumetric path.
 **Fill** (``MeshRenderOptions.fill``, not in the paper): pixels no triangle covers get the background
 layer of :mod:`omnirecon.mesh.fill`, shaded by the same blend; ``render``'s ``mask`` is the coverage. With
 ``fill="nearest"``, those within reach of a covered pixel first take its rendered z-depth
-(:func:`omnirecon.mesh.fill.nearest_depth`), as ``finetune --fill nearest`` scores them.
+(:func:`omnirecon.mesh.fill.nearest_depth`), as ``finetune --fill nearest`` scores them. Whatever the fill, the missed
+pixels the mesh encloses (``MeshRenderOptions.cracks``, :func:`omnirecon.mesh.fill.crack_pixels`) take it too.
 
 **Blend** (``MeshRenderOptions.blend``): ``"network"``, the appearance branch's weights (the paper);
 ``"angle"``, each point's ``angle_sources`` nearest sources by viewing angle among those that see it, weighted by
@@ -79,7 +80,15 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.mesh.fill import exit_depth, layer_box, nearest_depth, nearest_fill, ray_basis, with_fill
+from omnirecon.mesh.fill import (
+    CRACK_RADIUS,
+    NEAREST_FILL_REACH,
+    exit_depth,
+    layer_box,
+    nearest_depth,
+    ray_basis,
+    shaded_surface,
+)
 from omnirecon.rays import Sources
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
@@ -96,6 +105,10 @@ class MeshRenderOptions:
     of :mod:`omnirecon.mesh.fill` (no pixel left blank), ``"nearest"``: the nearest covered pixel's z-depth within
     :data:`omnirecon.mesh.fill.NEAREST_FILL_REACH` of it and the background layer beyond, or puts ``"background"``:
     that colour."""
+    cracks: int = CRACK_RADIUS
+    """Whatever ``fill``, the pixels the mesh misses but encloses (:func:`omnirecon.mesh.fill.crack_pixels` of this
+    radius: pinholes, seams between completion's fills) take the nearest covered pixel's z-depth (0: off), as
+    ``finetune --cracks`` scores them."""
     blend: Literal["network", "angle"] = "network"
     """How a point mixes its sources: ``"network"``, the appearance branch's weights; ``"angle"``,
     :func:`angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
@@ -384,14 +397,17 @@ REALTIME_ANGLE_SOURCES = 4
 
 def realtime_setting(scene, record: dict | None = None) -> dict:
     """The real-time mesh path's blend for ``scene``: ``finetune``'s record of what it scored with (``curve.json``'s
-    ``"render"``: blend, fill, sources per frame (0: every training view), angle sources, source masks) where there is
+    ``"render"``: blend, fill, sources per frame (0: every training view), angle sources, source masks, cracks) where there is
     one, else finetune's
     defaults for the scene kind (:func:`scene_defaults`, :data:`REALTIME_SOURCES`, :data:`REALTIME_ANGLE_SOURCES`,
     :func:`masks_hold_scene`). One setting, so a video, ``render --mesh`` and the scores blend alike."""
     blend, fill = scene_defaults(scene)
     out = {"blend": blend, "fill": fill, "sources": 0 if blend == "angle" else REALTIME_SOURCES,
-           "angle_sources": REALTIME_ANGLE_SOURCES, "source_masks": masks_hold_scene(scene)}
-    out.update({k: v for k, v in ((record or {}).get("render") or {}).items() if k in out})
+           "angle_sources": REALTIME_ANGLE_SOURCES, "source_masks": masks_hold_scene(scene), "cracks": CRACK_RADIUS}
+    scored = (record or {}).get("render") or {}
+    if scored and "cracks" not in scored:  # a record from before the crack fill scored without it
+        out["cracks"] = 0
+    out.update({k: v for k, v in scored.items() if k in out})
     out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
     return out
 
@@ -399,7 +415,8 @@ def realtime_setting(scene, record: dict | None = None) -> dict:
 def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
     """:class:`MeshRenderOptions` of a :func:`realtime_setting` (plus ``kwargs``: background, visibility, ...)."""
     return MeshRenderOptions(blend=setting["blend"], fill=setting["fill"], angle_sources=int(setting["angle_sources"]),
-                             source_masks=bool(setting["source_masks"]), **kwargs)
+                             source_masks=bool(setting["source_masks"]), cracks=int(setting.get("cracks", CRACK_RADIUS)),
+                             **kwargs)
 
 
 def scene_defaults(scene) -> tuple[str, str]:
@@ -531,12 +548,10 @@ class MeshRenderer:
         background layer of :func:`omnirecon.mesh.fill.with_fill`)."""
         with torch.inference_mode():
             surf, covered, layer = self.rasterizer.surface(camera), None, None
-            if fill:
-                surf, covered = with_fill(surf, camera, self.sources.far, layer_box(self.sources.rig, self.sources.bounds))
-                layer = torch.arange(len(surf.pixels)) >= covered  # [P] on the far layer
-                if self.options.fill == "nearest":
-                    surf, moved = nearest_fill(surf, covered, camera)
-                    layer &= ~moved
+            if fill or self.options.cracks > 0:
+                surf, covered, layer = shaded_surface(surf, camera, self.sources.far,
+                                                      layer_box(self.sources.rig, self.sources.bounds),
+                                                      self.options.fill if fill else "background", self.options.cracks)
                 layer = layer.to(self.device)
             points = surf.points.to(self.device, self.dtype)  # [P, 3]
             origin = camera.centers[0].to(self.device, self.dtype)  # [3]
@@ -784,8 +799,9 @@ class MeshRenderer:
         H, W = camera.height, camera.width
         depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
         hit = (depth > 0).reshape(-1).to(self.device) if self.mask_falloff is not None else None  # [H W] on the mesh
-        if self.options.fill == "nearest":  # one distance transform per frame, before the chunks
-            depth = torch.from_numpy(nearest_depth(depth.float().cpu().numpy()))
+        if self.options.fill == "nearest" or self.options.cracks > 0:  # one distance transform a frame, before the chunks
+            reach = NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0
+            depth = torch.from_numpy(nearest_depth(depth.float().cpu().numpy(), reach, self.options.cracks))
         depth = depth.reshape(-1).to(self.device, self.dtype)  # [H W]
         A, origin = (t.to(self.device, self.dtype) for t in ray_basis(camera))  # [3, 3], [3]
         A2, Auv, o = A[2][:, None], A[:2].T.contiguous(), origin[:, None]  # [3, 1], [3, 2], [3, 1]

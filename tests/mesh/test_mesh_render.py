@@ -41,7 +41,8 @@ def test_mesh_path_equals_volumetric_colour_at_the_exact_surface(setup):
     same point. The exact points come from the float64 reference rasterizer; the GL path interpolates
     them in float32."""
     scene, mesh, model, sources, target = setup
-    with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background, fill="background")) as renderer:
+    opts = MeshRenderOptions(background=scene.background, fill="background", cracks=0)  # cracks: their own test
+    with MeshRenderer(model, mesh, sources, opts) as renderer:
         out = renderer.render(target)
         feats = renderer.features
     ref = MeshRasterizer.from_trimesh(mesh, backend="reference").rasterize(target)
@@ -86,7 +87,7 @@ def test_fused_shader_equals_model_shade(setup, visibility, workers):
 
 def test_constant_signal_renders_the_constant(setup):
     scene, mesh, model, sources, target = setup
-    with MeshRenderer(model, mesh, sources) as renderer:
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(cracks=0)) as renderer:  # cracks: their own test
         const = torch.tensor([0.25, -3.0, 7.5])
         out = renderer.render_signal(target, const.expand(4, 16, 16, 3).clone(), background=-1.0)
         m = out["mask"]
@@ -499,3 +500,52 @@ def test_realtime_setting_takes_finetunes_record(setup):
     assert s["source_masks"] and realtime_options(s, visibility=True).angle_sources == 3
     s = realtime_setting(replace(scene, background=None, rig="object"))  # no record: the angle blend, every source
     assert (s["blend"], s["sources"], s["source_masks"]) == ("angle", 0, True)
+
+
+def test_crack_pixels_are_the_gaps_the_covered_pixels_enclose():
+    """A pinhole and a 3-px slit inside a covered square are cracks; the pixels around the square's outline, a notch
+    wider than the closing, and what runs off the image border are not."""
+    from omnirecon.mesh.fill import crack_pixels
+
+    cov = np.zeros((40, 40), dtype=bool)
+    cov[5:30, 5:30] = True
+    cov[10, 10] = False  # pinhole
+    cov[15:18, 8:25] = False  # a 3-px slit
+    cov[24:30, 20:27] = False  # a notch open to the outside, 7 px wide
+    cov[0:3, 33:40] = True  # a strip on the border: the pixels beyond it are not enclosed
+    cracks = crack_pixels(cov, 2)
+    assert cracks[10, 10] and cracks[15:18, 8:25].all()
+    assert not cracks[24:30, 20:27].any()
+    outline = np.zeros_like(cov)
+    outline[3:32, 3:32] = True
+    outline[5:30, 5:30] = False
+    assert not (cracks & outline).any() and not cracks[3:, 33:].any()
+    assert not crack_pixels(cov, 1)[15:18, 8:25].any() and crack_pixels(cov, 1)[10, 10]  # radius 1: 3-px gaps stay
+    assert not crack_pixels(cov, 0).any()
+
+
+@pytest.mark.parametrize("fill", ["background", "far"])
+def test_cracks_take_the_surface_not_the_background(setup, fill):
+    """The exact mesh with scattered faces removed (pinholes): with ``cracks`` the pixels it no longer covers but
+    encloses are shaded at the nearest covered depth, never left at the background colour or on the far layer, the
+    coverage mask stays the mesh's, both render paths agree, and the image is closer to the photo than without."""
+    from omnirecon.mesh.fill import crack_pixels
+    from omnirecon.metrics import psnr
+
+    scene, mesh, model, sources, target = setup
+    rng = np.random.default_rng(0)
+    holed = trimesh.Trimesh(mesh.vertices, mesh.faces[rng.random(len(mesh.faces)) > 0.03], process=False)
+    sentinel = (1.0, 0.0, 1.0)
+    opts = dict(background=sentinel, fill=fill, visibility=True, cull_back_faces=False)
+    with MeshRenderer(model, holed, sources, MeshRenderOptions(**opts, cracks=0)) as r0, \
+            MeshRenderer(model, holed, sources, MeshRenderOptions(**opts, cracks=2)) as r2:
+        a, b, fast = r0.render(target), r2.render(target), r2.render(target, extras=False)["rgb"]
+    assert torch.equal(a["mask"], b["mask"])
+    cracks = torch.from_numpy(crack_pixels(b["mask"].numpy(), 2))
+    assert cracks.sum() > 20
+    changed = (a["rgb"] - b["rgb"]).abs().amax(-1) > 1e-4
+    assert changed[cracks].float().mean() > 0.9 and not changed[~cracks].any()
+    assert not ((b["rgb"][cracks] - torch.tensor(sentinel)).abs().amax(-1) < 1e-3).any()
+    assert (fast - b["rgb"]).abs().max() < 1e-3
+    gt = scene.images[0].float()
+    assert psnr(b["rgb"].clamp(0, 1), gt) > psnr(a["rgb"].clamp(0, 1), gt)

@@ -407,7 +407,8 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     # what the real-time path blends with (omnirecon.mesh.ibr.realtime_setting): the scored blend, fill and counts
     assert c["render"] == {"blend": "angle", "fill": c["fill"], "sources": len(c["sources"]),  # each point: nearest of all
                            "angle_sources": c["angle_sources"],
-                           "source_masks": False}  # a procedural scene: its masks leave out the ground
+                           "source_masks": False,  # a procedural scene: its masks leave out the ground
+                           "cracks": 2}
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
@@ -485,7 +486,7 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
         runs.append((vals, [p.detach().clone() for p in tuner.params], s))
     (va, pa, s), (vb, pb, _) = runs
     assert va == vb and all(torch.equal(a, b) for a, b in zip(pa, pb))
-    again = rasterize_views(s.mesh, s.scene, [v.index for v in s.held_px], s.fill, s.views)
+    again = rasterize_views(s.mesh, s.scene, [v.index for v in s.held_px], s.fill, s.views, cracks=cfg.cracks)
     assert all(torch.equal(a.points, b.points) and torch.equal(a.pixels, b.pixels) for a, b in zip(s.held_px, again))
     tuner = Tuner(cfg, s, torch.Generator().manual_seed(0))
     tuner.validate(idx)
