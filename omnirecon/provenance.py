@@ -8,13 +8,20 @@ import subprocess
 import time
 from pathlib import Path
 
+RESULTS = ("bench/results", "BENCHMARKS.md")
+"""What benchmarks write: changes there do not make the code that produces a number ``+dirty`` (a bench run that
+writes its results file as each row finishes stamped its later rows ``+dirty``)."""
+
 
 def git_commit(root: Path | None = None) -> str:
+    """The checkout's commit, ``+dirty`` when a tracked file other than the benchmarks' results (:data:`RESULTS`)
+    differs from it."""
     root = root or Path(__file__).resolve().parents[1]
     try:
         sha = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=root, capture_output=True,
                              text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                *(f":(exclude){p}" for p in RESULTS)], cwd=root,
                                capture_output=True, text=True).stdout.strip()
         return sha + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
