@@ -64,16 +64,21 @@ def psnr8(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float
     return float(-10 * np.log10(max(mse, 1e-12)))
 
 
-def python_frames(model, mesh, scene, targets: list[int], pool: list[int], setting: dict) -> tuple[list, list[float]]:
-    """``MeshRenderer``'s frames (uint8) of the held-out views under ``setting`` and the CPU ms of each."""
+def python_frames(model, mesh, scene, targets: list[int], pool: list[int], setting: dict,
+                  encoding: str | None = None, scale: float = 1.0) -> tuple[list, list[float]]:
+    """``MeshRenderer``'s frames (uint8) of the held-out views under ``setting`` and the CPU ms of each (``encoding``:
+    each frame's sources taken from :func:`shared_encoding` instead of encoded as a set; ``scale``: the cameras'
+    resolution factor)."""
     from omnirecon.engine.views import select_sources
     from omnirecon.mesh.ibr import ViewCache, realtime_options
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     frames, ms = [], []
     with ViewCache(model, mesh, scene, realtime_options(setting, background=bg, visibility=True)) as cache:
+        if encoding:
+            cache._features.update(shared_encoding(model, scene, pool, targets, setting["sources"], encoding))
         for t in targets:
-            cam = scene.cameras[t].to(dtype=torch.float32)
+            cam = scene.cameras[t].to(dtype=torch.float32).rescaled(scale)
             picks = sorted(select_sources(scene, cam, pool, setting["sources"] or len(pool)))
             with cache.renderer(picks) as r:
                 r.render(cam, extras=False)  # warm-up
@@ -84,16 +89,73 @@ def python_frames(model, mesh, scene, targets: list[int], pool: list[int], setti
     return frames, ms
 
 
-def input_camera(scene, t: int) -> dict:
-    """Held-out camera ``t`` as the viewer takes it: OpenCV intrinsics and camera-to-world in the input frame."""
-    cam = scene.cameras[t].to(dtype=torch.float64).transformed(scene.to_input)
+def shared_encoding(model, scene, pool: list[int], targets: list[int], k: int, how: str) -> dict:
+    """Per target, the features of its ``k`` nearest sources taken from one encoding of more views than that set (what a
+    bundle of fixed features can hold): ``how`` ``"pool"``, every view of ``pool`` encoded together; ``"own"``, each
+    view encoded with its own ``k - 1`` nearest views of the pool. ``{tuple(set): OmniReconFeatures}``"""
+    from dataclasses import replace
+
+    from omnirecon.engine.views import select_sources
+    from omnirecon.rays import Sources
+
+    with torch.inference_mode():
+        if how == "pool":
+            maps = model.encode_appearance(Sources.from_scene(scene, pool)).maps  # [P, C, h, w]
+        else:
+            maps = torch.cat([model.encode_appearance(Sources.from_scene(scene, [v, *[u for u in select_sources(
+                scene, scene.cameras[v], pool, k) if u != v][:k - 1]])).maps[:1] for v in pool])
+        full = model.encode_appearance(Sources.from_scene(scene, pool[:1]))
+        out = {}
+        for t in targets:
+            picks = sorted(select_sources(scene, scene.cameras[t].to(dtype=torch.float32), pool, k))
+            out[tuple(picks)] = replace(full, sources=Sources.from_scene(scene, picks),
+                                        maps=maps[[pool.index(v) for v in picks]])
+    return out
+
+
+def gap_ladder(model, mesh, scene, targets: list[int], pool: list[int], setting: dict, old_views: list[int]) -> list:
+    """``MeshRenderer``'s held-out PSNR from what main's viewer drew (``old_views``, the far fill or the background
+    colour, no source masks, no cracks) up to ``setting``, one gap closed per rung."""
+    old = {**setting, "fill": "background" if setting["fill"] == "background" else "far", "source_masks": False,
+           "cracks": 0}
+    if setting["blend"] == "angle":
+        rungs = [("every training view", {"sources": 0}), ("source masks", {"source_masks": setting["source_masks"]}),
+                 ("nearest fill", {"fill": setting["fill"]}), ("cracks", {"cracks": setting["cracks"]})]
+    else:
+        rungs = [(f"{setting['sources']} nearest per frame, one pool encoding", {"sources": setting["sources"],
+                                                                                 "encoding": "pool"}),
+                 (f"{setting['sources']} nearest per frame, each view with its nearest", {"encoding": "own"}),
+                 (f"{setting['sources']} nearest per frame, each set encoded", {"encoding": None}),
+                 ("fill", {"fill": setting["fill"]}), ("cracks", {"cracks": setting["cracks"]})]
+    out, current = [], {**old, "encoding": None}
+    for name, change in [("main's viewer", {}), *rungs]:
+        current = {**current, **change}
+        frames, _ = python_frames(model, mesh, scene, targets, old_views if name == "main's viewer" else pool, current,
+                                  current.get("encoding"))
+        row = {"rung": name, "setting": dict(current)}
+        row["psnr"] = float(np.mean([psnr8(f, to_uint8(scene.images[t].float().numpy())) for t, f in zip(targets, frames)]))
+        if scene.masks is not None:
+            row["psnr_masked"] = float(np.mean([psnr8(f, to_uint8(scene.images[t].float().numpy()),
+                                                      scene.masks[t].bool().numpy()) for t, f in zip(targets, frames)]))
+        print(f"  {name}: {row['psnr']:.2f} dB" + (f", masks {row['psnr_masked']:.2f}" if "psnr_masked" in row else ""),
+              flush=True)
+        out.append(row)
+    return out
+
+
+def input_camera(scene, t: int, scale: float = 1.0) -> dict:
+    """Held-out camera ``t`` (its resolution times ``scale``) as the viewer takes it: OpenCV intrinsics and
+    camera-to-world in the input frame."""
+    cam = scene.cameras[t].to(dtype=torch.float32).rescaled(scale).to(dtype=torch.float64).transformed(scene.to_input)
     return {"fx": float(cam.fx[0]), "fy": float(cam.fy[0]), "cx": float(cam.cx[0]), "cy": float(cam.cy[0]),
             "width": cam.width, "height": cam.height, "c2w": cam.c2w[0].tolist(), "frame": "input"}
 
 
-def browser_frames(bundle: Path, cameras: list[dict], bench_frames: int, timeout: float) -> tuple[list, dict, dict]:
-    """Headless Chromium's screenshots (uint8) of ``cameras`` drawn by the bundle as it starts, ``omnirecon.info``
-    and ``omnirecon.benchmark(bench_frames)`` at the first camera."""
+def browser_frames(bundle: Path, cameras: list[dict], bench_frames: int, timeout: float,
+                   toggles: tuple[tuple[str, str], ...] = ()) -> tuple[list, dict, dict, dict]:
+    """Headless Chromium's screenshots (uint8) of ``cameras`` drawn by the bundle as it starts, ``omnirecon.info``,
+    ``omnirecon.benchmark(bench_frames)`` at the first camera, and ``{name: screenshots}`` after each of ``toggles``
+    (``(name, JavaScript)``, applied one after the other: each turns one more part of the setting off)."""
     from PIL import Image
 
     from omnirecon.viewer.headless import HeadlessChromium
@@ -102,7 +164,7 @@ def browser_frames(bundle: Path, cameras: list[dict], bench_frames: int, timeout
     W, H = cameras[0]["width"], cameras[0]["height"]
     server = ViewerServer(bundle, port=0, quiet=True)
     server.start()
-    shots = []
+    off = {}
     try:
         with HeadlessChromium(W, H, timeout=timeout) as browser:
             query = urllib.parse.urlencode({"camera": json.dumps(cameras[0])})
@@ -113,15 +175,37 @@ def browser_frames(bundle: Path, cameras: list[dict], bench_frames: int, timeout
                 raise RuntimeError(f"viewer: {browser.evaluate('document.documentElement.dataset.error')}; "
                                    f"{browser.console()[-5:]}")
             info = browser.evaluate("omnirecon.info")
-            for cam in cameras:
-                browser.evaluate(f"omnirecon.setCamera({json.dumps(cam)}), 1", timeout=timeout)
-                png = browser.screenshot(None, W, H, redraw=REDRAW)
-                shots.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB")))
+
+            def shoot() -> list[np.ndarray]:
+                shots = []
+                for cam in cameras:
+                    browser.evaluate(f"omnirecon.setCamera({json.dumps(cam)}), 1", timeout=timeout)
+                    png = browser.screenshot(None, W, H, redraw=REDRAW)
+                    shots.append(np.asarray(Image.open(io.BytesIO(png)).convert("RGB")))
+                return shots
+
+            shots = shoot()
             browser.evaluate(f"omnirecon.setCamera({json.dumps(cameras[0])}), 1", timeout=timeout)
             speed = browser.evaluate(f"omnirecon.benchmark({bench_frames})", timeout=timeout)
+            for name, js in toggles:
+                browser.evaluate(f"{js}, 1", timeout=timeout)
+                off[name] = shoot()
     finally:
         server.stop()
-    return shots, info, speed
+    return shots, info, speed, off
+
+
+def toggles_of(setting: dict) -> tuple[tuple[str, str], ...]:
+    """The parts of ``setting`` the viewer can turn off, cumulatively: source masks, the nearest fill (to the far
+    layer), the crack fill."""
+    out = []
+    if setting["blend"] == "angle" and setting["source_masks"]:
+        out.append(("source masks", "omnirecon.setMasks(false)"))
+    if setting["fill"] == "nearest":
+        out.append(("nearest fill", "omnirecon.setFill('far')"))
+    if setting.get("cracks"):
+        out.append(("cracks", "omnirecon.setCracks(false)"))
+    return tuple(out)
 
 
 def export_bundle(scene_path: Path, resolution: int, mesh_file: Path, record_folder: Path, setting: dict,
@@ -155,7 +239,7 @@ def figure(rows: list[list[np.ndarray]], path: Path) -> None:
 
 
 def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, frames_dir: Path, results: Path,
-              bench_frames: int, timeout: float) -> dict:
+              bench_frames: int, timeout: float, gaps: bool = False) -> dict:
     from omnirecon.engine.checkpoint import load_checkpoint
     from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.files import read_mesh
@@ -171,6 +255,11 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
     mesh = read_mesh(folder / "mesh.ply", scene.to_input)
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
     targets, pool = record["held_out"][:views], record["sources"]
+    if gaps:
+        from omnirecon.engine.views import default_views
+
+        return {"scene": name, "held_out": targets, "gaps": gap_ladder(model, mesh, scene, targets, pool, setting,
+                                                                       default_views(scene, 3))}
     if render != record.get("render"):
         record = {**record, "render": render}
         (frames_dir / "finetune").mkdir(parents=True, exist_ok=True)
@@ -185,7 +274,8 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
     bundle = Path(exported["out"]) / "viewer"
     meta = json.loads((bundle / "bundle.json").read_text())
     refs, py_ms = python_frames(model, mesh, scene, targets, pool, setting)
-    shots, info, speed = browser_frames(bundle, [input_camera(scene, t) for t in targets], bench_frames, timeout)
+    shots, info, speed, off = browser_frames(bundle, [input_camera(scene, t) for t in targets], bench_frames, timeout,
+                                             toggles_of(setting) if meta.get("version", 1) >= 2 else ())
     per_view, pics = [], []
     for t, ref, shot in zip(targets, refs, shots):
         photo = to_uint8(scene.images[t].float().numpy())
@@ -211,10 +301,19 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
            "browser": mean("browser"), "python": mean("python"), "parity": mean("parity"),
            "max_diff": max(v["max_diff"] for v in per_view), "mean_diff": mean("mean_diff"), "over_8": mean("over_8"),
            "browser_ms_per_frame": speed["ms_per_frame"], "browser_frames": speed["frames"],
-           "python_cpu_ms_per_frame": float(np.median(py_ms)), "per_view": per_view}
+           "python_cpu_ms_per_frame": float(np.median(py_ms)), "per_view": per_view,
+           "scored_by": "objects" if record.get("scored_by") == "objects" and scene.masks is not None else "image"}
     if scene.masks is not None:
         row.update(browser_masked=mean("browser_masked"), python_masked=mean("python_masked"),
                    parity_masked=mean("parity_masked"))
+    row["browser_off"] = []  # the browser's PSNR with each part of the setting turned off, cumulatively
+    for name, frames in off.items():
+        photos = [to_uint8(scene.images[t].float().numpy()) for t in targets]
+        r = {"off": name, "psnr": float(np.mean([psnr8(f, p) for f, p in zip(frames, photos)]))}
+        if scene.masks is not None:
+            r["psnr_masked"] = float(np.mean([psnr8(f, p, scene.masks[t].bool().numpy())
+                                              for f, p, t in zip(frames, photos, targets)]))
+        row["browser_off"].append(r)
     return row
 
 
@@ -233,21 +332,29 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--timeout", type=float, default=600.0, help="seconds the browser may take per step")
     p.add_argument("--frames", type=Path, default=ROOT / "outputs" / "bench" / "viewer_parity",
                    help="where the bundles and every frame go")
+    p.add_argument("--gaps", action="store_true",
+                   help="no browser: MeshRenderer from main's viewer's setting to the real-time one, a gap at a time "
+                        "(written to viewer_parity_gaps.json)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    out_file = a.out / "viewer_parity.json"
+    out_file = a.out / ("viewer_parity_gaps.json" if a.gaps else "viewer_parity.json")
     old = json.loads(out_file.read_text()) if out_file.is_file() else {}
     result = {"provenance": provenance(seed=0), "rows": [r for r in old.get("rows", []) if r["scene"] not in a.scenes]}
     for name in a.scenes:
         row = run_scene(name, a.meshes / f"{name}_{ROWS[name]}", a.cracks, a.views, a.frames / name, a.out,
-                        a.bench_frames, a.timeout)
+                        a.bench_frames, a.timeout, a.gaps)
         row["load_average"] = list(os.getloadavg())
         result["rows"].append(row)
-        key = "_masked" if "browser_masked" in row else ""
+        if a.gaps:
+            write_json(out_file, result)
+            continue
+        key = "_masked" if row["scored_by"] == "objects" else ""
         print(f"{name}: PSNR{' (masks)' if key else ''} browser {row['browser' + key]:.2f}, MeshRenderer "
               f"{row['python' + key]:.2f}; browser vs MeshRenderer {row['parity']:.2f} dB (max diff {row['max_diff']}, "
               f"mean {row['mean_diff']:.2f} levels); browser {row['browser_ms_per_frame']:.0f} ms per frame, "
               f"MeshRenderer {row['python_cpu_ms_per_frame']:.0f} CPU-ms; bundle {row['bundle']}", flush=True)
+        for r in row["browser_off"]:
+            print(f"  browser without {r['off']} too: {r['psnr' + key]:.2f} dB", flush=True)
         write_json(out_file, result)
     return result

@@ -16,7 +16,7 @@ def _setting(s: dict) -> str:
 
 
 def _line(row: dict) -> str:
-    key = "_masked" if "browser_masked" in row else ""
+    key = "_masked" if row.get("scored_by") == "objects" else ""
     b = row["bundle"]
     return (f"{row['scene']} ({len(row['held_out'])} views, {row['resolution'][0]}x{row['resolution'][1]}) | "
             f"{_setting(row['setting'])} | v{b['version']}, {b['sources']} sources, {b['megabytes']:g} MB | "
@@ -31,7 +31,7 @@ def section(results: Path) -> str | None:
         "Held-out views drawn by the bundle `omnirecon export` writes (headless Chromium, software WebGL2, as the "
         "bundle starts) and by `MeshRenderer` with the real-time setting of the scene's finetune record "
         "(`realtime_setting`, with the crack fill), at the scene's resolution. PSNR against the photos (over the "
-        "object masks on DTU, the whole image elsewhere), the browser's PSNR against `MeshRenderer`'s frames (whole "
+        "object masks where finetune scores them, DTU; the whole image elsewhere), the browser's PSNR against `MeshRenderer`'s frames (whole "
         "image) and the largest / mean absolute difference between them in 8-bit levels; the browser's wall "
         "milliseconds per frame (SwiftShader on the CPU) beside `MeshRenderer`'s CPU milliseconds (1 thread). "
         "Pictures: `bench/results/figures/viewer_parity_<scene>.png` (photo | MeshRenderer | browser | 4x difference).",

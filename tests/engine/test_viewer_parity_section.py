@@ -12,7 +12,8 @@ def test_section_lists_the_setting_the_bundle_and_both_scores(tmp_path):
     row = {"scene": "dtu_scan37", "held_out": [0, 6], "resolution": [400, 300], "setting": setting,
            "bundle": {"version": 2, "sources": 41, "megabytes": 61.5}, "python": 18.9, "browser": 18.8,
            "python_masked": 21.41, "browser_masked": 21.38, "parity": 40.12, "max_diff": 97,
-           "mean_diff": 0.31, "browser_ms_per_frame": 1500.0, "python_cpu_ms_per_frame": 240.0, "load_average": [3.0]}
+           "mean_diff": 0.31, "browser_ms_per_frame": 1500.0, "python_cpu_ms_per_frame": 240.0, "load_average": [3.0],
+           "scored_by": "objects"}
     (tmp_path / "viewer_parity.json").write_text(json.dumps({"provenance": provenance(seed=0), "rows": [row]}))
     text = section(tmp_path)
     assert ("| dtu_scan37 (2 views, 400x300) | angle (every training view, 4 per point, source masks), nearest fill, "
