@@ -4,8 +4,9 @@
 //   1. depth: the mesh's camera z-depth per pixel (1 / gl_FragCoord.w, as omnirecon.render.raster), 0 = no triangle;
 //   2. the fills' geometry (omnirecon.mesh.fill), only when on:
 //      cracks (MeshRenderOptions.cracks = r): a missed pixel inside the closing of the covered pixels by a
-//        (2r + 1)-px square (the image padded by its edge pixels) is a crack: DILATE writes the dilation over the
-//        padded domain, the shade pass erodes it at the missed pixels;
+//        (2r + 1)-px square (the image padded by its edge pixels) is a crack (closingShaders: four separable passes);
+//        with the nearest fill the cracks need no passes of their own: every crack lies within its reach, and
+//        takes the same nearest covered pixel's depth;
 //      nearest (fill="nearest"): jump flooding (SEED_INIT, then JFA at steps 2^(m-1) .. 1 and 1 again) finds each
 //        pixel's nearest covered pixel, Euclidean, ties to the smaller column, then the smaller image row (as
 //        scipy's distance transform);
@@ -89,28 +90,44 @@ precision highp float;
 in vec3 position;
 void main() { gl_Position = vec4(position.xy, 0.0, 1.0); }`;
 
-// pass 2a: the dilation of the covered pixels by a (2 CR + 1)-px square over the domain padded by CR on each side
-// (target (W + 2 CR) x (H + 2 CR); texel (x + CR, y + CR) is pixel (x, y)); the padding repeats the edge pixels
-export function dilateShader(radius) {
-  return `
+// pass 2a: the crack mask, the closing of the covered pixels by a (2 CR + 1)-px square minus the covered pixels, as
+// four separable passes (a square's dilation and erosion are a row pass and a column pass each). The closing is
+// taken over the image padded by CR on each side with its edge pixels (omnirecon.mesh.fill.crack_pixels): the
+// dilation runs over the padded domain, the erosion only at the image's pixels. Textures: DILATE_ROWS (W + 2 CR) x H,
+// texel (i, j) for padded column i - CR, image row j; DILATE_COLUMNS (W + 2 CR) x (H + 2 CR), texel (i, j) for the
+// padded pixel (i - CR, j - CR); ERODE_ROWS W x (H + 2 CR); ERODE_COLUMNS W x H: 1 at the cracks.
+export function closingShaders(radius) {
+  const head = `
 precision highp float;
 precision highp sampler2D;
 #define CR ${radius}
-uniform sampler2D uZ;  // pass 1's depth, W x H
-out vec4 fragColor;
+uniform sampler2D uIn;
+uniform sampler2D uZ;  // pass 1's depth, W x H: its size is the image's
+out vec4 fragColor;`;
+  const pass = (body) => `${head}
 void main() {
   ivec2 size = textureSize(uZ, 0);
-  ivec2 q = ivec2(gl_FragCoord.xy) - CR;
-  float covered = 0.0;
-  for (int dy = -CR; dy <= CR; dy++) {
-    for (int dx = -CR; dx <= CR; dx++) {
-      ivec2 s = q + ivec2(dx, dy);
-      if (s.x < -CR || s.y < -CR || s.x >= size.x + CR || s.y >= size.y + CR) continue;  // off the padded image
-      if (texelFetch(uZ, clamp(s, ivec2(0), size - 1), 0).r > 0.0) covered = 1.0;
-    }
+  ivec2 t = ivec2(gl_FragCoord.xy);
+  float v = ${body.init};
+  for (int d = -CR; d <= CR; d++) {
+${body.loop}
   }
-  fragColor = vec4(covered, 0.0, 0.0, 1.0);
+  fragColor = vec4(${body.out}, 0.0, 0.0, 1.0);
 }`;
+  return {
+    dilateRows: pass({ init: '0.0', out: 'v', loop: `
+    int sx = t.x - CR + d;  // padded column
+    if (sx < -CR || sx >= size.x + CR) continue;
+    if (texelFetch(uZ, ivec2(clamp(sx, 0, size.x - 1), t.y), 0).r > 0.0) v = 1.0;` }),
+    dilateColumns: pass({ init: '0.0', out: 'v', loop: `
+    int sy = t.y - CR + d;  // padded row
+    if (sy < -CR || sy >= size.y + CR) continue;
+    v = max(v, texelFetch(uIn, ivec2(t.x, clamp(sy, 0, size.y - 1)), 0).r);` }),
+    erodeRows: pass({ init: '1.0', out: 'v', loop: `
+    v = min(v, texelFetch(uIn, ivec2(t.x + CR + d, t.y), 0).r);` }),
+    erodeColumns: pass({ init: '1.0', out: 'texelFetch(uZ, t, 0).r > 0.0 ? 0.0 : v', loop: `
+    v = min(v, texelFetch(uIn, ivec2(t.x, t.y + CR + d), 0).r);` }),
+  };
 }
 
 // the order of equally near covered pixels: the smaller column, then the smaller image row (the larger GL row)
@@ -184,9 +201,11 @@ uniform sampler2DArray uDepth;    // R32F, (W + 1) x (H + 1): max rasterized dep
 uniform sampler2D uCams;          // RGBA32F, 4 x K: rows 0-2 of K_k [R_k | t_k], then (c_k, 1)
 uniform sampler2D uZ;             // this frame's z-depth, 0 = no triangle
 uniform sampler2D uSeed;          // the nearest covered pixel (GL pixel coordinates), -1 = none
-uniform sampler2D uDil;           // the dilated coverage, padded by CR
+uniform sampler2D uCrack;         // 1 at the cracks (the closing's passes)
 #if NSEL > 0
 uniform int uSel[NSEL];           // the frame's sources
+#else
+uniform ivec4 uOrder[${Math.ceil(K / 4)}];       // every source, nearest to the frame's camera first
 #endif
 uniform mat4 uC2W;                // target camera-to-world, model frame (orthonormal rotation)
 uniform vec4 uIntr;               // fx, fy, cx, cy (pixels)
@@ -210,11 +229,13 @@ out vec4 fragColor;
 ${mlpSource(bundle.mlp)}
 ${NEARER}
 
+// the i-th source of the frame: its NSEL nearest, or every source, nearest to the frame's camera first (uOrder:
+// the angle blend then finds each point's nearest sources early and skips the rest by their cosine alone)
 int sourceAt(int i) {
 #if NSEL > 0
   return uSel[i];
 #else
-  return i;
+  return uOrder[i / 4][i % 4];
 #endif
 }
 
@@ -314,12 +335,12 @@ vec3 shadeAngle(vec3 p, vec3 t, bool layer, bool onMesh) {
   for (int j = 0; j <= KA; j++) { bc[j] = -2.0; bi[j] = 0; buv[j] = vec2(0.0); }
   for (int i = 0; i < NMAX; i++) {
     int k = sourceAt(i);
+    vec3 dk = p - centre(k);
+    float c = dot(t, dk) / max(length(dk), 1e-12);
+    if (c <= bc[k1 - 1]) continue;  // not among the nearest so far: neither projected nor tested
     vec3 uvz = project(k, p);
     vec2 uv = uvz.xy / max(uvz.z, 1e-6);
     if (!framed(uvz.z, uv)) continue;
-    vec3 dk = p - centre(k);
-    float c = dot(t, dk) / max(length(dk), 1e-12);
-    if (c <= bc[k1 - 1]) continue;
     if (!layer && uVisibility != 0 && !unoccluded(k, uv, uvz.z)) continue;
     int j = k1 - 1;
     for (; j > 0 && bc[j - 1] < c; j--) { bc[j] = bc[j - 1]; bi[j] = bi[j - 1]; buv[j] = buv[j - 1]; }
@@ -366,16 +387,6 @@ vec3 shadeAngle(vec3 p, vec3 t, bool layer, bool onMesh) {
 }
 #endif
 
-// a missed pixel the closing of the covered pixels takes in (every pixel of its window lies in the dilation)
-bool crack(ivec2 p) {
-  for (int dy = -CR; dy <= CR; dy++) {
-    for (int dx = -CR; dx <= CR; dx++) {
-      if (texelFetch(uDil, p + ivec2(dx + CR, dy + CR), 0).r < 0.5) return false;
-    }
-  }
-  return true;
-}
-
 // the depth of the nearest covered pixel within CRS (a crack's is: it lies within CR in each axis)
 float nearestInWindow(ivec2 p) {
   ivec2 size = textureSize(uZ, 0);
@@ -412,7 +423,7 @@ void main() {
   if (!hit) {
     float zn = 0.0;
 #if CR > 0
-    if (uCracks != 0 && crack(px)) zn = nearestInWindow(px);
+    if (uCracks != 0 && texelFetch(uCrack, px, 0).r > 0.5) zn = nearestInWindow(px);
 #endif
     if (zn <= 0.0 && uFill == 2) {
       vec2 s = texelFetch(uSeed, px, 0).xy;

@@ -20,7 +20,7 @@ import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
 import {
   BAKED_FRAGMENT_SHADER, DEPTH_FRAGMENT_SHADER, JFA_SHADER, SCREEN_VERTEX_SHADER, SEED_INIT_SHADER, VERTEX_SHADER,
-  dilateShader, shadeShader,
+  closingShaders, shadeShader,
 } from './shaders.js';
 
 const FORMAT = 'omnirecon-viewer';
@@ -235,8 +235,8 @@ class Viewer {
       uImages: { value: arrayTexture(new Uint8Array(buffers.images), W, H, src.count, THREE.RGBAFormat, THREE.UnsignedByteType) },
       uFeatures: { value: arrayTexture(new Float32Array(buffers.features), f[3], f[2], f[0] * f[1], THREE.RGBAFormat, THREE.FloatType) },
       uDepth: { value: arrayTexture(new Float32Array(buffers.depth), W + 1, H + 1, src.count, THREE.RedFormat, THREE.FloatType) },
-      uCams: { value: cams }, uZ: { value: null }, uSeed: { value: null }, uDil: { value: null },
-      uSel: { value: [] },
+      uCams: { value: cams }, uZ: { value: null }, uSeed: { value: null }, uCrack: { value: null },
+      uSel: { value: [] }, uOrder: { value: [] },
       uC2W: { value: new THREE.Matrix4() }, uIntr: { value: new THREE.Vector4() }, uHeight: { value: 1 },
       uBoxLo: { value: new THREE.Vector3(...(b.fill.box ? b.fill.box[0] : [-1e30, -1e30, -1e30])) },
       uBoxHi: { value: new THREE.Vector3(...(b.fill.box ? b.fill.box[1] : [1e30, 1e30, 1e30])) },
@@ -248,16 +248,24 @@ class Viewer {
     };
     this.seedInit = screenMaterial(SEED_INIT_SHADER, { uZ: this.uniforms.uZ });
     this.jfa = screenMaterial(JFA_SHADER, { uSeed: { value: null }, uStep: { value: 1 } });
-    this.dilate = this.crackRadius > 0 ? screenMaterial(dilateShader(this.crackRadius), { uZ: this.uniforms.uZ }) : null;
+    this.closing = [];  // [material, target name] of the crack mask's passes, in order
+    if (this.crackRadius > 0) {
+      const c = closingShaders(this.crackRadius);
+      const input = (name) => ({ value: null, name });
+      for (const [key, from, to] of [['dilateRows', null, 'dilRows'], ['dilateColumns', 'dilRows', 'dil'],
+        ['erodeRows', 'dil', 'eroRows'], ['erodeColumns', 'eroRows', 'crack']]) {
+        this.closing.push([screenMaterial(c[key], { uZ: this.uniforms.uZ, uIn: input(from) }), to]);
+      }
+    }
     this.shadeMaterials = {};
     this.ibr = true;
     // draw every pass of the starting blend once now (a tiny frame), so that a shader this GPU cannot take falls back
     // to the baked colours
     const saved = { fixed: this.fixed, mode: this.mode, fill: this.fill, cracks: this.cracks };
     Object.assign(this, { fixed: { ...this.defaultCamera(), width: 4, height: 4, fx: 2, fy: 2, cx: 2, cy: 2 },
-      mode: 'ibr', fill: 'nearest', cracks: true });
+      mode: 'ibr', cracks: true });
     this.resize(false);
-    this.render();
+    for (const fill of ['nearest', 'far']) { this.fill = fill; this.render(); }  // the jump flooding, the closing
     Object.assign(this, saved);
     if (this.shaderErrors.length) throw new Error(`IBR shader: ${this.shaderErrors[0]}`);
   }
@@ -276,12 +284,10 @@ class Viewer {
   note(text) { this.notes = (this.notes || []).concat([text]); }
 
   // ------------------------------------------------ the frame's sources
-  // the network blend's sources of a frame (model-frame camera): the `frame_sources` nearest, by the angle around the
-  // bundle's centre on object rigs, by the distance between camera centres otherwise (select_sources), ascending;
-  // [] for every source
-  frameSources(cam) {
-    const b = this.bundle.blend, centers = this.bundle.sources.centers, n = b.frame_sources | 0;
-    if (!(n > 0 && n < centers.length)) return [];
+  // every source, nearest to a frame's camera (model frame) first: by the angle around the bundle's centre on object
+  // rigs, by the distance between camera centres otherwise (select_sources)
+  sourceOrder(cam) {
+    const b = this.bundle.blend, centers = this.bundle.sources.centers;
     const c = [cam.c2w[3], cam.c2w[7], cam.c2w[11]];
     let dist;
     if (b.metric === 'angle') {
@@ -293,8 +299,14 @@ class Viewer {
     } else {
       dist = centers.map((ck) => Math.hypot(c[0] - ck[0], c[1] - ck[1], c[2] - ck[2]));
     }
-    const order = dist.map((_, i) => i).sort((i, j) => dist[i] - dist[j] || i - j);
-    return order.slice(0, n).sort((i, j) => i - j);
+    return dist.map((_, i) => i).sort((i, j) => dist[i] - dist[j] || i - j);
+  }
+
+  // the frame's sources when it blends the `frame_sources` nearest, ascending; [] when it blends every source
+  frameSources(cam) {
+    const n = this.bundle.blend.frame_sources | 0;
+    if (!(n > 0 && n < this.bundle.sources.count)) return [];
+    return this.sourceOrder(cam).slice(0, n).sort((i, j) => i - j);
   }
 
   // ------------------------------------------------ cameras
@@ -428,17 +440,27 @@ class Viewer {
     requestAnimationFrame(() => { this.pending = false; this.render(); });
   }
 
-  // render targets of the passes at the canvas size: depth (with a depth buffer), the nearest seeds, the dilation
+  // render targets of the passes at the canvas size: depth (with a depth buffer), the nearest seeds, the closing's
   targets(W, H) {
     if (this.zTarget && this.zTarget.width === W && this.zTarget.height === H) return;
-    for (const t of [this.zTarget, ...(this.seedTargets || []), this.dilTarget]) if (t) t.dispose();
+    for (const t of [this.zTarget, ...(this.seedTargets || []), ...Object.values(this.closeTargets || {})]) if (t) t.dispose();
     this.zTarget = target(W, H, THREE.RedFormat, THREE.FloatType, true);
     this.seedTargets = [target(W, H, THREE.RGFormat, THREE.FloatType), target(W, H, THREE.RGFormat, THREE.FloatType)];
-    const r = this.crackRadius;
-    this.dilTarget = r > 0 ? target(W + 2 * r, H + 2 * r, THREE.RedFormat, THREE.UnsignedByteType) : null;
+    const r = this.crackRadius, R8 = (w, h) => target(w, h, THREE.RedFormat, THREE.UnsignedByteType);
+    this.closeTargets = r > 0 ? { dilRows: R8(W + 2 * r, H), dil: R8(W + 2 * r, H + 2 * r), eroRows: R8(W, H + 2 * r),
+      crack: R8(W, H) } : {};
     this.uniforms.uZ.value = this.zTarget.texture;
     this.uniforms.uSeed.value = this.seedTargets[0].texture;
-    this.uniforms.uDil.value = this.dilTarget ? this.dilTarget.texture : this.zTarget.texture;
+    this.uniforms.uCrack.value = r > 0 ? this.closeTargets.crack.texture : this.zTarget.texture;
+  }
+
+  // the crack mask (closingShaders)
+  cracksPass() {
+    for (const [material, to] of this.closing) {
+      const from = material.uniforms.uIn.name;
+      material.uniforms.uIn.value = from ? this.closeTargets[from].texture : this.zTarget.texture;
+      this.pass(material, this.closeTargets[to]);
+    }
   }
 
   pass(material, renderTarget) {
@@ -473,6 +495,7 @@ class Viewer {
     const useIBR = this.mode === 'ibr' && !!this.ibr;
     const r = this.renderer, W = this.canvas.width, H = this.canvas.height;
     const cracks = useIBR && this.cracks && this.crackRadius > 0;
+    const crackPasses = cracks && this.fill !== 'nearest';  // the nearest fill reaches every crack (shaders.js)
     const masks = useIBR && this.masks && !!this.bundle.source_masks;
     let sources = null;
     if (!useIBR) {
@@ -487,7 +510,7 @@ class Viewer {
       r.render(this.scene, this.dummyCamera);
       r.setClearColor(this.clearColor, 1);
       if (this.fill === 'nearest') this.jumpFlood(W, H);
-      if (cracks) this.pass(this.dilate, this.dilTarget);
+      if (crackPasses) this.cracksPass();
       const u = this.uniforms;
       sources = this.frameSources(cam);
       u.uC2W.value.copy(mat.three(cam.c2w));
@@ -495,10 +518,15 @@ class Viewer {
       u.uHeight.value = H;
       u.uFill.value = FILLS.indexOf(this.fill);
       u.uReach.value = this.bundle.fill.reach * Math.max(W, H);
-      u.uCracks.value = cracks ? 1 : 0;
+      u.uCracks.value = crackPasses ? 1 : 0;
       u.uVisibility.value = this.visibility ? 1 : 0;
       u.uMasks.value = masks ? 1 : 0;
       u.uSel.value = sources;
+      if (!sources.length) {  // every source, nearest first, four to an ivec4
+        const order = this.sourceOrder(cam);
+        while (order.length % 4) order.push(order[order.length - 1]);
+        u.uOrder.value = Int32Array.from(order);
+      }
       this.pass(this.shadeMaterial(this.blend), null);
     }
     this.frames = (this.frames || 0) + 1;
