@@ -1,6 +1,6 @@
 """The web viewer against the real-time mesh path: held-out views drawn by headless Chromium and by ``MeshRenderer``.
 
-    python -m bench viewer_parity                          # dtu_scan37 and synth_900997
+    python -m bench viewer_parity                          # dtu_scan37, fern and synth_900997
     python -m bench viewer_parity --scenes dtu_scan37 --views 2 --out /tmp/vp
 
 Per scene, the mesh and the ``finetune`` record (``curve.json``) a ``python -m bench depth_sources`` row wrote (as
@@ -17,7 +17,8 @@ Per scene, the mesh and the ``finetune`` record (``curve.json``) a ``python -m b
 Reported per scene: held-out PSNR against the photo of each (whole image; over the object masks where the scene has
 them), the browser's PSNR against ``MeshRenderer``'s frame and the max / mean absolute difference between the two
 (8-bit levels), the browser's milliseconds per frame (``omnirecon.benchmark``: wall clock in the page, a small orbit
-around the first held-out camera at the scene's resolution, SwiftShader on the CPU) and ``MeshRenderer``'s CPU
+around the first held-out camera at the scene's resolution, SwiftShader on the CPU; and the CPU milliseconds of the
+browser's processes over those frames, less bent by other jobs on the machine) and ``MeshRenderer``'s CPU
 milliseconds per frame (1 thread). Pictures (photo | MeshRenderer | browser | 4x difference, one row per held-out view)
 go to ``bench/results/figures/viewer_parity_<scene>.png``, every frame to ``--frames``.
 """
@@ -39,16 +40,34 @@ from omnirecon.data.io import write_image, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = {"dtu_scan37": "stereo_fill_nearest_6_all_views_angle_blend_nearest_fill_angle_auto_8_held-out",
-        "synth_900997": "stereo_model_nearest_6"}
+        "fern": "stereo_fill_nearest_6", "synth_900997": "stereo_model_nearest_6"}
 """The depth_sources row (its folder under outputs/bench/depth_sources) whose mesh and finetune record each scene uses:
 dtu_scan37's default scoring (angle blend over every training view, source masks, nearest fill) on all 8 held-out
-views; a procedural scene's stereo+model mesh, which has cracks (network blend of 6 sources per frame, background)."""
+views; fern's (network blend of each frame's 6 nearest sources by distance, the far layer on the bounds box); a
+procedural scene's stereo+model mesh, which has cracks (network blend of 6 sources per frame by angle, background)."""
 
 
 REDRAW = ("(() => { omnirecon.render(); const gl = omnirecon.viewer.renderer.getContext();"
           " gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4)); return 1; })()")
 """The screenshot's redraw: draw the frame again and wait for it (a software frame can take seconds: redraws that do not
 wait pile up faster than the GPU process draws them)."""
+
+
+def session_cpu_seconds(sid: int) -> float:
+    """CPU seconds (user + system) of every process in session ``sid`` so far: a headless Chromium and its helpers
+    (its GPU process runs SwiftShader), from ``/proc`` (0 where there is none)."""
+    total = 0
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            stat = (p / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()  # after the command name: state, ppid, pgrp, session, ...
+        if int(fields[3]) == sid:
+            total += int(fields[11]) + int(fields[12])  # utime, stime (clock ticks)
+    return total / os.sysconf("SC_CLK_TCK")
 
 
 def to_uint8(rgb) -> np.ndarray:
@@ -186,7 +205,10 @@ def browser_frames(bundle: Path, cameras: list[dict], bench_frames: int, timeout
 
             shots = shoot()
             browser.evaluate(f"omnirecon.setCamera({json.dumps(cameras[0])}), 1", timeout=timeout)
+            browser.evaluate("omnirecon.benchmark(1)", timeout=timeout)  # warm-up
+            cpu = session_cpu_seconds(browser.proc.pid)
             speed = browser.evaluate(f"omnirecon.benchmark({bench_frames})", timeout=timeout)
+            speed["cpu_ms_per_frame"] = 1000 * (session_cpu_seconds(browser.proc.pid) - cpu) / bench_frames
             for name, js in toggles:
                 browser.evaluate(f"{js}, 1", timeout=timeout)
                 off[name] = shoot()
@@ -300,7 +322,8 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
            "viewer": info, "export_cpu_s": export_s,
            "browser": mean("browser"), "python": mean("python"), "parity": mean("parity"),
            "max_diff": max(v["max_diff"] for v in per_view), "mean_diff": mean("mean_diff"), "over_8": mean("over_8"),
-           "browser_ms_per_frame": speed["ms_per_frame"], "browser_frames": speed["frames"],
+           "browser_ms_per_frame": speed["ms_per_frame"], "browser_cpu_ms_per_frame": speed["cpu_ms_per_frame"],
+           "browser_frames": speed["frames"],
            "python_cpu_ms_per_frame": float(np.median(py_ms)), "per_view": per_view,
            "scored_by": "objects" if record.get("scored_by") == "objects" and scene.masks is not None else "image"}
     if scene.masks is not None:
@@ -352,7 +375,8 @@ def main(argv: list[str] | None = None) -> dict:
         key = "_masked" if row["scored_by"] == "objects" else ""
         print(f"{name}: PSNR{' (masks)' if key else ''} browser {row['browser' + key]:.2f}, MeshRenderer "
               f"{row['python' + key]:.2f}; browser vs MeshRenderer {row['parity']:.2f} dB (max diff {row['max_diff']}, "
-              f"mean {row['mean_diff']:.2f} levels); browser {row['browser_ms_per_frame']:.0f} ms per frame, "
+              f"mean {row['mean_diff']:.2f} levels); browser {row['browser_ms_per_frame']:.0f} ms "
+              f"({row['browser_cpu_ms_per_frame']:.0f} CPU-ms) per frame, "
               f"MeshRenderer {row['python_cpu_ms_per_frame']:.0f} CPU-ms; bundle {row['bundle']}", flush=True)
         for r in row["browser_off"]:
             print(f"  browser without {r['off']} too: {r['psnr' + key]:.2f} dB", flush=True)
