@@ -19,8 +19,8 @@ them), the browser's PSNR against ``MeshRenderer``'s frame and the max / mean ab
 (8-bit levels), the browser's milliseconds per frame (``omnirecon.benchmark``: wall clock in the page, a small orbit
 around the first held-out camera at the scene's resolution, SwiftShader on the CPU; and the CPU milliseconds of the
 browser's processes over those frames, less bent by other jobs on the machine) and ``MeshRenderer``'s CPU
-milliseconds per frame (1 thread). Pictures (photo | MeshRenderer | browser | 4x difference, one row per held-out view)
-go to ``bench/results/figures/viewer_parity_<scene>.png``, every frame to ``--frames``.
+milliseconds per frame (1 thread). Pictures (photo | MeshRenderer | browser | 4x difference, one row per held-out view, at most
+4) go to ``bench/results/figures/viewer_parity_<scene>.png``, every frame to ``--frames``.
 """
 
 from __future__ import annotations
@@ -246,11 +246,15 @@ def export_bundle(scene_path: Path, resolution: int, mesh_file: Path, record_fol
     return run_export(cfg)
 
 
+FIGURE_VIEWS = 4
+"""Views in a scene's figure at most (evenly spaced; every frame is in ``--frames``)."""
+
+
 def figure(rows: list[list[np.ndarray]], path: Path) -> None:
-    """One row per view: photo | MeshRenderer | browser | 4x |browser - MeshRenderer|, 2-px white gaps (frames under
-    200 px drawn at twice their size)."""
+    """One row per view (at most :data:`FIGURE_VIEWS`): photo | MeshRenderer | browser | 4x |browser - MeshRenderer|,
+    2-px white gaps (frames under 200 px drawn at twice their size)."""
     lines = []
-    for photo, ref, shot in rows:
+    for photo, ref, shot in rows[::-(-len(rows) // FIGURE_VIEWS)]:
         diff = np.clip(np.abs(shot.astype(np.int16) - ref.astype(np.int16)) * 4, 0, 255).astype(np.uint8)
         if max(photo.shape[:2]) < 200:
             photo, ref, shot, diff = (np.repeat(np.repeat(a, 2, 0), 2, 1) for a in (photo, ref, shot, diff))
