@@ -4,7 +4,8 @@
     python -m bench viewer_parity --scenes dtu_scan37 --views 2 --out /tmp/vp
 
 Per scene, the mesh and the ``finetune`` record (``curve.json``) a ``python -m bench depth_sources`` row wrote (as
-``python -m bench realtime_blend``), and the real-time setting of that record
+``python -m bench realtime_blend``; :data:`ROWS`: ``--rows "dtu_scan37:stereo+fill, nearest 6, all views, angle blend,
+nearest fill, angle auto, 8 held-out" "fern:stereo+fill, nearest 6" "synth_900997:stereo+model, nearest 6"``), and the real-time setting of that record
 (:func:`omnirecon.mesh.ibr.realtime_setting`, with today's crack fill, ``--cracks``, where the record is older than it):
 
 * the bundle ``omnirecon export`` writes for it (:func:`omnirecon.workflows.export.run_export` with the scene, the
