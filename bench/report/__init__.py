@@ -35,12 +35,13 @@ from bench.report import (
     train_levers,
     train_views,
     training,
+    viewer_parity,
 )
 
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
-            realtime_blend, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile, speed, peer,
-            levers, end_to_end, training, quality, geometry,
+            realtime_blend, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile,
+            speed, peer, levers, end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"

@@ -14,7 +14,7 @@ class ExportCommand(ExportConfig):
     def main(self) -> None:
         out = default_out(self)
         # mesh.ply, mesh.glb, export.json and viewer/ are one set: built beside --out, swapped in whole.
-        with claim(out, "export", inputs=(self.ckpt, self.scene, self.mesh), mode="replace") as c:
+        with claim(out, "export", inputs=(self.ckpt, self.scene, self.mesh, self.finetune), mode="replace") as c:
             record = relative_to(run_export(replace(self, out=c.work)), c.work)
         for p in record["files"]:
             print(f"wrote {out / p}")

@@ -121,7 +121,8 @@ class MeshRenderOptions:
     """With ``blend="angle"`` and sources that carry object masks (``Sources.masks``): each source's weight times
     :func:`mask_falloff` at the point's pixel (a source that sees its background there blends little), as
     ``finetune --source-masks`` scores real object captures (:func:`masks_hold_scene`: DTU). Only for masks that
-    hold everything photographed (a procedural scene's masks leave out its ground); the web viewer does not do it."""
+    hold everything photographed (a procedural scene's masks leave out its ground); the web viewer does it too (the
+    masks in its images' alpha channel: :func:`omnirecon.viewer.bundle.mask_table`)."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""

@@ -1,29 +1,40 @@
-"""The static viewer bundle: everything the browser needs to reproduce ``MeshRenderer.render``.
+"""The static viewer bundle: everything the browser needs to reproduce ``MeshRenderer``'s real-time frames.
 
 A bundle is a self-contained folder (serve it with ``omnirecon view`` or any static file server)::
 
-    index.html, viewer.js       the viewer (``omnirecon/viewer/static``)
+    index.html, viewer.js,      the viewer (``omnirecon/viewer/static``)
+    shaders.js
     lib/three/...               three.js, copied from the npm package (``omnirecon/viewer/node_modules``)
-    bundle.json                 cameras, MLP weights, frames, sizes (below)
+    bundle.json                 cameras, MLP weights, the real-time setting, sizes (below)
     mesh.glb                    the mesh with baked vertex colours, input frame
     sources/NN_<name>.png       the source images (for people; the shader reads images.bin)
-    images.bin                  source RGB as uint8 RGBA, ``[K, H, W, 4]``
+    images.bin                  uint8 ``[K, H, W, 4]``: source RGB, and in alpha the object mask as
+                                ``min(d^2, 255)``, ``d`` the distance in pixels from each pixel to the nearest pixel
+                                off the source's object mask (0 off the mask; 255 everywhere without masks), from
+                                which the shader takes ``mask_falloff``'s ``clip(d / reach, floor, 1)`` exactly
     features.bin                float32 ``[K, C4, h + 2, w + 2, 4]``: the appearance projection folded
                                 into the stride-4 features, ``W F_k + b`` (channel ``4 j + i`` in layer
                                 ``j``, zero channels up to a multiple of 4), with a one-texel border of
-                                ``b``: exactly the table of ``MeshRenderer``'s fused shader
+                                ``b``: exactly the table of ``MeshRenderer``'s fused shader (the K sources encoded
+                                together)
     depth.bin                   float32 ``[K, H + 1, W + 1]``: the visibility test's largest rasterized
                                 source depth per 2x2 pixel block (``MeshRenderer.source_depth_max``;
                                 1e30 = background / outside)
+    cameras.bin                 float32 ``[K, 4, 4]``: rows 0-2 the source projection ``K_k [R_k | t_k]`` (model
+                                frame; a point ``p`` projects to ``(u z, v z, z)``), row 3 the centre ``(c_k, 1)``
 
 All binary files are little-endian, C order. ``bundle.json`` holds ``to_model`` / ``to_input`` (the
 similarity between the input frame of ``mesh.glb`` and the normalised model frame the shader works
-in), ``mesh_box`` (model frame, for near/far as ``MeshRasterizer.depth_range``), the sources'
-``proj`` (``K_k [R_k | t_k]`` as 4x4 rows, model frame, float32 values) and ``centers``, the MLP
-weights (``w1 # [h1, C + 3]``, ``b1``, ``w2 # [h2, h1]``, ``b2``, ``w3 # [1, h2]``, ``b3``), the
-background colour, the visibility tolerance and default, the far fill's box and far z-depth (model frame,
-``MeshRenderOptions.fill="far"``: :mod:`omnirecon.mesh.fill`) and default, the blend (``MeshRenderOptions.blend``:
-``network`` or ``angle``, and ``angle_sources``) the viewer starts with, and a default camera in the input frame.
+in), ``mesh_box`` (model frame, for near/far as ``MeshRasterizer.depth_range``), the sources' scene ``views``,
+``proj`` and ``centers`` (as ``cameras.bin``), the MLP weights (``w1 # [h1, C + 3]``, ``b1``, ``w2 # [h2, h1]``,
+``b2``, ``w3 # [1, h2]``, ``b3``), the background colour, the visibility tolerance and default, and what
+:func:`omnirecon.mesh.ibr.realtime_setting` gives (``setting``) as the viewer starts: ``blend`` (``network`` or
+``angle``; ``sources``, the angle blend's per point; ``frame_sources``, the network blend's per frame, the nearest to
+the frame's camera by ``metric`` around ``center``, as :func:`omnirecon.engine.views.select_sources`; 0: all),
+``fill`` (``far``, ``nearest`` or ``background``; the far layer's box and z-depth, :mod:`omnirecon.mesh.fill`, the
+nearest fill's ``reach``), ``cracks`` (the crack fill's radius) and ``source_masks`` (``reach``, ``floor`` of
+:func:`omnirecon.mesh.ibr.mask_falloff`, or null without masks), and a default camera in the input frame. Its
+``version`` is :data:`omnirecon.viewer.format.VERSION`; ``omnirecon view`` and the page refuse another.
 """
 
 from __future__ import annotations
@@ -39,12 +50,14 @@ import torch
 
 from omnirecon.data.io import write_image
 from omnirecon.errors import InputError
-from omnirecon.mesh.fill import layer_box
+from omnirecon.mesh.fill import NEAREST_FILL_REACH, layer_box
+from omnirecon.mesh.ibr import MASK_FLOOR, MASK_REACH
+from omnirecon.viewer.format import FORMAT, VERSION
 
-FORMAT = "omnirecon-viewer"
-VERSION = 1
 STATIC = Path(__file__).resolve().parent / "static"
-"""The viewer's own files (``index.html``, ``viewer.js``)."""
+"""Where the viewer's own files are."""
+STATIC_FILES = ("index.html", "viewer.js", "shaders.js")
+"""The viewer's own files, copied into each bundle."""
 THREE_FILES = ("LICENSE", "build/three.module.js", "build/three.core.js", "examples/jsm/controls/OrbitControls.js",
                "examples/jsm/loaders/GLTFLoader.js", "examples/jsm/utils/BufferGeometryUtils.js",
                "examples/jsm/utils/SkeletonUtils.js")
@@ -103,6 +116,8 @@ def appearance_tables(renderer) -> dict:
         proj = torch.zeros(K, 4, 4)
         proj[:, :3] = cams.K @ cams.w2c[:, :3, :]  # as MeshRenderer (float32)
         proj[:, 3, 3] = 1
+        table = proj.clone()  # [K, 4, 4] cameras.bin: the projection's rows 0-2, then (centre, 1)
+        table[:, 3, :3] = cams.centers
         mlp = {"feature_dim": C, "hidden": [linears[0].out_features, linears[1].out_features]}
         for i, lin in enumerate(linears, 1):
             mlp[f"w{i}"] = lin.weight.float().cpu().tolist()
@@ -110,7 +125,8 @@ def appearance_tables(renderer) -> dict:
         if linears[0].in_features != C + 3 or linears[2].out_features != 1:
             raise InputError(f"unexpected appearance MLP shape {[tuple(m.weight.shape) for m in linears]}", None,
                              "export a checkpoint of an omnirecon-* preset")
-    return {"features": features, "proj": proj.tolist(), "centers": cams.centers.tolist(), "mlp": mlp}
+    return {"features": features, "proj": proj.tolist(), "centers": cams.centers.tolist(), "mlp": mlp,
+            "cameras": table.numpy().astype("<f4")}
 
 
 def source_depth_table(renderer) -> np.ndarray:
@@ -120,6 +136,21 @@ def source_depth_table(renderer) -> np.ndarray:
         raise ValueError("the bundle needs a MeshRenderer built with MeshRenderOptions(visibility=True)")
     d = d.float().cpu().numpy()
     return np.where(np.isfinite(d), d, FAR_AWAY).astype("<f4")
+
+
+def mask_table(masks: torch.Tensor | None, shape: tuple[int, int, int]) -> np.ndarray:
+    """The images' alpha channel: per source pixel ``min(d^2, 255)``, ``d`` its distance in pixels to the nearest
+    pixel off the object mask ``masks # [K, H, W]`` (the Euclidean distance transform of
+    :func:`omnirecon.mesh.ibr.mask_falloff`: 0 off the mask, and for a source whose mask is empty); 255 everywhere
+    without masks. ``d^2`` is an integer, so the shader's ``clip(sqrt(a) / reach, floor, 1)`` is ``mask_falloff``'s
+    value for any reach below 15.9 px. ``# [K, H, W]`` uint8"""
+    if masks is None:
+        return np.full(shape, 255, np.uint8)
+    from scipy.ndimage import distance_transform_edt
+
+    m = masks.bool().cpu().numpy()
+    d = np.stack([distance_transform_edt(k) if k.any() else np.zeros(k.shape) for k in m])  # [K, H, W] px
+    return np.minimum(np.rint(d * d), 255).astype(np.uint8)
 
 
 # ---------------------------------------------------------------------- writing
@@ -135,21 +166,27 @@ def _box(points: np.ndarray) -> list[list[float]]:
 
 
 def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, background, names=None,
-                 visibility: bool = True, extra: dict | None = None, fill: bool = True) -> Path:
+                 visibility: bool = True, extra: dict | None = None, setting: dict | None = None,
+                 views: list[int] | None = None, selection: dict | None = None) -> Path:
     """Write a viewer bundle to ``folder`` (replaced as a whole: built beside it, then swapped in).
 
     Args:
         renderer: The :class:`~omnirecon.mesh.ibr.MeshRenderer` of the mesh (model frame) with
-            ``MeshRenderOptions(visibility=True)``: its encoded sources, model and source depths.
+            ``MeshRenderOptions(visibility=True)`` over every source the viewer may blend: its encoded sources (their
+            object masks too), model and source depths.
         glb: ``mesh.glb``'s bytes (input frame, baked vertex colours).
         vertices, faces: The mesh in the model frame (for the near/far box). ``# [V, 3]``, ``# [F, 3]``
         to_input: Similarity model frame -> input frame. ``# [4, 4]``
         background: Colour where no triangle (RGB in [0, 1]).
         names: Source view names (file names of ``sources/``).
         visibility: Whether the viewer starts with the visibility test on (it can toggle it).
-        fill: Whether the viewer starts with the far fill on where no triangle covers a pixel (it can
-            toggle it; off: the background colour).
         extra: More JSON-serialisable entries for ``bundle.json`` (model, bake statistics, ...).
+        setting: What the viewer starts with, a :func:`omnirecon.mesh.ibr.realtime_setting` (blend, fill, sources per
+            frame (0: all), angle sources per point, source masks, cracks); default: ``renderer``'s options with
+            every source in every frame.
+        views: The sources' scene view indices (for the record).
+        selection: How the network blend picks each frame's sources: ``{"metric": "angle" | "distance",
+            "center": [3] model frame}`` (:func:`omnirecon.engine.views.select_sources`); default: by distance.
 
     Returns:
         ``folder``.
@@ -159,6 +196,10 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     if three is None:
         raise InputError(three_unavailable_reason(), None, "or pass --no-viewer to write only mesh.ply and mesh.glb")
     folder = Path(folder)
+    o = renderer.options
+    setting = setting or {"blend": o.blend, "fill": o.fill, "sources": 0, "angle_sources": o.angle_sources,
+                          "source_masks": o.source_masks, "cracks": o.cracks}
+    selection = selection or {"metric": "distance", "center": None}
     tables = appearance_tables(renderer)
     depth = source_depth_table(renderer)
     sources = renderer.sources
@@ -174,27 +215,38 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     up = -cams_in.R[:, :, 1].mean(0)
     up = up / up.norm().clamp_min(1e-12)
     rgb = (sources.images.float().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8)  # [K, H, W, 3]
-    rgba = np.concatenate([rgb, np.full((K, H, W, 1), 255, np.uint8)], -1)
+    rgba = np.concatenate([rgb, mask_table(sources.masks, (K, H, W))[..., None]], -1)  # [K, H, W, 4]
     files = [f"sources/{i:02d}_{Path(str(n)).stem}.png" for i, n in enumerate(names)]
+    box = layer_box(sources.rig, sources.bounds)
     meta = {
         "format": FORMAT, "version": VERSION, "mesh": "mesh.glb",
         "vertices": int(len(verts)), "faces": int(len(faces)),
         "to_input": T.tolist(), "to_model": to_model.tolist(), "mesh_box": _box(used), "mesh_box_input": _box(used_in),
         "background": [float(c) for c in background], "up": up.tolist(),
-        "visibility": {"default": bool(visibility), "tol": float(renderer.options.visibility_tol)},
-        "fill": {"default": bool(fill), "far": float(sources.far),
-                 "box": None if layer_box(sources.rig, sources.bounds) is None else sources.bounds.double().cpu().tolist()},
-        "blend": {"default": renderer.options.blend, "sources": int(renderer.options.angle_sources)},
+        "visibility": {"default": bool(visibility), "tol": float(o.visibility_tol)},
+        "setting": dict(setting),
+        "blend": {"default": setting["blend"], "sources": int(setting["angle_sources"]),
+                  "frame_sources": int(setting["sources"]), "metric": selection["metric"],
+                  "center": None if selection.get("center") is None else [float(c) for c in selection["center"]]},
+        "fill": {"default": setting["fill"], "far": float(sources.far), "reach": NEAREST_FILL_REACH,
+                 "box": None if box is None else sources.bounds.double().cpu().tolist()},
+        "cracks": int(setting.get("cracks", 0)),
+        "source_masks": None if sources.masks is None else {
+            "default": bool(setting.get("source_masks")), "reach": MASK_REACH, "floor": MASK_FLOOR},
         "camera": _camera_dict(cams_in[0]),
         "sources": {"count": K, "width": W, "height": H, "names": [str(n) for n in names], "images": files,
+                    "views": None if views is None else [int(v) for v in views],
                     "proj": tables["proj"], "centers": tables["centers"],
                     "cameras_input": [_camera_dict(cams_in[i]) for i in range(K)]},
         "textures": {
-            "images": {"file": "images.bin", "dtype": "uint8", "shape": list(rgba.shape)},
+            "images": {"file": "images.bin", "dtype": "uint8", "shape": list(rgba.shape),
+                       "content": "RGB; alpha min(d^2, 255), d the distance in px to the nearest pixel off the mask"},
             "features": {"file": "features.bin", "dtype": "float32", "shape": list(tables["features"].shape),
                          "content": "W F_k + b (appearance projection folded in), one-texel border of b"},
             "depth": {"file": "depth.bin", "dtype": "float32", "shape": list(depth.shape),
                       "content": f"max rasterized z-depth per 2x2 pixel block, {FAR_AWAY:g} = none"},
+            "cameras": {"file": "cameras.bin", "dtype": "float32", "shape": list(tables["cameras"].shape),
+                        "content": "rows 0-2: K [R | t] (model frame), row 3: (centre, 1)"},
         },
         "mlp": tables["mlp"],
         **(extra or {}),
@@ -202,7 +254,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.pid{os.getpid()}.", dir=folder.parent))
     try:
-        for name in ("index.html", "viewer.js"):
+        for name in STATIC_FILES:
             shutil.copyfile(STATIC / name, tmp / name)
         for rel in THREE_FILES:
             (tmp / "lib/three" / rel).parent.mkdir(parents=True, exist_ok=True)
@@ -211,6 +263,7 @@ def write_bundle(folder: Path, renderer, glb: bytes, vertices, faces, to_input, 
         (tmp / "images.bin").write_bytes(rgba.tobytes())
         (tmp / "features.bin").write_bytes(tables["features"].astype("<f4").tobytes())
         (tmp / "depth.bin").write_bytes(depth.tobytes())
+        (tmp / "cameras.bin").write_bytes(tables["cameras"].tobytes())
         for i, f in enumerate(files):
             write_image(tmp / f, rgb[i])
         (tmp / "bundle.json").write_text(json.dumps(meta, indent=1))

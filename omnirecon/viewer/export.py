@@ -27,7 +27,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
 from omnirecon.mesh.build import mesh_from_model
 from omnirecon.mesh.files import to_scene_frame, write_mesh
-from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.mesh.ibr import MeshRenderer, realtime_options
 from omnirecon.rays import Sources
 from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
@@ -44,11 +44,22 @@ class ExportOptions:
     """Relative depth tolerance of the occlusion test."""
     viewer: bool = True
     """Write the viewer bundle (needs three.js from npm)."""
-    blend: str = "network"
-    """The blend the viewer starts with (``MeshRenderOptions.blend``: ``network`` or ``angle``; it can switch)."""
-    angle_sources: int = 4
-    """Sources per point of the angle blend (``MeshRenderOptions.angle_sources``; 0: all); the default is
+    blend: str | None = None
+    """The blend the viewer starts with (``MeshRenderOptions.blend``: ``network`` or ``angle``; it can switch); None:
+    the scene's real-time default (:func:`omnirecon.mesh.ibr.realtime_setting`, as every option below)."""
+    angle_sources: int | None = None
+    """Sources per point of the angle blend (``MeshRenderOptions.angle_sources``; 0: all); the real-time default is
     ``omnirecon.mesh.ibr.REALTIME_ANGLE_SOURCES``, what finetune chose on the DTU scans."""
+    frame_sources: int | None = None
+    """Sources per frame of the network blend, the nearest to the frame's camera among the bundled views (0: all;
+    ``finetune --nearest``, ``omnirecon.mesh.ibr.REALTIME_SOURCES``)."""
+    fill: str | None = None
+    """Where no triangle covers a pixel (``MeshRenderOptions.fill``: ``far``, ``nearest`` or ``background``)."""
+    cracks: int | None = None
+    """The crack fill's radius (``MeshRenderOptions.cracks``; 0: off)."""
+    source_masks: bool | None = None
+    """The angle blend weighs each source by its object mask (``MeshRenderOptions.source_masks``; scenes whose masks
+    hold everything photographed only: :func:`omnirecon.mesh.ibr.masks_hold_scene`)."""
     max_edge: float = 0.0
     """Subdivide triangles until no edge is longer than this fraction of the scene bounds' diagonal
     before baking (0: keep the mesh as it is). Vertex colours can only be as fine as the vertices: a
@@ -59,10 +70,27 @@ class ExportOptions:
             raise InputError(f"--bake-views must be at least 1, got {self.bake_views}", None, "use e.g. 3")
         if not 0 <= self.visibility_tol < 1:
             raise InputError(f"--visibility-tol must be in [0, 1), got {self.visibility_tol}", None, "use e.g. 0.01")
-        if self.blend not in ("network", "angle"):
+        if self.blend not in (None, "network", "angle"):
             raise InputError(f"--blend must be network or angle, got {self.blend!r}", None, "use e.g. --blend angle")
-        if self.angle_sources < 0:
-            raise InputError(f"--angle-sources must be >= 0, got {self.angle_sources}", None, "use e.g. 6 (0: all)")
+        if self.fill not in (None, "far", "nearest", "background"):
+            raise InputError(f"--fill must be far, nearest or background, got {self.fill!r}", None,
+                             "use e.g. --fill nearest")
+        for name in ("angle_sources", "frame_sources", "cracks"):
+            if (getattr(self, name) or 0) < 0:
+                raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}", None,
+                                 "use e.g. 6 (0: all / off)")
+
+    def setting(self, scene, record: dict | None = None) -> dict:
+        """The real-time setting the bundle starts with: :func:`omnirecon.mesh.ibr.realtime_setting` of ``scene`` and
+        ``record`` (a ``finetune`` record: what it scored), then the options given here."""
+        from omnirecon.mesh.ibr import masks_hold_scene, realtime_setting
+
+        out = realtime_setting(scene, record)
+        given = {"blend": self.blend, "angle_sources": self.angle_sources, "sources": self.frame_sources,
+                 "fill": self.fill, "cracks": self.cracks, "source_masks": self.source_masks}
+        out.update({k: v for k, v in given.items() if v is not None})
+        out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
+        return out
         if not (self.max_edge == 0 or 1e-4 <= self.max_edge <= 1):
             raise InputError(f"--max-edge must be 0 (off) or in [1e-4, 1], got {self.max_edge}", None, "use e.g. 0.005")
 
@@ -82,16 +110,31 @@ def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_face
     return np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
 
 
+def selection(scene) -> dict:
+    """How the viewer's network blend picks each frame's sources, as :func:`omnirecon.engine.views.select_sources`:
+    ``{"metric": "angle", "center": [3]}`` (the angle around the point nearest every optical axis of the scene) on
+    object rigs, ``{"metric": "distance", "center": None}`` otherwise (model frame)."""
+    from omnirecon.cameras import closest_point_to_axes
+    from omnirecon.engine.views import view_metric
+
+    if view_metric(scene) != "angle":
+        return {"metric": "distance", "center": None}
+    return {"metric": "angle", "center": closest_point_to_axes(scene.cameras).double().tolist()}
+
+
 def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = None, mesh_options=None,
                  options: ExportOptions | None = None, device: str = "cpu", info: dict | None = None,
-                 use_masks: bool = True, progress=None) -> dict:
+                 use_masks: bool = True, progress=None, finetune: dict | None = None, mesh_views=None) -> dict:
     """Bake and export ``scene``'s mesh as seen by ``model`` with sources ``views``.
 
     Args:
         model: An Omni-Recon model (the bundle needs its appearance branch; the bake only ``encode`` and
             ``shade``).
         scene: The normalised :class:`~omnirecon.data.scene.Scene` (its ``to_input`` maps to the input frame).
-        views: Source view indices.
+        views: Source view indices: every view the viewer may blend (the real-time path: every training view).
+        finetune: A ``finetune`` record (``curve.json``): the viewer starts with what it scored
+            (:meth:`ExportOptions.setting`).
+        mesh_views: Without ``mesh``: the views to mesh from (default: ``views``).
         out: Output folder.
         mesh: The mesh in the **input** frame, or ``None`` to mesh the scene with the model
             (:func:`~omnirecon.mesh.build.mesh_from_model`, ``mesh_options``).
@@ -118,7 +161,8 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
               "frame": "input", "to_input": scene.to_input.tolist()}
     start = time.perf_counter()
     if mesh is None:
-        made = mesh_from_model(model, scene, views, mesh_options, device, use_masks, progress)
+        made = mesh_from_model(model, scene, views if mesh_views is None else [int(v) for v in mesh_views], mesh_options,
+                               device, use_masks, progress)
         mesh_model, record["mesh"] = made.mesh, {"source": "mesh_from_model", **made.info}
     else:
         mesh_model = to_scene_frame(mesh, scene.to_input)
@@ -137,9 +181,10 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
     background = tuple(float(c) for c in (scene.background or (1.0, 1.0, 1.0)))
     model = model.to(device).eval()
     sources = Sources.from_scene(scene, views).to(device)
+    setting = options.setting(scene, finetune)
     start = time.perf_counter()
-    render_opts = MeshRenderOptions(background=background, visibility=True, visibility_tol=options.visibility_tol,
-                                    blend=options.blend, angle_sources=options.angle_sources)
+    render_opts = realtime_options(setting, background=background, visibility=True,
+                                   visibility_tol=options.visibility_tol)
     with MeshRenderer(model, (verts, faces), sources, render_opts) as renderer:
         seconds["encode"] = time.perf_counter() - start
         start = time.perf_counter()
@@ -155,9 +200,10 @@ def export_scene(model, scene, views, out: Path, mesh: trimesh.Trimesh | None = 
             names = [scene.names[i] for i in views] if scene.names else None
             extra = {"model": info or {}, "bake": record["bake"], "scene": record["scene"], "views": views}
             files.append(write_bundle(out / "viewer", renderer, (out / "mesh.glb").read_bytes(), verts, faces,
-                                      scene.to_input, background, names, options.visibility, extra,
-                                      fill=scene.background is None))  # as finetune's fill="auto"
+                                      scene.to_input, background, names, options.visibility, extra, setting, views,
+                                      selection(scene)))
             seconds["viewer"] = time.perf_counter() - start
+    record["setting"] = setting
     record["seconds"] = seconds
     write_json(out / "export.json", record)
     files.append(out / "export.json")

@@ -25,6 +25,7 @@ from functools import partial
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.viewer.format import check_bundle
 
 HOST = "127.0.0.1"
 DISCONNECTS = (ConnectionError, TimeoutError)
@@ -187,10 +188,12 @@ class ViewerServer(http.server.ThreadingHTTPServer):
 
 def bundle_folder(path: Path) -> Path:
     """The viewer bundle in ``path``: ``path`` itself when it holds ``index.html`` and ``bundle.json``,
-    else its ``viewer/`` subfolder (an ``omnirecon export`` output folder)."""
+    else its ``viewer/`` subfolder (an ``omnirecon export`` output folder). A bundle this version cannot read
+    (:func:`~omnirecon.viewer.format.check_bundle`) is refused with one line."""
     path = Path(path)
     for cand in (path, path / "viewer"):
         if (cand / "index.html").is_file() and (cand / "bundle.json").is_file():
+            check_bundle(cand)
             return cand
     raise InputError("no viewer bundle here (index.html and bundle.json, or viewer/ holding them)", path,
                      "pass the --out folder of `omnirecon export`")

@@ -12,9 +12,9 @@ from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set
 from omnirecon.engine.protocols import protocol_for
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
+from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
@@ -30,15 +30,19 @@ class ExportConfig(MachineConfig):
     ckpt: Path
     """Checkpoint folder of an Omni-Recon model (`omnirecon train --model omnirecon-*`)."""
     views: tuple[int, ...] | None = None
-    """Source view indices (default: 23 24 33 on DTU, else --num-views evenly spaced train views)."""
-    num_views: int = 3
-    """Source views K when --views is not given."""
+    """Source view indices: every view the viewer may blend (default: --finetune's sources, else every train view,
+    as the real-time mesh path blends)."""
+    num_views: int | None = None
+    """With neither --views nor --finetune: this many evenly spaced train views instead of all of them."""
+    finetune: Path | None = None
+    """An `omnirecon finetune` output folder (or its curve.json): the viewer starts with what it scored (its "render"
+    record: blend, fill, sources per frame, angle sources, source masks, cracks) over its sources."""
     mesh: Path | None = None
     """Mesh file in the input frame (e.g. from `omnirecon mesh`); default: mesh the scene with the model."""
     out: Path | None = None
     """Output folder (default: outputs/export/<scene>)."""
     resolution: int | None = None
-    """Long side of the source images in pixels (default: the scene's eval protocol, 128)."""
+    """Long side of the source images in pixels (default: --finetune's, else the scene's eval protocol, 128)."""
     bake_views: int = 3
     """Most frontal visible source views blended per vertex for the baked colours."""
     visibility: bool = True
@@ -57,12 +61,19 @@ class ExportConfig(MachineConfig):
     background: Literal["white", "black"] = "white"
     """Colour RGBA inputs are composited on."""
     blend: Literal["auto", "network", "angle"] = "auto"
-    """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights; `angle`, each
-    point's --angle-sources nearest sources by viewing angle (as `finetune --blend angle`); `auto`, per scene kind
-    as `finetune` (angle on real object captures with masks such as DTU, else network)."""
-    angle_sources: int = 4
-    """Sources per point of the angle blend (0: every source that sees it): what `finetune --angle-sources 3 4 6 8`
-    chose on its validation views on the DTU scans (`reconstruct` passes its own finetune's choice)."""
+    """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights over each frame's
+    6 nearest sources; `angle`, each point's --angle-sources nearest sources by viewing angle (as `finetune --blend
+    angle`); `auto`, --finetune's, else per scene kind as `finetune` (angle on real object captures with masks such as
+    DTU, else network)."""
+    angle_sources: int | None = None
+    """Sources per point of the angle blend (0: every source that sees it; default: --finetune's, else 4, what
+    `finetune --angle-sources 3 4 6 8` chose on its validation views on the DTU scans)."""
+    fill: Literal["auto", "far", "nearest", "background"] = "auto"
+    """Where no triangle covers a pixel (it can switch): `far`, the background layer; `nearest`, the nearest covered
+    pixel's depth near the mesh, the far layer beyond; `background`, the colour; `auto`, --finetune's, else per scene
+    kind as `finetune`."""
+    cracks: int | None = None
+    """The crack fill's radius in pixels (0: off; default: --finetune's, else 2)."""
 
 
 def default_out(cfg: ExportConfig) -> Path:
@@ -74,10 +85,13 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     """Run ``omnirecon export``; returns :func:`export_scene`'s record (plus ``out``). ``mesh``: a
     ``trimesh.Trimesh`` in the input frame handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
 
+    auto = lambda v: None if v == "auto" else v  # noqa: E731
     options = ExportOptions(cfg.bake_views, cfg.visibility, cfg.visibility_tol, cfg.viewer, max_edge=cfg.max_edge,
-                            blend="network" if cfg.blend == "auto" else cfg.blend, angle_sources=cfg.angle_sources)
+                            blend=auto(cfg.blend), angle_sources=cfg.angle_sources, fill=auto(cfg.fill),
+                            cracks=cfg.cracks)
     options.check()
     check_options("export", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+    record = read_record(cfg.finetune) if cfg.finetune is not None else None
     if mesh is None and cfg.mesh is not None:
         mesh = read_mesh(cfg.mesh)
     set_threads(cfg.threads)
@@ -85,18 +99,48 @@ def run_export(cfg: ExportConfig, mesh=None) -> dict:
     fmt = detect_format(cfg.scene)
     net, info = load_model(cfg.ckpt, None, device)
     proto = protocol_for(Path(cfg.scene), fmt)
-    scene = load_at_resolution(cfg.scene, cfg.resolution or proto.long_side, cfg.background, fmt)
-    views = check_views(cfg.views, len(scene), cfg.scene) if cfg.views else default_views(scene, cfg.num_views)
-    if cfg.blend == "auto":
-        options.blend = scene_defaults(scene)[0]
+    scored = max(record["resolution"]) if record and record.get("resolution") else None  # what finetune scored at
+    scene = load_at_resolution(cfg.scene, cfg.resolution or scored or proto.long_side, cfg.background, fmt)
+    views = bundle_views(cfg, scene, record)
     out = default_out(cfg)
     mesh_options = MeshOptions(voxel=cfg.voxel, chunk=cfg.chunk)
     if mesh is None:
         mesh_options.check()
-    if mesh is None:
+    if mesh is None:  # meshed from the given views, else from 3 (the model's depth at every view is slow)
+        mesh_views = views if cfg.views or cfg.num_views else default_views(scene, 3)
         with progress_bar() as bar:
-            record = export_scene(net, scene, views, out, None, mesh_options, options, device, info, cfg.masks, bar)
+            done = export_scene(net, scene, views, out, None, mesh_options, options, device, info, cfg.masks, bar, record,
+                                mesh_views)
     else:
-        record = export_scene(net, scene, views, out, mesh, mesh_options, options, device, info, cfg.masks)
-    record["out"] = str(out)
+        done = export_scene(net, scene, views, out, mesh, mesh_options, options, device, info, cfg.masks, None, record)
+    done["out"] = str(out)
+    return done
+
+
+def read_record(path: Path) -> dict:
+    """A ``finetune`` record: ``path`` (``curve.json``) or ``path/curve.json``; one-line errors for anything else."""
+    from omnirecon.data.io import read_json
+
+    file = Path(path) / "curve.json" if Path(path).is_dir() else Path(path)
+    fix = "pass the --out folder of `omnirecon finetune` (it holds curve.json)"
+    if not file.is_file():
+        raise InputError("no finetune record (curve.json) here", path, fix)
+    try:
+        record = read_json(file)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the same one-line error
+        raise InputError(f"cannot read the finetune record ({type(e).__name__})", file, fix) from None
+    if not isinstance(record, dict) or not isinstance(record.get("sources", []), list):
+        raise InputError("not a finetune record (no list of sources)", file, fix)
     return record
+
+
+def bundle_views(cfg: ExportConfig, scene, record: dict | None) -> list[int]:
+    """The views the bundle holds: ``--views``; else the finetune record's sources (every view it blended); else
+    ``--num-views`` evenly spaced train views; else every train view (as the real-time mesh path blends)."""
+    if cfg.views:
+        return check_views(cfg.views, len(scene), cfg.scene)
+    if record is not None and record.get("sources"):
+        return check_views([str(v) for v in record["sources"]], len(scene), cfg.finetune)
+    if cfg.num_views:
+        return default_views(scene, cfg.num_views)
+    return list(scene.splits.get("train") or range(len(scene)))

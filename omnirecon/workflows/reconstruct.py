@@ -248,12 +248,12 @@ def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, ou
 
 def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
                  tuned: dict | None = None) -> dict:
-    """``out/export``: the baked mesh and the viewer bundle (the angle blend's sources per point as ``tuned``, the
-    finetune record, chose); marks ``finetune/`` and ``export/`` as outputs."""
-    angle = {"angle_sources": tuned["render"]["angle_sources"]} if tuned and "render" in tuned else {}
+    """``out/export``: the baked mesh and the viewer bundle (over the sources ``tuned``, the finetune record in
+    ``out/finetune``, blended, starting with the setting it scored); marks ``finetune/`` and ``export/`` as outputs."""
+    record = out / "finetune" if tuned and (out / "finetune" / "curve.json").is_file() else None
     exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
-                                       resolution=side, num_views=cfg.num_views, viewer=cfg.viewer, **angle,
-                                       device=cfg.device, threads=cfg.threads, chunk=cfg.chunk), mesh=mesh)
+                                       resolution=side, finetune=record, viewer=cfg.viewer, device=cfg.device,
+                                       threads=cfg.threads, chunk=cfg.chunk), mesh=mesh)
     for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
         write_marker(out / sub, verb)
     return exported

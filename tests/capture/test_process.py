@@ -335,6 +335,9 @@ def test_reconstruct_writes_report(capture, tmp_path, run_cli):
     record = json.loads((out / "reconstruct.json").read_text())
     assert record["process"]["images_registered"] == VIEWS and (out / "scene" / "sparse" / "0").is_dir()
     assert (out / "export" / "mesh.glb").is_file() and (out / "finetune" / "checkpoint").is_dir()
+    scored = json.loads((out / "finetune" / "curve.json").read_text())["render"]  # the export starts as finetune scored
+    setting = json.loads((out / "export" / "export.json").read_text())["setting"]
+    assert {k: setting[k] for k in scored} == scored and setting["blend"] in ("network", "angle")
     # Every record names files inside the output relative to --out, never the temporary build folder.
     for f in out.rglob("*.json"):
         text = f.read_text()

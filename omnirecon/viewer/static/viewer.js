@@ -1,33 +1,31 @@
-// omnirecon mesh viewer: real-time image-based rendering of a baked mesh in a WebGL2 fragment shader.
+// omnirecon mesh viewer: MeshRenderer's real-time frames (omnirecon.mesh.ibr) in WebGL2, from an `omnirecon export` bundle.
 //
-// Per pixel (exactly omnirecon.render.mesh_ibr.MeshRenderer.render, the fused path):
-//   surface point p (interpolated model-frame vertex positions, perspective-correct)
-//   for every source k: (u z, v z, z) = P_k (p, 1); seen = z > 1e-6, 0 <= u < W, 0 <= v < H
-//     [and, with the visibility test, z <= (1 + tol) * max of the 4 rasterized source depths around (u, v)]
-//     feature f = bilinear sample of (W F_k + b) (align_corners=False, one-texel border of b)
-//     logit = MLP([ReLU(f); normalize(p - o) - normalize(p - c_k)]), -1e9 where not seen
-//     colour c_k = bilinear sample of source image k (border clamp)
-//   omega = softmax_k(logit); rgb = sum_k omega_k c_k.
-// With blend=angle (MeshRenderOptions.blend="angle", omnirecon.mesh.ibr.angle_weights): no network; each point's
-//   `sources` seen sources with the smallest angle a_k between normalize(p - c_k) and normalize(p - o) get
-//   (1 - a_k / a_next) / a_k (a_next: the next seen source's angle, infinite when there is none), normalised.
-// Where no triangle covers a pixel, the far fill (omnirecon.mesh.fill, MeshRenderOptions.fill="far"): the
-// point where the pixel-centre ray leaves the scene's bounds box, at most at z-depth `far`, shaded by the
-// same blend without the occlusion test (a full-screen pass drawn before the mesh); with fill off or in baked
-// mode, the background colour. (The Python renderer's fill="nearest" is not drawn here: the far fill instead.)
-// Baked mode draws the exported per-vertex colours instead (also the automatic fallback when float
-// textures or the IBR shader do not work here).
+// A frame is drawn as MeshRenderer.frame draws it (the passes and the shading: shaders.js): the mesh's depth, the
+// fills' geometry (cracks, nearest fill), then every pixel shaded by the image-based blend of the bundle's sources
+// (every training view): the network blend over the frame's `frame_sources` nearest sources (picked here per frame,
+// as omnirecon.engine.views.select_sources), or the angle blend of each point's nearest sources by viewing angle,
+// weighted by the sources' object masks. The bundle's `setting` is what the viewer starts with (finetune's
+// real-time setting); the panel and the API switch each part. Baked mode draws the exported per-vertex colours
+// instead (also the automatic fallback when float textures or the shaders do not work here).
 //
 // Cameras are OpenCV pinhole cameras (x right, y down, z forward, camera-to-world, pixel centres at
 // +0.5). A fixed camera comes from the URL (?camera=<JSON>) or window.omnirecon.setCamera(...):
 //   {"fx", "fy", "cx", "cy", "width", "height", "c2w": 4x4 rows, "frame": "input" (default) | "model"}
 // "input" is the frame of mesh.glb (the user's scene); "model" the normalised frame the model works in.
-// Other URL parameters: mode=ibr|baked, vis=0|1, fill=0|1, blend=network|angle, ui=0|1, scale=<render resolution
-// factor of the interactive view>.
+// Other URL parameters: mode=ibr|baked, vis=0|1, fill=nearest|far|background (1: far, 0: background), cracks=0|1,
+// masks=0|1, blend=network|angle, ui=0|1, scale=<render resolution factor of the interactive view>.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import {
+  BAKED_FRAGMENT_SHADER, DEPTH_FRAGMENT_SHADER, JFA_SHADER, SCREEN_VERTEX_SHADER, SEED_INIT_SHADER, VERTEX_SHADER,
+  closingShaders, shadeShader,
+} from './shaders.js';
+
+const FORMAT = 'omnirecon-viewer';
+const VERSION = 2; // omnirecon.viewer.format.VERSION: the bundle layout this viewer reads
+const FILLS = ['background', 'far', 'nearest'];
 
 THREE.ColorManagement.enabled = false; // raw values end to end: images, vertex colours, background
 
@@ -124,213 +122,6 @@ function floatTexturesWork() {
 }
 
 // GLSL float literal that parses back to the same float32 (the JSON holds float32 values exactly)
-function lit(x) {
-  if (!Number.isFinite(x)) throw new Error(`non-finite weight ${x}`);
-  const s = String(x);
-  return /[.eE]/.test(s) ? s : `${s}.0`;
-}
-
-// The appearance MLP with its weights as literals (unrolled: no uniform limits, no fetches).
-function mlpSource(mlp) {
-  const C = mlp.feature_dim, C4 = Math.ceil(C / 4);
-  const [h1, h2] = mlp.hidden;
-  const lines = [`float appearanceLogit(vec4 z[${C4}], vec3 r) {`];
-  for (let o = 0; o < h1; o++) {
-    const w = mlp.w1[o];
-    const terms = [lit(mlp.b1[o])];
-    for (let j = 0; j < C4; j++) {
-      const v = [0, 1, 2, 3].map((i) => (4 * j + i < C ? lit(w[4 * j + i]) : '0.0'));
-      terms.push(`dot(z[${j}], vec4(${v.join(', ')}))`);
-    }
-    terms.push(`dot(r, vec3(${lit(w[C])}, ${lit(w[C + 1])}, ${lit(w[C + 2])}))`);
-    lines.push(`  float a${o} = max(${terms.join(' + ')}, 0.0);`);
-  }
-  for (let o = 0; o < h2; o++) {
-    const terms = [lit(mlp.b2[o])];
-    for (let i = 0; i < h1; i++) terms.push(`${lit(mlp.w2[o][i])} * a${i}`);
-    lines.push(`  float b${o} = max(${terms.join(' + ')}, 0.0);`);
-  }
-  const out = [lit(mlp.b3[0])];
-  for (let i = 0; i < h2; i++) out.push(`${lit(mlp.w3[0][i])} * b${i}`);
-  lines.push(`  return ${out.join(' + ')};`, '}');
-  return lines.join('\n');
-}
-
-const VERTEX_SHADER = `
-precision highp float;
-uniform mat4 toModel;
-uniform mat4 modelToClip;
-in vec3 position;
-in vec4 color;
-out vec3 vModel;
-out vec3 vColor;
-void main() {
-  vec4 pm = toModel * vec4(position, 1.0);
-  vModel = pm.xyz;
-  vColor = color.rgb;
-  gl_Position = modelToClip * pm;
-}`;
-
-const BAKED_FRAGMENT_SHADER = `
-precision highp float;
-in vec3 vModel;
-in vec3 vColor;
-out vec4 fragColor;
-// mesh.glb's COLOR_0 is linear (glTF); the canvas is written without colour management, so encode sRGB here
-vec3 toSrgb(vec3 c) {
-  c = clamp(c, 0.0, 1.0);
-  return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(vec3(0.0031308), c));
-}
-void main() { fragColor = vec4(toSrgb(vColor), 1.0); }`;
-
-// fill=false: the mesh's fragments (p = interpolated surface point); fill=true: the far fill's full-screen pass
-function ibrFragmentShader(bundle, fill = false) {
-  const K = bundle.sources.count, C4 = Math.ceil(bundle.mlp.feature_dim / 4);
-  const main = fill ? `
-uniform mat4 uC2W;    // target camera-to-world, model frame (orthonormal rotation)
-uniform vec4 uIntr;   // fx, fy, cx, cy (pixels)
-uniform float uHeight; // canvas height (pixels): row v = H - gl_FragCoord.y
-uniform vec3 uBoxLo;
-uniform vec3 uBoxHi;
-uniform float uFar;
-void main() {
-  // omnirecon.mesh.fill.fill_points: the ray's exit from the box, at most at z-depth far (direction with z = 1)
-  vec2 uv = vec2(gl_FragCoord.x, uHeight - gl_FragCoord.y);
-  vec3 d = mat3(uC2W) * vec3((uv.x - uIntr.z) / uIntr.x, (uv.y - uIntr.w) / uIntr.y, 1.0);
-  vec3 o = uC2W[3].xyz;
-  vec3 safe = mix(d, vec3(1e-12), lessThan(abs(d), vec3(1e-12)));
-  vec3 t1 = (uBoxLo - o) / safe, t2 = (uBoxHi - o) / safe;
-  vec3 tmin = min(t1, t2), tmax = max(t1, t2);
-  float tIn = max(max(tmin.x, tmin.y), tmin.z), tOut = min(min(tmax.x, tmax.y), tmax.z);
-  float z = (tOut > max(tIn, 0.0) && tOut > 0.0) ? min(tOut, uFar) : uFar;
-  fragColor = vec4(shade(o + z * d, true), 1.0);
-}` : `
-in vec3 vModel;
-in vec3 vColor;
-void main() { fragColor = vec4(shade(vModel, false), 1.0); }`;
-  return `
-precision highp float;
-precision highp int;
-precision highp sampler2DArray;
-#define K ${K}
-#define C4 ${C4}
-uniform sampler2DArray uImages;   // RGBA8, W x H, layer k
-uniform sampler2DArray uFeatures; // RGBA32F, (w + 2) x (h + 2), layer k * C4 + j: channels 4j..4j+3 of W F_k + b
-uniform sampler2DArray uDepth;    // R32F, (W + 1) x (H + 1): max rasterized depth of each 2x2 pixel block
-uniform mat4 uProj[K];            // model point -> (u z, v z, z, 1)
-uniform vec3 uCenter[K];
-uniform vec3 uOrigin;             // target camera centre, model frame
-uniform vec2 uImageSize;          // W, H
-uniform vec2 uFeatSize;           // w, h (unpadded)
-uniform int uVisibility;
-uniform float uVisTol;
-uniform int uBlend;               // 0: the appearance network, 1: the angle blend
-uniform int uAngleK;              // the angle blend's sources per point (0: all)
-out vec4 fragColor;
-
-${mlpSource(bundle.mlp)}
-
-vec3 unit(vec3 d) { return d / max(length(d), 1e-12); }
-
-// grid_sample(images, align_corners=False, padding_mode="border")
-vec3 sampleImage(int k, vec2 st) {
-  vec2 hi = uImageSize - 1.0;
-  vec2 xy = clamp(st * uImageSize - 0.5, vec2(0.0), hi);
-  vec2 c = floor(xy);
-  vec2 f = xy - c;
-  vec2 g = 1.0 - f;
-  ivec2 i0 = ivec2(c);
-  ivec2 i1 = min(i0 + 1, ivec2(hi));
-  vec3 t00 = texelFetch(uImages, ivec3(i0.x, i0.y, k), 0).rgb;
-  vec3 t01 = texelFetch(uImages, ivec3(i1.x, i0.y, k), 0).rgb;
-  vec3 t10 = texelFetch(uImages, ivec3(i0.x, i1.y, k), 0).rgb;
-  vec3 t11 = texelFetch(uImages, ivec3(i1.x, i1.y, k), 0).rgb;
-  return t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y);
-}
-
-// angle_weights: the blend weights from each source's viewing angle (1e30 = not seen)
-void angleWeights(float ang[K], out float w[K]) {
-  int kk = uAngleK > 0 ? min(uAngleK, K) : K;
-  float aK = 1.0e30, aNext = 1.0e30;  // the kk-th and (kk + 1)-th smallest angles
-  for (int i = 0; i < K; i++) {
-    int rank = 0;
-    for (int j = 0; j < K; j++) rank += (ang[j] < ang[i] || (ang[j] == ang[i] && j < i)) ? 1 : 0;
-    if (rank == kk - 1) aK = ang[i];
-    if (rank == kk) aNext = ang[i];
-  }
-  float total = 0.0;
-  for (int k = 0; k < K; k++) {
-    float a = ang[k];
-    float fall = aNext >= 1.0e29 ? 1.0 : max(1.0 - a / aNext, 0.0);
-    w[k] = (a < 1.0e29 && a <= aK) ? fall / max(a, 1e-3) : 0.0;
-    total += w[k];
-  }
-  for (int k = 0; k < K; k++) w[k] = total > 0.0 ? w[k] / total : 1.0 / float(K);
-}
-
-vec3 shade(vec3 p, bool layer) {
-  vec3 u = unit(p - uOrigin);
-  float logits[K];
-  float ang[K];
-  vec3 colours[K];
-  float top = -3.0e38;
-  for (int k = 0; k < K; k++) {
-    vec3 uvz = (uProj[k] * vec4(p, 1.0)).xyz;
-    float z = uvz.z;
-    vec2 uv = uvz.xy / max(z, 1e-6);
-    vec2 st = uv / uImageSize;
-    bool seen = z > 1e-6 && uv.x >= 0.0 && uv.y >= 0.0 && uv.x < uImageSize.x && uv.y < uImageSize.y;
-    if (seen && uVisibility != 0 && !layer) {
-      int b = int(clamp(floor(uv.x - 0.5), -1.0, uImageSize.x - 1.0)) + 1;
-      int a = int(clamp(floor(uv.y - 0.5), -1.0, uImageSize.y - 1.0)) + 1;
-      seen = z <= texelFetch(uDepth, ivec3(b, a, k), 0).r * (1.0 + uVisTol);
-    }
-    colours[k] = sampleImage(k, st);
-    ang[k] = seen ? acos(clamp(dot(u, unit(p - uCenter[k])), -1.0, 1.0)) : 1.0e30;
-    float l = -1.0e9;
-    if (seen && uBlend == 0) {
-      vec2 xy = st * uFeatSize + 0.5;  // texel-centre coordinates in the padded map
-      vec2 c = floor(xy);
-      vec2 f = xy - c;
-      vec2 g = 1.0 - f;
-      ivec2 i0 = clamp(ivec2(c), ivec2(0), ivec2(uFeatSize) + 1);
-      ivec2 i1 = min(i0 + 1, ivec2(uFeatSize) + 1);
-      vec4 z4[C4];
-      for (int j = 0; j < C4; j++) {
-        int layer = k * C4 + j;
-        vec4 t00 = texelFetch(uFeatures, ivec3(i0.x, i0.y, layer), 0);
-        vec4 t01 = texelFetch(uFeatures, ivec3(i1.x, i0.y, layer), 0);
-        vec4 t10 = texelFetch(uFeatures, ivec3(i0.x, i1.y, layer), 0);
-        vec4 t11 = texelFetch(uFeatures, ivec3(i1.x, i1.y, layer), 0);
-        z4[j] = max(t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y), 0.0);
-      }
-      l = appearanceLogit(z4, u - unit(p - uCenter[k]));
-    }
-    logits[k] = l;
-    top = max(top, l);
-  }
-  vec3 rgb = vec3(0.0);
-  if (uBlend == 1) {
-    float w[K];
-    angleWeights(ang, w);
-    for (int k = 0; k < K; k++) rgb += w[k] * colours[k];
-    return rgb;
-  }
-  float total = 0.0;
-  for (int k = 0; k < K; k++) {
-    float e = exp(logits[k] - top);
-    total += e;
-    rgb += e * colours[k];
-  }
-  return rgb / total;
-}
-${main}`;
-}
-
-const FILL_VERTEX_SHADER = `
-precision highp float;
-in vec3 position;
-void main() { gl_Position = vec4(position.xy, 0.0, 1.0); }`;
 
 function arrayTexture(data, width, height, depth, format, type) {
   const t = new THREE.DataArrayTexture(data, width, height, depth);
@@ -342,6 +133,18 @@ function arrayTexture(data, width, height, depth, format, type) {
   t.needsUpdate = true;
   return t;
 }
+
+function target(width, height, format, type, depthBuffer = false) {
+  return new THREE.WebGLRenderTarget(width, height, { format, type, depthBuffer, stencilBuffer: false,
+    minFilter: THREE.NearestFilter, magFilter: THREE.NearestFilter, generateMipmaps: false });
+}
+
+function screenMaterial(fragmentShader, uniforms) {
+  return new THREE.RawShaderMaterial({ glslVersion: THREE.GLSL3, side: THREE.DoubleSide, depthTest: false,
+    depthWrite: false, vertexShader: SCREEN_VERTEX_SHADER, fragmentShader, uniforms });
+}
+
+const unit = (v) => { const n = Math.hypot(...v) || 1e-12; return v.map((x) => x / n); };
 
 // ---------------------------------------------------------------- the viewer
 class Viewer {
@@ -355,10 +158,16 @@ class Viewer {
     this.background = bundle.background;
     this.fixed = null;
     this.mode = 'ibr';
+    const s = bundle.setting;
     this.visibility = !!bundle.visibility.default;
-    this.fill = !!(bundle.fill && bundle.fill.default);
-    this.blend = bundle.blend && bundle.blend.default === 'angle' ? 'angle' : 'network';
+    this.fill = FILLS.includes(s.fill) ? s.fill : 'far';
+    this.cracks = (bundle.cracks | 0) > 0;
+    this.masks = !!(bundle.source_masks && bundle.source_masks.default);
+    this.blend = s.blend === 'angle' ? 'angle' : 'network';
+    this.crackRadius = Math.max(0, bundle.cracks | 0);
     this.fallbackReason = null;
+    this.ibr = null;
+    toModelFrame(geometry, this.toModel);
 
     const fixed = params.has('camera');
     this.canvas = document.createElement('canvas');
@@ -367,7 +176,8 @@ class Viewer {
       preserveDrawingBuffer: fixed || params.get('preserve') === '1', powerPreference: 'high-performance' });
     this.renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
     this.renderer.toneMapping = THREE.NoToneMapping;
-    this.renderer.setClearColor(new THREE.Color(...this.background), 1);
+    this.clearColor = new THREE.Color(...this.background);
+    this.renderer.setClearColor(this.clearColor, 1);
     // ?scale=0.5 renders the interactive view at half resolution (software WebGL is slow)
     this.scale = Math.min(Math.max(parseFloat(params.get('scale') || '1') || 1, 0.1), 4);
     this.renderer.setPixelRatio(fixed ? 1 : (window.devicePixelRatio || 1) * this.scale);
@@ -379,17 +189,21 @@ class Viewer {
 
     this.scene = new THREE.Scene();
     this.dummyCamera = new THREE.Camera(); // our materials use their own camera uniforms
-    const side = this.mirror ? THREE.BackSide : THREE.FrontSide;
-    const common = { toModel: { value: mat.three(this.toModel) }, modelToClip: { value: new THREE.Matrix4() } };
-    this.bakedMaterial = new THREE.RawShaderMaterial({ glslVersion: THREE.GLSL3, side, uniforms: common,
-      vertexShader: VERTEX_SHADER, fragmentShader: BAKED_FRAGMENT_SHADER });
+    this.side = this.mirror ? THREE.BackSide : THREE.FrontSide;
+    this.common = { modelToClip: { value: new THREE.Matrix4() } };
+    this.bakedMaterial = new THREE.RawShaderMaterial({ glslVersion: THREE.GLSL3, side: this.side,
+      uniforms: this.common, vertexShader: VERTEX_SHADER, fragmentShader: BAKED_FRAGMENT_SHADER });
     this.mesh = new THREE.Mesh(geometry, this.bakedMaterial);
     this.mesh.frustumCulled = false;
     this.mesh.matrixAutoUpdate = false;
     this.scene.add(this.mesh);
-    this.ibrMaterial = null;
-    this.fillMesh = null;
-    this.common = common;
+    // the screen-space passes draw one full-screen triangle
+    this.screen = new THREE.Scene();
+    const tri = new THREE.BufferGeometry();
+    tri.setAttribute('position', new THREE.Float32BufferAttribute([-1, -1, 0, 3, -1, 0, -1, 3, 0], 3));
+    this.quad = new THREE.Mesh(tri, this.bakedMaterial);
+    this.quad.frustumCulled = false;
+    this.screen.add(this.quad);
 
     // orbit camera (three.js convention, input frame)
     this.orbit = new THREE.PerspectiveCamera(50, 1, 1e-3, 1e3);
@@ -402,61 +216,98 @@ class Viewer {
     const reason = floatTexturesWork();
     if (reason) throw new Error(reason);
     const gl = this.renderer.getContext();
+    if (!gl.getExtension('EXT_color_buffer_float')) throw new Error('float render targets (EXT_color_buffer_float) are not supported');
     const layers = src.count * Math.ceil(b.mlp.feature_dim / 4);
     const maxLayers = gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS), maxSize = gl.getParameter(gl.MAX_TEXTURE_SIZE);
     if (layers > maxLayers) throw new Error(`${layers} feature layers > MAX_ARRAY_TEXTURE_LAYERS ${maxLayers}`);
-    if (Math.max(src.width + 1, src.height + 1) > maxSize) throw new Error(`source images exceed MAX_TEXTURE_SIZE ${maxSize}`);
+    if (Math.max(src.width + 1, src.height + 1, src.count) > maxSize) throw new Error(`source images exceed MAX_TEXTURE_SIZE ${maxSize}`);
     const f = b.textures.features.shape; // [K, C4, h + 2, w + 2, 4]
     const W = src.width, H = src.height;
-    const images = arrayTexture(new Uint8Array(buffers.images), W, H, src.count, THREE.RGBAFormat, THREE.UnsignedByteType);
-    const features = arrayTexture(new Float32Array(buffers.features), f[3], f[2], f[0] * f[1], THREE.RGBAFormat,
-      THREE.FloatType);
-    const depth = arrayTexture(new Float32Array(buffers.depth), W + 1, H + 1, src.count, THREE.RedFormat, THREE.FloatType);
-    const proj = src.proj.map((P) => mat.three(mat.flat(P)));
-    const centers = src.centers.map((c) => new THREE.Vector3(...c));
-    this.ibrMaterial = new THREE.RawShaderMaterial({
-      glslVersion: THREE.GLSL3, side: this.bakedMaterial.side, vertexShader: VERTEX_SHADER,
-      fragmentShader: ibrFragmentShader(b),
-      uniforms: {
-        ...this.common,
-        uImages: { value: images }, uFeatures: { value: features }, uDepth: { value: depth },
-        uProj: { value: proj }, uCenter: { value: centers }, uOrigin: { value: new THREE.Vector3() },
-        uImageSize: { value: new THREE.Vector2(W, H) }, uFeatSize: { value: new THREE.Vector2(f[3] - 2, f[2] - 2) },
-        uVisibility: { value: this.visibility ? 1 : 0 }, uVisTol: { value: b.visibility.tol },
-        uBlend: { value: this.blend === 'angle' ? 1 : 0 }, uAngleK: { value: b.blend ? b.blend.sources : 0 },
-      },
-    });
-    if (b.fill) { // the far fill: a full-screen triangle drawn first, the mesh over it
-      const box = b.fill.box || [[-1e30, -1e30, -1e30], [1e30, 1e30, 1e30]];
-      const tri = new THREE.BufferGeometry();
-      tri.setAttribute('position', new THREE.Float32BufferAttribute([-1, -1, 0, 3, -1, 0, -1, 3, 0], 3));
-      const fillMaterial = new THREE.RawShaderMaterial({
-        glslVersion: THREE.GLSL3, side: THREE.DoubleSide, depthTest: false, depthWrite: false,
-        vertexShader: FILL_VERTEX_SHADER, fragmentShader: ibrFragmentShader(b, true),
-        uniforms: {
-          ...this.ibrMaterial.uniforms,
-          uC2W: { value: new THREE.Matrix4() }, uIntr: { value: new THREE.Vector4() }, uHeight: { value: 1 },
-          uBoxLo: { value: new THREE.Vector3(...box[0]) }, uBoxHi: { value: new THREE.Vector3(...box[1]) },
-          uFar: { value: b.fill.far },
-        },
-      });
-      this.fillMesh = new THREE.Mesh(tri, fillMaterial);
-      this.fillMesh.frustumCulled = false;
-      this.fillMesh.renderOrder = -1;
-      this.fillMesh.visible = false;
-      this.scene.add(this.fillMesh);
+    const cams = new THREE.DataTexture(new Float32Array(buffers.cameras), 4, src.count, THREE.RGBAFormat, THREE.FloatType);
+    cams.minFilter = cams.magFilter = THREE.NearestFilter;
+    cams.generateMipmaps = false;
+    cams.needsUpdate = true;
+    const masks = b.source_masks || { reach: 1, floor: 1 };
+    this.depthMaterial = new THREE.RawShaderMaterial({ glslVersion: THREE.GLSL3, side: this.side, uniforms: this.common,
+      vertexShader: VERTEX_SHADER, fragmentShader: DEPTH_FRAGMENT_SHADER });
+    this.zTarget = null;
+    this.uniforms = {
+      uImages: { value: arrayTexture(new Uint8Array(buffers.images), W, H, src.count, THREE.RGBAFormat, THREE.UnsignedByteType) },
+      uFeatures: { value: arrayTexture(new Float32Array(buffers.features), f[3], f[2], f[0] * f[1], THREE.RGBAFormat, THREE.FloatType) },
+      uDepth: { value: arrayTexture(new Float32Array(buffers.depth), W + 1, H + 1, src.count, THREE.RedFormat, THREE.FloatType) },
+      uCams: { value: cams }, uZ: { value: null }, uSeed: { value: null }, uCrack: { value: null },
+      uSel: { value: [] }, uOrder: { value: [] },
+      uC2W: { value: new THREE.Matrix4() }, uIntr: { value: new THREE.Vector4() }, uHeight: { value: 1 },
+      uBoxLo: { value: new THREE.Vector3(...(b.fill.box ? b.fill.box[0] : [-1e30, -1e30, -1e30])) },
+      uBoxHi: { value: new THREE.Vector3(...(b.fill.box ? b.fill.box[1] : [1e30, 1e30, 1e30])) },
+      uFar: { value: b.fill.far }, uBackground: { value: new THREE.Vector3(...this.background) },
+      uFill: { value: 1 }, uReach: { value: 0 }, uCracks: { value: 0 },
+      uImageSize: { value: new THREE.Vector2(W, H) }, uFeatSize: { value: new THREE.Vector2(f[3] - 2, f[2] - 2) },
+      uVisibility: { value: 1 }, uVisTol: { value: b.visibility.tol },
+      uMasks: { value: 0 }, uMaskReach: { value: masks.reach }, uMaskFloor: { value: masks.floor },
+    };
+    this.seedInit = screenMaterial(SEED_INIT_SHADER, { uZ: this.uniforms.uZ });
+    this.jfa = screenMaterial(JFA_SHADER, { uSeed: { value: null }, uStep: { value: 1 } });
+    this.closing = [];  // [material, target name] of the crack mask's passes, in order
+    if (this.crackRadius > 0) {
+      const c = closingShaders(this.crackRadius);
+      const input = (name) => ({ value: null, name });
+      for (const [key, from, to] of [['dilateRows', null, 'dilRows'], ['dilateColumns', 'dilRows', 'dil'],
+        ['erodeRows', 'dil', 'eroRows'], ['erodeColumns', 'eroRows', 'crack']]) {
+        this.closing.push([screenMaterial(c[key], { uZ: this.uniforms.uZ, uIn: input(from) }), to]);
+      }
     }
-    // compile now, so that a shader this GPU cannot take falls back to the baked colours
-    this.mesh.material = this.ibrMaterial;
-    if (this.fillMesh) this.fillMesh.visible = true;
-    this.renderer.compile(this.scene, this.dummyCamera);
-    this.renderer.render(this.scene, this.dummyCamera);
-    this.mesh.material = this.bakedMaterial;
-    if (this.fillMesh) this.fillMesh.visible = false;
+    this.shadeMaterials = {};
+    this.ibr = true;
+    // draw every pass of the starting blend once now (a tiny frame), so that a shader this GPU cannot take falls back
+    // to the baked colours
+    const saved = { fixed: this.fixed, mode: this.mode, fill: this.fill, cracks: this.cracks };
+    Object.assign(this, { fixed: { ...this.defaultCamera(), width: 4, height: 4, fx: 2, fy: 2, cx: 2, cy: 2 },
+      mode: 'ibr', cracks: true });
+    this.resize(false);
+    for (const fill of ['nearest', 'far']) { this.fill = fill; this.render(); }  // the jump flooding, the closing
+    Object.assign(this, saved);
     if (this.shaderErrors.length) throw new Error(`IBR shader: ${this.shaderErrors[0]}`);
   }
 
+  // the shading pass of a blend (compiled on first use; NSEL, KA and CR are compile-time constants)
+  shadeMaterial(blend) {
+    if (!this.shadeMaterials[blend]) {
+      const b = this.bundle;
+      const fragmentShader = shadeShader(b, { blend, frameSources: b.blend.frame_sources | 0,
+        angleSources: b.blend.sources | 0, cracks: this.crackRadius });
+      this.shadeMaterials[blend] = screenMaterial(fragmentShader, this.uniforms);
+    }
+    return this.shadeMaterials[blend];
+  }
+
   note(text) { this.notes = (this.notes || []).concat([text]); }
+
+  // ------------------------------------------------ the frame's sources
+  // every source, nearest to a frame's camera (model frame) first: by the angle around the bundle's centre on object
+  // rigs, by the distance between camera centres otherwise (select_sources)
+  sourceOrder(cam) {
+    const b = this.bundle.blend, centers = this.bundle.sources.centers;
+    const c = [cam.c2w[3], cam.c2w[7], cam.c2w[11]];
+    let dist;
+    if (b.metric === 'angle') {
+      const o = b.center, a = unit(c.map((x, i) => x - o[i]));
+      dist = centers.map((ck) => {
+        const u = unit(ck.map((x, i) => x - o[i]));
+        return Math.acos(Math.min(1, Math.max(-1, a[0] * u[0] + a[1] * u[1] + a[2] * u[2])));
+      });
+    } else {
+      dist = centers.map((ck) => Math.hypot(c[0] - ck[0], c[1] - ck[1], c[2] - ck[2]));
+    }
+    return dist.map((_, i) => i).sort((i, j) => dist[i] - dist[j] || i - j);
+  }
+
+  // the frame's sources when it blends the `frame_sources` nearest, ascending; [] when it blends every source
+  frameSources(cam) {
+    const n = this.bundle.blend.frame_sources | 0;
+    if (!(n > 0 && n < this.bundle.sources.count)) return [];
+    return this.sourceOrder(cam).slice(0, n).sort((i, j) => i - j);
+  }
 
   // ------------------------------------------------ cameras
   defaultCamera() {
@@ -515,7 +366,7 @@ class Viewer {
     this.controls.addEventListener('change', () => this.requestRender());
   }
 
-  resize() {
+  resize(redraw = true) {
     if (this.fixed) {  // exactly width x height pixels, whatever the screen's pixel ratio
       this.renderer.setPixelRatio(1);
       this.renderer.setSize(this.fixed.width, this.fixed.height, true);
@@ -524,7 +375,7 @@ class Viewer {
       this.renderer.setSize(window.innerWidth, window.innerHeight, true);
       this.orbit.aspect = window.innerWidth / window.innerHeight;
     }
-    this.requestRender();
+    if (redraw) this.requestRender();
   }
 
   setCamera(cam) {
@@ -551,7 +402,6 @@ class Viewer {
 
   setVisibility(on) {
     this.visibility = !!on;
-    if (this.ibrMaterial) this.ibrMaterial.uniforms.uVisibility.value = on ? 1 : 0;
     this.syncUI();
     return this.render();
   }
@@ -559,14 +409,27 @@ class Viewer {
   setBlend(blend) {
     if (blend !== 'network' && blend !== 'angle') throw new Error(`blend must be network or angle, got ${blend}`);
     this.blend = blend;
-    for (const m of [this.ibrMaterial, this.fillMesh && this.fillMesh.material]) {
-      if (m && m.uniforms.uBlend) m.uniforms.uBlend.value = blend === 'angle' ? 1 : 0;
-    }
+    this.syncUI();
     return this.render();
   }
 
-  setFill(on) {
-    this.fill = !!on;
+  // 'nearest', 'far' or 'background' (true: far, false: background)
+  setFill(fill) {
+    const f = fill === true ? 'far' : fill === false ? 'background' : fill;
+    if (!FILLS.includes(f)) throw new Error(`fill must be one of ${FILLS.join(', ')}, got ${fill}`);
+    this.fill = f;
+    this.syncUI();
+    return this.render();
+  }
+
+  setCracks(on) {
+    this.cracks = !!on;
+    this.syncUI();
+    return this.render();
+  }
+
+  setMasks(on) {
+    this.masks = !!on;
     this.syncUI();
     return this.render();
   }
@@ -577,26 +440,98 @@ class Viewer {
     requestAnimationFrame(() => { this.pending = false; this.render(); });
   }
 
+  // render targets of the passes at the canvas size: depth (with a depth buffer), the nearest seeds, the closing's
+  targets(W, H) {
+    if (this.zTarget && this.zTarget.width === W && this.zTarget.height === H) return;
+    for (const t of [this.zTarget, ...(this.seedTargets || []), ...Object.values(this.closeTargets || {})]) if (t) t.dispose();
+    this.zTarget = target(W, H, THREE.RedFormat, THREE.FloatType, true);
+    this.seedTargets = [target(W, H, THREE.RGFormat, THREE.FloatType), target(W, H, THREE.RGFormat, THREE.FloatType)];
+    const r = this.crackRadius, R8 = (w, h) => target(w, h, THREE.RedFormat, THREE.UnsignedByteType);
+    this.closeTargets = r > 0 ? { dilRows: R8(W + 2 * r, H), dil: R8(W + 2 * r, H + 2 * r), eroRows: R8(W, H + 2 * r),
+      crack: R8(W, H) } : {};
+    this.uniforms.uZ.value = this.zTarget.texture;
+    this.uniforms.uSeed.value = this.seedTargets[0].texture;
+    this.uniforms.uCrack.value = r > 0 ? this.closeTargets.crack.texture : this.zTarget.texture;
+  }
+
+  // the crack mask (closingShaders)
+  cracksPass() {
+    for (const [material, to] of this.closing) {
+      const from = material.uniforms.uIn.name;
+      material.uniforms.uIn.value = from ? this.closeTargets[from].texture : this.zTarget.texture;
+      this.pass(material, this.closeTargets[to]);
+    }
+  }
+
+  pass(material, renderTarget) {
+    this.quad.material = material;
+    this.renderer.setRenderTarget(renderTarget);
+    this.renderer.render(this.screen, this.dummyCamera);
+  }
+
+  // each pixel's nearest covered pixel by jump flooding, as far as the nearest fill reaches
+  jumpFlood(W, H) {
+    const reach = this.bundle.fill.reach * Math.max(W, H);
+    const m = Math.max(1, Math.ceil(Math.log2(reach + 1)));
+    this.pass(this.seedInit, this.seedTargets[0]);
+    let src = 0;
+    const steps = [];
+    for (let s = 1 << (m - 1); s >= 1; s >>= 1) steps.push(s);
+    for (const s of [...steps, 1]) {
+      this.jfa.uniforms.uSeed.value = this.seedTargets[src].texture;
+      this.jfa.uniforms.uStep.value = s;
+      this.pass(this.jfa, this.seedTargets[1 - src]);
+      src = 1 - src;
+    }
+    this.uniforms.uSeed.value = this.seedTargets[src].texture;
+  }
+
   // draw one frame; returns what was drawn
   render() {
     const cam = this.toModelCamera(this.fixed || this.orbitCameraCV());
     const w2c = mat.rigidInverse(cam.c2w);
     const [near, far] = this.depthRange(w2c);
     this.common.modelToClip.value.copy(mat.three(mat.mul(clipMatrix(cam, near, far), w2c)));
-    const useIBR = this.mode === 'ibr' && this.ibrMaterial;
-    if (useIBR) this.ibrMaterial.uniforms.uOrigin.value.set(cam.c2w[3], cam.c2w[7], cam.c2w[11]);
-    this.mesh.material = useIBR ? this.ibrMaterial : this.bakedMaterial;
-    if (this.fillMesh) {
-      this.fillMesh.visible = !!(useIBR && this.fill);
-      const u = this.fillMesh.material.uniforms;
+    const useIBR = this.mode === 'ibr' && !!this.ibr;
+    const r = this.renderer, W = this.canvas.width, H = this.canvas.height;
+    const cracks = useIBR && this.cracks && this.crackRadius > 0;
+    const crackPasses = cracks && this.fill !== 'nearest';  // the nearest fill reaches every crack (shaders.js)
+    const masks = useIBR && this.masks && !!this.bundle.source_masks;
+    let sources = null;
+    if (!useIBR) {
+      this.mesh.material = this.bakedMaterial;
+      r.setRenderTarget(null);
+      r.render(this.scene, this.dummyCamera);
+    } else {
+      this.targets(W, H);
+      this.mesh.material = this.depthMaterial;
+      r.setRenderTarget(this.zTarget);
+      r.setClearColor(0x000000, 0);
+      r.render(this.scene, this.dummyCamera);
+      r.setClearColor(this.clearColor, 1);
+      if (this.fill === 'nearest') this.jumpFlood(W, H);
+      if (crackPasses) this.cracksPass();
+      const u = this.uniforms;
+      sources = this.frameSources(cam);
       u.uC2W.value.copy(mat.three(cam.c2w));
       u.uIntr.value.set(cam.fx, cam.fy, cam.cx, cam.cy);
-      u.uHeight.value = this.canvas.height;
+      u.uHeight.value = H;
+      u.uFill.value = FILLS.indexOf(this.fill);
+      u.uReach.value = this.bundle.fill.reach * Math.max(W, H);
+      u.uCracks.value = crackPasses ? 1 : 0;
+      u.uVisibility.value = this.visibility ? 1 : 0;
+      u.uMasks.value = masks ? 1 : 0;
+      u.uSel.value = sources;
+      if (!sources.length) {  // every source, nearest first, four to an ivec4
+        const order = this.sourceOrder(cam);
+        while (order.length % 4) order.push(order[order.length - 1]);
+        u.uOrder.value = Int32Array.from(order);
+      }
+      this.pass(this.shadeMaterial(this.blend), null);
     }
-    this.renderer.render(this.scene, this.dummyCamera);
     this.frames = (this.frames || 0) + 1;
-    return { mode: useIBR ? 'ibr' : 'baked', fill: !!(useIBR && this.fillMesh && this.fill), blend: this.blend, width: this.canvas.width,
-      height: this.canvas.height };
+    return { mode: useIBR ? 'ibr' : 'baked', blend: this.blend, fill: useIBR ? this.fill : 'background', cracks, masks,
+      sources: sources && (sources.length ? sources : 'all'), width: W, height: H };
   }
 
   // frames per second of the current mode at the current size, orbiting the camera a little each frame
@@ -622,7 +557,7 @@ class Viewer {
     this.fixed = saved;
     this.render();
     return { fps: 1000 / ms, ms_per_frame: ms, frames, width: this.canvas.width, height: this.canvas.height,
-      mode: this.ibrMaterial && this.mode === 'ibr' ? 'ibr' : 'baked' };
+      mode: this.ibr && this.mode === 'ibr' ? 'ibr' : 'baked' };
   }
 
   // ------------------------------------------------ UI
@@ -630,36 +565,55 @@ class Viewer {
     const panel = document.getElementById('panel');
     const show = params.has('ui') ? params.get('ui') !== '0' : !params.has('camera');
     panel.classList.toggle('hidden', !show);
-    for (const r of document.querySelectorAll('input[name=mode]')) {
-      r.addEventListener('change', () => this.setMode(r.value));
-    }
+    for (const r of document.querySelectorAll('input[name=mode]')) r.addEventListener('change', () => this.setMode(r.value));
+    document.getElementById('blend').addEventListener('change', (e) => this.setBlend(e.target.value));
+    document.getElementById('fill').addEventListener('change', (e) => this.setFill(e.target.value));
     document.getElementById('vis').addEventListener('change', (e) => this.setVisibility(e.target.checked));
-    document.getElementById('fill').addEventListener('change', (e) => this.setFill(e.target.checked));
+    document.getElementById('cracks').addEventListener('change', (e) => this.setCracks(e.target.checked));
+    document.getElementById('masks').addEventListener('change', (e) => this.setMasks(e.target.checked));
     window.addEventListener('keydown', (e) => {
+      if (e.target && e.target.tagName === 'SELECT') return;
       if (e.key === 'b') this.setMode(this.mode === 'ibr' ? 'baked' : 'ibr');
+      if (e.key === 'a') this.setBlend(this.blend === 'angle' ? 'network' : 'angle');
       if (e.key === 'v') this.setVisibility(!this.visibility);
-      if (e.key === 'f') this.setFill(!this.fill);
+      if (e.key === 'f') this.setFill(FILLS[(FILLS.indexOf(this.fill) + 1) % FILLS.length]);
+      if (e.key === 'c') this.setCracks(!this.cracks);
+      if (e.key === 'm') this.setMasks(!this.masks);
     });
     this.syncUI();
   }
 
   syncUI() {
+    const ibr = !!this.ibr;
     for (const r of document.querySelectorAll('input[name=mode]')) {
       r.checked = r.value === this.mode;
-      if (r.value === 'ibr') r.disabled = !this.ibrMaterial;
+      if (r.value === 'ibr') r.disabled = !ibr;
     }
-    const vis = document.getElementById('vis');
-    vis.checked = this.visibility;
-    vis.disabled = !this.ibrMaterial;
-    const fill = document.getElementById('fill');
-    fill.checked = this.fill && !!this.fillMesh;
-    fill.disabled = !this.fillMesh;
+    const set = (id, key, value, disabled) => { const e = document.getElementById(id); e[key] = value; e.disabled = disabled; };
+    set('blend', 'value', this.blend, !ibr);
+    set('fill', 'value', this.fill, !ibr);
+    set('vis', 'checked', this.visibility, !ibr);
+    set('cracks', 'checked', this.cracks && this.crackRadius > 0, !ibr || !(this.crackRadius > 0));
+    set('masks', 'checked', this.masks && !!this.bundle.source_masks, !ibr || !this.bundle.source_masks);
     const b = this.bundle, st = document.getElementById('status');
     const parts = [`${b.faces.toLocaleString()} triangles, ${b.sources.count} source views`];
     if (this.fallbackReason) parts.push(`<span class="note">baked colours only: ${this.fallbackReason}</span>`);
     for (const n of this.notes || []) parts.push(`<span class="note">${n}</span>`);
     st.innerHTML = parts.join('<br>');
   }
+}
+
+// the mesh's positions from the input frame (mesh.glb) to the model frame, once, in float64
+function toModelFrame(geometry, T) {
+  const pos = geometry.getAttribute('position');
+  const out = new Float32Array(pos.count * 3);
+  for (let i = 0; i < pos.count; i++) {
+    const p = mat.apply(T, [pos.getX(i), pos.getY(i), pos.getZ(i)]);
+    out[3 * i] = p[0];
+    out[3 * i + 1] = p[1];
+    out[3 * i + 2] = p[2];
+  }
+  geometry.setAttribute('position', new THREE.BufferAttribute(out, 3));
 }
 
 function geometryHasColor(g) { return !!g.getAttribute('color'); }
@@ -677,6 +631,10 @@ async function loadGeometry(url) {
 
 async function main() {
   const bundle = await fetchChecked('bundle.json', 'json');
+  if (bundle.format !== FORMAT || bundle.version !== VERSION) {
+    throw new Error(`bundle.json is ${bundle.format} version ${bundle.version}; this viewer reads ${FORMAT} version ` +
+      `${VERSION} (re-export it with omnirecon export)`);
+  }
   const geometry = await loadGeometry(bundle.mesh);
   const viewer = new Viewer(bundle, geometry);
   const api = {
@@ -685,33 +643,41 @@ async function main() {
     setMode: (m) => viewer.setMode(m),
     setVisibility: (v) => viewer.setVisibility(v),
     setFill: (f) => viewer.setFill(f),
+    setCracks: (c) => viewer.setCracks(c),
+    setMasks: (m) => viewer.setMasks(m),
     setBlend: (b) => viewer.setBlend(b),
     render: () => viewer.render(),
     benchmark: (n) => viewer.benchmark(n),
   };
   window.omnirecon = api;
-  if (params.get('mode') === 'baked') viewer.mode = 'baked';
-  if (params.has('vis')) viewer.visibility = params.get('vis') !== '0';
-  if (params.has('fill')) viewer.fill = params.get('fill') !== '0';
-  if (params.has('blend')) viewer.blend = params.get('blend') === 'angle' ? 'angle' : 'network';
   try {
     const t = bundle.textures;
-    const [images, features, depth] = await Promise.all([t.images.file, t.features.file, t.depth.file]
-      .map((f) => fetchChecked(f, 'bin')));
-    await viewer.initIBR({ images, features, depth });
+    const [images, features, depth, cameras] = await Promise.all(
+      [t.images.file, t.features.file, t.depth.file, t.cameras.file].map((f) => fetchChecked(f, 'bin')));
+    await viewer.initIBR({ images, features, depth, cameras });
   } catch (e) {
     viewer.fallbackReason = String(e.message || e);
-    viewer.ibrMaterial = null;
+    viewer.ibr = null;
     console.warn(`omnirecon viewer: image-based shading unavailable, showing baked colours: ${viewer.fallbackReason}`);
   }
+  if (params.get('mode') === 'baked') viewer.mode = 'baked';
+  if (params.has('vis')) viewer.visibility = params.get('vis') !== '0';
+  if (params.has('fill')) {
+    const f = params.get('fill');
+    viewer.fill = f === '1' ? 'far' : f === '0' ? 'background' : FILLS.includes(f) ? f : viewer.fill;
+  }
+  if (params.has('cracks')) viewer.cracks = params.get('cracks') !== '0';
+  if (params.has('masks')) viewer.masks = params.get('masks') !== '0';
+  if (params.has('blend')) viewer.blend = params.get('blend') === 'angle' ? 'angle' : 'network';
   viewer.setupOrbit();
   viewer.setupUI();
   window.addEventListener('resize', () => viewer.resize());
   if (params.has('camera')) viewer.setCamera(JSON.parse(params.get('camera')));
   else viewer.resize();
-  viewer.render();
-  const info = { mode: viewer.ibrMaterial && viewer.mode === 'ibr' ? 'ibr' : 'baked', fallback: viewer.fallbackReason,
-    width: viewer.canvas.width, height: viewer.canvas.height, renderer: rendererName(viewer.renderer) };
+  const drawn = viewer.render();
+  const info = { mode: drawn.mode, fallback: viewer.fallbackReason, blend: drawn.blend, fill: drawn.fill,
+    cracks: drawn.cracks, masks: drawn.masks, width: viewer.canvas.width, height: viewer.canvas.height,
+    renderer: rendererName(viewer.renderer) };
   api.info = info;
   root.dataset.state = 'ready';
   readyResolve(info);
