@@ -350,6 +350,8 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     if options.depth == "oracle":
         return oracle_depths(scene, views, options.shifts)
     stereo = stereo_maps(scene, views, options.stereo, on_view)
+    if masks is None and options.drop_background:  # no surface where the photo shows the known background colour
+        stereo = without_background(stereo, scene)  # (fusion drops it anyway): not refined, not propagated
     refine = options.refine if scene.rig != "forward" and masks is None else "none"  # object captures without masks
     if refine == "stereo" or (refine == "all" and options.depth == "stereo"):
         stereo = refined(stereo, scene, options)

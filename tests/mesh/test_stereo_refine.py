@@ -59,3 +59,42 @@ def test_propagation_reaches_a_gross_error_the_sweep_cannot_and_keeps_the_exact_
     kept = refine_depths(images, cams, views, exact.clone(), RefineOptions(propagate=2))
     inner = (slice(None), slice(10, -10), slice(10, -10))
     assert _abs_rel(kept[inner], exact[inner]) < 0.003
+
+
+def test_window_cost_at_the_pixels_with_depth_equals_the_dense_cost():
+    """The scorer costs only the pixels with depth, each window from their rows: the dense reference (every pixel's
+    cost, windows by ``F.unfold`` with the pixels without depth weighted 0) gives the same numbers there."""
+    import torch
+    import torch.nn.functional as F
+
+    from omnirecon.mesh.stereo_refine import _Scorer, support_weights
+
+    images, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0], [0.0, 0.3, 0]])
+    depth = exact[0].clone()
+    depth[torch.rand(depth.shape, generator=torch.Generator().manual_seed(0)) < 0.3] = 0  # scattered holes
+    depth[:, :12] = 0
+    o = RefineOptions()
+    score = _Scorer(images, cams, 0, depth > 0, [1, 2], o)
+    d = (depth * 1.01).reshape(-1)
+    got = score(d)
+    # dense reference
+    H, W = depth.shape
+    valid = (depth > 0).float()
+    w = o.window
+    weights = support_weights(images[0].float(), o) * F.unfold(valid[None, None], w, padding=w // 2)[0]
+    cam = cams[0].to(dtype=torch.float32)
+    v, u = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    rays = torch.stack([(u - cam.cx[0]) / cam.fx[0], (v - cam.cy[0]) / cam.fy[0], torch.ones_like(u)], -1)
+    pts = cam.centers[0] + (rays.reshape(-1, 3) @ cam.R[0].T) * d[:, None]  # [HW, 3]
+    oc = cams[[1, 2]].to(dtype=torch.float32)
+    p = oc.project(pts)
+    grid = (p.uv / torch.tensor([W, H]) * 2 - 1)[:, None]  # [J, 1, HW, 2]
+    src = images[[1, 2]].float().permute(0, 3, 1, 2)
+    c = (F.grid_sample(src, grid, align_corners=False, padding_mode="border")[:, :, 0]
+         - images[0].reshape(-1, 3).T[None]).abs().sum(1).clamp_max(o.truncate)
+    c = torch.where(p.in_image & (p.depth > 1e-6), c, torch.full_like(c, o.truncate))
+    agg = (F.unfold(c.reshape(2, 1, H, W), w, padding=w // 2) * weights[None]).sum(1) / weights.sum(0).clamp_min(1e-8)
+    ref = agg.sort(0).values[: o.best].mean(0)
+    at = (depth > 0).reshape(-1)
+    assert at.float().mean() > 0.4
+    assert torch.allclose(got[at], ref[at], atol=1e-5), float((got[at] - ref[at]).abs().max())
