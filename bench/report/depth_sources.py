@@ -40,8 +40,8 @@ def loss_split(rows: list[dict]) -> list[str]:
         if scene in GOALS:
             gap = GOALS[scene][1] - (a or b)
             line += f" ({GOALS[scene][0]}: " + (f"short by {gap:.2f} dB)" if gap > 0 else f"met, {-gap:.2f} dB over)")
-        every = next((r for r in rs if r["source"].startswith(best["source"] + ", ")
-                      and r["source"].endswith(" held-out") and score(r) is not None), None)
+        every = next((r for r in rs if r["source"].rsplit(", ", 1)[0] == best["source"]  # the same setting, only
+                      and r["source"].endswith(" held-out") and score(r) is not None), None)  # more views
         if every is not None and scene in GOALS:  # the same setting scored on more of the protocol's held-out views
             gap = GOALS[scene][1] - (score(every, "after") or score(every))
             n = every["source"].rsplit(", ", 1)[1].split()[0]
