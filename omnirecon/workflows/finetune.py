@@ -256,13 +256,14 @@ class FinetuneConfig(ThreadsConfig):
     """Blur the rendered colour at the mesh's depth edges by a Gaussian of this many pixels (0: off;
     :func:`omnirecon.render.edges.soften_edges`: a pixel beside an edge the mesh puts a pixel off takes the mean of
     both sides' colours instead of the wrong one; the rest of the image stays sharp), at every held-out score and
-    picture (not in the tuning steps nor the validation scores, which sample single pixels). Held-out PSNR before
-    tuning, 0 -> 0.7 px, measured on the bench meshes with a scoring script (session 17, /tmp/dtu37/softtest.py; its
-    edge test also flagged the image border): dtu_scan37 mask 21.41 -> 21.63 dB (all 8 held-out views), fern (angle
-    blend) 24.31 -> 24.63, the demo scene 26.52 -> 26.92 (objects 21.65 -> 22.62); dtu_scan24 (8 views, edges from a
-    3x3 depth ratio > 1.02 instead) 25.34 -> 25.56. Sigma 0.5 / 1.0 px: dtu_scan37 21.59 / 21.58, fern 24.58 /
-    24.54, the demo 27.04 / 26.47. A blur of the whole image instead: dtu_scan37 21.37 (0.5 px). SSAA instead (2x2
-    samples per pixel, averaged): dtu_scan37 21.53 at 4x the shading."""
+    picture (not in the tuning steps nor the validation scores, which sample single pixels). Held-out PSNR, 0 -> 0.7
+    px, the same meshes (``python -m bench depth_sources``, the ``, no soften`` rows; BENCHMARKS "Depth sources"):
+    dtu_scan37 mask, all 8 held-out views, 21.41 -> 21.63 dB (the usual 4: 22.47 -> 22.71), dtu_scan24 25.34 ->
+    25.56 (26.11 -> 26.36), IoU unchanged; fern angle blend 24.31 -> 24.63, network blend 24.31 -> 24.59 (60 CPU-s
+    tuned: the start returned). The demo scene (scoring script, before tuning): 26.52 -> 26.92, objects 21.65 ->
+    22.62. Sigma 0.5 / 1.0 px (scoring script): dtu_scan37 21.59 / 21.58, fern 24.58 / 24.54, the demo 27.04 /
+    26.47; a blur of the whole image instead: dtu_scan37 21.37 (0.5 px); SSAA instead (2x2 samples per pixel,
+    averaged): dtu_scan37 21.53 at 4x the shading."""
     max_held_out: int = 4
     """Held-out views scored at each evaluation (evenly spaced over the protocol's targets)."""
     out: Path | None = None
