@@ -548,3 +548,20 @@ def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
     for _ in range(30):
         tuner.step(sample())
     assert loss() < 0.9 * before and float(tuner.residual.grid.detach().abs().max()) > 0
+
+
+def test_finetune_scores_every_held_out_view_of_dtus_protocol_by_default(shared_data):
+    """DTU's protocol holds out 8 views; ``finetune`` scores all of them by default (``--max-held-out 8``; it scored 4,
+    0 13 35 48, before session 17), never as sources, and ``--max-held-out 4`` keeps the old subset."""
+    from pathlib import Path
+
+    from omnirecon.data import detect_format, load_scene
+    from omnirecon.engine.protocols import protocol_for
+    from omnirecon.workflows.finetune import FinetuneConfig, split_views
+
+    path = shared_data("neus_dtu/dtu_scan37")
+    scene, proto = load_scene(path), protocol_for(path, detect_format(path))
+    views, targets, _, _ = split_views(FinetuneConfig(ckpt=Path("unused"), scene=path), scene, proto)
+    assert targets == [0, 6, 13, 19, 28, 35, 42, 48] and not set(targets) & set(views)
+    four = split_views(FinetuneConfig(ckpt=Path("unused"), scene=path, max_held_out=4), scene, proto)[1]
+    assert four == [0, 13, 35, 48]
