@@ -44,6 +44,8 @@ the demo's held-out procedural scene, seed 900999, and three scenes of the held-
   photos'; ``StereoOptions.match_side``) instead of the default.
 * ``<source>, N held-out``: scored on N of the protocol's held-out views (``finetune --max-held-out N``, evenly
   spaced) instead of 4: DTU's protocol holds out 8 (0 6 13 19 28 35 42 48), the 4-view rows score 0 13 35 48.
+* ``<source>, no soften``: scored with ``finetune --soften 0`` (no blur at the mesh's depth edges:
+  :func:`omnirecon.render.edges.soften_edges`; the default before session 17).
 * ``exact mesh, <variants>`` (procedural, with ``--rows``): the exact mesh scored with those variants (``demo:exact
   mesh, nearest 6``), the like-for-like target of rows scored that way.
 
@@ -226,6 +228,8 @@ def scoring(source: str, scene=None) -> dict:
             out["source_masks"] = False
         elif part == "no cracks":
             out["cracks"] = 0
+        elif part == "no soften":
+            out["soften"] = 0.0
         elif part.endswith(" held-out"):
             out["max_held_out"] = int(part.split()[0])
         elif part not in ("sky kept", "all views") and not part.startswith("match "):

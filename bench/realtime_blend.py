@@ -70,6 +70,20 @@ def render_views(model, mesh, scene, targets: list[int], pool: list[int], settin
     return out
 
 
+def mesh_of(name: str, folder: Path) -> Path:
+    """The mesh a depth_sources row scored: its folder's ``mesh.ply``, or, when rows of one run shared a mesh (it is
+    written once, in the first row's folder), the ``mesh_file`` the row recorded in ``bench/results/depth_sources.json``."""
+    if (folder / "mesh.ply").is_file():
+        return folder / "mesh.ply"
+    rows = json.loads((Path(__file__).parent / "results" / "depth_sources.json").read_text())["rows"]
+    slug = folder.name[len(name) + 1:]
+    for r in rows:
+        if r["scene"] == name and "mesh_file" in r and \
+                r["source"].replace("+", "_").replace(", ", "_").replace(" ", "_") == slug:
+            return ROOT / r["mesh_file"]
+    return folder / "mesh.ply"  # read_mesh names the missing file
+
+
 def run_scene(name: str, folder: Path) -> dict:
     from omnirecon.engine.checkpoint import load_checkpoint
     from omnirecon.engine.scenes import load_at_resolution
@@ -78,13 +92,14 @@ def run_scene(name: str, folder: Path) -> dict:
 
     record = json.loads((folder / "finetune" / "curve.json").read_text())
     scene = load_at_resolution(record["scene"], max(record["resolution"]), "white")
-    mesh = read_mesh(folder / "mesh.ply", scene.to_input)
+    mesh_file = mesh_of(name, folder)
+    mesh = read_mesh(mesh_file, scene.to_input)
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
     targets, pool = record["held_out"], record["sources"]
     blend, fill = scene_defaults(scene)
     setting = realtime_setting(scene, record)
     before = {"blend": blend, "fill": fill, "sources": 3, "angle_sources": 6, "source_masks": False}
-    row = {"scene": name, "mesh_file": str((folder / "mesh.ply").relative_to(ROOT)), "held_out": targets,
+    row = {"scene": name, "mesh_file": str(mesh_file.relative_to(ROOT)), "held_out": targets,
            "resolution": record["resolution"], "finetune_record": {
                "render": record.get("render"), "psnr": record["curve"][0]["psnr"],
                **({"psnr_masked": record["curve"][0]["psnr_masked"]} if "psnr_masked" in record["curve"][0] else {})},

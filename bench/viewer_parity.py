@@ -6,7 +6,8 @@
 Per scene, the mesh and the ``finetune`` record (``curve.json``) a ``python -m bench depth_sources`` row wrote (as
 ``python -m bench realtime_blend``; :data:`ROWS`: ``--rows "dtu_scan37:stereo+fill, nearest 6, all views, angle blend,
 nearest fill, angle auto, 8 held-out" "fern:stereo+fill, nearest 6" "synth_900997:stereo+model, nearest 6"``), and the real-time setting of that record
-(:func:`omnirecon.mesh.ibr.realtime_setting`, with today's crack fill, ``--cracks``, where the record is older than it):
+(:func:`omnirecon.mesh.ibr.realtime_setting`, with today's crack fill, ``--cracks``, where the record is older than it,
+and without ``--soften``'s blur at depth edges, which the viewer does not draw):
 
 * the bundle ``omnirecon export`` writes for it (:func:`omnirecon.workflows.export.run_export` with the scene, the
   checkpoint, the mesh and, where export takes one, the finetune record), served by ``omnirecon view``'s server and
@@ -278,6 +279,7 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
     render = dict(record.get("render") or {})
     if cracks is not None and "cracks" not in render:
         render["cracks"] = cracks  # a record from before the crack fill: today's default
+    render["soften"] = 0.0  # the viewer does not blur depth edges (finetune --soften): compare like with like
     setting = realtime_setting(scene, {**record, "render": render})
     mesh = read_mesh(folder / "mesh.ply", scene.to_input)
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")

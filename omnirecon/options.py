@@ -110,7 +110,7 @@ RULES: dict[str, Rule] = {
     "first_octave": Rule(-3, 1, example="e.g. -1"), "max_ratio": Rule(0, 1, above=True, example="e.g. 0.8"),
     "retry_below": FRACTION, "mask_dilate": Rule(0, 10_000, example="e.g. 0 or 8"),
     # tuning
-    "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
+    "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "soften": Rule(0, 10, example="e.g. 0.7 (px; 0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     "step_views": Rule(0, 1_000_000, example="e.g. 1, or 0 for every tuning view"),
     "skip_nearest": Rule(0, 1_000_000, example="e.g. 1, or 0 for the nearest sources"),
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),

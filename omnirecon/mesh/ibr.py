@@ -90,6 +90,7 @@ from omnirecon.mesh.fill import (
     shaded_surface,
 )
 from omnirecon.rays import Sources
+from omnirecon.render.edges import SOFTEN, soften_edges
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 
 
@@ -123,6 +124,12 @@ class MeshRenderOptions:
     ``finetune --source-masks`` scores real object captures (:func:`masks_hold_scene`: DTU). Only for masks that
     hold everything photographed (a procedural scene's masks leave out its ground); the web viewer does it too (the
     masks in its images' alpha channel: :func:`omnirecon.viewer.bundle.mask_table`)."""
+    soften: float = 0.0
+    """Blur the colour at the mesh's depth edges by a Gaussian of this many pixels (0: off;
+    :func:`omnirecon.render.edges.soften_edges`), as ``finetune --soften`` scores (its record's ``"soften"``:
+    :func:`realtime_setting`). 11.6 CPU-ms per 400x300 frame (1 thread, dtu_scan37's view 48); ``python -m bench
+    realtime_blend`` with it: dtu_scan37 / dtu_scan24 / fern 22.71 / 26.37 / 24.59 dB against finetune's 22.71 / 26.36
+    / 24.59. The web viewer does not do it."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -398,16 +405,18 @@ REALTIME_ANGLE_SOURCES = 4
 
 def realtime_setting(scene, record: dict | None = None) -> dict:
     """The real-time mesh path's blend for ``scene``: ``finetune``'s record of what it scored with (``curve.json``'s
-    ``"render"``: blend, fill, sources per frame (0: every training view), angle sources, source masks, cracks) where there is
-    one, else finetune's
+    ``"render"``: blend, fill, sources per frame (0: every training view), angle sources, source masks, cracks, the blur
+    at depth edges) where there is one, else finetune's
     defaults for the scene kind (:func:`scene_defaults`, :data:`REALTIME_SOURCES`, :data:`REALTIME_ANGLE_SOURCES`,
-    :func:`masks_hold_scene`). One setting, so a video, ``render --mesh`` and the scores blend alike."""
+    :func:`masks_hold_scene`, :data:`omnirecon.render.edges.SOFTEN`). One setting, so a video, ``render --mesh`` and the scores blend alike."""
     blend, fill = scene_defaults(scene)
     out = {"blend": blend, "fill": fill, "sources": 0 if blend == "angle" else REALTIME_SOURCES,
-           "angle_sources": REALTIME_ANGLE_SOURCES, "source_masks": masks_hold_scene(scene), "cracks": CRACK_RADIUS}
+           "angle_sources": REALTIME_ANGLE_SOURCES, "source_masks": masks_hold_scene(scene), "cracks": CRACK_RADIUS,
+           "soften": SOFTEN}
     scored = (record or {}).get("render") or {}
-    if scored and "cracks" not in scored:  # a record from before the crack fill scored without it
-        out["cracks"] = 0
+    for key in ("cracks", "soften"):  # a record from before the crack fill / the softening scored without it
+        if scored and key not in scored:
+            out[key] = 0
     out.update({k: v for k, v in scored.items() if k in out})
     out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
     return out
@@ -417,6 +426,7 @@ def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
     """:class:`MeshRenderOptions` of a :func:`realtime_setting` (plus ``kwargs``: background, visibility, ...)."""
     return MeshRenderOptions(blend=setting["blend"], fill=setting["fill"], angle_sources=int(setting["angle_sources"]),
                              source_masks=bool(setting["source_masks"]), cracks=int(setting.get("cracks", CRACK_RADIUS)),
+                             soften=float(setting.get("soften", 0.0)),
                              **kwargs)
 
 
@@ -799,6 +809,7 @@ class MeshRenderer:
         :meth:`Surface.image`); fused shader only."""
         H, W = camera.height, camera.width
         depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
+        mesh_z = depth  # [H, W] the mesh's own depth (no fill): its depth edges are softened
         hit = (depth > 0).reshape(-1).to(self.device) if self.mask_falloff is not None else None  # [H W] on the mesh
         if self.options.fill == "nearest" or self.options.cracks > 0:  # one distance transform a frame, before the chunks
             reach = NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0
@@ -840,7 +851,7 @@ class MeshRenderer:
 
         with torch.inference_mode():
             self._run_chunks(shade, H * W)
-        return out.reshape(H, W, 3)
+            return soften_edges(out.reshape(H, W, 3), mesh_z, self.options.soften)
 
     # ------------------------------------------------------------------ images
     def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:
@@ -867,7 +878,9 @@ class MeshRenderer:
                                   fill=self.options.fill != "background")
             rgb = shaded.rgb if shaded.rgb is not None else self.blend(shaded, self._rgb)
             rgb = shaded.surface.image(rgb, self.options.background)
-            return self._outputs(shaded, rgb=rgb) if extras else {"rgb": rgb}
+            out = self._outputs(shaded, rgb=rgb)
+            out["rgb"] = soften_edges(rgb, out["depth"], self.options.soften)  # the mesh's depth (0: fill)
+            return out if extras else {"rgb": out["rgb"]}
 
     def render_signal(self, camera: Cameras, signal: Tensor, background: float | Tensor = 0.0) -> dict[str, Tensor]:
         """Render a per-view signal ``# [K, H', W', C]`` (any resolution covering each source image)

@@ -549,3 +549,23 @@ def test_cracks_take_the_surface_not_the_background(setup, fill):
     assert (fast - b["rgb"]).abs().max() < 1e-3
     gt = scene.images[0].float()
     assert psnr(b["rgb"].clamp(0, 1), gt) > psnr(a["rgb"].clamp(0, 1), gt)
+
+
+def test_soften_blurs_the_frame_at_the_meshs_depth_edges_as_finetune_scores(setup):
+    """``MeshRenderOptions.soften``: the frame path and the reference ``render`` blur the colour at the mesh's depth
+    edges (``soften_edges`` of the unsoftened frame with the rasterized depth), nowhere else; the setting comes from
+    finetune's record (``realtime_setting``)."""
+    from omnirecon.mesh.ibr import realtime_options, realtime_setting
+    from omnirecon.render.edges import SOFTEN, depth_edges, soften_edges
+
+    scene, mesh, model, sources, cam = setup
+    sharp_opts = MeshRenderOptions(backend="reference", fill="far")
+    with MeshRenderer(model, mesh, sources, sharp_opts) as r:
+        sharp, depth = r.frame(cam), r.rasterizer.depth(cam)
+    with MeshRenderer(model, mesh, sources, MeshRenderOptions(backend="reference", fill="far", soften=SOFTEN)) as r:
+        soft, ref = r.frame(cam), r.render(cam)["rgb"]
+    edge = depth_edges(depth)
+    assert edge.any() and torch.equal(soft[~edge], sharp[~edge]) and not torch.allclose(soft[edge], sharp[edge])
+    assert torch.allclose(soft, soften_edges(sharp, depth, SOFTEN)) and torch.allclose(ref, soft, atol=1e-4)
+    assert realtime_options(realtime_setting(scene)).soften == SOFTEN
+    assert realtime_options(realtime_setting(scene, {"render": {"soften": 0.0}})).soften == 0.0

@@ -99,7 +99,7 @@ def test_export_takes_every_train_view_or_the_finetune_record(exported, tmp_path
     code, _, err = run_cli([*base, "--finetune", tmp_path / "ft", "--out", tmp_path / "tuned"])
     assert code == 0, err
     meta = json.loads((tmp_path / "tuned" / "viewer" / "bundle.json").read_text())
-    assert meta["sources"]["views"] == [0, 2, 4, 5] and meta["setting"] == render
+    assert meta["sources"]["views"] == [0, 2, 4, 5] and meta["setting"] == {**render, "soften": 0}  # a record from before
     (tmp_path / "ft" / "curve.json").write_text("{not json")
     code, _, err = run_cli([*base, "--finetune", tmp_path / "ft", "--out", tmp_path / "bad"])
     assert code == 2 and "curve.json" in err and "\n" not in err.strip(), err
@@ -137,7 +137,7 @@ def test_browser_draws_each_part_of_the_realtime_setting(exported):
     from omnirecon.viewer.server import ViewerServer
 
     scene, model, mesh, views, tmp = (exported[k] for k in ("scene", "model", "mesh", "views", "tmp"))
-    setting = realtime_setting(scene)
+    setting = {**realtime_setting(scene), "soften": 0.0}  # the viewer does not blur depth edges (finetune --soften)
     variants = {"default": ("1", {}), "no masks": ("omnirecon.setMasks(false)", {"source_masks": False}),
                 "far": ("omnirecon.setMasks(true), omnirecon.setFill('far')", {"fill": "far"}),
                 "far, no cracks": ("omnirecon.setCracks(false)", {"fill": "far", "cracks": 0}),
@@ -145,8 +145,9 @@ def test_browser_draws_each_part_of_the_realtime_setting(exported):
                                        {"fill": "background"})}
     refs = {name: python_frames(model, mesh, scene, [TARGET], views, {**setting, **change}, scale=SCALE)[0][0]
             for name, (_, change) in variants.items()}
-    net_ref = python_frames(model, mesh, scene, [TARGET], views, exported["network"], "pool", SCALE)[0][0]
-    every = python_frames(model, mesh, scene, [TARGET], views, {**exported["network"], "sources": 0}, None, SCALE)[0][0]
+    network = {**exported["network"], "soften": 0.0}
+    net_ref = python_frames(model, mesh, scene, [TARGET], views, network, "pool", SCALE)[0][0]
+    every = python_frames(model, mesh, scene, [TARGET], views, {**network, "sources": 0}, None, SCALE)[0][0]
     camera = input_camera(scene, TARGET, SCALE)
     W, H = camera["width"], camera["height"]
     scores, picks = {}, {}

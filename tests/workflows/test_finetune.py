@@ -408,7 +408,35 @@ def test_angle_blend_scores_without_tuning_anything(setup, capsys, tmp_path):
     assert c["render"] == {"blend": "angle", "fill": c["fill"], "sources": len(c["sources"]),  # each point: nearest of all
                            "angle_sources": c["angle_sources"],
                            "source_masks": False,  # a procedural scene: its masks leave out the ground
-                           "cracks": 2}
+                           "cracks": 2, "soften": 0.7}
+
+
+
+def test_soften_blurs_the_held_out_renders_at_the_meshs_depth_edges_only(setup, capsys, tmp_path):
+    """``--soften`` (default 0.7 px): the held-out renders are blurred at the mesh's depth edges and nowhere else
+    (``omnirecon.render.edges.soften_edges`` of the unsoftened render), the record says so (the real-time path
+    follows it); ``--soften 0`` is the render as it was."""
+    from omnirecon.render.edges import depth_edges, soften_edges
+    from omnirecon.workflows.finetune import FinetuneConfig, mesh_depth, prepare, score_held_out
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, blend="angle",
+                         nearest=3, angle_sources=(3,))
+    s = prepare(cfg, for_run=True)
+    feats = s.model.encode_appearance(s.sources)
+    sharp = score_held_out(s.model, feats, s.scene, s.held_px, s.background, soften=0.0)
+    soft = score_held_out(s.model, feats, s.scene, s.held_px, s.background, soften=cfg.soften)
+    assert cfg.soften == 0.7
+    for v, a, b in zip(s.held_px, sharp["renders"], soft["renders"]):
+        depth = mesh_depth(s.scene, v)  # [H, W]
+        edge = depth_edges(depth)
+        assert edge.any() and torch.equal(a[~edge], b[~edge]) and not torch.equal(a[edge], b[edge])
+        assert torch.equal(b, soften_edges(a, depth, 0.7))
+    args = ["finetune", "--ckpt", root / "omni", "--scene", scene, "--mesh", scene / "mesh.ply", "--seconds", 1,
+            "--eval-at", 0, "--clock", "cpu", "--resolution", 48, "--blend", "angle", "--nearest", 3, "--angle-sources", 3]
+    assert main([str(a) for a in args + ["--out", tmp_path / "off", "--soften", 0]]) == 0, capsys.readouterr().err
+    r = json.loads((tmp_path / "off" / "curve.json").read_text())
+    assert r["render"]["soften"] == 0.0 and r["curve"][0]["psnr"] == pytest.approx(sharp["psnr"], abs=1e-6)
 
 
 def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
@@ -521,3 +549,20 @@ def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
     for _ in range(30):
         tuner.step(sample())
     assert loss() < 0.9 * before and float(tuner.residual.grid.detach().abs().max()) > 0
+
+
+def test_finetune_scores_every_held_out_view_of_dtus_protocol_by_default(shared_data):
+    """DTU's protocol holds out 8 views; ``finetune`` scores all of them by default (``--max-held-out 8``; it scored 4,
+    0 13 35 48, before session 17), never as sources, and ``--max-held-out 4`` keeps the old subset."""
+    from pathlib import Path
+
+    from omnirecon.data import detect_format, load_scene
+    from omnirecon.engine.protocols import protocol_for
+    from omnirecon.workflows.finetune import FinetuneConfig, split_views
+
+    path = shared_data("neus_dtu/dtu_scan37")
+    scene, proto = load_scene(path), protocol_for(path, detect_format(path))
+    views, targets, _, _ = split_views(FinetuneConfig(ckpt=Path("unused"), scene=path), scene, proto)
+    assert targets == [0, 6, 13, 19, 28, 35, 42, 48] and not set(targets) & set(views)
+    four = split_views(FinetuneConfig(ckpt=Path("unused"), scene=path, max_held_out=4), scene, proto)[1]
+    assert four == [0, 13, 35, 48]
