@@ -139,8 +139,8 @@ def meshing_views(scene, proto, count: int | None) -> list[int]:
 
 def run_row(name: str, count: int | None, model, write: Path | None = None) -> dict:
     from omnirecon.data import detect_format
+    from omnirecon.engine import scenes
     from omnirecon.engine.protocols import protocol_for
-    from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
     from omnirecon.provenance import provenance
 
@@ -151,7 +151,7 @@ def run_row(name: str, count: int | None, model, write: Path | None = None) -> d
     clock = StageClock()
     with timed_stages(clock):
         t0, w0 = cpu(), time.perf_counter()
-        scene = load_at_resolution(path, 512, proto.background, fmt)
+        scene = scenes.load_at_resolution(path, 512, proto.background, fmt)  # the timed one
         views = meshing_views(scene, proto, count)
         depth = default_depth(scene, True, masks)
         opts = MeshOptions(depth=depth, depth_pass="coarse" if depth == "stereo+model" else "fine")
