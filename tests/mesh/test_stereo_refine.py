@@ -98,3 +98,46 @@ def test_window_cost_at_the_pixels_with_depth_equals_the_dense_cost():
     at = (depth > 0).reshape(-1)
     assert at.float().mean() > 0.4
     assert torch.allclose(got[at], ref[at], atol=1e-5), float((got[at] - ref[at]).abs().max())
+
+
+def _cost_before(score, d):
+    """The scorer's cost as computed before the window sums went through index_select and the sort through running
+    minima (commit 0dd8dc3): the reference, bit for bit."""
+    import torch
+    import torch.nn.functional as F
+
+    o = score.options
+    pts = score.centre + score.rays * d[score.at][:, None]
+    uvz = score.proj[:, :, :3] @ pts.T + score.proj[:, :, 3:]
+    z = uvz[:, 2]
+    uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]
+    grid = (uv / score.size[None, :, None] * 2 - 1).permute(0, 2, 1)[:, None]
+    sampled = F.grid_sample(score.src, grid, mode="bilinear", padding_mode="border", align_corners=False)[:, :, 0]
+    c = (sampled - score.ref_at).abs().sum(1).clamp_max(o.truncate)
+    seen = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < score.oc.width) & (uv[:, 1] >= 0) & (uv[:, 1] < score.oc.height)
+    c = torch.where(seen, c, torch.full_like(c, o.truncate))
+    c = torch.cat([c, torch.zeros_like(c[:, :1])], 1)
+    agg = (c[:, score.window] * score.weights[None]).sum(1) / score.norm
+    out = torch.full((score.H * score.W,), float(o.truncate))
+    out[score.at] = agg.sort(0).values[: o.best].mean(0)
+    return out
+
+
+@pytest.mark.parametrize("best, others", [(2, [1, 2, 3]), (2, [1, 2]), (1, [1, 2, 3]), (3, [1, 2, 3])])
+def test_window_cost_equals_the_previous_computation_bit_for_bit(best, others):
+    """index_select + in-place weighting + running minima (:func:`lowest_mean`) give the costs the gather-and-sort
+    code gave, bit for bit, for every number of lowest costs kept (ties included: quantised depths)."""
+    import torch
+
+    from omnirecon.mesh.stereo_refine import _Scorer, lowest_mean
+
+    images, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0], [0.0, 0.3, 0], [-0.3, 0.1, 0]])
+    depth = exact[0].clone()
+    depth[torch.rand(depth.shape, generator=torch.Generator().manual_seed(1)) < 0.3] = 0
+    score = _Scorer(images, cams, 0, depth > 0, others, RefineOptions(best=best))
+    for scale in (0.97, 1.0, 1.013):
+        d = (depth * scale).reshape(-1)
+        assert torch.equal(score(d), _cost_before(score, d))
+    ties = torch.randint(0, 4, (4, 1000), generator=torch.Generator().manual_seed(2)).float()
+    for k in (1, 2, 3):
+        assert torch.equal(lowest_mean(ties, k), ties.sort(0).values[:k].mean(0))
