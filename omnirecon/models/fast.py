@@ -18,6 +18,7 @@ import os
 from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
+from functools import lru_cache
 from weakref import WeakKeyDictionary
 
 import torch
@@ -136,10 +137,26 @@ def net_autocast(device: torch.device | str, prefer: bool = False):
     """bf16 autocast for a model's per-sample networks when rendering and ``FAST.bf16_render`` is True, or is
     None and the model ``prefer``s it (its config); else the reference (none). Geometry (projection, sample
     positions, compositing) stays in the sources' dtype: callers cast the networks' outputs back."""
-    on = prefer if FAST.bf16_render is None else FAST.bf16_render
+    on = (prefer and native_bf16(device)) if FAST.bf16_render is None else FAST.bf16_render
     if not (on and _RENDERING[0]):
         return _ref.net_autocast(device)
     return torch.autocast(device_type=torch.device(device).type, dtype=torch.bfloat16)
+
+
+@lru_cache(maxsize=None)
+def _cpu_bf16() -> bool:
+    probe = getattr(torch.cpu, "_is_avx512_bf16_supported", None), getattr(torch.cpu, "_is_amx_tile_supported", None)
+    return any(f is not None and f() for f in probe)
+
+
+def native_bf16(device: torch.device | str) -> bool:
+    """Whether bf16 arithmetic is native on ``device``: a CUDA device that supports it, or a CPU with AVX512-BF16 or
+    AMX. Elsewhere (AVX2 x86, most ARM builds) it is emulated: gpnr-tiny's transformers under bf16 autocast took 7x
+    their fp32 time on an AVX2 EPYC (the demo's orbit frames at 80 px 40 CPU-s each instead of 3), so a model's own
+    preference for bf16 (``prefer``) applies only where this is True; ``FastPaths.bf16_render`` and ``render
+    --precision bf16`` still force it."""
+    kind = torch.device(device).type
+    return _cpu_bf16() if kind == "cpu" else kind == "cuda" and torch.cuda.is_bf16_supported()
 
 
 _COMPILED: WeakKeyDictionary = WeakKeyDictionary()

@@ -86,8 +86,9 @@ class GPNRConfig:
     option measured on some weights (the shipped gpnr-tiny: 24 instead of its 32). None: ``num_samples``."""
     render_bf16: bool = False
     """Inside ``render_view``, the transformers under bf16 autocast when ``FastPaths.bf16_render`` leaves the
-    choice to the model (its default, None): the shipped gpnr-tiny with 24 samples renders 3.3-3.9x faster than its
-    reference twin at -0.03 dB on held-out views (``python -m bench tiny_levers``)."""
+    choice to the model (its default, None) and the device computes bf16 natively (:func:`~omnirecon.models.fast.
+    native_bf16`): the shipped gpnr-tiny with 24 samples renders 3.3-3.9x faster than its reference twin at -0.03 dB
+    on held-out views (``python -m bench tiny_levers``, on a CPU with avx512_bf16)."""
     encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
     """Patch features: the P x P linear projection trained from scratch, or a frozen pretrained backbone
     (HED's VGG16, ST-LPIPS's AlexNet) with a small trainable adapter to ``patch_channels`` at full

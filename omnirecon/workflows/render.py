@@ -76,7 +76,8 @@ class RenderConfig(MachineConfig):
     the coarse pass's): fewer is faster."""
     precision: Literal["auto", "fp32", "bf16"] = "auto"
     """bf16: the per-sample networks under bf16 autocast (GPNR 1.4x faster on CPUs with avx512_bf16 at the same
-    PSNR within 0.01 dB; IBRNet and Omni-Recon gain nothing); auto: the checkpoint's (gpnr-tiny: bf16)."""
+    PSNR within 0.01 dB; IBRNet and Omni-Recon gain nothing; 7x slower on CPUs without it, e.g. AVX2 only); auto: the
+    checkpoint's (gpnr-tiny: bf16) where the device computes bf16 natively, else fp32."""
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI

@@ -197,3 +197,20 @@ def test_concat_linear_equals_reference(views):
         out = fast.concat_linear(layer, parts)
     assert out.shape == ref.shape == (3, 4, views, 7)
     torch.testing.assert_close(out, ref, atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.parametrize("native", [False, True])
+def test_a_models_bf16_preference_applies_only_where_bf16_is_native(monkeypatch, native):
+    """A model's own bf16 choice (gpnr-tiny's ``render_bf16``) autocasts only on a CPU that computes bf16 natively
+    (emulated bf16 on an AVX2 CPU ran gpnr-tiny's transformers 7x slower than fp32); ``bf16_render=True`` forces it
+    and ``False`` forbids it anywhere."""
+    monkeypatch.setattr(fast, "_cpu_bf16", lambda: native)
+    assert fast.native_bf16("cpu") is native
+    with fast.rendering(), fast.net_autocast("cpu", prefer=True):
+        assert torch.is_autocast_enabled("cpu") is native
+    with fast.rendering(), fast.net_autocast("cpu", prefer=False):
+        assert not torch.is_autocast_enabled("cpu")
+    with fast.switches(bf16_render=True), fast.rendering(), fast.net_autocast("cpu"):
+        assert torch.is_autocast_enabled("cpu")
+    with fast.switches(bf16_render=False), fast.rendering(), fast.net_autocast("cpu", prefer=True):
+        assert not torch.is_autocast_enabled("cpu")
