@@ -56,6 +56,8 @@ def provenance(seed: int | None = None, **extra) -> dict:
         "numpy": numpy.__version__,
         "device": device,
         "cpu": cpu_name(),
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),  # AVX2 / AVX512: the same "AMD EPYC" name has
+        # been both, and CPU seconds compare only within one (bf16 autocast ran 7x slower on AVX2)
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "seed": seed,
@@ -67,5 +69,6 @@ def provenance(seed: int | None = None, **extra) -> dict:
 
 def markdown_header(prov: dict) -> str:
     """One line for a Markdown page."""
-    keys = ("commit", "omnirecon", "python", "torch", "numpy", "device", "cpu", "cores", "seed", "date", "loadavg_1min")
+    keys = ("commit", "omnirecon", "python", "torch", "numpy", "device", "cpu", "cpu_capability", "cores", "seed", "date",
+            "loadavg_1min")
     return "Provenance: " + "; ".join(f"{k} `{prov.get(k)}`" for k in keys if k in prov)
