@@ -57,8 +57,8 @@ class DemoConfig(ThreadsConfig):
     """Folder of the shipped checkpoints (one sub-folder per preset)."""
     frames: int = 12
     """Frames of each novel-view orbit (gpnr-tiny's volumetric frames cost about 3 CPU-s each at 80 px on one
-    thread, so the default keeps the whole demo near 4 CPU-minutes: bench/results/end_to_end.json; raise it on a
-    GPU)."""
+    thread of a CPU with avx512_bf16, 6 on an AVX2-only one, so the default keeps the whole demo near 4 CPU-minutes:
+    bench/results/end_to_end.json; raise it on a GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
     num_views: int = 3
