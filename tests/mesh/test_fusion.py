@@ -442,4 +442,17 @@ def test_chunk_major_integration_matches_one_map_at_a_time_bit_for_bit(bilinear,
     for i in range(len(cams)):
         _integrate_one_map_before(ref, cams[i], depth[i], weights[i], free[i], chunk, bilinear, voxels)
     assert (vol.weight > 0).sum() > 1000 and ((vol.tsdf > -1) & (vol.tsdf < 1)).sum() > 100
-    assert torch.equal(vol.tsdf, ref.tsdf) and torch.equal(vol.weight, ref.weight)
+    if _blas_rounds_as_written():
+        assert torch.equal(vol.tsdf, ref.tsdf) and torch.equal(vol.weight, ref.weight)
+    else:  # a BLAS that fuses the 3x3 product's multiply-adds rounds the reference's positions otherwise
+        same = (vol.tsdf - ref.tsdf).abs().le(1e-4) & (vol.weight - ref.weight).abs().le(1e-4)
+        assert same.float().mean() > 0.9999, float(same.float().mean())
+
+
+def _blas_rounds_as_written() -> bool:
+    """Whether this CPU's float32 ``[P, 3] @ [3, 3]`` equals the products and sums written out in order (it did on
+    the AVX2 machine this was measured on; an FMA-fused kernel would round differently)."""
+    g = torch.Generator().manual_seed(1)
+    p, r = torch.randn(4096, 3, generator=g), torch.randn(3, 3, generator=g)
+    out = torch.stack([p[:, 0] * r[i, 0] + p[:, 1] * r[i, 1] + p[:, 2] * r[i, 2] for i in range(3)], 1)
+    return torch.equal(p @ r.T, out)
