@@ -77,6 +77,9 @@ from omnirecon.data.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
+WORK = ROOT / "outputs" / "bench" / "depth_sources"
+"""Each row's folder (``<scene>_<source slug>``: its mesh and finetune record), read by ``realtime_blend`` and
+``viewer_parity``."""
 DEMO_SEED = 900_999
 PROCEDURAL = {"demo": DEMO_SEED, "synth_900998": 900_998, "synth_900997": 900_997, "synth_900000": 900_000}
 """Procedural scenes by seed (object rig, 24 views at 128 px): the demo's and three of the held-out ``synth:eval`` seeds
@@ -256,7 +259,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants,
            tuple(v for v in variants if v.startswith("match ")), tiny)
     slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
-    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_{slug}"
+    work = WORK / f"{name}_{slug}"
     if key not in MESHES:
         made, to_input, mesh_s = make_mesh(source, path, scene, proto, views, masks, models)
         (mesh_file,) = write_mesh(made.mesh, [work / "mesh.ply"], to_input)
@@ -301,7 +304,7 @@ def exact_row(name: str, tiny: bool, source: str = "exact mesh") -> dict | None:
     gt = ground_truth_mesh(scene)
     if gt is None:
         return None
-    work = ROOT / "outputs" / "bench" / "depth_sources" / f"{name}_exact{source[len('exact mesh'):].replace(', ', '_').replace(' ', '_')}"
+    work = WORK / f"{name}_exact{source[len('exact mesh'):].replace(', ', '_').replace(' ', '_')}"
     (mesh_file,) = write_mesh(gt, [work / "mesh.ply"], scene.to_input)
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=1.0,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
@@ -336,6 +339,13 @@ def timing_row(source: str, models: dict, photos: int = 20, threads: int = 1) ->
             "wall_seconds": wall,
             "stage_wall_seconds": made.info["seconds"], "faces": len(made.mesh.faces),
             "load_average": list(os.getloadavg())}
+
+
+def row_arguments(p: argparse.ArgumentParser, rows: dict) -> None:
+    """``--scenes`` (keys of ``rows``: the depth_sources row each scene reads) and ``--meshes`` (where the rows'
+    folders are) for the benches that read depth_sources rows."""
+    p.add_argument("--scenes", nargs="+", default=list(rows), choices=list(rows))
+    p.add_argument("--meshes", type=Path, default=WORK, help="where the depth_sources rows' folders are")
 
 
 def main(argv: list[str] | None = None) -> dict:

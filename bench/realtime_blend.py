@@ -111,12 +111,11 @@ def run_scene(name: str, folder: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from bench.depth_sources import row_arguments
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", nargs="+", default=list(ROWS), choices=list(ROWS))
-    p.add_argument("--meshes", type=Path, default=ROOT / "outputs" / "bench" / "depth_sources",
-                   help="where the depth_sources rows' folders are")
+    row_arguments(p, ROWS)
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     torch.set_num_threads(1)

@@ -348,13 +348,12 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
 
 
 def main(argv: list[str] | None = None) -> dict:
+    from bench.depth_sources import row_arguments
     from omnirecon.mesh.fill import CRACK_RADIUS
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--scenes", nargs="+", default=list(ROWS), choices=list(ROWS))
-    p.add_argument("--meshes", type=Path, default=ROOT / "outputs" / "bench" / "depth_sources",
-                   help="where the depth_sources rows' folders are")
+    row_arguments(p, ROWS)
     p.add_argument("--cracks", type=int, default=CRACK_RADIUS,
                    help="crack radius where the finetune record predates the crack fill (0: as it scored)")
     p.add_argument("--views", type=int, default=None, help="only the first N held-out views")

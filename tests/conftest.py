@@ -86,3 +86,18 @@ def views_with_noise(tmp_path):
         return d
 
     return make
+
+
+def viewer_scene(tmp_path_factory, name: str):
+    """The browser tests' start: skip without the shipped omnirecon-tiny or the viewer's three.js (fail under CI),
+    then a procedural scene at 64 px with 8 views in a new folder. ``(folder, scene path, loaded scene)``"""
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.viewer.bundle import three_unavailable_reason
+
+    if not (ROOT / "checkpoints" / "omnirecon-tiny" / "meta.json").is_file():
+        pytest.skip("the shipped omnirecon-tiny checkpoint is not in this clone")
+    require(three_unavailable_reason() is None, str(three_unavailable_reason()))
+    tmp = tmp_path_factory.mktemp(name)
+    scene_path = generate_scene(tmp / "scenes", 0, SynthOptions(resolution=64, views=8))
+    return tmp, scene_path, load_at_resolution(scene_path, 64)

@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import ROOT, require
+from conftest import ROOT, require, viewer_scene
 
 from bench.viewer_parity import input_camera, psnr8, python_frames
 from omnirecon.cli import main
-from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources
@@ -38,12 +37,7 @@ def exported(tmp_path_factory):
     blend, source masks and the nearest fill by default), its exact mesh with 5 % of the faces removed (cracks),
     omnirecon-tiny, and two exports: the scene's default setting, and the network blend over each frame's 3 nearest of
     the 6 training views."""
-    if not (CKPT / "meta.json").is_file():
-        pytest.skip("the shipped omnirecon-tiny checkpoint is not in this clone")
-    require(three_unavailable_reason() is None, str(three_unavailable_reason()))
-    tmp = tmp_path_factory.mktemp("realtime")
-    scene_path = generate_scene(tmp / "scenes", 0, SynthOptions(resolution=64, views=8))
-    scene = load_at_resolution(scene_path, 64)
+    tmp, scene_path, scene = viewer_scene(tmp_path_factory, "realtime")
     scene.background = None  # a real object capture with masks, as DTU
     exact = to_input_frame(read_mesh(scene.mesh_path), torch.linalg.inv(scene.to_input.double()))  # model frame
     keep = np.random.default_rng(0).random(len(exact.faces)) > 0.05

@@ -9,15 +9,13 @@ import urllib.parse
 import numpy as np
 import pytest
 import torch
-from conftest import ROOT, require
+from conftest import ROOT, require, viewer_scene
 
-from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.mesh.files import read_mesh, to_input_frame
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.rays import Sources
-from omnirecon.viewer.bundle import appearance_tables, three_unavailable_reason
+from omnirecon.viewer.bundle import appearance_tables
 from omnirecon.viewer.export import ExportOptions, export_scene
 from omnirecon.viewer.headless import find_chromium
 from omnirecon.viewer.server import ViewerServer
@@ -32,12 +30,7 @@ CKPT = ROOT / "checkpoints" / "omnirecon-tiny"
 def bundles(tmp_path_factory):
     """A procedural scene and its exact mesh; the shipped omnirecon-tiny tuned on it for a few seconds
     (`omnirecon finetune --save`); the export of the pretrained and of the tuned checkpoint."""
-    if not (CKPT / "meta.json").is_file():
-        pytest.skip("the shipped omnirecon-tiny checkpoint is not in this clone")
-    require(three_unavailable_reason() is None, str(three_unavailable_reason()))
-    tmp = tmp_path_factory.mktemp("tuned")
-    scene_path = generate_scene(tmp / "scenes", 0, SynthOptions(resolution=64, views=8))
-    scene = load_at_resolution(scene_path, 64)
+    tmp, scene_path, scene = viewer_scene(tmp_path_factory, "tuned")
     tuned = run_finetune(FinetuneConfig(ckpt=CKPT, scene=scene_path, seconds=3.0, eval_at=(0.0, 3.0),
                                         mesh=scene.mesh_path, resolution=64, max_held_out=1, save=True,
                                         out=tmp / "finetune", threads=1))
