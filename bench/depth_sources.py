@@ -73,13 +73,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bench.depth_rows import WORK
 from omnirecon.data.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
-WORK = ROOT / "outputs" / "bench" / "depth_sources"
-"""Each row's folder (``<scene>_<source slug>``: its mesh and finetune record), read by ``realtime_blend`` and
-``viewer_parity``."""
 DEMO_SEED = 900_999
 PROCEDURAL = {"demo": DEMO_SEED, "synth_900998": 900_998, "synth_900997": 900_997, "synth_900000": 900_000}
 """Procedural scenes by seed (object rig, 24 views at 128 px): the demo's and three of the held-out ``synth:eval`` seeds
@@ -339,13 +337,6 @@ def timing_row(source: str, models: dict, photos: int = 20, threads: int = 1) ->
             "wall_seconds": wall,
             "stage_wall_seconds": made.info["seconds"], "faces": len(made.mesh.faces),
             "load_average": list(os.getloadavg())}
-
-
-def row_arguments(p: argparse.ArgumentParser, rows: dict) -> None:
-    """``--scenes`` (keys of ``rows``: the depth_sources row each scene reads) and ``--meshes`` (where the rows'
-    folders are) for the benches that read depth_sources rows."""
-    p.add_argument("--scenes", nargs="+", default=list(rows), choices=list(rows))
-    p.add_argument("--meshes", type=Path, default=WORK, help="where the depth_sources rows' folders are")
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -111,7 +111,7 @@ def run_scene(name: str, folder: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from bench.depth_sources import row_arguments
+    from bench.depth_rows import row_arguments
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])

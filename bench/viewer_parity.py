@@ -348,7 +348,7 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from bench.depth_sources import row_arguments
+    from bench.depth_rows import row_arguments
     from omnirecon.mesh.fill import CRACK_RADIUS
     from omnirecon.provenance import provenance
 
