@@ -193,7 +193,8 @@ def content_region(view_depth: Tensor | None, mask: np.ndarray | None, forward: 
 
 def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | None, bounds: Tensor,
                      masks: np.ndarray | None = None, forward: bool = False,
-                     occlusion_rel: float | None = None, backdrop_pad: float = -1.0) -> tuple[trimesh.Trimesh, dict]:
+                     occlusion_rel: float | None = None, backdrop_pad: float = -1.0,
+                     content: np.ndarray | None = None) -> tuple[trimesh.Trimesh, dict]:
     """``mesh`` plus a fill surface covering every content pixel of every view (module docstring).
 
     Args:
@@ -206,6 +207,8 @@ def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | N
             this relative depth margin) goes to the backdrop (forward-facing scenes) or is left out.
         backdrop_pad: Forward-facing scenes, when ``>= 0``: add the backdrop layer (:func:`backdrop_sheet`) over
             each view's image grown by this fraction of the long side.
+        content: Pixels to cover besides the region found from ``masks`` or the depth maps (e.g. every pixel
+            whose colour is not the scene's known background). ``# [N, H, W]`` bool
 
     Returns:
         The completed mesh and a record (fill faces, pixels filled per source of depth, coverage of
@@ -223,6 +226,8 @@ def complete_surface(mesh: trimesh.Trimesh, cameras: Cameras, depths: Tensor | N
         shape = (cam.height, cam.width)
         view_depth = None if depths is None else depths[i].float()
         region = content_region(view_depth, None if masks is None else masks[i], forward, shape)
+        if content is not None:
+            region = region | content[i]
         mesh_d = base(cam)
         if fills:
             fill_d = render_depth(trimesh.util.concatenate(fills), cam)

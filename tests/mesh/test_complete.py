@@ -184,3 +184,60 @@ def test_the_hull_trim_never_deletes_surface_a_view_sees_and_nothing_else_covers
     masks[0] = False
     masks[0, 13:19, 13:19] = True  # inside the square's silhouette only
     assert restore_seen(mesh, keep, cams, masks).tolist() == keep.tolist()  # the mask is covered: nothing comes back
+
+
+def test_completion_covers_the_content_pixels_the_depth_maps_leave_out():
+    """Object scene, no masks: a view's map lost the sphere's outline (a 3-px ring, as stereo near a known background
+    colour). Completion from the maps alone leaves the ring uncovered; given the content pixels (the photo's
+    non-background colour) it covers them too, and still nothing beyond them."""
+    from scipy.ndimage import binary_erosion
+
+    from omnirecon.mesh.complete import complete_surface
+    from tests.mesh.test_mesh import sphere_depth
+
+    cams = ring_cameras(8, res=32)[[0]]  # one view: no other view's fill to cover its outline
+    full = sphere_depth(cams, 0.4)  # [1, 32, 32]
+    content = (full > 0).numpy()
+    inner = np.stack([binary_erosion(c, np.ones((7, 7), bool)) for c in content])
+    maps = torch.where(torch.from_numpy(inner), full, torch.zeros_like(full))
+    empty = trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    bounds = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    for given in (None, content):
+        mesh, info = complete_surface(empty, cams, maps, bounds, content=given)
+        r = DepthRenderer(mesh)
+        hit = (r(cams[0]) > 0)[None]
+        r.close()
+        ring = content & ~inner
+        assert ring.sum() > 50
+        if given is None:
+            assert hit[ring].mean() < 0.5
+        else:
+            assert hit[ring].mean() > 0.99 and not hit[~content].any()
+
+
+def test_content_pixels_are_the_photos_non_background_colour(tmp_path):
+    """``content_pixels`` on a procedural object scene (known background colour): the pixels the exact mesh covers,
+    but for antialiased outline pixels; none more than a pixel away from it. No background colour: None."""
+    from scipy.ndimage import binary_dilation
+
+    from omnirecon.mesh.build import content_pixels
+    from omnirecon.mesh.geometry import ground_truth_mesh, mesh_depth
+
+    scene = load_at_resolution(generate_scene(tmp_path, 900_322, SynthOptions(resolution=48, views=4)), 48)
+    assert scene.background is not None
+    got = content_pixels(scene, [0, 1], 0.15, None)
+    gt = ground_truth_mesh(scene)
+    covered = np.stack([mesh_depth(gt, scene.cameras[v]) > 0 for v in (0, 1)])
+    near = np.stack([binary_dilation(c, np.ones((3, 3), bool)) for c in covered])
+    assert got.shape == covered.shape and not got[~near].any()
+    assert got[covered].mean() > 0.95
+    scene.background = None
+    assert content_pixels(scene, [0, 1], 0.15, None) is None
+
+
+@pytest.mark.parametrize("value", [-0.1, 1.0, float("nan")])
+def test_a_bad_content_fill_is_a_one_line_error(value):
+    from omnirecon.errors import InputError
+
+    with pytest.raises(InputError, match=r"content_fill must be in \[0, 1\)"):
+        MeshOptions(content_fill=value).check()
