@@ -102,7 +102,7 @@ RULES: dict[str, Rule] = {
     # meshing
     "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
     "trunc": Rule(0, 1e6, above=True, example="e.g. 0.02"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
-    "min_acc": FRACTION, "min_component": FRACTION, "content_fill": Rule(0, 1, example="e.g. 0.15 (0: off)"), "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
+    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
     "shifts": Rule(-1e6, 1e6, example="e.g. 0.036"),
     # photos in
     "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
