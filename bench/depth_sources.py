@@ -5,9 +5,9 @@
     python -m bench depth_sources --tiny               # the demo scene at 48 px, oracle and stereo (tests)
 
 Per scene (fern at its photos' resolution, 336x252; dtu_scan24/37 at 400x300 with their object masks; NeRF-synthetic's
-lego at 400x400 on its white background (its 100 training views meshed, its first 4 test views scored);
-the demo's held-out procedural scene, seed 900999, and three scenes of the held-out ``synth:eval`` set, seeds 900998,
-900997 and 900000 (``synth_<seed>``), each 24 views at 128 px) and depth source:
+lego at 400x400 on white (100 training views meshed, its first 4 test views scored); fox, a real handheld capture (no
+masks or known background) at 225x400, 58 views meshed, 4 of 9 held out scored; the demo's held-out procedural scene,
+seed 900999, and the ``synth:eval`` seeds 900998, 900997 and 900000 (``synth_<seed>``), 24 views at 128 px) and source:
 
 * ``learned``: omnirecon-tiny's coarse-pass depth at 128 px, each view from its 3 nearest views;
 * ``floor``: the plane-sweep floor's depth, the same way;
@@ -83,7 +83,7 @@ PROCEDURAL = {"demo": DEMO_SEED, "synth_900998": 900_998, "synth_900997": 900_99
 """Procedural scenes by seed (object rig, 24 views at 128 px): the demo's and three of the held-out ``synth:eval`` seeds
 (``omnirecon.splits.EVAL_SEEDS``; 900000 is the set's first scene)."""
 SCENES = {"fern": "llff/fern", "dtu_scan24": "neus_dtu/dtu_scan24", "dtu_scan37": "neus_dtu/dtu_scan37",
-          "lego": "blender/lego", **{name: None for name in PROCEDURAL}}
+          "lego": "blender/lego", "fox": "instant_ngp/fox", **{name: None for name in PROCEDURAL}}
 SOURCES = ("learned", "floor", "stereo", "stereo+fill", "stereo+model", "stereo+model+poisson", "oracle")
 TUNED = ("stereo+fill", "stereo+model", "stereo+model+poisson")
 """Sources tuned for ``--seconds`` (the others are scored before tuning only, to keep the run short)."""

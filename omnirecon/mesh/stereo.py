@@ -10,11 +10,13 @@ pixels; disparities come in 1/16 px), and the disparity is read back at the view
 (:func:`vote`): each pixel keeps the depth most pairs agree with (within ``agree``, relative) and a
 confidence from that agreement, so an occluded or mismatched pair loses its vote.
 
-Two details that matter on real scenes: the disparity search range comes from the scene bounds (the
-depth range of the bounds box seen by the left camera), and both images are padded on the left by
-the search range, since SGBM leaves that band of the left image unmatched (on DTU 26 % -> 77 % of the
-pixels matched with the padding). Last, each view's depth is checked against the other views' maps
-(``StereoOptions.confirm``): a depth no other view confirms is dropped.
+Three details that matter: the disparity search range comes from the scene bounds (the depth range of
+the part of the bounds box the view sees); the other image's canvas is shifted by the smallest disparity
+of that range, so that converging cameras' correspondences stay on it (a pair 32 degrees apart on the demo
+scene read depths 90 % too far without it: what it sees at the canvas' left lay off the other canvas); and
+both images are padded on the left by the search range, since SGBM leaves that band of the left image
+unmatched (on DTU 26 % -> 77 % of the pixels matched with the padding). Last, each view's depth is checked
+against the other views' maps (``StereoOptions.confirm``): a depth no other view confirms is dropped.
 """
 
 from __future__ import annotations
@@ -163,11 +165,13 @@ class Rectified:
     left: int
     """Which of the pair (0 or 1) is the left camera."""
 
-    def pixels_of(self, cam: Cameras) -> tuple[np.ndarray, np.ndarray]:
+    def pixels_of(self, cam: Cameras, offset: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """Where each rectified pixel centre falls in ``cam``'s image (OpenCV's integer-centred
-        coordinates, for ``cv2.remap``). ``# [Hr, Wr]`` each, float32"""
+        coordinates, for ``cv2.remap``), on a canvas whose principal point is ``offset`` px right of ``cx``
+        (a point of disparity ``d`` then sits ``d - offset`` px from its place on the other canvas).
+        ``# [Hr, Wr]`` each, float32"""
         v, u = np.mgrid[0:self.height, 0:self.width].astype(np.float64) + 0.5
-        d = np.stack([(u - self.cx) / self.f, (v - self.cy) / self.f, np.ones_like(u)], -1) @ self.R.T  # world
+        d = np.stack([(u - self.cx - offset) / self.f, (v - self.cy) / self.f, np.ones_like(u)], -1) @ self.R.T  # world
         dc = d @ cam.R[0].numpy()  # camera frame: R^T d
         z = np.where(dc[..., 2] > 1e-9, dc[..., 2], np.nan)
         x = float(cam.fx[0]) * dc[..., 0] / z + float(cam.cx[0]) - 0.5
@@ -208,17 +212,28 @@ def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25, upscale: float
     return Rectified(R, f, float(-lo[0]), float(-lo[1]), max(width, 16), max(height, 16), B, left)
 
 
-def disparity_range(rect: Rectified, left_center: np.ndarray, bounds: Tensor, options: StereoOptions) -> tuple[int, int]:
-    """``(minDisparity, numDisparities)`` for the depth range of the ``bounds`` box seen by the left camera."""
+def disparity_range(rect: Rectified, left_center: np.ndarray, bounds: Tensor, options: StereoOptions,
+                    view: Cameras | None = None) -> tuple[int, int]:
+    """``(minDisparity, numDisparities)`` for the depth range (from the left camera, along the rectified axis) of
+    the ``bounds`` box, or of the part of it inside ``view``'s frustum: a grid of points over the box, those
+    that project into ``view``'s image (and the box's corners when fewer than 8 do)."""
     lo, hi = bounds.double().numpy()
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-    depth = (corners - left_center) @ rect.R[:, 2]
+    t = np.linspace(0.0, 1.0, 13 if view is not None else 2)
+    pts = lo + np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)  # [P, 3]
+    if view is not None:
+        pc = (pts - view.centers[0].numpy()) @ view.R[0].numpy()  # camera frame
+        z = np.maximum(pc[:, 2], 1e-9)
+        u = float(view.fx[0]) * pc[:, 0] / z + float(view.cx[0])
+        v = float(view.fy[0]) * pc[:, 1] / z + float(view.cy[0])
+        seen = (pc[:, 2] > 1e-6) & (u >= 0) & (u <= view.width) & (v >= 0) & (v <= view.height)
+        pts = pts[seen] if seen.sum() >= 8 else lo + np.stack(np.meshgrid(*[[0.0, 1.0]] * 3, indexing="ij"),
+                                                               -1).reshape(-1, 3) * (hi - lo)
+    depth = (pts - left_center) @ rect.R[:, 2]
     far = max(float(depth.max()), 1e-6)
     near = max(float(depth.min()), far * 1e-3)
     dmin = int(math.floor(rect.f * rect.baseline / far))
     dmax = int(math.ceil(rect.f * rect.baseline / near)) + 1
-    num = int(min(16 * math.ceil(max(dmax - dmin, 16) / 16), 16 * math.ceil(options.max_disparities / 16),
-                  16 * max(1, rect.width // 32)))
+    num = int(min(16 * math.ceil(max(dmax - dmin, 16) / 16), 16 * math.ceil(options.max_disparities / 16)))
     return max(dmin - 1, 0), num
 
 
@@ -262,18 +277,18 @@ def pair_depth(images: Tensor, cameras: Cameras, i: int, j: int, bounds: Tensor,
 
     ci, cj = cameras[i].to(dtype=torch.float64), cameras[j].to(dtype=torch.float64)
     rect = rectify_pair(ci, cj, upscale=float(np.clip(options.match_side / max(ci.width, ci.height), 1.0, 2.0)))
-    imgs = []
-    for cam, k in ((ci, i), (cj, j)):
-        mx, my = rect.pixels_of(cam)
-        imgs.append(cv2.remap(_uint8(images[k]), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT))
+    left_cam = ci if rect.left == 0 else cj
+    dmin, num = disparity_range(rect, left_cam.centers[0].numpy(), bounds, options, ci)
+    # the other image's canvas moves by dmin (right of the left one's when i is left, else left of it)
+    imgs = [cv2.remap(_uint8(images[k]), *rect.pixels_of(cam, offset), cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+            for cam, k, offset in ((ci, i, 0.0), (cj, j, dmin if rect.left == 0 else -dmin))]
     if options.equalize:
         imgs = equalized(imgs)
-    left_cam = ci if rect.left == 0 else cj
-    dmin, num = disparity_range(rect, left_cam.centers[0].numpy(), bounds, options)
     if rect.left == 0:  # i is the left image
-        disp = match(imgs[0], imgs[1], dmin, num, options)
+        disp = match(imgs[0], imgs[1], 0, num, options)
     else:  # i is the right image: match the mirrored pair, mirror back
-        disp = match(imgs[0][:, ::-1].copy(), imgs[1][:, ::-1].copy(), dmin, num, options)[:, ::-1]
+        disp = match(imgs[0][:, ::-1].copy(), imgs[1][:, ::-1].copy(), 0, num, options)[:, ::-1]
+    disp = disp + dmin  # [Hr, Wr] the disparity between the unshifted canvases
     # read the disparity back at view i's pixels
     H, W = ci.height, ci.width
     v, u = np.mgrid[0:H, 0:W].astype(np.float64) + 0.5
