@@ -215,19 +215,22 @@ def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25, upscale: float
 def disparity_range(rect: Rectified, left_center: np.ndarray, bounds: Tensor, options: StereoOptions,
                     view: Cameras | None = None) -> tuple[int, int]:
     """``(minDisparity, numDisparities)`` for the depth range (from the left camera, along the rectified axis) of
-    the ``bounds`` box, or of the part of it inside ``view``'s frustum: a grid of points over the box, those
-    that project into ``view``'s image (and the box's corners when fewer than 8 do)."""
+    the ``bounds`` box, or with ``view`` of the part of it ``view`` sees: where a 17x17 grid of ``view``'s pixel
+    rays, its image border included, enters and leaves the box (the box's corners when no ray meets it)."""
     lo, hi = bounds.double().numpy()
-    t = np.linspace(0.0, 1.0, 13 if view is not None else 2)
-    pts = lo + np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)  # [P, 3]
+    pts = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     if view is not None:
-        pc = (pts - view.centers[0].numpy()) @ view.R[0].numpy()  # camera frame
-        z = np.maximum(pc[:, 2], 1e-9)
-        u = float(view.fx[0]) * pc[:, 0] / z + float(view.cx[0])
-        v = float(view.fy[0]) * pc[:, 1] / z + float(view.cy[0])
-        seen = (pc[:, 2] > 1e-6) & (u >= 0) & (u <= view.width) & (v >= 0) & (v <= view.height)
-        pts = pts[seen] if seen.sum() >= 8 else lo + np.stack(np.meshgrid(*[[0.0, 1.0]] * 3, indexing="ij"),
-                                                               -1).reshape(-1, 3) * (hi - lo)
+        v, u = np.meshgrid(np.linspace(0, view.height, 17), np.linspace(0, view.width, 17), indexing="ij")
+        d = np.stack([(u.ravel() - float(view.cx[0])) / float(view.fx[0]),
+                      (v.ravel() - float(view.cy[0])) / float(view.fy[0]), np.ones(u.size)], -1) @ view.R[0].numpy().T
+        o = view.centers[0].numpy()
+        with np.errstate(divide="ignore", invalid="ignore"):  # slab test: the ray's segment inside the box
+            t0, t1 = (lo - o) / d, (hi - o) / d  # [R, 3]
+        enter = np.nanmax(np.maximum(np.minimum(t0, t1), 0.0), -1)
+        leave = np.nanmin(np.maximum(t0, t1), -1)
+        hit = np.isfinite(enter) & np.isfinite(leave) & (leave > enter)
+        if hit.any():
+            pts = np.concatenate([o + enter[hit, None] * d[hit], o + leave[hit, None] * d[hit]])
     depth = (pts - left_center) @ rect.R[:, 2]
     far = max(float(depth.max()), 1e-6)
     near = max(float(depth.min()), far * 1e-3)
