@@ -1,22 +1,21 @@
 """Classical multi-view stereo on the CPU: a depth source that needs no training.
 
-For each view, a few neighbours with sideways baselines are picked (:func:`stereo_neighbours`); each
-pair is rectified from the known poses (:func:`rectify_pair`: a common rotation whose x axis is the
-baseline, one focal length; OpenCV's ``stereoRectify`` returned negative focal lengths on our cameras,
-see ``shared/docs/stereo.md``), matched by OpenCV's semi-global matcher (``StereoSGBM``,
-``MODE_SGBM_3WAY``: its left-right check ``disp12MaxDiff`` and uniqueness test drop ambiguous
-pixels; disparities come in 1/16 px), and the disparity is read back at the view's own pixels
-(bilinear inside a surface, so the depth stays sub-pixel). The depths of the pairs are then voted on
-(:func:`vote`): each pixel keeps the depth most pairs agree with (within ``agree``, relative) and a
-confidence from that agreement, so an occluded or mismatched pair loses its vote.
+For each view, a few neighbours with sideways baselines are picked (:func:`stereo_neighbours`); each pair is
+rectified from the known poses (:func:`rectify_pair`: a common rotation whose x axis is the baseline, one focal
+length; OpenCV's ``stereoRectify`` returned negative focal lengths on our cameras, see ``shared/docs/stereo.md``),
+matched by OpenCV's semi-global matcher (``StereoSGBM``, ``MODE_SGBM_3WAY``: its left-right check ``disp12MaxDiff``
+and uniqueness test drop ambiguous pixels; disparities come in 1/16 px), and the disparity is read back at the
+view's own pixels (bilinear inside a surface, so the depth stays sub-pixel). The depths of the pairs are then voted
+on (:func:`vote`): each pixel keeps the depth most pairs agree with (within ``agree``, relative) and a confidence
+from that agreement, so an occluded or mismatched pair loses its vote.
 
-Three details that matter: the disparity search range comes from the scene bounds (the depth range of
-the part of the bounds box the view sees); the other image's canvas is shifted by the smallest disparity
-of that range, so that converging cameras' correspondences stay on it (a pair 32 degrees apart on the demo
-scene read depths 90 % too far without it: what it sees at the canvas' left lay off the other canvas); and
-both images are padded on the left by the search range, since SGBM leaves that band of the left image
-unmatched (on DTU 26 % -> 77 % of the pixels matched with the padding). Last, each view's depth is checked
-against the other views' maps (``StereoOptions.confirm``): a depth no other view confirms is dropped.
+Three details that matter: the disparity search range comes from the scene bounds (the depth range of the part of
+the bounds box the view sees); the other image's canvas is shifted by the smallest disparity of that range, so that
+converging cameras' correspondences stay on it (a pair 32 degrees apart on the demo scene read depths 90 % too far
+without it: what it sees at the canvas' left lay off the other canvas); and both images are padded on the left by
+the search range, since SGBM leaves that band of the left image unmatched (on DTU 26 % -> 77 % of the pixels
+matched with the padding). Last, each view's depth is checked against the other views' maps
+(``StereoOptions.confirm``): a depth no other view confirms is dropped.
 """
 
 from __future__ import annotations
@@ -214,9 +213,8 @@ def rectify_pair(a: Cameras, b: Cameras, max_scale: float = 1.25, upscale: float
 
 def disparity_range(rect: Rectified, left_center: np.ndarray, bounds: Tensor, options: StereoOptions,
                     view: Cameras | None = None) -> tuple[int, int]:
-    """``(minDisparity, numDisparities)`` for the depth range (from the left camera, along the rectified axis) of
-    the ``bounds`` box, or with ``view`` of the part of it ``view`` sees: where a 17x17 grid of ``view``'s pixel
-    rays, its image border included, enters and leaves the box (the box's corners when no ray meets it)."""
+    """``(minDisparity, numDisparities)`` for the depth range of the ``bounds`` box, or of the part ``view`` sees: where
+    a 17x17 grid of ``view``'s pixel rays, image border included, enters and leaves it (else the box's corners)."""
     lo, hi = bounds.double().numpy()
     pts = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     if view is not None:
