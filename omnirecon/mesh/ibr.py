@@ -369,13 +369,17 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
     (procedural scenes). Measured at ``finetune``'s ``--nearest 6``, held-out, before tuning (``python -m bench
     depth_sources``, BENCHMARKS "Depth sources"; numbers in ``FinetuneConfig.blend``):
 
-    * real object captures with masks (DTU): the angle blend and the nearest fill;
+    * real object captures (no known background colour), with masks (DTU) or without (a user's photos): the angle
+      blend and the nearest fill. Without masks (stereo+model meshes, whose completion puts no fill where another
+      view sees past it), held-out whole image, network blend + far layer -> angle blend + nearest fill: fox 21.78 ->
+      22.48 dB, ethiopianHead meshed without its masks 19.23 -> 20.57 (angle blend + far layer: 22.20, 20.36;
+      before that completion check, network + far layer: 21.94, 18.30);
     * a known background colour (procedural scenes): the network's blend and that colour (the nearest fill paints
       the sky beside the objects: the demo 26.00 -> 23.99 dB; the angle blend measured +0.31 dB on the demo but
       leaves ``finetune`` nothing to tune, so it is not the default there);
-    * otherwise (forward-facing scenes such as fern, object captures without masks): the network's blend and
-      the far layer."""
-    real_object = rig == "object" and masks and not background
+    * otherwise (forward-facing scenes such as fern): the network's blend and the far layer. (``masks`` no longer
+      changes the choice.)"""
+    real_object = rig == "object" and not background
     fill = "background" if background else ("nearest" if real_object else "far")
     return ("angle" if real_object else "network"), fill
 

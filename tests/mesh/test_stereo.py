@@ -72,21 +72,25 @@ def test_converging_cameras_keep_their_correspondences_on_the_canvas():
 
 
 def test_the_disparity_range_covers_what_the_view_sees_of_the_bounds():
-    """The search range comes from the part of the bounds inside the view: it holds the plane's disparities, and a
-    box reaching far beyond the camera's field of view (near corners the view never sees) does not widen it."""
+    """The search range comes from the part of the bounds inside the view: it holds the plane's disparities, a box
+    reaching far beyond the field of view does not widen it, and a box corner beside and behind a camera that looks
+    30 degrees sideways (in no ray of the view) does not stretch it to ``max_disparities`` as the box's corners did."""
     from omnirecon.mesh.stereo import disparity_range, rectify_pair
 
-    _, cams, exact = textured_plane_views([[0.0, 0, 0], [0.3, 0, 0]])
-    rect = rectify_pair(cams[0], cams[1])
-    true = rect.f * rect.baseline / exact[0]  # [H, W] disparities of the plane (fronto-parallel rig)
-    small = torch.tensor([[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]])
-    wide = torch.tensor([[-40.0, -30.0, 2.0], [40.0, 30.0, 7.0]])
     opts = StereoOptions(max_disparities=1024)
-    for bounds in (small, wide):
-        dmin, num = disparity_range(rect, cams[0].centers[0].numpy(), bounds, opts, cams[0])
-        assert dmin <= float(true.min()) and float(true.max()) <= dmin + num
-    assert disparity_range(rect, cams[0].centers[0].numpy(), wide, opts, cams[0]) == \
-        disparity_range(rect, cams[0].centers[0].numpy(), small, opts, cams[0])
+    a = math.radians(30)
+    for centres, target, bounds in (
+            ([[0.0, 0, 0], [0.3, 0, 0]], None, [[-4.0, -3.0, 2.0], [4.0, 3.0, 7.0]]),
+            ([[0.0, 0, 0], [0.3, 0, 0]], None, [[-40.0, -30.0, 2.0], [40.0, 30.0, 7.0]]),
+            ([[0.0, 0, 0], [0.3 * math.cos(a), 0, -0.3 * math.sin(a)]], [1e3 * math.sin(a), 0, 1e3 * math.cos(a)],
+             [[-4.0, -8.0, 2.0], [15.0, 8.0, 12.0]])):
+        _, cams, exact = textured_plane_views(centres, target)
+        rect = rectify_pair(cams[0], cams[1])
+        o, d = cams.image_rays(normalize=False)
+        points = (o[0] + exact[0][..., None].double() * d[0]).reshape(-1, 3).numpy()
+        true = rect.f * rect.baseline / ((points - cams[0].centers[0].numpy()) @ rect.R[:, 2])  # [H*W] the plane's
+        dmin, num = disparity_range(rect, cams[0].centers[0].numpy(), torch.tensor(bounds), opts, cams[0])
+        assert dmin <= true.min() and true.max() <= dmin + num and num <= 32, (dmin, num)  # corners: 1024 on the last
 
 
 def test_neighbours_skip_baselines_along_the_optical_axis():

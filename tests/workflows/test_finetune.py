@@ -486,7 +486,7 @@ def test_blend_and_fill_defaults_per_scene_kind():
     assert scene_defaults(scene()) == ("angle", "nearest")
     assert scene_defaults(scene(background=(0.0, 0.0, 0.0))) == ("network", "background")
     assert scene_defaults(scene(rig="forward")) == ("network", "far")
-    assert scene_defaults(scene(m=None)) == ("network", "far")
+    assert scene_defaults(scene(m=None)) == ("angle", "nearest")  # a user's photos of an object
 
 
 def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setup):
