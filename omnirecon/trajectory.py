@@ -52,14 +52,15 @@ def default_keyframes(n: int) -> list[int]:
 
 def camera_path(cameras: Cameras, kind: PathKind, frames: int, center: Tensor | None = None,
                 near: float | None = None, far: float | None = None, keyframes: list[int] | None = None,
-                arc: float | None = 360.0, rots: float = 2.0) -> Cameras:
+                arc: float | None = 360.0, rots: float = 2.0, beyond: float = 0.0) -> Cameras:
     """``frames`` cameras along a path of ``kind`` built from ``cameras`` (their resolution and the
     intrinsics of camera 0; interp: interpolated intrinsics), float64.
 
     Args:
         cameras: The scene's cameras.
         kind: ``"orbit"`` (:func:`orbit` around ``center``, default the point closest to all optical
-            axes, over ``arc`` degrees; ``None``: the arc the cameras cover), ``"spiral"`` (:func:`spiral` with
+            axes, over ``arc`` degrees; ``None``: the arc the cameras cover, reaching ``beyond`` degrees past each
+            end), ``"spiral"`` (:func:`spiral` with
             ``rots`` turns; needs the scene's ``near`` and ``far`` z-depths) or ``"interp"`` (:func:`interpolate` through the
             views ``keyframes``, default :func:`default_keyframes`).
     Raises:
@@ -67,7 +68,7 @@ def camera_path(cameras: Cameras, kind: PathKind, frames: int, center: Tensor | 
             unknown kind.
     """
     if kind == "orbit":
-        return path_cameras(orbit(cameras, frames, center, arc), cameras)
+        return path_cameras(orbit(cameras, frames, center, arc, beyond), cameras)
     if kind == "spiral":
         if near is None or far is None:
             raise ValueError("a spiral path needs the scene's near and far depths")
@@ -86,28 +87,26 @@ def mean_up(cams: Cameras) -> Tensor:
     return up / up.norm().clamp_min(1e-12)
 
 
-def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float | None = 360.0) -> Tensor:
+def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float | None = 360.0,
+          beyond: float = 0.0) -> Tensor:
     """``frames`` cameras circling ``center`` (default: the point closest to all optical axes).
 
     The circle lies at the cameras' mean distance and mean elevation and starts at the azimuth of
     camera 0. A full turn (360 degrees) leaves out the end point, so the video loops; a partial
     arc includes both ends. ``arc_degrees=None``: the arc the cameras cover (:func:`captured_arc`): a full
     turn when they go around, else from one end of their azimuths to the other and back (eased at the ends,
-    so the video loops). ``# [F, 4, 4]``
+    so the video loops), reaching ``beyond`` degrees past each end (where a user's orbit goes: the views just
+    outside the photos). ``# [F, 4, 4]``
     """
     center = (closest_point_to_axes(cams) if center is None else center).double()
-    up = mean_up(cams)
+    up, e1, e2 = azimuth_frame(cams, center)
     off = cams.centers.double() - center  # [N, 3]
     radius = off.norm(dim=-1).mean()
     unit = off / off.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     elevation = torch.asin((unit @ up).clamp(-1, 1)).mean()
-    e1 = off[0] - (off[0] @ up) * up
-    if e1.norm() < 1e-9:  # camera 0 looks straight down the up axis: any horizontal start
-        e1 = torch.linalg.svd(up[None]).Vh[1]
-    e1 = e1 / e1.norm()
-    e2 = torch.linalg.cross(up, e1)
     if arc_degrees is None:
         start, span = captured_arc(off, up, e1, e2)
+        start, span = start - math.radians(beyond), span + 2 * math.radians(beyond)
         if span < 2 * math.pi:  # there and back over the covered azimuths
             t = torch.arange(frames, dtype=torch.float64) / frames
             phi = start + span * (1 - torch.cos(2 * math.pi * t)) / 2
@@ -133,6 +132,26 @@ def captured_arc(off: Tensor, up: Tensor, e1: Tensor, e2: Tensor,
     if len(az) < 2 or float(gaps[k]) <= math.radians(gap_degrees):
         return 0.0, 2 * math.pi
     return float(az[(k + 1) % len(az)]), 2 * math.pi - float(gaps[k])
+
+
+def azimuth_frame(cams: Cameras, center: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``(up, e1, e2)``: the cameras' mean up and the horizontal basis an orbit around ``center`` measures azimuth in
+    (``e1`` toward camera 0, ``e2 = up x e1``), float64 ``# [3]`` each."""
+    up = mean_up(cams)
+    off = cams.centers.double() - center.double()
+    e1 = off[0] - (off[0] @ up) * up
+    if e1.norm() < 1e-9:  # camera 0 looks straight down the up axis: any horizontal start
+        e1 = torch.linalg.svd(up[None]).Vh[1]
+    e1 = e1 / e1.norm()
+    return up, e1, torch.linalg.cross(up, e1)
+
+
+def azimuths(cams: Cameras, center: Tensor) -> Tensor:
+    """Azimuth of each camera around ``center`` about the cameras' mean up (:func:`azimuth_frame`), radians in
+    ``[0, 2 pi)``, camera 0 at 0. ``# [N]`` float64"""
+    up, e1, e2 = azimuth_frame(cams, center)
+    off = cams.centers.double() - center.double()
+    return torch.atan2(off @ e2, off @ e1).remainder(2 * math.pi)
 
 
 def nearest_photo_degrees(path: Tensor, cams: Cameras, center: Tensor) -> Tensor:

@@ -14,6 +14,7 @@ from bench.report import (
     depth_sources,
     encoder_lever,
     end_to_end,
+    extrapolation,
     finetune_curves,
     finetune_levers,
     finetune_validation,
@@ -39,7 +40,8 @@ from bench.report import (
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, depth_sources,
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, extrapolation,
+            depth_sources,
             realtime_blend, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile,
             speed, peer, levers, end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)

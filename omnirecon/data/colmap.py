@@ -22,8 +22,10 @@ Conventions:
 * ``near``/``far`` per view: 1st / 99th percentile of the z-depth of the 3-D points the view
   observes, times 0.9 / 1.1 (at least 8 points; else the points that project into it; else the
   median range of the other views).
-* ``bounds``: per-axis 1st to 99th percentile of all 3-D points in the scene frame, padded by 5%
-  of the extent.
+* ``bounds``: per-axis 1st to 99th percentile of the 3-D points in the scene frame, padded by 5%
+  of the extent. Only points two registered cameras see at least 1.5 degrees apart count here and for ``near``/``far``
+  (:func:`triangulated`): a point seen from one direction only (the far end of a street walked along) has no
+  reliable depth and would stretch the box toward infinity.
 * Masks: ``masks/`` (``masks_<N>/`` with ``images_<N>/``) beside ``images/``, one per image matched by stem
   (``IMG_1.png`` or ``IMG_1.jpg.png``), > 127 = object: the scene's object masks (``omnirecon process --masks``
   writes them, undistorted like the photos).
@@ -47,6 +49,9 @@ from omnirecon.errors import InputError
 
 NAME = "colmap"
 MIN_POINTS = 8
+MIN_TRIANGULATION_DEGREES = 1.5
+"""Points seen from directions less far apart than this bound neither the scene nor its depth ranges (COLMAP's own
+filter uses the same angle)."""
 
 
 def detect(path: Path) -> bool:
@@ -108,11 +113,15 @@ def read(path: Path, options) -> Scene:
     if model.points.xyz.shape[0] < MIN_POINTS:
         raise InputError(f"only {model.points.xyz.shape[0]} 3-D points: cannot derive depth bounds", pts_file,
                          "triangulate the model (colmap point_triangulator) before reading it")
-    T, (lo, hi) = upright_frame(c2w.numpy(), model.points.xyz)  # scene <- model frame
+    steady = triangulated(model.points.tracks, {im.id: c for im, c in zip(images, c2w[:, :3, 3].numpy())},
+                          model.points.xyz)  # [P]: points whose depth the poses pin down
+    if steady.sum() < MIN_POINTS:
+        steady[:] = True
+    T, (lo, hi) = upright_frame(c2w.numpy(), model.points.xyz[steady])  # scene <- model frame
     T = torch.from_numpy(T)
-    xyz = torch.from_numpy(model.points.xyz) @ T[:3, :3].T + T[:3, 3]  # [P, 3] in the scene frame
+    xyz = torch.from_numpy(model.points.xyz[steady]) @ T[:3, :3].T + T[:3, 3]  # [P', 3] in the scene frame
     cameras = Cameras(K[:, 0], K[:, 1], K[:, 2], K[:, 3], c2w, width, height).transformed(T)
-    near, far = _near_far(cameras, images, model.points.ids, xyz, pts_file)
+    near, far = _near_far(cameras, images, model.points.ids[steady], xyz, pts_file)
     lo, hi = torch.from_numpy(lo), torch.from_numpy(hi)
     pad = 0.05 * (hi - lo).clamp_min(1e-9)
     bounds = torch.stack([lo - pad, hi + pad])
@@ -132,6 +141,24 @@ def read(path: Path, options) -> Scene:
         meta={"model": str(model.folder.relative_to(path)) if model.folder != path else ".",
               "points": int(xyz.shape[0]), "image_folder": "images" if factor == 1 else f"images_{factor}"},
     )
+
+
+def triangulated(tracks: list, centers: dict[int, np.ndarray], xyz: np.ndarray,
+                 min_angle: float = MIN_TRIANGULATION_DEGREES) -> np.ndarray:
+    """Points whose track (``(image_id, point2D_idx)`` rows) sees them from two registered cameras (``centers`` by
+    image id) at least ``min_angle`` degrees apart: their depth is pinned down by the poses. Points seen from
+    nearly one direction (the far end of a street, the sky's edge) are triangulated within a wide range of depths
+    and would stretch the bounds and depth ranges toward infinity. ``# [P]`` bool"""
+    keep = np.zeros(len(xyz), bool)
+    cos_min = np.cos(np.radians(min_angle))
+    for i, (track, x) in enumerate(zip(tracks, xyz)):
+        c = np.array([centers[j] for j in np.asarray(track)[:, 0] if j in centers])  # [T, 3]
+        if len(c) < 2:
+            continue
+        r = x - c
+        r /= np.linalg.norm(r, axis=1, keepdims=True).clip(1e-12)
+        keep[i] = (r @ r.T).min() <= cos_min
+    return keep
 
 
 def _image_folder(root: Path, names: list[str], cameras: Cameras, downscale: float) -> tuple[int, float]:

@@ -142,3 +142,74 @@ def given_targets(protocol: Protocol, scene: Scene, targets, num_views: int, pat
         raise InputError(f"the source pool has {len(pool)} views, fewer than --num-views {num_views}", path,
                          "lower --num-views")
     return chosen, pool
+
+
+EXTRAPOLATION_ARC = 100.0
+"""Degrees of azimuth the training views of an extrapolation split cover, at most (a capture that covers less keeps
+:data:`EXTRAPOLATION_MARGIN` degrees at each end of what it covers for the test views)."""
+EXTRAPOLATION_BEYOND = (10.0, 30.0)
+"""Test views of an extrapolation split lie this many degrees of azimuth beyond the training arc (nearest end)."""
+EXTRAPOLATION_MARGIN = 20.0
+"""Degrees left at each end of a partial capture's arc for the test views."""
+WALK_HOLD = 0.15
+"""Forward-facing captures (walks): the last this fraction of the views, in capture order, are the test views."""
+
+
+@dataclass(frozen=True)
+class ExtrapolationSplit:
+    """Training views a user might have photographed and test views just beyond them (``docs/evaluation.md``)."""
+
+    train: list[int]
+    """The views meshed and blended: those within one arc of azimuth (object rigs) or the first stretch of a walk."""
+    test: list[int]
+    """Views beyond the training views, never among them."""
+    kind: Literal["arc", "walk"]
+    """``arc``: azimuth around the point closest to the optical axes; ``walk``: the capture order."""
+    beyond: list[float]
+    """Per test view: degrees of azimuth beyond the arc's nearest end (``arc``), or views past the last training
+    view in capture order (``walk``)."""
+    arc: float | None = None
+    """Degrees of azimuth the training views span (``arc``)."""
+
+
+def extrapolation_split(scene: Scene, pool: list[int] | None = None, arc: float = EXTRAPOLATION_ARC,
+                        beyond: tuple[float, float] = EXTRAPOLATION_BEYOND) -> ExtrapolationSplit:
+    """The extrapolation split of ``scene``'s views ``pool`` (default: every view).
+
+    Object rigs: azimuths about the cameras' mean up around the point closest to their optical axes. A capture
+    that goes around takes the ``arc`` degrees starting at the first view of ``pool``; one that covers a partial arc
+    of ``S`` degrees takes ``min(arc, S - 2 x 20)`` degrees centred in it. Test views lie ``beyond`` degrees past
+    either end. Forward-facing rigs (walks, LLFF grids): the last :data:`WALK_HOLD` of ``pool`` (at least 2 views)
+    are the test views. Raises :class:`InputError` when no test view or fewer than 2 training views result.
+    """
+    import math
+
+    import torch
+
+    from omnirecon.cameras import closest_point_to_axes
+    from omnirecon.trajectory import azimuth_frame, azimuths, captured_arc
+
+    pool = sorted(pool) if pool is not None else list(range(len(scene)))
+    if scene.rig == "forward":
+        n_test = max(2, round(WALK_HOLD * len(pool)))
+        train, test = pool[:-n_test], pool[-n_test:]
+        split = ExtrapolationSplit(train, test, "walk", [float(k + 1) for k in range(n_test)])
+    else:
+        cams = scene.cameras[pool].to(dtype=torch.float64)
+        center = closest_point_to_axes(cams)
+        az = torch.rad2deg(azimuths(cams, center))  # [P], view pool[0] at 0
+        up, e1, e2 = azimuth_frame(cams, center)
+        start, span = captured_arc(cams.centers - center, up, e1, e2)
+        start, span = math.degrees(start), math.degrees(span)
+        width = arc if span >= 360 else min(arc, span - 2 * EXTRAPOLATION_MARGIN)
+        lo = 0.0 if span >= 360 else start + (span - width) / 2
+        rel = (az - lo).remainder(360)  # [P] degrees past the arc's start
+        past = torch.minimum((rel - width).clamp_min(0), (360 - rel).remainder(360))  # beyond the nearest end
+        past = torch.where(rel <= width, torch.zeros_like(past), past)
+        train = [v for v, r in zip(pool, rel.tolist()) if r <= width]
+        pick = [(v, p) for v, p in zip(pool, past.tolist()) if beyond[0] <= p <= beyond[1]]
+        split = ExtrapolationSplit(train, [v for v, _ in pick], "arc", [round(p, 1) for _, p in pick], width)
+    if len(split.train) < 2 or not split.test:
+        raise InputError(f"no extrapolation split: {len(split.train)} training and {len(split.test)} test views",
+                         scene.path, "give a capture with more views around the object (or along the walk)")
+    return split

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -54,6 +55,7 @@ from omnirecon.mesh.depth import (
 )
 from omnirecon.mesh.stereo import StereoOptions
 from omnirecon.mesh.stereo_refine import RefineOptions, refine_depths
+from omnirecon.mesh.surface import SurfaceOptions
 
 DTU_SHIFT = 25.0 / 684.0
 """VolRecon's virtual-view shift (25 mm along the camera x axis) over DTU's camera distance to the
@@ -62,6 +64,8 @@ DTU_DILATE = 11 / 800
 """The reference dilates masks with an 11-px ellipse at 800 px image width; as a fraction of the width."""
 DEPTHS = ("model", "stereo", "stereo+model", "oracle")
 """Depth sources :func:`depth_maps` knows."""
+SURFACES = ("fusion", "poisson", "coherent")
+"""Surfaces :func:`mesh_from_depths` makes from the depth (``MeshOptions.surface``)."""
 
 
 @dataclass
@@ -143,7 +147,11 @@ class MeshOptions:
     surface: str = "fusion"
     """``fusion``: the fused, cleaned surface as it is; ``poisson``: with object masks, screened Poisson
     over it, trimmed to the masks (:mod:`omnirecon.mesh.poisson`, needs pymeshlab), which closes the holes
-    fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to)."""
+    fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to); ``coherent``: one
+    surface from the depth several views confirm, kept where views support it, no fills (:mod:`omnirecon.mesh.surface`,
+    needs pymeshlab)."""
+    coherent: SurfaceOptions = field(default_factory=SurfaceOptions)
+    """Settings of the coherent surface."""
     complete: bool = True
     """Give every content pixel of every view a surface (:mod:`omnirecon.mesh.complete`)."""
     content_fill: float = 0.15
@@ -297,8 +305,10 @@ class MeshOptions:
             raise InputError(f"max_voxels must be at least 1000, got {self.max_voxels}", None, "use e.g. 67108864")
         if self.model_side < 0 or 0 < self.model_side < 8:
             raise InputError(f"model_side must be 0 or at least 8 px, got {self.model_side}", None, "use e.g. 128")
-        if self.surface not in ("fusion", "poisson"):
-            raise InputError(f"--surface must be fusion or poisson, got {self.surface!r}", None, "use --surface fusion")
+        if self.surface not in SURFACES:
+            raise InputError(f"--surface must be one of {', '.join(SURFACES)}, got {self.surface!r}", None,
+                             "use --surface coherent")
+        self.coherent.check()
         if self.chunk < 1:
             raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
@@ -394,35 +404,73 @@ def refined(maps: DepthMaps, scene, options: MeshOptions) -> DepthMaps:
 
 
 # ---------------------------------------------------------------------- the pipeline
-def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks: Tensor | None = None,
-                     device="cpu", stages: dict | None = None, on_stage=None) -> MeshResult:
-    """Depth maps of ``scene`` -> its mesh (scene frame), every stage after the depth source.
+class StageClock:
+    """One timer for the pipeline's named stages: ``with clock("fuse"):`` announces the stage (``on_stage``) and adds
+    its wall seconds to ``seconds[key]`` (the name with spaces as underscores; a stage that runs again adds up)."""
 
-    Args:
-        maps: The depth source's maps (:func:`depth_maps`).
-        views: The scene's views the mesh is for: cleaning tests visibility against them and completion
-            covers them.
-        masks: Object masks of ``scene`` (all its views, ``# [N, H, W]`` bool): carve free space, clean and
-            complete inside them (object captures). ``None``: keep the background.
-        stages: Filled with the mesh after each stage when given.
-        on_stage: Called with the name of each stage as it starts (progress bars).
-    """
-    views = list(views)
-    seconds: dict[str, float] = {}
-    say = on_stage or (lambda name: None)
-    say("confidence")
-    t = time.perf_counter()
+    def __init__(self, on_stage=None):
+        self.seconds: dict[str, float] = {}
+        self._say = on_stage or (lambda name: None)
+
+    @contextmanager
+    def __call__(self, name: str, key: str | None = None):
+        self._say(name)
+        key = key or name.replace(" ", "_")
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[key] = self.seconds.get(key, 0.0) + time.perf_counter() - start
+
+
+@dataclass
+class Prepared:
+    """What the confidence stage hands to the surface stages: the maps' cameras and their cleaned depth, its weights
+    and evidence, and the scales derived from them."""
+
+    cams: Cameras
+    """The maps' cameras, float64."""
+    depth: Tensor
+    """z-depth fusion takes, 0 = none (background, occluded, outside the bounds and the masks dropped). ``# [N, H, W]``"""
+    weight: Tensor
+    """Per-pixel fusion weight. ``# [N, H, W]``"""
+    agree: Tensor | None
+    """Other maps that confirm each pixel (:func:`fusion.consistency`; ``None``: not computed). ``# [N, H, W]``"""
+    free: Tensor | None
+    """Pixels whose rays are empty space (outside the masks, or the known background). ``# [N, H, W]`` bool"""
+    empty: Tensor | None
+    """Pixels that show the scene's known background colour. ``# [N, H, W]`` bool"""
+    unbounded: Tensor
+    """``depth`` before the depth outside the bounds was dropped (the coherent surface's background layer and its
+    evidence of free space take it). ``# [N, H, W]``"""
+    dilated: Tensor | None
+    """The scene's dilated object masks (all its views). ``# [V, H, W]`` bool"""
+    err: float | None
+    """The maps' median relative disagreement (:func:`fusion.depth_disagreement`)."""
+    rel: float
+    """The consistency margin (relative depth)."""
+    voxel: float
+    trunc: float
+    footprint: float
+    """Median pixel footprint at the maps' depth (scene units)."""
+    occluded: float
+    """Fraction of depth pixels the visibility check dropped."""
+
+
+def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) -> tuple[Prepared, DepthMaps]:
+    """The confidence stage: depth, weights and evidence of ``maps`` for fusion (module docstring, 2), and ``maps``
+    without the known background's pixels (what completion reads)."""
     empty = None
     if masks is None and options.drop_background:  # the known background colour: no surface there, and (carve) empty space on its rays
-        empty = background_pixels(maps, scene, options.shifts) if options.carve else None
+        empty = background_pixels(maps, scene, options.shifts)
         maps = without_background(maps, scene, options.shifts)
     cams = maps.cameras.to(dtype=torch.float64)
     depth = maps.depth.float().cpu()
     weight = (maps.confidence.float().cpu() if options.confidence else torch.ones_like(depth)) * (depth > 0)
     err = fusion.depth_disagreement(cams, depth) if len(cams) > 1 else None
     rel = max(0.01, 2.0 * (err or 0.0))
-    agree = fusion.consistency(cams, depth, rel=rel) if len(cams) > 1 and (options.weights or options.complete) \
-        else None
+    needs = options.weights or options.complete or options.surface == "coherent"
+    agree = fusion.consistency(cams, depth, rel=rel) if len(cams) > 1 and needs else None
     occluded = 0.0
     if options.occlusion > 0 and agree is not None and scene.rig != "forward":  # behind a surface others see: too far
         depth, weight, agree, occluded = drop_occluded(cams, depth, weight, agree, options, masks is None)
@@ -437,53 +485,94 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     trunc = (options.trunc if options.trunc is not None else 4.0) * voxel
     if options.trunc is None and err is not None:  # room for the depth error the maps show
         trunc = max(trunc, 2.0 * err * float(depth[depth > 0].median()))
+    unbounded = depth
     # surface points outside the bounds (sky, far background) give no fused surface (a depth inside the
     # padding would leave a sheet at the edge of the grid); completion puts them on the backdrop
     depth = torch.where(fusion.outside_bounds(cams, depth, scene.bounds, trunc), torch.zeros_like(depth), depth)
     dilated = None
-    free = empty
-    if empty is not None:
-        weight = torch.where(empty, torch.ones_like(weight), weight)
+    free = empty if options.carve else None
+    if free is not None:
+        weight = torch.where(free, torch.ones_like(weight), weight)
     if masks is not None:
         dilated = torch.from_numpy(clean.dilate_masks(masks.cpu().numpy().astype(bool), options.dilate * scene.width))
         at_maps = dilated[maps.views]
         depth = torch.where(at_maps, depth, torch.zeros_like(depth))
+        unbounded = torch.where(at_maps, unbounded, torch.zeros_like(unbounded))
         if options.carve:
             free = ~at_maps
             weight = torch.where(at_maps, weight, torch.ones_like(weight))
-    seconds["confidence"] = time.perf_counter() - t
+    return Prepared(cams, depth, weight, agree, free, empty, unbounded, dilated, err, rel, voxel, trunc, footprint,
+                    occluded), maps
 
-    say("fuse")
-    t = time.perf_counter()
-    volume = fusion.fuse(cams, depth, scene.bounds, voxel, trunc, weight, free, options.voxel_chunk, options.bilinear,
-                         device, band=options.band)
-    seconds["fuse"] = time.perf_counter() - t
-    say("marching cubes")
-    t = time.perf_counter()
-    mesh = fusion.extract_mesh(volume)
-    seconds["marching_cubes"] = time.perf_counter() - t
+
+def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks: Tensor | None = None,
+                     device="cpu", stages: dict | None = None, on_stage=None) -> MeshResult:
+    """Depth maps of ``scene`` -> its mesh (scene frame), every stage after the depth source.
+
+    Stages: ``confidence`` (:func:`prepare`), then the surface (``options.surface``): ``fusion`` / ``poisson``:
+    ``fuse`` -> ``marching cubes`` -> ``clean`` -> ``decimate`` -> (``poisson``) -> ``complete``
+    (:func:`fused_surface`); ``coherent``: ``coherent surface`` -> ``decimate`` (:func:`coherent_stage`).
+
+    Args:
+        maps: The depth source's maps (:func:`depth_maps`).
+        views: The scene's views the mesh is for: cleaning tests visibility against them and completion
+            covers them.
+        masks: Object masks of ``scene`` (all its views, ``# [N, H, W]`` bool): carve free space, clean and
+            complete inside them (object captures). ``None``: keep the background.
+        stages: Filled with the mesh after each stage when given.
+        on_stage: Called with the name of each stage as it starts (progress bars).
+    """
+    views = list(views)
+    clock = StageClock(on_stage)
+    with clock("confidence"):
+        prep, maps = prepare(maps, scene, options, masks)
+    if options.surface == "coherent":
+        mesh, counts, completion, surface = coherent_stage(prep, maps, scene, views, options, masks, clock, stages)
+    else:
+        mesh, counts, completion, volume = fused_surface(prep, maps, scene, views, options, masks, device, clock,
+                                                         stages)
+        surface = {"grid": list(volume.shape)}
+    counts["final"] = len(mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
+    depth = prep.depth
+    info = {"voxel": prep.voxel, "trunc": prep.trunc, "grid": surface.get("grid", []), "depth_disagreement": prep.err,
+            "consistency_rel": prep.rel, "faces": counts, "seconds": clock.seconds, "views": views,
+            "options": asdict(options), "depth_maps": len(maps.cameras),
+            "valid_depth_fraction": float((maps.depth > 0).float().mean()), "masks": masks is not None,
+            "depth_source": maps.info, "vertices": len(mesh.vertices), "completion": completion,
+            "mean_weight": float(prep.weight[depth > 0].mean()) if (depth > 0).any() else 0.0,
+            "occluded_dropped": prep.occluded, "surface": {k: v for k, v in surface.items() if k != "grid"}}
+    return MeshResult(mesh, info, maps.cameras, maps.depth)
+
+
+def fused_surface(prep: Prepared, maps: DepthMaps, scene, views, options: MeshOptions, masks: Tensor | None, device,
+                  clock: StageClock, stages: dict | None):
+    """TSDF fusion -> marching cubes -> cleaning -> face budget -> (screened Poisson) -> completion: ``(mesh, face
+    counts, completion's record, the volume)``."""
+    with clock("fuse"):
+        volume = fusion.fuse(prep.cams, prep.depth, scene.bounds, prep.voxel, prep.trunc, prep.weight, prep.free,
+                             options.voxel_chunk, options.bilinear, device, band=options.band)
+    with clock("marching cubes"):
+        mesh = fusion.extract_mesh(volume)
     counts = {"marching_cubes": len(mesh.faces)}
     if stages is not None:
         stages["marching_cubes"] = mesh
-
-    say("clean")
-    t = time.perf_counter()
     view_cams = scene.cameras[views].to(dtype=torch.float64)
-    view_masks = None if dilated is None else dilated[views].numpy()
-    ss = int(np.clip(np.ceil(options.cull_samples * footprint / voxel), 1, max(1, int(2 * options.cull_samples))))
-    mesh, cleaned = clean.clean_mesh(mesh, view_cams, view_masks, options, ss, stages)
-    counts.update(cleaned)
+    view_masks = None if prep.dilated is None else prep.dilated[views].numpy()
     hull = None if masks is None or options.hull_misses < 0 else \
         clean.dilate_masks(masks[views].cpu().numpy().astype(bool), options.hull_dilate * scene.width)
-    if hull is not None:
-        mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
-        counts["hull"] = len(mesh.faces)
-    seconds["clean"] = time.perf_counter() - t
-    t = time.perf_counter()
-    fused = within_budget(mesh, options.max_faces, options, counts, fill=scene.rig != "forward" and masks is None)
+    with clock("clean"):
+        ss = int(np.clip(np.ceil(options.cull_samples * prep.footprint / prep.voxel), 1,
+                         max(1, int(2 * options.cull_samples))))
+        mesh, cleaned = clean.clean_mesh(mesh, view_cams, view_masks, options, ss, stages)
+        counts.update(cleaned)
+        if hull is not None:
+            mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
+            counts["hull"] = len(mesh.faces)
+    fill = scene.rig != "forward" and masks is None
+    with clock("decimate"):
+        fused = within_budget(mesh, options.max_faces, options, counts, fill=fill)
     if stages is not None:
         stages["decimated"] = fused
-    seconds["decimate"] = time.perf_counter() - t
 
     def surface_and_fills(fused: trimesh.Trimesh):
         """``fused`` -> (Poisson, when asked) -> completion: the written mesh and completion's record."""
@@ -491,48 +580,81 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         if options.surface == "poisson" and view_masks is not None:
             from omnirecon.mesh.poisson import poisson_surface
 
-            say("poisson")
-            t = time.perf_counter()
-            mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
+            with clock("poisson"):
+                mesh, counts["poisson"] = poisson_surface(mesh, view_cams, view_masks)
             if stages is not None:
                 stages["poisson"] = mesh
-            seconds["poisson"] = seconds.get("poisson", 0.0) + time.perf_counter() - t
         if options.complete:
-            say("complete")
-            t = time.perf_counter()
-            view_depths = completion_depths(maps, views, options, agree if scene.rig != "forward" else None)
-            content = None if masks is not None or scene.rig == "forward" or options.content_fill <= 0 else \
-                content_pixels(scene, views, options.content_fill, view_depths)
-            surface = len(mesh.faces)
-            mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
-                                                forward=scene.rig == "forward",
-                                                occlusion_rel=rel if options.fill_occlusion and masks is None else None,
-                                                backdrop_pad=options.backdrop_pad, content=content)
-            if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
-                keep = clean.hull_keep(mesh, view_cams, hull, options.hull_misses)
-                if options.hull_keeps_seen:  # but never what a training view sees and nothing else covers
-                    keep = clean.restore_seen(mesh, keep, view_cams, masks[views].cpu().numpy().astype(bool))
-                mesh, surface = clean.keep_faces(mesh, keep), int(keep[:surface].sum())
-            completion["surface_faces"] = surface  # the fused (or Poisson) surface's faces come first
-            counts["completed"] = len(mesh.faces)
+            with clock("complete"):
+                mesh, completion = completed(mesh, prep, maps, scene, views, options, masks, hull, counts)
             if stages is not None:
                 stages["completed"] = mesh
-            seconds["complete"] = seconds.get("complete", 0.0) + time.perf_counter() - t
         return mesh, completion
 
     mesh, completion = surface_and_fills(fused)
     if options.max_faces and len(mesh.faces) > options.max_faces:  # the budget holds for the written mesh
-        mesh, completion = fit_budget(mesh, fused, completion, surface_and_fills, options, counts,
-                                      fill=scene.rig != "forward" and masks is None)
-    counts["final"] = len(mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
-    info = {"voxel": voxel, "trunc": trunc, "grid": list(volume.shape), "depth_disagreement": err,
-            "consistency_rel": rel, "faces": counts, "seconds": seconds, "views": views,
-            "options": asdict(options), "depth_maps": len(maps.cameras),
-            "valid_depth_fraction": float((maps.depth > 0).float().mean()), "masks": masks is not None,
-            "depth_source": maps.info, "vertices": len(mesh.vertices), "completion": completion,
-            "mean_weight": float(weight[depth > 0].mean()) if (depth > 0).any() else 0.0,
-            "occluded_dropped": occluded}
-    return MeshResult(mesh, info, maps.cameras, maps.depth)
+        mesh, completion = fit_budget(mesh, fused, completion, surface_and_fills, options, counts, fill=fill)
+    return mesh, counts, completion, volume
+
+
+def completed(mesh: trimesh.Trimesh, prep: Prepared, maps: DepthMaps, scene, views, options: MeshOptions,
+              masks: Tensor | None, hull: np.ndarray | None, counts: dict) -> tuple[trimesh.Trimesh, dict]:
+    """Completion (:func:`complete_surface`) of ``mesh`` at ``views``, then the visual-hull trim of the fills:
+    ``(mesh, completion's record)``."""
+    view_cams = scene.cameras[views].to(dtype=torch.float64)
+    view_masks = None if prep.dilated is None else prep.dilated[views].numpy()
+    view_depths = completion_depths(maps, views, options, prep.agree if scene.rig != "forward" else None)
+    content = None if masks is not None or scene.rig == "forward" or options.content_fill <= 0 else \
+        content_pixels(scene, views, options.content_fill, view_depths)
+    surface = len(mesh.faces)
+    mesh, completion = complete_surface(mesh, view_cams, view_depths, scene.bounds, view_masks,
+                                        forward=scene.rig == "forward",
+                                        occlusion_rel=prep.rel if options.fill_occlusion and masks is None else None,
+                                        backdrop_pad=options.backdrop_pad, content=content)
+    if hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
+        keep = clean.hull_keep(mesh, view_cams, hull, options.hull_misses)
+        if options.hull_keeps_seen:  # but never what a training view sees and nothing else covers
+            keep = clean.restore_seen(mesh, keep, view_cams, masks[views].cpu().numpy().astype(bool))
+        mesh, surface = clean.keep_faces(mesh, keep), int(keep[:surface].sum())
+    completion["surface_faces"] = surface  # the fused (or Poisson) surface's faces come first
+    counts["completed"] = len(mesh.faces)
+    return mesh, completion
+
+
+def coherent_stage(prep: Prepared, maps: DepthMaps, scene, views, options: MeshOptions, masks: Tensor | None,
+                   clock: StageClock, stages: dict | None):
+    """The coherent surface (:mod:`omnirecon.mesh.surface`) -> visual-hull trim (with masks) -> face budget, plus a
+    forward-facing scene's backdrop layer: ``(mesh, face counts, the backdrop's record or None, the surface's
+    record)``. No fill is made."""
+    from omnirecon.mesh.surface import coherent_surface
+
+    if prep.agree is None:
+        raise InputError("the coherent surface needs at least two depth maps to confirm each other", scene.path,
+                         "mesh from more views, or use --surface fusion")
+    with clock("coherent surface", "surface"):
+        mesh, record = coherent_surface(prep.cams, prep.unbounded, prep.agree, prep.voxel, prep.rel, scene.bounds,
+                                        prep.empty, options.coherent, options.min_component)
+    counts = {"coherent": len(mesh.faces)}
+    if stages is not None:
+        stages["coherent"] = mesh
+    view_cams = scene.cameras[views].to(dtype=torch.float64)
+    if masks is not None and options.hull_misses >= 0:
+        hull = clean.dilate_masks(masks[views].cpu().numpy().astype(bool), options.hull_dilate * scene.width)
+        mesh = clean.hull_trim(mesh, view_cams, hull, options.hull_misses)
+        counts["hull"] = len(mesh.faces)
+    with clock("decimate"):
+        mesh = clean.decimate(mesh, options.max_faces)
+        counts["decimated"] = len(mesh.faces)
+    backdrop = None
+    if scene.rig == "forward" and options.backdrop_pad >= 0:  # the background layer: the bounds' far side
+        from omnirecon.mesh.complete import backdrop_sheet
+
+        sheet = backdrop_sheet(view_cams, scene.bounds, options.backdrop_pad)
+        backdrop = {"backdrop_faces": len(sheet.faces), "surface_faces": len(mesh.faces), "fill_faces": 0}
+        mesh = trimesh.util.concatenate([mesh, sheet]) if len(sheet.faces) else mesh
+    if stages is not None:
+        stages["completed"] = mesh
+    return mesh, counts, backdrop, record
 
 
 def within_budget(mesh: trimesh.Trimesh, max_faces: int, options: MeshOptions, counts: dict,

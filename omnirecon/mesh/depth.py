@@ -184,17 +184,28 @@ def scattered(values: Tensor, pixels: Tensor, height: int, width: int) -> Tensor
 
 # ---------------------------------------------------------------------- stereo and the oracle
 def stereo_maps(scene, views, options=None, on_view=None) -> DepthMaps:
-    """Classical stereo depth (:func:`omnirecon.mesh.stereo.stereo_depths`) at ``views``."""
+    """Classical stereo depth (:func:`omnirecon.mesh.stereo.stereo_depths`) at ``views``; a view that has no
+    neighbour to rectify against sideways (a walk's photos) takes plane-sweep stereo against its nearest views
+    instead (:func:`omnirecon.mesh.sweep.sweep_depths`)."""
     from omnirecon.mesh.stereo import stereo_depths
 
     start = time.perf_counter()
     views = list(views)
     out = stereo_depths(scene.images, scene.cameras, views, scene.bounds, options, on_view)
+    unpaired = [k for k, pairs in enumerate(out["pairs"]) if not pairs]  # a walk's views: no sideways baseline
+    swept = {}
+    if unpaired and len(views) > 1:
+        from omnirecon.mesh.sweep import sweep_depths
+
+        swept = sweep_depths(scene.images, scene.cameras, [views[k] for k in unpaired], views, scene.bounds,
+                             scene.near, scene.far)
+        out["depth"][unpaired], out["confidence"][unpaired] = swept["depth"], swept["confidence"]
     seconds = time.perf_counter() - start
     return DepthMaps(scene.cameras[views], out["depth"], out["confidence"], views,
                      {"source": "stereo", "seconds": seconds, "seconds_per_view": seconds / max(1, len(views)),
                       "pairs": out["pairs"], "stereo_options": out["options"],
-                      "unconfirmed_dropped": out["unconfirmed_dropped"]})
+                      "unconfirmed_dropped": out["unconfirmed_dropped"],
+                      "plane_sweep": {"views": [views[k] for k in unpaired], "neighbours": swept.get("neighbours", [])}})
 
 
 def oracle_depths(scene, views, shifts=(0.0,)) -> DepthMaps:

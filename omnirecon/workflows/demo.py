@@ -308,12 +308,12 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     import torch
 
     from omnirecon.data.io import write_image  # lazy: demo --help stays fast
-    from omnirecon.engine.checkpoint import load_checkpoint  # lazy: demo --help stays fast
-    from omnirecon.engine.report import Section  # lazy: demo --help stays fast
-    from omnirecon.engine.views import select_sources  # lazy: demo --help stays fast
-    from omnirecon.mesh.ibr import realtime_setting  # lazy: demo --help stays fast
-    from omnirecon.workflows.mesh import scene_frame_mesh  # lazy: demo --help stays fast
-    from omnirecon.workflows.render import mesh_path_video, scene_camera_path  # lazy: demo --help stays fast
+    from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.engine.report import Section
+    from omnirecon.engine.views import select_sources
+    from omnirecon.mesh.ibr import realtime_setting
+    from omnirecon.workflows.mesh import scene_frame_mesh
+    from omnirecon.workflows.render import mesh_path_video, scene_camera_path
 
     side = 128 if cfg.quick else 256
     scene, mesh = scene_frame_mesh(path, mesh_file, 128)
@@ -329,15 +329,44 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
                                            setting=setting)
     fps = 1.0 / statistics.median(times)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
+    away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
-                            "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting}
-    lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads)")
+                            "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
+                            "away": away}
+    lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads); {away['line']}")
     return (Section("Real-time mesh path")
             .text(f"The Omni-Recon mesh rendered with the appearance branch, one surface point per pixel, source "
                   f"features encoded once: {fps:.1f} FPS at {cams.width}x{cams.height} (median of {len(cams)} frames, "
                   f"{torch.get_num_threads()} torch threads, this machine). `omnirecon bench` compares it with the "
-                  "volumetric path.")
-            .figure(video, out, f"mesh-path orbit, {len(cams)} frames", 320))
+                  f"volumetric path. Against the generator's exact images at the orbit's poses: {away['psnr']:.2f} dB; "
+                  f"{away['defect_any']:.1%} of the frames' pixels lie on faces no photo supports (fills, faces no "
+                  "training view sees, fragments).")
+            .figure(video, out, f"mesh-path orbit, {len(cams)} frames", 320)
+            .figure(out / "mesh_path" / "worst_frame.png", out, f"worst frame ({away['worst_frame']}): exact | mesh "
+                    "path | unsupported faces (fills red, unseen blue, fragments yellow)", 480))
+
+
+def away_from_photos(model, mesh, scene, path: Path, train: list[int], cams, out: Path) -> dict:
+    """The orbit's frames scored against the procedural scene's exact images and by their defect shares
+    (:func:`omnirecon.engine.extrapolation.score_frames`); the worst frame goes to ``mesh_path/worst_frame.png``."""
+    import numpy as np
+
+    from omnirecon.data.io import write_image  # lazy: demo --help stays fast
+    from omnirecon.engine.extrapolation import procedural_truth, score_frames  # lazy: demo --help stays fast
+    from omnirecon.mesh.defects import DefectCounter  # lazy: demo --help stays fast
+
+    truth = procedural_truth(path, scene, cams)
+    scored = score_frames(model, mesh, scene, train, cams, truth, keep_images=True)
+    away = scored.summary()
+    worst = away["worst_frame"]
+    with DefectCounter(mesh, scene.cameras[train], scene.bounds) as counter:
+        tiles = [(truth[worst].numpy() * 255 + 0.5).astype(np.uint8)] if truth is not None else []
+        write_image(out / "mesh_path" / "worst_frame.png",
+                    np.concatenate([*tiles, scored.images[worst], counter.picture(cams[worst])], 1))
+    away.setdefault("psnr", float("nan"))
+    away["line"] = (f"against the exact images {away['psnr']:.2f} dB, {away['defect_any']:.1%} of the pixels on faces "
+                    f"no photo supports (worst frame {away['worst_frame']}: {away['worst_defect']:.1%})")
+    return away
 
 
 def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, out: Path, numbers: dict,

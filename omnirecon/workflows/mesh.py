@@ -100,9 +100,11 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    surface: Literal["fusion", "poisson"] = "fusion"
-    """With --masks: `poisson` runs screened Poisson over the fused surface, trimmed to the masks (closes
-    holes; needs the `surface` extra, pymeshlab; dtu_scan24 held-out IoU 0.950 -> 0.964)."""
+    surface: Literal["fusion", "poisson", "coherent"] = "fusion"
+    """`fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);
+    `coherent`: one screened-Poisson surface from the depth several views confirm, kept only where views support it,
+    no fills (omnirecon.mesh.surface); `poisson` (with --masks): screened Poisson over the fused surface, trimmed to
+    the masks. `coherent` and `poisson` need the `surface` extra (pymeshlab)."""
     complete: bool = True
     """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
     forward-facing scenes, hole filling); only with the fit preset."""
@@ -205,16 +207,20 @@ def previous_set(stem: Path) -> set[Path]:
 def summary_lines(record: dict) -> list[str]:
     """Human-readable lines about a :func:`run_mesh` record."""
     s = record["seconds"]
-    faces = record["faces"].get("final", record["faces"].get("decimated", record["faces"]["components"]))
+    faces = record["faces"].get("final", record["faces"].get("decimated", record["faces"].get("components", 0)))
     lines = [f"{record['vertices']:,} vertices, {faces:,} faces from "
              f"{record['depth_maps']} depth maps ({record['valid_depth_fraction']:.0%} of pixels with depth), "
-             f"views {record['views']}, grid {'x'.join(map(str, record['grid']))}",
+             f"views {record['views']}" + (f", grid {'x'.join(map(str, record['grid']))}" if record.get("grid") else
+                                          f", coherent surface from {record['surface'].get('points', 0):,} confirmed "
+                                          f"points"),
              f"images to mesh {s['images_to_mesh']:.1f} s (" + ", ".join(
                  f"{k.replace('_', ' ')} {v:.1f}" for k, v in s.items() if k not in ("images_to_mesh", "metrics")) + ")"]
     comp = record.get("completion")
-    if comp:
+    if comp and "coverage_before" in comp:
         lines.append(f"completion: {comp['fill_faces']:,} fill faces; the views' content pixels covered "
                      f"{comp['coverage_before']:.1%} by the fused mesh, 100% after")
+    elif comp and comp.get("backdrop_faces"):
+        lines.append(f"background layer: {comp['backdrop_faces']:,} faces on the bounds' far side (no fills)")
     m = record.get("metrics", {})
     if "mask_iou" in m:
         against = {"masks": "the object masks", "exact depth": "every surface they see"}.get(m["mask_iou"].get("against"),

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
 import torch
 import tyro
 
@@ -49,7 +50,7 @@ from omnirecon.workflows.export import ExportConfig, run_export
 from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune
 from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh
-from omnirecon.workflows.render import mesh_path_video, scene_camera_path
+from omnirecon.workflows.render import mesh_path_video
 
 CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
 """The shipped Omni-Recon checkpoint (the default model)."""
@@ -180,7 +181,9 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
     lap("finetune")
     exported = export_stage(cfg, scene_path, side, ckpt, meshes["input"], out, tuned)
     lap("export")
-    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines, tuned)
+    fill_from = (meshed.get("completion") or {}).get("surface_faces") if meshed.get("options", {}).get("surface") \
+        != "coherent" else None
+    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines, tuned, fill_from)
     lap("path")
     draw_cameras(path["scene"], out / "cameras.png")
     record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
@@ -189,13 +192,13 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
               "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
                        "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
-                       "blend": path["setting"]},
+                       "blend": path["setting"], "defects": path["defects"]},
               "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "peak_rss_mb": lap.peak_rss_mb,
               "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)
-    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, lines[-1], out, tuned["line"])
+    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, " ".join(lines[-2:]), out, tuned["line"])
     record["lines"] = lines
     return record
 
@@ -260,31 +263,52 @@ def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path
 
 
 def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
-               lines: list[str], tuned: dict | None = None) -> dict:
-    """``path.mp4``: a camera path through the tuned mesh path, blended as ``tuned`` (the finetune record) scored
-    (:func:`~omnirecon.mesh.ibr.realtime_setting`: each frame's nearest sources, the blend, the fill); returns
-    ``{"scene", "cams", "video", "fps", "setting"}``."""
-    from omnirecon.mesh.ibr import realtime_setting  # lazy: fast --help
+               lines: list[str], tuned: dict | None = None, fill_from: int | None = None) -> dict:
+    """``path.mp4``: the camera path a user watches (:func:`~omnirecon.engine.extrapolation.user_path`: the photos'
+    arc and past its ends, or the walk) through the tuned mesh path, blended as ``tuned`` (the finetune record) scored
+    (:func:`~omnirecon.mesh.ibr.realtime_setting`); each frame's defect shares (:mod:`omnirecon.mesh.defects`;
+    completion's fills are the faces from ``fill_from`` on), the first and the worst frame as pictures; returns
+    ``{"scene", "cams", "video", "fps", "kind", "setting", "defects", "worst"}``."""
+    from omnirecon.engine.extrapolation import user_path  # lazy: fast --help
+    from omnirecon.mesh.ibr import realtime_setting
 
     scene = load_at_resolution(scene_path, side)
     model, _ = load_checkpoint(ckpt)
-    kind = {"object": "orbit", "forward": "spiral"}.get(scene.rig, "interp")
-    cams = scene_camera_path(scene, kind, cfg.frames, arc=None)  # an orbit sweeps only the azimuths photographed
     train = scene.splits.get("train") or list(range(len(scene)))
+    cams, kind = user_path(scene, train, cfg.frames)
     setting = realtime_setting(scene, tuned)
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
     video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
-    write_image(out / "path_first_frame.png", images[0])
+    defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
     fps = 1.0 / statistics.median(times)
     center = closest_point_to_axes(scene.cameras) if scene.rig == "object" else scene.bounds.double().mean(0)
     away = nearest_photo_degrees(cams.c2w, scene.cameras[train], center)  # [F]: how far frames extrapolate
     reach = {"median": round(float(away.median()), 1), "max": round(float(away.max()), 1)}
+    mean = {k: round(float(np.mean([d[k] for d in defects])), 4) for k in defects[0]}
     lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, {reach['median']:g} "
                  f"degrees from the nearest photo (median; at most {reach['max']:g}), mesh path {fps:.1f} FPS "
                  f"(median frame, source features encoded once per source set)")
+    lines.append(f"away from the photos: {mean['any']:.1%} of the path's pixels on faces no photo supports (fills "
+                 f"{mean['fill']:.1%}, unseen {mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
+                 f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "kind": kind, "nearest_photo_degrees": reach,
-            "setting": setting}
+            "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
+            "worst": worst}
+
+
+def path_defects(mesh, scene, train: list[int], cams, images: list, fill_from: int | None,
+                 out: Path) -> tuple[list[dict], int]:
+    """Each path frame's defect shares and the worst frame's index; writes ``path_first_frame.png`` and
+    ``path_worst_frame.png`` (the frame beside its defect faces: fills red, unseen blue, fragments yellow)."""
+    from omnirecon.mesh.defects import DefectCounter  # lazy: fast --help
+
+    with DefectCounter(mesh, scene.cameras[train], scene.bounds, fill_from) as counter:
+        defects = [counter(cams[i]) for i in range(len(cams))]
+        worst = int(np.argmax([d["any"] for d in defects]))
+        write_image(out / "path_first_frame.png", np.concatenate([images[0], counter.picture(cams[0])], 1))
+        write_image(out / "path_worst_frame.png", np.concatenate([images[worst], counter.picture(cams[worst])], 1))
+    return defects, worst
 
 
 def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: list[dict], path: dict, record: dict,
@@ -301,7 +325,10 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         .figure(out / "cameras.png", out, "camera rig", 480),
         Section("Mesh").text(f"{meshed['vertices']:,} vertices fused from {meshed['depth_maps']} depth maps "
                              f"({cfg.num_views} sources each)").figure(out / "mesh_preview.png", out, "mesh", 480),
-        Section("Real-time mesh path").text(path_line).figure(path["video"], out, "camera path", 480),
+        Section("Real-time mesh path").text(path_line).figure(path["video"], out, "camera path", 480)
+        .figure(out / "path_first_frame.png", out, "first frame | its faces no photo supports (fills red, unseen blue, "
+                "fragments yellow)", 640)
+        .figure(out / "path_worst_frame.png", out, f"worst frame ({path['worst']}) | its unsupported faces", 640),
         Section("Held-out views").text(f"{tuned_line[:1].upper()}{tuned_line[1:]}: coverage is the fraction of "
                                        "held-out pixels on real surface. PSNR of the mesh path against seconds of "
                                        "fine-tuning: held-out test views (never tuned on) and validation views "

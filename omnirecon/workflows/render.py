@@ -91,14 +91,15 @@ def default_out(cfg: RenderConfig) -> Path:
 
 
 def scene_camera_path(scene, kind: trajectory.PathKind, frames: int, keyframes: list[int] | None = None,
-                      arc: float | None = 360.0, rots: float = 2.0) -> Cameras:
+                      arc: float | None = 360.0, rots: float = 2.0, beyond: float = 0.0) -> Cameras:
     """:func:`omnirecon.trajectory.camera_path` through a :class:`~omnirecon.data.scene.Scene`: an orbit
     circles the point closest to the optical axes (object rigs) or the bounds centre (over ``arc`` degrees;
-    ``None``: the arc the photos cover), a spiral spans the scene's near and far depths."""
+    ``None``: the arc the photos cover, reaching ``beyond`` degrees past its ends), a spiral spans the scene's near
+    and far depths."""
     cams = scene.cameras
     center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
     return trajectory.camera_path(cams, kind, frames, center, float(scene.near.min()), float(scene.far.max()),
-                                  keyframes, arc, rots)
+                                  keyframes, arc, rots, beyond)
 
 
 def camera_path(cfg: RenderConfig, scene) -> Cameras:

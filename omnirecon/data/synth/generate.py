@@ -281,6 +281,32 @@ def write_scene(folder: Path, seed: int, options: SynthOptions) -> None:
     (folder / "mesh.ply").write_bytes(ply.export(file_type="ply"))
 
 
+def render_cameras(folder: Path, c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """The exact images of the generated scene in ``folder`` at any cameras: its layout rebuilt from the seed and
+    options in ``scene.json``, rendered as :func:`write_scene` renders its views (anti-aliased), without the per-view
+    camera effects (noise, exposure, ...): the clean image a perfect camera takes there. ``c2w # [N, 4, 4]``: OpenCV camera-to-world in the scene file's
+    frame (``Scene.to_input`` maps a loaded scene's frame there); ``K # [3, 3]`` pixels, pixel centres at +0.5.
+    ``# [N, height, width, 3]`` float32 in [0, 1]"""
+    meta = json.loads((Path(folder) / "scene.json").read_text())
+    if meta.get("generator_version") != GENERATOR_VERSION:
+        raise InputError(f"scene made by {meta.get('generator_version')!r}, not {GENERATOR_VERSION}", folder,
+                         "regenerate it with this version (omnirecon synth)")
+    options = SynthOptions(**meta["options"])
+    seed = int(meta["seed"])
+    layout = make_layout(np.random.default_rng(seed), options.rig, options.views, options.ground,
+                         (options.min_objects, options.max_objects), options.detail)
+    res = options.resolution
+    mesh = build_mesh(layout, texture_size=int(np.clip(2 ** math.ceil(math.log2(res)), 64, 512)))
+    light = scene_light(layout.light, options, seed)
+    background = np.asarray(layout.background, dtype=np.float32)
+    out = []
+    for pose in np.asarray(c2w, dtype=np.float64):
+        view = render_view(mesh, np.asarray(K, np.float64), np.linalg.inv(pose), width, height, light, background,
+                           options.antialias)
+        out.append(view["rgb"])
+    return np.stack(out).astype(np.float32)
+
+
 def _write_view(stem: Path, view: dict, depth_scale: float) -> None:
     """PNG files of one rendered view (see the module docstring for the encodings)."""
     hit = view["face"] >= 0
