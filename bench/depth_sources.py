@@ -19,6 +19,8 @@ seed 900999, and the ``synth:eval`` seeds 900998, 900997 and 900000 (``synth_<se
 * ``stereo+model+poisson``: the same with screened Poisson over the fused surface, trimmed to the masks
   (object captures; ``omnirecon/mesh/poisson.py``);
 * ``oracle``: the exact depth (procedural scenes), with completion;
+* ``<source>, coherent``: the same depth through the coherent surface (``MeshOptions.surface="coherent"``,
+  ``omnirecon/mesh/surface.py``: confirmed points, screened Poisson, a background layer, no fills);
 * ``<source>, sky kept`` (procedural scenes): the same without dropping depth where the photo shows the
   scene's known background colour (``MeshOptions.drop_background=False``): what that step is worth;
 * ``<source>, K sources`` / ``<source>, exposure``: the same mesh scored with ``finetune --num-views K`` (the
@@ -73,7 +75,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bench.depth_rows import WORK
+from bench.depth_rows import MESH_VARIANTS, WORK, mesh_settings
 from omnirecon.data.io import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -129,13 +131,9 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
     this process."""
     from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.build import MeshOptions, mesh_from_model
-    from omnirecon.mesh.stereo import StereoOptions
 
     source, _, variant = source.partition(", ")
-    mesh_kw = {"drop_background": False} if "sky kept" in variant.split(", ") else {}
-    match = [int(v.split()[1]) for v in variant.split(", ") if v.startswith("match ")]
-    if match:  # stereo matched on a grid of this long side (StereoOptions.match_side)
-        mesh_kw["stereo"] = StereoOptions(match_side=match[0])
+    mesh_kw = mesh_settings(variant)
     t = time.process_time()
     if source in ("learned", "floor"):  # depth at 128 px (as `omnirecon reconstruct --mesh-resolution 128`)
         low = load_at_resolution(path, 128, proto.background) if max(scene.width, scene.height) > 128 else scene
@@ -144,7 +142,7 @@ def make_mesh(source: str, path: Path, scene, proto, views, masks: bool, models:
         return made, low.to_input, time.process_time() - t
     if source.startswith("stereo+model"):  # stereo at the photos' resolution, the model's coarse depth (128 px)
         opts = MeshOptions(depth="stereo+model", depth_pass="coarse",  # for the rest
-                           surface="poisson" if source.endswith("+poisson") else "fusion", **mesh_kw)
+                           **{"surface": "poisson" if source.endswith("+poisson") else "fusion", **mesh_kw})
         made = mesh_from_model(models["learned"], scene, views, opts, use_masks=masks)
     else:
         opts = MeshOptions(depth="oracle" if source == "oracle" else "stereo", complete=source != "stereo", **mesh_kw)
@@ -233,7 +231,7 @@ def scoring(source: str, scene=None) -> dict:
             out["soften"] = 0.0
         elif part.endswith(" held-out"):
             out["max_held_out"] = int(part.split()[0])
-        elif part not in ("sky kept", "all views") and not part.startswith("match "):
+        elif part not in MESH_VARIANTS and not part.startswith("match "):
             raise ValueError(f"unknown variant {part!r} of {source!r}")
     return out
 
@@ -254,7 +252,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     targets, views = held_out(scene, proto, every_view="all views" in source.split(", ")[1:])
     masks = scene.masks is not None and proto.name == "dtu"
     variants = source.split(", ")[1:]
-    key = (name, source.partition(", ")[0], "all views" in variants, "sky kept" in variants,
+    key = (name, source.partition(", ")[0], *(v in variants for v in MESH_VARIANTS),
            tuple(v for v in variants if v.startswith("match ")), tiny)
     slug = source.replace("+", "_").replace(", ", "_").replace(" ", "_")
     work = WORK / f"{name}_{slug}"

@@ -81,10 +81,24 @@ def camera_path(cameras: Cameras, kind: PathKind, frames: int, center: Tensor | 
     return interpolate(cameras[keys], frames)
 
 
+UP_SPREAD = 0.03
+"""Second eigenvalue of the cameras' right axes' scatter above which those axes span a plane (a yaw spread of more
+than about 10 degrees), whose normal is then the up direction (:func:`mean_up`)."""
+
+
 def mean_up(cams: Cameras) -> Tensor:
-    """Unit world direction that the cameras show as up on average (mean of their ``-y`` axes). ``# [3]``"""
+    """Unit world direction that the cameras show as up. Cameras are held level: their right axes (``x``) are
+    horizontal whatever their pitch, so when those spread in yaw, up is the normal of the plane they span (signed like
+    the mean of the cameras' ``-y`` axes); otherwise (parallel cameras) up is that mean. The mean alone tilts toward
+    the object on a partial arc of cameras looking down at it. ``# [3]``"""
     up = -cams.R[:, :, 1].double().mean(0)
-    return up / up.norm().clamp_min(1e-12)
+    up = up / up.norm().clamp_min(1e-12)
+    x = cams.R[:, :, 0].double()  # [N, 3]
+    evals, evecs = torch.linalg.eigh(x.T @ x / len(x))  # ascending
+    if float(evals[1]) > UP_SPREAD:
+        normal = evecs[:, 0]
+        return normal if float(normal @ up) >= 0 else -normal
+    return up
 
 
 def orbit(cams: Cameras, frames: int, center: Tensor | None = None, arc_degrees: float | None = 360.0,
@@ -151,7 +165,8 @@ def azimuths(cams: Cameras, center: Tensor) -> Tensor:
     ``[0, 2 pi)``, camera 0 at 0. ``# [N]`` float64"""
     up, e1, e2 = azimuth_frame(cams, center)
     off = cams.centers.double() - center.double()
-    return torch.atan2(off @ e2, off @ e1).remainder(2 * math.pi)
+    a = torch.atan2(off @ e2, off @ e1).remainder(2 * math.pi)
+    return torch.where(a >= 2 * math.pi, a - 2 * math.pi, a)  # remainder rounds a tiny negative angle up to 2 pi
 
 
 def nearest_photo_degrees(path: Tensor, cams: Cameras, center: Tensor) -> Tensor:

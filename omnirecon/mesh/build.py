@@ -631,9 +631,20 @@ def coherent_stage(prep: Prepared, maps: DepthMaps, scene, views, options: MeshO
     if prep.agree is None:
         raise InputError("the coherent surface needs at least two depth maps to confirm each other", scene.path,
                          "mesh from more views, or use --surface fusion")
+    fused = None
+    if options.coherent.fine == "tsdf":  # the fused TSDF surface, cleaned, as the fine surface
+        with clock("fuse"):
+            volume = fusion.fuse(prep.cams, prep.depth, scene.bounds, prep.voxel, prep.trunc, prep.weight, prep.free,
+                                 options.voxel_chunk, options.bilinear, "cpu", band=options.band)
+            fused = fusion.extract_mesh(volume)
+        with clock("clean"):
+            view_masks = None if prep.dilated is None else prep.dilated[views].numpy()
+            ss = int(np.clip(np.ceil(options.cull_samples * prep.footprint / prep.voxel), 1,
+                             max(1, int(2 * options.cull_samples))))
+            fused, _ = clean.clean_mesh(fused, scene.cameras[views].to(dtype=torch.float64), view_masks, options, ss)
     with clock("coherent surface", "surface"):
         mesh, record = coherent_surface(prep.cams, prep.unbounded, prep.agree, prep.voxel, prep.rel, scene.bounds,
-                                        prep.empty, options.coherent, options.min_component)
+                                        prep.empty, options.coherent, options.min_component, fused)
     counts = {"coherent": len(mesh.faces)}
     if stages is not None:
         stages["coherent"] = mesh

@@ -80,6 +80,10 @@ class SurfaceOptions:
     free_votes: int = 2
     """Views that must see confirmed depth beyond a vertex (farther than ``reach`` from a confirmed point) to drop
     it; 0 = off."""
+    fine: str = "poisson"
+    """The surface: ``poisson`` (screened Poisson over the confirmed points, kept where views support it) or ``tsdf``
+    (the fused TSDF surface of every pixel's depth, weighted by its confidence and agreement, cleaned, less its
+    fragments): hard materials (dark, shiny) whose depth two views seldom confirm keep more surface with it."""
     layer: float = 4.0
     """The background layer's cell, in voxels (0: no layer): a coarse, smooth surface over every confirmed point
     within the grown bounds, set back behind the surface, which shows where the surface has no face (what no two views
@@ -102,6 +106,8 @@ class SurfaceOptions:
                              "use e.g. 0.03, 1, 4, 16 and 4")
         if self.octree != 0 and not 4 <= self.octree <= 12:
             raise InputError(f"octree must be 0 (automatic) or in 4-12, got {self.octree}", None, "use 0")
+        if self.fine not in ("poisson", "tsdf"):
+            raise InputError(f"fine must be poisson or tsdf, got {self.fine!r}", None, "use fine='poisson'")
         if self.threads < 1:
             raise InputError(f"threads must be >= 1, got {self.threads}", None, "use e.g. 1")
 
@@ -273,14 +279,18 @@ def behind(mesh: trimesh.Trimesh, distance: float) -> trimesh.Trimesh:
 
 def coherent_surface(cameras: Cameras, depths: Tensor, agree: Tensor, voxel: float, rel: float, bounds: Tensor,
                      see_through: Tensor | None = None, options: SurfaceOptions | None = None,
-                     min_component: float = 0.001) -> tuple[trimesh.Trimesh, dict]:
+                     min_component: float = 0.001, fused: trimesh.Trimesh | None = None) -> tuple[trimesh.Trimesh, dict]:
     """The coherent surface (module docstring) of the z-depth maps ``depths # [N, H, W]`` (0 = none; depth outside
     the bounds included: the surface takes the points inside them, the background layer those of the grown bounds,
     and both take free space from all) at ``cameras``, given :func:`omnirecon.mesh.fusion.consistency`'s counts
     ``agree # [N, H, W]`` (at margin ``rel``), the voxel size, the scene ``bounds # [2, 3]`` and the pixels that show
     the known background colour ``see_through # [N, H, W]`` (or ``None``). With ``options.layer`` the background
     layer's faces follow the surface's. Returns the mesh (scene frame) and a record (points, octree depths, faces
-    after each step, seconds; ``surface_faces``: the surface's faces, which come first)."""
+    after each step, seconds; ``surface_faces``: the surface's faces, which come first). With ``options.fine ==
+    "tsdf"`` the surface is ``fused`` (the fused TSDF surface, cleaned), less its fragments, instead of Poisson's."""
+    from omnirecon.mesh import clean
+    from omnirecon.mesh.defects import MIN_PIECE, small_pieces
+
     options = options or SurfaceOptions()
     options.check()
     t = time.perf_counter()
@@ -288,12 +298,14 @@ def coherent_surface(cameras: Cameras, depths: Tensor, agree: Tensor, voxel: flo
     points, normals = confirmed_points(cameras, depths, confirmed, bounds, options)
     record = {"confirmed_pixels": float(confirmed.float().mean()), "points": len(points),
               "seconds_points": time.perf_counter() - t}
-    if len(points) < 100:
+    if fused is not None:
+        mesh = clean.keep_faces(fused, ~small_pieces(fused, MIN_PIECE * float((bounds[1] - bounds[0]).double().norm())))
+    elif len(points) < 100:
         return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), int), process=False), \
             {**record, "skipped": "fewer than 100 confirmed points", "surface_faces": 0}
-    depth_c = torch.where(confirmed, depths.double(), 0.0)
-    mesh = trimmed_poisson(points, normals, voxel, bounds, cameras, depth_c, rel, see_through, options, min_component,
-                           record)
+    else:
+        mesh = trimmed_poisson(points, normals, voxel, bounds, cameras, torch.where(confirmed, depths.double(), 0.0),
+                               rel, see_through, options, min_component, record)
     record["surface_faces"] = len(mesh.faces)
     if options.layer > 0:
         layer = background_layer(cameras, depths, agree, voxel, rel, bounds, see_through, options, min_component,

@@ -3,7 +3,6 @@ counter (omnirecon/mesh/defects.py), plane-sweep stereo for walks (omnirecon/mes
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
