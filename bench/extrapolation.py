@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -190,7 +191,8 @@ def main(argv: list[str] | None = None) -> dict:
         settings = {k: json.loads(v) for k, v in (a.split("=", 1) for a in args.set)}
         for surface in surfaces:
             label = f"coherent[{','.join(args.set)}]" if surface == "coherent" and settings else surface
-            row = run_row(name, surface, model, args.tiny, args.out / "figures", settings, label)
+            row = {**run_row(name, surface, model, args.tiny, args.out / "figures", settings, label),
+                   "commit": result["provenance"]["commit"], "loadavg_1min": os.getloadavg()[0]}
             result["rows"] = [r for r in result["rows"] if (r["scene"], r["surface"]) != (name, label)] + [row]
             h, w = row["held_out"], row["path"]
             print(f"{name:14s} {label:9s} held-out {h.get('psnr', float('nan')):6.2f} dB cov {h['coverage']:.2f} "
