@@ -23,7 +23,9 @@ INTRO = (
     "the procedural scene's exact mesh through the same mesh path. CPU-s: the surface from cached depth maps, one "
     "thread, on a machine shared with other work (compare within a row only). A picture per row: test view truth | "
     "render | its defect faces (fills red, unseen blue, fragments yellow), then the path's first frame, its worst frame "
-    "and that frame's defect faces.")
+    "and that frame's defect faces. `mesh --surface auto` (the default) takes `coherent` on a walk (lund) and `fusion` "
+    "elsewhere: on the interpolated held-out views of \"Depth sources\" (rows `, coherent`) the coherent surface "
+    "loses on fern and the demo scene.")
 
 
 def f(x, fmt: str = "{:.2f}") -> str:
@@ -41,7 +43,7 @@ def line(r: dict) -> str:
             f"{pct(h.get('coverage'))} | {pct(h.get('defect_any'))} ({pct(h.get('defect_fill'))} / "
             f"{pct(h.get('defect_unseen'))} / {pct(h.get('defect_small'))}) | {f(p.get('psnr'))} | "
             f"{pct(p.get('defect_any'))} / {pct(p.get('worst_defect'))} | {f(r['cpu_seconds']['surface'], '{:.0f}')} | "
-            f"[picture]({r['figure']}) |")
+            f"`{r.get('commit', '–')}` | [picture]({r['figure']}) |")
 
 
 def summary(rows: list[dict]) -> list[str]:
@@ -68,8 +70,9 @@ def section(results: Path) -> str | None:
     rows = sorted(r["rows"], key=lambda x: (x["scene"], x["surface"]))
     out = ["## Away from the photos", "", INTRO, "",
            "| scene | surface | train / test views | held-out PSNR (dB) | coverage | defects (fill / unseen / fragments) | "
-           "path PSNR (dB) | path defects mean / worst frame | CPU-s | picture |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+           "path PSNR (dB) | path defects mean / worst frame | CPU-s | commit | picture |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     out += [line(row) for row in rows]
-    out += ["", "Means:", "", *summary(rows), "", prov(r["provenance"]), ""]
+    out += ["", "Means:", "", *summary(rows), "", "Provenance of the last run (each row names the commit it measured):",
+            prov(r["provenance"]), ""]
     return "\n".join(out)
