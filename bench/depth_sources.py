@@ -266,7 +266,8 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
     tune = seconds if tuned else 1.0
     ft = run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, seconds=tune,
                                      eval_at=(0.0,), clock="cpu", threads=1, mesh=mesh_file, resolution=res,
-                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}))
+                                     out=work / "finetune", **{"max_held_out": 4, **scoring(source, scene)}),
+                      fill_from=(made.info.get("completion") or {}).get("surface_faces"))
     first, last = ft["curve"][0], ft["curve"][-1]
     row = {"scene": name, "source": source, "views": len(views), "held_out": ft["held_out"],
            "resolution": [scene.width, scene.height], "faces": len(made.mesh.faces), "mesh_cpu_seconds": mesh_s,
@@ -276,7 +277,7 @@ def run_row(name: str, source: str, seconds: float, models: dict, results: Path,
            "visibility": ft.get("visibility", False), "blend": ft.get("blend", "network"), "tuned": ft.get("tuned"), "lr": ft.get("lr"),
            "psnr": {"before": first["psnr"], "after": last["psnr"] if tuned else None},
            "psnr_covered": {"before": first.get("psnr_covered"), "after": last.get("psnr_covered") if tuned else None},
-           **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
+           "defects": ft.get("defects"), **coverage_and_iou(mesh, scene, ft["held_out"], masks)}
     if masks:
         row["training_coverage"] = training_coverage(mesh, scene, views)
     if masks and "psnr_masked" in first:
@@ -390,8 +391,9 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         result["rows"].append(row)
         meshed = f", mesh {row['mesh_cpu_seconds']:.0f} CPU-s" if "mesh_cpu_seconds" in row else ""  # not the exact mesh
+        defects = f", defects {row['defects']['any']:.1%}" if row.get("defects") else ""  # unsupported faces' pixels
         print(f"{name} {source}: PSNR {row['psnr']['before']:.2f} -> {row['psnr']['after'] or float('nan'):.2f} dB, "
-              f"coverage {row['coverage']:.3f}{meshed}", flush=True)
+              f"coverage {row['coverage']:.3f}{defects}{meshed}", flush=True)
         write_json(out_file, result)
     write_json(out_file, result)
     return result

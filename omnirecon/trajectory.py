@@ -43,6 +43,23 @@ MAX_DEFAULT_KEYFRAMES = 8
 """``interp`` without ``keyframes`` uses at most this many views, evenly spaced in index order."""
 
 
+WALK_RATIO = 1.5
+"""A forward-facing capture is a walk when its camera centres spread this many times more along the mean view
+direction than across it."""
+
+
+def is_walk(cameras: Cameras) -> bool:
+    """Whether the cameras walk along their view direction (a street walked forward with a phone): their centres
+    spread :data:`WALK_RATIO` times more along the mean view direction than across it."""
+    c = cameras.centers.double()
+    fwd = cameras.forward.double().mean(0)
+    fwd = fwd / fwd.norm().clamp_min(1e-12)
+    off = c - c.mean(0)
+    along = (off @ fwd).abs().max()
+    across = (off - (off @ fwd)[:, None] * fwd).norm(dim=-1).max()
+    return bool(len(c) > 2 and along > WALK_RATIO * across)
+
+
 def default_keyframes(n: int) -> list[int]:
     """All ``n`` views when there are few, else ``MAX_DEFAULT_KEYFRAMES`` evenly spaced ones."""
     if n <= MAX_DEFAULT_KEYFRAMES:

@@ -21,4 +21,8 @@ class FinetuneCommand(FinetuneConfig):
         print(f"held-out PSNR {c[0]['psnr']:.2f} dB before, " + ", ".join(
             f"{p['psnr']:.2f} dB after {p['seconds']:g} s ({p['steps']} steps)" for p in c[1:])
             + f"; coverage {result['coverage']:.1%} of held-out pixels on the mesh (the rest: {result['fill']} fill)")
+        d = result.get("defects") or {}
+        if d:
+            print(f"held-out pixels on faces no photo supports: {d['any']:.1%} (fills {d['fill']:.1%}, unseen "
+                  f"{d['unseen']:.1%}, fragments {d['small']:.1%})")
         print(f"wrote {out}/curve.json, curve.png, before_after.png")

@@ -25,25 +25,10 @@ from torch import Tensor
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.engine.views import select_sources
 from omnirecon.metrics import psnr
+from omnirecon.trajectory import is_walk
 
 PATH_BEYOND = 15.0
 """Degrees of azimuth an object capture's path reaches past each end of the arc its photos cover."""
-WALK_RATIO = 1.5
-"""A forward-facing capture is a walk when its camera centres spread this many times more along the mean view
-direction than across it."""
-
-
-def is_walk(cameras: Cameras) -> bool:
-    """Whether a forward-facing rig's cameras walk along their view direction (module docstring)."""
-    c = cameras.centers.double()
-    fwd = cameras.forward.double().mean(0)
-    fwd = fwd / fwd.norm().clamp_min(1e-12)
-    off = c - c.mean(0)
-    along = (off @ fwd).abs().max()
-    across = (off - (off @ fwd)[:, None] * fwd).norm(dim=-1).max()
-    return bool(len(c) > 2 and along > WALK_RATIO * across)
-
-
 def user_path(scene, views: list[int], frames: int, beyond: float = PATH_BEYOND) -> tuple[Cameras, str]:
     """The camera path of module docstring through the training ``views`` of ``scene`` (their resolution and the
     intrinsics of the first): ``(cameras, kind)``, kind ``orbit``, ``walk`` or ``spiral``."""

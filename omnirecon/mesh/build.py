@@ -804,6 +804,25 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
     return made
 
 
+def default_surface(scene=None, masks: bool = False) -> str:
+    """The surface ``omnirecon mesh --surface auto`` (and so ``reconstruct`` and ``demo``) makes per scene kind, by
+    what ``python -m bench extrapolation`` (held-out views beyond the photos and the path a user watches) and ``python
+    -m bench depth_sources`` (interpolated held-out views) measured (BENCHMARKS "Away from the photos"):
+
+    * a walk (forward-facing cameras that move along their view direction, :func:`omnirecon.trajectory.is_walk`: a
+      street walked forward): ``coherent``. Completion's fills, each from one photo's depth, are what its later
+      photos and any other viewpoint see of the street;
+    * every other scene: ``fusion`` (with completion): forward-facing captures, objects with masks or a known
+      background colour, and objects without either.
+    """
+    from omnirecon.trajectory import is_walk
+
+    cams = getattr(scene, "cameras", None)
+    if getattr(scene, "rig", "unknown") == "forward" and cams is not None and is_walk(cams):
+        return "coherent"
+    return "fusion"
+
+
 def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> str:
     """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks per scene kind,
     by what ``python -m bench depth_sources`` measured (BENCHMARKS "Depth sources", all training views but the

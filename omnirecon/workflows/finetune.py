@@ -1168,9 +1168,22 @@ def cpu_split(cpu: dict, budget: float, end: float) -> dict:
             "outside_budget": end - cpu["prepared"] - budget, "process": end}
 
 
-def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
+def held_out_defects(s: Setup, fill_from: int | None = None) -> dict:
+    """Mean over the held-out views of the share of their pixels drawn by faces no photo supports
+    (:mod:`omnirecon.mesh.defects`: completion's fills, the faces from ``fill_from`` on when known; faces no source
+    view sees; fragments), by kind and in all (``any``): what a viewer sees away from the photos."""
+    from omnirecon.mesh.defects import DefectCounter
+
+    cams = s.scene.cameras
+    with DefectCounter(s.mesh, cams[s.views], s.scene.bounds, fill_from) as counter:
+        shares = [counter(cams[v]) for v in s.targets]
+    return {k: round(float(np.mean([d[k] for d in shares])), 4) for k in shares[0]} if shares else {}
+
+
+def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -> dict:
     """Run ``omnirecon finetune``; returns ``{"out", "curve", ...}`` as written to ``curve.json``. ``mesh``: a
-    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``."""
+    ``trimesh.Trimesh`` in the scene frame, handed over in memory (``reconstruct``), instead of ``cfg.mesh``, with
+    completion's fills as its faces from ``fill_from`` on (for the defect shares; ``None``: no fills known)."""
     check_options("finetune", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not cfg.tune:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
@@ -1197,6 +1210,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None) -> dict:
     tuned = tune(cfg, s, tuner, g, val_idx, val_obj, on_eval=lambda t: write(t, partial=True))
     cpu["tuned"] = time.process_time()
     result = write(tuned)
+    result["defects"] = held_out_defects(s, fill_from)
     result["cpu_seconds"] = cpu_split(cpu, tuned.budget_spent, time.process_time())
     write_json(out / "curve.json", result)
     if cfg.save:

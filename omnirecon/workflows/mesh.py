@@ -25,7 +25,7 @@ from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import MeshOptions, default_depth, mesh_from_model
+from omnirecon.mesh.build import MeshOptions, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
@@ -100,8 +100,9 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    surface: Literal["fusion", "poisson", "coherent"] = "fusion"
-    """`fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);
+    surface: Literal["auto", "fusion", "poisson", "coherent"] = "auto"
+    """`auto`: per scene kind (omnirecon.mesh.build.default_surface: `coherent` on a walk, `fusion` elsewhere);
+    `fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);
     `coherent`: one screened-Poisson surface from the depth several views confirm, kept only where views support it,
     no fills (omnirecon.mesh.surface); `poisson` (with --masks): screened Poisson over the fused surface, trimmed to
     the masks. `coherent` and `poisson` need the `surface` extra (pymeshlab)."""
@@ -112,11 +113,12 @@ class MeshConfig(MachineConfig):
         given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
                  "trunc": self.trunc, "weights": self.weights}
         depth = self.depth if self.depth != "auto" else default_depth(scene, has_model, self.masks)
+        surface = self.surface if self.surface != "auto" else default_surface(scene, self.masks)
         depth_pass = self.depth_pass if self.depth_pass != "auto" else "coarse" if depth == "stereo+model" else "fine"
         return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
                                   min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,
                                   min_component=self.min_component, chunk=self.chunk, neighbours=self.num_views,
-                                  max_faces=self.max_faces, depth_pass=depth_pass, surface=self.surface,
+                                  max_faces=self.max_faces, depth_pass=depth_pass, surface=surface,
                                   **({} if self.fusion == "reference" else {"complete": self.complete}))
 
 

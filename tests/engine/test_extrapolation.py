@@ -4,6 +4,7 @@ frames scored against a procedural scene's exact images."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,10 +13,10 @@ import torch
 from omnirecon.cameras import Cameras, closest_point_to_axes, look_at
 from omnirecon.data.colmap import triangulated
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, render_cameras
-from omnirecon.engine.extrapolation import PATH_BEYOND, is_walk, procedural_truth, user_path
+from omnirecon.engine.extrapolation import PATH_BEYOND, procedural_truth, user_path
 from omnirecon.engine.protocols import extrapolation_split
 from omnirecon.engine.scenes import load_at_resolution
-from omnirecon.trajectory import azimuths, nearest_photo_degrees
+from omnirecon.trajectory import azimuths, is_walk, nearest_photo_degrees
 
 
 def test_the_path_reaches_past_the_photos_arc(tmp_path):
@@ -45,6 +46,27 @@ def test_a_walk_is_told_from_a_forward_facing_grid():
                   torch.tensor([0, 0, 1.0]).double())
     grid = Cameras(torch.full((6,), 50.0), torch.full((6,), 50.0), 32.0, 24.0, c2w, 64, 48)
     assert is_walk(walk()) and not is_walk(grid)
+
+
+def test_the_default_surface_follows_the_scene_kind():
+    """``mesh --surface auto``: the coherent surface on a walk; fusion on a forward-facing grid and on an object
+    rig (the rig, not the camera layout alone, decides: an object capture is never a walk)."""
+    from types import SimpleNamespace
+
+    from omnirecon.mesh.build import default_surface
+    from omnirecon.workflows.mesh import MeshConfig
+
+    grid_eye = torch.tensor([[x, 0.0, z] for x in (-0.3, 0.0, 0.3) for z in (-0.2, 0.2)], dtype=torch.float64)
+    c2w = look_at(grid_eye, grid_eye + torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                  torch.tensor([0, 0, 1.0]).double())
+    grid = Cameras(torch.full((6,), 50.0), torch.full((6,), 50.0), 32.0, 24.0, c2w, 64, 48)
+    street = SimpleNamespace(rig="forward", cameras=walk())
+    assert default_surface(street) == "coherent"
+    assert default_surface(SimpleNamespace(rig="forward", cameras=grid)) == "fusion"
+    assert default_surface(SimpleNamespace(rig="object", cameras=walk())) == "fusion"
+    assert default_surface(None) == "fusion"
+    assert MeshConfig(scene=Path("s")).mesh_options(street).surface == "coherent"
+    assert MeshConfig(scene=Path("s"), surface="fusion").mesh_options(street).surface == "fusion"
 
 
 def test_triangulated_points_need_two_directions():
