@@ -48,6 +48,7 @@ from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import DeviceConfig, pick_device
 from omnirecon.engine.scenes import load_at_resolution, photo_side
+from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint, shipped_folder
 from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
@@ -55,8 +56,7 @@ from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
 
-ROOT = Path(__file__).resolve().parents[2]
-CHECKPOINT = ROOT / "checkpoints" / "omnirecon-tiny"
+CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
 """The model timed: the shipped checkpoint (``--ckpt`` picks another)."""
 GOALS = {"cpu_fps_512": 30.0, "ratio": 1000.0, "gpu_fps_800x600": 500.0}
 """Issue goals: >= 30 FPS at 512x512 on the 2-core CPU, >= 1000x the volumetric path, >= 500 FPS at 800x600 on a GPU."""
@@ -179,12 +179,15 @@ def measure(cfg: BenchConfig) -> dict:
         return round(1000 * statistics.median(cpu_times[id(times)]), 2)
 
     torch.manual_seed(args.seed)
-    if (args.ckpt / "meta.json").is_file():
-        model, meta = load_checkpoint(args.ckpt, device)
+    ckpt = checkpoint_folder(args.ckpt)  # a path, or a shipped name such as omnirecon-tiny
+    if (ckpt / "meta.json").is_file():
+        model, meta = load_checkpoint(ckpt, device)
         if not model.capabilities.appearance:
             raise InputError(f"the mesh path needs an Omni-Recon checkpoint, got preset {meta['preset']}", args.ckpt,
                              "pass checkpoints/omnirecon-tiny or another omnirecon-* checkpoint")
-        weights = f"checkpoint {args.ckpt.resolve().relative_to(ROOT) if args.ckpt.resolve().is_relative_to(ROOT) else args.ckpt} (step {meta.get('step')})"
+        home = shipped_folder().parent  # the checkout in a source checkout: "checkpoints/omnirecon-tiny"
+        shown = ckpt.resolve().relative_to(home) if ckpt.resolve().is_relative_to(home) else ckpt
+        weights = f"checkpoint {shown} (step {meta.get('step')})"
     else:
         model = build_model("omnirecon-tiny").to(device)
         weights = "random init (no shipped checkpoints/omnirecon-tiny); speed does not depend on the weights"
