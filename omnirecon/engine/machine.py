@@ -56,7 +56,7 @@ class ThreadsConfig:
 
     threads: int | None = None
     """torch CPU threads (default: torch's choice). Use 1 when other jobs share the cores: on a busy
-    2-core machine 2 threads ran the floor 6x slower than 1."""
+    2-core machine 2 threads ran the floor several times slower than 1."""
 
 
 @dataclass(kw_only=True)

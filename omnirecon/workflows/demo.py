@@ -32,8 +32,8 @@ DEMO_SEED = 900_999
 and not among the first scenes of ``synth:eval``)."""
 RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
 """Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
-(gpnr-tiny: 24 samples in bf16, 3.3-3.9x its reference twin; omnirecon-tiny: the coarse pass, 3.1-4.2x; within 0.1 dB
-of the full render on held-out views: ``python -m bench tiny_levers``)."""
+(gpnr-tiny: 24 samples in bf16; omnirecon-tiny: the coarse pass; each several times faster than the full render
+and as good on held-out views: ``python -m bench tiny_levers``, BENCHMARKS "Render levers of the tiny presets")."""
 SCORE_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 """Models scored on the held-out views (the floor needs no checkpoint), each with its checkpoint's render options."""
 MESH_MODELS = ("omnirecon-tiny", "ibrnet-tiny")
@@ -57,9 +57,9 @@ class DemoConfig(ThreadsConfig):
     """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
     package carries: omnirecon/engine/shipped.py)."""
     frames: int = 12
-    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames cost about 3 CPU-s each at 80 px on one
-    thread of a CPU with avx512_bf16, 6 on an AVX2-only one, so the default keeps the whole demo near 4 CPU-minutes:
-    bench/results/end_to_end.json; raise it on a GPU)."""
+    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames dominate the demo's time on a CPU, more so
+    on one without native bf16, so the default keeps the whole demo to a few CPU-minutes: BENCHMARKS "End to end";
+    raise it on a GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
     num_views: int = 3
