@@ -1,4 +1,4 @@
-"""omnirecon's benchmarks: every number in BENCHMARKS.md and the README comes from here.
+"""omnirecon's benchmarks: every number in BENCHMARKS.md comes from here.
 
     python -m bench --help            # the benchmarks, one line each
     python -m bench <name> [args]     # run one (``python -m bench <name> --help`` for its options)

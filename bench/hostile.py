@@ -158,7 +158,7 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
     }
     out: list[dict] = []
     # -- numbers: every numeric option of every command
-    for name, (spec, _) in COMMANDS.items():
+    for name, spec in COMMANDS.items():
         if name == "doctor":
             continue
         cls = _load(spec)
@@ -445,7 +445,7 @@ def main(argv: list[str] | None = None) -> dict:
     from omnirecon.cli import COMMANDS, _load
     from omnirecon.provenance import provenance
 
-    for spec, _ in COMMANDS.values():  # imported once: every forked case starts warm
+    for spec in COMMANDS.values():  # imported once: every forked case starts warm
         _load(spec)
     import omnirecon.capture.images  # noqa: F401
     import omnirecon.viewer.server  # noqa: F401

@@ -1,8 +1,8 @@
 """The default ``--chunk`` (rays rendered at once) from the machine's memory, and a note when a chosen one
 would exceed the ceiling.
 
-Peak memory grows with the chunk by about :data:`BYTES_PER_RAY` (measured for issue 20: 9.7 GB peak RSS
-at ``--chunk 65536``, ~140 kB per ray, dominated by the per-sample features of the K source views). The
+Peak memory grows with the chunk by about :data:`BYTES_PER_RAY` (peak resident memory at a large ``--chunk``
+over the chunk, dominated by the per-sample features of the K source views). The
 ceiling is :data:`FRACTION` of the RAM; the default is the largest power of two whose estimate fits in
 that fraction of the memory available now, at most :data:`DEFAULT_MAX` (what every command used before)
 and at least :data:`MIN_CHUNK`.

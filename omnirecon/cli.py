@@ -16,25 +16,26 @@ import warnings
 
 from omnirecon.errors import EXIT_BAD_INPUT, InputError
 
-COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("omnirecon.commands.demo:DemoCommand", "Novel views, scores and a mesh of one scene with the shipped checkpoints, as an HTML report."),
-    "synth": ("omnirecon.commands.synth:SynthCommand", "Generate procedural scenes with exact ground truth."),
-    "process": ("omnirecon.commands.process:ProcessCommand", "Camera poses for a folder of photos or a video (COLMAP via pycolmap): a scene every command reads."),
-    "inspect": ("omnirecon.commands.inspect:InspectCommand", "Validate a scene, print a summary, draw cameras and epipolar lines."),
-    "eval": ("omnirecon.commands.eval:EvalCommand", "Score a checkpoint (or the floor) on held-out views under fixed protocols."),
-    "render": ("omnirecon.commands.render:RenderCommand", "Render a camera path (orbit, spiral, interp) to frames and a video."),
-    "train": ("omnirecon.commands.train:TrainCommand", "Train GPNR, IBRNet or Omni-Recon on procedural and real scenes (torchrun for DDP)."),
-    "mesh": ("omnirecon.commands.mesh:MeshCommand", "Mesh a scene from a model's rendered depth (TSDF fusion), in the input frame."),
-    "lift": ("omnirecon.commands.lift:LiftCommand", "Lift a 2-D predictor (labels, edges, keypoints) into novel views with a model's blend weights (predict-then-blend)."),
-    "edit": ("omnirecon.commands.edit:EditCommand", "Recolour or remove an object (by label or click) consistently in novel views by editing the sources and re-blending; delete/recolour its mesh faces (GLB)."),
-    "pet": ("omnirecon.commands.pet:PETCommand", "Parameter-efficient tuning (LoRA or bias-only) of Omni-Recon's appearance branch on lifted semantic labels; mIoU before/after."),
-    "finetune": ("omnirecon.commands.finetune:FinetuneCommand", "Tune Omni-Recon's mesh path on one scene in seconds; PSNR-vs-time curve."),
-    "export": ("omnirecon.commands.export:ExportCommand", "Export a mesh with baked vertex colours (PLY, GLB) and a static WebGL viewer with image-based shading."),
-    "view": ("omnirecon.commands.view:ViewCommand", "Serve an exported viewer bundle on 127.0.0.1 and open it in a browser."),
-    "bench": ("omnirecon.commands.bench:BenchCommand", "FPS of Omni-Recon's real-time mesh path vs its volumetric path, and their ratio."),
-    "reconstruct": ("omnirecon.commands.reconstruct:ReconstructCommand", "Photos or a video in: camera poses, a mesh from every view, a tuned real-time mesh path, an export and a report."),
-    "doctor": ("omnirecon.commands.doctor:DoctorCommand", "Check torch/CUDA, EGL rasterization, Chromium and extras: what works, what falls back."),
+COMMANDS: dict[str, str] = {
+    "demo": "omnirecon.commands.demo:DemoCommand",
+    "synth": "omnirecon.commands.synth:SynthCommand",
+    "process": "omnirecon.commands.process:ProcessCommand",
+    "inspect": "omnirecon.commands.inspect:InspectCommand",
+    "eval": "omnirecon.commands.eval:EvalCommand",
+    "render": "omnirecon.commands.render:RenderCommand",
+    "train": "omnirecon.commands.train:TrainCommand",
+    "mesh": "omnirecon.commands.mesh:MeshCommand",
+    "lift": "omnirecon.commands.lift:LiftCommand",
+    "edit": "omnirecon.commands.edit:EditCommand",
+    "pet": "omnirecon.commands.pet:PETCommand",
+    "finetune": "omnirecon.commands.finetune:FinetuneCommand",
+    "export": "omnirecon.commands.export:ExportCommand",
+    "view": "omnirecon.commands.view:ViewCommand",
+    "bench": "omnirecon.commands.bench:BenchCommand",
+    "reconstruct": "omnirecon.commands.reconstruct:ReconstructCommand",
+    "doctor": "omnirecon.commands.doctor:DoctorCommand",
 }
+"""Each verb's ``"module:ClassName"``; its help is the class's docstring (``omnirecon VERB --help``)."""
 
 
 def _load(spec: str):
@@ -52,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         # Import only the chosen subcommand (fast start, no heavy optional imports).
         chosen = next((a for a in argv if not a.startswith("-")), None)
         names = [chosen] if chosen in COMMANDS else list(COMMANDS)
-        configs = {n: _load(COMMANDS[n][0]) for n in names}
+        configs = {n: _load(COMMANDS[n]) for n in names}
         box = io.StringIO()  # tyro's multi-line error box, turned into one line below
         try:
             with contextlib.redirect_stderr(box):

@@ -57,7 +57,7 @@ def provenance(seed: int | None = None, **extra) -> dict:
         "device": device,
         "cpu": cpu_name(),
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),  # AVX2 / AVX512: the same "AMD EPYC" name has
-        # been both, and CPU seconds compare only within one (bf16 autocast ran 7x slower on AVX2)
+        # been both, and CPU seconds compare only within one (bf16 autocast runs emulated, far slower, on AVX2)
         "cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "seed": seed,

@@ -79,7 +79,7 @@ def test_workflow_functions_are_short():
 def test_cli_registry_points_at_commands():
     from omnirecon.cli import COMMANDS
 
-    for name, (spec, _) in COMMANDS.items():
+    for name, spec in COMMANDS.items():
         module = spec.split(":")[0]
         assert module == f"omnirecon.commands.{name}", (name, spec)
         assert (PACKAGE / "commands" / f"{name}.py").is_file()

@@ -11,7 +11,7 @@ from omnirecon.options import RULES, _check_memory, check_options, numeric_field
 
 
 def test_every_numeric_option_of_every_command_has_a_rule():
-    missing = [(name, f) for name, (spec, _) in COMMANDS.items() for f in numeric_fields(_load(spec))
+    missing = [(name, f) for name, spec in COMMANDS.items() for f in numeric_fields(_load(spec))
                if rule_for(name, f) is None]
     assert not missing, missing
 
@@ -20,7 +20,7 @@ def test_every_default_passes_its_rule():
     """The shipped defaults are inside their own rules (a rule that refuses a default is wrong)."""
     import dataclasses
 
-    for name, (spec, _) in COMMANDS.items():
+    for name, spec in COMMANDS.items():
         for f in dataclasses.fields(_load(spec)):
             if f.name in numeric_fields(_load(spec)) and f.default not in (dataclasses.MISSING, None):
                 values = f.default if isinstance(f.default, tuple) else (f.default,)
@@ -30,7 +30,7 @@ def test_every_default_passes_its_rule():
 
 def test_unused_rules_are_few():
     """Rules name real fields (a renamed option must not leave a dead rule behind)."""
-    used = {f for _, (spec, _) in COMMANDS.items() for f in numeric_fields(_load(spec))}
+    used = {f for spec in COMMANDS.values() for f in numeric_fields(_load(spec))}
     dead = [k for k in RULES if k.split(".")[-1] not in used]
     assert not dead, dead
 

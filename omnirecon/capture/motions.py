@@ -3,7 +3,8 @@
 Structure from motion assumes one rigid scene. When an object turns on a stand while the camera and the room
 stay still (ethiopianHead: a bronze head on a turntable), the photos hold two motions: the object turns, the
 room does not move in the image at all (or moves as a whole, when the photos were cropped). The mapper poses
-the cameras from a mix, so no single rigid scene fits the photos (held-out 19.97 dB, coverage 87 %).
+the cameras from a mix, so no single rigid scene fits the photos (held-out views score low, and part of them is
+not covered).
 
 The check (:func:`still_background`): for image pairs whose poses differ by at least :data:`MIN_TURN` degrees of
 rotation, the share of their matches that move by one and the same image offset (within :data:`SAME_PX` px). A

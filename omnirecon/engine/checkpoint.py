@@ -23,6 +23,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from omnirecon.data.io import write_json
+from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.errors import InputError
 from omnirecon.models.registry import model_config_dict
 from omnirecon.outputs import atomic_files
@@ -59,16 +60,18 @@ def save_checkpoint(folder: Path, model, preset: str, step: int = 0, optimizer: 
 
 
 def read_meta(folder: Path) -> dict:
+    """The checked ``meta.json`` of checkpoint ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`)."""
     from omnirecon.engine.checkpoint_check import checked_meta
 
-    return checked_meta(folder)
+    return checked_meta(checkpoint_folder(folder))
 
 
 def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
-    """Rebuild the model from ``folder``. Returns ``(model, meta)``."""
+    """Rebuild the model from ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`). Returns
+    ``(model, meta)``."""
     from omnirecon.engine.checkpoint_check import build_checked, read_weights
 
-    folder = Path(folder)
+    folder = checkpoint_folder(folder)
     meta = read_meta(folder)
     model = build_checked(meta, folder)
     state = read_weights(folder / "model.safetensors", device)  # missing / unreadable / NaN: InputError

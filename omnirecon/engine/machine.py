@@ -10,6 +10,7 @@ import torch
 
 from omnirecon.chunk import pick_chunk
 from omnirecon.engine.checkpoint import load_checkpoint
+from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.errors import InputError
 from omnirecon.models.registry import build_model
 
@@ -25,9 +26,10 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
             raise InputError(f"--model {model} has no weights", None, "only the non-learned --model floor runs "
                              "without a checkpoint; pass --ckpt for a trained model")
         return build_model("floor").to(device).eval(), {"name": "floor", "preset": "floor", "checkpoint": None}
-    if not Path(ckpt).exists():
-        raise InputError("checkpoint folder not found", ckpt, "pass e.g. --ckpt checkpoints/omnirecon-tiny")
-    net, meta = load_checkpoint(Path(ckpt), device)
+    ckpt = checkpoint_folder(ckpt)
+    if not ckpt.exists():
+        raise InputError("checkpoint folder not found", ckpt, "pass e.g. --ckpt omnirecon-tiny (a shipped checkpoint)")
+    net, meta = load_checkpoint(ckpt, device)
     info = {"name": meta["preset"], "preset": meta["preset"], "checkpoint": str(ckpt), "step": meta.get("step")}
     return net.eval(), info
 
@@ -54,7 +56,7 @@ class ThreadsConfig:
 
     threads: int | None = None
     """torch CPU threads (default: torch's choice). Use 1 when other jobs share the cores: on a busy
-    2-core machine 2 threads ran the floor 6x slower than 1."""
+    2-core machine 2 threads ran the floor several times slower than 1."""
 
 
 @dataclass(kw_only=True)

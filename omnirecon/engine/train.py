@@ -45,6 +45,7 @@ from omnirecon.engine.distributed import DistEnv
 from omnirecon.engine.losses import LossModule, psnr
 from omnirecon.engine.pseudo_depth import StereoPseudoDepth
 from omnirecon.engine.report import save_val_picture
+from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, RESUMABLE_CHANGES, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
 from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
@@ -258,6 +259,7 @@ class Trainer:
         """Load the weights of checkpoint folder ``ckpt`` (same preset and model config) into the fresh model."""
         from omnirecon.engine.checkpoint_check import read_weights
 
+        ckpt = checkpoint_folder(ckpt)  # a path, or a shipped name such as ibrnet-tiny
         if not (ckpt / "model.safetensors").is_file() or not (ckpt / "meta.json").is_file():
             raise InputError("--init needs a checkpoint folder with model.safetensors and meta.json", ckpt,
                              "pass e.g. checkpoints/ibrnet-tiny or a run's checkpoints/final")

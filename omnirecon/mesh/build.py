@@ -109,9 +109,8 @@ class MeshOptions:
     Decimation has a floor (meshes of a few hundred faces may stay above it)."""
     depth_pass: str = "fine"
     """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"fine"`` (coarse +
-    importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, about 5x
-    faster). Measured on the demo scene, all 18 views, omnirecon-tiny: fine F-score 0.665, Chamfer 0.50 %
-    of the extent, held-out mesh depth abs rel 0.148; coarse 0.591, 0.55 %, 0.182."""
+    importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, several times
+    faster; on the demo scene, all views, omnirecon-tiny: a lower F-score and a larger held-out depth error)."""
     min_acc: float = 0.5
     """Models that return ``acc`` (accumulated opacity): pixels below it have no depth, and depth is
     divided by ``acc`` (the expected depth of the ray given that it hits)."""
@@ -122,16 +121,14 @@ class MeshOptions:
     hull_misses: int = 1
     """With masks: drop faces outside the visual hull (:func:`clean.hull_trim`: a vertex outside the masks,
     dilated by ``hull_dilate``, of more than this many of the views that see it in frame), after cleaning
-    and again after completion; -1 = off. Held-out IoU / mask PSNR before tuning (stereo+fill): dtu_scan37
-    0.934 -> 0.957 / 14.15 -> 14.54 dB, dtu_scan24 0.949 -> 0.963 / 17.96 -> 18.11 dB: the IoU loss was
-    surface outside the masks (6 % of the mask area on scan37), not holes (< 2 %)."""
+    and again after completion; -1 = off. It raised the held-out IoU and mask PSNR on dtu_scan24 and dtu_scan37:
+    the IoU loss was surface outside the masks, not holes."""
     hull_keeps_seen: bool = True
     """The visual-hull trim after completion keeps every face a meshed view sees first at a pixel of its (undilated)
     mask that the trimmed mesh would leave uncovered (:func:`clean.restore_seen`): cleaning never deletes surface
-    the training views see. Without it dtu_scan37's trim left up to 2.2 % of a training view's mask uncovered (view
-    47; dtu_scan24 view 20: 2.1 %); with it every training view's mask is covered, at a cost on held-out views (the
-    restored fill lies outside other views' silhouettes): mask PSNR at --nearest 6, angle blend + nearest fill,
-    dtu_scan37 21.71 -> 21.57 dB, dtu_scan24 25.80 -> 25.65, IoU 0.978 -> 0.974 / 0.982 -> 0.979."""
+    the training views see. Without it the trim left part of some training views' masks uncovered on dtu_scan24 and
+    dtu_scan37; with it every training view's mask is covered, at a small cost on held-out views (the restored fill
+    lies outside other views' silhouettes)."""
     hull_dilate: float = 3 / 400
     """Dilation of the masks for the visual-hull trim, a fraction of the image width (3 px at DTU's 400)."""
     cull_hidden: bool = True
@@ -142,8 +139,8 @@ class MeshOptions:
     """Hidden-face test: restore this many rings of faces around the kept ones (slivers the samples miss)."""
     min_component: float = 0.001
     """Drop connected components with fewer faces than this fraction of the largest (the reference drops
-    components under 500 faces of meshes of ~10^5-10^6 faces). 1 % removed 63 % of the plane-sweep
-    floor's fragmented DTU scan24 mesh (held-out IoU 0.48 -> 0.26); 0.1 % removes 17 % (IoU 0.44)."""
+    components under 500 faces of meshes of ~10^5-10^6 faces). A larger fraction removed much of the plane-sweep
+    floor's fragmented DTU scan24 mesh and lowered its held-out IoU."""
     surface: str = "fusion"
     """``fusion``: the fused, cleaned surface as it is; ``poisson``: with object masks, screened Poisson
     over it, trimmed to the masks (:mod:`omnirecon.mesh.poisson`, needs pymeshlab), which closes the holes
@@ -159,12 +156,9 @@ class MeshOptions:
     pixel whose colour differs from the background by more than this (largest channel difference; antialiased outline
     pixels nearer the background colour stay out), and leaves out any fill that another view sees past
     (:func:`complete.occluding`, within the maps' consistency margin). Before, the surface ended ragged short of the
-    content's outline: at the far edge of a procedural ground plane, seen grazing, 23 % of the held-out pixels within
-    2 px of the sky were uncovered, and fills in front of what other views saw hid the ground (synth 900997). 0: off.
-    Held-out mesh path before tuning (``python -m bench depth_sources``, stereo+model, ``--nearest 6``; network /
-    angle blend): 900997 22.35 -> 24.51 / 22.36 -> 24.53 dB, demo 26.86 -> 26.92 / 26.99 -> 27.05, 900998
-    33.23 -> 33.24 / 33.63 -> 33.62, 900000 29.00 -> 29.05 / 28.68 -> 28.82. On cached maps the check alone gave the
-    same 900997 and demo numbers; the content pixels alone gave 900997 24.20 and cost 900000 0.23 dB."""
+    content's outline (at the far edge of a procedural ground plane, seen grazing, held-out pixels beside the sky
+    were uncovered), and fills in front of what other views saw hid the ground. 0: off. Held-out mesh path before
+    tuning: ``python -m bench depth_sources`` (stereo+model, ``--nearest 6``), BENCHMARKS "Depth sources"."""
     drop_background: bool = True
     """Without masks: no depth where the photo shows the scene's known background colour, and (``carve``) free
     space on those rays; ``False`` keeps the sources' depth there (the "sky kept" rows of the bench)."""
@@ -175,13 +169,10 @@ class MeshOptions:
     saw in the sky and in front of the objects."""
     fill_occlusion: bool = True
     """Without masks: completion puts no fill in front of the surface another view sees (:func:`complete.occluding`,
-    within the maps' consistency margin); on forward-facing scenes such fills go to the backdrop. fern (stereo+fill,
-    before tuning): 20.68 -> 21.37 dB whole image, stereo alone 21.24. Object captures without masks: fox's fills
-    floated in front of the wall as shards (held-out pixels > 20 % nearer than their neighbourhood, views 40 / 64:
-    0.07 / 0.02 % after cleaning, 6.6 / 4.4 % after completion, 0.28 / 0.07 % with the check); held-out whole image
-    at the scene kind's blend (:func:`~omnirecon.mesh.ibr.scene_blend`: angle + nearest fill) fox 22.29 -> 22.48 dB,
-    ethiopianHead meshed without its masks 19.20 -> 20.57 (coverage 98.6 -> 97.9 %, 84.9 -> 69.1 %). With masks the
-    fills keep (the check cost dtu_scan24 (stereo+fill) mask PSNR 18.11 -> 17.66 dB, coverage 97.4 -> 94.7 %)."""
+    within the maps' consistency margin); on forward-facing scenes such fills go to the backdrop. Object captures
+    without masks: fox's fills floated in front of the wall as shards, and the check removes them (at some
+    coverage). With masks the fills keep (there the check lowered dtu_scan24's mask PSNR and coverage). Each scene
+    before and after: BENCHMARKS "Depth sources"."""
     backdrop_pad: float = 0.1
     """Forward-facing scenes: completion adds the backdrop layer as a surface (:func:`complete.backdrop_sheet`:
     the bounds' far side, behind everything), over each view's image grown by this fraction of the long side
@@ -194,38 +185,30 @@ class MeshOptions:
     """Visibility check before fusion: drop a pixel's depth when at least this many other maps see a confirmed
     surface in front of it on its ray (:func:`fusion.occlusion_votes`; 0 = off). Stereo's mismatches on
     dark or textureless objects land on the ground behind them ("far"), and their free space carved the
-    objects: the demo's box rendered semi-transparent, the sphere's edges eroded. Demo scene, stereo+model,
-    held-out mesh depth > 5 % too far: box 20.6 -> 7.1 %, sphere 12.8 -> 5.9 %; held-out mesh path (occlusion
-    test on) whole image 22.53 -> 22.73 dB, box 17.35 -> 20.09, sphere 19.81 -> 20.78, ground 21.32 -> 21.06
-    (ground pixels beside the objects' outlines are dropped too). dtu_scan24 (with ``close_holes``): over the
-    mask 18.05 -> 18.26 dB. Not on forward-facing scenes: on fern it dropped 32 % of the depth (thin fronds
-    before the background) and cost 0.15 dB."""
+    objects: the demo's box rendered semi-transparent, the sphere's edges eroded. The check removes most of the
+    too-far depth on the demo scene and raises its held-out mesh path and dtu_scan24's (ground pixels beside the
+    objects' outlines are dropped too). Not on forward-facing scenes: on fern it dropped much of the depth of thin
+    fronds before the background and lowered the held-out score."""
     occlusion_rel: float = 0.05
     """Relative depth margin of that check (a point less far in front is not a violation). With
-    ``occlusion_outvoted``, 0.03 instead (held-out mesh path at ``--nearest 6`` before tuning, stereo+model): demo
-    26.52 -> 26.76 dB, synth:eval seed 900000 26.03 -> 28.06, but seed 900998 33.17 -> 33.10 and 900997 21.13 ->
-    20.85 (DTU not measured); 0.02: demo 26.54; 0.08: demo 26.33. Kept at 0.05 until that split is understood."""
+    ``occlusion_outvoted``, 0.03 instead raised the demo scene and one procedural scene but lowered two others (DTU
+    not tried), so 0.05 is kept until that split is understood."""
     occlusion_outvoted: bool = True
     """That check drops a pixel only when the maps that see a surface in front of it outnumber the maps that confirm
     its depth (:func:`fusion.consistency` counts), not on a fixed count alone: stereo's mismatches near a dark
-    object's base agree with each other and voted correct ground depth away (the demo's "skirt"). Demo scene,
-    stereo+model, depth at the 18 training views against the exact depth: correct pixels (within 3 %) dropped
-    4,797 -> 2,393, too-far pixels dropped 20,149 -> 19,956 of 28,229; held-out mesh path before tuning
-    (``python -m bench depth_sources --rows "demo:stereo+model, nearest 6" "demo:stereo+model, nearest 6, angle
-    blend"``) 26.36 -> 26.52 dB, angle blend 26.62 -> 26.75; the same maps, synth:eval seeds 900998 / 900997 /
-    900000: 32.88 -> 33.17 / 20.78 -> 21.13 / 25.72 -> 26.03 dB (angle blend 33.29 -> 33.60 / 20.79 -> 21.11 / 25.58
-    -> 25.86); dtu_scan37 (default row, over the mask) 22.02 -> 22.03. Dropping only when the votes exceed twice the
-    confirmations: 26.21 (demo, angle blend); trusting only points two maps confirm: 26.23 / 26.51."""
+    object's base agree with each other and voted correct ground depth away (the demo's "skirt"). On the demo
+    scene's stereo+model maps it halves the correct pixels dropped and keeps dropping the too-far ones; the held-out
+    mesh path rises on the demo scene and on procedural scenes, and dtu_scan37 stays as it was (``python -m bench
+    depth_sources --rows "demo:stereo+model, nearest 6" "demo:stereo+model, nearest 6, angle blend"``). Dropping
+    only when the votes exceed twice the confirmations, or trusting only points two maps confirm, scored lower."""
     free_space: int = 0
     """With that check, object captures without masks: also drop a pixel's depth when at least this many other
     maps see past its point (:func:`fusion.free_space_votes`: all 4x4 pixels around its projection hold trusted
     depth more than ``free_space_rel`` farther; 0 = off). Stereo gives the ground beside a dark object's base the
-    object's depth (stereo+model maps of the demo scene: 41-82 % of the pixels > 3 % too near flagged, 0.1-2.5 %
-    of those within 3 %). Demo scene, stereo+model, held-out mesh path at ``finetune --nearest 6`` before
-    tuning, 0 -> 2: whole image 26.00 -> 26.07 dB, sphere 23.95 -> 24.45, ground 25.12 -> 25.36, but the box
-    21.52 -> 20.55 (3 maps: 26.05; a 2x2 window: 26.03; down-weighting instead of dropping: 26.01); procedural
-    seed 900998: 32.859 -> 32.862. Off: on seed 900997 (24 views, 128 px) the stages after fusion ran for more
-    than 10 CPU-minutes without finishing (the whole mesh took about 1 without the check): not yet understood."""
+    object's depth. On the demo scene, 0 -> 2 raised the whole image, the sphere and the ground a little and lowered
+    the box (3 maps, a 2x2 window or down-weighting instead of dropping did no better). Off: on one procedural
+    scene the stages after fusion ran for more than ten CPU-minutes without finishing with it: not yet
+    understood."""
     free_space_rel: float = 0.03
     """Relative depth margin of that check."""
     fill_holes: int = 1000
@@ -233,12 +216,10 @@ class MeshOptions:
     has at most this many edges (:func:`clean.close_holes`: pymeshlab's hole closing after repairing non-manifold
     edges, else the simple loops of :func:`clean.close_small_holes`; 0 = off). Fusion leaves holes where stereo's
     mismatches on dark objects and beside outlines were dropped or carved, and completion's per-pixel fills
-    leave cracks between themselves and the fused surface when seen from between the training views: on the
-    demo scene 297 held-out pixels (of 49k) saw no surface before completion, 173 after; with this 75 / 35.
-    Demo scene, stereo+model, held-out mesh path (occlusion test on): whole image 22.73 -> 23.66 dB, ground 21.06
-    -> 22.19, box 20.09 -> 20.75, sphere 20.78 -> 20.96; 300 edges gave 23.34, 5000 23.73. Not on forward-facing
-    scenes (their backdrop layer covers the gaps) nor with object masks (DTU: not measured; the hull trim and
-    completion there work inside the masks)."""
+    leave cracks between themselves and the fused surface when seen from between the training views; closing them
+    halves the held-out pixels of the demo scene that see no surface and raises its held-out mesh path (fewer
+    edges gained less, more about the same). Not on forward-facing scenes (their backdrop layer covers the gaps)
+    nor with object masks (DTU: not tried; the hull trim and completion there work inside the masks)."""
     fill_holes_cpu_seconds: float = 60.0
     """CPU-time limit of that hole closing (pymeshlab's, run in a child process: it once ran for more than ten
     CPU-minutes on a fused mesh); past it the simple-loop closer (:func:`clean.close_small_holes`) does the job and
@@ -252,12 +233,10 @@ class MeshOptions:
     refine: str = "stereo"
     """Photometric refinement of the stereo maps (:mod:`omnirecon.mesh.stereo_refine`), object captures without
     masks only: ``none``, ``stereo`` (the stereo maps before the model fills their holes) or ``all`` (the maps
-    fusion gets). It removes stereo's bias toward the ground behind dark objects (demo scene, voted stereo at the
-    training views: sphere +1.37 -> +0.28 % median, cone +0.69 -> +0.33 %). Demo scene, stereo+model, held-out
-    mesh path at ``finetune --nearest 6`` before tuning, ``none`` -> ``stereo``: whole image 25.64 -> 25.99 dB;
-    cone 15.39 -> 17.85, sphere 21.10 -> 24.12, green cylinder 23.61 -> 24.41, ground 25.02 -> 25.00, box 22.13
-    -> 21.73 (its lower edges recede). ``all`` (with an older span of 0.06, where ``stereo`` gave 25.92): 25.58.
-    +3-5 CPU-s. Not on forward-facing scenes nor with masks (not measured there)."""
+    fusion gets). It removes stereo's bias toward the ground behind dark objects; on the demo scene ``none`` ->
+    ``stereo`` raised the held-out mesh path (cone and sphere most; the box's lower edges recede), and ``all``
+    scored lower than ``stereo``. It costs a few CPU-seconds. Not on forward-facing scenes nor with masks (not
+    tried there)."""
     refine_options: RefineOptions = field(default_factory=RefineOptions)
     """Settings of that refinement."""
     chunk: int = 4096
@@ -688,13 +667,11 @@ def fit_budget(mesh: trimesh.Trimesh, fused: trimesh.Trimesh, completion: dict |
                options: MeshOptions, counts: dict, fill: bool) -> tuple[trimesh.Trimesh, dict | None]:
     """The completed ``mesh`` over ``options.max_faces``: the fused surface gets what completion leaves of the
     budget and completion runs again on it (its fills match the surface that is written); a last small overshoot
-    (the coarser surface needs a few more fills) comes off the fused part. fern, 17 views at 336x252, 200k budget: 200,000 fused
-    + 3,664 closing + 105,354 fill + 17,680 backdrop = 326,698 faces without this; with it 69,071 fused + 113,248
-    fill + 17,680 backdrop = 199,999. Held-out whole image (``python -m bench depth_sources --rows "fern:stereo+fill,
-    nearest 6"``, before tuning) 24.01 -> 23.92 dB; a 300k budget (167k fused) 24.00. Mesh path at 336x252, one
-    thread: 87 -> 75 CPU-ms a frame. Decimating the completed mesh as a whole instead: 23.90 dB (23.86 with the
-    fills' shared corners merged first). ``complete_fn(fused) -> (mesh, completion)`` is the pipeline after the
-    face budget."""
+    (the coarser surface needs a few more fills) comes off the fused part. Without this a budget held only the
+    fused surface, and the fills and a backdrop came on top of it; decimating the completed mesh as a whole instead
+    scored lower on fern's held-out views (``python -m bench depth_sources --rows "fern:stereo+fill, nearest 6"``;
+    face counts and scores per budget: BENCHMARKS "Depth sources", "Real-time mesh path").
+    ``complete_fn(fused) -> (mesh, completion)`` is the pipeline after the face budget."""
     budget = options.max_faces
     extra = len(mesh.faces) - len(fused.faces)  # completion's faces (and Poisson's change)
     added = len(fused.faces) - counts["decimated"]  # the hole closers' faces
@@ -830,18 +807,17 @@ def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> st
     ``stereo`` below is stereo with completion (``MeshOptions.complete``, on by default; the bench's
     ``stereo+fill`` row):
 
-    * forward-facing captures (``scene.rig == "forward"``): ``stereo``, model or not. fern
-      (``--rows fern:stereo+fill fern:stereo+model``), whole image 21.84 -> 22.13 dB against 21.76 -> 22.06 for
-      ``stereo+model``, both at 100 % coverage, and no model pass (render stage 2.5 s against 6.3 s);
-    * object captures meshed with their masks (``--masks``): ``stereo``. dtu_scan24 / dtu_scan37 (14 views,
-      ``--rows dtu_scan24:stereo+fill dtu_scan24:stereo+model ...``) over the mask 18.45 / 14.92 -> 15.19 dB,
-      IoU 0.966 / 0.956, against 18.26 / 14.66 dB, IoU 0.972 / 0.957 for ``stereo+model``;
+    * forward-facing captures (``scene.rig == "forward"``): ``stereo``, model or not. On fern it scores a little
+      above ``stereo+model`` (``--rows fern:stereo+fill fern:stereo+model``), both cover every pixel, and it needs
+      no model pass;
+    * object captures meshed with their masks (``--masks``): ``stereo``. On dtu_scan24 / dtu_scan37 (``--rows
+      dtu_scan24:stereo+fill dtu_scan24:stereo+model ...``) it scores above ``stereo+model`` over the mask at about
+      the same IoU;
     * other scenes with a model (object rigs without masks, unknown rigs): ``stereo+model`` (stereo where it
-      matched, the model's coarse depth at 128 px for the rest). The demo's procedural scene
-      (``--rows demo:stereo+fill demo:stereo+model``, 3 fixed sources) 23.66 -> 24.08 dB against 23.29 -> 23.68
-      for ``stereo``;
-      and on a 3-view procedural capture stereo alone left the held-out depth coverage at 0.27
-      (``tests/mesh/test_mesh.py::test_mesh_cli_floor``): stereo pairs only views within 60 degrees;
+      matched, the model's coarse depth at 128 px for the rest). It scores above ``stereo`` on the demo's
+      procedural scene (``--rows demo:stereo+fill demo:stereo+model``), and on a 3-view procedural capture stereo
+      alone left most held-out depth uncovered (``tests/mesh/test_mesh.py::test_mesh_cli_floor``): stereo pairs
+      only views within 60 degrees;
     * without a model, ``stereo``.
     """
     rig = getattr(scene, "rig", "unknown")

@@ -70,8 +70,8 @@ def hull_keep(mesh: trimesh.Trimesh, cameras: Cameras, masks: np.ndarray, misses
 def restore_seen(mesh: trimesh.Trimesh, keep: np.ndarray, cameras: Cameras, masks: np.ndarray) -> np.ndarray:
     """``keep # [F]`` (bool, e.g. :func:`hull_keep`) plus every face that some view of ``cameras`` sees first at a
     pixel of its mask (``masks # [N, H, W]`` bool, undilated) that the kept faces leave uncovered: a trim never
-    deletes surface the training views see and nothing else covers (dtu_scan37's completed mesh lost 1.5-2.9 % of
-    training views 46/47 to the visual-hull trim). Both sides of every face are rasterized. ``# [F]`` bool"""
+    deletes surface the training views see and nothing else covers (dtu_scan37's completed mesh lost a few per cent
+    of some training views' masks to the visual-hull trim). Both sides of every face are rasterized. ``# [F]`` bool"""
     from omnirecon.render.raster import MeshRasterizer
 
     keep = keep.copy()

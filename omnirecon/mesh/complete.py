@@ -7,7 +7,7 @@ that view's own depth:
 1. the depth source's map of the view where it has depth (a pixel fusion dropped: low confidence,
    no second view to confirm it, outside the bounds),
 2. for forward-facing and unbounded scenes, depth past the bounds box clamped onto the box's far
-   side (a backdrop; stereo.md measured +2.4 dB whole-image on fern from it), and pixels without any
+   side (a backdrop, which raised fern's held-out whole image: stereo.md), and pixels without any
    depth placed on that backdrop,
 3. otherwise the nearest known depth (the mesh's or the map's) in the image: hole filling.
 
@@ -23,11 +23,11 @@ Forward-facing scenes get two more rules:
 
 * **No fill hides what another view sees** (:func:`occluding`): a fill point nearer than the surface some
   other view sees along its ray goes to the backdrop. On fern such fills (from the views' own unconfirmed
-  stereo depth) covered 9 % of the held-out pixels and doubled their error: completion lowered the
-  whole image from 21.24 to 20.68 dB; with the rule it raises it.
+  stereo depth) covered part of the held-out pixels and doubled their error: completion lowered the
+  whole image; with the rule it raises it.
 * **A backdrop layer** (:func:`backdrop_sheet`): a coarse surface on the bounds' far side over every view
   grown by 10 %, behind everything, for the rays that miss every other surface: gaps seen from between
-  the views and what lies past the training views' borders (fern: held-out coverage 98.3 -> 100 %).
+  the views and what lies past the training views' borders (fern: every held-out pixel covered).
 
 "Where the photo has content": inside the (dilated) object masks when the mesh was cleaned with masks;
 everywhere on forward-facing scenes; elsewhere, the pixels where the depth source saw a surface
@@ -130,7 +130,7 @@ def occluding(camera: Cameras, depth: np.ndarray, region: np.ndarray, others: Ca
     them ``others_depth # [M, H, W]``, 0 = none) at a z-depth more than ``rel`` (relative) nearer than the
     mesh there (the nearest of the four pixels around the projection, so a depth edge flags nothing). That view
     sees through the point, so a fill there would hide surface it saw (on fern, such
-    fills from the views' own unconfirmed stereo depth covered 9 % of the held-out pixels and doubled their
+    fills from the views' own unconfirmed stereo depth covered part of the held-out pixels and doubled their
     error). ``# [H, W]`` bool"""
     out = np.zeros(region.shape, dtype=bool)
     rows, cols = np.nonzero(region & (depth > 0))
@@ -163,8 +163,8 @@ def backdrop_sheet(cameras: Cameras, bounds: Tensor, pad: float, cell: int = 16)
     """The backdrop layer of a forward-facing scene as a surface: for each view, its image grown by ``pad``
     (a fraction of the long side) on every side, in cells of ``cell`` pixels, on the bounds box's far side
     (where each cell's ray leaves the box). Behind every other surface, it is what a ray sees that misses
-    them all: gaps between surfaces seen from between the views, and past the views' borders (on fern,
-    1.7 % of the held-out pixels after the per-pixel fills). About ``2 (W / cell) (H / cell)`` faces a view."""
+    them all: gaps between surfaces seen from between the views, and past the views' borders (on fern, a few
+    held-out pixels in a hundred after the per-pixel fills). About ``2 (W / cell) (H / cell)`` faces a view."""
     from omnirecon.mesh.fusion import exit_depth
 
     grow = round(pad * max(cameras.width, cameras.height))

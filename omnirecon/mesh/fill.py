@@ -32,9 +32,8 @@ def layer_box(rig: str, bounds: Tensor | None) -> Tensor | None:
     """The box whose far side carries the background layer: ``bounds``, except on object rigs (``None``: the layer
     at the sources' far z-depth). An object capture's bounds hug the object, so a layer on the box's far side sits
     just behind it, and sources tens of degrees away see the object there: on DTU it painted streaks of the object
-    beside it. At the far z-depth the nearest sources see what lies past the object (dtu_scan24 / 37, the 4 nearest
-    sources, held-out whole image 20.44 -> 21.09 / 17.18 -> 18.69 dB, over the masks 24.69 -> 24.70 / 21.03 ->
-    20.97: ``python -m bench dtu_split``)."""
+    beside it. At the far z-depth the nearest sources see what lies past the object: on dtu_scan24 and dtu_scan37
+    the held-out whole image rose and the masks stayed about the same (``python -m bench dtu_split``)."""
     return None if rig == "object" else bounds
 
 
@@ -94,16 +93,16 @@ def with_fill(surface: Surface, camera: Cameras, far: float, bounds: Tensor | No
 
 NEAREST_FILL_REACH = 0.15
 """The nearest fill moves the missed pixels within this fraction of the image's long side of a covered pixel (the
-rest keep the far layer). dtu_scan37, angle blend, nearest 4, held-out mask / whole image: far layer 21.53 / 17.84 dB;
-reach 3 px 21.86 / 18.13, 8 px 21.89 / 18.52, 20 px 21.89 / 19.20, 60 px (0.15) 21.89 / 19.76; every pixel 21.89 / 18.23
-(far background, e.g. the dark table, is better on the far layer)."""
+rest keep the far layer). On dtu_scan37 (angle blend, nearest 4) the held-out mask score is the same from a few
+pixels' reach on, and the whole image rises with the reach up to this one; every pixel scored lower (far background,
+e.g. the dark table, is better on the far layer)."""
 
 
 CRACK_RADIUS = 2
 """Cracks (:func:`crack_pixels`) are closed with a ``(2 r + 1)``-pixel square: gaps up to about ``2 r`` pixels wide
-that the mesh encloses. Held-out mesh path before tuning (``finetune --nearest 6``, the procedural scenes' background
-colour where nothing is covered, their ``stereo+model`` meshes): synth:eval seed 900997 21.13 dB whole image with no
-crack fill, r = 1 21.67, 2 21.87, 3 21.85; the demo scene 26.52 -> 26.61 at r = 2."""
+that the mesh encloses. On the held-out mesh path before tuning (``finetune --nearest 6``, the procedural scenes'
+background colour where nothing is covered, their ``stereo+model`` meshes) r = 2 scored best of 0-3 on a procedural
+scene and raised the demo scene."""
 
 
 def crack_pixels(covered: np.ndarray, radius: int = CRACK_RADIUS) -> np.ndarray:

@@ -5,7 +5,7 @@ set (:class:`omnirecon.mesh.build.MeshOptions`):
 
 * **Scale from the depth maps** (:func:`auto_scale`): the voxel is half the pixel footprint at the
   median depth (with exact depth at every view of a 128-px procedural scene, a one-footprint voxel
-  lost 1.0 dB of mesh-path PSNR at object outlines, half a footprint 0.2 dB), and the truncation,
+  lost mesh-path PSNR at object outlines, half a footprint much less), and the truncation,
   4 voxels, widens to twice the depth error the maps show (:func:`depth_disagreement`).
 * **Sub-pixel depth** (:func:`sample_depth`): each voxel reads the depth map bilinearly at its exact
   projection, falling back to the nearest pixel across depth edges (VolRecon's protocol: nearest).

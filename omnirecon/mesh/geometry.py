@@ -63,7 +63,7 @@ def sample_points(mesh: trimesh.Trimesh, count: int, seed: int = 0) -> np.ndarra
 def nearest_distances(query: np.ndarray, points: np.ndarray, workers: int = 1, upper: float = np.inf) -> np.ndarray:
     """Distance from each ``query # [Q, 3]`` point to its nearest neighbour in ``points`` (scipy cKDTree);
     ``inf`` for a point with none closer than ``upper`` (exact below it: the tree stops searching there,
-    2-4x faster when many points are far, as a mesh's background is from an objects-only ground truth)."""
+    faster when many points are far, as a mesh's background is from an objects-only ground truth)."""
     from scipy.spatial import cKDTree
 
     if len(query) == 0:

@@ -45,7 +45,7 @@ blended with ``omega``.
 appearance projection is applied to the feature maps (``W F_i + b``; bilinear sampling is linear and
 its weights sum to 1, so sampling that map equals ``W f + b``; the map's zero padding becomes a
 border of ``b``), and the ``K`` maps become one texel table sampled with ``embedding_bag`` (a
-weighted sum of 4 rows: about 6x faster than ``grid_sample`` for 16 channels on the CPU). Per frame,
+weighted sum of 4 rows: several times faster than ``grid_sample`` for 16 channels on the CPU). Per frame,
 points go through in chunks; where fewer than two sources see a point its weights need no network
 (one source: weight 1 exactly, as the softmax gives against the others' ``-1e9`` logits; none: ``1 / K``
 each), so only the other points are compacted and shaded; every MLP layer is one matrix product over all
@@ -127,9 +127,8 @@ class MeshRenderOptions:
     soften: float = 0.0
     """Blur the colour at the mesh's depth edges by a Gaussian of this many pixels (0: off;
     :func:`omnirecon.render.edges.soften_edges`), as ``finetune --soften`` scores (its record's ``"soften"``:
-    :func:`realtime_setting`). 11.6 CPU-ms per 400x300 frame (1 thread, dtu_scan37's view 48); ``python -m bench
-    realtime_blend`` with it: dtu_scan37 / dtu_scan24 / fern 22.71 / 26.37 / 24.59 dB against finetune's 22.71 / 26.36
-    / 24.59. The web viewer does not do it."""
+    :func:`realtime_setting`); ``python -m bench realtime_blend`` checks it scores what finetune scores
+    (BENCHMARKS "Real-time mesh path against finetune's scores"). The web viewer does not do it."""
     visibility: bool = False
     """Mask out sources in which the surface point is occluded (a depth test against each source's
     rasterized depth map, computed once per scene). The paper has no such test."""
@@ -143,8 +142,8 @@ class MeshRenderOptions:
     """Fused appearance branch (same function, faster; Omni-Recon only) instead of ``model.shade``."""
     chunk: int = 32768
     """At most this many surface points per chunk (``K x chunk`` point-view pairs); chunks are equal, as many
-    as needed, rounded up to an even number (larger chunks: fewer Python calls per frame;
-    32768 measured ~13 % less CPU per frame than 8192 at 504x378)."""
+    as needed, rounded up to an even number (larger chunks: fewer Python calls per frame, less CPU per frame
+    than 8192 at 504x378)."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -280,8 +279,8 @@ def angle_weights(points: Tensor, origin: Tensor, centers: Tensor, seen: Tensor,
 
     ``points # [P, 3]``, ``origin # [3]`` (the target camera centre), ``centers # [K, 3]`` (the sources'),
     ``seen # [P, K]`` bool. Returns ``# [P, K]``. On DTU's wide rig this blend beat the appearance network's
-    weights over the same visible sources (``finetune --blend angle``: held-out mask PSNR +0.5 dB on dtu_scan24 and
-    dtu_scan37; the FinetuneConfig field has the numbers)."""
+    weights over the same visible sources (``finetune --blend angle``, held-out mask PSNR on dtu_scan24 and
+    dtu_scan37: BENCHMARKS "Depth sources")."""
     d_t = F.normalize(points - origin, dim=-1)  # [P, 3] target -> point
     d_s = F.normalize(points[:, None] - centers[None].to(points), dim=-1)  # [P, K, 3] sources -> point
     return lumigraph_weights(torch.arccos((d_s * d_t[:, None]).sum(-1).clamp(-1, 1)), seen, k)
@@ -315,10 +314,10 @@ def mask_falloff(masks: Tensor, reach: float = MASK_REACH, floor: float = MASK_F
     off the objects). A surface point whose projection in a source lands on that source's background (DTU's white
     table or black backdrop) or on its object's edge takes the background's colour there: the mesh's silhouette and
     thin parts (handles, blade edges) miss the object's by a pixel or two, and the blend drew a light rim on the brick's
-    edges. Measured (``python -m bench depth_sources``, the ``, no source masks`` rows; BENCHMARKS "Depth sources"):
-    dtu_scan37 held-out mask PSNR 21.72 -> 22.02 dB at the defaults (whole image 19.68 -> 19.67; weighing the fill's
-    points too gave mask 22.06 but whole image 18.93). Reach 1-3 px and floor 0.02-0.2 scored within 0.05 dB of
-    each other; the mesh's own silhouette in each source instead of its mask gained half as much. ``# [K, H, W]``"""
+    edges. It raises dtu_scan37's held-out mask PSNR and leaves the whole image as it was; weighing the fill's points
+    too lowered the whole image. Reach 1-3 px and floor 0.02-0.2 scored alike; the mesh's own silhouette in each
+    source instead of its mask gained less (``python -m bench depth_sources``, the ``, no source masks`` rows;
+    BENCHMARKS "Depth sources"). ``# [K, H, W]``"""
     from scipy.ndimage import distance_transform_edt
 
     m = masks.bool().cpu().numpy()
@@ -366,17 +365,15 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
     """The mesh path's default ``(blend, fill)`` per scene kind (``finetune --blend auto --fill auto``, the
     real-time renders of ``demo`` / ``reconstruct`` and the viewer's start): ``rig`` (``"object"`` or
     ``"forward"``), whether the scene has object ``masks``, whether its ``background`` colour is known
-    (procedural scenes). Measured at ``finetune``'s ``--nearest 6``, held-out, before tuning (``python -m bench
-    depth_sources``, BENCHMARKS "Depth sources"; numbers in ``FinetuneConfig.blend``):
+    (procedural scenes). Chosen at ``finetune``'s ``--nearest 6``, held-out, before tuning (``python -m bench
+    depth_sources``, BENCHMARKS "Depth sources"):
 
     * real object captures (no known background colour), with masks (DTU) or without (a user's photos): the angle
-      blend and the nearest fill. Without masks (stereo+model meshes, whose completion puts no fill where another
-      view sees past it), held-out whole image, network blend + far layer -> angle blend + nearest fill: fox 21.78 ->
-      22.48 dB, ethiopianHead meshed without its masks 19.23 -> 20.57 (angle blend + far layer: 22.20, 20.36;
-      before that completion check, network + far layer: 21.94, 18.30);
+      blend and the nearest fill, which beat the network blend and the far layer on DTU, fox and ethiopianHead
+      meshed without its masks;
     * a known background colour (procedural scenes): the network's blend and that colour (the nearest fill paints
-      the sky beside the objects: the demo 26.00 -> 23.99 dB; the angle blend measured +0.31 dB on the demo but
-      leaves ``finetune`` nothing to tune, so it is not the default there);
+      the sky beside the objects; the angle blend scores a little higher on the demo but leaves ``finetune``
+      nothing to tune, so it is not the default there);
     * otherwise (forward-facing scenes such as fern): the network's blend and the far layer. (``masks`` no longer
       changes the choice.)"""
     real_object = rig == "object" and not background
@@ -394,17 +391,15 @@ def masks_hold_scene(scene) -> bool:
 
 REALTIME_SOURCES = 6
 """Source views per frame of the real-time mesh path's network blend when no ``finetune`` record says otherwise:
-``finetune --nearest``'s default (each view blends its 6 nearest sources; the videos blended 3 before session 16).
-The angle blend takes every training view (``"sources": 0``), each point its nearest among them, as finetune scores
-it: ``python -m bench realtime_blend`` (BENCHMARKS "Real-time mesh path"), the held-out DTU views rendered frame by
-frame with 6 sources per frame scored dtu_scan37 / dtu_scan24 mask 21.97 / 25.49 dB, with every source 22.04 / 25.82
-(finetune: 22.02 / 25.82) at about 4x the CPU per frame (91 -> 361 ms at 400x300, one thread); since the fused shader
-tests occlusion and samples colours at each point's nearest sources only (:meth:`MeshRenderer._angle_top`), every
-source costs dtu_scan37 / dtu_scan24 201 / 217 CPU-ms per frame (358 / 400 before, same run and load; the same scores
-to 1e-5 dB over the masks)."""
+``finetune --nearest``'s default (each view blends its 6 nearest sources). The angle blend takes every training view
+(``"sources": 0``), each point its nearest among them, as finetune scores it: with 6 sources per frame the held-out
+DTU views scored below finetune, with every source as finetune does, at more CPU per frame; the fused shader tests
+occlusion and samples colours at each point's nearest sources only (:meth:`MeshRenderer._angle_top`), which keeps
+that cost down with the same scores (``python -m bench realtime_blend``; BENCHMARKS "Real-time mesh path against
+finetune's scores")."""
 REALTIME_ANGLE_SOURCES = 4
 """Sources per point of the real-time angle blend when no ``finetune`` record says otherwise: what ``finetune
---angle-sources 3 4 6 8`` chose on its validation views on dtu_scan24 and dtu_scan37 (6 before session 16)."""
+--angle-sources 3 4 6 8`` chose on its validation views on dtu_scan24 and dtu_scan37."""
 
 
 def realtime_setting(scene, record: dict | None = None) -> dict:

@@ -11,10 +11,10 @@ from that agreement, so an occluded or mismatched pair loses its vote.
 
 Three details that matter: the disparity search range comes from the scene bounds (the depth range of the part of
 the bounds box the view sees); the other image's canvas is shifted by the smallest disparity of that range, so that
-converging cameras' correspondences stay on it (a pair 32 degrees apart on the demo scene read depths 90 % too far
-without it: what it sees at the canvas' left lay off the other canvas); and both images are padded on the left by
-the search range, since SGBM leaves that band of the left image unmatched (on DTU 26 % -> 77 % of the pixels
-matched with the padding). Last, each view's depth is checked against the other views' maps
+converging cameras' correspondences stay on it (without it a pair 32 degrees apart on the demo scene read depths
+far too far: what it sees at the canvas' left lay off the other canvas); and both images are padded on the left by
+the search range, since SGBM leaves that band of the left image unmatched (on DTU the padding about triples the
+pixels matched). Last, each view's depth is checked against the other views' maps
 (``StereoOptions.confirm``): a depth no other view confirms is dropped.
 """
 
@@ -67,29 +67,22 @@ class StereoOptions:
     not precision, is what the whole-image score punishes)."""
     match_side: int = 640
     """Match each rectified pair on a grid whose long side is at least this many pixels (finer than
-    photos smaller than that, at most twice as fine; the disparity is read back at the view's own pixels; 0 = the photos' own
-    grid): sub-pixel disparity and a block that covers less of a small object or a thin part. Demo scene (128 px,
-    ``bench/depth_sources.py``), stereo+model: matched at 256 px, stereo outliers (> 5 % off the exact
-    depth) sphere 30 -> 25 %, box 35 -> 26 %, green object 16 -> 10 %, ground 28 -> 24 %; held-out mesh
-    path 20.68 -> 21.04 dB whole image, F-score 0.958 -> 0.978 (384 px: 20.92). 256 -> 640 (``python -m bench
-    depth_sources``, the ``, match N`` rows; the demo's 128 px stays at 256, the 2x cap): DTU's 400x300 matched at
-    640x480, held-out mask PSNR at the defaults (angle blend, nearest fill, angle auto) dtu_scan37 22.02 -> 22.47 dB
-    (all 8 held-out views 21.04 -> 21.42), dtu_scan24 25.82 -> 26.10 (8 views: 25.07 -> 25.32; whole image 21.03 -> 20.68, dtu_scan37 19.67 -> 19.86); fern's 336x252
-    matched at 640x480, nearest 6 + angle blend 24.15 -> 24.31 dB whole image. Stereo CPU-s per view (1 thread):
-    dtu_scan37 0.26 -> 0.79; images -> mesh CPU-s (loaded machine) dtu_scan37 56 -> 78, dtu_scan24 82 -> 98, fern
-    50 -> 52. At 800 (800x600): dtu_scan37 22.59 (8 views 21.48), dtu_scan24 26.21 (25.42), fern 24.29, but 1.27
-    CPU-s per view on DTU (the issue's budget is 1 s). A 3-px block at the photos' grid instead (dtu_scan37, 8
-    views): 20.92."""
+    photos smaller than that, at most twice as fine; the disparity is read back at the view's own pixels; 0 = the
+    photos' own grid): sub-pixel disparity and a block that covers less of a small object or a thin part. On the
+    demo scene matching finer cut the stereo outliers on every object and raised the held-out mesh path and the
+    F-score; 256 -> 640 raised DTU's held-out mask PSNR and fern's whole image at several times the stereo CPU
+    per view (``python -m bench depth_sources``, the ``, match N`` rows; the demo's 128 px stays at 256, the 2x
+    cap). 800 scored about the same as 640 at more than the stereo budget of one CPU-second per view on DTU; a 3-px
+    block at the photos' grid instead scored lower (BENCHMARKS "Depth sources")."""
     equalize: bool = False
     """Equalise each rectified pair's contrast (CLAHE on its lightness) before matching. On the demo scene
-    it raised the outliers on every object (dark sphere 30 -> 45 %); off."""
+    it raised the outliers on every object; off."""
     confirm: int = 0
     """Multi-view geometric consistency: keep a pixel's depth only when at least this many other views'
     stereo maps agree with it (forward-backward reprojection within ``agree`` and 1 px, up to 8 nearest
-    maps; 0 = keep all: the fusion weighs each pixel by that agreement anyway). On the demo scene 25 % of
-    the stereo pixels had no other map agreeing and 70 % of those were > 10 % off the exact depth (1 map:
-    23 %, 2: 4 %), yet with the default mesh settings dropping them (``stereo+model`` fills them from the
-    model) cost the mesh path 0.1 dB whole image and 0.26 dB over the objects on held-out views; off."""
+    maps; 0 = keep all: the fusion weighs each pixel by that agreement anyway). On the demo scene a quarter of the
+    stereo pixels had no other map agreeing and most of those were far off the exact depth, yet with the default
+    mesh settings dropping them (``stereo+model`` fills them from the model) lowered the held-out mesh path; off."""
 
     def check(self) -> None:
         """One-line :class:`InputError` for a bad setting."""

@@ -2,8 +2,8 @@
 
 Stereo's matching windows straddle object outlines: on a dark, weakly textured object before a bright
 textured ground the ground's texture decides the match, so the object's depth comes out biased toward
-the ground behind it (demo scene, voted stereo at the training views: the dark sphere +1.4 % median, the
-cone +0.7 %, half their pixels more than 1 % off). :func:`refine_depths` tests, per pixel, the depth
+the ground behind it (demo scene, voted stereo at the training views: the dark sphere and the cone come out
+too far, about half their pixels by more than 1 %). :func:`refine_depths` tests, per pixel, the depth
 scaled by ``1 + s`` for shifts ``s`` in ``[-span, span]`` and keeps the one whose colour the neighbouring
 views agree with best:
 
@@ -23,17 +23,14 @@ Pixels without depth stay without; the shift ``0`` is one of the tested ones, so
 when some other depth explains the photos better. Gross errors away from outlines (the ground's depth inside an
 object, > 6 %) are out of its reach: fusion's consistency and occlusion checks deal with those.
 
-Measured on the demo scene (``MeshOptions.refine``, where the numbers are): the voted maps' median bias
-at the training views, sphere +1.37 -> +0.28 %, cone +0.69 -> +0.33 %, ground +0.23 -> +0.08 %; the held-out
-mesh path at ``--nearest 6`` 25.64 -> 25.99 dB whole image, the dark cone 15.39 -> 17.85 dB, sphere 21.10 ->
-24.12, but the box 22.13 -> 21.73 dB (at ``span`` 0.06 the box fell to 19.89; with the box's pixels left
-unrefined, a diagnostic that reads the scene's labels, box 21.36 and whole 26.12 at 0.06: the box is not less
-textured than the cone by the weighted colour spread of its windows, so no texture test separates it).
+On the demo scene (``MeshOptions.refine``) it shrinks the voted maps' median bias at the training views on the
+sphere, the cone and the ground, and raises the held-out mesh path at ``--nearest 6`` (the dark cone and the sphere
+most), but lowers the box (more so at a larger ``span``; the box is not less textured than the cone by the weighted
+colour spread of its windows, so no texture test separates it).
 Only the pixels with depth are scored, each window gathered from their rows (the pixels without depth weigh
 nothing in a window): the same costs as a dense pass over the image, bit for bit, at a cost that follows the pixels
-with depth. The stereo maps come here without the scene's known background colour (``MeshOptions.drop_background``):
-NeRF-synthetic's lego at 400x400, 0.05 of its pixels with depth in that test, 2.24 -> 0.31 CPU-s per view (one
-thread); the demo's 128 px 0.24 -> 0.08.
+with depth. The stereo maps come here without the scene's known background colour (``MeshOptions.drop_background``),
+so a scene with few pixels of depth (NeRF-synthetic's lego) costs a fraction of a dense pass.
 """
 
 from __future__ import annotations
@@ -54,8 +51,8 @@ class RefineOptions:
     """Settings of :func:`refine_depths`."""
 
     span: float = 0.04
-    """Largest relative depth change tested (each side). Demo scene, held-out whole image at ``--nearest 6``
-    (box): 0.02 25.95 dB (21.94), 0.03 26.00 (21.39), 0.04 25.99 (21.73), 0.06 25.92 (19.89); none 25.64 (22.13)."""
+    """Largest relative depth change tested (each side). On the demo scene 0.03-0.04 scored best on the held-out
+    whole image; larger spans lowered the box."""
     steps: int = 17
     """Shifts tested over ``[-span, span]`` (odd, so that 0 is one of them; 0.5 % apart by default)."""
     neighbours: int = 4
@@ -73,7 +70,7 @@ class RefineOptions:
     """Per-pixel cost cap (L1 over RGB)."""
     keep_borders: bool = False
     """Keep the depth of pixels next to a pixel without depth (the map's borders, e.g. the ground's edge
-    before the sky). Demo scene, held-out whole image at ``--nearest 6``: 25.92 dB without, 25.81 with."""
+    before the sky). Keeping them scored lower on the demo scene's held-out whole image."""
     min_gain: float = 0.0
     """Move a pixel only where the best shift's cost is at least this much below the unshifted depth's
     (flat cost curves of untextured faces keep their depth)."""
@@ -82,20 +79,18 @@ class RefineOptions:
     half the distance) and keep the one its photo agrees with best (PatchMatch's spatial propagation; 0 = off):
     reaches the gross errors at outlines that the sweep cannot, e.g. the ground beside an object's base that stereo
     gave the object's depth. On the demo scene the exact depth within 3 px of the label outlines alone (a
-    diagnostic) took the held-out mesh path at ``--nearest 6`` from 26.00 to 27.86 dB (the exact mesh 28.26): the
-    loss is at outlines. Held-out whole image, 0 -> 1 / 2 / 4 / 8 px: 26.00 -> 26.14 / 26.36 / 26.21 / 26.22 dB
-    (2 px, two passes: 26.21); procedural seed 900998: 32.86 -> 32.88 (2 px) / 33.04 (4 px), exact mesh 35.31; seed
-    900997: 20.97 -> 20.78 (2 px; pixels the mesh covers 23.29 -> 23.63, the far ground's edge before the sky
-    recedes). Covered-pixel PSNR rose on all three; whole-image changes of 0.2 dB are within what near-identical
-    settings of the pipeline scatter on one scene (stereo+model, ``python -m bench depth_sources`` scoring).
-    It doubles the refinement's cost: 2.1 -> 4.1 CPU-s for the demo's 18 views of 128 px (one thread); refining
-    the model-filled maps too (``MeshOptions.refine="all"``) gave 26.33."""
+    diagnostic) recovered most of the gap to the exact mesh: the loss is at outlines. 2 px scored best of 1, 2, 4 and
+    8 px on the demo scene's held-out whole image; on two procedural scenes the pixels the mesh covers rose too
+    while the whole image moved within what near-identical settings of the pipeline scatter on one scene
+    (stereo+model, ``python -m bench depth_sources`` scoring). It doubles the refinement's cost; refining the
+    model-filled maps too (``MeshOptions.refine="all"``) scored lower."""
     propagate_passes: int = 1
     """Passes of that propagation (each pass offers the depths the previous one chose: errors wider than the
     distance are reached)."""
     propagate_borders: bool = True
     """Propagate into pixels within the distance of a pixel without depth too (the map's borders: the ground's
-    far edge before the sky, objects before the sky). ``False``: demo 26.36 -> 25.98 dB, seed 900997 20.78 -> 21.11."""
+    far edge before the sky, objects before the sky). ``False`` lowered the demo scene and raised one procedural
+    scene; on is the default."""
     propagate_gain: float = 0.02
     """A propagated depth replaces the pixel's own only where its cost is lower by at least this much."""
 

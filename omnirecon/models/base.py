@@ -38,11 +38,11 @@ class Capabilities:
     """Two passes, coarse then fine on importance samples (IBRNet, Omni-Recon): ``render_rays`` takes the
     output-changing options ``fine_pass: bool | None = None`` (False: outside training, render the coarse pass
     only, as a model without a fine pass would: depth maps for meshing, where the coarse depth of both
-    shipped tiny models scored within 5 % of the fine depth at less than half the samples; None: the model's
+    shipped tiny models scored close to the fine depth at less than half the samples; None: the model's
     default, the fine pass unless its config says otherwise, e.g. Omni-Recon's ``render_fine_pass``) and
     ``surface_samples: int = 0`` (n > 0: outside training, the fine pass evaluates only n importance
     samples around the coarse surface instead of the coarse samples plus the fine ones; both shipped
-    models lose 3-12 dB on a held-out scene with it). Both are quality/speed trades measured by
+    models lose much of their held-out PSNR with it). Both are quality/speed trades measured by
     ``bench/fast_paths.py``, not fast paths with a reference twin."""
 
 

@@ -39,12 +39,12 @@ class FastPaths:
     """``render_view`` calls ``render_rays`` on at most this many rays at a time, whatever the memory
     ``chunk``: per-sample tensors of a few MB stay in cache and in the allocator's free lists instead
     of being mapped and page-faulted afresh for every op (0, the reference: ``chunk`` rays per call).
-    ibrnet-tiny at 64x64, one thread: 128-512 rays per call rendered about 2x faster than 4096."""
+    Small batches render faster than 4096 rays per call (BENCHMARKS "Each fast-path switch against its reference
+    twin")."""
     train_batch: int = 128
     """Training forwards (``render_rays_batched``, used by the training loss) render the ray batch in
-    sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call).
-    A/B steps (min of 3): 1.3-1.4x on all three tiny presets; bench/throughput.py (median, same run,
-    with split_linear): 1.22x ibrnet-tiny, 0.97-1.03x gpnr-tiny and omnirecon-tiny."""
+    sub-batches of at most this many rays, one graph (0, the reference: the whole batch in one call). Faster for
+    ibrnet-tiny, about even for gpnr-tiny and omnirecon-tiny (``bench/throughput.py``; BENCHMARKS "Throughput")."""
     preallocate: bool = True
     """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
     chunks concatenated at the end)."""
@@ -56,11 +56,9 @@ class FastPaths:
     compile: bool = False
     """Inside ``render_view``, the per-sample networks run through ``torch.compile`` (one graph per
     network and batch shape; ``render_view`` pads its last batch to the full size so that no shape is
-    new), its kernels cached on disk across processes (:func:`compile_cache_dir`). Off: the first compile
-    of IBRNet-tiny's aggregator took 100-216 s on the shared 2-core CPU (7 s from inductor's warm disk
-    cache), more than most renders take, for a 1.5-4.4x faster aggregator; ibrnet-paper's aggregator (256
-    rays x 128 samples x 3 views, one thread, load ~12): 222 s cold, 25 s warm from the disk cache in a new
-    process, and no faster than eager once compiled (0.86-0.94 s vs 0.79 s a batch).
+    new), its kernels cached on disk across processes (:func:`compile_cache_dir`). Off: the first compile takes
+    minutes on a shared 2-core CPU (much less from inductor's warm disk cache), more than most renders take, for a
+    faster tiny aggregator and none for ibrnet-paper's (BENCHMARKS "torch.compile with a persistent cache").
     ``OMNIRECON_FAST=compile=1`` for long jobs."""
     sdpa_attention: bool = True
     """IBRNet's ray transformer calls ``scaled_dot_product_attention`` on its own projections with the
@@ -75,8 +73,9 @@ class FastPaths:
     """The per-sample networks (IBRNet's aggregator, GPNR's transformers, Omni-Recon's geometry and
     appearance branches) run under bf16 autocast inside ``render_view``; their outputs are cast back
     and everything geometric stays fp32 (reference, False: fp32 throughout). None: each model's own choice
-    (GPNR's ``render_bf16``, on in the shipped gpnr-tiny; the others fp32): 1.0-1.1x for IBRNet and
-    Omni-Recon, 1.4-1.5x for GPNR, at 56-67 dB PSNR to the fp32 render (colour up to 0.14 off)."""
+    (GPNR's ``render_bf16``, on in the shipped gpnr-tiny; the others fp32): GPNR gains most, IBRNet and
+    Omni-Recon little; the render stays close to the fp32 one (``tests/models/test_fast_paths.py`` holds the
+    tolerance; speed: BENCHMARKS "Each fast-path switch against its reference twin")."""
 
 
 def from_env(text: str | None) -> FastPaths:
@@ -151,8 +150,8 @@ def _cpu_bf16() -> bool:
 
 def native_bf16(device: torch.device | str) -> bool:
     """Whether bf16 arithmetic is native on ``device``: a CUDA device that supports it, or a CPU with AVX512-BF16 or
-    AMX. Elsewhere (AVX2 x86, most ARM builds) it is emulated: gpnr-tiny's transformers under bf16 autocast took 7x
-    their fp32 time on an AVX2 EPYC (the demo's orbit frames at 80 px 40 CPU-s each instead of 3), so a model's own
+    AMX. Elsewhere (AVX2 x86, most ARM builds) it is emulated: gpnr-tiny's transformers under bf16 autocast took
+    several times their fp32 time on an AVX2 EPYC, so a model's own
     preference for bf16 (``prefer``) applies only where this is True; ``FastPaths.bf16_render`` and ``render
     --precision bf16`` still force it."""
     kind = torch.device(device).type

@@ -87,8 +87,9 @@ class GPNRConfig:
     render_bf16: bool = False
     """Inside ``render_view``, the transformers under bf16 autocast when ``FastPaths.bf16_render`` leaves the
     choice to the model (its default, None) and the device computes bf16 natively (:func:`~omnirecon.models.fast.
-    native_bf16`): the shipped gpnr-tiny with 24 samples renders 3.3-3.9x faster than its reference twin at -0.03 dB
-    on held-out views (``python -m bench tiny_levers``, on a CPU with avx512_bf16)."""
+    native_bf16`): the shipped gpnr-tiny with 24 samples renders several times faster than its reference twin at
+    the same held-out scores (``python -m bench tiny_levers``, on a CPU with avx512_bf16; BENCHMARKS "Render
+    levers of the tiny presets")."""
     encoder: Literal["scratch", "vgg16", "alexnet"] = "scratch"
     """Patch features: the P x P linear projection trained from scratch, or a frozen pretrained backbone
     (HED's VGG16, ST-LPIPS's AlexNet) with a small trainable adapter to ``patch_channels`` at full
@@ -101,8 +102,7 @@ PRESETS = {
                             heads=2, layers=(2, 2, 2), ray_freqs=4, point_freqs=6, output="colors"),
 }
 """``gpnr-tiny`` renders the blended source colours: at the tiny CPU budget the feature head is far
-behind (validation seeds 901000-901007, K = 3 / 10, shipped checkpoint: 24.1 / 24.4 dB features,
-26.3 / 26.2 dB colours). Both heads train with equal weight, so the choice changes nothing in training
+behind (validation seeds 901000-901007, K = 3 / 10, shipped checkpoint). Both heads train with equal weight, so the choice changes nothing in training
 but which one is ``rgb`` (the reference code has the same switch, ``eval.return_coarse``)."""
 
 

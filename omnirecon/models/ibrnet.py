@@ -58,7 +58,7 @@ class IBRNetConfig:
     kind it replaces (coarse: ``coarse_samples / render_coarse_samples``; importance: ``fine_samples /
     render_fine_samples``): the ray transformer's index code counts in trained positions and its density is
     scaled by that number (IBRNet's alpha has no interval: it was learned for the trained spacing). Unscaled
-    density measured worse (fox and lego -1 dB). A render option measured per weights (``python -m bench
+    density scored lower on fox and lego. A render option measured per weights (``python -m bench
     tiny_levers``, ``python -m bench quality``)."""
     render_fine_samples: int | None = None
     """Inside ``render_view``, the fine pass's importance samples instead of ``fine_samples`` (added to the

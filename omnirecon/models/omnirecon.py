@@ -49,19 +49,16 @@ Departures (documented choices, each a config field where it matters):
 * **BatchNorm without running averages** (``bn_running_stats=False``, both presets): every BN
   layer normalises with the current batch in eval mode too. A batch is one scene (its K source
   views in the 2-D encoder, its one volume in the 3-D decoder), so running averages mix scenes:
-  in eval mode they shifted scenes whose colours differ from the training mean (tiny preset after
-  15 CPU-minutes: held-out procedural seed 900000, median depth error 0.16 -> 0.016 and PSNR
-  11.8 -> 15.3 dB with batch statistics).
+  in eval mode they shifted scenes whose colours differ from the training mean (with batch statistics the
+  tiny preset's held-out depth error and PSNR on a procedural scene improved markedly).
 * **Leftover transmittance** (``leftover``): the reference composites ``sum w c`` and lets a ray
   that finds no surface come out dark (``black``, both presets). ``far`` (the far bound is opaque, as
   NeRF's infinite last interval) and ``renormalize`` (``w / sum w``) are options. On validation seeds
   901000-901007 plus ethiopianHead (K = 3 / 10, ``cpu`` protocol) the shipped tiny checkpoint scores
-  within 0.02 dB mean of ``black`` with either, so ``black`` stays. ``backdrop`` gives ``far``'s colours but
-  ``black``'s depth and opacity (meshing reads ``acc`` as confidence): with ``forward_box="cameras"`` it scores
-  34.78 / 33.89 dB on forward-rig seeds 901004-901007 (``black`` 34.64 / 33.84) and 23.88 / 22.83 on object
-  seeds 901000-901003 (23.85 / 22.79), and fern 24.49 / 23.32 (23.97 / 22.77; K = 3 / 10, ``python -m bench
-  fern_gap``). With the shipped coarse pass the lead is gone (forward seeds +0.03 / +0.00, ethiopianHead's held-out
-  views -0.07 / -0.21; ``bench/results/fern_gap_coarse.json``), so the shipped checkpoint keeps ``black``.
+  about the same with either, so ``black`` stays. ``backdrop`` gives ``far``'s colours but ``black``'s depth and
+  opacity (meshing reads ``acc`` as confidence): with ``forward_box="cameras"`` and the fine pass it led ``black``
+  on forward-rig seeds and fern (``python -m bench fern_gap``); with the shipped coarse pass the lead is gone
+  (``bench/results/fern_gap_coarse.json``), so the shipped checkpoint keeps ``black``.
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 
@@ -101,8 +98,9 @@ class OmniReconConfig:
     """Importance samples added for the fine pass (0: coarse pass only)."""
     render_fine_pass: bool = True
     """Outside training, render the fine pass unless a caller asks otherwise (``render_rays(fine_pass=None)``);
-    False: the coarse pass only, a measured property of some weights (the shipped omnirecon-tiny's coarse pass
-    renders 3.1-4.2x faster at +0.12 dB on held-out views: ``python -m bench tiny_levers``). Training renders both."""
+    False: the coarse pass only, a property measured per weights (the shipped omnirecon-tiny's coarse pass renders
+    several times faster at no loss on held-out views: ``python -m bench tiny_levers``, BENCHMARKS "Render levers
+    of the tiny presets"). Training renders both."""
     cnn_channels: tuple[int, int, int, int] = (16, 32, 64, 96)
     """FPN widths: stem (stride 1), layer1 (2), layer2 (4), layer3 (8)."""
     feature_dim: int = 32
@@ -121,8 +119,8 @@ class OmniReconConfig:
     source cameras' centres (``cameras``), so the lattice spans the space from the cameras to the content as
     on the procedural forward rigs the tiny preset was trained on, whose content box reaches the cameras.
     On fern (LLFF bounds: the box starts ~0.3 in front of the cameras) ``content`` made the geometry branch put
-    an opaque layer near the near plane (``cpu`` protocol, K = 3: 20.0 dB; ``cameras`` 24.0 dB, floor 23.6).
-    Object rigs are unchanged."""
+    an opaque layer near the near plane, below the non-learned floor; ``cameras`` scores above it (``cpu``
+    protocol, K = 3). Object rigs are unchanged."""
     blocks: int = 2
     """Geometry-branch blocks B."""
     heads: int = 4

@@ -3,11 +3,11 @@
 A mesh's depth edges (an object's outline against what lies behind it, a blade on a brick) sit about a pixel
 away from the photo's: the meshes come from stereo matched with blocks a few pixels wide and fused in voxels about
 half a pixel across. A pixel beside such an edge takes the colour of one side where the photo shows the other, and
-these pixels carry a large part of the error of a held-out view (dtu_scan37: pixels within 2 px of the mesh's
-depth edges are 18 % of the object mask and carry 42 % of its squared error). Where the side is uncertain, the mean
+these pixels carry a large part of the error of a held-out view (on dtu_scan37 the pixels within 2 px of the
+mesh's depth edges carry a share of the object mask's squared error about twice their share of its pixels). Where the side is uncertain, the mean
 of the two sides' colours is the better guess (the squared error of a wrong hard choice is four times that of the
 mean), so :func:`soften_edges` blurs the rendered colour at the depth edges only: the rest of the image keeps its
-sharpness (a blur of the whole image lowered dtu_scan37's held-out mask PSNR, 21.41 -> 21.37 dB at 0.5 px).
+sharpness (a blur of the whole image lowered dtu_scan37's held-out mask PSNR).
 
 :func:`depth_edges` finds the edges from the rendered z-depth alone: a pixel is on an edge where the inverse depth
 bends between it and its two neighbours along a row, a column or a diagonal (on a plane the inverse depth is linear
@@ -23,14 +23,12 @@ from torch import Tensor
 
 SOFTEN = 0.7
 """The default blur at depth edges in pixels (``finetune --soften``, ``MeshRenderOptions.soften`` of the real-time
-renders that follow finetune's record; measured there)."""
+renders that follow finetune's record; why this value: ``FinetuneConfig.soften``)."""
 EDGE_BEND = 0.02
 """:func:`depth_edges`: the relative bend of the inverse depth over three pixels (``|1/z_a + 1/z_b - 2/z| z``) above
-which a pixel is on a depth edge. Held-out PSNR with :func:`soften_edges` at 0.7 px, bend 0.01 / 0.02 / 0.04 (a
-scoring script on the bench meshes, before tuning, whose test also flagged the image border): dtu_scan37 (8 views,
-mask) 21.63 / 21.63 / 21.60 dB, fern 24.52 / 24.63 / 24.68, the demo scene 26.82 / 26.92 / 26.88; a 3x3 window's
-largest over smallest depth above 1.02 instead (slanted surfaces count): dtu_scan37 21.63, fern 24.49, the demo
-26.54 (``finetune.FinetuneConfig.soften`` has the bench measurement)."""
+which a pixel is on a depth edge. Of the bends 0.01, 0.02 and 0.04 (held-out PSNR with :func:`soften_edges` at 0.7
+px, before tuning, on the bench meshes of dtu_scan37, fern and the demo scene) 0.02 was best or near it on each; a
+3x3 window's largest over smallest depth instead (slanted surfaces count) scored lower on fern and the demo."""
 
 
 def depth_edges(depth: Tensor, bend: float = EDGE_BEND) -> Tensor:

@@ -10,11 +10,11 @@ top; ``docs/conventions.md``).
 vendor driver on a GPU; only ``moderngl.create_standalone_context(backend="egl")`` initialises on a
 display-less machine). The mesh is uploaded once as an *unindexed* triangle list, so the vertex
 shader derives each corner's barycentric unit vector and the triangle id from ``gl_VertexID``
-(no extra attributes, no geometry shader: geometry shaders were 25x slower and wrong on llvmpipe,
+(no extra attributes, no geometry shader: geometry shaders were far slower and wrong on llvmpipe,
 ``shared/docs/deps.md`` §1). The surface and depth passes, which need no ``gl_VertexID``, draw the shared vertices
-by index instead (each vertex shaded once; the same pixels bit for bit, about 30 % less CPU on a 371k-face mesh), and
+by index instead (each vertex shaded once; the same pixels bit for bit, less CPU on large meshes), and
 :meth:`MeshRasterizer.face_ids` draws only the triangle id, from ``gl_PrimitiveID`` of the indexed mesh (the G-buffer's
-ids bit for bit; 145 -> 55 CPU-ms on the demo's 371k-face mesh two-sided at 256 px: the meshing's visible-face cull). Every frame changes only one ``mat4`` uniform. The fragment shader
+ids bit for bit, at a fraction of its CPU: the meshing's visible-face cull). Every frame changes only one ``mat4`` uniform. The fragment shader
 writes three float/int targets read back without conversion:
 
 * ``R32I``: triangle id + 1 (cleared to 0, so background reads as -1 after the shift);
@@ -42,8 +42,8 @@ are clipped by GL.
 vectorised float64 z-buffer the procedural scenes were rendered with. It is the test oracle and the
 no-GL fallback (``backend="auto"`` picks it when EGL cannot start). It always culls back faces, so
 ``cull_back_faces=False`` rasterizes the mesh plus its flipped copy; triangles with a vertex at or
-behind the near plane are dropped (no clipping). It is ~30x slower (0.3 s of CPU per 512^2 frame of an
-18k-triangle procedural scene, against ~10 ms).
+behind the near plane are dropped (no clipping). It is much slower than GL (tenths of a CPU-second per 512^2
+frame of a procedural scene's mesh).
 
 Threads: llvmpipe reads ``LP_NUM_THREADS`` when the driver loads (the first context in a process).
 
@@ -274,7 +274,7 @@ class MeshRasterizer:
         backend: ``"gl"`` (raise :class:`InputError` when EGL is unavailable), ``"reference"``
             (NumPy z-buffer) or ``"auto"`` (GL when it starts, else the reference).
         cull_back_faces: Skip triangles whose geometric normal ``(v1 - v0) x (v2 - v0)`` points away
-            from the camera (closed, outward-facing meshes: about 2x faster on llvmpipe).
+            from the camera (closed, outward-facing meshes: faster on llvmpipe).
     """
 
     def __init__(self, vertices, faces, backend: Backend = "auto", cull_back_faces: bool = True):
@@ -327,7 +327,7 @@ class MeshRasterizer:
         self._vaos = {} if self._vbo is None else {"gbuffer": ctx.vertex_array(self._programs["gbuffer"],
                                                                               [(self._vbo, "3f", "in_pos")])}
         # the passes that need no gl_VertexID draw the shared vertices by index (each vertex shaded once, not once per
-        # face: the demo's depth pass 48 -> 35 CPU-ms at 256 px, 371k faces; the same depths bit for bit); the face pass
+        # face: less CPU per depth pass, the same depths bit for bit); the face pass
         # reads the triangle id from gl_PrimitiveID (the index of the face in the draw)
         self._indexed = [] if self._vbo is None else [ctx.buffer(self.vertices.astype("f4").tobytes()),
                                                       ctx.buffer(self.faces.astype("i4").tobytes())]

@@ -1,6 +1,6 @@
 """``omnirecon demo``: from posed images to novel views, a mesh and measured numbers, in one command.
 
-With the shipped checkpoints (``checkpoints/<preset>``) and no per-scene training, the demo
+With the shipped checkpoints (:func:`omnirecon.engine.shipped.shipped_checkpoint`) and no per-scene training, the demo
 
 1. builds the embedded default scene (procedural, seed :data:`DEMO_SEED`, a held-out seed) or reads
    ``--data PATH`` (any supported format), and draws its cameras;
@@ -24,16 +24,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon.engine.machine import ThreadsConfig
+from omnirecon.engine.shipped import shipped_folder
 from omnirecon.errors import InputError
 
-ROOT = Path(__file__).resolve().parents[2]
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
 and not among the first scenes of ``synth:eval``)."""
 RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
 """Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
-(gpnr-tiny: 24 samples in bf16, 3.3-3.9x its reference twin; omnirecon-tiny: the coarse pass, 3.1-4.2x; within 0.1 dB
-of the full render on held-out views: ``python -m bench tiny_levers``)."""
+(gpnr-tiny: 24 samples in bf16; omnirecon-tiny: the coarse pass; each several times faster than the full render
+and as good on held-out views: ``python -m bench tiny_levers``, BENCHMARKS "Render levers of the tiny presets")."""
 SCORE_MODELS = ("floor", "gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 """Models scored on the held-out views (the floor needs no checkpoint), each with its checkpoint's render options."""
 MESH_MODELS = ("omnirecon-tiny", "ibrnet-tiny")
@@ -53,12 +53,13 @@ class DemoConfig(ThreadsConfig):
     """Any supported scene folder instead of the embedded procedural scene."""
     out: Path = Path("outputs/demo")
     """Output folder (index.html, demo.json, videos, meshes, pictures)."""
-    checkpoints: Path = ROOT / "checkpoints"
-    """Folder of the shipped checkpoints (one sub-folder per preset)."""
+    checkpoints: Path = shipped_folder()
+    """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
+    package carries: omnirecon/engine/shipped.py)."""
     frames: int = 12
-    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames cost about 3 CPU-s each at 80 px on one
-    thread of a CPU with avx512_bf16, 6 on an AVX2-only one, so the default keeps the whole demo near 4 CPU-minutes:
-    bench/results/end_to_end.json; raise it on a GPU)."""
+    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames dominate the demo's time on a CPU, more so
+    on one without native bf16, so the default keeps the whole demo to a few CPU-minutes: BENCHMARKS "End to end";
+    raise it on a GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
     num_views: int = 3

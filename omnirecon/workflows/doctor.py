@@ -19,9 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon import metrics
+from omnirecon.engine.shipped import shipped_folder
 from omnirecon.viewer.bundle import find_three, three_unavailable_reason
 
 ROOT = Path(__file__).resolve().parents[2]
+"""The source checkout the package runs from (its neighbour ``../shared/data`` holds the evaluation scenes)."""
 
 EGL_PROBE = ("import moderngl; c = moderngl.create_standalone_context(backend='egl'); "
              "print(c.info['GL_RENDERER'], '|', c.info['GL_VERSION'])")
@@ -147,7 +149,7 @@ def check_data() -> list[Check]:
     shared = ROOT.parent / "shared" / "data"
     rows.append(Check("shared evaluation scenes", "ok" if shared.is_dir() else "missing", str(shared),
                       "" if shared.is_dir() else "tests that need real scenes skip; benchmarks score procedural scenes only"))
-    ckpts = sorted(p.name for p in (ROOT / "checkpoints").glob("*") if (p / "model.safetensors").is_file())
+    ckpts = sorted(p.name for p in shipped_folder().glob("*") if (p / "model.safetensors").is_file())
     rows.append(Check("shipped checkpoints", "ok" if ckpts else "missing", ", ".join(ckpts) or "none",
                       "" if ckpts else "train one with python -m bench train_tiny"))
     return rows

@@ -16,8 +16,8 @@ residual colour grid (``residual``), with an L2 pull toward the pretrained weigh
 
 Scoring costs no encoder pass of its own between steps: a validation encodes the sources with their graph and the
 next step reuses that pass (its seconds charged to the budget); a returned state is scored on the held-out views
-once; the sources' depth is rasterized once for every view group (fern, 60 CPU-s: 98.5 -> 76.6 process CPU-s;
-dtu_scan24: 138.9 -> 63.3; identical held-out PSNRs).
+once; the sources' depth is rasterized once for every view group (less process CPU per run, identical held-out
+PSNRs).
 
 **Tuning never ends worse than it started.** ``--val-views`` training views (``--val-choice``: by default those
 farthest from the other training views, as held-out views are; never blending their own photo) are kept
@@ -108,10 +108,9 @@ class FinetuneConfig(ThreadsConfig):
     step_views: int = 1
     """Tuning views each step's pixels come from: 1, one view drawn by its shaded pixel count; 0, every tuning view
     in proportion to it (the step's encoder pass covers every source either way, so mixing views costs nothing).
-    Held-out before -> after (`python -m bench finetune_levers`, defaults otherwise), 1 -> 0: demo scene 30 CPU-s,
-    with --objects 0, whole image 25.66 -> 25.74 against 25.77 (objects 20.15 / 20.33); fern 60 CPU-s, the start (24.12) both
-    (validation at most +0.085 dB); dtu_scan24 60 CPU-s, objects 24.55 -> 24.80 against 24.50 (whole image 19.64
-    against 21.16: the table gains, the scored objects do not), so 1 stays the default."""
+    1 stays the default: 0 raised the demo scene's whole image a little, left fern at the start and lowered
+    dtu_scan24's scored objects (`python -m bench finetune_levers`; BENCHMARKS "What fine-tuning tunes, and how far
+    it can go")."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
@@ -120,22 +119,18 @@ class FinetuneConfig(ThreadsConfig):
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
-    --val-margin; the record's ``before`` is the input's held-out score). With each pixel's nearest sources (the --nearest default) there is little
-    left to tune, and tuning the appearance branch alone at 3e-3 raised validation while lowering held-out views:
-    held-out whole image before -> after 60 CPU-s at --nearest 6, appearance at 3e-3 -> encoder + appearance at
-    5e-4: demo scene (`python -m bench depth_sources`' stereo+model mesh) 25.64 -> 25.18 against 25.64 -> 25.68;
-    fern (stereo+fill) 24.01 -> 24.01 both; dtu_scan24 at --nearest 4 over the mask 24.70 -> 24.57 against 24.70 ->
-    24.70. With 3 fixed sources (--nearest 0) the appearance branch alone gained more on the real scenes (fern
-    +0.28 -> +0.37 dB, dtu_scan24 objects +0.00 -> +0.33, `python -m bench finetune_levers`) and less on the demo
-    scene (+0.28 -> -0.02)."""
+    --val-margin; the record's ``before`` is the input's held-out score). With each pixel's nearest sources (the
+    --nearest default) there is little left to tune: the appearance branch alone at 3e-3 raised validation while
+    lowering held-out views, so the encoder and the appearance branch at 5e-4 are the default (`python -m bench
+    depth_sources`, `python -m bench finetune_levers`; BENCHMARKS "What fine-tuning tunes, and how far it can
+    go")."""
     residual_res: int = 16
     """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
     (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
     every view, so what tuning views teach it reaches held-out views at the same surface; the only lever under the
-    angle blend besides exposure). Measured (`python -m bench finetune_levers`, rows residual*): validation returned
-    the start on the demo scene (30 CPU-s; validation whole image -0.7 to -1.2 dB), fern (60; -0.1 to -0.2) and
-    dtu_scan24 under the angle blend (60; objects never above the start); the demo's state at the end, no validation:
-    held-out objects 20.20 -> 21.18 dB but whole image 25.66 -> 25.33. Not saved with --save (not adopted)."""
+    angle blend besides exposure). Not adopted, and not saved with --save: validation returned the start on the demo
+    scene, fern and dtu_scan24 under the angle blend, and the demo's state at the end (no validation) raised the
+    held-out objects but lowered the whole image (`python -m bench finetune_levers`, rows residual*)."""
     residual_lr: float = 1e-2
     """With ``--tune residual``: the residual grid's Adam learning rate."""
     reg: float = 0.0
@@ -143,110 +138,78 @@ class FinetuneConfig(ThreadsConfig):
     val_views: int = 2
     """Training views kept out of tuning to choose the returned state; 0 = none (the state at the end is
     returned). They are never tuned on and never blend their own photo; under --nearest without --views they stay
-    sources of the other views (each view blends only other views' photos), else they are never sources. Held-out
-    whole image before tuning, validation views kept out of the sources -> among them: demo scene 25.645 -> 25.662 dB,
-    fern 24.01 -> 24.12, dtu_scan24 objects 24.55 -> 24.55."""
+    sources of the other views (each view blends only other views' photos), else they are never sources. Keeping
+    them among the sources did not lower the held-out score before tuning on the demo scene, fern or dtu_scan24."""
     val_choice: Literal["isolated", "spread"] = "isolated"
     """Which training views validate: `isolated`, one at a time the view farthest from its nearest other training
     view (by angle on object rigs, camera distance otherwise), as held-out views are farther from their sources than
     training views; `spread`, evenly spaced. Under --nearest, `spread` over-promised: the demo scene's evenly spaced
-    views rose +0.3 to +0.4 dB on average over a 60 CPU-s run while its held-out views (which lie where the orbit is
-    sparse) moved -0.02 to -0.05 (as low as -0.18), and 10 CPU-s returned a state 0.10 dB below the start; `isolated`
-    views are harder than the held-out ones (-0.5 against -0.09), so nothing that lowers them is returned. Held-out
-    whole image before -> after, `spread` -> `isolated` (`python -m bench finetune_validation`, defaults otherwise):
-    demo 30 CPU-s (then --objects 0.5) 25.66 -> 25.67 (returned from 28 s) against 25.66 -> 25.66 (the start; with
-    --objects 0: 25.66 -> 25.75, from 4 s); fern 60 CPU-s 24.12 -> 24.12 (the start)
-    against 24.12 -> 24.12 (the start: validation +0.08 < --val-margin); dtu_scan24 60 CPU-s objects 24.55 -> 24.70
-    (spread, validation views not sources) against 24.55 -> 24.80, whole image 19.27 -> 19.64."""
+    views gained on validation while its held-out views (which lie where the orbit is sparse) did not, and a short
+    run returned a state below the start; `isolated` views are harder than the held-out ones, so nothing that lowers
+    them is returned (`python -m bench finetune_validation`; BENCHMARKS "Which views validate fine-tuning")."""
     objects: float = 0.5
     """Scenes with object masks: the fraction of each step's pixels drawn from the mesh pixels inside the masks
-    (0: uniform over the shaded pixels). Earlier, with 3 fixed sources (latest state, the demo scene): uniform, whole
-    image +0.37 dB but objects -0.22 dB; 0.5, +0.26 and +0.55 dB; 1.0, -0.91 and +1.07 dB. At today's defaults (each
-    pixel's --nearest 6, isolated validation views), 30 CPU-s on the demo scene (scored by the whole image), 0.5 -> 0,
-    held-out whole image / objects: `python -m bench finetune_levers` on depth_sources' stereo+model mesh, the start
-    (25.66 / 20.20) -> 25.74 / 20.15 (`finetune_validation` and `finetune_curves` runs of 0: 25.75, 25.76 at 10 s,
-    25.77 / 20.21 at 60 s); a fresh `omnirecon demo` with 0: whole image 26.00 -> 26.07 but its own mesh's object
-    pixels 21.32 -> 21.01 (held-out view 21 -0.26 dB, 23 +0.50). The whole image gains ~0.1 dB, the objects do not,
-    so 0.5 stays the default."""
+    (0: uniform over the shaded pixels; 1: the objects only). 0 gains the whole image a little and the objects not
+    at all, so 0.5 stays the default (`python -m bench finetune_levers`; BENCHMARKS "What fine-tuning tunes, and how
+    far it can go")."""
     val_margin: float = 0.25
     """A tuned state is returned instead of the start only when its validation gain (on what the scene is
-    scored by: the objects on DTU, else the whole image) is at least this many dB: smaller gains on the validation views did not
-    carry to held-out views (the demo scene: objects +0.07 dB on validation, -0.21 dB on test; a fresh `omnirecon
-    demo` at 0.1: whole image +0.115 dB on its isolated validation views, -0.045 dB on the held-out ones, view 22
-    -0.35). The one scene where tuning measured a held-out gain, dtu_scan24 with the network blend, returned a state
-    with +1.05 dB on validation (objects 24.55 -> 24.80 held out)."""
+    scored by: the objects on DTU, else the whole image) is at least this many dB: smaller gains on the validation
+    views did not carry to held-out views (the demo scene; BENCHMARKS "Which views validate fine-tuning")."""
     val_guard: float = 0.0
     """On scenes with masks, the score the scene is not scored by (the whole image on DTU, the objects on the
-    demo) may drop by at most this many dB on validation for a state to be returned (0: never worse on either).
-    dtu_scan24 under the earlier rule (both gains >= --val-margin): objects +0.4 dB on validation, whole image
-    +0.08 dB, so the start was returned."""
+    demo) may drop by at most this many dB on validation for a state to be returned (0: never worse on either)."""
     val_every: float = 2.0
     """Seconds of optimisation between validation scores (also scored at every --eval-at)."""
     fill: Literal["auto", "far", "background", "nearest"] = "auto"
     """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend; `nearest`, the
     z-depth of the nearest pixel of the same view that the mesh covers (its own rendered depth, never a photo), points
     on those rays shaded like mesh points with the occlusion test (object captures whose mesh stops short of the
-    silhouette; pixels of a view the mesh misses entirely: `far`; held-out mask / whole image before tuning, DTU
-    stereo+fill all-view meshes, --nearest 4, far -> nearest: dtu_scan37 network blend 21.03 / 17.95 -> 21.35 / 18.56,
-    angle blend 21.53 / 17.84 -> 21.89 / 19.76; dtu_scan24 angle blend 25.20 / 19.55 -> 25.87 / 21.05);
-    `background`, the scene's background colour; `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`):
-    `background` for scenes that declare their background colour (procedural: `nearest` paints the sky beside the
-    objects, the demo at --nearest 6 26.00 -> 23.99 dB), `nearest` for real object captures with masks (DTU), else
-    `far`. With `far`, tuning samples the fill's pixels too (they are
-    scored: on dtu_scan24 tuning only the mesh's pixels lowered the whole image on validation while raising the
-    objects, so the guard (--val-guard) returned the start; sampling them too: held-out objects +0.36 dB, whole
-    image +0.10)."""
+    silhouette; pixels of a view the mesh misses entirely: `far`); `background`, the scene's background colour;
+    `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`): `background` for scenes that declare their
+    background colour (procedural: `nearest` paints the sky beside the objects), `nearest` for real object captures
+    (an object rig without a known background colour, with masks or without), else `far` (forward-facing scenes).
+    With `far`, tuning samples the fill's pixels too (they are scored: on dtu_scan24 tuning only the mesh's pixels
+    lowered the whole image on validation while raising the objects). Each fill per scene: BENCHMARKS "Depth
+    sources"."""
     cracks: int = CRACK_RADIUS
     """Whatever --fill, a pixel the mesh misses but encloses (inside the closing of the covered pixels by a
     ``2 cracks + 1`` square: pinholes and seams between completion's fills) is shaded at the nearest covered pixel's
     z-depth like a mesh point (:func:`omnirecon.mesh.fill.crack_pixels`; 0: off). Coverage still counts only the
-    mesh's pixels. Held-out whole image before tuning at the defaults, off -> 2 (:data:`~omnirecon.mesh.fill.CRACK_RADIUS`):
-    synth:eval seed 900997's stereo+model mesh 21.13 -> 21.87 dB, the demo scene's 26.52 -> 26.61."""
+    mesh's pixels. Off -> 2 (:data:`~omnirecon.mesh.fill.CRACK_RADIUS`) raised the held-out whole image before tuning
+    on the meshes it was tried on (a procedural scene's and the demo scene's stereo+model meshes)."""
     nearest: int = 6
     """Blend at each pixel only the this-many sources nearest the view it renders (by angle on object rigs,
     camera distance otherwise: ``engine.views.select_sources``; a view never blends its own photo), 0 = every
-    source. Without --views the sources are then every training view (the validation views too). Held-out
-    whole image before tuning, 3 fixed sources -> --nearest 4 -> 6 (`python -m bench depth_sources`): fern
-    stereo+fill 21.84 -> 23.90 -> 24.01 dB; the demo scene's stereo+model mesh 23.66 -> 25.31 -> 25.64. DTU's wide
-    rig (held-out views 0 13 35 48, stereo+fill mesh of 14 views, dtu_scan24 / 37 over the masks before tuning,
-    `python -m bench depth_sources`): the fixed 23 24 33 (15-57 degrees from a held-out view) 18.45 / 14.92 dB;
-    --nearest 3 (about 10 degrees) 24.10 / 20.07; --nearest 4 with the mesh from all 41 training views
-    24.69 / 21.10; dtu_scan37 at --nearest 5 / 6 20.78 / 20.60 against 20.95 at 4 (14-view mesh), so DTU's
-    wide rig does slightly better at 4."""
+    source. Without --views the sources are then every training view (the validation views too). The nearest
+    sources beat 3 fixed ones on every scene tried, 6 slightly beat 4 on fern and the demo scene, and DTU's wide rig
+    does slightly better at 4 (`python -m bench depth_sources`; BENCHMARKS "Depth sources")."""
     skip_nearest: int = 0
     """Tuning views blend their --nearest sources after skipping this many nearest (validation and held-out views
     never skip): a held-out view lies farther from its sources than a training view from its neighbours, so tuning
     on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
-    finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene (30 CPU-s) and fern (60) returned the start
-    with 1 and 2 (the demo's state at the end, no validation: whole image 25.66 -> 25.58 against 25.52 without
-    skipping), so 0 stays the default."""
+    finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene and fern returned the start with 1 and 2,
+    so 0 stays the default."""
     visibility: bool = True
     """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
     source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
-    source. Held-out PSNR before tuning, without -> with: demo scene, exact mesh 22.19 -> 25.66 dB whole image
-    (without it a source that sees the ground behind the box painted the box with ground texture), the
-    project's stereo+model mesh 21.04 -> 22.53; fern's stereo+model mesh 20.66 -> 20.93; dtu_scan24's 13.92 ->
-    13.96 (covered pixels 18.19 -> 18.38)."""
+    source. Without it a source that sees the ground behind an object paints the object with ground texture; it
+    raised the held-out score before tuning on the demo scene (exact and stereo+model meshes), fern and
+    dtu_scan24."""
     blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
     sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
     see it, weighted by angle alone (:func:`omnirecon.mesh.ibr.angle_weights`, the unstructured lumigraph's
     blend). With ``angle`` nothing the blend uses is tuned (the encoder and the appearance branch are unused):
-    --seconds only scores. DTU, stereo+fill mesh from all 41 training views, --nearest 4, held-out mask / whole image
-    before tuning (``python -m bench depth_sources``), network -> angle: dtu_scan37 21.03 / 17.95 -> 21.53 / 17.84 dB,
-    dtu_scan24 24.70 / 20.15 -> 25.20 / 19.55 (the whole image loses off the objects: ghosts on the table). At
-    --nearest 6 (stereo+model mesh), the demo scene's whole image 26.00 -> 26.31 dB (network after 60 CPU-s of
-    tuning: 26.04; the exact mesh 28.26 -> 28.80), fern's stereo+fill mesh 24.12 -> 24.15; DTU at --nearest 6 (mesh
-    with the hull trim keeping seen surface), mask PSNR network / angle / nearest fill / both: dtu_scan37 20.68 /
-    21.39 / 20.89 / 21.57, dtu_scan24 24.54 / 25.26 / 25.00 / 25.65. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`):
-    ``angle`` for real object captures with masks (DTU), else ``network`` (procedural scenes keep the tunable
-    blend; fern's +0.03 dB is within noise)."""
+    --seconds only scores. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`): ``angle`` for real object captures
+    (an object rig without a known background colour, with masks or without), ``network`` for procedural scenes
+    (a known background colour; the blend stays tunable) and for forward-facing scenes. On DTU the angle blend
+    scores higher over the masks but loses off the objects (ghosts on the table); each blend per scene:
+    BENCHMARKS "Depth sources"."""
     angle_sources: tuple[int, ...] = (3, 4, 6, 8)
     """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
     the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only
-    choice). DTU at --nearest 6, angle blend + nearest fill, held-out mask PSNR with 6 -> chosen (4 on both; their
-    validation mask scores 3 / 4 / 6 / 8: dtu_scan37 20.57 / 20.70 / 20.58 / 20.42, dtu_scan24 25.21 / 25.54 / 25.40 /
-    25.10): dtu_scan37 21.57 -> 21.72 dB (whole image 19.06 -> 19.68), dtu_scan24 25.65 -> 25.71 (20.58 -> 21.04)."""
+    choice; on dtu_scan24 and dtu_scan37 it chose 4)."""
     consensus: float = 0.0
     """With the angle blend: down-weight each source by how far its colour lies from the blended colour
     (:func:`omnirecon.mesh.ibr.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
@@ -255,32 +218,25 @@ class FinetuneConfig(ThreadsConfig):
     each source's weight times
     :func:`omnirecon.mesh.ibr.mask_falloff` at the point's pixel in it (a source whose pixel is its background, or
     within 2 px of it, blends little: the mesh's silhouette overshoots the object's by a pixel or two and took the white
-    or black background's colour; the fill's points are not weighed). Held-out mask PSNR at the defaults (``python
-    -m bench depth_sources``, the ``, no source masks`` rows): dtu_scan37 21.72 -> 22.02 dB, dtu_scan24 25.71 ->
-    25.82 (whole image 19.68 -> 19.67, 21.04 -> 21.03)."""
+    or black background's colour; the fill's points are not weighed). It raised the held-out mask PSNR on dtu_scan37
+    and dtu_scan24 and left the whole image as it was (``python -m bench depth_sources``, the ``, no source masks``
+    rows; BENCHMARKS "Depth sources")."""
     soften: float = SOFTEN
     """Blur the rendered colour at the mesh's depth edges by a Gaussian of this many pixels (0: off;
     :func:`omnirecon.render.edges.soften_edges`: a pixel beside an edge the mesh puts a pixel off takes the mean of
     both sides' colours instead of the wrong one; the rest of the image stays sharp), at every held-out score and
-    picture (not in the tuning steps nor the validation scores, which sample single pixels). Held-out PSNR, 0 -> 0.7
-    px, the same meshes (``python -m bench depth_sources``, the ``, no soften`` rows; BENCHMARKS "Depth sources"):
-    dtu_scan37 mask, all 8 held-out views, 21.41 -> 21.63 dB (the usual 4: 22.47 -> 22.71), dtu_scan24 25.34 ->
-    25.56 (26.11 -> 26.36), IoU unchanged; fern angle blend 24.31 -> 24.63, network blend 24.31 -> 24.59 (60 CPU-s
-    tuned: the start returned); the demo scene's stereo+model mesh, network blend 26.52 -> 26.92 before tuning (60 CPU-s
-    tuned: 26.61 -> 27.17), angle blend 26.75 -> 27.05. It costs where the mesh's edges are right: the demo's exact
-    mesh 28.26 -> 27.84 (angle blend 28.80 -> 28.22), so ``--soften 0`` for exact geometry; finetune's validation
-    views did not tell the two apart (they are meshed from their own depth: the demo's stereo+model mesh -0.15 dB on
-    them, +0.40 held out; dtu_scan37 +0.06 / +0.22). Sigma 0.5 / 1.0 px (scoring script): dtu_scan37 21.59 / 21.58, fern 24.58 / 24.54, the demo 27.04 /
-    26.47; a blur of the whole image instead: dtu_scan37 21.37 (0.5 px); SSAA instead (2x2 samples per pixel,
-    averaged): dtu_scan37 21.53 at 4x the shading."""
+    picture (not in the tuning steps nor the validation scores, which sample single pixels). It raises the held-out
+    score where the mesh's edges lie about a pixel off (DTU, fern, the demo scene's stereo+model mesh) and costs
+    where they are right (the demo's exact mesh: ``--soften 0`` for exact geometry); finetune's validation views do
+    not tell the two apart (they are meshed from their own depth). A sigma of 0.5 or 1 px, a blur of the whole image
+    and 2x2 supersampling all scored lower on dtu_scan37 (``python -m bench depth_sources``, the ``, no soften``
+    rows; BENCHMARKS "Depth sources")."""
     max_held_out: int = 8
     """Held-out views scored at each evaluation (at most this many, evenly spaced over the protocol's targets): 8 scores
-    all of DTU's protocol views (0 6 13 19 28 35 42 48; 4 scored 0 13 35 48 before session 17, the benches still
-    pass 4 unless a row says ``, 8 held-out``); fern and the procedural scenes hold out fewer. On DTU the 4 extra views
-    are the harder ones: dtu_scan37 mask 22.71 (4) against 21.63 dB (8), dtu_scan24 26.36 against 25.56 (views 19 and
-    6 of scan37 are 22 % and 8 % darker than the photos around them: the blend cannot know a held-out photo's
-    exposure). Cost, ``omnirecon finetune`` on dtu_scan37's bench mesh (angle blend, nothing tuned, 1 thread, two runs
-    each): 40.2 / 45.1 process CPU-s with 4, 52.8 / 55.3 with 8 (rasterizing and scoring the 4 more views)."""
+    all of DTU's protocol views (0 6 13 19 28 35 42 48; the benches pass 4, scoring 0 13 35 48, unless a row says
+    ``, 8 held-out``); fern and the procedural scenes hold out fewer. On DTU the 4 extra views are the harder ones
+    (views 19 and 6 of scan37 are darker than the photos around them: the blend cannot know a held-out photo's
+    exposure), and they cost rasterizing and scoring 4 more views."""
     out: Path | None = None
     """Output folder (default: outputs/finetune/<scene>)."""
     save: bool = False
@@ -430,9 +386,8 @@ def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Ge
 ENCODER_GRAPH_MB = 2048
 """A tuned encoder's pass whose graph would hold more than this is checkpointed (``FPNEncoder.appearance``:
 identical features and gradients, each step's encoder pass about 1.4x the CPU). The graph takes about
-:data:`GRAPH_BYTES_PER_PIXEL` per source pixel: ethiopianHead's 52 sources at 401x401, 3.0 GB (2.2 GB
-checkpointed); ``finetune`` there (processed without masks, the network blend, encoder tuned, 6 CPU-s, 1 thread)
-peaked at 5.09 GB resident without the checkpoint, 3.61 GB with it, the same step count and PSNR (18.50 dB)."""
+:data:`GRAPH_BYTES_PER_PIXEL` per source pixel (e.g. 52 sources at 401x401 hold about 3 GB); checkpointing
+lowers ``finetune``'s peak resident memory and leaves the step count and the scores as they were."""
 GRAPH_BYTES_PER_PIXEL = 360
 """omnirecon-tiny's encoder graph per source pixel (measured: 52 x 401 x 401 sources, 3.0 GB)."""
 

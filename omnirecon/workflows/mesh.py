@@ -53,10 +53,9 @@ class MeshConfig(MachineConfig):
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
-    """Long side of the images meshed, in pixels (default: the photos' own, at most 512, as `reconstruct`). fern,
-    every training view (`python -m bench mesh_resolution`, scored at the photos' size): at 336x252 held-out 23.92 dB in
-    35.9 CPU-s, at 128x96 23.16 dB in 38.2 CPU-s; dtu_scan24 (stereo+model, no masks) over the mask 18.86 dB in 130
-    CPU-s at 400x300, 17.50 dB in 94 CPU-s at 128x96."""
+    """Long side of the images meshed, in pixels (default: the photos' own, at most 512, as `reconstruct`).
+    Meshing at a lower resolution scored lower on fern and dtu_scan24 for about the same or a little less CPU time
+    (`python -m bench mesh_resolution`; BENCHMARKS "Mesh resolution")."""
     depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
     """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
     no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
@@ -68,7 +67,8 @@ class MeshConfig(MachineConfig):
     voxel: float | None = None
     """Voxel size as a fraction of the bounds diagonal (default: the depth maps' pixel footprint)."""
     trunc: float | None = None
-    """TSDF truncation in voxels (default: 3, widened to the depth error the maps show)."""
+    """TSDF truncation in voxels (default: the preset's: 4 for `fit`, widened to twice the depth error the
+    maps show; 3 for `reference`, VolRecon's)."""
     fusion: Literal["fit", "reference"] = "fit"
     """`fit`: confidence-weighted fusion scaled to the depth (omnirecon.mesh.fusion); `reference`:
     VolRecon's protocol as published."""
@@ -77,10 +77,9 @@ class MeshConfig(MachineConfig):
     default: the preset's, on for fit)."""
     max_faces: int = 400_000
     """Face budget of the written mesh (0 = keep every face): completion's fills and a forward-facing scene's
-    backdrop sheet count, the fused surface gets what they leave. 400k because a smaller budget costs the real
-    captures held-out PSNR for little speed: fern, 17 views at 336x252, writes 326,698 faces (24.01 dB held-out,
-    87 CPU-ms per mesh-path frame); at 200k the fills and backdrop take 131k and the fused part keeps 69k
-    (23.92 dB, 75 CPU-ms), at 300k 23.996 dB (BENCHMARKS "Depth sources", "Real-time mesh path")."""
+    backdrop sheet count, the fused surface gets what they leave. A smaller budget costs the real captures
+    held-out PSNR for little mesh-path speed (face counts, scores and frame times per budget: BENCHMARKS "Depth
+    sources", "Real-time mesh path")."""
     depth_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Pass of IBRNet / Omni-Recon that renders the depth maps: fine (better geometry) or coarse (about 5x
     faster); `auto`: coarse for stereo+model (the model only fills stereo's holes; what bench/depth_sources.py

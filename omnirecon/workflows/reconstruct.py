@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import statistics
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -40,6 +40,7 @@ from omnirecon.engine.checkpoint import load_checkpoint
 from omnirecon.engine.machine import MachineConfig
 from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
+from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.options import check_options
@@ -52,7 +53,7 @@ from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video
 
-CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "omnirecon-tiny"
+CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
 """The shipped Omni-Recon checkpoint (the default model)."""
 
 
@@ -97,8 +98,9 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     check_options("reconstruct", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not Path(cfg.path).exists():
         raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
-    if not (Path(cfg.ckpt) / "meta.json").is_file():
-        raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. checkpoints/omnirecon-tiny")
+    cfg = replace(cfg, ckpt=checkpoint_folder(cfg.ckpt))  # a path, or a shipped name such as omnirecon-tiny
+    if not (cfg.ckpt / "meta.json").is_file():
+        raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. --ckpt omnirecon-tiny")
     out = Path(cfg.out)
     with claim(out, "reconstruct", inputs=(cfg.path, cfg.ckpt, cfg.masks), mode="replace",
                overwrite=cfg.overwrite) as owned:

@@ -69,15 +69,17 @@ class RenderConfig(MachineConfig):
     """Also write video.mp4 (or video.gif)."""
     render_pass: Literal["auto", "coarse", "fine"] = "auto"
     """Two-pass models (IBRNet, Omni-Recon): coarse renders the coarse pass only, fine both; auto: the
-    checkpoint's choice (the shipped omnirecon-tiny: coarse, 3.1-4.2x faster at +0.12 dB; ibrnet-tiny: fine, its coarse
-    pass is 5.7x faster but 0.4 dB worse: `python -m bench tiny_levers`). One-pass models ignore it."""
+    checkpoint's choice (the shipped omnirecon-tiny: coarse, several times faster at no loss; ibrnet-tiny: fine, its
+    coarse pass is faster but worse: `python -m bench tiny_levers`, BENCHMARKS "Render levers of the tiny presets").
+    One-pass models ignore it."""
     samples: int | None = None
     """Samples per ray instead of the checkpoint's (GPNR: all of them, gpnr-tiny's default 24; two-pass models:
     the coarse pass's): fewer is faster."""
     precision: Literal["auto", "fp32", "bf16"] = "auto"
-    """bf16: the per-sample networks under bf16 autocast (GPNR 1.4x faster on CPUs with avx512_bf16 at the same
-    PSNR within 0.01 dB; IBRNet and Omni-Recon gain nothing; 7x slower on CPUs without it, e.g. AVX2 only); auto: the
-    checkpoint's (gpnr-tiny: bf16) where the device computes bf16 natively, else fp32."""
+    """bf16: the per-sample networks under bf16 autocast (GPNR faster on CPUs with avx512_bf16 at the same
+    PSNR; IBRNet and Omni-Recon gain nothing; several times slower on CPUs without it, e.g. AVX2 only); auto: the
+    checkpoint's (gpnr-tiny: bf16) where the device computes bf16 natively, else fp32 (BENCHMARKS "Render levers of
+    the tiny presets")."""
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI

@@ -4,9 +4,9 @@ import json
 
 import pytest
 import trimesh
+from conftest import ROOT
 
 from omnirecon.cli import main
-from omnirecon.workflows.demo import ROOT
 
 
 @pytest.mark.slow

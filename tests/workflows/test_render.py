@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import ROOT
 
 from omnirecon import trajectory
 from omnirecon.cameras import Cameras, look_at
@@ -14,7 +15,6 @@ from omnirecon.cli import main
 from omnirecon.data.io import read_image
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
-from omnirecon.workflows.demo import ROOT
 from omnirecon.workflows.render import _write_gif
 
 
