@@ -156,7 +156,7 @@ def evaluate(
         "model": model_info or {"name": type(model).__name__ if model is not None else options.depth},
         "protocol_set": protocol_set,
         "geometry": geometry,
-        **({"guided": asdict(guided)} if guided is not None and guided.on else {}),
+        **({"guided": asdict(guided.resolved(model))} if guided is not None and guided.on else {}),
         **({"mesh_options": asdict(options), "mesh_masks": mesh_masks} if geometry else {}),
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},

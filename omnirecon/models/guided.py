@@ -71,8 +71,10 @@ class GuidedOptions:
         for name, (lo, hi) in rules.items():
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
+                default = getattr(GuidedOptions, name)
                 raise InputError(f"--guided.{name.replace('_', '-')} must be in [{lo}, {hi}], got {value}", None,
-                                 f"pass a value in [{lo}, {hi}] (default {getattr(GuidedOptions, name)})")
+                                 f"pass a value in [{lo}, {hi}] or leave it out (" +
+                                 ("the model family's value)" if default is None else f"default {default})"))
 
     def resolved(self, model) -> GuidedOptions:
         """These options with every None filled from :data:`FAMILY_DEFAULTS` for ``model``'s class."""

@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import FAST, compiled, concat_linear, is_rendering, net_autocast
+from omnirecon.models.guided import to_unit
 from omnirecon.models.pretrained import SingleMap
 from omnirecon.models.projector import gather, project
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -229,8 +230,7 @@ def trained_positions(z: Tensor, sources: Sources, coarse: int, fine: int) -> Te
     ``coarse`` uniform samples (in inverse depth on forward rigs) plus ``fine`` importance samples near the
     surface, for the ray transformer's index code: the coarse samples in front of each (its fraction of the
     near-far range) plus its share of the importance samples by rank. ``# [R, S]``"""
-    near, far = sources.near, sources.far
-    u = (1 / near - 1 / z) / (1 / near - 1 / far) if sources.rig == "forward" else (z - near) / (far - near)
+    u = to_unit(z, sources.near, sources.far, sources.rig == "forward")  # [R, S]
     rank = torch.arange(z.shape[1], dtype=z.dtype, device=z.device) / max(z.shape[1] - 1, 1)  # [S]
     return u.clamp(0, 1) * (coarse - 1) + rank * fine
 
@@ -302,8 +302,8 @@ class IBRNet(GeneralizableModel):
         ``acc``, see :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the
         output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: the fine pass).
         ``depths # [R, S]``: one pass at these sample z-depths with the fine network (the coarse one when
-        ``fine_pass`` is False), each sample standing for one trained sample (surface-guided rendering,
-        :mod:`omnirecon.models.guided`)."""
+        ``fine_pass`` is False), their density as trained and their index code at :func:`trained_positions`
+        (surface-guided rendering, :mod:`omnirecon.models.guided`)."""
         cfg = self.cfg
         if depths is not None:
             return self._guided(features, rays, depths, signals, fine_pass is False)

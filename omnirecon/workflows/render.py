@@ -126,7 +126,7 @@ def render_levers(net, info: dict, cfg: RenderConfig) -> dict:
         if key is not None:
             setattr(net.cfg, key, cfg.samples)
             info["render_samples"] = {key: cfg.samples}
-    info["render_options"] = {"render_pass": cfg.render_pass, "precision": cfg.precision, "guided": asdict(cfg.guided)}
+    info["render_options"] = {"render_pass": cfg.render_pass, "precision": cfg.precision, "guided": asdict(cfg.guided.resolved(net))}
     return {} if cfg.render_pass == "auto" else {"fine_pass": cfg.render_pass == "fine"}
 
 

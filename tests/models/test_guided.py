@@ -17,10 +17,14 @@ MODELS = ("gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 
 
 @pytest.fixture(scope="module")
-def scene(tmp_path_factory):
-    path = generate_scene(tmp_path_factory.mktemp("guided"), 900_321, SynthOptions(rig="forward", resolution=48,
+def scene_path(tmp_path_factory):
+    return generate_scene(tmp_path_factory.mktemp("guided"), 900_321, SynthOptions(rig="forward", resolution=48,
                                                                                  views=12))
-    return load_scene(path).normalized()
+
+
+@pytest.fixture(scope="module")
+def scene(scene_path):
+    return load_scene(scene_path).normalized()
 
 
 def _setup(name, scene):
@@ -86,3 +90,18 @@ def test_guided_close_to_full(name, floor, scene):
     score = psnr(out["rgb"].clamp(0, 1), full.clamp(0, 1))
     frac = float(out["guided"].float().mean())
     assert score >= floor and frac > 0.5, f"{name}: {score:.2f} dB to the full render, {frac:.0%} guided"
+
+
+def test_eval_guided_option_records_its_settings(run_cli, scene_path, tmp_path):
+    """``eval --guided.on`` renders guided and records the resolved options; a bad value is one line, exit 2."""
+    import json
+
+    args = ["eval", "--ckpt", ROOT / "checkpoints" / "omnirecon-tiny", "--scenes", scene_path, "--num-views", 3,
+            "--max-targets", 1, "--protocol-set", "cpu", "--no-save-images", "--threads", 1]
+    rc, _, err = run_cli([*args, "--guided.on", "--out", tmp_path / "on"])
+    assert rc == 0, err
+    guided = json.loads((tmp_path / "on" / "results.json").read_text())["guided"]
+    assert guided["on"] and guided["band_samples"] == 8 and guided["band"] == 0.01  # Omni-Recon's family values
+    rc, _, err = run_cli([*args, "--guided.band", "2", "--out", tmp_path / "bad"])
+    assert rc == 2 and "--guided.band must be in [0.0, 1.0]" in err and "Traceback" not in err
+    assert not (tmp_path / "bad").exists()
