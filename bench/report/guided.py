@@ -46,5 +46,5 @@ def block(r: dict) -> str:
                     f"{x['psnr_guided']:.2f} | {x['dpsnr']:+.2f} | {x['psnr_guided_vs_full']:.1f} | "
                     f"{100 * x['guided_share']:.0f} % | {x['loadavg'][0]:.1f} |")
     return "\n".join([f"K = {r['k']}, bench side {r['side']} px:", "", *rows, "",
-                      prov(r["provenance"]) + f" Load average at start {r['loadavg_start']}, end "
+                      prov(r["provenance"]) + f". Load average at start {r['loadavg_start']}, end "
                       f"{r.get('loadavg_end', '- (run interrupted)')}.", ""])
