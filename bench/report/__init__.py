@@ -20,6 +20,7 @@ from bench.report import (
     finetune_validation,
     geometry,
     geometry_budget,
+    guided,
     hostile,
     levers,
     lift,
@@ -43,7 +44,7 @@ from bench.report import (
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, extrapolation,
             depth_sources,
             realtime_blend, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile,
-            speed, peer, levers, end_to_end, training, quality, geometry,
+            speed, guided, peer, levers, end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 
 HEADER = ("# Benchmarks\n\n"

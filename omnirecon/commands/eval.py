@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from omnirecon.engine.evaluate import evaluate
 from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
+from omnirecon.models.guided import GuidedOptions
 from omnirecon.outputs import claim
 
 
@@ -54,10 +55,14 @@ class EvalCommand(MachineConfig):
     """Also extract a mesh per scene and K (`omnirecon mesh`'s protocol; sources: DTU's 23 24 33 or K
     evenly spaced pool views) and score it: Chamfer / F-score against a procedural scene's exact
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
+    guided: GuidedOptions = field(default_factory=GuidedOptions)
+    """Surface-guided rendering of the targets (``--guided.on``; see ``omnirecon render --help``): changes the
+    renders, recorded in results.json."""
 
     def main(self) -> None:
         out = self.out or Path("outputs/eval") / default_name(self.ckpt, self.model or "model")
         # The output set is built beside --out and swapped in whole (see outputs.claim).
+        self.guided.check()
         with claim(out, "eval", inputs=(self.ckpt, *self.scenes), mode="replace") as c:
             set_threads(self.threads)
             device = pick_device(self.device)
@@ -65,7 +70,7 @@ class EvalCommand(MachineConfig):
             result = evaluate(net, list(self.scenes), self.num_views, c.work, model_info=info, chunk=self.chunk,
                               device=device, max_targets=self.max_targets, synth_count=self.synth_count,
                               cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,
-                              geometry=self.geometry)
+                              geometry=self.geometry, guided=self.guided)
         from omnirecon.engine.eval_report import summary_lines  # lazy: the report module loads only after a run
 
         for line in summary_lines(result):

@@ -38,6 +38,7 @@ from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.depth import depth_from_outputs
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.geometry import depth_errors
+from omnirecon.models.guided import GuidedOptions, render_guided
 from omnirecon.preflight import check_planned
 from omnirecon.progress import progress_bar
 from omnirecon.provenance import provenance
@@ -81,6 +82,7 @@ def evaluate(
     mesh_options: MeshOptions | None = None,
     mesh_pictures: bool = True,
     mesh_masks: bool = False,
+    guided: GuidedOptions | None = None,
 ) -> dict:
     """Evaluate ``model`` on ``scenes`` for each source count in ``num_views``; returns the results.
 
@@ -97,6 +99,8 @@ def evaluate(
         synth_count: Scenes in a ``synth:eval`` set.
         save_images: Write a ``GT | render | error`` panel per target.
         progress: Show a progress bar with ETA.
+        guided: Surface-guided rendering of the targets (:mod:`omnirecon.models.guided`; None or off: the full
+            path); results record the options.
         seed: Seeds torch before rendering (models are deterministic at test time; recorded).
         protocol_set: ``"full"`` (the published protocols) or ``"cpu"`` (64 px, fewer targets).
         geometry: Also mesh each (scene, K) with :func:`geometry_sources` as the sources
@@ -141,7 +145,7 @@ def evaluate(
         task = bar.add_task("eval", total=total)
         for job in jobs:
             if model is not None:
-                _run_job(model, job, chunk, device, out if save_images else None, bar, task)
+                _run_job(model, job, chunk, device, out if save_images else None, bar, task, guided or GuidedOptions())
             else:
                 job["views"] = []
                 bar.advance(task, len(job["targets"]))
@@ -152,6 +156,7 @@ def evaluate(
         "model": model_info or {"name": type(model).__name__ if model is not None else options.depth},
         "protocol_set": protocol_set,
         "geometry": geometry,
+        **({"guided": asdict(guided.resolved(model))} if guided is not None and guided.on else {}),
         **({"mesh_options": asdict(options), "mesh_masks": mesh_masks} if geometry else {}),
         "protocols": {s.protocol.name: asdict(s.protocol) for s in prepared},
         "non_protocol": {} if max_targets is None else {"max_targets": max_targets},
@@ -184,7 +189,7 @@ def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tu
     return jobs, records
 
 
-def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, task) -> None:
+def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, task, guided: GuidedOptions) -> None:
     """Render and score every target of one (scene, K) job; fills ``job["views"]``."""
 
     es: EvalScene = job["scene"]
@@ -197,7 +202,7 @@ def _run_job(model, job: dict, chunk: int, device: str, out: Path | None, bar, t
         if tuple(src) != key:  # DTU's fixed sources are encoded once
             features, key = model.encode(Sources.from_scene(scene, src).to(device)), tuple(src)
         camera = scene.cameras[t].to(device=device, dtype=scene.images.dtype)
-        rendered = model.render_view(features, camera, chunk=chunk)
+        rendered = render_guided(model, features, camera, guided, chunk)
         seconds, cpu = time.perf_counter() - start, time.process_time() - cpu
         gt = scene.images[t]
         mask = scene.masks[t] if es.protocol.masked and scene.masks is not None else None

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from omnirecon.cameras import Cameras
@@ -44,6 +45,10 @@ class Capabilities:
     samples around the coarse surface instead of the coarse samples plus the fine ones; both shipped
     models lose much of their held-out PSNR with it). Both are quality/speed trades measured by
     ``bench/fast_paths.py``, not fast paths with a reference twin."""
+    guided: bool = False
+    """``render_rays(features, rays, depths=z)`` renders one pass (a two-pass model's final one) at the caller's
+    sample z-depths ``z # [R, S]`` (increasing) instead of its own sampling: surface-guided rendering
+    (:mod:`omnirecon.models.guided`)."""
 
 
 class GeneralizableModel(nn.Module):
@@ -66,8 +71,8 @@ class GeneralizableModel(nn.Module):
         return render_sub_batches(lambda r: self.render_rays(features, r, **kwargs), rays, FAST.train_batch)
 
     def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None,
-                    fine_pass: bool | None = None, surface_samples: int = 0, pixels: Tensor | None = None
-                    ) -> dict[str, Tensor]:
+                    fine_pass: bool | None = None, surface_samples: int = 0, pixels: Tensor | None = None,
+                    depths: Tensor | None = None) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
         ``pixels # [M]`` (flat row-major indices): render only those pixels, outputs ``[M, ...]``
         (every model renders each ray on its own: the same values as the full image's at those pixels).
@@ -76,7 +81,9 @@ class GeneralizableModel(nn.Module):
         (models that support lifting return ``signal # [H, W, C]``; see :mod:`omnirecon.lift`).
         ``fine_pass`` and ``surface_samples`` are passed to the ``render_rays`` of two-pass models
         (``capabilities.passes``, where they are documented); a one-pass model renders its only pass
-        whatever they say. ``camera`` may be in any float dtype and on any device (a
+        whatever they say. ``depths # [N, S]`` (one row per rendered ray: per pixel, or per entry of ``pixels``;
+        models with ``capabilities.guided``): every ray samples at its row's z-depths instead of the model's own
+        (:mod:`omnirecon.models.guided`). ``camera`` may be in any float dtype and on any device (a
         :class:`~omnirecon.data.scene.Scene`'s cameras are float64): it is moved to the sources' dtype
         and device first.
 
@@ -93,6 +100,21 @@ class GeneralizableModel(nn.Module):
         if self.capabilities.passes:
             extra.update(fine_pass=fine_pass, surface_samples=surface_samples)
         batch = min(chunk, FAST.render_batch) if FAST.render_batch > 0 else chunk
+        render = (lambda r: self.render_rays(features, r, **extra)) if depths is None else \
+            _with_depths(lambda r, z: self.render_rays(features, r, depths=z, **extra), depths)
         with grad_mode(), rendering():
-            out = render_batches(lambda r: self.render_rays(features, r, **extra), rays, batch, height, width)
+            out = render_batches(render, rays, batch, height, width)
         return out if pixels is None else {k: v[0] for k, v in out.items()}
+
+
+def _with_depths(render, depths: Tensor):
+    """``render(rays, z)`` as a function of ``rays`` alone for :func:`~omnirecon.models.fast.render_batches`, which
+    calls it on consecutive slices of the rays (the last one padded with copies of the last ray when compiled):
+    each call gets the rows of ``depths # [N, S]`` of its slice."""
+    start = [0]
+
+    def call(rays: Rays) -> dict[str, Tensor]:
+        idx = torch.arange(start[0], start[0] + len(rays), device=depths.device).clamp_max(len(depths) - 1)
+        start[0] += len(rays)
+        return render(rays, depths[idx])
+    return call

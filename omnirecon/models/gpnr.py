@@ -144,7 +144,7 @@ def _run(block: nn.Module, x: Tensor, pad: Tensor | None, bf16: bool = False) ->
 
 
 class GPNR(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True)
+    capabilities = Capabilities(depth=True, signals=True, guided=True)
 
     def __init__(self, cfg: GPNRConfig):
         super().__init__()
@@ -189,19 +189,23 @@ class GPNR(GeneralizableModel):
         return fourier(code, cfg.ray_freqs)
 
     # ------------------------------------------------------------------ render
-    def render_rays(self, features: GPNRFeatures, rays: Rays, signals: Tensor | None = None) -> dict[str, Tensor]:
+    def render_rays(self, features: GPNRFeatures, rays: Rays, signals: Tensor | None = None,
+                    depths: Tensor | None = None) -> dict[str, Tensor]:
         """Render rays. ``signals # [K, H, W, C]`` (optional, per-source-view 2-D maps): also return
         ``signal # [R, C] = sum_k beta_k sum_m alpha_km s_km``, the maps sampled exactly as the colours
-        and blended with the weights of ``rgb_aux`` (predict-then-blend)."""
+        and blended with the weights of ``rgb_aux`` (predict-then-blend). ``depths # [R, M]``: the points' z-depths
+        per ray instead of the linear ones (surface-guided rendering, :mod:`omnirecon.models.guided`)."""
         cfg = self.cfg
         src = features.sources
         cams = src.cameras
         M = cfg.render_samples if cfg.render_samples and is_rendering() else cfg.num_samples
+        M = M if depths is None else depths.shape[1]
         K, R = len(cams), len(rays)
         dtype = features.patches.dtype
 
-        # 1. samples along the target rays, linear in z-depth
-        z = torch.linspace(src.near, src.far, M, dtype=dtype, device=rays.origins.device)  # [M]
+        # 1. samples along the target rays, linear in z-depth (or the caller's)
+        z = torch.linspace(src.near, src.far, M, dtype=dtype, device=rays.origins.device) if depths is None \
+            else depths.to(dtype)  # [M] or [R, M]
         dist = rays.distances(z)  # [R, M]
         pts = rays.points(z)  # [R, M, 3]
 
@@ -269,7 +273,7 @@ class GPNR(GeneralizableModel):
 
         rgb_feat = torch.sigmoid(self.rgb_head((beta[..., None] * g).sum(1)))  # [R, 3]
         rgb_aux = (beta[..., None] * (alpha[..., None] * rgb).sum(2)).sum(1)  # [R, 3]
-        depth = (beta * (alpha * z).sum(-1)).sum(-1)  # [R] expected z-depth
+        depth = (beta * (alpha * (z if z.dim() == 1 else z[:, None])).sum(-1)).sum(-1)  # [R] expected z-depth
         main, aux = (rgb_feat, rgb_aux) if cfg.output == "features" else (rgb_aux, rgb_feat)
         out = {"rgb": main, "rgb_aux": aux, "rgb_blend": rgb_aux, "depth": depth, "alpha": alpha, "blend": beta,
                "valid": view_ok.any(-1)}

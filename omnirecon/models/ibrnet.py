@@ -23,6 +23,7 @@ from torch import Tensor, nn
 
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import FAST, compiled, concat_linear, is_rendering, net_autocast
+from omnirecon.models.guided import to_unit
 from omnirecon.models.pretrained import SingleMap
 from omnirecon.models.projector import gather, project
 from omnirecon.models.sampler import coarse_depths, fine_depths
@@ -175,11 +176,12 @@ class Aggregator(nn.Module):
         self.sigma = nn.Sequential(nn.Linear(16, 16), _ELU(), nn.Linear(16, 1), nn.ReLU())
         self.rgb = _mlp(37, 16, 8, 1)
 
-    def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor, stands_for: Tensor | None = None
-                ) -> tuple[Tensor, Tensor]:
+    def forward(self, rgb_feat: Tensor, ray_diff: Tensor, mask: Tensor, stands_for: Tensor | None = None,
+                positions: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """``rgb_feat # [R, S, V, 3+C]``, ``ray_diff # [R, S, V, 4]``, ``mask # [R, S, V]`` ->
         ``sigma # [R, S]`` and view blend weights ``# [R, S, V]``. ``stands_for # [R, S]``: trained samples
-        each rendered one stands for (the index code counts in trained positions); None: one each."""
+        each rendered one stands for (the index code counts in trained positions); None: one each. ``positions # [R, S]``:
+        the samples' positions in the trained sequence for the index code instead (surface-guided rendering)."""
         m = mask[..., None].to(rgb_feat.dtype)  # [R, S, V, 1]
         f = rgb_feat + self.dir_mlp(ray_diff)
         e = torch.exp(self.sharpness.abs() * (ray_diff[..., 3:] - 1))  # [R, S, V, 1]
@@ -196,8 +198,10 @@ class Aggregator(nn.Module):
         vw = v / (v.sum(-2, keepdim=True) + 1e-8)
         dens = torch.cat([_weighted_stats(x, vw)[..., 0, :], vw.mean(-2)], -1)  # [R, S, 65] (reference: weight.mean)
         h = self.density_feat(dens)  # [R, S, 16]
-        code = sample_index_code(h.shape[1], 16, h.device) if stands_for is None else \
-            position_code(stands_for.cumsum(-1) - stands_for, 16)  # [S, 16] or [R, S, 16]
+        if positions is None:
+            positions = None if stands_for is None else stands_for.cumsum(-1) - stands_for  # [R, S]
+        code = sample_index_code(h.shape[1], 16, h.device) if positions is None else \
+            position_code(positions, 16)  # [S, 16] or [R, S, 16]
         h = h + code.to(h.dtype)
         seen = mask.any(-1)  # [R, S]
         pad = ~seen & ~(~seen).all(-1, keepdim=True)
@@ -221,6 +225,16 @@ def _ray_attention(attn: nn.MultiheadAttention, h: Tensor, pad: Tensor) -> Tenso
     return F.linear(o.transpose(1, 2).reshape(R, S, E), attn.out_proj.weight)
 
 
+def trained_positions(z: Tensor, sources: Sources, coarse: int, fine: int) -> Tensor:
+    """Where samples at z-depths ``z # [R, S]`` (increasing) would sit in the trained sequence of a pass over
+    ``coarse`` uniform samples (in inverse depth on forward rigs) plus ``fine`` importance samples near the
+    surface, for the ray transformer's index code: the coarse samples in front of each (its fraction of the
+    near-far range) plus its share of the importance samples by rank. ``# [R, S]``"""
+    u = to_unit(z, sources.near, sources.far, sources.rig == "forward")  # [R, S]
+    rank = torch.arange(z.shape[1], dtype=z.dtype, device=z.device) / max(z.shape[1] - 1, 1)  # [S]
+    return u.clamp(0, 1) * (coarse - 1) + rank * fine
+
+
 # ---------------------------------------------------------------------- the model
 @dataclass
 class IBRNetFeatures:
@@ -230,7 +244,7 @@ class IBRNetFeatures:
 
 
 class IBRNet(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True, passes=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, passes=True, guided=True)
 
     def __init__(self, cfg: IBRNetConfig):
         super().__init__()
@@ -262,13 +276,13 @@ class IBRNet(GeneralizableModel):
         return rgb_feat, ray_diff, mask, sig
 
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None,
-              stands_for: Tensor | None = None):
+              stands_for: Tensor | None = None, positions: Tensor | None = None):
         """One pass at depths ``z``; ``stands_for # [R, S]``: trained samples per rendered one (index code and
         density; None: one each, the trained sampling)."""
         rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
         with net_autocast(z.device):
-            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask, stands_for) if stands_for is not None else \
-                compiled(net)(rgb_feat, ray_diff, mask)
+            extra = () if stands_for is None and positions is None else (stands_for, positions)
+            sigma, blend = compiled(net)(rgb_feat, ray_diff, mask, *extra)
         sigma, blend = sigma.to(z.dtype), blend.to(z.dtype)
         w, _ = weights_from_alpha(alpha_from_density(sigma if stands_for is None else sigma * stands_for))
         sample_rgb = (blend[..., None] * rgb_feat[..., :3]).sum(-2)  # [R, S, 3]
@@ -280,14 +294,19 @@ class IBRNet(GeneralizableModel):
         return out
 
     def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False,
-                    signals: Tensor | None = None, fine_pass: bool | None = None, surface_samples: int = 0
-                    ) -> dict[str, Tensor]:
+                    signals: Tensor | None = None, fine_pass: bool | None = None, surface_samples: int = 0,
+                    depths: Tensor | None = None) -> dict[str, Tensor]:
         """Coarse then fine pass. ``signals # [V, H, W, C]`` (optional, per-source-view 2-D maps): also
         return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
         ``acc``, see :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the
-        output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: the fine pass)."""
+        output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: the fine pass).
+        ``depths # [R, S]``: one pass at these sample z-depths with the fine network (the coarse one when
+        ``fine_pass`` is False), their density as trained and their index code at :func:`trained_positions`
+        (surface-guided rendering, :mod:`omnirecon.models.guided`)."""
         cfg = self.cfg
+        if depths is not None:
+            return self._guided(features, rays, depths, signals, fine_pass is False)
         nc, nf = cfg.coarse_samples, cfg.fine_samples
         if is_rendering() and not jitter:  # the checkpoint's render counts (fewer samples standing for the trained)
             nc, nf = cfg.render_coarse_samples or nc, cfg.render_fine_samples or nf
@@ -309,3 +328,12 @@ class IBRNet(GeneralizableModel):
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out
+
+    def _guided(self, features: IBRNetFeatures, rays: Rays, z: Tensor, signals: Tensor | None,
+                coarse: bool) -> dict[str, Tensor]:
+        """One pass at the caller's z-depths ``z # [R, S]`` (the fine network unless ``coarse`` or there is none)."""
+        net, half = (self.coarse, 0) if coarse or self.fine is None else (self.fine, 1)
+        out = self._pass(net, features, rays, z, half, signals, positions=trained_positions(
+            z, features.sources, self.cfg.coarse_samples, 0 if coarse else self.cfg.fine_samples))
+        return {**{f"{k}_coarse": v for k, v in out.items() if k in ("rgb", "depth")},
+                **{k: v for k, v in out.items() if k not in ("weights", "z")}}

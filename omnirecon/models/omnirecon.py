@@ -461,7 +461,7 @@ def nearest_sources(sources: Sources, camera: Cameras, n: int) -> Tensor:
 
 
 class OmniRecon(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True, guided=True)
 
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
@@ -598,17 +598,20 @@ class OmniRecon(GeneralizableModel):
 
     def render_rays(self, features: OmniReconFeatures, rays: Rays, jitter: bool = False,
                     return_samples: bool = False, signals: Tensor | None = None, fine_pass: bool | None = None,
-                    surface_samples: int = 0) -> dict[str, Tensor]:
+                    surface_samples: int = 0, depths: Tensor | None = None) -> dict[str, Tensor]:
         """Coarse pass, then the fine pass on the coarse + importance samples (see the module docstring for
-        the outputs). ``jitter``: stratified coarse samples and random importance samples (training).
+        the outputs). ``depths # [R, S]``: one pass at these sample z-depths instead (surface-guided rendering,
+        :mod:`omnirecon.models.guided`; ``rgb_coarse`` and ``depth_coarse`` are that pass's). ``jitter``:
+        stratified coarse samples and random importance samples (training).
         ``signals # [K, H, W, C]`` (per-source-view 2-D maps, optional) adds ``signal # [R, C]`` from the
         final pass: predict-then-blend with the RGB weights (not normalised by ``acc``; see
         :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the output outside
         training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: ``cfg.render_fine_pass``)."""
         cfg = self.cfg
-        z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter)  # [R, S]
+        z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter) if depths is None else depths  # [R, S]
         fine_pass = cfg.render_fine_pass if fine_pass is None else fine_pass
-        coarse_only = cfg.fine_samples == 0 or not (fine_pass or jitter)  # fine_pass=False: coarse depth maps
+        # fine_pass=False: coarse depth maps; depths: the caller's samples, one pass
+        coarse_only = depths is not None or cfg.fine_samples == 0 or not (fine_pass or jitter)
         coarse, omega = self._pass(features, rays, z, signals if coarse_only else None)
         if coarse_only:
             out = dict(coarse)

@@ -20,12 +20,13 @@ they are here together because only the demo uses them.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from omnirecon.engine.machine import ThreadsConfig
 from omnirecon.engine.shipped import shipped_folder
 from omnirecon.errors import InputError
+from omnirecon.models.guided import GuidedOptions
 
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
@@ -66,6 +67,9 @@ class DemoConfig(ThreadsConfig):
     """Source views K for rendering, scoring and meshing (the papers' sparse setting)."""
     quick: bool = False
     """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
+    guided: GuidedOptions = field(default_factory=GuidedOptions)
+    """Surface-guided rendering of the orbits and the scored views (``--guided.on``; see ``omnirecon render
+    --help``)."""
 def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
     path = Path(cfg.checkpoints) / name
     return path if (path / "model.safetensors").is_file() else None
@@ -161,7 +165,7 @@ def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
         render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                              num_views=cfg.num_views, out=out / f"orbit_{name}")
+                              num_views=cfg.num_views, out=out / f"orbit_{name}", guided=cfg.guided)
         folder, video = timed(numbers, f"orbit_{name}", run_render, render)
         videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")
@@ -179,7 +183,7 @@ def score_model(cfg: DemoConfig, path: Path, out: Path, name: str) -> tuple[dict
         return None
     net, info = load_model(ckpt, "floor" if name == "floor" else None)
     r = evaluate(net, [path], (cfg.num_views,), out / f"eval_{name}", model_info=info, protocol_set="cpu",
-                 max_targets=1 if cfg.quick else None, progress=True)
+                 max_targets=1 if cfg.quick else None, progress=True, guided=cfg.guided)
     scene_r = r["scenes"][0]
     setting = scene_r["settings"].get(str(cfg.num_views))
     return None if setting is None else (scene_r, setting)

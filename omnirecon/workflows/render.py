@@ -13,7 +13,7 @@ look-at centre for object rigs, by camera-centre distance otherwise; the same ru
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -28,6 +28,7 @@ from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.models.fast import switches
+from omnirecon.models.guided import GuidedOptions, render_guided
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
@@ -80,9 +81,14 @@ class RenderConfig(MachineConfig):
     PSNR; IBRNet and Omni-Recon gain nothing; several times slower on CPUs without it, e.g. AVX2 only); auto: the
     checkpoint's (gpnr-tiny: bf16) where the device computes bf16 natively, else fp32 (BENCHMARKS "Render levers of
     the tiny presets")."""
+    guided: GuidedOptions = field(default_factory=GuidedOptions)
+    """Surface-guided rendering (``--guided.on``): each ray samples a band around a depth prior (the model's own
+    render at 1/4 size) plus a few guard samples, rays without a trusted prior the full path; changes the output
+    (``python -m bench guided`` measures speed and PSNR per shipped checkpoint)."""
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+        self.guided.check()
         if self.out is not None and self.out.exists() and not self.out.is_dir():
             raise InputError("output path exists and is not a folder", self.out, "pass a folder for --out")
 
@@ -122,7 +128,7 @@ def render_levers(net, info: dict, cfg: RenderConfig) -> dict:
         if key is not None:
             setattr(net.cfg, key, cfg.samples)
             info["render_samples"] = {key: cfg.samples}
-    info["render_options"] = {"render_pass": cfg.render_pass, "precision": cfg.precision}
+    info["render_options"] = {"render_pass": cfg.render_pass, "precision": cfg.precision, "guided": asdict(cfg.guided.resolved(net))}
     return {} if cfg.render_pass == "auto" else {"fine_pass": cfg.render_pass == "fine"}
 
 
@@ -152,8 +158,8 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
             if tuple(sorted(src)) != key:
                 key = tuple(sorted(src))
                 features = net.encode(Sources.from_scene(scene, sorted(src)).to(device))
-            rgb = net.render_view(features, cams[i].to(device=device, dtype=scene.images.dtype), chunk=cfg.chunk,
-                                  **options)["rgb"]
+            rgb = render_guided(net, features, cams[i].to(device=device, dtype=scene.images.dtype), cfg.guided,
+                                cfg.chunk, **options)["rgb"]
             frame = (rgb.detach().float().cpu().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)  # [H, W, 3]
             write_image(out / "frames" / f"{i:04d}.png", frame)
             frames.append(frame)
