@@ -44,20 +44,26 @@ MAX_DEFAULT_KEYFRAMES = 8
 
 
 WALK_RATIO = 1.5
-"""A forward-facing capture is a walk when its camera centres spread this many times more along the mean view
-direction than across it."""
+"""A capture is a walk when its camera centres spread this many times more along their main axis than across it
+(and the cameras look along that axis: :data:`WALK_LOOK`)."""
+WALK_LOOK = math.cos(math.radians(45.0))
+"""... and the median camera looks within 45 degrees of that axis, either way along it (a street walked out and
+back): an orbit's cameras look across the chord of their arc, a forward-facing grid's across its plane."""
 
 
 def is_walk(cameras: Cameras) -> bool:
-    """Whether the cameras walk along their view direction (a street walked forward with a phone): their centres
-    spread :data:`WALK_RATIO` times more along the mean view direction than across it."""
+    """Whether the cameras walk along their view direction (a street walked forward with a phone, possibly out and
+    back): their centres spread :data:`WALK_RATIO` times more along their main axis than across it, and they look
+    along that axis (:data:`WALK_LOOK`)."""
     c = cameras.centers.double()
-    fwd = cameras.forward.double().mean(0)
-    fwd = fwd / fwd.norm().clamp_min(1e-12)
+    if len(c) <= 2:
+        return False
     off = c - c.mean(0)
-    along = (off @ fwd).abs().max()
-    across = (off - (off @ fwd)[:, None] * fwd).norm(dim=-1).max()
-    return bool(len(c) > 2 and along > WALK_RATIO * across)
+    axis = torch.linalg.svd(off, full_matrices=False).Vh[0]  # [3] the centres' main axis
+    along = (off @ axis).abs().max()
+    across = (off - (off @ axis)[:, None] * axis).norm(dim=-1).max()
+    looks = (cameras.forward.double() @ axis).abs().median()
+    return bool(along > WALK_RATIO * across and looks > WALK_LOOK)
 
 
 def default_keyframes(n: int) -> list[int]:

@@ -35,11 +35,11 @@ def user_path(scene, views: list[int], frames: int, beyond: float = PATH_BEYOND)
     from omnirecon.trajectory import camera_path, default_keyframes
 
     cams = scene.cameras[views]
-    if scene.rig == "object":
-        return camera_path(cams, "orbit", frames, closest_point_to_axes(cams), arc=None, beyond=beyond), "orbit"
-    if is_walk(cams):
+    if is_walk(cams):  # before the rig: a street walked out and back has converging axes, an "object" rig
         keys = default_keyframes(len(views))
         return camera_path(cams, "interp", frames, keyframes=keys), "walk"
+    if scene.rig == "object":
+        return camera_path(cams, "orbit", frames, closest_point_to_axes(cams), arc=None, beyond=beyond), "orbit"
     near, far = float(scene.near[views].min()), float(scene.far[views].max())
     return camera_path(cams, "spiral", frames, near=near, far=far), "spiral"
 

@@ -179,7 +179,8 @@ def extrapolation_split(scene: Scene, pool: list[int] | None = None, arc: float 
     Object rigs: azimuths about the cameras' mean up around the point closest to their optical axes. A capture
     that goes around takes the ``arc`` degrees starting at the first view of ``pool``; one that covers a partial arc
     of ``S`` degrees takes ``min(arc, S - 2 x 20)`` degrees centred in it. Test views lie ``beyond`` degrees past
-    either end. Forward-facing rigs (walks, LLFF grids): the last :data:`WALK_HOLD` of ``pool`` (at least 2 views)
+    either end. Forward-facing rigs (LLFF grids) and walks (:func:`omnirecon.trajectory.is_walk`, whatever the rig):
+    the last :data:`WALK_HOLD` of ``pool`` (at least 2 views)
     are the test views. Raises :class:`InputError` when no test view or fewer than 2 training views result.
     """
     import math
@@ -187,10 +188,10 @@ def extrapolation_split(scene: Scene, pool: list[int] | None = None, arc: float 
     import torch
 
     from omnirecon.cameras import closest_point_to_axes
-    from omnirecon.trajectory import azimuth_frame, azimuths, captured_arc
+    from omnirecon.trajectory import azimuth_frame, azimuths, captured_arc, is_walk
 
     pool = sorted(pool) if pool is not None else list(range(len(scene)))
-    if scene.rig == "forward":
+    if scene.rig == "forward" or is_walk(scene.cameras[pool]):
         n_test = max(2, round(WALK_HOLD * len(pool)))
         train, test = pool[:-n_test], pool[-n_test:]
         split = ExtrapolationSplit(train, test, "walk", [float(k + 1) for k in range(n_test)])

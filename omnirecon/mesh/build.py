@@ -786,8 +786,8 @@ def default_surface(scene=None, masks: bool = False) -> str:
     what ``python -m bench extrapolation`` (held-out views beyond the photos and the path a user watches) and ``python
     -m bench depth_sources`` (interpolated held-out views) measured (BENCHMARKS "Away from the photos"):
 
-    * a walk (forward-facing cameras that move along their view direction, :func:`omnirecon.trajectory.is_walk`: a
-      street walked forward): ``coherent``. Completion's fills, each from one photo's depth, are what its later
+    * a walk (cameras that move along their view direction, :func:`omnirecon.trajectory.is_walk`: a street walked
+      forward, or out and back, whatever the rig): ``coherent``. Completion's fills, each from one photo's depth, are what its later
       photos and any other viewpoint see of the street;
     * every other scene: ``fusion`` (with completion): forward-facing captures, objects with masks or a known
       background colour, and objects without either.
@@ -795,7 +795,7 @@ def default_surface(scene=None, masks: bool = False) -> str:
     from omnirecon.trajectory import is_walk
 
     cams = getattr(scene, "cameras", None)
-    if getattr(scene, "rig", "unknown") == "forward" and cams is not None and is_walk(cams):
+    if cams is not None and is_walk(cams):
         return "coherent"
     return "fusion"
 

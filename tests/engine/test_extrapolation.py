@@ -49,8 +49,8 @@ def test_a_walk_is_told_from_a_forward_facing_grid():
 
 
 def test_the_default_surface_follows_the_scene_kind():
-    """``mesh --surface auto``: the coherent surface on a walk; fusion on a forward-facing grid and on an object
-    rig (the rig, not the camera layout alone, decides: an object capture is never a walk)."""
+    """``mesh --surface auto``: the coherent surface on a walk (also one walked out and back, whose converging axes
+    make an "object" rig); fusion on a forward-facing grid and on an orbit."""
     from types import SimpleNamespace
 
     from omnirecon.mesh.build import default_surface
@@ -63,7 +63,15 @@ def test_the_default_surface_follows_the_scene_kind():
     street = SimpleNamespace(rig="forward", cameras=walk())
     assert default_surface(street) == "coherent"
     assert default_surface(SimpleNamespace(rig="forward", cameras=grid)) == "fusion"
-    assert default_surface(SimpleNamespace(rig="object", cameras=walk())) == "fusion"
+    back = walk(16)
+    back.c2w[8:, :3, :3] = back.c2w[8:, :3, :3] @ torch.diag(torch.tensor([-1.0, 1.0, -1.0], dtype=torch.float64))
+    back.c2w[8:, 0, 3] += 0.3  # the other pavement, looking back the way it came
+    assert is_walk(back) and default_surface(SimpleNamespace(rig="object", cameras=back)) == "coherent"
+    ring = torch.tensor([[math.cos(a), math.sin(a), 0.3] for a in torch.linspace(0, 1.75, 12).tolist()],
+                        dtype=torch.float64)  # 100 degrees of an orbit, looking at the centre
+    orbit = Cameras(torch.full((12,), 50.0), torch.full((12,), 50.0), 32.0, 24.0,
+                    look_at(ring, torch.zeros_like(ring), torch.tensor([0, 0, 1.0]).double()), 64, 48)
+    assert not is_walk(orbit) and default_surface(SimpleNamespace(rig="object", cameras=orbit)) == "fusion"
     assert default_surface(None) == "fusion"
     assert MeshConfig(scene=Path("s")).mesh_options(street).surface == "coherent"
     assert MeshConfig(scene=Path("s"), surface="fusion").mesh_options(street).surface == "fusion"
