@@ -14,7 +14,8 @@ Classes of cases (each built here, in a temporary folder):
 * ``files``: pose files with bad focal fields, deep JSON, NumPy headers claiming more than the file
   holds, unreadable mesh files as ``--mesh`` and as a scene's ground truth, broken checkpoint metadata.
 * ``outputs``: ``--out`` under /proc, under a file, through a dangling link, on a device.
-* ``viewer``: HTTP requests with several ``Host`` headers (must be 400) and clients that disconnect.
+* ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
+  1,000 connections that stall in their headers while a normal request must be answered within 1 s.
 
 A refused case counts as handled only with exit 2, one stderr line ``omnirecon: error: ...`` naming the
 file or option and carrying a ``(fix: ...)`` clause, no traceback, nothing added, removed or changed
@@ -287,6 +288,8 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
         out.append({"class": "viewer", "args": ["http_hosts", *hosts], "named": None})
     for n in (1, 2, 5):
         out.append({"class": "viewer", "args": ["http_disconnect", str(n)], "named": None})
+    for n in (100, 1000):
+        out.append({"class": "viewer", "args": ["http_stalled", str(n)], "named": None})
     return out
 
 
@@ -344,6 +347,35 @@ def http_exchange(port: int, request: bytes) -> tuple[int, bytes]:
     return int(head.split()[1]), body
 
 
+def stalled_then_get(port: int, stalled: int, timeout: float = 1.0) -> tuple[int, float]:
+    """Open ``stalled`` connections to 127.0.0.1:``port`` that send a request line and never finish their
+    headers, then send one normal ``GET /index.html``: its status (0 when no answer came within ``timeout``
+    seconds) and the seconds it took. The stalled sockets are closed before returning."""
+    import socket
+
+    if stalled + 64 > resource.getrlimit(resource.RLIMIT_NOFILE)[0]:
+        hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+        resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, stalled + 256), hard))
+    held = []
+    try:
+        for _ in range(stalled):
+            s = socket.create_connection(("127.0.0.1", port), timeout=10)
+            s.sendall(b"GET /index.html HTTP/1.1\r\n")
+            held.append(s)
+        t0 = time.perf_counter()
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+                s.sendall(b"GET /index.html HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+                head = s.recv(64)
+            status = int(head.split()[1]) if head.startswith(b"HTTP/") else 0
+        except OSError:
+            status = 0
+        return status, time.perf_counter() - t0
+    finally:
+        for s in held:
+            s.close()
+
+
 def _http_case(argv: list[str]) -> int:
     """0 when the viewer answers as it must: 400 for several Host headers; quiet and alive after disconnects."""
     import socket
@@ -360,6 +392,9 @@ def _http_case(argv: list[str]) -> int:
     def get(raw: bytes) -> int:
         return http_exchange(port, raw)[0]
     try:
+        if argv[0] == "http_stalled":  # the stalled connections must not keep a normal request waiting
+            status, seconds = stalled_then_get(port, int(argv[1]), timeout=1.0)
+            return 0 if status == 200 and seconds <= 1.0 else 3
         if argv[0] == "http_hosts":
             head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in argv[1:]) + "Connection: close\r\n\r\n"
             return 0 if get(head.encode()) == 400 else 3
