@@ -14,6 +14,9 @@ Classes of cases (each built here, in a temporary folder):
 * ``files``: pose files with bad focal fields, deep JSON, NumPy headers claiming more than the file
   holds, unreadable mesh files as ``--mesh`` and as a scene's ground truth, broken checkpoint metadata.
 * ``outputs``: ``--out`` under /proc, under a file, through a dangling link, on a device.
+* ``outputs_user``: ``--out`` over a file (or into a folder) the user wrote: a mesh set's files, a bench
+  JSON, a train folder's config, a file added to an earlier render output; refused, nothing replaced or lost.
+* ``capture``: photos too small for SfM, a clip sampled above its own frame rate or at almost none.
 * ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
   1,000 connections that stall in their headers while a normal request must be answered within 1 s.
 
@@ -36,6 +39,7 @@ import re
 import resource
 import signal
 import struct
+import stat
 import sys
 import tempfile
 import time
@@ -290,6 +294,70 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
         out.append({"class": "viewer", "args": ["http_disconnect", str(n)], "named": None})
     for n in (100, 1000):
         out.append({"class": "viewer", "args": ["http_stalled", str(n)], "named": None})
+    return out + user_file_cases(p, work) + capture_cases(work)
+
+
+def capture_cases(work: Path) -> list[dict]:
+    """``capture``: photos too small for SfM (pycolmap crashed on them) and a 4 fps clip sampled at 240 fps
+    (capped at the clip's rate) or at 1e-30 fps (blamed on --fps)."""
+    import imageio_ffmpeg
+    import numpy as np
+    from PIL import Image
+
+    out = []
+    for w, h in ((1, 1), (4, 4), (8, 8), (1, 64), (64, 2)):
+        d = work / "capture" / f"tiny_{w}x{h}"
+        d.mkdir(parents=True)
+        for i in range(4):
+            Image.fromarray((np.random.default_rng(i).random((h, w, 3)) * 255).astype(np.uint8)).save(d / f"p{i}.png")
+        out.append({"class": "capture", "args": ["process", str(d), "--out", "{out}", "--threads", "1"],
+                    "named": str(d / "p0.png")})
+    clip = work / "capture" / "clip4fps.mp4"
+    writer = imageio_ffmpeg.write_frames(str(clip), (64, 64), fps=4, quality=8, macro_block_size=16)
+    writer.send(None)
+    for i in range(12):
+        writer.send((np.random.default_rng(i).random((64, 64, 3)) * 255).astype(np.uint8).tobytes())
+    writer.close()
+    out.append({"class": "capture", "args": ["process", str(clip), "--fps", "240", "--out", "{out}", "--threads", "1",
+                                             "--quiet"], "named": str(clip)})
+    for fps in ("1e-30", "0.01"):
+        out.append({"class": "capture", "args": ["process", str(clip), "--fps", fps, "--out", "{out}"],
+                    "named": "--fps"})
+    return out
+
+
+def user_file_cases(p: dict[str, Path], work: Path) -> list[dict]:
+    """``outputs_user``: single-file outputs and output folders over files the user wrote (never replaced,
+    never deleted, never filled without --overwrite)."""
+    S, C, tiny = str(p["scene"]), str(p["ck"]), ["--threads", "1"]
+    out = []
+    for name in ("m.ply", "m.obj", "m_preview.png", "m_metrics.json"):
+        d = work / "user_files" / name.replace(".", "_")
+        d.mkdir(parents=True)
+        (d / name).write_text("the user's file\n")
+        for first in [name] if name.startswith("m.") else ["m.ply", "m.obj"]:
+            out.append({"class": "outputs_user", "named": str(d / name), "args": [
+                "mesh", "--scene", S, "--model", "floor", "--out", str(d / first), *tiny]})
+    d = work / "user_files" / "bench"
+    d.mkdir()
+    (d / "b.json").write_text('{"mine": 1}')
+    out.append({"class": "outputs_user", "named": str(d / "b.json"),
+                "args": ["bench", "--ckpt", C, "--quick", "--out", str(d / "b.json")]})
+    d = work / "user_files" / "train"
+    d.mkdir()
+    (d / "config.json").write_text('{"mine": 1}')
+    (d / "metrics.jsonl").write_text('{"mine": 1}\n')
+    out.append({"class": "outputs_user", "named": str(d), "args": [
+        "train", "--data", S, "--out", str(d), "--model", "gpnr-tiny", "--steps", "1", *tiny]})
+    d = work / "user_files" / "render"  # an earlier render output, and a file the user added in it
+    (d / "frames").mkdir(parents=True)
+    (d / "frames" / "0000.png").write_bytes(b"\x89PNG")
+    (d / ".omnirecon-output.json").write_text(json.dumps({"tool": "omnirecon", "command": "render",
+                                                           "written": "earlier", "files": ["frames/0000.png"]}))
+    for added in ("frames/notes.txt", "notes.txt"):
+        (d / added).write_text("the user's notes\n")
+    out.append({"class": "outputs_user", "named": str(d / "frames" / "notes.txt"), "args": [
+        "render", "--scene", S, "--ckpt", C, "--out", str(d), "--no-video", *tiny]})
     return out
 
 
@@ -300,7 +368,8 @@ def _tree(root: Path) -> dict[str, tuple]:
         for n in dirs + files:
             q = Path(dirpath) / n
             st = os.lstat(q)
-            out[str(q.relative_to(root))] = (st.st_mode, st.st_size, st.st_mtime_ns)
+            # a folder's own time changes with a lock file made and removed in it: its entries are compared
+            out[str(q.relative_to(root))] = (st.st_mode, st.st_size, 0 if stat.S_ISDIR(st.st_mode) else st.st_mtime_ns)
     return out
 
 
