@@ -38,8 +38,8 @@ import os
 import re
 import resource
 import signal
-import struct
 import stat
+import struct
 import sys
 import tempfile
 import time
