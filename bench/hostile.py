@@ -17,6 +17,7 @@ Classes of cases (each built here, in a temporary folder):
 * ``outputs_user``: ``--out`` over a file (or into a folder) the user wrote: a mesh set's files, a bench
   JSON, a train folder's config, a file added to an earlier render output; refused, nothing replaced or lost.
 * ``capture``: photos too small for SfM, a clip sampled above its own frame rate or at almost none.
+* ``memory``: ``mesh --voxel`` and ``finetune --val-every`` values whose allocation exceeds the memory.
 * ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
   1,000 connections that stall in their headers while a normal request must be answered within 1 s.
 
@@ -294,7 +295,18 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
         out.append({"class": "viewer", "args": ["http_disconnect", str(n)], "named": None})
     for n in (100, 1000):
         out.append({"class": "viewer", "args": ["http_stalled", str(n)], "named": None})
-    return out + user_file_cases(p, work) + capture_cases(work)
+    return out + user_file_cases(p, work) + capture_cases(work) + memory_cases(p)
+
+
+def memory_cases(p: dict[str, Path]) -> list[dict]:
+    """``memory``: options that size an allocation past the memory (checked against it, not a count)."""
+    S, C, tiny = str(p["scene"]), str(p["ck"]), ["--threads", "1"]
+    out = [{"class": "memory", "named": "--voxel", "args": ["mesh", "--scene", S, "--model", "floor", "--out",
+                                                             "{out}.ply", "--voxel", v, *tiny]}
+           for v in ("0.0005", "0.0001", "1e-7")]
+    out += [{"class": "memory", "named": "--val-every", "args": ["finetune", "--scene", S, "--ckpt", C, "--out", "{out}",
+                                                                 "--val-every", v, *tiny]} for v in ("1e-9", "1e-6")]
+    return out
 
 
 def capture_cases(work: Path) -> list[dict]:

@@ -454,7 +454,7 @@ class Claim:
 
 @contextmanager
 def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", overwrite: bool | None = None,
-          flag: str = "--out", recursive: bool = False, say=print, files=()):
+          flag: str = "--out", recursive: bool = False, say=print, files=(), adopt: bool = False):
     """Take ``out`` for one run of ``command`` (see the module docstring); yields a :class:`Claim`.
 
     ``mode="replace"``: the run's output is the whole folder, built in ``claim.work`` and swapped in when
@@ -466,7 +466,9 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
     and refused when it exists and this tool did not write it (unless ``overwrite``); those the block wrote
     (changed) are recorded as written here.
     ``out=None`` (a verb's default under ``outputs/``): ``outputs/<command>`` is claimed in fill mode.
-    ``recursive``: also remove stale temporaries anywhere inside ``out`` (run folders with checkpoints)."""
+    ``recursive``: also remove stale temporaries anywhere inside ``out`` (run folders with checkpoints).
+    ``adopt``: fill a non-empty folder without the marker too (``train --resume`` of a run folder written by a
+    version before the marker)."""
     if out is None:
         out, mode = Path("outputs") / command, "fill"
     out = Path(out)
@@ -485,7 +487,7 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
         existed = out.is_dir() and any(out.iterdir())
         marker = read_marker(out) if existed else None
         if mode == "fill":
-            if existed and marker is None:
+            if existed and marker is None and not adopt:
                 raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it never writes there",
                                  out, f"choose a new or empty folder for {flag}")
             created = not out.exists()
