@@ -14,7 +14,12 @@ Classes of cases (each built here, in a temporary folder):
 * ``files``: pose files with bad focal fields, deep JSON, NumPy headers claiming more than the file
   holds, unreadable mesh files as ``--mesh`` and as a scene's ground truth, broken checkpoint metadata.
 * ``outputs``: ``--out`` under /proc, under a file, through a dangling link, on a device.
-* ``viewer``: HTTP requests with several ``Host`` headers (must be 400) and clients that disconnect.
+* ``outputs_user``: ``--out`` over a file (or into a folder) the user wrote: a mesh set's files, a bench
+  JSON, a train folder's config, a file added to an earlier render output; refused, nothing replaced or lost.
+* ``capture``: photos too small for SfM, a clip sampled above its own frame rate or at almost none.
+* ``memory``: ``mesh --voxel`` and ``finetune --val-every`` values whose allocation exceeds the memory.
+* ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
+  1,000 connections that stall in their headers while a normal request must be answered within 1 s.
 
 A refused case counts as handled only with exit 2, one stderr line ``omnirecon: error: ...`` naming the
 file or option and carrying a ``(fix: ...)`` clause, no traceback, nothing added, removed or changed
@@ -34,6 +39,7 @@ import os
 import re
 import resource
 import signal
+import stat
 import struct
 import sys
 import tempfile
@@ -287,6 +293,83 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
         out.append({"class": "viewer", "args": ["http_hosts", *hosts], "named": None})
     for n in (1, 2, 5):
         out.append({"class": "viewer", "args": ["http_disconnect", str(n)], "named": None})
+    for n in (100, 1000):
+        out.append({"class": "viewer", "args": ["http_stalled", str(n)], "named": None})
+    return out + user_file_cases(p, work) + capture_cases(work) + memory_cases(p)
+
+
+def memory_cases(p: dict[str, Path]) -> list[dict]:
+    """``memory``: options that size an allocation past the memory (checked against it, not a count)."""
+    S, C, tiny = str(p["scene"]), str(p["ck"]), ["--threads", "1"]
+    out = [{"class": "memory", "named": "--voxel", "args": ["mesh", "--scene", S, "--model", "floor", "--out",
+                                                             "{out}.ply", "--voxel", v, *tiny]}
+           for v in ("0.0005", "0.0001", "1e-7")]
+    out += [{"class": "memory", "named": "--val-every", "args": ["finetune", "--scene", S, "--ckpt", C, "--out", "{out}",
+                                                                 "--val-every", v, *tiny]} for v in ("1e-9", "1e-6")]
+    return out
+
+
+def capture_cases(work: Path) -> list[dict]:
+    """``capture``: photos too small for SfM (pycolmap crashed on them) and a 4 fps clip sampled at 240 fps
+    (capped at the clip's rate) or at 1e-30 fps (blamed on --fps)."""
+    import imageio_ffmpeg
+    import numpy as np
+    from PIL import Image
+
+    out = []
+    for w, h in ((1, 1), (4, 4), (8, 8), (1, 64), (64, 2)):
+        d = work / "capture" / f"tiny_{w}x{h}"
+        d.mkdir(parents=True)
+        for i in range(4):
+            Image.fromarray((np.random.default_rng(i).random((h, w, 3)) * 255).astype(np.uint8)).save(d / f"p{i}.png")
+        out.append({"class": "capture", "args": ["process", str(d), "--out", "{out}", "--threads", "1"],
+                    "named": str(d / "p0.png")})
+    clip = work / "capture" / "clip4fps.mp4"
+    writer = imageio_ffmpeg.write_frames(str(clip), (64, 64), fps=4, quality=8, macro_block_size=16)
+    writer.send(None)
+    for i in range(12):
+        writer.send((np.random.default_rng(i).random((64, 64, 3)) * 255).astype(np.uint8).tobytes())
+    writer.close()
+    out.append({"class": "capture", "args": ["process", str(clip), "--fps", "240", "--out", "{out}", "--threads", "1",
+                                             "--quiet"], "named": str(clip)})
+    for fps in ("1e-30", "0.01"):
+        out.append({"class": "capture", "args": ["process", str(clip), "--fps", fps, "--out", "{out}"],
+                    "named": "--fps"})
+    return out
+
+
+def user_file_cases(p: dict[str, Path], work: Path) -> list[dict]:
+    """``outputs_user``: single-file outputs and output folders over files the user wrote (never replaced,
+    never deleted, never filled without --overwrite)."""
+    S, C, tiny = str(p["scene"]), str(p["ck"]), ["--threads", "1"]
+    out = []
+    for name in ("m.ply", "m.obj", "m_preview.png", "m_metrics.json"):
+        d = work / "user_files" / name.replace(".", "_")
+        d.mkdir(parents=True)
+        (d / name).write_text("the user's file\n")
+        for first in [name] if name.startswith("m.") else ["m.ply", "m.obj"]:
+            out.append({"class": "outputs_user", "named": str(d / name), "args": [
+                "mesh", "--scene", S, "--model", "floor", "--out", str(d / first), *tiny]})
+    d = work / "user_files" / "bench"
+    d.mkdir()
+    (d / "b.json").write_text('{"mine": 1}')
+    out.append({"class": "outputs_user", "named": str(d / "b.json"),
+                "args": ["bench", "--ckpt", C, "--quick", "--out", str(d / "b.json")]})
+    d = work / "user_files" / "train"
+    d.mkdir()
+    (d / "config.json").write_text('{"mine": 1}')
+    (d / "metrics.jsonl").write_text('{"mine": 1}\n')
+    out.append({"class": "outputs_user", "named": str(d), "args": [
+        "train", "--data", S, "--out", str(d), "--model", "gpnr-tiny", "--steps", "1", *tiny]})
+    d = work / "user_files" / "render"  # an earlier render output, and a file the user added in it
+    (d / "frames").mkdir(parents=True)
+    (d / "frames" / "0000.png").write_bytes(b"\x89PNG")
+    (d / ".omnirecon-output.json").write_text(json.dumps({"tool": "omnirecon", "command": "render",
+                                                           "written": "earlier", "files": ["frames/0000.png"]}))
+    for added in ("frames/notes.txt", "notes.txt"):
+        (d / added).write_text("the user's notes\n")
+    out.append({"class": "outputs_user", "named": str(d / "frames" / "notes.txt"), "args": [
+        "render", "--scene", S, "--ckpt", C, "--out", str(d), "--no-video", *tiny]})
     return out
 
 
@@ -297,7 +380,8 @@ def _tree(root: Path) -> dict[str, tuple]:
         for n in dirs + files:
             q = Path(dirpath) / n
             st = os.lstat(q)
-            out[str(q.relative_to(root))] = (st.st_mode, st.st_size, st.st_mtime_ns)
+            # a folder's own time changes with a lock file made and removed in it: its entries are compared
+            out[str(q.relative_to(root))] = (st.st_mode, st.st_size, 0 if stat.S_ISDIR(st.st_mode) else st.st_mtime_ns)
     return out
 
 
@@ -344,6 +428,35 @@ def http_exchange(port: int, request: bytes) -> tuple[int, bytes]:
     return int(head.split()[1]), body
 
 
+def stalled_then_get(port: int, stalled: int, timeout: float = 1.0) -> tuple[int, float]:
+    """Open ``stalled`` connections to 127.0.0.1:``port`` that send a request line and never finish their
+    headers, then send one normal ``GET /index.html``: its status (0 when no answer came within ``timeout``
+    seconds) and the seconds it took. The stalled sockets are closed before returning."""
+    import socket
+
+    if stalled + 64 > resource.getrlimit(resource.RLIMIT_NOFILE)[0]:
+        hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+        resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, stalled + 256), hard))
+    held = []
+    try:
+        for _ in range(stalled):
+            s = socket.create_connection(("127.0.0.1", port), timeout=10)
+            s.sendall(b"GET /index.html HTTP/1.1\r\n")
+            held.append(s)
+        t0 = time.perf_counter()
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+                s.sendall(b"GET /index.html HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+                head = s.recv(64)
+            status = int(head.split()[1]) if head.startswith(b"HTTP/") else 0
+        except OSError:
+            status = 0
+        return status, time.perf_counter() - t0
+    finally:
+        for s in held:
+            s.close()
+
+
 def _http_case(argv: list[str]) -> int:
     """0 when the viewer answers as it must: 400 for several Host headers; quiet and alive after disconnects."""
     import socket
@@ -360,6 +473,9 @@ def _http_case(argv: list[str]) -> int:
     def get(raw: bytes) -> int:
         return http_exchange(port, raw)[0]
     try:
+        if argv[0] == "http_stalled":  # the stalled connections must not keep a normal request waiting
+            status, seconds = stalled_then_get(port, int(argv[1]), timeout=1.0)
+            return 0 if status == 200 and seconds <= 1.0 else 3
         if argv[0] == "http_hosts":
             head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in argv[1:]) + "Connection: close\r\n\r\n"
             return 0 if get(head.encode()) == 400 else 3

@@ -85,13 +85,14 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
     if (out / "checkpoints" / "latest").exists():
         cmd.append("--resume")
         start = json.loads((out / "checkpoints" / "latest" / "meta.json").read_text())["step"]
+    print(" ".join(cmd), flush=True)
+    subprocess.run(cmd, check=True, cwd=ROOT)
+    # recorded once the run made (and marked) its folder: train writes only into a folder it owns
     record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
                        **({"stop_at": stop_at} if stop_at else {}),
                        **({"model_overrides": list(overrides)} if overrides else {}),
                        **({"num_views_range": list(views)} if views else {}),
                        **{k: str(v) for k, v in tune.items()}})
-    print(" ".join(cmd), flush=True)
-    subprocess.run(cmd, check=True, cwd=ROOT)
     return out
 
 

@@ -21,6 +21,11 @@
   renamed into place together, and ``checkpoints/latest`` moves only to a complete one), and ``synth``, whose
   folder grows by whole scenes (each built in ``.scene_NNNNN.tmpPID`` and renamed; existing scenes are kept).
   ``mesh`` writes a set of files (:func:`atomic_files`) under ``mode="file"``.
+* Files are never lost either. ``mode="file"`` (``mesh``, ``bench``) locks every file of the set and refuses
+  one that exists unless this tool wrote it (a record ``.NAME.omnirecon.json`` beside it names its inode, size
+  and time: :func:`written_here`) or ``--overwrite`` is given; the files the run wrote get their record. The
+  marker of a folder lists the files written into it: a folder is replaced only when everything in it is
+  listed there or written here, and ``mode="fill"`` refuses a non-empty folder without the marker (a user's).
 * A record written in a temporary folder must name the final paths: before the swap,
   :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
   to it (so they hold for ``--out``).
@@ -202,6 +207,56 @@ def check_out(path: Path, kind: str, inputs=(), flag: str = "--out") -> None:
     check_outside_inputs(path, inputs, flag)
 
 
+def file_record(path: Path) -> Path:
+    """Where the record of a file this tool wrote lives: ``.NAME.omnirecon.json`` beside it."""
+    path = Path(path)
+    return path.parent / f".{path.name}.omnirecon.json"
+
+
+def _stamp(path: Path) -> list[int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return [st.st_ino, st.st_size, st.st_mtime_ns]
+
+
+def written_here(path: Path) -> bool:
+    """Whether the file at ``path`` is the one this tool wrote there (its record names the same inode, size and
+    modification time: a file the user put or edited there since is not)."""
+    try:
+        rec = json.loads(file_record(path).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(rec, dict) and rec.get("tool") == "omnirecon" and rec.get("stamp") == _stamp(path)
+
+
+def record_file(path: Path, command: str) -> None:
+    """Record the file ``path`` as written by ``command`` (see :func:`written_here`)."""
+    rec = file_record(path)
+    tmp = rec.parent / f".{path.name}.omnirecon.pid{os.getpid()}.json"
+    tmp.write_text(json.dumps({"tool": "omnirecon", "command": command, "stamp": _stamp(path),
+                               "written": time.strftime("%Y-%m-%d %H:%M:%S %Z")}))
+    os.replace(tmp, rec)
+
+
+def remove_written(path: Path) -> bool:
+    """Delete the file ``path`` and its record only when this tool wrote it; True when deleted."""
+    if not written_here(path):
+        return False
+    Path(path).unlink(missing_ok=True)
+    file_record(path).unlink(missing_ok=True)
+    return True
+
+
+def check_replaceable(paths, overwrite: bool = False, flag: str = "--out") -> None:
+    """Refuse (InputError) an existing file among ``paths`` that this tool did not write, unless ``overwrite``."""
+    for path in paths:
+        if not overwrite and os.path.lexists(path) and not written_here(path):
+            raise InputError("exists and was not written by omnirecon: it is never replaced without --overwrite",
+                             Path(path), f"choose another {flag}, or add --overwrite to replace it")
+
+
 def read_marker(folder: Path) -> dict | None:
     """The marker of an output folder written by this tool, else ``None``."""
     try:
@@ -211,12 +266,33 @@ def read_marker(folder: Path) -> dict | None:
     return m if isinstance(m, dict) and m.get("tool") == "omnirecon" and isinstance(m.get("command"), str) else None
 
 
+def _contents(folder: Path) -> list[str]:
+    """Every file and link under ``folder`` (relative, sorted), but the marker and our temporaries."""
+    out = []
+    for dirpath, _, files in os.walk(folder):
+        for n in files:
+            if n != MARKER and not STALE.match(n):
+                out.append(os.path.relpath(os.path.join(dirpath, n), folder))
+    return sorted(out)
+
+
 def write_marker(folder: Path, command: str) -> None:
     folder = Path(folder)
     tmp = folder / f".{MARKER.lstrip('.')}.pid{os.getpid()}"
     tmp.write_text(json.dumps({"tool": "omnirecon", "command": command,
-                               "written": time.strftime("%Y-%m-%d %H:%M:%S %Z")}))
+                               "written": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "files": _contents(folder)}))
     os.replace(tmp, folder / MARKER)
+
+
+def foreign_files(folder: Path, marker: dict) -> list[str]:
+    """Files in an output folder that its marker does not list and no record says this tool wrote (a user's
+    additions: never deleted). A marker of an older version without the list lists nothing to check."""
+    listed = marker.get("files")
+    if not isinstance(listed, list):
+        return []
+    listed = set(listed)
+    return [f for f in _contents(folder) if f not in listed and not Path(f).name.endswith(".omnirecon.json")
+            and not written_here(Path(folder) / f)]
 
 
 def describe(marker: dict) -> str:
@@ -378,7 +454,7 @@ class Claim:
 
 @contextmanager
 def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", overwrite: bool | None = None,
-          flag: str = "--out", recursive: bool = False, say=print):
+          flag: str = "--out", recursive: bool = False, say=print, files=(), adopt: bool = False):
     """Take ``out`` for one run of ``command`` (see the module docstring); yields a :class:`Claim`.
 
     ``mode="replace"``: the run's output is the whole folder, built in ``claim.work`` and swapped in when
@@ -386,9 +462,13 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
     either ``overwrite`` is True (verbs with ``--overwrite``; False refuses) or, for verbs without the flag
     (``overwrite=None``), the marker names the same command. ``mode="fill"``: ``claim.work == out``; a folder
     the run created gets the marker, and is removed again if the run fails and leaves it empty.
-    ``mode="file"``: ``out`` is a file (or the first file of a set); it is checked and locked only.
+    ``mode="file"``: ``out`` is a file, with the other files of its set in ``files``: each is checked, locked
+    and refused when it exists and this tool did not write it (unless ``overwrite``); those the block wrote
+    (changed) are recorded as written here.
     ``out=None`` (a verb's default under ``outputs/``): ``outputs/<command>`` is claimed in fill mode.
-    ``recursive``: also remove stale temporaries anywhere inside ``out`` (run folders with checkpoints)."""
+    ``recursive``: also remove stale temporaries anywhere inside ``out`` (run folders with checkpoints).
+    ``adopt``: fill a non-empty folder without the marker too (``train --resume`` of a run folder written by a
+    version before the marker)."""
     if out is None:
         out, mode = Path("outputs") / command, "fill"
     out = Path(out)
@@ -396,16 +476,20 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
     if mode == "replace" and real(out) in (real(Path.cwd()), *real(Path.cwd()).parents):
         raise InputError(f"{flag} is the working folder or holds it, and {command} replaces its {flag} whole", out,
                          f"choose a new folder for {flag}, e.g. {flag} {command}_out")
+    if mode == "file":
+        with claim_files([out, *files], command, inputs, bool(overwrite), flag):
+            yield Claim(out, out, command)
+        return
     with out_lock(out, command, flag):
         clean_stale(out.parent)  # a killed run's temporaries beside out (their process is gone)
-        if mode == "file":
-            yield Claim(out, out, command)
-            return
         restore_swapped(out)
         clean_stale(out, recursive)
         existed = out.is_dir() and any(out.iterdir())
         marker = read_marker(out) if existed else None
         if mode == "fill":
+            if existed and marker is None and not adopt:
+                raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it never writes there",
+                                 out, f"choose a new or empty folder for {flag}")
             created = not out.exists()
             try:
                 yield Claim(out, out, command)
@@ -425,6 +509,10 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
                                  out, f"choose a new or empty folder for {flag}")
             if overwrite is None and marker["command"] != command:
                 raise InputError(f"{flag} holds {describe(marker)}", out, f"choose another {flag} for {command}")
+            foreign = foreign_files(out, marker)
+            if foreign:
+                raise InputError(f"{flag} holds {foreign[0]}, which this tool did not write: it is never deleted",
+                                 out / foreign[0], f"move it out of {out}, or choose another {flag}")
             replaced = describe(marker)
             say(f"replacing {out}: {replaced} (the new one takes its place when complete)")
         tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
@@ -437,3 +525,24 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
             swap_in(tmp, out)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextmanager
+def claim_files(paths, command: str, inputs=(), overwrite: bool = False, flag: str = "--out"):
+    """``claim``'s ``mode="file"``: lock every file of the set (sorted: two runs sharing any file cannot both
+    proceed), refuse one this tool did not write (:func:`check_replaceable`), record those the block wrote."""
+    from contextlib import ExitStack
+
+    paths = sorted({Path(os.path.abspath(p)) for p in paths})
+    for p in paths:
+        check_out(p, "file", inputs, flag)
+    with ExitStack() as stack:
+        for p in paths:
+            stack.enter_context(out_lock(p, command, flag))
+        clean_stale(paths[0].parent)  # a killed run's temporaries beside out (their process is gone)
+        check_replaceable(paths, overwrite, flag)
+        before = {p: _stamp(p) for p in paths}
+        yield
+        for p in paths:
+            if os.path.isfile(p) and not os.path.islink(p) and _stamp(p) != before[p]:
+                record_file(p, command)

@@ -1,10 +1,13 @@
 """Checks run before a command starts working, for inputs that would otherwise be silently wrong:
 a forced ``--format`` that does not fit the folder, ``--num-views`` above what a scene has, a
-``--resolution`` of 0 that used to fall back to the default."""
+``--resolution`` of 0 that used to fall back to the default; and allocations that an option sizes, checked
+against the memory the machine has (:func:`check_memory`) rather than against a fixed count."""
 
 from __future__ import annotations
 
 import importlib
+import os
+import resource
 from pathlib import Path
 
 from omnirecon.errors import InputError
@@ -52,3 +55,41 @@ def check_train_views(bank, sources, k_max: int) -> None:
             raise InputError(f"--num-views {k_max} but the scene has {len(ps.targets)} training views "
                              f"({have} sources per target)", ps.scene.path,
                              f"pass --num-views {have} or fewer, or train on scenes with more views")
+
+
+def available_memory() -> int:
+    """Bytes a new allocation can get now: the machine's available memory (``psutil`` when installed, else
+    ``MemAvailable`` in /proc/meminfo), and no more than the address-space limit (``ulimit -v``) leaves."""
+    avail = None
+    try:
+        import psutil
+
+        avail = int(psutil.virtual_memory().available)
+    except ImportError:
+        try:
+            for line in Path("/proc/meminfo").read_text().splitlines():
+                if line.startswith("MemAvailable:"):
+                    avail = int(line.split()[1]) * 1024
+        except (OSError, ValueError, IndexError):
+            pass
+    if avail is None:
+        avail = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit != resource.RLIM_INFINITY:
+        try:
+            used = int(next(ln.split()[1] for ln in Path("/proc/self/status").read_text().splitlines()
+                            if ln.startswith("VmSize:"))) * 1024
+        except (OSError, StopIteration, ValueError):
+            used = 0
+        avail = min(avail, max(0, limit - used))
+    return avail
+
+
+def check_memory(need: float, option: str, fits, path: Path | None = None) -> None:
+    """InputError naming ``option`` when an allocation of about ``need`` bytes exceeds :func:`available_memory`;
+    ``fits(share)`` is a value of the option that needs ``share`` (< 1) of what this one needs."""
+    avail = available_memory()
+    if need <= avail:
+        return
+    raise InputError(f"{option} needs about {need / 2**30:.1f} GiB of memory, and {avail / 2**30:.1f} GiB is available",
+                     path, f"use {option} {fits(0.5 * avail / need)} or more memory")

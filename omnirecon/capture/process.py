@@ -11,22 +11,33 @@ previous folder or none. The scene holds
                        photos (:mod:`omnirecon.capture.masks`), so every command reads them as the scene's
     sparse/0/          cameras.bin, images.bin, points3D.bin: the largest model COLMAP found
     process.json       the summary: images registered / given, reprojection error, points, seconds per stage
+
+Photos with a side under :data:`MIN_SIDE` pixels are refused before SfM, and the pycolmap stages (features,
+matching, mapping, undistortion) run in a child process (:func:`sfm_in_child`), so a native crash of the
+library (a segmentation fault or an abort) is one error line naming the input, not the end of the command;
+the work folder and the lock go as after any failure.
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import shutil
+import signal
 import time
 from dataclasses import asdict
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
-from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
-from omnirecon.capture.video import sample_frames
+from omnirecon.capture.images import VIDEO_EXTS, StagedImages, count_files, stage_images, stage_masks
+from omnirecon.capture.video import clip_rate, sample_frames
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
+
+MIN_SIDE = 16
+"""Shortest side (pixels) of a photo given to SfM: pycolmap's feature extraction crashed the process on
+1-, 4- and 8-pixel photos instead of failing."""
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
@@ -59,6 +70,7 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     try:
         with Stages(quiet) as stages:
             if is_video:
+                fps = sample_rate(source, fps, say=None if quiet else print)
                 with stages.stage("frames", None) as advance:
                     sample_frames(source, work / "frames_raw", fps, max_frames,
                                   on_frame=lambda i, expected: advance(1, expected))
@@ -67,15 +79,16 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
+            check_sizes(staged, source if is_video else None)
             objects = None if masks is None else work / "objects"
             mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
                                                               objects=objects)
-            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
-                             mask_dir=mask_dir)
-            info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads, masks=objects)
             seconds = dict(stages.seconds)
+        stats, info, sfm_seconds = sfm_in_child(source, (staged.folder, staged.names, work, options, is_video,
+                                                         source, mask_dir, scene, objects, quiet))
+        seconds.update(sfm_seconds)
         summary = {
-            "input": str(source), "kind": "video" if is_video else "images", **result.stats(),
+            "input": str(source), "kind": "video" if is_video else "images", **stats,
             "image_size": info["size"], "cropped_to_common_size": info["crop"], "exif_rotated": staged.rotated,
             "options": asdict(options), "masks": None if masks is None else str(masks),
             **({"fps": fps} if is_video else {}),
@@ -87,6 +100,90 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return summary
+
+
+def sample_rate(video: Path, fps: float, say=print) -> float:
+    """The rate to sample ``video`` at for ``--fps fps``: at most the clip's own frame rate (above it ffmpeg
+    repeats frames; ``say`` is told), and refused when it samples less than one frame of the clip."""
+    rate, seconds = clip_rate(video)
+    if seconds is not None and fps * seconds < 1:
+        raise InputError(f"--fps {fps:g} samples no frame from a {seconds:.1f} s clip", None,
+                         f"use --fps of at least {1 / seconds:.3g}, e.g. --fps {min(2.0, rate or 2.0):g}")
+    if rate is not None and fps > rate:
+        if say is not None:
+            say(f"note: --fps {fps:g} is above the clip's own {rate:g} frames per second: sampling every frame "
+                f"({rate:g} per second) instead of repeating frames")
+        return rate
+    return fps
+
+
+def check_sizes(staged: StagedImages, video: Path | None = None) -> None:
+    """Refuse a photo (or a video's frames: ``video`` is named) with a side under :data:`MIN_SIDE` pixels."""
+    for name in staged.names:
+        w, h = staged.sizes[name]
+        if min(w, h) < MIN_SIDE:
+            raise InputError(f"{'frames are' if video else 'photo is'} {w}x{h} pixels, too small to match (SfM needs "
+                             f"at least {MIN_SIDE} px a side)", video or staged.sources[name],
+                             f"use photos at least {MIN_SIDE}x{MIN_SIDE} pixels (better hundreds)")
+
+
+def _sfm(args: tuple) -> tuple[dict, dict, dict]:
+    """The pycolmap stages on staged images (what the child of :func:`sfm_in_child` runs): ``(the result's stats,
+    the scene's info, seconds per stage)``."""
+    folder, names, work, options, is_video, source, mask_dir, scene, objects, quiet = args
+    with Stages(quiet) as stages:
+        result = run_sfm(folder, names, work, options, stages, video=is_video, source=source, mask_dir=mask_dir)
+        info = write_scene(result, folder, work, scene, stages, threads=options.threads, masks=objects)
+    return result.stats(), info, dict(stages.seconds)
+
+
+def _sfm_child(conn, args: tuple) -> None:
+    try:
+        out = ("done", _sfm(args))
+    except InputError as e:
+        out = ("input", (e.what, e.path, e.fix))
+    except BaseException as e:  # noqa: BLE001 - sent to the parent, which raises it
+        import traceback
+
+        out = ("other", (type(e).__name__, str(e), traceback.format_exc()))
+    conn.send(out)
+    conn.close()
+
+
+def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict]:
+    """:func:`_sfm` in a spawned child process: its InputError is raised here as it was; a native crash
+    (the child killed by a signal) becomes an InputError naming ``source``; another exception a RuntimeError
+    carrying the child's traceback."""
+    ctx = multiprocessing.get_context("spawn")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_sfm_child, args=(send, args), name="omnirecon-sfm", daemon=True)
+    child.start()
+    send.close()
+    try:
+        try:
+            kind, payload = receive.recv()
+        except EOFError:  # the child died without an answer
+            kind, payload = "crash", None
+        child.join()
+    finally:
+        if child.is_alive():  # Ctrl-C or an error here: the child goes with the command
+            child.kill()
+            child.join()
+        receive.close()
+    if kind == "done":
+        return payload
+    if kind == "input":
+        raise InputError(*payload)
+    if kind == "other":
+        if payload[0] == "KeyboardInterrupt":
+            raise KeyboardInterrupt
+        raise RuntimeError(f"{payload[0]} in the SfM process: {payload[1]}\n{payload[2]}")
+    code = child.exitcode
+    how = signal.Signals(-code).name if code is not None and code < 0 and -code in signal.Signals._value2member_map_ \
+        else f"exit {code}"
+    raise InputError(f"the SfM library (pycolmap) crashed ({how}) on these photos", source,
+                     f"check that the photos are sharp, overlap and are at least {MIN_SIDE} px a side; "
+                     "a different set or --per-image-cameras may get past it")
 
 
 def motion_lines(s: dict) -> list[str]:

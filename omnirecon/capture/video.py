@@ -51,3 +51,20 @@ def sample_frames(video: Path, dest: Path, fps: float, max_frames: int = 300, on
     if not names:
         raise InputError("the video gave no frames", video, "check the file, or lower --fps for a very short clip")
     return names
+
+
+def clip_rate(video: Path) -> tuple[float | None, float | None]:
+    """``(frames per second, seconds)`` of ``video`` from its header (None where ffmpeg gives none or cannot
+    read it: :func:`sample_frames` then names the file)."""
+    import imageio_ffmpeg  # lazy: the optional 'video' extra
+
+    try:
+        gen = imageio_ffmpeg.read_frames(str(video))
+        try:
+            meta = next(gen)
+        finally:
+            gen.close()
+    except (OSError, RuntimeError, ValueError, KeyError, StopIteration):
+        return None, None
+    fps, duration = (float(meta.get(k) or 0) for k in ("fps", "duration"))
+    return (fps if fps > 0 else None), (duration if duration > 0 else None)

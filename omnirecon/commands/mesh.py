@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from omnirecon.outputs import check_out, claim
-from omnirecon.workflows.mesh import MeshConfig, run_mesh, summary_lines
+from omnirecon.outputs import claim
+from omnirecon.workflows.mesh import MeshConfig, run_mesh, set_files, summary_lines
 
 
 class MeshCommand(MeshConfig):
@@ -14,10 +14,10 @@ class MeshCommand(MeshConfig):
     def main(self) -> None:
         first = self.out[0] if self.out else Path("outputs/mesh") / Path(self.scene).name
         inputs = (self.scene, self.ckpt)
-        # One run per mesh set; the set (meshes, metrics, preview) is written whole by run_mesh.
-        with claim(first, "mesh", inputs=inputs, mode="file"):
-            for extra in self.out[1:]:
-                check_out(extra, "file", inputs)
+        # Every file of the set (meshes, metrics, preview) locked, and refused when a user's (without
+        # --overwrite); the set is written whole by run_mesh.
+        files = set_files(self) if self.out else ()
+        with claim(first, "mesh", inputs=inputs, mode="file", overwrite=self.overwrite, files=files):
             result = run_mesh(self)
         for p in result["files"]:
             print(f"wrote {p}")

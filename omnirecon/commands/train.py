@@ -20,7 +20,8 @@ class TrainCommand(TrainConfig):
         env = DistEnv.from_env()
         # One run per folder (rank 0 holds the lock; --resume continues the folder, never replaces it).
         inputs = (*self.data, *(self.val_scenes or ()))
-        with claim(self.out or Path("outputs/train") / self.model, "train", inputs=inputs, recursive=True) \
+        with claim(self.out or Path("outputs/train") / self.model, "train", inputs=inputs, recursive=True,
+                   adopt=self.resume) \
                 if env.rank == 0 else nullcontext():
             trainer = Trainer(self, env)
             try:

@@ -103,6 +103,8 @@ class BenchConfig(DeviceConfig):
     """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
     """JSON result file."""
+    overwrite: bool = False
+    """Replace an existing --out that this tool did not write (one it wrote is replaced either way)."""
 
     def check(self) -> BenchConfig:
         """Validated settings, with ``--quick`` applied."""

@@ -464,6 +464,8 @@ def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) 
     trunc = (options.trunc if options.trunc is not None else 4.0) * voxel
     if options.trunc is None and err is not None:  # room for the depth error the maps show
         trunc = max(trunc, 2.0 * err * float(depth[depth > 0].median()))
+    if options.voxel is not None:  # a grid the memory holds (the derived voxel keeps to max_voxels)
+        fusion.check_grid_memory(scene.bounds, voxel, trunc, options.voxel)
     unbounded = depth
     # surface points outside the bounds (sky, far background) give no fused surface (a depth inside the
     # padding would leave a sheet at the edge of the grid); completion puts them on the backdrop

@@ -25,6 +25,8 @@ Size: the TSDF and the checks between depth maps that set its weights share the 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 import trimesh
@@ -59,17 +61,34 @@ class TSDFVolume:
         return self.origin.to(self.tsdf.device) + self.voxel * ijk.to(torch.float64)
 
 
-def empty_volume(bounds: Tensor, voxel: float, trunc: float, device="cpu") -> TSDFVolume:
-    """An unobserved grid over ``bounds # [2, 3]`` padded by ``trunc`` plus 2 voxels on every side, so
-    that surfaces on the bounds (a ground plane) get voxels on both sides."""
+GRID_BYTES = 12
+"""Bytes per voxel of the TSDF grid while a mesh is made: the distance and weight grids (float32 each) and a
+margin for the masks and copies marching cubes and the observed-voxel test make (inside the band)."""
+
+
+def grid_shape(bounds: Tensor, voxel: float, trunc: float) -> tuple[Tensor, tuple[int, int, int]]:
+    """``(lower corner # [3], voxels per axis)`` of the grid over ``bounds # [2, 3]`` padded by ``trunc`` plus 2 voxels."""
     pad = trunc + 2 * voxel
     lo = bounds[0].double() - pad
     hi = bounds[1].double() + pad
     dims = torch.ceil((hi - lo) / voxel).long() + 1
-    if int(dims.prod()) > 1 << 30:
-        raise InputError(f"the TSDF grid would have {int(dims.prod()):,} voxels ({'x'.join(map(str, dims.tolist()))})",
-                         None, "use a larger --voxel")
-    shape = tuple(int(d) for d in dims)
+    return lo, tuple(int(d) for d in dims)
+
+
+def check_grid_memory(bounds: Tensor, voxel: float, trunc: float, fraction: float) -> None:
+    """Refuse (naming ``--voxel``, given as ``fraction`` of the bounds diagonal) a grid the memory cannot hold."""
+    from omnirecon.preflight import check_memory
+
+    need = math.prod(grid_shape(bounds, voxel, trunc)[1]) * GRID_BYTES
+    check_memory(need, "--voxel", lambda share: f"{fraction / share ** (1 / 3) * 1.05:.2g}")
+
+
+def empty_volume(bounds: Tensor, voxel: float, trunc: float, device="cpu") -> TSDFVolume:
+    """An unobserved grid over ``bounds # [2, 3]`` padded by ``trunc`` plus 2 voxels on every side, so
+    that surfaces on the bounds (a ground plane) get voxels on both sides."""
+    lo, shape = grid_shape(bounds, voxel, trunc)
+    if math.prod(shape) > 1 << 40:  # far past any memory (check_grid_memory names --voxel before this)
+        raise InputError(f"the TSDF grid would have {math.prod(shape):,} voxels", None, "use a larger --voxel")
     return TSDFVolume(torch.ones(shape, device=device), torch.zeros(shape, device=device), lo, voxel, trunc)
 
 

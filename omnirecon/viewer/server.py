@@ -11,6 +11,12 @@ followed) to anything outside the root or to a hidden name, is not a regular fil
 one hard link (a hard link can name an inode outside the bundle); it does not list folders.
 Responses are not cached, so a re-exported bundle shows at once. A client that disconnects mid-response
 is not reported (no traceback on the terminal).
+
+Clients that connect and stall cannot starve the others: every socket read or write waits at most
+:data:`IDLE_TIMEOUT` seconds, and :class:`ViewerServer` serves at most :data:`MAX_CONNECTIONS` connections at
+once (one thread each). A new connection beyond the cap closes the oldest one that has not finished sending
+its request headers (a stalled or slow client), so a normal request is answered however many stalled
+connections are open; when every held connection is past its headers (serving files), the new one is closed.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ from __future__ import annotations
 import http.server
 import os
 import posixpath
+import socket
 import stat
 import threading
 import urllib.parse
@@ -30,6 +37,10 @@ from omnirecon.viewer.format import check_bundle
 HOST = "127.0.0.1"
 DISCONNECTS = (ConnectionError, TimeoutError)
 """A client closing the connection mid-response (BrokenPipe, ConnectionReset, ConnectionAborted) or timing out."""
+IDLE_TIMEOUT = 10.0
+"""Seconds a connection's socket read or write may wait before the connection is closed."""
+MAX_CONNECTIONS = 64
+"""Connections served at once (a thread each); beyond it the oldest one still sending its headers is closed."""
 TYPES = {".js": "text/javascript", ".mjs": "text/javascript", ".json": "application/json",
          ".glb": "model/gltf-binary", ".bin": "application/octet-stream", ".ply": "application/octet-stream",
          ".png": "image/png", ".html": "text/html; charset=utf-8", ".css": "text/css", "": "application/octet-stream"}
@@ -48,6 +59,7 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
     """Serves the regular files under ``directory`` (keyword argument) and nothing else."""
 
     extensions_map = TYPES
+    timeout = IDLE_TIMEOUT  # socket timeout for every read and write (StreamRequestHandler.setup)
     server_version = "omnirecon-view"
     sys_version = ""
 
@@ -94,6 +106,11 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
         if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
             return 404, None  # folders, devices, FIFOs; hard links (the inode may live outside the bundle)
         return 200, real
+
+    def parse_request(self) -> bool:
+        ok = super().parse_request()  # reads the headers
+        self.server.headers_read(self.request)
+        return ok
 
     def send_head(self):
         status, file = self.resolve()
@@ -149,8 +166,11 @@ class ViewerServer(http.server.ThreadingHTTPServer):
     """An HTTP server on 127.0.0.1 serving one folder (``port=0``: any free port)."""
 
     daemon_threads = True
+    request_queue_size = 512  # listen backlog: a burst of connections waits in the kernel, not in SYN retries
 
     def __init__(self, folder: Path, port: int = 8765, quiet: bool = False):
+        self._held: dict[socket.socket, bool] = {}  # open connections in arrival order -> headers read yet
+        self._held_lock = threading.Lock()
         folder = Path(folder)
         if not folder.is_dir():
             raise InputError("not a folder", folder, "pass the folder written by `omnirecon export`")
@@ -162,6 +182,35 @@ class ViewerServer(http.server.ThreadingHTTPServer):
         except OSError as e:
             raise InputError(f"cannot listen on {HOST}:{port} ({e.strerror or e})", None,
                              "pick another --port, or --port 0 for any free one") from e
+
+    def process_request(self, request, client_address):
+        """Start a thread for ``request`` within :data:`MAX_CONNECTIONS` (see the module docstring)."""
+        with self._held_lock:
+            if len(self._held) >= MAX_CONNECTIONS:
+                stalled = next((r for r, read in self._held.items() if not read), None)
+                if stalled is None:
+                    self.shutdown_request(request)  # every slot is serving a file: refuse the newcomer
+                    return
+                del self._held[stalled]
+                try:
+                    stalled.shutdown(socket.SHUT_RDWR)  # its thread's read returns at once and the thread ends
+                except OSError:
+                    pass
+            self._held[request] = False
+        super().process_request(request, client_address)
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self._held_lock:
+                self._held.pop(request, None)
+
+    def headers_read(self, request) -> None:
+        """The handler of ``request`` has its headers: the connection is no longer a stalled one."""
+        with self._held_lock:
+            if request in self._held:
+                self._held[request] = True
 
     def handle_error(self, request, client_address):
         """A client that disconnects (or stalls out) is routine, not an error: no traceback for it."""

@@ -64,6 +64,7 @@ from omnirecon.mesh.fill import CRACK_RADIUS, layer_box, shaded_surface
 from omnirecon.mesh.ibr import consensus_weights, scene_defaults
 from omnirecon.models.omnirecon import OmniReconFeatures
 from omnirecon.options import check_options
+from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
 from omnirecon.render.edges import SOFTEN, soften_edges
@@ -1142,6 +1143,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -
     check_options("finetune", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not cfg.tune:
         raise InputError("--tune names nothing to tune", None, "use e.g. --tune encoder appearance")
+    # the validation times (one every --val-every seconds): an array and a set of floats, about 120 bytes each
+    check_memory(cfg.seconds / cfg.val_every * 120, "--val-every", lambda share: f"{cfg.val_every / share:.2g}")
     set_threads(cfg.threads)
     cpu = {"start": time.process_time()}
     s = prepare(cfg, mesh, for_run=True)

@@ -28,6 +28,7 @@ from omnirecon.mesh import geometry
 from omnirecon.mesh.build import MeshOptions, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
 from omnirecon.options import check_options
+from omnirecon.outputs import remove_written
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
@@ -99,6 +100,9 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
+    overwrite: bool = False
+    """Replace existing files of the set that this tool did not write (without it such a file is refused;
+    files an earlier run wrote are replaced either way)."""
     surface: Literal["auto", "fusion", "poisson", "coherent"] = "auto"
     """`auto`: per scene kind (omnirecon.mesh.build.default_surface: `coherent` on a walk, `fusion` elsewhere);
     `fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);
@@ -186,10 +190,17 @@ def write_set(cfg: MeshConfig, made, scene, views: list[int], outs: list[Path], 
     in_input = to_input_frame(mesh, scene.to_input)
     files = write_mesh(in_input, outs, extra=extra)
     for p in previous - {Path(f) for f in record["files"]}:
-        p.unlink(missing_ok=True)
+        remove_written(p)  # only a file this tool wrote (and the user did not replace since)
     record["files"] = [str(p) for p in [*files, *extra]]
     record["meshes"] = {"scene": mesh, "input": in_input}  # in memory, for reconstruct's next stages (not JSON)
     return record
+
+
+def set_files(cfg: MeshConfig) -> list[Path]:
+    """Every file ``cfg`` writes for its ``--out`` list: the meshes and the side files of the first one."""
+    stem = Path(cfg.out[0]).with_suffix("")
+    return [*map(Path, cfg.out), *([Path(f"{stem}_preview.png")] if cfg.preview else []),
+            *([Path(f"{stem}_metrics.json")] if cfg.metrics else [])]
 
 
 def previous_set(stem: Path) -> set[Path]:

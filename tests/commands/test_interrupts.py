@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from omnirecon.outputs import MARKER, claim
+from omnirecon.outputs import MARKER, claim, write_marker
 from tests.data.test_bad_input import blender_scene, ring_gl
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -79,6 +79,7 @@ def test_a_new_inspect_replaces_the_old_folder_whole(scene, tmp_path, run_cli):
     code, _, err = run_cli(["inspect", scene, "--out", out])
     assert code == 0, err
     (out / "stale.png").write_bytes(b"from an earlier run")
+    write_marker(out, "inspect")  # listed by the earlier run's marker (a file the user added is never deleted)
     code, stdout, err = run_cli(["inspect", scene, "--out", out])
     assert code == 0, err
     assert f"replacing {out}: an omnirecon inspect output" in stdout

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from omnirecon.errors import InputError
-from omnirecon.outputs import MARKER, claim, out_lock, read_marker
+from omnirecon.outputs import MARKER, claim, out_lock, read_marker, write_marker
 from tests.data.test_bad_input import blender_scene, ring_gl
 
 RENDER = ["--model", "floor", "--resolution", "8", "--num-views", "2", "--no-video", "--device", "cpu",
@@ -27,7 +27,9 @@ def scene(tmp_path_factory):
 
 
 def _files(root: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+    """The files under ``root`` but the records of files this tool wrote (``.NAME.omnirecon.json``)."""
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*"))
+            if p.is_file() and not p.name.endswith(".omnirecon.json")}
 
 
 def test_render_replaces_its_frames_whole_and_says_so(scene, tmp_path, run_cli):
@@ -113,6 +115,7 @@ def test_a_kill_between_the_two_renames_is_undone(tmp_path):
     old = tmp_path / ".r.old999999999"
     old.mkdir()
     (old / "frame.png").write_text("old")
+    (old / MARKER).write_text(json.dumps({"tool": "omnirecon", "command": "render"}))  # a swapped-out output
     with claim(tmp_path / "r", "render", mode="fill"):
         assert (tmp_path / "r" / "frame.png").read_text() == "old"
 
@@ -218,8 +221,74 @@ def test_export_replaces_its_set_whole(scene, tmp_path, run_cli):
     assert code == 0, err
     (out / "viewer").mkdir()  # what an earlier export with the viewer left
     (out / "viewer" / "bundle.json").write_text("{}")
+    write_marker(out, "export")  # whose marker lists it
     code, stdout, err = run_cli(args)
     assert code == 0 and f"replacing {out}: an omnirecon export output" in stdout, err
     assert f"wrote {out / 'mesh.glb'}" in stdout
     assert not (out / "viewer").exists()
     assert ".tmp" not in (out / "export.json").read_text()
+
+
+@pytest.mark.parametrize("name", ["m.ply", "m_preview.png", "m_metrics.json"])
+def test_mesh_never_replaces_a_users_file(scene, tmp_path, run_cli, name):
+    """A file of the set that the user wrote is refused before any work (one line naming it and --overwrite)."""
+    (tmp_path / name).write_text("mine")
+    code, _, err = run_cli(["mesh", "--scene", scene, "--out", tmp_path / "m.ply", *MESH])
+    assert code == 2 and str(tmp_path / name) in err and "--overwrite" in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert _files(tmp_path) == {name: b"mine"}
+
+
+def test_mesh_replaces_its_own_files_and_a_users_only_with_overwrite(scene, tmp_path, run_cli):
+    out = tmp_path / "m.ply"
+    (tmp_path / "m_preview.png").write_text("mine")
+    code, _, err = run_cli(["mesh", "--scene", scene, "--out", out, "--overwrite", *MESH])
+    assert code == 0, err
+    assert (tmp_path / "m_preview.png").read_bytes() != b"mine"
+    code, _, err = run_cli(["mesh", "--scene", scene, "--out", out, *MESH])  # its own files: replaced
+    assert code == 0, err
+    # The user puts their own picture in place of the preview; a run without --preview never deletes it.
+    (tmp_path / "m_preview.png").write_text("mine again")
+    code, _, err = run_cli(["mesh", "--scene", scene, "--out", out, "--no-preview", *MESH])
+    assert code == 0, err
+    assert (tmp_path / "m_preview.png").read_text() == "mine again"
+
+
+@pytest.mark.parametrize("held, outs", [(["m.ply"], ["other.ply", "m.ply"]), (["m.ply"], ["m.obj"])])
+def test_two_mesh_runs_sharing_a_file_cannot_both_run(scene, tmp_path, run_cli, held, outs):
+    """A run holding m.ply's set (m.ply, m_preview.png, m_metrics.json) refuses a second whose set shares a file."""
+    from omnirecon.workflows.mesh import MeshConfig, set_files
+
+    first = MeshConfig(scene=scene, out=tuple(tmp_path / h for h in held))
+    with claim(first.out[0], "mesh", mode="file", files=set_files(first)):
+        code, _, err = run_cli(["mesh", "--scene", scene, "--out", *[tmp_path / o for o in outs], *MESH])
+    assert code == 2 and "another omnirecon run is writing --out" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_bench_never_replaces_a_users_file(tmp_path, run_cli):
+    (tmp_path / "b.json").write_text("mine")
+    code, _, err = run_cli(["bench", "--quick", "--out", tmp_path / "b.json"])
+    assert code == 2 and str(tmp_path / "b.json") in err and "--overwrite" in err, err
+    assert _files(tmp_path) == {"b.json": b"mine"}
+
+
+def test_render_never_deletes_a_file_the_user_added(scene, tmp_path, run_cli):
+    out = tmp_path / "r"
+    code, _, err = run_cli(["render", "--scene", scene, "--out", out, "--frames", "1", *RENDER])
+    assert code == 0, err
+    (out / "frames" / "notes.txt").write_text("mine")
+    before = _files(out)
+    code, _, err = run_cli(["render", "--scene", scene, "--out", out, "--frames", "1", *RENDER])
+    assert code == 2 and str(out / "frames" / "notes.txt") in err and "never deleted" in err, err
+    assert _files(out) == before
+
+
+def test_train_never_fills_a_users_folder(scene, tmp_path, run_cli):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "config.json").write_text("mine")
+    (out / "metrics.jsonl").write_text("mine")
+    code, _, err = run_cli(["train", "--data", scene, "--model", "gpnr-tiny", "--steps", "1", "--out", out])
+    assert code == 2 and "did not write" in err and str(out) in err, err
+    assert _files(out) == {"config.json": b"mine", "metrics.jsonl": b"mine"}

@@ -7,8 +7,8 @@ import socket
 
 import pytest
 
-from bench.hostile import http_exchange
-from omnirecon.viewer.server import ViewerServer, host_allowed
+from bench.hostile import http_exchange, stalled_then_get
+from omnirecon.viewer.server import MAX_CONNECTIONS, BundleRequestHandler, ViewerServer, host_allowed
 
 
 def raw_get(port: int, target: str, host: str | None = "127.0.0.1") -> tuple[int, bytes]:
@@ -120,3 +120,47 @@ def test_client_disconnect_mid_response_is_quiet(tmp_path, capfd):
         server.stop()
     err = capfd.readouterr().err
     assert "Traceback" not in err and "Error" not in err, err
+
+
+def test_stalled_connections_hold_bounded_threads_and_never_starve_a_request(tmp_path):
+    """300 connections that send a request line and never finish their headers: the server keeps at most
+    MAX_CONNECTIONS of them (a thread each), and a normal GET from another client is answered at once."""
+    import threading
+    import time
+
+    root = tmp_path / "bundle"
+    root.mkdir()
+    (root / "index.html").write_text("<p>viewer</p>")
+    server = ViewerServer(root, port=0, quiet=True)
+    server.start()
+    threads = threading.active_count()
+    port = server.server_address[1]
+    held = []
+    try:
+        for _ in range(300):
+            held.append(socket.create_connection(("127.0.0.1", port), timeout=5))
+            held[-1].sendall(b"GET /index.html HTTP/1.1\r\n")
+        time.sleep(0.5)
+        assert threading.active_count() - threads <= MAX_CONNECTIONS + 1
+        assert raw_get(port, "/index.html") == (200, b"<p>viewer</p>")
+        assert stalled_then_get(port, 100, timeout=5.0)[0] == 200
+    finally:
+        for s in held:
+            s.close()
+        server.stop()
+
+
+def test_a_stalled_connection_is_closed_after_the_idle_timeout(tmp_path, monkeypatch):
+    assert 0 < BundleRequestHandler.timeout <= 60  # the shipped timeout (seconds), shortened below
+    monkeypatch.setattr(BundleRequestHandler, "timeout", 0.5)
+    root = tmp_path / "bundle"
+    root.mkdir()
+    (root / "index.html").write_text("<p>viewer</p>")
+    server = ViewerServer(root, port=0, quiet=True)
+    server.start()
+    try:
+        with socket.create_connection(("127.0.0.1", server.server_address[1]), timeout=5) as s:
+            s.sendall(b"GET /index.html HTTP/1.1\r\n")
+            assert s.recv(1024) == b""  # the server closed it (a hang would raise TimeoutError after 5 s)
+    finally:
+        server.stop()

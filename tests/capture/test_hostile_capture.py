@@ -1,0 +1,73 @@
+"""``omnirecon process`` under hostile captures: photos too small for SfM are refused before pycolmap sees them,
+a native crash of pycolmap is one error line (its process is a child), and a video's ``--fps`` is capped at
+the clip's own rate and blamed when it samples no frame (issue 46 item 4)."""
+
+import numpy as np
+import pytest
+from PIL import Image
+
+pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
+
+from omnirecon.capture.colmap_sfm import SfmOptions  # noqa: E402
+from omnirecon.capture.images import stage_images  # noqa: E402
+from omnirecon.capture.process import MIN_SIDE, process, sample_rate, sfm_in_child  # noqa: E402
+from omnirecon.capture.video import sample_frames  # noqa: E402
+from omnirecon.errors import InputError  # noqa: E402
+
+
+def photos(folder, side: int, n: int = 4):
+    folder.mkdir()
+    for i in range(n):
+        noise = (np.random.default_rng(i).random((side, side, 3)) * 255).astype(np.uint8)
+        Image.fromarray(noise).save(folder / f"p{i}.png")
+    return folder
+
+
+@pytest.mark.parametrize("side", [1, 8])
+def test_photos_too_small_to_match_are_refused_before_sfm(tmp_path, side):
+    src = photos(tmp_path / "tiny", side)
+    with pytest.raises(InputError) as e:
+        process(src, tmp_path / "out", quiet=True)
+    assert str(src / "p0.png") in str(e.value) and f"at least {MIN_SIDE} px" in str(e.value)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny"]  # no out, no work folder, no lock
+
+
+def test_a_native_crash_of_pycolmap_is_one_error_not_the_end_of_the_command(tmp_path):
+    """1-pixel photos given to pycolmap directly (past the size check) kill its process with a signal: here
+    that process is a child, and the crash comes back as an InputError naming the input."""
+    src = photos(tmp_path / "tiny", 1)
+    staged = stage_images(src, tmp_path / "work" / "input", min_images=3)
+    args = (staged.folder, staged.names, tmp_path / "work", SfmOptions(), False, src, None, tmp_path / "scene",
+            None, True)
+    with pytest.raises(InputError) as e:
+        sfm_in_child(src, args)
+    assert "crashed (SIG" in str(e.value) and str(src) in str(e.value), e.value
+
+
+@pytest.fixture(scope="module")
+def clip(tmp_path_factory):
+    """A 3 s clip at 4 frames per second (12 distinct frames, 64x64)."""
+    import imageio_ffmpeg
+
+    path = tmp_path_factory.mktemp("clip") / "clip.mp4"
+    writer = imageio_ffmpeg.write_frames(str(path), (64, 64), fps=4, quality=8, macro_block_size=16)
+    writer.send(None)
+    for i in range(12):
+        writer.send((np.random.default_rng(i).random((64, 64, 3)) * 255).astype(np.uint8).tobytes())
+    writer.close()
+    return path
+
+
+def test_fps_above_the_clips_rate_samples_each_frame_once(clip, tmp_path):
+    said = []
+    rate = sample_rate(clip, 240.0, say=said.append)
+    assert rate == pytest.approx(4.0) and len(said) == 1 and "--fps 240" in said[0], said
+    assert len(sample_frames(clip, tmp_path / "f", rate)) == 12  # not 300 repeated frames
+    assert sample_rate(clip, 2.0, say=said.append) == 2.0 and len(said) == 1
+
+
+def test_an_fps_that_samples_no_frame_is_blamed_on_the_option(clip, tmp_path):
+    with pytest.raises(InputError) as e:
+        process(clip, tmp_path / "out", fps=1e-30, quiet=True)
+    assert "--fps" in str(e.value) and str(clip) not in str(e.value), e.value
+    assert list(tmp_path.iterdir()) == []
