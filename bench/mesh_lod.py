@@ -5,7 +5,9 @@
 
 Per scene: the mesh ``reconstruct`` builds (``omnirecon mesh --ckpt checkpoints/omnirecon-tiny --views all``,
 ``reconstruct``'s mesh stage; built into ``outputs/bench/mesh_lod/<scene>.ply`` unless ``--mesh`` names one), then for
-each face budget (``MeshRenderOptions.face_budget``, 0: the full mesh, the reference path):
+the reference path (the full mesh, every source ranked at every point: what the videos drew before) and each face
+budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate sources (``--grid``,
+``MeshRenderOptions.frame_grid``):
 
 * **speed**: ``MeshRenderer.render(extras=False)`` (the frame path) of the held-out views at the photos' size (the
   demo scene at the demo's 256 px), blended as the real-time videos blend (:func:`omnirecon.mesh.ibr.realtime_setting`
@@ -14,7 +16,7 @@ each face budget (``MeshRenderOptions.face_budget``, 0: the full mesh, the refer
   ms of ``--frames`` frames after a warm-up, the depth pass alone, the decimation's seconds. The machine may be shared:
   the 1-minute load average is recorded beside every timing;
 * **quality**: held-out PSNR (whole image, at most ``--max-views`` test views) through the same blend, each view from
-  its own nearest sources, and its difference to the full mesh's.
+  its own nearest sources, and its loss against the reference path's.
 
 ``checkpoints/omnirecon-tiny`` untuned (the frame time does not depend on the weights). Writes
 ``bench/results/mesh_lod.json``.
@@ -32,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 SCENES = {"fox": "instant_ngp/fox", "fern": "llff/fern", "demo": None, "lund": None}
 LUND = ROOT.parent / "main" / "outputs" / "cache" / "extrapolation" / "lund_scene"
-BUDGETS = (0, 400_000, 200_000, 100_000, 50_000)
+BUDGETS = (0, 300_000, 200_000, 100_000, 50_000)
 DEMO_SIDE = 256
 
 
@@ -71,8 +73,9 @@ def timed(fn, cams: list, frames: int) -> tuple[float, float]:
     return round(1000 * statistics.median(wall), 2), round(1000 * statistics.median(cpu), 2)
 
 
-def measure_budget(model, mesh, scene, setting: dict, budget: int, args) -> dict:
-    """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget`` (module docstring)."""
+def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, args) -> dict:
+    """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget`` and candidate grid ``grid``
+    (``MeshRenderOptions.frame_grid``; module docstring)."""
     import torch
 
     from omnirecon import metrics
@@ -83,7 +86,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, args) -> dict
     vertices, faces = level_of_detail(mesh, budget)
     decimate_s = time.perf_counter() - start
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads)  # the full mesh: decimated once above
+    opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid)
     train = scene.splits.get("train") or list(range(len(scene)))
     test = (scene.splits.get("test") or [0])[:args.max_views]
     cams = [scene.cameras[i].to(dtype=torch.float32) for i in test]
@@ -100,7 +103,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, args) -> dict
             with cache.renderer(picks[t]) as r:
                 rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
             psnr.append(metrics.psnr(rgb, scene.images[t].float()))
-    return {"face_budget": budget, "faces": int(len(faces)), "vertices": int(len(vertices)),
+    return {"face_budget": budget, "frame_grid": grid, "faces": int(len(faces)), "vertices": int(len(vertices)),
             "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu, "fps": round(1000 / wall, 2),
             "fps_from_cpu_time": round(1000 / cpu, 2), "depth_pass_ms": depth_wall, "depth_pass_cpu_ms": depth_cpu,
             "loadavg_1min": load, "psnr": round(float(statistics.mean(psnr)), 3), "psnr_views": len(psnr)}
@@ -128,12 +131,11 @@ def run_scene(name: str, model, args) -> dict | None:
     setting = realtime_setting(scene)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
     rows = []
-    for budget in args.budgets:
-        if budget and budget >= len(mesh.faces):
-            continue
-        rows.append(measure_budget(model, mesh, scene, setting, budget, args))
+    runs = [(0, 0)] + [(b, args.grid) for b in args.budgets if b < len(mesh.faces)]  # before: the reference path
+    for budget, grid in dict.fromkeys(runs):
+        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, args))
         print(name, rows[-1], flush=True)
-    full = next(r for r in rows if r["face_budget"] == 0)
+    full = rows[0]
     for r in rows:
         r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
         r["speedup"] = round(full["frame_ms"] / r["frame_ms"], 2)
@@ -144,20 +146,20 @@ def run_scene(name: str, model, args) -> dict | None:
 def main(argv: list[str] | None = None) -> dict:
     from omnirecon.data.io import write_json
     from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.mesh.ibr import REALTIME_FACE_BUDGET
+    from omnirecon.mesh.ibr import REALTIME_FACE_BUDGET, REALTIME_FRAME_GRID
     from omnirecon.provenance import provenance
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     p.add_argument("--budgets", nargs="+", type=int, default=list(BUDGETS), help="face budgets (0: the full mesh)")
     p.add_argument("--mesh", nargs="*", default=[], help="NAME=FILE: a scene's mesh (input frame) instead of building it")
+    p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
     p.add_argument("--frames", type=int, default=10, help="timed frames (median)")
     p.add_argument("--max-views", type=int, default=8, help="held-out views scored")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mesh_lod.json")
     a = p.parse_args(argv)
-    if 0 not in a.budgets:
-        a.budgets = [0, *a.budgets]
+    a.grid = REALTIME_FRAME_GRID if a.grid is None else a.grid
     os.environ["LP_NUM_THREADS"] = str(a.threads)  # before the first GL context
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
     old = {}
@@ -170,7 +172,7 @@ def main(argv: list[str] | None = None) -> dict:
         if row is not None:
             old[name] = {**row, "loadavg_1min_end": round(os.getloadavg()[0], 2)}
     result = {"provenance": provenance(seed=0), "threads": a.threads, "frames": a.frames,
-              "realtime_face_budget": REALTIME_FACE_BUDGET, "machine_note": "2 CPU cores shared with other jobs: "
+              "realtime_face_budget": REALTIME_FACE_BUDGET, "realtime_frame_grid": REALTIME_FRAME_GRID, "machine_note": "2 CPU cores shared with other jobs: "
               "wall-clock FPS fall with the load average recorded beside each; CPU ms per frame are less affected",
               "scenes": [old[n] for n in SCENES if n in old]}
     write_json(a.out, result)

@@ -52,6 +52,7 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import (
     REALTIME_FACE_BUDGET,
+    REALTIME_FRAME_GRID,
     MeshRenderer,
     MeshRenderOptions,
     level_of_detail,
@@ -107,9 +108,9 @@ class BenchConfig(DeviceConfig):
     """With --scene: the mesh file to time (in the input scene's frame, as `omnirecon mesh` writes it)."""
     realtime: bool = False
     """Time the path the real-time videos take (``reconstruct``'s, ``demo``'s): the scene kind's blend, fill and sources
-    (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, the
-    network's over the 6 nearest elsewhere) with the occlusion test, at :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`
-    faces, instead of the paper's network blend over --views sources without the test on the full mesh."""
+    (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking
+    each chunk's candidates (`REALTIME_FRAME_GRID`), the network's over the 6 nearest elsewhere) with the occlusion test,
+    at :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, instead of the paper's network blend over --views sources without the test on the full mesh."""
     face_budget: int | None = None
     """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
     default: REALTIME_FACE_BUDGET with --realtime, else 0)."""
@@ -238,7 +239,8 @@ def measure(cfg: BenchConfig) -> dict:
     if workers > 1:
         torch.set_num_threads(1)  # parallel over chunks, not inside each op (MeshRenderOptions.workers)
     start = time.perf_counter()
-    opts = (realtime_options(setting, background=background, visibility=True, workers=workers) if setting else
+    opts = (realtime_options(setting, background=background, visibility=True, workers=workers,
+                             frame_grid=REALTIME_FRAME_GRID) if setting else
             MeshRenderOptions(background=background, workers=workers))
     renderer = MeshRenderer(model, drawn, sources, opts)
     sync()

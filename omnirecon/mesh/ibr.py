@@ -63,6 +63,14 @@ nothing but the depth pass runs on one thread. Its reference twin is ``render()`
 fill and scatter). ``python -m bench mesh_fps --size 504 378 --threads 1``: 63.7 ms of CPU per frame before
 this path and the network skip, 47.8 after (336x252: 32.6 -> 24.3).
 
+**Level of detail and candidate sources** (the real-time videos, ``omnirecon bench --realtime``). With
+``MeshRenderOptions.face_budget`` the renderer draws the mesh decimated once to that many faces
+(:func:`level_of_detail`; the depth pass on llvmpipe costs about linearly in the faces drawn); with ``frame_grid`` the
+angle blend's frame path ranks, per chunk of pixels, only the sources a grid of the frame's pixels near it ranks
+among its nearest (:meth:`MeshRenderer._frame_sources`), instead of every source at every pixel; points no candidate
+weighs fall back to every source. Both default to off: the full mesh and every source are the reference path they are
+measured against (``python -m bench mesh_lod``).
+
 Size: the renderer, its fused shader and the texel atlas the shader samples are one real-time path,
 timed and tested together (the fill's geometry is in :mod:`omnirecon.mesh.fill`).
 """

@@ -184,10 +184,12 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     share one renderer, and every renderer one :class:`~omnirecon.mesh.ibr.ViewCache` (one rasterizer, each view's
     occlusion depths once, each set of views encoded once: the frames are those of a renderer per set, bit for bit).
     The mesh is drawn with at most ``face_budget`` faces (default :data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`; 0:
-    the full mesh), decimated once (``mesh`` stays whole). Returns the video file, the 8-bit frames ``# [H, W, 3]``, the
+    the full mesh), decimated once (``mesh`` stays whole); the angle blend ranks each chunk's candidate sources
+    (:data:`~omnirecon.mesh.ibr.REALTIME_FRAME_GRID`); up to 2 threads shade (torch's threads, one op each). Returns the video file, the 8-bit frames ``# [H, W, 3]``, the
     seconds of each frame (after one untimed warm-up frame) and the number of faces drawn."""
     from omnirecon.mesh.ibr import (  # lazy: fast --help
         REALTIME_FACE_BUDGET,
+        REALTIME_FRAME_GRID,
         ViewCache,
         realtime_options,
         realtime_setting,
@@ -196,9 +198,12 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     budget = REALTIME_FACE_BUDGET if face_budget is None else face_budget
-    opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True, face_budget=budget)
+    threads = torch.get_num_threads()
+    opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True, face_budget=budget,
+                            frame_grid=REALTIME_FRAME_GRID, workers=min(2, threads))
     images, times = [], []
     start = 0
+    torch.set_num_threads(1 if opts.workers > 1 else threads)  # parallel over chunks (MeshRenderOptions.workers)
     with ViewCache(model, mesh, scene, opts) as cache:
         faces = len(cache.rasterizer.faces)
         while start < len(cameras):
@@ -210,6 +215,7 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
             images += frames
             times += seconds
             start = end
+    torch.set_num_threads(threads)
     return write_video(path, images, fps), images, times, faces
 
 
