@@ -52,12 +52,11 @@ from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import (
     REALTIME_FACE_BUDGET,
-    REALTIME_FRAME_GRID,
     MeshRenderer,
     MeshRenderOptions,
     level_of_detail,
-    realtime_options,
     realtime_setting,
+    video_options,
 )
 from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
@@ -239,8 +238,7 @@ def measure(cfg: BenchConfig) -> dict:
     if workers > 1:
         torch.set_num_threads(1)  # parallel over chunks, not inside each op (MeshRenderOptions.workers)
     start = time.perf_counter()
-    opts = (realtime_options(setting, background=background, visibility=True, workers=workers,
-                             frame_grid=REALTIME_FRAME_GRID) if setting else
+    opts = (video_options(setting, background, workers, face_budget=0) if setting else  # decimated above
             MeshRenderOptions(background=background, workers=workers))
     renderer = MeshRenderer(model, drawn, sources, opts)
     sync()

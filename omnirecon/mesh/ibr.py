@@ -457,6 +457,15 @@ def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
                              **kwargs)
 
 
+def video_options(setting: dict, background, workers: int = 1, face_budget: int | None = None) -> MeshRenderOptions:
+    """The real-time videos' :func:`realtime_options` (``reconstruct``'s path, ``demo``'s orbit, ``omnirecon bench
+    --realtime``): the occlusion test on, at most ``face_budget`` faces (default :data:`REALTIME_FACE_BUDGET`), each
+    chunk's candidate sources (:data:`REALTIME_FRAME_GRID`), ``workers`` shading threads."""
+    return realtime_options(setting, background=background, visibility=True, workers=workers,
+                            face_budget=REALTIME_FACE_BUDGET if face_budget is None else face_budget,
+                            frame_grid=REALTIME_FRAME_GRID)
+
+
 def scene_defaults(scene) -> tuple[str, str]:
     """:func:`scene_blend` for a loaded scene (``rig``, ``masks``, ``background``). Scenes composited on a known colour
     (procedural ones, Blender's NeRF-synthetic: ``Scene.background`` set) keep the network's blend and that colour."""

@@ -332,8 +332,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
-                            "faces_drawn": faces,
-                            "away": away}
+                            "faces_drawn": faces, "away": away}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
                  f"faces drawn); {away['line']}")
     return (Section("Real-time mesh path")

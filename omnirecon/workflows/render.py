@@ -187,20 +187,11 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     the full mesh), decimated once (``mesh`` stays whole); the angle blend ranks each chunk's candidate sources
     (:data:`~omnirecon.mesh.ibr.REALTIME_FRAME_GRID`); up to 2 threads shade (torch's threads, one op each). Returns the video file, the 8-bit frames ``# [H, W, 3]``, the
     seconds of each frame (after one untimed warm-up frame) and the number of faces drawn."""
-    from omnirecon.mesh.ibr import (  # lazy: fast --help
-        REALTIME_FACE_BUDGET,
-        REALTIME_FRAME_GRID,
-        ViewCache,
-        realtime_options,
-        realtime_setting,
-        render_frames,
-    )
+    from omnirecon.mesh.ibr import ViewCache, realtime_setting, render_frames, video_options  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    budget = REALTIME_FACE_BUDGET if face_budget is None else face_budget
     threads = torch.get_num_threads()
-    opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True, face_budget=budget,
-                            frame_grid=REALTIME_FRAME_GRID, workers=min(2, threads))
+    opts = video_options(setting or realtime_setting(scene), bg, min(2, threads), face_budget)
     images, times = [], []
     start = 0
     torch.set_num_threads(1 if opts.workers > 1 else threads)  # parallel over chunks (MeshRenderOptions.workers)

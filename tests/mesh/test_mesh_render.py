@@ -365,6 +365,14 @@ def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path):
     assert r["scene"]["faces"] == len(made.mesh.faces) and r["mesh"]["resolution"] == [48, 48]
     assert r["scene"]["target_view_ids"] == scene.splits["test"] and r["scene"]["coverage"] == 1.0
     assert not set(r["scene"]["source_view_ids"]) & set(scene.splits["test"])
+    assert r["scene"]["faces_drawn"] == r["scene"]["faces"] and r["scene"]["face_budget"] == 0  # the full mesh
+    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--threads", "1", "--scene",
+                           str(scene_dir), "--mesh", str(mesh_file), "--realtime", "--face-budget", "1500", "--out",
+                           str(out)], capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    r = json.loads(out.read_text())  # the videos' blend (a forward rig: the network's, 6 sources) at 1500 faces
+    assert r["scene"]["faces_drawn"] <= 1500 < r["scene"]["faces"] and r["scene"]["blend"]["blend"] == "network"
+    assert len(r["scene"]["source_view_ids"]) == 6
     bad = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--scene", str(scene_dir)],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--mesh" in bad.stderr
