@@ -16,7 +16,8 @@ budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate 
   ms of ``--frames`` frames after a warm-up, the depth pass alone, the decimation's seconds. The machine may be shared:
   the 1-minute load average is recorded beside every timing;
 * **quality**: held-out PSNR (whole image, at most ``--max-views`` test views) through the same blend, each view from
-  its own nearest sources, and its loss against the reference path's.
+  its own nearest sources, and its loss against the reference path's (the demo scene: timed at 256 px, scored at its
+  128-px images).
 
 ``checkpoints/omnirecon-tiny`` untuned (the frame time does not depend on the weights). Writes
 ``bench/results/mesh_lod.json``.
@@ -73,9 +74,9 @@ def timed(fn, cams: list, frames: int) -> tuple[float, float]:
     return round(1000 * statistics.median(wall), 2), round(1000 * statistics.median(cpu), 2)
 
 
-def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, args) -> dict:
+def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args) -> dict:
     """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget`` and candidate grid ``grid``
-    (``MeshRenderOptions.frame_grid``; module docstring)."""
+    (``MeshRenderOptions.frame_grid``; module docstring), timed at ``side`` px long side, scored at the scene's."""
     import torch
 
     from omnirecon import metrics
@@ -90,14 +91,15 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, ar
     train = scene.splits.get("train") or list(range(len(scene)))
     test = (scene.splits.get("test") or [0])[:args.max_views]
     cams = [scene.cameras[i].to(dtype=torch.float32) for i in test]
+    timed_cams = [c.rescaled(side / max(c.width, c.height)) for c in cams]  # the demo: its 256-px frames
     k = min(setting["sources"] or len(train), len(train))
     picks = {t: sorted(select_sources(scene, cams[j], train, k)) for j, t in enumerate(test)}
     psnr = []
     with ViewCache(model, (vertices, faces), scene, opts) as cache:
         with cache.renderer(picks[test[0]]) as r:
             load = os.getloadavg()[0]
-            wall, cpu = timed(lambda c: r.render(c, extras=False), cams, args.frames)
-            depth_wall, depth_cpu = timed(lambda c: r.rasterizer.depth(c), cams, args.frames)
+            wall, cpu = timed(lambda c: r.render(c, extras=False), timed_cams, args.frames)
+            depth_wall, depth_cpu = timed(lambda c: r.rasterizer.depth(c), timed_cams, args.frames)
             load = round(max(load, os.getloadavg()[0]), 2)
         for j, t in enumerate(test):
             with cache.renderer(picks[t]) as r:
@@ -133,13 +135,15 @@ def run_scene(name: str, model, args) -> dict | None:
     rows = []
     runs = [(0, 0)] + [(b, args.grid) for b in args.budgets if b < len(mesh.faces)]  # before: the reference path
     for budget, grid in dict.fromkeys(runs):
-        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, args))
+        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args))
         print(name, rows[-1], flush=True)
     full = rows[0]
     for r in rows:
         r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
         r["speedup"] = round(full["frame_ms"] / r["frame_ms"], 2)
-    return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": [scene.width, scene.height],
+    timed_size = [round(scene.width * side / max(scene.width, scene.height)), round(scene.height * side / max(scene.width, scene.height))]
+    return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
+            "scored_resolution": [scene.width, scene.height],
             "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows}
 
 
@@ -162,6 +166,7 @@ def main(argv: list[str] | None = None) -> dict:
     a.grid = REALTIME_FRAME_GRID if a.grid is None else a.grid
     os.environ["LP_NUM_THREADS"] = str(a.threads)  # before the first GL context
     model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
+    commit = provenance(seed=0)["commit"]
     old = {}
     if a.out.is_file():
         import json
@@ -170,7 +175,7 @@ def main(argv: list[str] | None = None) -> dict:
     for name in a.scenes:
         row = run_scene(name, model, a)
         if row is not None:
-            old[name] = {**row, "loadavg_1min_end": round(os.getloadavg()[0], 2)}
+            old[name] = {**row, "commit": commit, "loadavg_1min_end": round(os.getloadavg()[0], 2)}  # rows of other runs stay
     result = {"provenance": provenance(seed=0), "threads": a.threads, "frames": a.frames,
               "realtime_face_budget": REALTIME_FACE_BUDGET, "realtime_frame_grid": REALTIME_FRAME_GRID, "machine_note": "2 CPU cores shared with other jobs: "
               "wall-clock FPS fall with the load average recorded beside each; CPU ms per frame are less affected",

@@ -22,7 +22,7 @@ def section(results: Path) -> str | None:
         return None
     out = ["## Real-time mesh path: level of detail and candidate sources (`python -m bench mesh_lod`)", "",
            "The mesh `reconstruct` builds (`omnirecon mesh --views all`, omnirecon-tiny, untuned) rendered by the "
-           "real-time frame path at the photos' size (the demo scene at the demo's 256 px) with the blend the videos "
+           "real-time frame path at the photos' size (the demo scene timed at the demo's 256 px, scored at its 128-px images) with the blend the videos "
            "use (`realtime_setting`, occlusion test on), "
            f"{r['threads']} shading threads and llvmpipe threads; median of {r['frames']} frames over the held-out "
            "views. Rows: the reference path (full mesh, every source ranked at every point), then face budgets "

@@ -158,9 +158,10 @@ class MeshRenderOptions:
     (:func:`level_of_detail`: quadric edge collapse); the mesh given (and its file) stay whole. 0: the full mesh (the
     reference path; what ``finetune`` scores). The real-time videos take :data:`REALTIME_FACE_BUDGET`."""
     frame_grid: int = 0
-    """With ``blend="angle"``, the frame path (:meth:`MeshRenderer.frame`) first picks the frame's candidate sources:
-    the union, over its pixels every ``frame_grid`` pixels (at the frame's depth and fill), of each one's ``2 (k + 1)``
-    nearest framing sources by angle (``k`` = ``angle_sources``); its points rank those only, so the work per pixel
+    """With ``blend="angle"``, the frame path (:meth:`MeshRenderer.frame`) first ranks the sources at a grid of the
+    frame's pixels, every ``frame_grid`` pixels (at the frame's depth and fill), and each chunk of pixels then ranks
+    only its candidates: the union of the ``2 (k + 1)`` nearest framing sources by angle (``k`` = ``angle_sources``) of
+    the grid points within ``frame_grid`` rows of it (points no candidate weighs: every source). The work per pixel
     follows the candidates, not every source. 0: every point ranks every source (the reference path; what ``finetune``
     scores). The real-time videos take :data:`REALTIME_FRAME_GRID`."""
     workers: int = 1
@@ -475,7 +476,8 @@ def scene_defaults(scene) -> tuple[str, str]:
 REALTIME_FACE_BUDGET = 200_000
 """Faces the real-time videos (``reconstruct``'s path, ``demo``'s orbit: :func:`omnirecon.workflows.render.mesh_path_video`)
 and ``omnirecon bench --realtime`` draw at most (``MeshRenderOptions.face_budget``), chosen by ``python -m bench mesh_lod``
-(frame time and held-out PSNR against the full mesh per budget, BENCHMARKS "Level of detail")."""
+(frame time and held-out PSNR against the full mesh per budget; BENCHMARKS "Real-time mesh path: level of detail and
+candidate sources")."""
 
 REALTIME_FRAME_GRID = 16
 """``MeshRenderOptions.frame_grid`` of the real-time videos and ``omnirecon bench --realtime`` (``python -m bench
