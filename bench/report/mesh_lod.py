@@ -13,7 +13,7 @@ def _line(scene: dict, row: dict) -> str:
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
             f"{row['frame_cpu_ms']:.0f} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
-            f"{-row['psnr_loss_db']:+.2f} | {row['loadavg_1min']:.1f} |")
+            f"{-row['psnr_loss_db']:+.2f} | {row['loadavg_1min']:.1f} | `{scene.get('commit', '–')}` |")
 
 
 def section(results: Path) -> str | None:
@@ -31,6 +31,6 @@ def section(results: Path) -> str | None:
            f"Shipped: budget {r['realtime_face_budget']:,}, grid {r['realtime_frame_grid']}. "
            f"{r['machine_note']}.", "",
            "| scene | size | path | faces | wall ms | FPS | CPU ms | depth pass CPU ms | decimate s | PSNR | dB vs "
-           "reference | load |", "|" + "---|" * 12]
+           "reference | load | commit |", "|" + "---|" * 13]
     out += [_line(s, row) for s in r["scenes"] for row in s["rows"]]
     return "\n".join([*out, "", prov(r["provenance"]), ""])
