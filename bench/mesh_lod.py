@@ -34,7 +34,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 SCENES = {"fox": "instant_ngp/fox", "fern": "llff/fern", "demo": None, "lund": None}
-LUND = ROOT.parent / "main" / "outputs" / "cache" / "extrapolation" / "lund_scene"
+LUND = ROOT / "outputs" / "cache" / "extrapolation" / "lund_scene"
+"""The street photos posed as ``python -m bench extrapolation`` poses them (its cache; not posed here: that takes COLMAP)."""
 BUDGETS = (0, 300_000, 200_000, 100_000, 50_000)
 DEMO_SIDE = 256
 
