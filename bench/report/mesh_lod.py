@@ -13,7 +13,7 @@ def _line(scene: dict, row: dict) -> str:
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
             f"{row['frame_cpu_ms']:.0f} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
-            f"{-row['psnr_loss_db']:+.2f} | {row['loadavg_1min']:.1f} | `{scene.get('commit', '–')}` |")
+            f"{0.0 - row['psnr_loss_db']:+.2f} | {row['loadavg_1min']:.1f} | `{scene.get('commit', '–')}` |")
 
 
 def section(results: Path) -> str | None:
