@@ -638,6 +638,6 @@ def test_frame_grid_ranks_the_candidates_as_every_source(tmp_path):
         centres = grid._pixel_centres(48, 48)
         shader = grid._frame_sources(depth, (48, 48), origin, lambda pix: A[:2].T @ centres[:, pix] + A[2][:, None], None)
         sizes = [shader(slice(s, s + 600)).num_views for s in range(0, 48 * 48, 600)]
-    assert max(sizes) < len(train), sizes  # the frame's chunks rank fewer sources than there are
+    assert min(sizes) < len(train) // 2, sizes  # some of the frame's chunks rank fewer than half the sources
     same = ((a - b).abs().amax(-1) < 1e-5).float().mean()
     assert same > 0.95 and metrics.psnr(b, a) > 50, (float(same), metrics.psnr(b, a))  # measured 0.969, 56.4 dB
