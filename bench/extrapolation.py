@@ -119,7 +119,8 @@ def picture(rows: list[np.ndarray], out: Path) -> str:
     h = max(r.shape[0] for r in rows)
     padded = [np.pad(r, ((0, h - r.shape[0]), (0, 0), (0, 0))) for r in rows]
     write_image(out, np.concatenate(padded, 1))
-    return str(out.relative_to(ROOT))
+    out = Path(out).resolve()
+    return str(out.relative_to(ROOT)) if out.is_relative_to(ROOT) else str(out)
 
 
 def run_row(name: str, surface: str, model, tiny: bool, figures: Path, settings: dict | None = None,

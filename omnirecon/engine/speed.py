@@ -51,7 +51,14 @@ from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint, shipped_folder
 from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
+from omnirecon.mesh.ibr import (
+    REALTIME_FACE_BUDGET,
+    MeshRenderer,
+    MeshRenderOptions,
+    level_of_detail,
+    realtime_setting,
+    video_options,
+)
 from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
@@ -99,6 +106,14 @@ class BenchConfig(DeviceConfig):
     targets its test views at that size, sources the --views training views nearest the first target."""
     mesh: Path | None = None
     """With --scene: the mesh file to time (in the input scene's frame, as `omnirecon mesh` writes it)."""
+    realtime: bool = False
+    """Time the path the real-time videos take (``reconstruct``'s, ``demo``'s): the scene kind's blend, fill and sources
+    (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking
+    each chunk's candidates (`REALTIME_FRAME_GRID`), the network's over the 6 nearest elsewhere) with the occlusion test,
+    at :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, instead of the paper's network blend over --views sources without the test on the full mesh."""
+    face_budget: int | None = None
+    """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
+    default: REALTIME_FACE_BUDGET with --realtime, else 0)."""
     quick: bool = False
     """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
@@ -212,9 +227,16 @@ def measure(cfg: BenchConfig) -> dict:
         targets = [target_camera(scene.cameras[i], width, height).to(device=device, dtype=torch.float32)
                    for i in held_out]
         by = "angle"
-    pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], args.views, by=by)[0]
+    setting = realtime_setting(scene) if args.realtime else None
+    count = (setting["sources"] or len(train)) if setting else args.views
+    pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], min(count, len(train)), by=by)[0]
     views = [train[i] for i in pick.tolist()]
     sources = Sources.from_scene(scene, views).to(device)
+    budget = args.face_budget if args.face_budget is not None else (REALTIME_FACE_BUDGET if args.realtime else 0)
+    start = time.perf_counter()
+    drawn = level_of_detail(mesh, budget)  # once, for every renderer below
+    decimate_s = time.perf_counter() - start
+    background = scene.background or (1, 1, 1)
 
     # ---------------------------------------------------------------- mesh path
     workers = args.workers or args.threads or 1
@@ -222,8 +244,9 @@ def measure(cfg: BenchConfig) -> dict:
     if workers > 1:
         torch.set_num_threads(1)  # parallel over chunks, not inside each op (MeshRenderOptions.workers)
     start = time.perf_counter()
-    renderer = MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background or (1, 1, 1),
-                                                                    workers=workers))
+    opts = (video_options(setting, background, workers, face_budget=0) if setting else  # decimated above
+            MeshRenderOptions(background=background, workers=workers))
+    renderer = MeshRenderer(model, drawn, sources, opts)
     sync()
     setup_s = time.perf_counter() - start
     frame = [0]
@@ -238,8 +261,7 @@ def measure(cfg: BenchConfig) -> dict:
     gbuffer_times = timed(lambda: renderer.rasterizer.rasterize(next_camera(), normals="face"), args.frames,
                           args.warmup)
     coverage = statistics.mean(len(renderer.rasterizer.surface(c).pixels) / (c.width * c.height) for c in targets)
-    with MeshRenderer(model, mesh, sources, MeshRenderOptions(background=scene.background or (1, 1, 1),
-                                                              visibility=True, workers=workers)) as vis_renderer:
+    with MeshRenderer(model, drawn, sources, replace(opts, visibility=True)) as vis_renderer:
         vis_times = timed(lambda: vis_renderer.render(next_camera(), extras=False), args.frames, args.warmup)
     backend = renderer.rasterizer.backend
     renderer.close()
@@ -275,6 +297,8 @@ def measure(cfg: BenchConfig) -> dict:
                      if args.scene is None else {"kind": "capture", "path": str(args.scene), "rig": scene.rig,
                                                  "mesh": str(args.mesh)}),
                   "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
+                  "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
+                  "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),
                  "median_ms": round(1000 * mesh_s, 2), "min_ms": round(1000 * min(mesh_times), 2),
@@ -309,7 +333,8 @@ def measure(cfg: BenchConfig) -> dict:
     }
     result["provenance"]["loadavg_1min_end"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     write_json(args.out, result)
-    print(f"mesh path {width}x{height}, {args.views} sources ({backend}, {device}, "
+    print(f"mesh path {width}x{height}, {len(drawn[1]):,} of {len(mesh.faces):,} faces, {len(views)} sources "
+          f"({'the real-time blend, ' if setting else ''}{backend}, {device}, "
           f"{workers} shading threads): {mesh_fps:.1f} FPS ({1000 * mesh_s:.1f} ms wall, "
           f"{result['mesh']['cpu_ms']:.1f} ms CPU; depth pass {result['mesh']['depth_pass_ms']:.1f} ms, surface pass "
           f"{result['mesh']['surface_pass_ms']:.1f} ms, full G-buffer {result['mesh']['gbuffer_ms']:.1f} ms; "

@@ -63,6 +63,14 @@ nothing but the depth pass runs on one thread. Its reference twin is ``render()`
 fill and scatter). ``python -m bench mesh_fps --size 504 378 --threads 1``: 63.7 ms of CPU per frame before
 this path and the network skip, 47.8 after (336x252: 32.6 -> 24.3).
 
+**Level of detail and candidate sources** (the real-time videos, ``omnirecon bench --realtime``). With
+``MeshRenderOptions.face_budget`` the renderer draws the mesh decimated once to that many faces
+(:func:`level_of_detail`; the depth pass on llvmpipe costs about linearly in the faces drawn); with ``frame_grid`` the
+angle blend's frame path ranks, per chunk of pixels, only the sources a grid of the frame's pixels near it ranks
+among its nearest (:meth:`MeshRenderer._frame_sources`), instead of every source at every pixel; points no candidate
+weighs fall back to every source. Both default to off: the full mesh and every source are the reference path they are
+measured against (``python -m bench mesh_lod``).
+
 Size: the renderer, its fused shader and the texel atlas the shader samples are one real-time path,
 timed and tested together (the fill's geometry is in :mod:`omnirecon.mesh.fill`).
 """
@@ -144,6 +152,17 @@ class MeshRenderOptions:
     """At most this many surface points per chunk (``K x chunk`` point-view pairs); chunks are equal, as many
     as needed, rounded up to an even number (larger chunks: fewer Python calls per frame, less CPU per frame
     than 8192 at 504x378)."""
+    face_budget: int = 0
+    """Faces the rasterizer draws at most: a mesh with more is decimated once when the renderer loads it
+    (:func:`level_of_detail`: quadric edge collapse); the mesh given (and its file) stay whole. 0: the full mesh (the
+    reference path; what ``finetune`` scores). The real-time videos take :data:`REALTIME_FACE_BUDGET`."""
+    frame_grid: int = 0
+    """With ``blend="angle"``, the frame path (:meth:`MeshRenderer.frame`) first ranks the sources at a grid of the
+    frame's pixels, every ``frame_grid`` pixels (at the frame's depth and fill), and each chunk of pixels then ranks
+    only its candidates: the union of the ``2 (k + 1)`` nearest framing sources by angle (``k`` = ``angle_sources``) of
+    the grid points within ``frame_grid`` rows of it (points no candidate weighs: every source). The work per pixel
+    follows the candidates, not every source. 0: every point ranks every source (the reference path; what ``finetune``
+    scores). The real-time videos take :data:`REALTIME_FRAME_GRID`."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -241,6 +260,11 @@ class TexelAtlas:
     def sample(self, index: Tensor, weight: Tensor) -> Tensor:
         """Weighted sums of the tapped rows. ``# [K n, C]``"""
         return F.embedding_bag(index, self.rows, per_sample_weights=weight, mode="sum")
+
+
+def _pick(t: Tensor | None, i: Tensor) -> Tensor | None:
+    """``t[i]``, or ``None`` for ``None``."""
+    return None if t is None else t[i]
 
 
 def _norm(d: Tensor) -> Tensor:
@@ -429,10 +453,45 @@ def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
                              **kwargs)
 
 
+def video_options(setting: dict, background, workers: int = 1, face_budget: int | None = None) -> MeshRenderOptions:
+    """The real-time videos' :func:`realtime_options` (``reconstruct``'s path, ``demo``'s orbit, ``omnirecon bench
+    --realtime``): the occlusion test on, at most ``face_budget`` faces (default :data:`REALTIME_FACE_BUDGET`), each
+    chunk's candidate sources (:data:`REALTIME_FRAME_GRID`), ``workers`` shading threads."""
+    return realtime_options(setting, background=background, visibility=True, workers=workers,
+                            face_budget=REALTIME_FACE_BUDGET if face_budget is None else face_budget,
+                            frame_grid=REALTIME_FRAME_GRID)
+
+
 def scene_defaults(scene) -> tuple[str, str]:
     """:func:`scene_blend` for a loaded scene (``rig``, ``masks``, ``background``). Scenes composited on a known colour
     (procedural ones, Blender's NeRF-synthetic: ``Scene.background`` set) keep the network's blend and that colour."""
     return scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+
+
+REALTIME_FACE_BUDGET = 200_000
+"""Faces the real-time videos (``reconstruct``'s path, ``demo``'s orbit: :func:`omnirecon.workflows.render.mesh_path_video`)
+and ``omnirecon bench --realtime`` draw at most (``MeshRenderOptions.face_budget``), chosen by ``python -m bench mesh_lod``
+(frame time and held-out PSNR against the full mesh per budget; BENCHMARKS "Real-time mesh path: level of detail and
+candidate sources")."""
+
+REALTIME_FRAME_GRID = 16
+"""``MeshRenderOptions.frame_grid`` of the real-time videos and ``omnirecon bench --realtime`` (``python -m bench
+mesh_lod``: frame time and held-out PSNR against every source ranked at every point)."""
+
+
+def level_of_detail(mesh, budget: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``(vertices # [V, 3], faces # [F, 3])`` a renderer draws of ``mesh`` (a ``trimesh.Trimesh`` or such a pair):
+    at most ``budget`` faces (quadric edge collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it
+    fits or ``budget`` is 0."""
+    vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+    if budget <= 0 or len(faces) <= budget:
+        return vertices, faces
+    import trimesh
+
+    from omnirecon.mesh.clean import decimate
+
+    small = decimate(trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False), budget)
+    return np.asarray(small.vertices), np.asarray(small.faces)
 
 
 class MeshRenderer:
@@ -456,7 +515,7 @@ class MeshRenderer:
         """``(cache, views)``: built by :meth:`ViewCache.renderer` for the scene views ``views`` (``sources``); the
         rasterizer, each view's occlusion depths and mask falloff and the encoding come from (and stay with) the cache."""
         if shared is None:
-            vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+            vertices, faces = level_of_detail(mesh, self.options.face_budget)
             self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
                                              cull_back_faces=self.options.cull_back_faces)
             """The rasterizer: one GL context and the uploaded mesh, reused by every frame."""
@@ -486,6 +545,8 @@ class MeshRenderer:
                 self._uv_to_texel = self._feat._scale / self._size  # source pixels -> feature texels
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
         self._centres: dict[tuple[int, int], Tensor] = {}
+        self._source_ids: Tensor | None = None  # a _subset's sources among the maps' (None: all, in order)
+        self._parent: MeshRenderer | None = None  # a _subset's renderer over every source
         self.mask_falloff: Tensor | None = None
         """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`mask_falloff`.
         ``# [K, H, W]``"""
@@ -549,7 +610,7 @@ class MeshRenderer:
         with source z-depths ``z # [K, n]``. ``# [K, n]`` bool"""
         if self.source_depth_max is None:
             raise ValueError("the occlusion test needs MeshRenderOptions(visibility=True)")
-        return unoccluded(self.source_depth_max, uv, z, self.options.visibility_tol)
+        return unoccluded(self.source_depth_max, uv, z, self.options.visibility_tol, self._all_ids(uv.shape[2]))
 
     def weights(self, camera: Cameras, with_rgb: bool = False, with_coords: bool = True, fill: bool = False) -> ShadeResult:
         """Rasterize ``camera`` (one camera) and compute the blend weights of its covered pixels
@@ -599,7 +660,13 @@ class MeshRenderer:
         if angle and not (with_mask or with_coords or self.options.consensus > 0):  # the frame path
             uv, z, framed = self._frame_points(p)
             top = self._angle_top(p, d_t, uv, z, framed, False, layer, on_mesh)
-            return None, None, None, self._sparse_rgb(*top, uv) if with_rgb else None
+            wide = top[2]
+            if self._parent is None or not len(wide) or not with_rgb:
+                return None, None, None, self._sparse_rgb(*top, uv) if with_rgb else None
+            rgb = self._sparse_rgb(*top[:2], wide[:0], top[3][:, :0], uv)  # points no candidate weighs: every source
+            rgb[:, wide] = self._parent._shade_points(p[:, wide], d_t[:, wide], True, layer=_pick(layer, wide),
+                                                      on_mesh=_pick(on_mesh, wide), with_mask=False)[3]
+            return None, None, None, rgb
         uv, z, mask = self.project(p, layer)  # [K, 2, n], [K, n]
         st = uv / self._size if with_coords else None  # [K, 2, n] image fractions
         seen = mask.sum(0)  # [n] sources that see each point
@@ -641,13 +708,14 @@ class MeshRenderer:
         points blend every source as :meth:`_shade_points` does."""
         k1, n = idx.shape
         sel = uv.gather(0, idx[:, None].expand(k1, 2, n))  # [k1, 2, n] source pixels
-        index, weight = self._rgb.taps(sel, scale=self._one, maps=idx)  # [k1 n, 4]
+        index, weight = self._rgb.taps(sel, scale=self._one, maps=self._ids(idx))  # [k1 n, 4]
         weight = weight.reshape(k1, n, 4).mul_(w[..., None]).transpose(0, 1).reshape(n, 4 * k1)
         rgb = F.embedding_bag(index.reshape(k1, n, 4).transpose(0, 1).reshape(n, 4 * k1), self._rgb.rows,
                               per_sample_weights=weight, mode="sum").T  # [3, n]
         if len(wide):
             grid = torch.addcmul(self._minus_one, uv[:, :, wide], self._two_over_size).transpose(1, 2)[:, None]
-            c = F.grid_sample(self._images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, m]
+            images = self._images if self._source_ids is None else self._images[self._source_ids]
+            c = F.grid_sample(images, grid, align_corners=False, padding_mode="border")[:, :, 0]  # [K, 3, m]
             rgb[:, wide] = (c * wide_om[:, None]).sum(0)
         return rgb.contiguous()
 
@@ -658,7 +726,7 @@ class MeshRenderer:
     def _mask_factor(self, uv: Tensor, on_mesh: Tensor | None) -> Tensor:
         """:func:`mask_factor` at source pixels ``uv # [K, 2, n]``, 1 at the points not on the mesh (``on_mesh # [n]``
         bool False: the fill's points, off the object where the target sees no surface). ``# [K, n]``"""
-        fac = mask_factor(self.mask_falloff, uv)
+        fac = mask_factor(self.mask_falloff, uv, self._all_ids(uv.shape[2]))
         return fac if on_mesh is None else torch.where(on_mesh, fac, torch.ones_like(fac))
 
     def _angle_top(self, p: Tensor, d_t: Tensor, uv: Tensor, z: Tensor, seen: Tensor, tested: bool,
@@ -678,18 +746,14 @@ class MeshRenderer:
         k = max(1, min(self.options.angle_sources or K, K))
         k1 = min(k + 1, K)
         t = d_t / _norm(d_t)  # [3, n] unit target rays
-        # rank by cos = t . (p - c) / |p - c| from two [K, 3] x [3, n] products (no [3, K, n] temporaries); the weights
-        # take the cosines of the chosen sources computed directly, below
-        sq = torch.addmm(self._center_sq, self._centers_t, p, alpha=-2).add_((p * p).sum(0))  # [K, n] |p - c|^2
-        cos = torch.addmm((t * p).sum(0)[None], self._centers_t, t, alpha=-1).mul_(sq.clamp_min_(1e-24).rsqrt_())
-        cos.masked_fill_(~seen, -2.0)  # sources that do not see the point: after every one that does
+        cos = self._cosines(p, t).masked_fill_(~seen, -2.0)  # sources that do not see the point: after every one that does
         if tested or self.source_depth_max is None:
             c, idx = cos.topk(k1, dim=0)  # [k1, n]: ascending angle
         else:
             m = min(2 * k1, K)
             c, idx = cos.topk(m, dim=0)  # [m, n] the candidates
             vis = unoccluded(self.source_depth_max, uv.gather(0, idx[:, None].expand(m, 2, n)), z.gather(0, idx),
-                             self.options.visibility_tol, idx)
+                             self.options.visibility_tol, self._ids(idx))
             c = c.masked_fill(~(vis if layer is None else vis | layer), -2.0)
             c, j = c.topk(k1, dim=0)  # sorted again: the occluded ones last
             idx = idx.gather(0, j)
@@ -707,7 +771,7 @@ class MeshRenderer:
         total = w.sum(0, keepdim=True)  # [1, n]
         w = w / total.clamp_min(1e-12)
         if self.mask_falloff is not None:
-            fac = mask_factor(self.mask_falloff, uv.gather(0, idx[:, None].expand(k1, 2, n)), idx)  # [k1, n]
+            fac = mask_factor(self.mask_falloff, uv.gather(0, idx[:, None].expand(k1, 2, n)), self._ids(idx))  # [k1, n]
             if on_mesh is not None:
                 fac = torch.where(on_mesh, fac, torch.ones_like(fac))
             u = w * fac
@@ -719,6 +783,66 @@ class MeshRenderer:
             fac = self._mask_factor(uv[:, :, wide], None if on_mesh is None else on_mesh[wide])
             wide_om = apply_mask_factor(wide_om.T, fac.T).T
         return w, idx, wide, wide_om
+
+    def _cosines(self, p: Tensor, t: Tensor) -> Tensor:
+        """Cosine of the angle between each source's ray to points ``p # [3, n]`` and the unit target rays ``t # [3, n]``,
+        ``t . (p - c) / |p - c|``, from two ``[K, 3] x [3, n]`` products (no ``[3, K, n]`` temporaries; the weights take
+        the cosines of the chosen sources computed directly). ``# [K, n]``"""
+        sq = torch.addmm(self._center_sq, self._centers_t, p, alpha=-2).add_((p * p).sum(0))  # [K, n] |p - c|^2
+        return torch.addmm((t * p).sum(0)[None], self._centers_t, t, alpha=-1).mul_(sq.clamp_min_(1e-24).rsqrt_())
+
+    def _frame_sources(self, depth: Tensor, size: tuple[int, int], origin: Tensor, rays, far_z):
+        """``shader(sl)``: the renderer the frame's pixels ``sl`` (a slice of the row-major ``H W``) are shaded by
+        (``options.frame_grid``): one over their candidate sources only (those the grid points within ``frame_grid``
+        rows of theirs rank), or ``self`` (option off, not the angle blend, or more than half the sources candidates:
+        lund's street, 25 sources, ran 360 -> 479 CPU-ms per frame with every subset).
+        ``depth # [H W]`` (after the nearest fill; <= 0: none) of a frame of ``size = (H, W)`` seen from
+        ``origin # [3]``; ``rays(pixels) # [3, g]``: the rays through pixels at camera z = 1; ``far_z(rays) # [g]``:
+        the fill's far-layer depth (``None``: the background colour, no point)."""
+        K, g = self.num_views, self.options.frame_grid
+        k1 = min(max(1, self.options.angle_sources or K) + 1, K)
+        H, W = size
+        if self.options.blend != "angle" or g <= 0 or K <= 2 * k1:
+            return lambda sl: self
+        rows, cols = torch.arange(g // 2, H, g), torch.arange(g // 2, W, g)
+        pix = (rows[:, None] * W + cols[None]).reshape(-1).to(self.device)  # [G] grid pixels
+        z, d = depth[pix], rays(pix)  # [G], [3, G]
+        if far_z is None:
+            pix, z, d = pix[z > 0], z[z > 0], d[:, z > 0]
+        else:
+            z = torch.where(z > 0, z, far_z(d))
+        p = d * z + origin[:, None]  # [3, G]
+        framed = self._frame_points(p)[2]
+        c, idx = self._cosines(p, d / _norm(d)).masked_fill_(~framed, -2.0).topk(min(2 * k1, K), dim=0)  # [2 k1, G]
+        idx = idx.masked_fill_(c < -1.5, K)  # K: none
+
+        def shader(sl: slice) -> MeshRenderer:
+            near = (pix >= (sl.start // W - g) * W) & (pix < ((sl.stop - 1) // W + g + 1) * W)  # [G]
+            cand = idx[:, near].unique()  # sorted source indices (K last)
+            cand = cand[cand < K]
+            return self if len(cand) == 0 or 2 * len(cand) > K else self._subset(cand)  # worth it below half
+
+        return shader
+
+    def _subset(self, cand: Tensor) -> MeshRenderer:
+        """A shallow copy of this renderer over sources ``cand # [M]``: its per-source geometry indexed, its maps (colour
+        atlas, occlusion depths, mask falloff) shared and read through :meth:`_ids`."""
+        import copy
+
+        sub = copy.copy(self)
+        sub.num_views, sub._source_ids, sub._parent = len(cand), cand, self
+        sub._centers, sub._centers_t = self._centers[:, cand].contiguous(), self._centers_t[cand].contiguous()
+        sub._center_sq = self._center_sq[cand].contiguous()
+        sub._proj = self._proj.reshape(-1, 3, 4)[cand].reshape(-1, 4).contiguous()  # [3M, 4]
+        return sub
+
+    def _ids(self, idx: Tensor) -> Tensor:
+        """Source indices ``idx # [k, n]`` of this renderer as indices of its maps (a :meth:`_subset`'s differ)."""
+        return idx if self._source_ids is None else self._source_ids[idx]
+
+    def _all_ids(self, n: int) -> Tensor | None:
+        """Every source's map index for ``n`` points (``None``: the identity). ``# [K, n]``"""
+        return None if self._source_ids is None else self._source_ids[:, None].expand(-1, n)
 
     def _dense(self, w: Tensor, idx: Tensor, wide: Tensor, wide_om: Tensor) -> Tensor:
         """:meth:`_angle_top`'s weights over every source. ``# [K, n]``"""
@@ -821,6 +945,8 @@ class MeshRenderer:
         fill = self.options.fill != "background"
         background = torch.tensor(self.options.background, dtype=self.dtype, device=self.device)
         far, bounds = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
+        shader = self._frame_sources(depth, (H, W), origin, lambda pix: torch.addmm(A2, Auv, centres[:, pix]),
+                                     (lambda d: exit_depth(d, origin, far, bounds)) if fill else None)
 
         def shade(sl: slice) -> None:
             z = depth[sl]  # [n]
@@ -842,7 +968,7 @@ class MeshRenderer:
                     d, z = d[:, keep], z[keep]
                     on_mesh = None if on_mesh is None else on_mesh[keep]
             p = torch.addcmul(o, d, z[None])  # [3, n] surface points
-            rgb = self._shade_points(p, d, True, layer=layer, on_mesh=on_mesh, with_mask=False)[3]  # [3, n]
+            rgb = shader(sl)._shade_points(p, d, True, layer=layer, on_mesh=on_mesh, with_mask=False)[3]  # [3, n]
             if keep is None:
                 target.copy_(rgb.T)
             else:
@@ -941,7 +1067,7 @@ class ViewCache:
     def __init__(self, model, mesh, scene, options: MeshRenderOptions | None = None):
         self.model, self.scene = model, scene
         self.options = options or MeshRenderOptions()
-        vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
+        vertices, faces = level_of_detail(mesh, self.options.face_budget)
         self.rasterizer = MeshRasterizer(vertices, faces, backend=self.options.backend,
                                          cull_back_faces=self.options.cull_back_faces)
         """The one rasterizer of every renderer."""

@@ -330,15 +330,16 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     cams = cams.rescaled(side / max(cams.width, cams.height))
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
-                                           setting=setting)
+    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
+                                                  setting=setting)
     fps = 1.0 / statistics.median(times)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
-                            "away": away}
-    lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads); {away['line']}")
+                            "faces_drawn": faces, "away": away}
+    lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
+                 f"faces drawn); {away['line']}")
     return (Section("Real-time mesh path")
             .text(f"The Omni-Recon mesh rendered with the appearance branch, one surface point per pixel, source "
                   f"features encoded once: {fps:.1f} FPS at {cams.width}x{cams.height} (median of {len(cams)} frames, "

@@ -281,7 +281,7 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     setting = realtime_setting(scene, tuned)
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    video, images, times = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
+    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
     defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
     fps = 1.0 / statistics.median(times)
     center = closest_point_to_axes(scene.cameras) if scene.rig == "object" else scene.bounds.double().mean(0)
@@ -290,11 +290,12 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     mean = {k: round(float(np.mean([d[k] for d in defects])), 4) for k in defects[0]}
     lines.append(f"camera path ({kind}): {len(cams)} frames at {cams.width}x{cams.height}, {reach['median']:g} "
                  f"degrees from the nearest photo (median; at most {reach['max']:g}), mesh path {fps:.1f} FPS "
-                 f"(median frame, source features encoded once per source set)")
+                 f"(median frame at {cams.width}x{cams.height}, {torch.get_num_threads()} threads, {faces:,} of "
+                 f"{len(mesh.faces):,} faces drawn; source features encoded once per source set)")
     lines.append(f"away from the photos: {mean['any']:.1%} of the path's pixels on faces no photo supports (fills "
                  f"{mean['fill']:.1%}, unseen {mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
-    return {"scene": scene, "cams": cams, "video": video, "fps": fps, "kind": kind, "nearest_photo_degrees": reach,
+    return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}
 

@@ -177,7 +177,8 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
 
 
 def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int]], path: Path, fps: int = 24,
-                    setting: dict | None = None) -> tuple[Path, list[np.ndarray], list[float]]:
+                    setting: dict | None = None, face_budget: int | None = None
+                    ) -> tuple[Path, list[np.ndarray], list[float], int]:
     """Render ``cameras`` through ``mesh`` (scene frame) with the real-time mesh path
     (:class:`~omnirecon.mesh.ibr.MeshRenderer`; the blend and the fill ``finetune --blend auto --fill auto`` scores
     with (:func:`~omnirecon.mesh.ibr.scene_blend`: pixels no triangle covers take the scene's known background
@@ -190,15 +191,20 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
     share one renderer, and every renderer one :class:`~omnirecon.mesh.ibr.ViewCache` (one rasterizer, each view's
     occlusion depths once, each set of views encoded once: the frames are those of a renderer per set, bit for bit).
-    Returns the video file, the 8-bit frames ``# [H, W, 3]`` and the seconds of each frame (after one untimed
-    warm-up frame)."""
-    from omnirecon.mesh.ibr import ViewCache, realtime_options, realtime_setting, render_frames  # lazy: fast --help
+    The mesh is drawn with at most ``face_budget`` faces (default :data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`; 0:
+    the full mesh), decimated once (``mesh`` stays whole); the angle blend ranks each chunk's candidate sources
+    (:data:`~omnirecon.mesh.ibr.REALTIME_FRAME_GRID`); up to 2 threads shade (torch's threads, one op each). Returns the video file, the 8-bit frames ``# [H, W, 3]``, the
+    seconds of each frame (after one untimed warm-up frame) and the number of faces drawn."""
+    from omnirecon.mesh.ibr import ViewCache, realtime_setting, render_frames, video_options  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    opts = realtime_options(setting or realtime_setting(scene), background=bg, visibility=True)
+    threads = torch.get_num_threads()
+    opts = video_options(setting or realtime_setting(scene), bg, min(2, threads), face_budget)
     images, times = [], []
     start = 0
+    torch.set_num_threads(1 if opts.workers > 1 else threads)  # parallel over chunks (MeshRenderOptions.workers)
     with ViewCache(model, mesh, scene, opts) as cache:
+        faces = len(cache.rasterizer.faces)
         while start < len(cameras):
             end = start + 1
             while end < len(cameras) and list(sources[end]) == list(sources[start]):
@@ -208,7 +214,8 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
             images += frames
             times += seconds
             start = end
-    return write_video(path, images, fps), images, times
+    torch.set_num_threads(threads)
+    return write_video(path, images, fps), images, times, faces
 
 
 def write_video(path: Path, frames: list[np.ndarray], fps: int) -> Path:

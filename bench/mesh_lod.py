@@ -1,0 +1,185 @@
+"""Level of detail of the real-time mesh path: frame time and held-out PSNR per face budget on the meshes users get.
+
+    python -m bench mesh_lod                                  # fox, fern, the demo scene, lund when posed
+    python -m bench mesh_lod --scenes fox --mesh fox=/tmp/fox.ply --budgets 0 200000 100000
+
+Per scene: the mesh ``reconstruct`` builds (``omnirecon mesh --ckpt checkpoints/omnirecon-tiny --views all``,
+``reconstruct``'s mesh stage; built into ``outputs/bench/mesh_lod/<scene>.ply`` unless ``--mesh`` names one), then for
+the reference path (the full mesh, every source ranked at every point: what the videos drew before) and each face
+budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate sources (``--grid``,
+``MeshRenderOptions.frame_grid``):
+
+* **speed**: ``MeshRenderer.render(extras=False)`` (the frame path) of the held-out views at the photos' size (the
+  demo scene at the demo's 256 px), blended as the real-time videos blend (:func:`omnirecon.mesh.ibr.realtime_setting`
+  of the scene, the occlusion test on; the angle blend over every training view, the network's over the 6 nearest),
+  ``--threads`` shading workers with one torch thread each and as many llvmpipe threads; median wall and process-CPU
+  ms of ``--frames`` frames after a warm-up, the depth pass alone, the decimation's seconds. The machine may be shared:
+  the 1-minute load average is recorded beside every timing;
+* **quality**: held-out PSNR (whole image, at most ``--max-views`` test views) through the same blend, each view from
+  its own nearest sources, and its loss against the reference path's (the demo scene: timed at 256 px, scored at its
+  128-px images).
+
+``checkpoints/omnirecon-tiny`` untuned (the frame time does not depend on the weights). Writes
+``bench/results/mesh_lod.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED = ROOT.parent / "shared" / "data"
+SCENES = {"fox": "instant_ngp/fox", "fern": "llff/fern", "demo": None, "lund": None}
+LUND = ROOT / "outputs" / "cache" / "extrapolation" / "lund_scene"
+"""The street photos posed as ``python -m bench extrapolation`` poses them (its cache; not posed here: that takes COLMAP)."""
+BUDGETS = (0, 300_000, 200_000, 100_000, 50_000)
+DEMO_SIDE = 256
+
+
+def scene_path(name: str, work: Path) -> Path | None:
+    """The scene folder of ``name`` (the demo's procedural scene generated into ``work``; lund only when posed)."""
+    if name == "demo":
+        from omnirecon.data.synth.generate import SynthOptions, generate_scene
+        from omnirecon.workflows.demo import DEMO_SEED
+
+        return generate_scene(work / "demo_scene", DEMO_SEED, SynthOptions(rig="object", views=24, resolution=128))
+    if name == "lund":
+        return LUND if LUND.is_dir() else None
+    return SHARED / SCENES[name]
+
+
+def build_mesh(path: Path, out: Path, threads: int) -> Path:
+    """``reconstruct``'s mesh stage on ``path`` (every view, 3 sources each, the photos' size) into ``out``."""
+    from omnirecon.engine.scenes import photo_side
+    from omnirecon.workflows.mesh import MeshConfig, run_mesh
+
+    if not out.is_file():
+        run_mesh(MeshConfig(scene=path, ckpt=ROOT / "checkpoints" / "omnirecon-tiny", views=("all",), num_views=3,
+                            out=(out,), resolution=photo_side(path), threads=threads))
+    return out
+
+
+def timed(fn, cams: list, frames: int) -> tuple[float, float]:
+    """Median wall and process-CPU milliseconds of ``fn(camera)`` over ``frames`` calls (one warm-up)."""
+    fn(cams[0])
+    wall, cpu = [], []
+    for i in range(frames):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        fn(cams[i % len(cams)])
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return round(1000 * statistics.median(wall), 2), round(1000 * statistics.median(cpu), 2)
+
+
+def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args) -> dict:
+    """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget`` and candidate grid ``grid``
+    (``MeshRenderOptions.frame_grid``; module docstring), timed at ``side`` px long side, scored at the scene's."""
+    import torch
+
+    from omnirecon import metrics
+    from omnirecon.engine.views import select_sources
+    from omnirecon.mesh.ibr import ViewCache, level_of_detail, realtime_options
+
+    start = time.perf_counter()
+    vertices, faces = level_of_detail(mesh, budget)
+    decimate_s = time.perf_counter() - start
+    bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
+    opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid)
+    train = scene.splits.get("train") or list(range(len(scene)))
+    test = (scene.splits.get("test") or [0])[:args.max_views]
+    cams = [scene.cameras[i].to(dtype=torch.float32) for i in test]
+    timed_cams = [c.rescaled(side / max(c.width, c.height)) for c in cams]  # the demo: its 256-px frames
+    k = min(setting["sources"] or len(train), len(train))
+    picks = {t: sorted(select_sources(scene, cams[j], train, k)) for j, t in enumerate(test)}
+    psnr = []
+    with ViewCache(model, (vertices, faces), scene, opts) as cache:
+        with cache.renderer(picks[test[0]]) as r:
+            load = os.getloadavg()[0]
+            wall, cpu = timed(lambda c: r.render(c, extras=False), timed_cams, args.frames)
+            depth_wall, depth_cpu = timed(lambda c: r.rasterizer.depth(c), timed_cams, args.frames)
+            load = round(max(load, os.getloadavg()[0]), 2)
+        for j, t in enumerate(test):
+            with cache.renderer(picks[t]) as r:
+                rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
+            psnr.append(metrics.psnr(rgb, scene.images[t].float()))
+    return {"face_budget": budget, "frame_grid": grid, "faces": int(len(faces)), "vertices": int(len(vertices)),
+            "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu, "fps": round(1000 / wall, 2),
+            "fps_from_cpu_time": round(1000 / cpu, 2), "depth_pass_ms": depth_wall, "depth_pass_cpu_ms": depth_cpu,
+            "loadavg_1min": load, "psnr": round(float(statistics.mean(psnr)), 3), "psnr_views": len(psnr)}
+
+
+def run_scene(name: str, model, args) -> dict | None:
+    import torch
+
+    from omnirecon.engine.scenes import load_at_resolution, photo_side
+    from omnirecon.mesh.files import read_mesh
+    from omnirecon.mesh.ibr import realtime_setting
+
+    work = ROOT / "outputs" / "bench" / "mesh_lod"
+    work.mkdir(parents=True, exist_ok=True)
+    path = scene_path(name, work)
+    if path is None:
+        print(f"{name}: no posed scene at {LUND}; left out")
+        return None
+    given = dict(m.split("=", 1) for m in args.mesh)
+    mesh_file = Path(given[name]) if name in given else build_mesh(path, work / f"{name}.ply", 1)
+    torch.set_num_threads(args.threads)
+    side = DEMO_SIDE if name == "demo" else photo_side(path)
+    scene = load_at_resolution(path, side)
+    mesh = read_mesh(mesh_file, scene.to_input)
+    setting = realtime_setting(scene)
+    torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
+    rows = []
+    runs = [(0, 0)] + [(b, args.grid) for b in args.budgets if b < len(mesh.faces)]  # before: the reference path
+    for budget, grid in dict.fromkeys(runs):
+        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args))
+        print(name, rows[-1], flush=True)
+    full = rows[0]
+    for r in rows:
+        r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
+        r["speedup"] = round(full["frame_ms"] / r["frame_ms"], 2)
+    timed_size = [round(scene.width * side / max(scene.width, scene.height)), round(scene.height * side / max(scene.width, scene.height))]
+    return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
+            "scored_resolution": [scene.width, scene.height],
+            "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    from omnirecon.data.io import write_json
+    from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.mesh.ibr import REALTIME_FACE_BUDGET, REALTIME_FRAME_GRID
+    from omnirecon.provenance import provenance
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    p.add_argument("--budgets", nargs="+", type=int, default=list(BUDGETS), help="face budgets (0: the full mesh)")
+    p.add_argument("--mesh", nargs="*", default=[], help="NAME=FILE: a scene's mesh (input frame) instead of building it")
+    p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
+    p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
+    p.add_argument("--frames", type=int, default=10, help="timed frames (median)")
+    p.add_argument("--max-views", type=int, default=8, help="held-out views scored")
+    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mesh_lod.json")
+    a = p.parse_args(argv)
+    a.grid = REALTIME_FRAME_GRID if a.grid is None else a.grid
+    os.environ["LP_NUM_THREADS"] = str(a.threads)  # before the first GL context
+    model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
+    commit = provenance(seed=0)["commit"]
+    old = {}
+    if a.out.is_file():
+        import json
+
+        old = {s["scene"]: s for s in json.loads(a.out.read_text()).get("scenes", [])}
+    for name in a.scenes:
+        row = run_scene(name, model, a)
+        if row is not None:
+            old[name] = {**row, "commit": commit, "loadavg_1min_end": round(os.getloadavg()[0], 2)}  # rows of other runs stay
+    result = {"provenance": provenance(seed=0), "threads": a.threads, "frames": a.frames,
+              "realtime_face_budget": REALTIME_FACE_BUDGET, "realtime_frame_grid": REALTIME_FRAME_GRID, "machine_note": "2 CPU cores shared with other jobs: "
+              "wall-clock FPS fall with the load average recorded beside each; CPU ms per frame are less affected",
+              "scenes": [old[n] for n in SCENES if n in old]}
+    write_json(a.out, result)
+    return result
