@@ -98,7 +98,7 @@ def test_a_failed_mesh_stage_keeps_the_poses_and_the_rerun_continues(photos, tmp
     assert _files(photos) == given
 
 
-def test_changed_options_keep_what_they_do_not_touch(photos, tmp_path, run_cli):
+def test_changed_options_keep_what_they_do_not_touch(photos, tmp_path):
     """A kept run whose later option changes keeps the stages before it; a changed input starts over; --no-resume
     too. Checked on the record alone (no stage runs here)."""
     from omnirecon.workflows.reconstruct import ReconstructConfig, stage_depends
@@ -107,7 +107,8 @@ def test_changed_options_keep_what_they_do_not_touch(photos, tmp_path, run_cli):
     work = tmp_path / "w"
     work.mkdir()
     said = []
-    cfg = ReconstructConfig(path=photos, out=tmp_path / "o")
+    given = shutil.copytree(photos, tmp_path / "photos")
+    cfg = ReconstructConfig(path=given, out=tmp_path / "o")
     stages = Stages(work, stage_depends(cfg), say=said.append)
     for name in ("process", "mesh", "finetune"):
         (work / name).mkdir()
@@ -122,6 +123,12 @@ def test_changed_options_keep_what_they_do_not_touch(photos, tmp_path, run_cli):
     assert said[-1] == f"continuing from {work}: process, mesh kept from an earlier run (--no-resume starts over)"
     assert Stages(work, stage_depends(cfg), resume=False, say=said.append).kept == {}
     assert "--no-resume" in said[-1] and sorted(p.name for p in work.iterdir()) == [PARTIAL]
+    stages = Stages(work, stage_depends(cfg), say=said.append)
+    (work / "process").mkdir()
+    stages.finish("process", {"said": []})
+    os.utime(given / "r_0.png", ns=(0, 0))  # a photo replaced (its time and maybe its size)
+    assert Stages(work, stage_depends(cfg), say=said.append).kept == {}
+    assert said[-1] == f"PATH's files changed since the run that kept {work}: starting over"
 
 
 def _start(args: list, cwd: Path) -> subprocess.Popen:
@@ -198,19 +205,23 @@ def test_no_depth_names_what_the_source_gave(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_video_run_prints_no_resource_warning(photos, tmp_path, run_cli):
-    """A video in, `reconstruct` to the end, with ResourceWarning an error around the run: no note of an unclosed
-    pipe (imageio-ffmpeg left ffmpeg's pipes open once the video was read to its end)."""
+def test_a_video_run_prints_no_resource_warning(tmp_path, run_cli):
+    """A clip in (12 procedural frontal views at 4 fps, as tests/capture/test_process.py's), `reconstruct` to the end
+    with ResourceWarning an error around the run: no note of an unclosed pipe (imageio-ffmpeg left ffmpeg's pipes
+    open once the video was read to its end)."""
     pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra")
-    pytest.importorskip("imageio_ffmpeg", reason="videos need the `video` extra")
+    imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="videos need the `video` extra")
     from PIL import Image
 
-    from omnirecon.workflows.render import write_video
-
-    frames = [np.asarray(Image.open(p).convert("RGB")) for p in sorted(photos.iterdir(), key=lambda p: int(p.stem[2:]))]
-    video = write_video(tmp_path / "walk.mp4", frames, 2)
+    ref = generate_scene(tmp_path / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
+    clip = tmp_path / "clip.mp4"
+    writer = imageio_ffmpeg.write_frames(str(clip), (256, 256), fps=4, quality=10, macro_block_size=16)
+    writer.send(None)
+    for name in sorted(load_scene(ref).names, key=lambda n: int(Path(n).stem[2:])):  # r_0, r_1, ...: a walk
+        writer.send(np.asarray(Image.open(ref / name).convert("RGB")).tobytes())
+    writer.close()
     with warnings.catch_warnings():
         warnings.simplefilter("error", ResourceWarning)
-        code, _, err = run_cli(["reconstruct", video, "--out", tmp_path / "rec", "--fps", "2", *SMALL])
+        code, _, err = run_cli(["reconstruct", clip, "--out", tmp_path / "rec", "--fps", "4", *SMALL])
     assert code == 0, err
     assert "ResourceWarning" not in err and "note:" not in err, err
