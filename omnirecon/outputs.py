@@ -497,6 +497,6 @@ def _resumable(out: Path, command: str, replaced: str | None, flag: str):
             shutil.rmtree(work, ignore_errors=True)  # nothing finished: nothing to keep
         raise
     write_marker(work, command)  # first: a run killed from here on leaves a folder that is still ours
-    shutil.rmtree(work / PARTIAL)
+    shutil.rmtree(work / PARTIAL, ignore_errors=True)
     relative_records(work)
     swap_in(work, out)

@@ -225,3 +225,33 @@ def test_a_video_run_prints_no_resource_warning(tmp_path, run_cli):
         code, _, err = run_cli(["reconstruct", clip, "--out", tmp_path / "rec", "--fps", "4", *SMALL])
     assert code == 0, err
     assert "ResourceWarning" not in err and "note:" not in err, err
+
+
+def test_a_work_folder_of_the_user_is_never_taken(tmp_path):
+    """``OUT.partial`` holding files this tool did not write: refused with one line, its files untouched; a failure
+    with nothing kept leaves no work folder, one with a kept stage leaves it (and the previous output) as it was."""
+    from omnirecon.errors import InputError
+    from omnirecon.outputs import claim, partial_folder
+    from omnirecon.workflows.stages import Stages
+
+    out = tmp_path / "rec"
+    mine = partial_folder(out)
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's")
+    with pytest.raises(InputError, match="work folder holds files this tool did not write"):
+        with claim(out, "reconstruct", mode="resume"):
+            pass
+    assert (mine / "notes.txt").read_text() == "the user's"
+    shutil.rmtree(mine)
+    with claim(out, "reconstruct", mode="resume") as c:
+        (c.work / "old.txt").write_text("a complete earlier run")
+    before = _files(out)
+    for keep in (False, True):
+        with pytest.raises(RuntimeError):
+            with claim(out, "reconstruct", mode="resume", overwrite=True, say=lambda s: None) as c:
+                stages = Stages(c.work, {"process": {}})
+                (c.work / "scene").mkdir()
+                if keep:
+                    stages.finish("process", {})
+                raise RuntimeError("a later stage failed")
+        assert _files(out) == before and mine.is_dir() == keep
