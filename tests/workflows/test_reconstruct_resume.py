@@ -202,6 +202,12 @@ def test_no_depth_names_what_the_source_gave(tmp_path):
     stages.finish("process", {"processed": {"images_registered": 40, "images_given": 44, "kind": "video"}, "said": []})
     line = failed(cfg, e.value, stages).one_line()
     assert "poses for 40/44 frames" in line and "walk slower around the subject or raise --fps" in line
+    from omnirecon.errors import InputError  # run_mesh's empty mesh, worded for `omnirecon mesh`
+    empty = InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", scene.path,
+                       "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
+    line = failed(cfg, empty, stages).one_line()
+    assert line.startswith(f"{scene.path}: mesh stage: poses for 40/44 frames; the mesh is empty"), line
+    assert "raise --mesh-resolution (now 64 px)" in line and "--voxel" not in line and "--views" not in line
 
 
 @pytest.mark.slow
