@@ -418,7 +418,8 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         .table(*curve_table(curve))
         .figure(out / "finetune" / "curve.png", out, "test and validation PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
-        Section("Timings").table(["stage", "seconds", "peak memory (MB)"],
-                                 [[k, v, record.get("peak_rss_mb", {}).get(k, "")] for k, v in record["seconds"].items()]),
+        Section("Timings").table(["stage", "seconds", "peak memory (MB)", "kept from an earlier run (its seconds)"],
+                                 [[k, v, record.get("peak_rss_mb", {}).get(k, ""), record.get("resumed", {}).get(k, "")]
+                                  for k, v in record["seconds"].items()]),
     ]
     write_report(out, f"omnirecon reconstruct: {Path(cfg.path).name}", sections)
