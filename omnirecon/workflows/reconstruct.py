@@ -168,9 +168,11 @@ def stage_error(cfg: ReconstructConfig, e: InputError, stages: Stages) -> InputE
         if e.lost == "source":
             fix = f"{more}, or raise --mesh-resolution (now {side} px: stereo matches finer texture at more pixels)"
             cause = "the photos give stereo nothing to match (too little texture or overlap, or too few pixels)"
-        else:
+        elif e.lost == "occluded":
             fix = f"{more}; check the poses with `omnirecon inspect {stages.work / 'scene'}`" if processed else e.fix
             cause = "the poses and the depth do not agree"
+        else:
+            fix, cause = e.fix, "the photos show only the scene's known background colour"
         return InputError(f"{posed}{e.what}: likely cause: {cause}", e.path, fix)
     if stages.current == "mesh" and e.what.startswith("the mesh is empty"):
         return InputError(f"{posed}{e.what}", e.path, f"{more}, or raise --mesh-resolution (now {side} px)")
