@@ -520,7 +520,9 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
     lines = [ln for ln in text.strip().splitlines() if ln.strip()]
     rc = os.waitstatus_to_exitcode(status) if verdict is None else None
     changed = _tree(p["root"]) != before
-    leftovers = [str(q) for q in cwd.parent.glob(out.name + "*")] + [str(q) for q in cwd.rglob("*")]
+    kept = "rerun the same command to continue" in text  # reconstruct keeps its finished stages in OUT.partial, and says so
+    leftovers = [str(q) for q in cwd.parent.glob(out.name + "*") if not (kept and q.name == f"{out.name}.partial")] + \
+        [str(q) for q in cwd.rglob("*")]
     if verdict is None:
         if rc is not None and rc < 0:
             verdict = "killed"

@@ -26,6 +26,10 @@
   and time: :func:`written_here`) or ``--overwrite`` is given; the files the run wrote get their record. The
   marker of a folder lists the files written into it: a folder is replaced only when everything in it is
   listed there or written here, and ``mode="fill"`` refuses a non-empty folder without the marker (a user's).
+  ``mode="resume"`` (reconstruct) is
+  ``"replace"`` with a work folder that outlives a failure: ``NAME.partial`` beside ``--out``
+  (:func:`partial_folder`), kept when the run recorded a finished stage in it (:data:`PARTIAL`), reused by the next
+  run, swapped in whole when complete.
 * A record written in a temporary folder must name the final paths: before the swap,
   :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
   to it (so they hold for ``--out``).
@@ -462,6 +466,8 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
     either ``overwrite`` is True (verbs with ``--overwrite``; False refuses) or, for verbs without the flag
     (``overwrite=None``), the marker names the same command. ``mode="fill"``: ``claim.work == out``; a folder
     the run created gets the marker, and is removed again if the run fails and leaves it empty.
+    ``mode="resume"``: as ``"replace"``, built in :func:`partial_folder` (``NAME.partial``), which the block's
+    failure leaves in place when a stage finished in it (:func:`kept_stages`) and the next run reuses.
     ``mode="file"``: ``out`` is a file, with the other files of its set in ``files``: each is checked, locked
     and refused when it exists and this tool did not write it (unless ``overwrite``); those the block wrote
     (changed) are recorded as written here.
@@ -473,7 +479,9 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
         out, mode = Path("outputs") / command, "fill"
     out = Path(out)
     check_out(out, "file" if mode == "file" else "folder", inputs, flag)
-    if mode == "replace" and real(out) in (real(Path.cwd()), *real(Path.cwd()).parents):
+    if mode == "resume":
+        check_out(partial_folder(out), "folder", inputs, f"{flag}'s work folder")
+    if mode in ("replace", "resume") and real(out) in (real(Path.cwd()), *real(Path.cwd()).parents):
         raise InputError(f"{flag} is the working folder or holds it, and {command} replaces its {flag} whole", out,
                          f"choose a new folder for {flag}, e.g. {flag} {command}_out")
     if mode == "file":
@@ -500,21 +508,10 @@ def claim(out: Path | None, command: str, *, inputs=(), mode: str = "fill", over
             if out.is_dir() and (marker is not None or not existed):
                 write_marker(out, command)
             return
-        replaced = None
-        if overwrite is False and out.exists():
-            raise InputError("output folder already exists", out, f"choose another {flag}, or add --overwrite")
-        if existed:
-            if marker is None:
-                raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it is never replaced",
-                                 out, f"choose a new or empty folder for {flag}")
-            if overwrite is None and marker["command"] != command:
-                raise InputError(f"{flag} holds {describe(marker)}", out, f"choose another {flag} for {command}")
-            foreign = foreign_files(out, marker)
-            if foreign:
-                raise InputError(f"{flag} holds {foreign[0]}, which this tool did not write: it is never deleted",
-                                 out / foreign[0], f"move it out of {out}, or choose another {flag}")
-            replaced = describe(marker)
-            say(f"replacing {out}: {replaced} (the new one takes its place when complete)")
+        replaced = _replacing(out, existed, marker, overwrite, command, flag, say)
+        if mode == "resume":
+            yield from _resumable(out, command, replaced, flag)
+            return
         tmp = out.parent / f".{out.name}.tmp{os.getpid()}"
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir()
@@ -546,3 +543,70 @@ def claim_files(paths, command: str, inputs=(), overwrite: bool = False, flag: s
         for p in paths:
             if os.path.isfile(p) and not os.path.islink(p) and _stamp(p) != before[p]:
                 record_file(p, command)
+
+
+def _replacing(out: Path, existed: bool, marker: dict | None, overwrite: bool | None, command: str, flag: str,
+               say) -> str | None:
+    """The policy for an existing ``out`` of a verb that replaces it whole (see :func:`claim`): refuses, or returns
+    what will be replaced (said at once), or None when nothing is."""
+    if overwrite is False and out.exists():
+        raise InputError("output folder already exists", out, f"choose another {flag}, or add --overwrite")
+    if not existed:
+        return None
+    if marker is None:
+        raise InputError(f"{flag} holds files this tool did not write (no {MARKER}): it is never replaced",
+                         out, f"choose a new or empty folder for {flag}")
+    if overwrite is None and marker["command"] != command:
+        raise InputError(f"{flag} holds {describe(marker)}", out, f"choose another {flag} for {command}")
+    foreign = foreign_files(out, marker)
+    if foreign:
+        raise InputError(f"{flag} holds {foreign[0]}, which this tool did not write: it is never deleted",
+                         out / foreign[0], f"move it out of {out}, or choose another {flag}")
+    replaced = describe(marker)
+    say(f"replacing {out}: {replaced} (the new one takes its place when complete)")
+    return replaced
+
+
+# ------------------------------------------------------------------------------------------ resumable work folders
+PARTIAL = ".omnirecon-partial"
+"""The folder a resumable run keeps in its work folder (:func:`partial_folder`): ``stages.json``, the finished stages'
+records, and what they hand to the next run (:class:`omnirecon.workflows.stages.Stages`). A work folder is reused
+or removed only when it holds this folder or :data:`MARKER` (a run killed while it finished)."""
+
+
+def partial_folder(out: Path) -> Path:
+    """The resumable work folder of ``out``: ``NAME.partial`` beside it."""
+    out = Path(out)
+    return out.parent / f"{out.name}.partial"
+
+
+def kept_stages(work: Path) -> list[str]:
+    """The stages a resumable run recorded as finished in ``work`` (none when there is no record)."""
+    try:
+        stages = json.loads((Path(work) / PARTIAL / "stages.json").read_text()).get("stages", {})
+    except (OSError, ValueError, AttributeError):
+        return []
+    return list(stages) if isinstance(stages, dict) else []
+
+
+def _resumable(out: Path, command: str, replaced: str | None, flag: str):
+    """``claim(mode="resume")``'s work folder: reused when a run left it, kept after a failure when a stage finished
+    in it, else removed; when the block succeeds, its resume record goes and it is swapped in at ``out``."""
+    work = partial_folder(out)
+    if work.is_symlink() or (work.exists() and not work.is_dir()):
+        raise InputError(f"{flag}'s work folder {work.name} exists and is not a folder", work,
+                         f"move it away, or choose another {flag}")
+    if work.is_dir() and any(work.iterdir()) and not (work / PARTIAL).is_dir() and read_marker(work) is None:
+        raise InputError(f"{flag}'s work folder holds files this tool did not write (no {PARTIAL}): it is never "
+                         "replaced", work, f"move it away, or choose another {flag}")
+    work.mkdir(exist_ok=True)
+    try:
+        yield Claim(out, work, command, replaced)
+    except BaseException:
+        if not kept_stages(work):
+            shutil.rmtree(work, ignore_errors=True)  # nothing finished: nothing to keep
+        raise
+    write_marker(work, command)  # first: a run killed from here on leaves a folder that is still ours
+    shutil.rmtree(work / PARTIAL, ignore_errors=True)
+    relative_records(work)
+    swap_in(work, out)

@@ -30,19 +30,23 @@ def sample_frames(video: Path, dest: Path, fps: float, max_frames: int = 300, on
     try:
         gen = imageio_ffmpeg.read_frames(str(video), output_params=["-vf", f"fps={fps}"])
         meta = next(gen)
-        w, h = meta["size"]
-        duration = float(meta.get("duration") or 0)
-        expected = min(max_frames, max(1, round(duration * fps))) if duration > 0 else None
-        for frame in gen:
-            a = np.frombuffer(frame, np.uint8).reshape(h, w, 3)
-            name = f"frame_{len(names):05d}.png"
-            Image.fromarray(a).save(dest / name)
-            names.append(name)
-            if on_frame is not None:
-                on_frame(len(names), expected)
-            if len(names) >= max_frames:
-                gen.close()
-                break
+        ffmpeg = gen.gi_frame.f_locals.get("process")  # read_frames' Popen, for _close_pipes
+        try:
+            w, h = meta["size"]
+            duration = float(meta.get("duration") or 0)
+            expected = min(max_frames, max(1, round(duration * fps))) if duration > 0 else None
+            for frame in gen:
+                a = np.frombuffer(frame, np.uint8).reshape(h, w, 3)
+                name = f"frame_{len(names):05d}.png"
+                Image.fromarray(a).save(dest / name)
+                names.append(name)
+                if on_frame is not None:
+                    on_frame(len(names), expected)
+                if len(names) >= max_frames:
+                    break
+        finally:
+            gen.close()
+            _close_pipes(ffmpeg)
     except (OSError, RuntimeError, ValueError, KeyError, StopIteration) as e:
         detail = str(e).strip().splitlines()[-1][:160] if str(e).strip() else type(e).__name__
         raise InputError(f"cannot decode the video ({detail})", video,
@@ -68,3 +72,12 @@ def clip_rate(video: Path) -> tuple[float | None, float | None]:
         return None, None
     fps, duration = (float(meta.get(k) or 0) for k in ("fps", "duration"))
     return (fps if fps > 0 else None), (duration if duration > 0 else None)
+
+
+def _close_pipes(process) -> None:
+    """Close the pipes of imageio-ffmpeg's ffmpeg process: ``read_frames`` (0.8.1) closes them only when ffmpeg still
+    runs, so a video read to its end left stdin and stdout to the garbage collector, which printed a ResourceWarning
+    on every video run (issue 46)."""
+    for pipe in (getattr(process, "stdin", None), getattr(process, "stdout", None)):
+        if pipe is not None and not pipe.closed:
+            pipe.close()

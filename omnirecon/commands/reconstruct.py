@@ -13,5 +13,7 @@ class ReconstructCommand(ReconstructConfig):
         record = run_reconstruct(self)
         for line in record["lines"]:
             print(line)
-        print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in record["seconds"].items()))
+        kept = record.get("resumed", {})
+        print("seconds: " + ", ".join(f"{k} {v:.1f}" + (f" (kept from an earlier run: {kept[k]:.1f})" if k in kept else "")
+                                      for k, v in record["seconds"].items()))
         print(f"report: {record['report']}; viewer: omnirecon view {self.out / 'export'}")

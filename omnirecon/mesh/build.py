@@ -436,15 +436,57 @@ class Prepared:
     """Fraction of depth pixels the visibility check dropped."""
 
 
+class NoDepth(InputError):
+    """No depth map has a pixel to fuse: ``found`` says what the depth source gave (``source``: its name,
+    ``covered``: the fraction of the maps' pixels with depth, ``empty``/``maps``: maps without any), ``lost`` which
+    step left none (``"source"``, ``"background"`` or ``"occluded"``). The message and fix
+    are ``omnirecon mesh``'s; a verb that meshes with other options (``reconstruct``) words its own from these."""
+
+    CAUSES = {"source": "", "background": "all of it on the scene's known background colour",
+              "occluded": "all of it behind surfaces other views see"}
+    FIXES = {"stereo": "try --depth stereo+model with a checkpoint (--ckpt: a model's depth where stereo finds none), "
+                       "or a larger --resolution",
+             "stereo+model": "lower --min-acc (the model's depth where stereo finds none), or a larger --resolution",
+             "model": "lower --min-acc, or pass a checkpoint trained on similar scenes (--ckpt)",
+             "oracle": "check the scene's ground-truth mesh",
+             "background": "check the scene's images: they show only its background colour",
+             "occluded": "mesh fewer, better-spread --views, or check the scene's poses (omnirecon inspect)"}
+
+    def __init__(self, found: dict, lost: str):
+        self.found, self.lost = found, lost
+        cause = self.CAUSES[lost]
+        what = f"no depth map has a pixel to fuse: {self.found_text()}" + (f", {cause}" if cause else "")
+        fix = self.FIXES.get(found["source"] if lost == "source" else lost, "check the depth source (--depth)")
+        super().__init__(what, None, fix)
+
+    def found_text(self) -> str:
+        f = self.found
+        return f"{f['source']} gave depth at {f['covered']:.1%} of the pixels (none in {f['empty']} of {f['maps']} maps)"
+
+
+def depth_found(maps: DepthMaps) -> dict:
+    """What a depth source gave: its name, the fraction of the maps' pixels with depth, the maps without any."""
+    has = (maps.depth > 0).flatten(1)  # [N, HW]
+    return {"source": str(maps.info.get("source", "the depth source")), "covered": float(has.float().mean()),
+            "empty": int((~has.any(1)).sum()), "maps": len(has)}
+
+
+def require_depth(depth: Tensor, given: DepthMaps, lost: str) -> None:
+    """:class:`NoDepth` when ``depth`` has no pixel left after the step ``lost`` (``given``: the source's maps)."""
+    if not bool((depth > 0).any()):
+        raise NoDepth(depth_found(given), "source" if not bool((given.depth > 0).any()) else lost)
+
+
 def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) -> tuple[Prepared, DepthMaps]:
     """The confidence stage: depth, weights and evidence of ``maps`` for fusion (module docstring, 2), and ``maps``
-    without the known background's pixels (what completion reads)."""
-    empty = None
+    without the known background's pixels (what completion reads). :class:`NoDepth` when no pixel is left to fuse."""
+    given, empty = maps, None
     if masks is None and options.drop_background:  # the known background colour: no surface there, and (carve) empty space on its rays
         empty = background_pixels(maps, scene, options.shifts)
         maps = without_background(maps, scene, options.shifts)
     cams = maps.cameras.to(dtype=torch.float64)
     depth = maps.depth.float().cpu()
+    require_depth(depth, given, "background")
     weight = (maps.confidence.float().cpu() if options.confidence else torch.ones_like(depth)) * (depth > 0)
     err = fusion.depth_disagreement(cams, depth) if len(cams) > 1 else None
     rel = max(0.01, 2.0 * (err or 0.0))
@@ -455,6 +497,7 @@ def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) 
         depth, weight, agree, occluded = drop_occluded(cams, depth, weight, agree, options, masks is None)
     if options.weights and agree is not None:
         weight = weight * fusion.geometric_weight(agree, len(cams))
+    require_depth(depth, given, "occluded")
     diag = float((scene.bounds[1] - scene.bounds[0]).double().norm())
     footprint = fusion.pixel_footprint(cams, depth)
     voxel = options.voxel * diag if options.voxel is not None else fusion.auto_scale(cams, depth)[0]

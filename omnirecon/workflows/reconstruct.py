@@ -14,16 +14,22 @@ Outputs in ``--out DIR``: ``scene/`` (when processed), ``mesh.ply`` (+ metrics a
 ``finetune/`` (curve, tuned checkpoint), ``export/`` (PLY, GLB, ``viewer/``), ``path.mp4``,
 ``cameras.png``, ``reconstruct.json`` and ``index.html``. The folder is taken with
 :func:`omnirecon.outputs.claim` (the one owner of the ``--out`` checks: never inside or around an input,
-one run at a time, ``--overwrite`` replaces only a folder this tool wrote): built beside its final place
-and swapped in at the end, so a failed or interrupted run leaves the previous folder or none. Every
+one run at a time, ``--overwrite`` replaces only a folder this tool wrote): built in ``OUT.partial`` beside it
+and swapped in at the end, so a failed or interrupted run leaves the previous folder or none. Each finished stage
+up to the export is kept there (:class:`~omnirecon.workflows.stages.Stages`: what it depended on, its record, its
+files; the mesh stage also its meshes, exactly): after a failure the error names the stage and what is kept, and
+the next run of the command continues from the first stage whose input files or options changed. Every
 record in it names files inside it relative to ``--out`` (``scene``, ``export/mesh.glb``), so no record
-points into the temporary folder. The mesh goes from stage to stage in memory; ``mesh.ply`` is written
-once, for the user.
+points into the work folder. The meshes go from stage to stage in memory (as read back from the kept copy, so a
+resumed run and an uninterrupted one go on alike); ``mesh.ply`` is written once, for the user.
+
+Size: the stages, the record and page they make, and their errors in this command's terms, in one place.
 """
 
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -43,6 +49,7 @@ from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
+from omnirecon.mesh.build import NoDepth
 from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
@@ -52,6 +59,7 @@ from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetu
 from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video
+from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
 CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
 """The shipped Omni-Recon checkpoint (the default model)."""
@@ -91,10 +99,29 @@ class ReconstructConfig(MachineConfig):
     """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer)."""
     overwrite: bool = False
     """Replace an existing --out folder."""
+    resume: bool = True
+    """Continue from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial, when
+    the input's files and the options each stage depends on are unchanged; --no-resume starts over."""
 
 
-def run_reconstruct(cfg: ReconstructConfig) -> dict:
-    """Run every stage; returns the record written to ``reconstruct.json`` (plus ``lines``)."""
+KEPT = {"process": "the poses", "mesh": "the mesh", "finetune": "the tuned model", "export": "the export"}
+"""The stages a failed run keeps (the rest run again), in the user's words."""
+
+
+def stage_depends(cfg: ReconstructConfig) -> dict[str, dict]:
+    """What each kept stage's result depends on (:class:`~omnirecon.workflows.stages.Stages`; later stages depend on
+    the earlier ones too): the input files (a digest of names, sizes and times) and the options that change it."""
+    return {"process": {"PATH's files": files_digest(cfg.path), "--masks' files": files_digest(cfg.masks),
+                        "--fps": cfg.fps, "--camera-model": cfg.camera_model},
+            "mesh": {"--ckpt's files": files_digest(cfg.ckpt), "--num-views": cfg.num_views,
+                     "--mesh-resolution": cfg.mesh_resolution},
+            "finetune": {"--finetune-seconds": cfg.finetune_seconds, "--resolution": cfg.resolution},
+            "export": {"--viewer": cfg.viewer}}
+
+
+def run_reconstruct(cfg: ReconstructConfig, say=print) -> dict:
+    """Run every stage (those a failed run kept in ``OUT.partial`` are read back instead); returns the record written to
+    ``reconstruct.json`` (plus ``lines``). An error names the stage and what the run keeps for the next."""
     check_options("reconstruct", cfg)  # the numbers (omnirecon/options.py); here for callers other than the CLI
     if not Path(cfg.path).exists():
         raise InputError("input does not exist", cfg.path, "pass a folder of photos, a video or a scene folder")
@@ -102,11 +129,56 @@ def run_reconstruct(cfg: ReconstructConfig) -> dict:
     if not (cfg.ckpt / "meta.json").is_file():
         raise InputError("not a checkpoint folder (no meta.json)", cfg.ckpt, "pass e.g. --ckpt omnirecon-tiny")
     out = Path(cfg.out)
-    with claim(out, "reconstruct", inputs=(cfg.path, cfg.ckpt, cfg.masks), mode="replace",
-               overwrite=cfg.overwrite) as owned:
-        record = relative_to(_stages(cfg, owned.work), owned.work)  # claim does the same to the JSON records
+    with claim(out, "reconstruct", inputs=(cfg.path, cfg.ckpt, cfg.masks), mode="resume",
+               overwrite=cfg.overwrite, say=say) as owned:
+        stages = Stages(owned.work, stage_depends(cfg), cfg.resume, say)
+        try:
+            record = relative_to(_stages(cfg, owned.work, stages), owned.work)  # claim does the same to the records
+        except BaseException as e:
+            raise failed(cfg, e, stages) from e
     record["report"] = str(out / "index.html")
     return record
+
+
+def failed(cfg: ReconstructConfig, e: BaseException, stages: Stages) -> BaseException:
+    """The error to raise for ``e``, raised in ``stages.current``: an :class:`InputError` names the stage and what
+    is kept for the next run (in its fix); any other error is raised as it is, after a note saying the same."""
+    kept = [KEPT[n] for n in stages.kept if n in KEPT and stages.kept[n]["files"]]
+    if not kept:
+        stages.discard()  # nothing worth keeping (a scene folder's "process" wrote nothing): the folder goes
+    keep = f"kept in {stages.work}: {' and '.join(kept)}; rerun the same command to continue" if kept else ""
+    if not isinstance(e, InputError):
+        if keep:
+            print(f"omnirecon: note: {keep}", file=sys.stderr)
+        return e
+    e = stage_error(cfg, e, stages)
+    return InputError(f"{stages.current} stage: {e.what}", e.path if e.path is not None else cfg.path,
+                      "; ".join(x for x in (e.fix, keep) if x))
+
+
+def stage_error(cfg: ReconstructConfig, e: InputError, stages: Stages) -> InputError:
+    """``e`` in this command's terms: what the poses were, the likely cause and a fix with ``reconstruct``'s options
+    (the mesh library words its errors for ``omnirecon mesh``)."""
+    processed = (stages.result("process") or {}).get("processed")
+    posed = (f"poses for {processed['images_registered']}/{processed['images_given']} "
+             f"{'frames' if processed.get('kind') == 'video' else 'photos'}; " if processed else "")
+    video = bool(processed and processed.get("kind") == "video")
+    more = ("walk slower around the subject or raise --fps (more frames that overlap)" if video else
+            "photograph textured surfaces, each photo overlapping its neighbours by more than half")
+    side = cfg.mesh_resolution or photo_side(stages.work / "scene" if processed else Path(cfg.path))
+    if isinstance(e, NoDepth):
+        if e.lost == "source":
+            fix = f"{more}, or raise --mesh-resolution (now {side} px: stereo matches finer texture at more pixels)"
+            cause = "the photos give stereo nothing to match (too little texture or overlap, or too few pixels)"
+        elif e.lost == "occluded":
+            fix = f"{more}; check the poses with `omnirecon inspect {stages.work / 'scene'}`" if processed else e.fix
+            cause = "the poses and the depth do not agree"
+        else:
+            fix, cause = e.fix, "the photos show only the scene's known background colour"
+        return InputError(f"{posed}{e.what}: likely cause: {cause}", e.path, fix)
+    if stages.current == "mesh" and e.what.startswith("the mesh is empty"):
+        return InputError(f"{posed}{e.what}", e.path, f"{more}, or raise --mesh-resolution (now {side} px)")
+    return e
 
 
 class Laps:
@@ -122,7 +194,8 @@ class Laps:
         self._clock, self._cpu = time.perf_counter(), time.process_time()
         _reset_peak_rss()
 
-    def __call__(self, name: str) -> None:
+    def __call__(self, name: str) -> dict[str, float]:
+        """Close stage ``name``; returns its measurements (``seconds``, ``cpu_seconds``, ``peak_rss_mb``)."""
         now, cpu = time.perf_counter(), time.process_time()
         self.seconds[name] = round(now - self._clock, 2)
         self.cpu_seconds[name] = round(cpu - self._cpu, 2)
@@ -130,6 +203,8 @@ class Laps:
         if peak is not None and _reset_peak_rss():
             self.peak_rss_mb[name] = peak
         self._clock, self._cpu = now, cpu
+        return {"seconds": self.seconds[name], "cpu_seconds": self.cpu_seconds[name],
+                **({"peak_rss_mb": self.peak_rss_mb[name]} if name in self.peak_rss_mb else {})}
 
 
 def give_back_memory() -> None:
@@ -168,25 +243,33 @@ def _reset_peak_rss() -> bool:
         return False
 
 
-def _stages(cfg: ReconstructConfig, out: Path) -> dict:
-    """Every stage into ``out`` (the temporary folder); returns the record (``lines``: what to print)."""
+def _stages(cfg: ReconstructConfig, out: Path, stages: Stages) -> dict:
+    """Every stage into ``out`` (the work folder), each kept in ``stages`` when done (or read back from it); returns
+    the record (``lines``: what to print)."""
     lines: list[str] = []
     lap = Laps()
-    scene_path, processed = process_stage(cfg, out, lines)
-    lap("process")
-    meshed = mesh_stage(cfg, scene_path, out, lines)
-    meshes = meshed.pop("meshes")  # scene and input frame, in memory: the next stages read no file
-    give_back_memory()  # the fusion grid and the marching-cubes mesh are gone: the next stages start lower
-    lap("mesh")
+    run = StageRunner(stages, lap, lines)
+    processed = run("process", lambda said: {"processed": process_stage(cfg, out, said)[1]})["processed"]
+    scene_path = out / "scene" if processed else Path(cfg.path)
+
+    def mesh(said: list[str]) -> dict:
+        meshed = mesh_stage(cfg, scene_path, out, said)
+        stages.keep_meshes("mesh", meshed.pop("meshes"))  # scene and input frame: the next stages read no mesh file
+        give_back_memory()  # the fusion grid and the marching-cubes mesh are gone: the next stages start lower
+        return meshed
+
+    meshed = run("mesh", mesh)
+    meshes = stages.meshes("mesh")
     side = cfg.resolution or photo_side(scene_path)
-    tuned, ckpt = finetune_stage(cfg, scene_path, side, meshes["scene"], out, lines)
-    lap("finetune")
-    exported = export_stage(cfg, scene_path, side, ckpt, meshes["input"], out, tuned)
-    lap("export")
+    tuned = run("finetune", lambda said: finetune_stage(cfg, scene_path, side, meshes["scene"], out, said)[0])
+    ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
+    exported = run("export", lambda said: export_stage(cfg, scene_path, side, ckpt, meshes["input"], out, tuned))
     fill_from = (meshed.get("completion") or {}).get("surface_faces") if meshed.get("options", {}).get("surface") \
         != "coherent" else None
+    stages.current = "path"
     path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines, tuned, fill_from)
     lap("path")
+    stages.current = "report"
     draw_cameras(path["scene"], out / "cameras.png")
     record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
               "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
@@ -196,7 +279,7 @@ def _stages(cfg: ReconstructConfig, out: Path) -> dict:
                        "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
                        "blend": path["setting"], "defects": path["defects"]},
               "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "peak_rss_mb": lap.peak_rss_mb,
-              "threads": torch.get_num_threads()}
+              "resumed": run.resumed, "threads": torch.get_num_threads()}
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)
@@ -340,7 +423,8 @@ def write_page(cfg: ReconstructConfig, scene_path: Path, meshed: dict, curve: li
         .table(*curve_table(curve))
         .figure(out / "finetune" / "curve.png", out, "test and validation PSNR vs fine-tuning time", 480)
         .figure(out / "finetune" / "before_after.png", out, "ground truth | before | after", 640),
-        Section("Timings").table(["stage", "seconds", "peak memory (MB)"],
-                                 [[k, v, record.get("peak_rss_mb", {}).get(k, "")] for k, v in record["seconds"].items()]),
+        Section("Timings").table(["stage", "seconds", "peak memory (MB)", "kept from an earlier run (its seconds)"],
+                                 [[k, v, record.get("peak_rss_mb", {}).get(k, ""), record.get("resumed", {}).get(k, "")]
+                                  for k, v in record["seconds"].items()]),
     ]
     write_report(out, f"omnirecon reconstruct: {Path(cfg.path).name}", sections)

@@ -160,7 +160,7 @@ def test_reconstruct_killed_mid_run_keeps_the_previous_output(scene, tmp_path):
     proc = _start(["reconstruct", scene, "--out", out, "--overwrite", "--ckpt", CK, "--resolution", "16",
                    "--mesh-resolution", "16", "--finetune-seconds", "30", "--frames", "2", "--no-viewer",
                    "--threads", "1"], tmp_path)
-    _wait_for(".rec.tmp*/mesh.ply", tmp_path, proc, seconds=600)
+    _wait_for("rec.partial/mesh.ply", tmp_path, proc, seconds=600)
     proc.kill()
     proc.communicate(timeout=120)
     assert _files(out) == before
