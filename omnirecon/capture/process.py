@@ -23,7 +23,7 @@ from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
 from omnirecon.capture.images import VIDEO_EXTS, count_files, stage_images, stage_masks
-from omnirecon.capture.video import sample_frames
+from omnirecon.capture.video_sfm import video_sfm
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
@@ -58,27 +58,24 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     scene.rmdir()  # write_scene creates it
     try:
         with Stages(quiet) as stages:
+            passes, objects = [], None if masks is None else work / "objects"
             if is_video:
-                with stages.stage("frames", None) as advance:
-                    sample_frames(source, work / "frames_raw", fps, max_frames,
-                                  on_frame=lambda i, expected: advance(1, expected))
-                staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
+                result, staged, passes, kept = video_sfm(source, work, options, fps, max_frames, stages, masks)
+                objects = None if masks is None else kept / "objects"
             else:
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
-            objects = None if masks is None else work / "objects"
-            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
-                                                              objects=objects)
-            result = run_sfm(staged.folder, staged.names, work, options, stages, video=is_video, source=source,
-                             mask_dir=mask_dir)
+                mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
+                                                                  objects=objects)
+                result = run_sfm(staged.folder, staged.names, work, options, stages, source=source, mask_dir=mask_dir)
             info = write_scene(result, staged.folder, work, scene, stages, threads=options.threads, masks=objects)
             seconds = dict(stages.seconds)
         summary = {
             "input": str(source), "kind": "video" if is_video else "images", **result.stats(),
             "image_size": info["size"], "cropped_to_common_size": info["crop"], "exif_rotated": staged.rotated,
             "options": asdict(options), "masks": None if masks is None else str(masks),
-            **({"fps": fps} if is_video else {}),
+            **({"fps": passes[-1]["fps"], "video_passes": passes} if is_video else {}),
             "seconds": {**seconds, "total": round(time.perf_counter() - t0, 3)},
         }
         (scene / "process.json").write_text(json.dumps(summary, indent=1))
@@ -127,6 +124,16 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    passes = s.get("video_passes") or []
+    if len(passes) > 1:
+        lines.append(f"video: {passes[0]['registered']} of {passes[0]['frames']} frames registered at "
+                     f"{passes[0]['fps']:g} fps; sampled again at {passes[1]['fps']:g} fps and matched in sequence "
+                     "with loop detection (kept)")
+    checked = (s.get("pose_check") or {}).get("dropped") or []
+    if checked:
+        lines.append(f"pose check: dropped {len(checked)} poses that contradict their verified matches ("
+                     f"{', '.join(checked[:6])}{' ...' if len(checked) > 6 else ''}): no pose is better than a wrong "
+                     "one; --min-explained 0 keeps them")
     if s.get("masks"):
         lines.append("object masks kept in masks/ (undistorted like the photos): mesh --masks, reconstruct and finetune's "
                      "object scores use them")

@@ -1,4 +1,4 @@
-"""Frames sampled from a video with imageio-ffmpeg (ffmpeg's ``fps`` filter), saved as PNG."""
+"""Frames sampled from a video with imageio-ffmpeg (ffmpeg's ``fps`` filter), saved as PNG; its duration."""
 
 from __future__ import annotations
 
@@ -51,3 +51,17 @@ def sample_frames(video: Path, dest: Path, fps: float, max_frames: int = 300, on
     if not names:
         raise InputError("the video gave no frames", video, "check the file, or lower --fps for a very short clip")
     return names
+
+
+def video_duration(video: Path) -> float | None:
+    """Length of ``video`` in seconds from its container (None when ffmpeg does not tell)."""
+    import imageio_ffmpeg  # lazy: the optional 'video' extra
+
+    gen = imageio_ffmpeg.read_frames(str(video))
+    try:
+        duration = float(next(gen).get("duration") or 0)
+    except (OSError, RuntimeError, ValueError, StopIteration):
+        return None
+    finally:
+        gen.close()
+    return duration if duration > 0 else None
