@@ -92,6 +92,10 @@ class SfmOptions:
     settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
     current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
     images all register is never retried."""
+    learned: Literal["auto", "off"] = "auto"
+    """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
+    images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
+    auto: when the extra is installed."""
     affine_retry: bool = True
     """Retries include re-extracting features with affine shape and domain-size pooling (wide
     baselines on object captures; features take about 3x longer)."""
@@ -150,6 +154,8 @@ class SfmResult:
     these features could pose (None when every image registered)."""
     motions: dict | None = None
     """The turntable check on the matches and poses (:func:`omnirecon.capture.motions.still_background`)."""
+    learned: dict | None = None
+    """What the learned matcher did (:func:`_learned_attempt`); None when SIFT needed no help."""
     pose_check: dict | None = None
     """The pose check's summary (:func:`omnirecon.capture.consistency.check_poses`); None when it is off."""
 
@@ -169,6 +175,7 @@ class SfmResult:
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
             "motions": self.motions, "pose_check": self.pose_check,
+            "learned": None if self.learned is None else {k: v for k, v in self.learned.items() if k != "database"},
         }
 
 
@@ -366,6 +373,27 @@ def _check_poses(db: Path, rec, options: SfmOptions) -> tuple[dict[str, str], di
     return reasons, summary
 
 
+def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list, db: Path, sequential: bool,
+                     options: SfmOptions, stages: Stages) -> dict:
+    """The learned matches' database for the images the best model so far (``models[0]``) left out; returns
+    what was done (``database``: its path), or why nothing was (not installed, switched off)."""
+    from omnirecon.capture import learned
+
+    if options.learned == "off":
+        return {"status": "off"}
+    if not learned.available():
+        return {"status": "not installed", "install": learned.INSTALL}
+    from omnirecon.capture.hybrid import learned_database, learned_pairs
+
+    got = set(_names(models[0])) if models else set()
+    unplaced = [nm for nm in names if nm not in got]
+    pairs = learned_pairs(db, names, unplaced, sequential, seed=options.seed)
+    out = work / "database_learned.db"
+    info = learned_database(db, out, image_dir, names, pairs, learned.LearnedMatcher(max_size=options.max_image_size),
+                            stages, options.seed)
+    return {"status": "used", "unplaced": len(unplaced), **info, "database": str(out)}
+
+
 def needed(min_registered: float, n: int) -> int:
     """Images that must get a pose out of ``n`` (:attr:`SfmOptions.min_registered`, at least 3)."""
     return max(3, int(-(-min_registered * n // 1)))
@@ -414,7 +442,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
 
     with stages.stage("mapping", n) as advance:
         models, chosen = attempt("default settings", db, False, advance=advance), 0
-    best_db = db
+    best_db, learned_info = db, None
     if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
         with stages.stage("retries", None):
 
@@ -433,6 +461,10 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
                 consider(attempt("affine SIFT", db2, False), db2, affine=True)
+            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
+            if learned_info.get("database"):
+                db3 = Path(learned_info["database"])
+                consider(attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False), db3)
             if models:  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
@@ -452,6 +484,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
                        "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
+                       learned=learned_info,
                        motions=still_background(best_db, best), pose_check=pose_check)  # turntable check
     if len(registered) < n:
         graph = match_graph(best_db)

@@ -129,6 +129,12 @@ def summary_lines(s: dict) -> list[str]:
         lines.append(f"video: {passes[0]['registered']} of {passes[0]['frames']} frames registered at "
                      f"{passes[0]['fps']:g} fps; sampled again at {passes[1]['fps']:g} fps and matched in sequence "
                      "with loop detection (kept)")
+    learned = s.get("learned") or {}
+    if learned.get("status") == "used":
+        lines.append(f"learned matches (DISK + LightGlue) for the {learned['unplaced']} photos SIFT left out: "
+                     f"{learned['pairs']} pairs of {learned['images']} photos, {learned['verified_pairs']} verified")
+    elif learned.get("status") == "not installed" and s["unregistered"]:
+        lines.append(f"more photos may get a pose with the learned matcher: {learned['install']}")
     checked = (s.get("pose_check") or {}).get("dropped") or []
     if checked:
         lines.append(f"pose check: dropped {len(checked)} poses that contradict their verified matches ("

@@ -28,7 +28,10 @@ def read_descriptors(db_path: Path, names: list[str]) -> list[np.ndarray]:
         ids = {im.name: im.image_id for im in db.read_all_images()}
         out = []
         for n in names:
-            d = np.asarray(db.read_descriptors(ids[n]), np.float32) if n in ids else np.zeros((0, 128), np.float32)
+            d = np.zeros((0, 128), np.float32)
+            if n in ids:
+                raw = db.read_descriptors(ids[n])  # pycolmap 4: FeatureDescriptors, its .data [K, 128] uint8
+                d = np.asarray(getattr(raw, "data", raw), np.float32)
             out.append(d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-6))
     return out
 

@@ -91,3 +91,25 @@ def test_retrieval_finds_the_loop():
     hist = word_histograms([d / np.linalg.norm(d, axis=1, keepdims=True) for d in base], words=64)
     pairs = nearest_pairs(hist @ hist.T, per_image=1, skip=3)
     assert (0, 9) in pairs and all(j - i > 3 for i, j in pairs)
+
+
+def test_loop_pairs_from_a_real_database(tmp_path):
+    """Sequential matching of 12 procedural views with 2 neighbours each plus 2 loop pairs per image from
+    the database's own SIFT words: more pairs than sequential alone, all images registered."""
+    from omnirecon.capture.colmap_sfm import SfmOptions, Stages, image_pairs, run_sfm
+    from omnirecon.capture.images import stage_images
+    from omnirecon.capture.retrieval import similar_pairs
+
+    ref_dir = generate_scene(tmp_path / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for n in load_scene(ref_dir).names:
+        shutil.copyfile(ref_dir / n, photos / n.split("/")[-1])
+    staged = stage_images(photos, tmp_path / "input", min_images=3, shared_camera=True)
+    options = SfmOptions(matcher="sequential", overlap=2, loop_pairs=2, learned="off")
+    with Stages(quiet=True) as stages:
+        result = run_sfm(staged.folder, staged.names, tmp_path / "work", options, stages)
+    loops = similar_pairs(tmp_path / "work" / "database.db", staged.names, 2, 2)
+    assert loops and all(j - i > 2 for i, j in loops)
+    assert result.pairs == len(set(image_pairs(12, True, 2)) | set(loops)) > len(image_pairs(12, True, 2))
+    assert len(result.registered) == 12
