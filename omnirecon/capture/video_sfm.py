@@ -3,7 +3,8 @@
 :func:`video_sfm` samples the video at ``fps`` and runs structure from motion on the frames (sequential
 matching). When too few frames register, it samples again :data:`DENSER` times as densely (within
 ``max_frames`` over the whole clip) and matches in sequence plus loop pairs found by retrieval
-(:mod:`omnirecon.capture.retrieval`: a walk around a subject returns to its start). When that fails
+(:mod:`omnirecon.capture.retrieval`: a walk around a subject returns to its start). Learned matches
+(:attr:`SfmOptions.learned`) are tried only in the last pass: more frames cost less. When that fails
 too, the error names both passes and what the user can do: a slower walk, more light, ``--fps``.
 """
 
@@ -51,13 +52,15 @@ def video_sfm(source: Path, work: Path, options: SfmOptions, fps: float, max_fra
     :func:`video_pass`); returns the kept pass's result, frames, the record of every pass and the kept
     pass's folder (its ``objects/``: the staged object masks). Raises :class:`InputError` naming what was tried
     when neither pass registers :attr:`SfmOptions.min_registered` of its frames."""
-    result, staged, first = video_pass(source, work / "pass0", options, fps, max_frames, stages, masks)
+    duration = video_duration(source)
+    dense = fps * DENSER if duration is None else min(fps * DENSER, max_frames / duration)
+    more = dense > 1.2 * fps  # room for a denser pass: the first one uses SIFT alone (more frames cost less)
+    result, staged, first = video_pass(source, work / "pass0", replace(options, learned="off") if more else options,
+                                       fps, max_frames, stages, masks)
     passes = [first]
     if first["registered"] >= needed(options.min_registered, first["frames"]):
         return result, staged, passes, work / "pass0"
-    duration = video_duration(source)
-    dense = fps * DENSER if duration is None else min(fps * DENSER, max_frames / duration)
-    if dense > 1.2 * fps:
+    if more:
         denser = replace(options, matcher="sequential", loop_pairs=max(options.loop_pairs, LOOP_PAIRS))
         result, staged, second = video_pass(source, work / "pass1", denser, dense, max_frames, stages, masks)
         passes.append(second)
