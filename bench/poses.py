@@ -5,7 +5,8 @@
     python -m bench poses --scenes blender/lego --masked --methods sift hybrid --out bench/results/poses_hybrid.json
 
 ``--methods``: ``sift`` is SIFT alone (``SfmOptions.learned = "off"``); ``hybrid`` adds learned matches
-(DISK + LightGlue) for the views SIFT left out (``learned = "auto"``, needs the ``capture-learned`` extra).
+(DISK + LightGlue) for the views SIFT left out (``learned = "auto"``, needs the ``capture-learned`` extra);
+``learned`` keeps that model whenever it poses more views (``learned = "prefer"``).
 Each row also carries the pose check's summary (views dropped as contradicting their matches).
 
 For each scene, ``--images`` views are taken evenly spaced over its views (the ``train`` split where
@@ -78,7 +79,7 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
     row = {"scene": path.name, "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
            "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks, "method": method,
            "load_1min_start": round(os.getloadavg()[0], 2)}
-    options = replace(options, learned="off" if method == "sift" else "auto")
+    options = replace(options, learned={"sift": "off", "hybrid": "auto", "learned": "prefer"}[method])
     t0, c0 = time.perf_counter(), time.process_time()  # CPU seconds of this process (COLMAP runs in it)
     try:
         summary = process(folder, out, options, quiet=True, masks=mask_dir if masks else None)
@@ -124,8 +125,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--mask-dilate", type=int, default=0, help="pixels the masks grow by (masked scenes only)")
     parser.add_argument("--jobs", type=int, default=1, help="scenes run side by side in this many processes")
     parser.add_argument("--tiny", action="store_true", help="one 12-view procedural scene instead of the real ones")
-    parser.add_argument("--methods", nargs="+", default=["sift"], choices=["sift", "hybrid"],
-                        help="sift: SIFT alone; hybrid: plus learned matches where SIFT fails (capture-learned extra)")
+    parser.add_argument("--methods", nargs="+", default=["sift"], choices=["sift", "hybrid", "learned"],
+                        help="sift: SIFT alone; hybrid: plus learned matches where SIFT fails, kept under the retry "
+                             "rule; learned: the learned model kept whenever it poses more (capture-learned extra)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))

@@ -92,10 +92,11 @@ class SfmOptions:
     settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
     current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
     images all register is never retried."""
-    learned: Literal["auto", "off"] = "auto"
+    learned: Literal["auto", "prefer", "off"] = "auto"
     """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
-    auto: when the extra is installed."""
+    auto: when the extra is installed, its model (after the pose check) kept under the retry rule (more
+    images, the same poses on the ones both have); prefer: kept whenever it poses more images."""
     affine_retry: bool = True
     """Retries include re-extracting features with affine shape and domain-size pooling (wide
     baselines on object captures; features take about 3x longer)."""
@@ -175,7 +176,8 @@ class SfmResult:
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
             "motions": self.motions, "pose_check": self.pose_check,
-            "learned": None if self.learned is None else {k: v for k, v in self.learned.items() if k != "database"},
+            "learned": None if self.learned is None else {k: v for k, v in self.learned.items()
+                                                          if k not in ("database", "dropped")},
         }
 
 
@@ -446,14 +448,14 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
         with stages.stage("retries", None):
 
-            def consider(cand: list, database: Path, affine: bool = False) -> None:  # the attempt just made
-                nonlocal models, chosen, best_db
+            def consider(cand: list, database: Path, affine: bool = False, prefer: bool = False) -> None:
+                nonlocal models, chosen, best_db  # cand: the attempt just made
                 k = len(attempts) - 1
                 now = models[0].num_reg_images() if models else None
                 got = cand[0].num_reg_images() if cand else 0
                 agree = agreement(models[0], cand[0]) if models and cand and got >= now else None
                 attempts[k]["agrees_deg"] = agree
-                if replaces(now, got, agree, affine, n):
+                if replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
                     models, chosen, best_db = cand, k, database
 
             if options.affine_retry and not options.affine_sift:
@@ -464,7 +466,12 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
             learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
-                consider(attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False), db3)
+                cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
+                if cand:  # its flipped views go before it is compared (their reasons kept with it)
+                    learned_info["dropped"], _ = _check_poses(db3, cand[0], options)
+                    attempts[-1]["registered"] = cand[0].num_reg_images()
+                    attempts[-1]["pose_check_dropped"] = sorted(learned_info["dropped"])
+                consider(cand, db3, prefer=options.learned == "prefer")
             if models:  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
@@ -478,6 +485,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "with texture and without motion blur")
     best = models[0]
     checked, pose_check = _check_poses(best_db, best, options)
+    if learned_info and best_db == Path(learned_info.get("database", "")):
+        checked = {**learned_info.get("dropped", {}), **checked}
     if best.num_points3D() < MIN_POINTS:
         raise InputError(f"the largest model has {best.num_reg_images()} images but only {best.num_points3D()} 3-D "
                          "points", source, "take more overlapping, textured photos")
