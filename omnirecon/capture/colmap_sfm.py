@@ -92,11 +92,12 @@ class SfmOptions:
     settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
     current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
     images all register is never retried."""
-    learned: Literal["auto", "prefer", "off"] = "auto"
+    learned: Literal["auto", "prefer", "off"] = "off"
     """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
-    auto: when the extra is installed, its model (after the pose check) kept under the retry rule (more
-    images, the same poses on the ones both have); prefer: kept whenever it poses more images."""
+    auto: its model (after the pose check) kept under the retry rule (more images, the same poses on the
+    ones both have); prefer: kept whenever it poses more images. Off by default: on 20 lego views the kept
+    learned model still held views placed the wrong way round (bench poses --methods hybrid)."""
     affine_retry: bool = True
     """Retries include re-extracting features with affine shape and domain-size pooling (wide
     baselines on object captures; features take about 3x longer)."""

@@ -90,7 +90,7 @@ def test_retry_and_dropped_record(photos, tmp_path, views_with_noise):
     never with fewer images); the noise images are dropped with their reason in process.json and in
     the summary line, and the views keep their poses."""
     d = views_with_noise(photos, 2)
-    s = process(d, tmp_path / "scene", SfmOptions(min_registered=0.5), quiet=True)
+    s = process(d, tmp_path / "scene", SfmOptions(min_registered=0.5, learned="auto"), quiet=True)
     assert s["images_registered"] >= 5 and {"noise_0.png", "noise_1.png"} <= set(s["unregistered"]), s
     steps = [a["attempt"] for a in s["attempts"]]
     assert steps[0] == "default settings" and "affine SIFT" in steps and len(steps) >= 3, steps
