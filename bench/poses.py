@@ -2,6 +2,12 @@
 
     python -m bench poses                    # 7 real scenes, 20 images each at their stored size, 1 thread
     python -m bench poses --tiny             # one procedural scene (for tests)
+    python -m bench poses --scenes blender/lego --masked --methods sift hybrid --out bench/results/poses_hybrid.json
+
+``--methods``: ``sift`` is SIFT alone (``SfmOptions.learned = "off"``); ``hybrid`` adds learned matches
+(DISK + LightGlue) for the views SIFT left out (``learned = "auto"``, needs the ``capture-learned`` extra);
+``learned`` keeps that model whenever it poses more views (``learned = "prefer"``).
+Each row also carries the pose check's summary (views dropped as contradicting their matches).
 
 For each scene, ``--images`` views are taken evenly spaced over its views (the ``train`` split where
 the scene has one), their image files (only) are handed to :func:`omnirecon.capture.process.process`,
@@ -40,7 +46,8 @@ def pick_views(scene, count: int, split: str = "train") -> list[int]:
     return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
 
 
-def run_scene(path: Path, count: int, options, work: Path, split: str = "train", masks: bool = False) -> dict:
+def run_scene(path: Path, count: int, options, work: Path, split: str = "train", masks: bool = False,
+              method: str = "sift") -> dict:
     from omnirecon.capture.align import pose_errors
     from omnirecon.capture.process import process
     from omnirecon.data import load_scene
@@ -70,7 +77,9 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
     out = work / "scene"
     shutil.rmtree(out, ignore_errors=True)
     row = {"scene": path.name, "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
-           "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks}
+           "images": len(views), "size": [ref.width, ref.height], "rig": ref.rig, "masks": masks, "method": method,
+           "load_1min_start": round(os.getloadavg()[0], 2)}
+    options = replace(options, learned={"sift": "off", "hybrid": "auto", "learned": "prefer"}[method])
     t0, c0 = time.perf_counter(), time.process_time()  # CPU seconds of this process (COLMAP runs in it)
     try:
         summary = process(folder, out, options, quiet=True, masks=mask_dir if masks else None)
@@ -95,6 +104,7 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
         models=summary["models"], matcher=summary["matcher"], stage_seconds=summary["seconds"],
         dropped=summary.get("dropped", []), attempts=summary.get("attempts", []), reachable=summary.get("reachable"),
         detected_rig=est.rig, focal_est=round(float(est.cameras.fx[0]), 2), focal_ref=round(float(ref.cameras.fx[0]), 2),
+        pose_check=summary.get("pose_check"), learned=summary.get("learned"),
     )
     return row
 
@@ -115,6 +125,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--mask-dilate", type=int, default=0, help="pixels the masks grow by (masked scenes only)")
     parser.add_argument("--jobs", type=int, default=1, help="scenes run side by side in this many processes")
     parser.add_argument("--tiny", action="store_true", help="one 12-view procedural scene instead of the real ones")
+    parser.add_argument("--methods", nargs="+", default=["sift"], choices=["sift", "hybrid", "learned"],
+                        help="sift: SIFT alone; hybrid: plus learned matches where SIFT fails, kept under the retry "
+                             "rule; learned: the learned model kept whenever it poses more (capture-learned extra)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
@@ -144,21 +157,26 @@ def main(argv: list[str] | None = None) -> dict:
         jobs = [(p, False) for p in paths]
         if not args.tiny:
             jobs += [(SHARED / s, True) for s in args.masked if (SHARED / s).is_dir()]
+        jobs = [(p, masked, m) for p, masked in jobs for m in args.methods]
         calls = [(p, args.images, replace(options, mask_dilate=args.mask_dilate) if masked else options,
-                  tmp / f"work{k}", "all" if args.tiny else "train", masked) for k, (p, masked) in enumerate(jobs)]
+                  tmp / f"work{k}", "all" if args.tiny else "train", masked, m)
+                 for k, (p, masked, m) in enumerate(jobs)]
         if args.jobs > 1:  # scenes side by side, each in its own process at --threads (rows keep their order)
             from concurrent.futures import ProcessPoolExecutor
 
             with ProcessPoolExecutor(args.jobs) as pool:
                 rows = list(pool.map(run_scene, *zip(*calls)))
         else:
-            rows = [run_scene(*c) for c in calls]
-        for row in rows:
-            print({k: v for k, v in row.items() if k not in ("stage_seconds", "attempts", "dropped")}, flush=True)
+            rows = []
+            for c in calls:
+                rows.append(run_scene(*c))
+                print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "attempts", "dropped")},
+                      flush=True)
     prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
     result = {
         "provenance": prov,
         "config": {"images_per_scene": args.images, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
+                   "methods": args.methods,
                    "size": "each scene's stored image size (long side <= 400 px)",
                    "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options),
                    "mask_dilate_masked_scenes": args.mask_dilate, "alignment": "Umeyama similarity on camera centres",

@@ -5,10 +5,13 @@ undistorts its largest model to PINHOLE cameras and writes a standard COLMAP sce
 ``images/`` + ``images_2/``, ``images_4/``) that :mod:`omnirecon.data.colmap` reads.
 
 Matching: every pair of images (``exhaustive``), or each image with the next ``overlap`` images and
-those 2, 4, 8, ... further on (``sequential``, for video frames and large sets). The pairs are
+those 2, 4, 8, ... further on (``sequential``, for video frames and large sets), plus with ``loop_pairs``
+the images most like it (retrieval: a walk's loop closures). The pairs are
 matched in chunks so that progress and its ETA advance while COLMAP works. One thread by default
 (``threads``), a fixed seed: the same input gives the same model. When too few images register,
-the mapping is retried with relaxed settings and affine-adapted features (:class:`SfmOptions`).
+the mapping is retried with relaxed settings and affine-adapted features (:class:`SfmOptions`). The
+kept model's poses are checked against their verified pairs and a contradicted view is dropped
+(:mod:`omnirecon.capture.consistency`).
 
 Size: features, matching, the mapping and its retries, and the scene writer share one set of options
 and one work folder; split apart they would pass both around.
@@ -63,6 +66,10 @@ class SfmOptions:
     """Image pairs to match: auto = sequential for video frames or more than 100 images, else exhaustive."""
     overlap: int = 10
     """Sequential matching: each image is matched with this many following ones (plus 2^k further)."""
+    loop_pairs: int = 0
+    """Sequential matching: also match each image with this many of the images most like it further than
+    ``overlap`` away (visual words of its own SIFT features, :mod:`omnirecon.capture.retrieval`): closes
+    the loop of a walk around a subject. 0 = off; a video's denser pass uses 5."""
     max_image_size: int = 1600
     """SIFT runs on images downscaled so their long side is at most this (the scene keeps full size)."""
     max_features: int = 8192
@@ -85,6 +92,12 @@ class SfmOptions:
     settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
     current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
     images all register is never retried."""
+    learned: Literal["auto", "prefer", "off"] = "off"
+    """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
+    images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
+    auto: its model (after the pose check) kept under the retry rule (more images, the same poses on the
+    ones both have); prefer: kept whenever it poses more images. Off by default: on 20 lego views the kept
+    learned model still held views placed the wrong way round (bench poses --methods hybrid)."""
     affine_retry: bool = True
     """Retries include re-extracting features with affine shape and domain-size pooling (wide
     baselines on object captures; features take about 3x longer)."""
@@ -92,7 +105,11 @@ class SfmOptions:
     """Grow each mask (``--masks``) by this many pixels before features are detected: the object's
     outline and a turntable's top turn with the object, and add features."""
     min_registered: float = 0.5
-    """Fail when fewer than this fraction of the images (or fewer than 3) get a pose."""
+    """Fail when fewer than this fraction of the images (or fewer than 3) get a pose (after the pose check)."""
+    min_explained: float = 0.5
+    """Pose check: drop a registered image whose pose explains less than this share of the verified
+    matches of its image pairs (median over its pairs, weighted by matches), e.g. one placed the wrong way
+    round (:mod:`omnirecon.capture.consistency`); 0 turns the check off."""
     threads: int = 1
     """CPU threads for COLMAP (1 gives reproducible models)."""
     seed: int = 0
@@ -101,17 +118,17 @@ class SfmOptions:
     def check(self) -> None:
         if self.camera_model not in CAMERA_MODELS:
             raise InputError(f"unsupported --camera-model {self.camera_model}", None, f"use one of {', '.join(CAMERA_MODELS)}")
-        if self.overlap < 1 or self.threads < 1 or self.max_image_size < 64 or self.max_features < 64:
-            raise InputError("--overlap and --threads must be at least 1, --max-image-size and --max-features at "
-                             "least 64", None, "use the defaults")
+        if self.overlap < 1 or self.threads < 1 or self.loop_pairs < 0 or self.max_image_size < 64 or self.max_features < 64:
+            raise InputError("--overlap and --threads must be at least 1, --loop-pairs at least 0, --max-image-size "
+                             "and --max-features at least 64", None, "use the defaults")
         if not 0 <= self.retry_below <= 1 or self.mask_dilate < 0 or not -1 <= -self.first_octave <= 3:
             raise InputError("--retry-below must be in [0, 1], --mask-dilate at least 0, --first-octave in [-3, 1]",
                              None, "use the defaults")
         if not 0 < self.max_ratio <= 1:
             raise InputError(f"--max-ratio must be in (0, 1], got {self.max_ratio}", None, "use e.g. 0.8")
-        if not 0 <= self.min_registered <= 1:
-            raise InputError(f"--min-registered must be a fraction in [0, 1], got {self.min_registered}", None,
-                             "use e.g. 0.5")
+        if not 0 <= self.min_registered <= 1 or not 0 <= self.min_explained <= 1:
+            raise InputError(f"--min-registered and --min-explained must be fractions in [0, 1], got "
+                             f"{self.min_registered} and {self.min_explained}", None, "use e.g. 0.5")
 
 
 @dataclass
@@ -139,6 +156,10 @@ class SfmResult:
     these features could pose (None when every image registered)."""
     motions: dict | None = None
     """The turntable check on the matches and poses (:func:`omnirecon.capture.motions.still_background`)."""
+    learned: dict | None = None
+    """What the learned matcher did (:func:`_learned_attempt`); None when SIFT needed no help."""
+    pose_check: dict | None = None
+    """The pose check's summary (:func:`omnirecon.capture.consistency.check_poses`); None when it is off."""
 
     @property
     def unregistered(self) -> list[str]:
@@ -155,7 +176,9 @@ class SfmResult:
             "models": self.models, "matcher": self.matcher, "pairs": self.pairs,
             "points3D": int(r.num_points3D()), "mean_reprojection_error_px": float(r.compute_mean_reprojection_error()),
             "mean_track_length": float(r.compute_mean_track_length()) if r.num_points3D() else 0.0,
-            "motions": self.motions,
+            "motions": self.motions, "pose_check": self.pose_check,
+            "learned": None if self.learned is None else {k: v for k, v in self.learned.items()
+                                                          if k not in ("database", "dropped")},
         }
 
 
@@ -190,7 +213,7 @@ class Stages:
         try:
             yield advance
         finally:
-            self.seconds[name] = round(time.perf_counter() - t0, 3)
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)  # a stage run twice adds up
             if task is not None:
                 t = self.progress.tasks[task]
                 self.progress.update(task, completed=t.total if t.total is not None else t.completed)
@@ -340,6 +363,45 @@ def replaces(current: int | None, candidate: int, agree: tuple[float, float] | N
     return (candidate > current and agrees) or (affine and candidate == current > 0 and not agrees)
 
 
+def _check_poses(db: Path, rec, options: SfmOptions) -> tuple[dict[str, str], dict | None]:
+    """The pose check (:attr:`SfmOptions.min_explained`) on the chosen model ``rec``, in place: the views it
+    de-registered with their reasons, and its summary (None when off)."""
+    if options.min_explained <= 0:
+        return {}, None
+    from omnirecon.capture.consistency import check_poses
+
+    t0 = time.perf_counter()
+    reasons, summary = check_poses(db, rec, options.min_explained, MIN_MATCHES, options.seed)
+    summary["seconds"] = round(time.perf_counter() - t0, 3)
+    return reasons, summary
+
+
+def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list, db: Path, sequential: bool,
+                     options: SfmOptions, stages: Stages) -> dict:
+    """The learned matches' database for the images the best model so far (``models[0]``) left out; returns
+    what was done (``database``: its path), or why nothing was (not installed, switched off)."""
+    from omnirecon.capture import learned
+
+    if options.learned == "off":
+        return {"status": "off"}
+    if not learned.available():
+        return {"status": "not installed", "install": learned.INSTALL}
+    from omnirecon.capture.hybrid import learned_database, learned_pairs
+
+    got = set(_names(models[0])) if models else set()
+    unplaced = [nm for nm in names if nm not in got]
+    pairs = learned_pairs(db, names, unplaced, sequential, seed=options.seed)
+    out = work / "database_learned.db"
+    info = learned_database(db, out, image_dir, names, pairs, learned.LearnedMatcher(max_size=options.max_image_size),
+                            stages, options.seed)
+    return {"status": "used", "unplaced": len(unplaced), **info, "database": str(out)}
+
+
+def needed(min_registered: float, n: int) -> int:
+    """Images that must get a pose out of ``n`` (:attr:`SfmOptions.min_registered`, at least 3)."""
+    return max(3, int(-(-min_registered * n // 1)))
+
+
 def _names(rec) -> list[str]:
     return sorted(rec.images[i].name for i in rec.reg_image_ids())
 
@@ -366,6 +428,10 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
     sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
     pairs = image_pairs(n, sequential, options.overlap)
+    if sequential and options.loop_pairs:
+        from omnirecon.capture.retrieval import similar_pairs
+
+        pairs = sorted(set(pairs) | set(similar_pairs(db, names, options.loop_pairs, options.overlap, options.seed)))
     _match(db, work, names, pairs, options, stages)
 
     attempts: list[dict] = []
@@ -379,18 +445,18 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
 
     with stages.stage("mapping", n) as advance:
         models, chosen = attempt("default settings", db, False, advance=advance), 0
-    best_db = db
+    best_db, learned_info = db, None
     if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
         with stages.stage("retries", None):
 
-            def consider(cand: list, database: Path, affine: bool = False) -> None:  # the attempt just made
-                nonlocal models, chosen, best_db
+            def consider(cand: list, database: Path, affine: bool = False, prefer: bool = False) -> None:
+                nonlocal models, chosen, best_db  # cand: the attempt just made
                 k = len(attempts) - 1
                 now = models[0].num_reg_images() if models else None
                 got = cand[0].num_reg_images() if cand else 0
                 agree = agreement(models[0], cand[0]) if models and cand and got >= now else None
                 attempts[k]["agrees_deg"] = agree
-                if replaces(now, got, agree, affine, n):
+                if replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
                     models, chosen, best_db = cand, k, database
 
             if options.affine_retry and not options.affine_sift:
@@ -398,6 +464,15 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
                 consider(attempt("affine SIFT", db2, False), db2, affine=True)
+            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
+            if learned_info.get("database"):
+                db3 = Path(learned_info["database"])
+                cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
+                if cand:  # its flipped views go before it is compared (their reasons kept with it)
+                    learned_info["dropped"], _ = _check_poses(db3, cand[0], options)
+                    attempts[-1]["registered"] = cand[0].num_reg_images()
+                    attempts[-1]["pose_check_dropped"] = sorted(learned_info["dropped"])
+                consider(cand, db3, prefer=options.learned == "prefer")
             if models:  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
@@ -410,18 +485,23 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "take more overlapping photos (each spot seen from 3+ viewpoints, 60-80% overlap), "
                          "with texture and without motion blur")
     best = models[0]
+    checked, pose_check = _check_poses(best_db, best, options)
+    if learned_info and best_db == Path(learned_info.get("database", "")):
+        checked = {**learned_info.get("dropped", {}), **checked}
     if best.num_points3D() < MIN_POINTS:
         raise InputError(f"the largest model has {best.num_reg_images()} images but only {best.num_points3D()} 3-D "
                          "points", source, "take more overlapping, textured photos")
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
                        "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
-                       motions=still_background(best_db, best))  # one rigid scene, or an object turning before a still room?
+                       learned=learned_info,
+                       motions=still_background(best_db, best), pose_check=pose_check)  # turntable check
     if len(registered) < n:
         graph = match_graph(best_db)
-        result.dropped = drop_reasons(names, registered, [_names(m) for m in models[1:]], graph, MIN_MATCHES)
+        result.dropped = {**drop_reasons(names, registered, [_names(m) for m in models[1:]], graph, MIN_MATCHES),
+                          **checked}
         result.reachable = len(graph.reachable(registered, MIN_MATCHES))
-    need = max(3, int(-(-options.min_registered * n // 1)))
+    need = needed(options.min_registered, n)
     if len(registered) < need:
         missing = result.unregistered
         shown = ", ".join(missing[:8]) + (f" and {len(missing) - 8} more" if len(missing) > 8 else "")

@@ -50,7 +50,7 @@ def still_background(db: Path, reconstruction, min_matches: int = 30) -> dict:
     import pycolmap  # lazy: the optional 'capture' extra
 
     rot = {}
-    for im in reconstruction.images.values():
+    for im in (reconstruction.images[i] for i in reconstruction.reg_image_ids()):  # the pose check de-registers some
         pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
         rot[im.name] = np.asarray(pose.rotation.matrix())
     shares = []

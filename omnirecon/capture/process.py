@@ -30,7 +30,8 @@ from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
 from omnirecon.capture.images import VIDEO_EXTS, StagedImages, count_files, stage_images, stage_masks
-from omnirecon.capture.video import clip_rate, sample_frames
+from omnirecon.capture.video import clip_rate
+from omnirecon.capture.video_sfm import video_sfm
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
@@ -69,29 +70,28 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
     scene.rmdir()  # write_scene creates it
     try:
         with Stages(quiet) as stages:
-            if is_video:
+            objects, mask_dir, rotated = None if masks is None else work / "objects", None, None
+            if is_video:  # frames are sampled in the SfM process too: video_sfm's passes sample and map in turn
                 fps = sample_rate(source, fps, say=None if quiet else print)
-                with stages.stage("frames", None) as advance:
-                    sample_frames(source, work / "frames_raw", fps, max_frames,
-                                  on_frame=lambda i, expected: advance(1, expected))
-                staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
+                job = (None, None, work, options, True, source, masks, scene, objects, quiet, (fps, max_frames))
             else:
                 with stages.stage("check", count_files(source)) as advance:
                     staged = stage_images(source, work / "input", min_images=3,
                                           shared_camera=not options.per_image_cameras, on_file=advance)
-            check_sizes(staged, source if is_video else None)
-            objects = None if masks is None else work / "objects"
-            mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
-                                                              objects=objects)
+                check_sizes(staged)
+                mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks",
+                                                                  options.mask_dilate, objects=objects)
+                rotated = staged.rotated
+                job = (staged.folder, staged.names, work, options, False, source, mask_dir, scene, objects, quiet, None)
             seconds = dict(stages.seconds)
-        stats, info, sfm_seconds = sfm_in_child(source, (staged.folder, staged.names, work, options, is_video,
-                                                         source, mask_dir, scene, objects, quiet))
+        stats, info, sfm_seconds, video = sfm_in_child(source, job)
         seconds.update(sfm_seconds)
         summary = {
             "input": str(source), "kind": "video" if is_video else "images", **stats,
-            "image_size": info["size"], "cropped_to_common_size": info["crop"], "exif_rotated": staged.rotated,
+            "image_size": info["size"], "cropped_to_common_size": info["crop"],
+            "exif_rotated": video["rotated"] if is_video else rotated,
             "options": asdict(options), "masks": None if masks is None else str(masks),
-            **({"fps": fps} if is_video else {}),
+            **({"fps": video["passes"][-1]["fps"], "video_passes": video["passes"]} if is_video else {}),
             "seconds": {**seconds, "total": round(time.perf_counter() - t0, 3)},
         }
         (scene / "process.json").write_text(json.dumps(summary, indent=1))
@@ -127,14 +127,22 @@ def check_sizes(staged: StagedImages, video: Path | None = None) -> None:
                              f"use photos at least {MIN_SIDE}x{MIN_SIDE} pixels (better hundreds)")
 
 
-def _sfm(args: tuple) -> tuple[dict, dict, dict]:
-    """The pycolmap stages on staged images (what the child of :func:`sfm_in_child` runs): ``(the result's stats,
-    the scene's info, seconds per stage)``."""
-    folder, names, work, options, is_video, source, mask_dir, scene, objects, quiet = args
+def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
+    """The pycolmap stages (what the child of :func:`sfm_in_child` runs): on staged photos, or on a video's frames
+    (``video = (fps, max_frames)``: :func:`omnirecon.capture.video_sfm.video_sfm` samples and maps, denser when too
+    few register; ``mask_dir`` is then the user's masks folder). Returns ``(the result's stats, the scene's info,
+    seconds per stage, the video's passes and EXIF rotations or None)``."""
+    folder, names, work, options, is_video, source, mask_dir, scene, objects, quiet, video = args
     with Stages(quiet) as stages:
-        result = run_sfm(folder, names, work, options, stages, video=is_video, source=source, mask_dir=mask_dir)
+        if video is not None:
+            result, staged, passes, kept = video_sfm(source, work, options, video[0], video[1], stages, mask_dir)
+            check_sizes(staged, source)
+            folder, objects = staged.folder, None if mask_dir is None else kept / "objects"
+            video = {"passes": passes, "rotated": staged.rotated}
+        else:
+            result = run_sfm(folder, names, work, options, stages, video=is_video, source=source, mask_dir=mask_dir)
         info = write_scene(result, folder, work, scene, stages, threads=options.threads, masks=objects)
-    return result.stats(), info, dict(stages.seconds)
+    return result.stats(), info, dict(stages.seconds), video
 
 
 def _sfm_child(conn, args: tuple) -> None:
@@ -150,7 +158,7 @@ def _sfm_child(conn, args: tuple) -> None:
     conn.close()
 
 
-def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict]:
+def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict, dict | None]:
     """:func:`_sfm` in a spawned child process: its InputError is raised here as it was; a native crash
     (the child killed by a signal) becomes an InputError naming ``source``; another exception a RuntimeError
     carrying the child's traceback."""

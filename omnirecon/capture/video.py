@@ -1,4 +1,4 @@
-"""Frames sampled from a video with imageio-ffmpeg (ffmpeg's ``fps`` filter), saved as PNG."""
+"""Frames sampled from a video with imageio-ffmpeg (ffmpeg's ``fps`` filter), saved as PNG; its duration."""
 
 from __future__ import annotations
 
@@ -81,3 +81,8 @@ def _close_pipes(process) -> None:
     for pipe in (getattr(process, "stdin", None), getattr(process, "stdout", None)):
         if pipe is not None and not pipe.closed:
             pipe.close()
+
+
+def video_duration(video: Path) -> float | None:
+    """Length of ``video`` in seconds from its container (None when ffmpeg does not tell)."""
+    return clip_rate(video)[1]

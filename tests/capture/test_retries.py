@@ -90,7 +90,7 @@ def test_retry_and_dropped_record(photos, tmp_path, views_with_noise):
     never with fewer images); the noise images are dropped with their reason in process.json and in
     the summary line, and the views keep their poses."""
     d = views_with_noise(photos, 2)
-    s = process(d, tmp_path / "scene", SfmOptions(min_registered=0.5), quiet=True)
+    s = process(d, tmp_path / "scene", SfmOptions(min_registered=0.5, learned="auto"), quiet=True)
     assert s["images_registered"] >= 5 and {"noise_0.png", "noise_1.png"} <= set(s["unregistered"]), s
     steps = [a["attempt"] for a in s["attempts"]]
     assert steps[0] == "default settings" and "affine SIFT" in steps and len(steps) >= 3, steps
@@ -104,6 +104,14 @@ def test_retry_and_dropped_record(photos, tmp_path, views_with_noise):
     line = next(x for x in summary_lines(s) if x.startswith("dropped"))
     assert "noise_0.png (matched no other photo" in line and line.startswith(f"dropped {len(s['unregistered'])} photos")
     assert (tmp_path / "scene" / "process.json").read_text().count("matched no other photo") >= 2
+    from omnirecon.capture.learned import available
+
+    if available():  # learned matches for those left out, 4 partners each: not all 28 pairs
+        assert "learned matches (DISK + LightGlue) for the images SIFT left out" in steps
+        lp = s["learned"]
+        assert lp["status"] == "used" and 2 <= lp["unplaced"] <= 3 and lp["pairs"] <= 4 * lp["unplaced"] < 28
+    else:
+        assert s["learned"]["status"] == "not installed"
 
 
 def test_no_retry_when_all_register(photos, tmp_path):
