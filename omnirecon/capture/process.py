@@ -232,6 +232,22 @@ def summary_lines(s: dict) -> list[str]:
             lines.append(f"{s['images_given'] - reach} of the photos share no pair of {MIN_MATCHES}+ verified matches with the "
                          f"posed ones: with these features at most {reach} of {s['images_given']} can get a pose "
                          "(add photos between those views and the rest)")
+    passes = s.get("video_passes") or []
+    if len(passes) > 1:
+        lines.append(f"video: {passes[0]['registered']} of {passes[0]['frames']} frames registered at "
+                     f"{passes[0]['fps']:g} fps; sampled again at {passes[1]['fps']:g} fps and matched in sequence "
+                     "with loop detection (kept)")
+    learned = s.get("learned") or {}
+    if learned.get("status") == "used":
+        lines.append(f"learned matches (DISK + LightGlue) for the {learned['unplaced']} photos SIFT left out: "
+                     f"{learned['pairs']} pairs of {learned['images']} photos, {learned['verified_pairs']} verified")
+    elif learned.get("status") == "not installed" and s["unregistered"]:
+        lines.append(f"more photos may get a pose with the learned matcher: {learned['install']}")
+    checked = (s.get("pose_check") or {}).get("dropped") or []
+    if checked:
+        lines.append(f"pose check: dropped {len(checked)} poses that contradict their verified matches ("
+                     f"{', '.join(checked[:6])}{' ...' if len(checked) > 6 else ''}): no pose is better than a wrong "
+                     "one; --min-explained 0 keeps them")
     if s.get("masks"):
         lines.append("object masks kept in masks/ (undistorted like the photos): mesh --masks, reconstruct and finetune's "
                      "object scores use them")

@@ -38,7 +38,7 @@ def test_a_native_crash_of_pycolmap_is_one_error_not_the_end_of_the_command(tmp_
     src = photos(tmp_path / "tiny", 1)
     staged = stage_images(src, tmp_path / "work" / "input", min_images=3)
     args = (staged.folder, staged.names, tmp_path / "work", SfmOptions(), False, src, None, tmp_path / "scene",
-            None, True)
+            None, True, None)
     with pytest.raises(InputError) as e:
         sfm_in_child(src, args)
     assert "crashed (SIG" in str(e.value) and str(src) in str(e.value), e.value
