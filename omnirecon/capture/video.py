@@ -77,7 +77,7 @@ def clip_rate(video: Path) -> tuple[float | None, float | None]:
 def _close_pipes(process) -> None:
     """Close the pipes of imageio-ffmpeg's ffmpeg process: ``read_frames`` (0.8.1) closes them only when ffmpeg still
     runs, so a video read to its end left stdin and stdout to the garbage collector, which printed a ResourceWarning
-    on every video run (issue 46)."""
+    on every video run."""
     for pipe in (getattr(process, "stdin", None), getattr(process, "stdout", None)):
         if pipe is not None and not pipe.closed:
             pipe.close()

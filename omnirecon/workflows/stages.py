@@ -1,4 +1,4 @@
-"""A long run's finished stages, kept for the next run (issue 46).
+"""A long run's finished stages, kept for the next run.
 
 A resumable verb (``reconstruct``) builds its output in ``OUT.partial`` (:func:`omnirecon.outputs.claim`,
 ``mode="resume"``) and records each finished stage there, in ``.omnirecon-partial/stages.json``: what the stage

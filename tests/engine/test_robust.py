@@ -16,7 +16,7 @@ import pytest
 from omnirecon.cli import main
 from omnirecon.engine.checkpoint_check import resume_folder
 from omnirecon.errors import InputError
-from omnirecon.outputs import atomic_files, check_writable, clean_stale
+from omnirecon.outputs import MARKER, atomic_files, check_writable, clean_stale, write_marker
 from tests.data.test_bad_input import blender_scene, ring_gl
 
 TRAIN = ["--model", "gpnr-tiny", "--model-overrides", "num_samples=8", "dim=32", "mlp_dim=32", "heads=1",
@@ -134,6 +134,7 @@ def test_read_only_output_folder(tmp_path, capsys):
 def test_stale_temporaries_are_removed_by_the_next_run(tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
+    write_marker(out, "synth")  # a folder an earlier synth wrote (a folder without the marker is a user's: refused)
     pid = dead_pid()
     stale = [out / f".summary.pid{pid}.abc123.json", out / f".cameras.pid{pid}.x.png"]
     for f in stale:
@@ -148,7 +149,7 @@ def test_stale_temporaries_are_removed_by_the_next_run(tmp_path, capsys):
     # synth fills its folder in place (verbs that replace their folder whole drop everything in it anyway)
     assert main(["synth", "--num-scenes", "1", "--views", "2", "--resolution", "16", "--out", str(out)]) == 0
     left = sorted(p.name for p in out.iterdir() if p.name.startswith("."))
-    assert left == sorted([live.name, foreign.name]), left
+    assert left == sorted([live.name, foreign.name, MARKER]), left
     assert len(list(out.glob("scene_*/transforms_train.json"))) == 1
 
 

@@ -176,8 +176,10 @@ def test_render_levers_change_the_frame_a_little_and_are_recorded(preset, levers
     fast, meta = run("fast", levers)
     assert not np.array_equal(full, fast)  # the levers change what is rendered ...
     assert np.abs(full - fast).mean() < 0.1  # ... but not into another picture
-    assert meta["model"]["render_options"] == {"render_pass": "fine" if "fine" in levers else "auto",
-                                               "precision": "fp32" if "fp32" in levers else "auto"}
+    options = dict(meta["model"]["render_options"])
+    assert options.pop("guided")["on"] is False  # surface-guided sampling stays off unless asked for
+    assert options == {"render_pass": "fine" if "fine" in levers else "auto",
+                       "precision": "fp32" if "fp32" in levers else "auto"}
     assert meta["model"].get("render_samples") == ({"render_samples": 8} if "--samples" in levers else None)
 
 
