@@ -23,9 +23,14 @@ INTRO = (
     "the procedural scene's exact mesh through the same mesh path. CPU-s: the surface from cached depth maps, one "
     "thread, on a machine shared with other work (compare within a row only). A picture per row: test view truth | "
     "render | its defect faces (fills red, unseen blue, fragments yellow), then the path's first frame, its worst frame "
-    "and that frame's defect faces. `mesh --surface auto` (the default) takes `coherent` on a walk (lund) and `fusion` "
-    "elsewhere: on the interpolated held-out views of \"Depth sources\" (rows `, coherent`) the coherent surface "
-    "loses on fern and the demo scene.")
+    "and that frame's defect faces. `coherent[fine=\"tsdf\"]`: the coherent surface on the fused TSDF surface instead "
+    "of Poisson's. lund is posed with sequential matching of 4,096 features (`bench/extrapolation.posed_lund`): a "
+    "street walked out and back, whose last 4 photos look around a corner no training photo shows. `mesh --surface "
+    "auto` (the default, `omnirecon.mesh.build.default_surface`) takes `coherent` on a walk (lund: fewer defect pixels "
+    "on the path with either pose of lund; held-out PSNR higher with the first pose, lower with this one) and "
+    "`fusion` elsewhere: on the interpolated held-out views of \"Depth sources\" (rows `, coherent`) the coherent "
+    "surface loses on fern and the demo scene, and on objects without masks neither coherent variant wins on both "
+    "fox and ethiopianHead.")
 
 
 def f(x, fmt: str = "{:.2f}") -> str:
