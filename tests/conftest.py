@@ -101,3 +101,19 @@ def viewer_scene(tmp_path_factory, name: str):
     tmp = tmp_path_factory.mktemp(name)
     scene_path = generate_scene(tmp / "scenes", 0, SynthOptions(resolution=64, views=8))
     return tmp, scene_path, load_at_resolution(scene_path, 64)
+
+
+def procedural_photos(root: Path, resolution: int, views: int = 12) -> Path:
+    """``root/photos``: the views of a procedural frontal scene (seed 0) as a folder of a user's photos, no poses
+    (the scene itself is generated in ``root/synth``)."""
+    import shutil
+
+    from omnirecon.data import load_scene
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+    ref = generate_scene(root / "synth", 0, SynthOptions(rig="frontal", views=views, resolution=resolution))
+    out = root / "photos"
+    out.mkdir()
+    for name in load_scene(ref).names:
+        shutil.copyfile(ref / name, out / Path(name).name)
+    return out

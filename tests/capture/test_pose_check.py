@@ -8,12 +8,13 @@ untouched model every view's pairs are explained at a median of 93-100 % of thei
 dropped); the flipped view at 6 % (dropped), its neighbours still above 90 %.
 """
 
-import shutil
 
 import numpy as np
 import pytest
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
+
+from conftest import procedural_photos  # noqa: E402
 
 from omnirecon.capture.colmap_sfm import SfmOptions, SfmResult, Stages, run_sfm, write_scene  # noqa: E402
 from omnirecon.capture.consistency import PairCheck, check_poses, explained_share, inconsistent_views  # noqa: E402
@@ -21,7 +22,6 @@ from omnirecon.capture.images import stage_images  # noqa: E402
 from omnirecon.capture.motions import still_background  # noqa: E402
 from omnirecon.capture.process import summary_lines  # noqa: E402
 from omnirecon.data import load_scene  # noqa: E402
-from omnirecon.data.synth.generate import SynthOptions, generate_scene  # noqa: E402
 
 FLIPPED = "r_5.png"
 
@@ -30,11 +30,7 @@ FLIPPED = "r_5.png"
 def mapped(tmp_path_factory):
     """``(database, model folder, staged folder, names)`` of a real mapping with the pose check off."""
     root = tmp_path_factory.mktemp("pose_check")
-    ref_dir = generate_scene(root / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
-    photos = root / "photos"
-    photos.mkdir()
-    for name in load_scene(ref_dir).names:
-        shutil.copyfile(ref_dir / name, photos / name.split("/")[-1])
+    photos = procedural_photos(root, 256)
     staged = stage_images(photos, root / "input", min_images=3, shared_camera=True)
     with Stages(quiet=True) as stages:
         result = run_sfm(staged.folder, staged.names, root / "work", SfmOptions(min_explained=0.0), stages)

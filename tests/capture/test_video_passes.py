@@ -15,6 +15,8 @@ from PIL import Image
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg", reason="the optional `video` extra")
 
+from conftest import procedural_photos  # noqa: E402
+
 from omnirecon.capture.process import process, summary_lines  # noqa: E402
 from omnirecon.capture.retrieval import nearest_pairs, word_histograms  # noqa: E402
 from omnirecon.capture.video import video_duration  # noqa: E402
@@ -100,11 +102,7 @@ def test_loop_pairs_from_a_real_database(tmp_path):
     from omnirecon.capture.images import stage_images
     from omnirecon.capture.retrieval import similar_pairs
 
-    ref_dir = generate_scene(tmp_path / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
-    photos = tmp_path / "photos"
-    photos.mkdir()
-    for n in load_scene(ref_dir).names:
-        shutil.copyfile(ref_dir / n, photos / n.split("/")[-1])
+    photos = procedural_photos(tmp_path, 256)
     staged = stage_images(photos, tmp_path / "input", min_images=3, shared_camera=True)
     options = SfmOptions(matcher="sequential", overlap=2, loop_pairs=2, learned="off")
     with Stages(quiet=True) as stages:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import procedural_photos
 
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
@@ -32,13 +33,7 @@ TIMING = ("seconds", "provenance", "peak_rss_mb", "resumed", "fps", "written")
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory):
     """12 procedural frontal views, 128 px, as a folder of photos (no poses): `process` poses them in seconds."""
-    root = tmp_path_factory.mktemp("photos")
-    ref = generate_scene(root / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=128))
-    out = root / "photos"
-    out.mkdir()
-    for name in load_scene(ref).names:
-        shutil.copyfile(ref / name, out / Path(name).name)
-    return out
+    return procedural_photos(tmp_path_factory.mktemp("photos"), 128)
 
 
 def _files(root: Path) -> dict[str, bytes]:
