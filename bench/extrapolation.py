@@ -73,8 +73,7 @@ def load(name: str, tiny: bool):
 
 def posed_lund(photos: Path) -> Path:
     """The street photos posed by ``omnirecon process --matcher sequential --max-features 4096`` (once; cached): the
-    photos are a walk in capture order, and exhaustive matching of 8,192 features per photo takes most of an hour on
-    two shared cores (the pose itself is not what this bench measures)."""
+    photos are a walk in capture order (the pose itself is not what this bench measures; "Pose recovery" is)."""
     scene = CACHE / "lund_scene"
     if not (scene / "sparse").is_dir():
         from omnirecon.capture.colmap_sfm import SfmOptions
