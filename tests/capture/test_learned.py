@@ -9,13 +9,14 @@ synth``, object rig, 384 px) whose poses are exact. Measured (views 15 and 23, 3
 """
 
 import ast
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
+
+from conftest import procedural_photos  # noqa: E402
 
 from omnirecon.capture import learned  # noqa: E402
 from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm  # noqa: E402
@@ -113,12 +114,7 @@ def test_learned_matches_join_the_database(tmp_path):
     hold its SIFT inliers plus LightGlue's, verified again (12 views of a frontal procedural capture)."""
     from omnirecon.capture.hybrid import learned_database, learned_pairs
 
-    ref_dir = generate_scene(tmp_path / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
-    ref = load_scene(ref_dir)
-    photos = tmp_path / "photos"
-    photos.mkdir()
-    for n in ref.names:
-        shutil.copyfile(ref_dir / n, photos / n.split("/")[-1])
+    photos = procedural_photos(tmp_path, 256)
     staged = stage_images(photos, tmp_path / "input", min_images=3, shared_camera=True)
     with Stages(quiet=True) as stages:
         run_sfm(staged.folder, staged.names, tmp_path / "work", SfmOptions(retry_below=0, min_registered=0,

@@ -4,32 +4,24 @@ dropped, the agreement guard that keeps a retry from changing poses, and grown m
 The capture is the same 12-view procedural scene as ``test_process.py`` (its RGB files only).
 """
 
-import shutil
 
 import numpy as np
 import pytest
 
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
 
+from conftest import procedural_photos  # noqa: E402
+
 from omnirecon.capture.colmap_sfm import AGREE_DEG, SfmOptions, agreement, replaces  # noqa: E402
 from omnirecon.capture.dropped import MatchGraph, drop_reasons  # noqa: E402
 from omnirecon.capture.images import stage_images, stage_masks  # noqa: E402
 from omnirecon.capture.process import process, summary_lines  # noqa: E402
-from omnirecon.data import load_scene  # noqa: E402
-from omnirecon.data.synth.generate import SynthOptions, generate_scene  # noqa: E402
 from omnirecon.errors import InputError  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def photos(tmp_path_factory):
-    root = tmp_path_factory.mktemp("capture")
-    ref_dir = generate_scene(root / "synth", 0, SynthOptions(rig="frontal", views=12, resolution=256))
-    ref = load_scene(ref_dir)
-    out = root / "photos"
-    out.mkdir()
-    for name in ref.names:
-        shutil.copyfile(ref_dir / name, out / name.split("/")[-1])
-    return out
+    return procedural_photos(tmp_path_factory.mktemp("capture"), 256)
 
 
 def test_drop_reasons_each_kind():
