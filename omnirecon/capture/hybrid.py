@@ -2,8 +2,8 @@
 
 After SIFT's mappings, :func:`learned_database` copies the COLMAP database and, for the images left
 without a pose, chooses a few partners each (:func:`learned_pairs`: the next frames of a video, or for
-photos the most similar images by visual words of their SIFT features, :mod:`omnirecon.capture.retrieval`),
-never all pairs. The chosen images get DISK keypoints (:mod:`omnirecon.capture.learned`) appended after
+photos the most similar posed and unposed images by visual words of their SIFT features,
+:mod:`omnirecon.capture.retrieval`), never all pairs. The chosen images get DISK keypoints (:mod:`omnirecon.capture.learned`) appended after
 their SIFT keypoints, so every SIFT match keeps its indices; each chosen pair's LightGlue matches are
 joined to its SIFT inliers and verified again with pycolmap (:func:`pycolmap.estimate_two_view_geometry`).
 The caller maps that database like any other and keeps its model only under the retry rule
@@ -24,7 +24,9 @@ NEIGHBOURS = 4
 def learned_pairs(db_path: Path, names: list[str], unplaced: list[str], video: bool,
                   k: int = NEIGHBOURS, seed: int = 0) -> list[tuple[int, int]]:
     """Index pairs ``(i, j)``, ``i < j`` of ``names``: each of ``unplaced`` with ``k`` partners, its nearest
-    frames (``video``: ``k / 2`` on each side) or its ``k`` most similar images."""
+    frames (``video``: ``k / 2`` on each side), or for photos its ``k`` most similar images among the posed
+    ones (a group SIFT posed apart is most similar to itself: its own matches are not what it lacks) and
+    its ``k / 2`` most similar among the other unplaced ones."""
     index = {n: i for i, n in enumerate(names)}
     pairs = set()
     if video:
@@ -39,10 +41,14 @@ def learned_pairs(db_path: Path, names: list[str], unplaced: list[str], video: b
     hist = word_histograms(read_descriptors(db_path, names), seed=seed)
     sim = hist @ hist.T  # [N, N]
     np.fill_diagonal(sim, -np.inf)
+    away = np.zeros(len(names), bool)  # [N] without a pose
+    away[[index[u] for u in unplaced]] = True
     for u in unplaced:
         i = index[u]
-        for j in np.argsort(-sim[i], kind="stable")[:k]:
-            pairs.add((min(i, int(j)), max(i, int(j))))
+        for pool, count in ((~away, k), (away, max(1, k // 2))):
+            cand = np.flatnonzero(pool & np.isfinite(sim[i]))
+            for j in cand[np.argsort(-sim[i, cand], kind="stable")[:count]]:
+                pairs.add((min(i, int(j)), max(i, int(j))))
     return sorted(pairs)
 
 

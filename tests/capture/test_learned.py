@@ -122,6 +122,10 @@ def test_learned_matches_join_the_database(tmp_path):
     db = tmp_path / "work" / "database.db"
     pairs = learned_pairs(db, staged.names, staged.names[:1], video=True, k=2)
     assert pairs == [(0, 1)]
+    photo_pairs = learned_pairs(db, staged.names, staged.names[:3], video=False, k=2)  # partners posed and not
+    for u in range(3):
+        mine = [j for p in photo_pairs if u in p for j in p if j != u]
+        assert sum(j >= 3 for j in mine) >= 2 and any(j < 3 for j in mine), (u, photo_pairs)
     with Stages(quiet=True) as stages:
         info = learned_database(db, tmp_path / "learned.db", staged.folder, staged.names, pairs,
                                 learned.LearnedMatcher(), stages)

@@ -17,7 +17,13 @@ pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `cap
 from conftest import procedural_photos  # noqa: E402
 
 from omnirecon.capture.colmap_sfm import SfmOptions, SfmResult, Stages, run_sfm, write_scene  # noqa: E402
-from omnirecon.capture.consistency import PairCheck, check_poses, explained_share, inconsistent_views  # noqa: E402
+from omnirecon.capture.consistency import (  # noqa: E402
+    PairCheck,
+    check_poses,
+    contested_groups,
+    explained_share,
+    inconsistent_views,
+)
 from omnirecon.capture.images import stage_images  # noqa: E402
 from omnirecon.capture.motions import still_background  # noqa: E402
 from omnirecon.capture.process import summary_lines  # noqa: E402
@@ -112,6 +118,24 @@ def test_worst_view_goes_first():
               PairCheck("x", "a", 0.05, 90), PairCheck("x", "b", 0.0, 70), PairCheck("x", "c", 0.6, 10)]
     assert list(inconsistent_views(checks, 0.5)) == ["x"]
     assert inconsistent_views(checks, 0.0) == {}
+
+
+def test_group_joined_by_one_contested_pair_is_dropped():
+    """Lego's case (module note of consistency): a group of views explained among themselves, joined to the
+    rest by one explained pair while another pair between the two sides contradicts it: the group goes.
+    With a second explained pair across, the join is no bridge and nothing goes; without the contradicting
+    pair, a single join stands (a chain of views is legitimate)."""
+    inner = [PairCheck("a", "b", 0.99, 500), PairCheck("b", "c", 0.98, 400), PairCheck("a", "c", 0.97, 300),
+             PairCheck("c", "d", 1.0, 200),
+             PairCheck("x", "y", 0.99, 800), PairCheck("y", "z", 1.0, 700), PairCheck("x", "z", 0.99, 900)]
+    join, against = PairCheck("z", "b", 0.9, 72), PairCheck("x", "a", 0.33, 33)
+    groups = contested_groups(inner + [join, against], 0.5)
+    assert [g.views for g in groups] == [["x", "y", "z"]] and groups[0].bridge == join
+    assert groups[0].against == [against]
+    assert contested_groups(inner + [join], 0.5) == []
+    assert contested_groups(inner + [join, against, PairCheck("y", "c", 0.8, 60)], 0.5) == []
+    # the pendant view d (one explained pair, nothing against it) stays in every case
+    assert all("d" not in g.views for g in contested_groups(inner + [join, against], 0.5))
 
 
 def test_summary_names_the_dropped_pose():
