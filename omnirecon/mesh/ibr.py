@@ -89,15 +89,15 @@ class MeshRenderOptions:
     ``finetune --cracks`` scores them."""
     blend: Literal["network", "angle"] = "network"
     """How a point mixes its sources: ``"network"``, the appearance branch's weights; ``"angle"``,
-    :func:`angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
+    :func:`~omnirecon.mesh.kernel.angle_weights` over the ``angle_sources`` sources nearest by viewing angle that see it."""
     angle_sources: int = 4
     """With ``blend="angle"``: sources blended per point (0: every source that sees it); ``finetune --angle-sources``
     (:data:`REALTIME_ANGLE_SOURCES`)."""
     consensus: float = 0.0
-    """With ``blend="angle"``: :func:`consensus_weights`' width in RGB (0: off); ``finetune --consensus``."""
+    """With ``blend="angle"``: :func:`~omnirecon.mesh.kernel.consensus_weights`' width in RGB (0: off); ``finetune --consensus``."""
     source_masks: bool = False
     """With ``blend="angle"`` and sources that carry object masks (``Sources.masks``): each source's weight times
-    :func:`mask_falloff` at the point's pixel (a source that sees its background there blends little), as
+    :func:`~omnirecon.mesh.kernel.mask_falloff` at the point's pixel (a source that sees its background there blends little), as
     ``finetune --source-masks`` scores real object captures (:func:`masks_hold_scene`: DTU). Only for masks that
     hold everything photographed (a procedural scene's masks leave out its ground); the web viewer does it too (the
     masks in its images' alpha channel: :func:`omnirecon.viewer.bundle.mask_table`)."""
@@ -161,7 +161,7 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
 def masks_hold_scene(scene) -> bool:
     """The scene's object masks hold everything it photographs (a real object capture with masks, DTU: an object
     rig, masks, no known background colour), so a source pixel off its mask shows background, never surface: where
-    the angle blend weighs sources by :func:`mask_falloff` (``finetune --source-masks``,
+    the angle blend weighs sources by :func:`~omnirecon.mesh.kernel.mask_falloff` (``finetune --source-masks``,
     ``MeshRenderOptions.source_masks``)."""
     return scene.rig == "object" and scene.masks is not None and scene.background is None
 
@@ -286,7 +286,7 @@ class MeshRenderer(SourceShader):
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
         self._centres: dict[tuple[int, int], Tensor] = {}
         self.mask_falloff: Tensor | None = None
-        """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`mask_falloff`.
+        """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`~omnirecon.mesh.kernel.mask_falloff`.
         ``# [K, H, W]``"""
         if self.options.blend == "angle" and self.options.source_masks and sources.masks is not None:
             self.mask_falloff = (mask_falloff(sources.masks) if shared is None else
@@ -350,7 +350,7 @@ class MeshRenderer(SourceShader):
     def _fused(self, surf: Surface, points: Tensor, origin: Tensor, with_rgb: bool, with_coords: bool,
                layer: Tensor | None = None, on_mesh: Tensor | None = None) -> ShadeResult:
         """``OmniRecon.shade`` for one point per pixel, fused (module docstring); ``layer``, ``on_mesh`` ``# [P]`` bool:
-        the points on the fill's far layer, on the mesh (:meth:`_shade_points`)."""
+        the points on the fill's far layer, on the mesh (:meth:`~omnirecon.mesh.shader.SourceShader._shade_points`)."""
         K, total = self.num_views, points.shape[0]
         new = dict(dtype=self.dtype, device=self.device)
         omega = torch.empty(K, total, **new)
@@ -444,7 +444,7 @@ class MeshRenderer(SourceShader):
     # ------------------------------------------------------------------ images
     def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:
         """Blend a per-view ``signal # [K, C, H', W']`` (channel-first, or a border-padded
-        :class:`TexelAtlas`) at ``shaded``'s points with its weights (bilinear, border padding). ``# [P, C]``"""
+        :class:`~omnirecon.mesh.atlas.TexelAtlas`) at ``shaded``'s points with its weights (bilinear, border padding). ``# [P, C]``"""
         atlas = signal if isinstance(signal, TexelAtlas) else TexelAtlas(signal.to(self.device, self.dtype), "border")
         K, C = atlas.K, atlas.C
         out = torch.empty(shaded.omega.shape[1], C, dtype=self.dtype, device=self.device)
@@ -512,7 +512,7 @@ class ViewCache:
     """The work per source view of one mesh path over one scene's views, shared by the renderers (:class:`MeshRenderer`) of
     frames that blend different sets of them (a video whose every frame blends its nearest sources, as ``finetune
     --nearest`` scores): one rasterizer (one GL context, the mesh uploaded once), each view's occlusion depths
-    (:func:`block_depth_max` of its rasterized depth) and :func:`mask_falloff` computed once, and each set of views
+    (:func:`~omnirecon.mesh.kernel.block_depth_max` of its rasterized depth) and :func:`~omnirecon.mesh.kernel.mask_falloff` computed once, and each set of views
     encoded once (appearance maps only).
 
     A view's encoding is cached per *set*, not per view: Omni-Recon's encoder normalises with the batch statistics of

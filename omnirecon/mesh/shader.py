@@ -98,7 +98,7 @@ class SourceShader:
         self._parent = None  # a _subset's shader over every source
 
     def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
-        """The appearance branch prepared for :meth:`_fused` (module docstring): the texel table of
+        """The appearance branch prepared for :meth:`omnirecon.mesh.ibr.MeshRenderer._fused` (module docstring): the texel table of
         ``W F_i + b`` (border ``b``) and the MLP: ``W1`` split into its feature and direction columns
         and transposed (``[C, h1]``, ``[3, h1]``), ``b1 # [h1]``, then ``W2``, ``b2``, ``W3``, ``b3`` as
         ``[out, in]`` matrices and ``[out, 1]`` biases."""
@@ -220,7 +220,7 @@ class SourceShader:
 
     def _sparse_rgb(self, w: Tensor, idx: Tensor, wide: Tensor, wide_om: Tensor, uv: Tensor) -> Tensor:
         """The angle blend's colour ``# [3, n]`` from :meth:`_angle_top`, sampling only the weighted sources: one
-        :class:`TexelAtlas` tap set per (point, source) pair of ``idx``, summed with the weights by ``embedding_bag``
+        :class:`~omnirecon.mesh.atlas.TexelAtlas` tap set per (point, source) pair of ``idx``, summed with the weights by ``embedding_bag``
         (bilinear, border padding: ``grid_sample``'s colours up to the float rounding of the coordinates); the ``wide``
         points blend every source as :meth:`_shade_points` does."""
         k1, n = idx.shape
@@ -241,14 +241,14 @@ class SourceShader:
     ``1 / SKIP_BELOW`` of a chunk (below that, the gather costs more than the network it saves)."""
 
     def _mask_factor(self, uv: Tensor, on_mesh: Tensor | None) -> Tensor:
-        """:func:`mask_factor` at source pixels ``uv # [K, 2, n]``, 1 at the points not on the mesh (``on_mesh # [n]``
+        """:func:`~omnirecon.mesh.kernel.mask_factor` at source pixels ``uv # [K, 2, n]``, 1 at the points not on the mesh (``on_mesh # [n]``
         bool False: the fill's points, off the object where the target sees no surface). ``# [K, n]``"""
         fac = mask_factor(self.mask_falloff, uv, self._all_ids(uv.shape[2]))
         return fac if on_mesh is None else torch.where(on_mesh, fac, torch.ones_like(fac))
 
     def _angle_top(self, p: Tensor, d_t: Tensor, uv: Tensor, z: Tensor, seen: Tensor, tested: bool,
                    layer: Tensor | None = None, on_mesh: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``blend="angle"``: :func:`lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
+        """``blend="angle"``: :func:`~omnirecon.mesh.kernel.lumigraph_weights` at points ``p # [3, n]`` seen along ``d_t # [3, n]`` by the
         sources of ``seen # [K, n]`` (times :meth:`_mask_factor` at their pixels ``uv # [K, 2, n]`` when the sources
         carry masks; ``on_mesh # [n]``: which points lie on the mesh), for the ``k + 1`` sources nearest by angle only
         (``k`` = ``angle_sources``; the largest cosines, no arccos of the others). Unless ``tested``, ``seen`` is

@@ -1,7 +1,9 @@
 """``omnirecon finetune``: seconds-scale per-scene tuning of the mesh path (``shared/docs/omnirecon.md`` §7).
 
-Size: one workflow (options, the tuning loop with its validation and best-state keeping, the
-curve and pictures); its pieces are small functions here because nothing else uses them.
+Size: one workflow: its options (:class:`FinetuneConfig`, one documented field per choice), the run's preparation
+(views, mesh, pixels), the tuning loop with its validation and best-state keeping, and the curve, pictures and
+record. The pixels and their blend are :mod:`omnirecon.mesh.pixels`' (the mesh path's kernel,
+:mod:`omnirecon.mesh.kernel`), the tuner, its sampler and the choice of views :mod:`omnirecon.engine.tuning`'s.
 
 The mesh is fixed (``--mesh`` or extracted from the model at the source views); every training view
 of the scene is rasterized once, giving one surface point per covered pixel, and every pixel the mesh
@@ -23,7 +25,8 @@ PSNRs).
 farthest from the other training views, as held-out views are; never blending their own photo) are kept
 out of tuning and scored every ``--val-every`` seconds; the state with the best validation gain (the
 start is a candidate) is what is returned, saved and scored. A state's validation gain is its gain on what the
-scene is scored by (:func:`scored_by`: the object pixels on scenes whose protocol scores the masks, e.g. DTU;
+scene is scored by (:func:`~omnirecon.engine.tuning.scored_by`: the object pixels on scenes whose protocol scores
+the masks, e.g. DTU;
 else the whole image); it must reach ``--val-margin`` dB to replace the start, and the other score (whole image
 or objects, on scenes with masks) may not drop by more than ``--val-guard`` dB. The held-out test views (the protocol's
 targets) are never tuned on nor used to choose.
@@ -139,8 +142,9 @@ class FinetuneConfig(ThreadsConfig):
     go")."""
     residual_res: int = 16
     """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
-    (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
-    every view, so what tuning views teach it reaches held-out views at the same surface; the only lever under the
+    (:class:`~omnirecon.mesh.pixels.ResidualColour`: a view-independent colour offset added to the blend at each
+    surface point, the same for every view, so what tuning views teach it reaches held-out views at the same surface;
+    the only lever under the
     angle blend besides exposure). Not adopted, and not saved with --save: validation returned the start on the demo
     scene, fern and dtu_scan24 under the angle blend, and the demo's state at the end (no validation) raised the
     held-out objects but lowered the whole image (`python -m bench finetune_levers`, rows residual*)."""
