@@ -98,8 +98,8 @@ class SourceShader:
         self._parent = None  # a _subset's shader over every source
 
     def _fold(self, app) -> tuple[TexelAtlas, list[Tensor]]:
-        """The appearance branch prepared for :meth:`omnirecon.mesh.ibr.MeshRenderer._fused` (module docstring): the texel table of
-        ``W F_i + b`` (border ``b``) and the MLP: ``W1`` split into its feature and direction columns
+        """The appearance branch prepared for the fused shader (module docstring): the texel table of ``W F_i + b``
+        (border ``b``) and the MLP: ``W1`` split into its feature and direction columns
         and transposed (``[C, h1]``, ``[3, h1]``), ``b1 # [h1]``, then ``W2``, ``b2``, ``W3``, ``b3`` as
         ``[out, in]`` matrices and ``[out, 1]`` biases."""
         dt = self.dtype
@@ -111,7 +111,6 @@ class SourceShader:
         # layer 1 row-major ([K n, C] @ [C, h1]), the narrower layers 2 and 3 column-major
         mlp = [t.contiguous() for t in (w1[:, :C].T, w1[:, C:].T, b1[:, 0], w2, b2, w3, b3)]
         return TexelAtlas(maps, "zeros", pad_value=b), mlp
-
 
     def project(self, points: Tensor, layer: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Project ``points # [3, n]`` (channel-first) into every source: pixel coordinates
@@ -130,7 +129,7 @@ class SourceShader:
         K = self.num_views
         uvz = torch.addmm(self._proj[:, 3:], self._proj[:, :3], points).reshape(K, 3, -1)  # [K, 3, n]
         z = uvz[:, 2]
-        uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project
+        uv = uvz[:, :2] / z.clamp_min(1e-6)[:, None]  # as Cameras.project in front (behind: another point far outside)
         inside = (uv >= 0) & (uv < self._size)  # [K, 2, n]
         return uv, z, (z > 1e-6) & inside[:, 0] & inside[:, 1]  # (faster than .all(1) over the size-2 axis)
 
