@@ -3,9 +3,6 @@
 the tuned parameters with their optimiser and scores (:class:`Tuner`), each step's pixels (:class:`PixelSampler`) and
 the budget's clock (:class:`Clock`). The pixels and their blend are :mod:`omnirecon.mesh.pixels`' (the mesh path's
 kernel, :mod:`omnirecon.mesh.kernel`, with gradients on).
-
-Size: the tuner, its batches and its views are one tuning step's state; split further they would pass ``Setup``
-between more modules than they read.
 """
 
 from __future__ import annotations
