@@ -161,7 +161,7 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
 def masks_hold_scene(scene) -> bool:
     """The scene's object masks hold everything it photographs (a real object capture with masks, DTU: an object
     rig, masks, no known background colour), so a source pixel off its mask shows background, never surface: where
-    the angle blend weighs sources by :func:`~omnirecon.mesh.kernel.mask_falloff` (``finetune --source-masks``,
+    the angle blend weighs sources by :func:`mask_falloff` (``finetune --source-masks``,
     ``MeshRenderOptions.source_masks``)."""
     return scene.rig == "object" and scene.masks is not None and scene.background is None
 
