@@ -31,15 +31,15 @@ seed 900999, and the ``synth:eval`` seeds 900998, 900997 and 900000 (``synth_<se
   11-57 degrees for the fixed 23 24 33);
 * ``<source>, all views`` (DTU): the mesh from every training view (41) instead of 14 of them.
 * ``<source>, angle blend``: scored with ``finetune --blend angle`` (each point's nearest sources by viewing
-  angle, weighted by angle alone: ``omnirecon.mesh.ibr.angle_weights``; nothing is tuned).
+  angle, weighted by angle alone: ``omnirecon.mesh.kernel.angle_weights``; nothing is tuned).
 * ``<source>, nearest fill``: scored with ``finetune --fill nearest`` (pixels the mesh misses take the z-depth of
   the nearest pixel it covers in the same view, instead of the far layer).
 * ``<source>, angle auto``: with the angle blend, ``finetune --angle-sources 3 4 6 8`` (the count that scores best
   on the validation views).
 * ``<source>, consensus S``: with the angle blend, ``finetune --consensus S`` (sources whose colour disagrees with
-  the blend down-weighted: ``omnirecon.mesh.ibr.consensus_weights``).
+  the blend down-weighted: ``omnirecon.mesh.kernel.consensus_weights``).
 * ``<source>, no source masks``: with the angle blend, ``finetune --no-source-masks`` (each source weighted by angle
-  alone, not also by :func:`omnirecon.mesh.ibr.mask_falloff` at its pixel; the default before session 16).
+  alone, not also by :func:`omnirecon.mesh.kernel.mask_falloff` at its pixel; the default before session 16).
 * ``<source>, no cracks``: scored with ``finetune --cracks 0`` (the missed pixels the mesh encloses keep the fill or
   the background colour instead of the nearest covered pixel's depth; the default before session 18).
 * ``<source>, match N``: stereo matched on rectified pairs resampled to a long side of N px (at most twice the

@@ -50,8 +50,8 @@ def source_sets(scene, proto, targets, mesh_views, pool, names):
 
 def split_view(model, scene, mesh, t, srcs, stereo) -> tuple[dict, float, float]:
     """Per-category ``[pixels, squared error]`` over view ``t``'s mask, its mask PSNR and whole-image PSNR."""
+    from omnirecon.mesh.pixels import encode_maps, full_image, rasterize_views, render_pixels
     from omnirecon.rays import Sources
-    from omnirecon.workflows.finetune import encode_maps, full_image, rasterize_views, render_pixels
 
     (v,) = rasterize_views(mesh, scene, [t], True, srcs)
     with torch.no_grad():

@@ -63,7 +63,8 @@ def best_blend(colours: torch.Tensor, allowed: torch.Tensor, target: torch.Tenso
 @torch.no_grad()
 def ceiling(path: Path, mesh_file: Path, resolution: int | None = None, nearest: int = 6, num_views: int = 3,
             max_held_out: int = 4, visibility: bool = True) -> dict:
-    from omnirecon.workflows.finetune import FinetuneConfig, encode_maps, prepare, visible_at
+    from omnirecon.mesh.pixels import encode_maps, visible_at
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
 
     cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh_file, resolution=resolution,
                          nearest=nearest, num_views=num_views, max_held_out=max_held_out, visibility=visibility)

@@ -36,9 +36,9 @@ MAPS_LR = 2e-3
 
 
 def maps_tuner(cfg, s, g):
-    """A :class:`~omnirecon.workflows.finetune.Tuner` of the appearance branch plus the sources' encoded
+    """A :class:`~omnirecon.engine.tuning.Tuner` of the appearance branch plus the sources' encoded
     feature maps as free parameters (``--mode maps``)."""
-    from omnirecon.workflows.finetune import Tuner
+    from omnirecon.engine.tuning import Tuner
 
     tuner = Tuner(cfg, s, g)  # cfg.tune = ("appearance",): the features are encoded once, in tuner.frozen
     maps = torch.nn.Parameter(tuner.frozen.maps.detach().clone())  # [K, C, h, w]
@@ -53,7 +53,8 @@ def maps_tuner(cfg, s, g):
 def oracle(path: Path, mesh: Path, seconds: float, threads: int, mode: str = "oracle") -> dict:
     """The oracle's curve on one scene, or the ``maps`` run's (module docstring)."""
     from omnirecon.engine.machine import set_threads
-    from omnirecon.workflows.finetune import VAL_PIXELS, FinetuneConfig, Tuner, prepare, tune
+    from omnirecon.engine.tuning import Tuner
+    from omnirecon.workflows.finetune import VAL_PIXELS, FinetuneConfig, prepare, tune
 
     cfg = FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                          eval_at=tuple(t for t in TIMES if t <= seconds), clock="cpu", threads=threads,

@@ -31,7 +31,7 @@ class Sources:
     masks: Tensor | None = None
     """Object masks of the sources (True: the object; object captures such as DTU), ``None`` when the scene has
     none. The mesh path's angle blend down-weights a source whose pixel lies off its object
-    (:func:`omnirecon.mesh.ibr.mask_falloff`). ``# [V, H, W]`` bool"""
+    (:func:`omnirecon.mesh.kernel.mask_falloff`). ``# [V, H, W]`` bool"""
 
     def to(self, device) -> Sources:
         bounds = None if self.bounds is None else self.bounds.to(device)

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from omnirecon.lift.predictors import KINDS, Predictor
-from omnirecon.mesh.ibr import ShadeResult
+from omnirecon.mesh.shader import ShadeResult
 
 
 def supports_lifting(model) -> bool:

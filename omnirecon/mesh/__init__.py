@@ -1,4 +1,4 @@
-"""Meshes: depth fusion, marching cubes, cleaning and decimation; the real-time mesh IBR path, colour
-baking, mesh scoring.
+"""Meshes: depth fusion, marching cubes, cleaning and decimation; the mesh path's blend (one kernel), its real-time
+renderer and finetune's pixels on it, colour baking, mesh scoring.
 
 Above models (it renders depth with them), below the engine."""

@@ -76,10 +76,10 @@ def small_pieces(mesh: trimesh.Trimesh, size: float) -> np.ndarray:
 def seen_faces(mesh: trimesh.Trimesh, cameras: Cameras, max_angle: float = MAX_ANGLE, tol: float = 0.01) -> np.ndarray:
     """Faces some of ``cameras`` sees within ``max_angle`` degrees of the face's normal: the face's centroid projects
     into the view's image, in front, no farther than ``1 + tol`` times the largest rasterized depth of the 2x2 pixel
-    centres around it (both sides of every face drawn: :func:`omnirecon.mesh.ibr.unoccluded`'s one-sided test, which
+    centres around it (both sides of every face drawn: :func:`omnirecon.mesh.kernel.unoccluded`'s one-sided test, which
     holds on the face's own surface however small the face is), and the direction to the camera lies within
     ``max_angle`` of the normal. ``# [F]`` bool"""
-    from omnirecon.mesh.ibr import block_depth_max, unoccluded
+    from omnirecon.mesh.kernel import block_depth_max, unoccluded
     from omnirecon.render.raster import MeshRasterizer
 
     F = len(mesh.faces)

@@ -33,7 +33,7 @@ in), ``mesh_box`` (model frame, for near/far as ``MeshRasterizer.depth_range``),
 the frame's camera by ``metric`` around ``center``, as :func:`omnirecon.engine.views.select_sources`; 0: all),
 ``fill`` (``far``, ``nearest`` or ``background``; the far layer's box and z-depth, :mod:`omnirecon.mesh.fill`, the
 nearest fill's ``reach``), ``cracks`` (the crack fill's radius) and ``source_masks`` (``reach``, ``floor`` of
-:func:`omnirecon.mesh.ibr.mask_falloff`, or null without masks), and a default camera in the input frame. Its
+:func:`omnirecon.mesh.kernel.mask_falloff`, or null without masks), and a default camera in the input frame. Its
 ``version`` is :data:`omnirecon.viewer.format.VERSION`; ``omnirecon view`` and the page refuse another.
 """
 
@@ -51,7 +51,7 @@ import torch
 from omnirecon.data.io import write_image
 from omnirecon.errors import InputError
 from omnirecon.mesh.fill import NEAREST_FILL_REACH, layer_box
-from omnirecon.mesh.ibr import MASK_FLOOR, MASK_REACH
+from omnirecon.mesh.kernel import MASK_FLOOR, MASK_REACH
 from omnirecon.viewer.format import FORMAT, VERSION
 
 STATIC = Path(__file__).resolve().parent / "static"
@@ -141,7 +141,7 @@ def source_depth_table(renderer) -> np.ndarray:
 def mask_table(masks: torch.Tensor | None, shape: tuple[int, int, int]) -> np.ndarray:
     """The images' alpha channel: per source pixel ``min(d^2, 255)``, ``d`` its distance in pixels to the nearest
     pixel off the object mask ``masks # [K, H, W]`` (the Euclidean distance transform of
-    :func:`omnirecon.mesh.ibr.mask_falloff`: 0 off the mask, and for a source whose mask is empty); 255 everywhere
+    :func:`omnirecon.mesh.kernel.mask_falloff`: 0 off the mask, and for a source whose mask is empty); 255 everywhere
     without masks. ``d^2`` is an integer, so the shader's ``clip(sqrt(a) / reach, floor, 1)`` is ``mask_falloff``'s
     value for any reach below 15.9 px. ``# [K, H, W]`` uint8"""
     if masks is None:

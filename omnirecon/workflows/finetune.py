@@ -1,11 +1,13 @@
 """``omnirecon finetune``: seconds-scale per-scene tuning of the mesh path (``shared/docs/omnirecon.md`` §7).
 
-Size: one workflow (options, the tuning loop with its validation and best-state keeping, the
-curve and pictures); its pieces are small functions here because nothing else uses them.
+Size: one workflow: its options (:class:`FinetuneConfig`, one documented field per choice), the run's preparation
+(views, mesh, pixels), the tuning loop with its validation and best-state keeping, and the curve, pictures and
+record. The pixels and their blend are :mod:`omnirecon.mesh.pixels`' (the mesh path's kernel,
+:mod:`omnirecon.mesh.kernel`), the tuner, its sampler and the choice of views :mod:`omnirecon.engine.tuning`'s.
 
 The mesh is fixed (``--mesh`` or extracted from the model at the source views); every training view
 of the scene is rasterized once, giving one surface point per covered pixel, and every pixel the mesh
-misses a point on the fill's background layer (:func:`omnirecon.mesh.ibr.fill_points`, as the mesh
+misses a point on the fill's background layer (:func:`omnirecon.mesh.fill.shaded_surface`, as the mesh
 renderer does), so every pixel is shaded. Each step samples ``--rays`` shaded pixels of the tuning views
 (mesh and fill), colours the points with the appearance branch (``OmniRecon.shade``, over the sources that
 see each point: ``--visibility``) from the source views' 2-D encoder features (the feature volume and the
@@ -23,7 +25,8 @@ PSNRs).
 farthest from the other training views, as held-out views are; never blending their own photo) are kept
 out of tuning and scored every ``--val-every`` seconds; the state with the best validation gain (the
 start is a candidate) is what is returned, saved and scored. A state's validation gain is its gain on what the
-scene is scored by (:func:`scored_by`: the object pixels on scenes whose protocol scores the masks, e.g. DTU;
+scene is scored by (:func:`~omnirecon.engine.tuning.scored_by`: the object pixels on scenes whose protocol scores
+the masks, e.g. DTU;
 else the whole image); it must reach ``--val-margin`` dB to replace the start, and the other score (whole image
 or objects, on scenes with masks) may not drop by more than ``--val-guard`` dB. The held-out test views (the protocol's
 targets) are never tuned on nor used to choose.
@@ -42,36 +45,48 @@ after for the first held-out view) and, with ``--save``, the tuned checkpoint.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, NamedTuple
+from typing import Literal
 
 import numpy as np
 import torch
 
-from omnirecon import metrics
 from omnirecon.data import detect_format
 from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
 from omnirecon.engine.machine import ThreadsConfig, set_threads
 from omnirecon.engine.protocols import protocol_for, targets_and_pool
 from omnirecon.engine.scenes import load_at_resolution, photo_side
-from omnirecon.engine.views import check_views, default_views, select_sources
+from omnirecon.engine.tuning import (
+    Clock,
+    PixelSampler,
+    Setup,
+    Tuned,
+    Tuner,
+    every_training_view,
+    pick_validation,
+    restrict_to_nearest,
+    scored_by,
+    validation_gain,
+)
+from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
-from omnirecon.mesh.fill import CRACK_RADIUS, layer_box, shaded_surface
-from omnirecon.mesh.ibr import consensus_weights, scene_defaults
-from omnirecon.models.omnirecon import OmniReconFeatures
+from omnirecon.mesh.fill import CRACK_RADIUS
+from omnirecon.mesh.ibr import scene_defaults
+from omnirecon.mesh.pixels import angle_blend, rasterize_groups
 from omnirecon.options import check_options
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
-from omnirecon.render.edges import SOFTEN, soften_edges
-from omnirecon.render.raster import MeshRasterizer
+from omnirecon.render.edges import SOFTEN
 
 EVAL_AT = (0.0, 10.0, 30.0, 60.0, 180.0, 300.0)
 """Default evaluation points (seconds of optimisation; 0 = before tuning)."""
+
+
 VAL_PIXELS = 8192
 """Validation pixels per validation view (a fixed random subset: scoring stays cheap at any size)."""
 
@@ -127,8 +142,9 @@ class FinetuneConfig(ThreadsConfig):
     go")."""
     residual_res: int = 16
     """With ``--tune residual``: cells per side of the residual colour grid over the scene's bounds
-    (:class:`ResidualColour`: a view-independent colour offset added to the blend at each surface point, the same for
-    every view, so what tuning views teach it reaches held-out views at the same surface; the only lever under the
+    (:class:`~omnirecon.mesh.pixels.ResidualColour`: a view-independent colour offset added to the blend at each
+    surface point, the same for every view, so what tuning views teach it reaches held-out views at the same surface;
+    the only lever under the
     angle blend besides exposure). Not adopted, and not saved with --save: validation returned the start on the demo
     scene, fern and dtu_scan24 under the angle blend, and the demo's state at the end (no validation) raised the
     held-out objects but lowered the whole image (`python -m bench finetune_levers`, rows residual*)."""
@@ -200,7 +216,7 @@ class FinetuneConfig(ThreadsConfig):
     blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
     sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
-    see it, weighted by angle alone (:func:`omnirecon.mesh.ibr.angle_weights`, the unstructured lumigraph's
+    see it, weighted by angle alone (:func:`omnirecon.mesh.kernel.angle_weights`, the unstructured lumigraph's
     blend). With ``angle`` nothing the blend uses is tuned (the encoder and the appearance branch are unused):
     --seconds only scores. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`): ``angle`` for real object captures
     (an object rig without a known background colour, with masks or without), ``network`` for procedural scenes
@@ -213,11 +229,11 @@ class FinetuneConfig(ThreadsConfig):
     choice; on dtu_scan24 and dtu_scan37 it chose 4)."""
     consensus: float = 0.0
     """With the angle blend: down-weight each source by how far its colour lies from the blended colour
-    (:func:`omnirecon.mesh.ibr.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
+    (:func:`omnirecon.mesh.kernel.consensus_weights`, a Gaussian of this width in RGB; 0: off)."""
     source_masks: bool = True
     """With the angle blend on real object captures with masks (DTU; :func:`omnirecon.mesh.ibr.masks_hold_scene`):
     each source's weight times
-    :func:`omnirecon.mesh.ibr.mask_falloff` at the point's pixel in it (a source whose pixel is its background, or
+    :func:`omnirecon.mesh.kernel.mask_falloff` at the point's pixel in it (a source whose pixel is its background, or
     within 2 px of it, blends little: the mesh's silhouette overshoots the object's by a pixel or two and took the white
     or black background's colour; the fill's points are not weighed). It raised the held-out mask PSNR on dtu_scan37
     and dtu_scan24 and left the whole image as it was (``python -m bench depth_sources``, the ``, no source masks``
@@ -244,358 +260,6 @@ class FinetuneConfig(ThreadsConfig):
     """Also write the tuned checkpoint to <out>/checkpoint."""
     seed: int = 0
     """Seed of the pixel sampling."""
-
-
-# ---------------------------------------------------------------------- pieces
-@dataclass
-class ViewPixels:
-    """The shaded pixels of one view: first the ``covered`` ones on the mesh, then the fill's."""
-
-    index: int
-    """Scene view index."""
-    origin: torch.Tensor
-    """Camera centre. ``# [3]``"""
-    points: torch.Tensor
-    """Surface (or background-layer) point per pixel. ``# [P, 3]``"""
-    pixels: torch.Tensor
-    """Flat pixel indices. ``# [P]``"""
-    target: torch.Tensor
-    """Ground-truth colour of those pixels. ``# [P, 3]``"""
-    covered: int
-    """The first ``covered`` pixels lie on the mesh."""
-    visible: torch.Tensor | None = None
-    """Which sources see each point (the occlusion test; fill points: all), ``None`` = no test. ``# [P, K]`` bool"""
-    weights: torch.Tensor | None = None
-    """With ``--blend angle``: each point's fixed blend weights (:func:`angle_blend`); ``None``: the network's.
-    ``# [P, K]``"""
-    occlusion: torch.Tensor | None = None
-    """With ``--blend angle``: the occlusion test's ``visible`` before :func:`angle_blend` narrowed it. ``# [P, K]``"""
-    consensus: float = 0.0
-    """With ``--blend angle``: ``--consensus`` (:func:`omnirecon.mesh.ibr.consensus_weights`; 0: off)."""
-
-
-def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
-    """``--fill nearest`` (:func:`omnirecon.mesh.fill.nearest_fill`, the mesh renderer's ``fill="nearest"``): the points
-    ``# [P, 3]`` of ``surf`` with the missed pixels within :data:`~omnirecon.mesh.fill.NEAREST_FILL_REACH` of a covered
-    pixel moved to the nearest covered pixel's z-depth, and which rows moved ``# [P]`` bool."""
-    from omnirecon.mesh.fill import nearest_fill
-
-    filled, moved = nearest_fill(surf, covered, cam)
-    return filled.points, moved
-
-
-def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
-                    tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS) -> list[ViewPixels]:
-    """Rasterize ``mesh`` (scene frame) at each of ``indices`` once; with ``fill``, every pixel the mesh
-    misses gets the mesh renderer's background layer (with ``nearest_fill``: a point at the nearest covered pixel's
-    depth, :func:`nearest_depth_points`), and with ``cracks`` > 0 the missed pixels the mesh encloses a point at the
-    nearest covered pixel's depth whatever ``fill`` (:func:`omnirecon.mesh.fill.shaded_surface`); with ``sources``
-    (scene views), each mesh point gets the occlusion test against those views (:func:`omnirecon.mesh.ibr.unoccluded`,
-    relative tolerance ``tol``)."""
-    return rasterize_groups(mesh, scene, [indices], fill, sources, tol, nearest_fill, cracks)[0]
-
-
-def rasterize_groups(mesh, scene, groups: list[list[int]], fill: bool = True, sources: list[int] | None = None,
-                     tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS) -> list[list[ViewPixels]]:
-    """:func:`rasterize_views` for several groups of views (tuning, held-out, validation) with one rasterizer and
-    the sources' depth maps rasterized once for all of them."""
-    from omnirecon.mesh.ibr import block_depth_max
-
-    far, bounds = float(scene.far.max()), scene.bounds.float()
-    with MeshRasterizer.from_trimesh(mesh, cull_back_faces=False) as rast:
-        dmax = None
-        if sources:
-            dmax = block_depth_max(torch.stack([rast.rasterize(scene.cameras[k], normals="none").depth
-                                                for k in sources]).float())
-        return [[view_pixels(rast, scene, i, far, bounds, fill, sources, dmax, tol, nearest_fill, cracks)
-                 for i in indices]
-                for indices in groups]
-
-
-def view_pixels(rast, scene, i: int, far: float, bounds, fill: bool, sources, dmax, tol: float,
-                nearest_fill: bool, cracks: int = CRACK_RADIUS) -> ViewPixels:
-    """One view of :func:`rasterize_groups`: its surface (and fill) points and, given ``dmax`` (the sources'
-    block depth maxima), which sources see each point."""
-    from omnirecon.mesh.ibr import unoccluded
-
-    cam = scene.cameras[i]
-    mode = ("nearest" if nearest_fill else "far") if fill else "background"
-    surf, covered, layer = shaded_surface(rast.surface(cam), cam.to(dtype=torch.float32), far,
-                                          layer_box(scene.rig, bounds), mode, cracks)
-    img = scene.images[i].reshape(-1, 3)
-    points = surf.points
-    visible = None
-    if dmax is not None:
-        proj = scene.cameras[sources].to(dtype=torch.float32).project(points)
-        visible = unoccluded(dmax, proj.uv.permute(0, 2, 1), proj.depth, tol).T  # [P, K]
-        visible[layer] = True  # the far layer: every source
-    return ViewPixels(i, cam.centers[0].float(), points, surf.pixels, img[surf.pixels].float(), covered, visible)
-
-
-class ResidualColour(torch.nn.Module):
-    """``--tune residual``: a colour offset over the scene's box, a coarse 3-D grid sampled trilinearly at each
-    shaded point (zero outside the box, e.g. on the far layer) and added to the blend; zero at start."""
-
-    def __init__(self, box: torch.Tensor, res: int):
-        super().__init__()
-        self.grid = torch.nn.Parameter(torch.zeros(1, 3, res, res, res), requires_grad=False)
-        """RGB offsets, z-major. ``# [1, 3, R, R, R]``"""
-        self.register_buffer("box", box.float())  # [2, 3]
-
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        lo, hi = self.box
-        g = ((points.float() - lo) / (hi - lo).clamp_min(1e-9) * 2 - 1).reshape(1, 1, 1, -1, 3)
-        v = torch.nn.functional.grid_sample(self.grid, g, align_corners=False, padding_mode="zeros")  # [1, 3, 1, 1, n]
-        return v.reshape(3, -1).T  # [n, 3]
-
-
-class Exposure(torch.nn.Module):
-    """An affine colour per source view: ``gain_k * rgb + offset_k`` (per channel), identity at start."""
-
-    def __init__(self, k: int):
-        super().__init__()
-        self.gain = torch.nn.Parameter(torch.ones(k, 1, 1, 3), requires_grad=False)
-        """Per-view, per-channel gain. ``# [K, 1, 1, 3]``"""
-        self.offset = torch.nn.Parameter(torch.zeros(k, 1, 1, 3), requires_grad=False)
-        """Per-view, per-channel offset (0: a robust fit of the offset as well measured worse). ``# [K, 1, 1, 3]``"""
-
-    def forward(self, sources: Sources) -> Sources:
-        images = sources.images * self.gain + self.offset  # [K, H, W, 3]
-        return Sources(images, sources.cameras, sources.near, sources.far, sources.rig, sources.bounds)
-
-
-@torch.no_grad()
-def estimate_gains(model, sources: Sources, views: list[ViewPixels], g: torch.Generator, n: int = 32768) -> torch.Tensor:
-    """Per-source, per-channel exposure gain: the median over mesh pixels of the tuning views of
-    ``photo / source colour`` where the source sees the point (the median ignores occluded views and
-    misregistered pixels, which bias a least-squares fit toward 0). ``# [K, 1, 1, 3]``"""
-    feats = encode_maps(model, sources)
-    K = len(sources.cameras)
-    ratios = [[] for _ in range(K)]
-    per_view = max(n // len(views), 1)
-    for v in views:
-        idx = torch.randperm(v.covered, generator=g)[:per_view]
-        seen = model.gather(feats, v.points[idx][:, None], v.origin.expand(len(idx), 3))
-        rgb, mask, t = seen.rgb[:, 0], seen.mask[:, 0], v.target[idx]  # [P, K, 3], [P, K], [P, 3]
-        for k in range(K):
-            ok = mask[:, k] & (rgb[:, k] > 0.04).all(-1) & (t > 0.04).all(-1)
-            ratios[k].append(t[ok] / rgb[ok, k])
-    gains = [torch.cat(r).median(0).values if sum(len(x) for x in r) >= 16 else torch.ones(3) for r in ratios]
-    return torch.stack(gains).reshape(K, 1, 1, 3)
-
-
-ENCODER_GRAPH_MB = 2048
-"""A tuned encoder's pass whose graph would hold more than this is checkpointed (``FPNEncoder.appearance``:
-identical features and gradients, each step's encoder pass about 1.4x the CPU). The graph takes about
-:data:`GRAPH_BYTES_PER_PIXEL` per source pixel (e.g. 52 sources at 401x401 hold about 3 GB); checkpointing
-lowers ``finetune``'s peak resident memory and leaves the step count and the scores as they were."""
-GRAPH_BYTES_PER_PIXEL = 360
-"""omnirecon-tiny's encoder graph per source pixel (measured: 52 x 401 x 401 sources, 3.0 GB)."""
-
-
-def encode_maps(model, sources, colours: Sources | None = None):
-    """The mesh path's features: the 2-D encoder's appearance feature only (``OmniRecon.encode_appearance``: no
-    pyramid maps, no feature volume). Differentiable; a pass with gradients whose graph would exceed
-    :data:`ENCODER_GRAPH_MB` is checkpointed. ``colours``: the sources whose images the blend mixes (default
-    ``sources``; e.g. exposure-corrected)."""
-    big = sources.images[..., 0].numel() * GRAPH_BYTES_PER_PIXEL > ENCODER_GRAPH_MB * 2 ** 20
-    feats = model.encode_appearance(sources, checkpoint=big and torch.is_grad_enabled())
-    return feats if colours is None else replace(feats, sources=colours)
-
-
-def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,
-                  residual: ResidualColour | None = None) -> torch.Tensor:
-    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch (plus ``residual``, ``--tune
-    residual``). ``# [P, 3]``"""
-    if residual is not None:
-        points = view.points if idx is None else view.points[idx]
-        return render_pixels(model, features, view, idx, chunk) + residual(points)
-    points = view.points if idx is None else view.points[idx]
-    weights = None if view.weights is None else (view.weights if idx is None else view.weights[idx])
-    out = []
-    for s in range(0, len(points), chunk):
-        pts = points[s:s + chunk]
-        if weights is not None:  # --blend angle: fixed weights over the sources' colours
-            rgb = model.gather(features, pts[:, None], view.origin.expand_as(pts)).rgb[:, 0]  # [n, K, 3]
-            w = consensus_weights(rgb, weights[s:s + chunk].to(rgb), view.consensus)  # [n, K]
-            out.append((w[:, :, None] * rgb).sum(1))
-            continue
-        out.append(model.shade(features, pts, view.origin.expand_as(pts), visible_at(view, idx, s, s + chunk))["rgb"])
-    return torch.cat(out) if out else view.target.new_zeros(0, 3)
-
-
-def visible_at(view: ViewPixels, idx: torch.Tensor | None = None, start: int = 0, stop: int | None = None):
-    """``view.visible`` at ``idx`` (all pixels when ``None``), rows ``start:stop`` of that; ``None`` without the
-    test. ``# [n, K]`` bool"""
-    if view.visible is None:
-        return None
-    vis = view.visible if idx is None else view.visible[idx]
-    return vis[start:stop]
-
-
-def full_image(scene, view: ViewPixels, rgb: torch.Tensor, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """The whole image: ``rgb`` at the shaded pixels, ``background`` (RGB) elsewhere. ``# [H, W, 3]``"""
-    img = torch.tensor(background, dtype=torch.float32).expand(scene.height * scene.width, 3).clone()
-    img[view.pixels] = rgb.detach().float().clamp(0, 1)
-    return img.reshape(scene.height, scene.width, 3)
-
-
-def mesh_depth(scene, view: ViewPixels) -> torch.Tensor:
-    """The mesh's z-depth at each pixel of ``view``, 0 where it covers none (the fill's pixels). ``# [H, W]``"""
-    depth = torch.zeros(scene.height * scene.width)
-    cam = scene.cameras[view.index].to(dtype=torch.float32)
-    depth[view.pixels[:view.covered]] = cam.project(view.points[:view.covered]).depth[0]
-    return depth.reshape(scene.height, scene.width)
-
-
-def coverage_mask(scene, view: ViewPixels) -> torch.Tensor:
-    """Pixels on real surface. ``# [H, W]`` bool"""
-    m = torch.zeros(scene.height * scene.width, dtype=torch.bool)
-    m[view.pixels[:view.covered]] = True
-    return m.reshape(scene.height, scene.width)
-
-
-class Clock:
-    """Seconds of optimisation on the chosen clock, paused while evaluating."""
-
-    def __init__(self, kind: str):
-        self.read = time.perf_counter if kind == "wall" else time.process_time
-        self.spent = 0.0
-        self._start = None
-
-    def start(self) -> None:
-        self._start = self.read()
-
-    def stop(self) -> None:
-        self.spent += self.read() - self._start
-        self._start = None
-
-    def now(self) -> float:
-        return self.spent + (self.read() - self._start if self._start is not None else 0.0)
-
-
-def every_training_view(pool: list[int], targets: list[int], scene) -> list[int]:
-    """The sources of ``--nearest`` without ``--views``: every training view (the protocol's pool, never a
-    held-out or test view), the validation views too (each view blends only the other views' photos)."""
-    return [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]
-
-
-def nearest_blend(scene, view: int, sources: list[int], k: int, skip: int = 0) -> torch.Tensor:
-    """Which of ``sources`` view ``view`` blends under ``--nearest k``: the ``k`` nearest to it, never
-    ``view`` itself (a tuning view that is also a source learns from the others); with ``skip``, the ``k`` after the
-    ``skip`` nearest (fewer skipped when too few sources are left). ``# [K]`` bool"""
-    others = [s for s in sources if s != view]
-    near = select_sources(scene, scene.cameras[view], others, min(k + skip, len(others))) if others else []
-    keep = set(near[max(0, len(near) - k):])
-    return torch.tensor([s in keep for s in sources], dtype=torch.bool)
-
-
-def restrict_to_nearest(pixels: list[ViewPixels], scene, sources: list[int], k: int, skip: int = 0) -> None:
-    """Mask every pixel of each view in ``pixels`` to its :func:`nearest_blend` sources (in place; ``k`` = 0:
-    unchanged). A point the occlusion test hides from all of them blends those ``k`` (not every source)."""
-    if k <= 0:
-        return
-    for v in pixels:
-        near = nearest_blend(scene, v.index, sources, k, skip)  # [K]
-        vis = v.visible if v.visible is not None else torch.ones(len(v.points), len(sources), dtype=torch.bool)
-        vis = vis & near  # [P, K]
-        vis[~vis.any(-1)] = near
-        v.visible = vis
-
-
-def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int, source_masks: bool = True) -> None:
-    """Give every point of each view in ``pixels`` its ``--blend angle`` weights (in place): the ``k`` sources
-    (``k`` = 0: all) nearest by viewing angle among those in front of it, inside their image and (with the
-    occlusion test) not occluded, never the view's own photo; with ``source_masks`` on a real object capture with
-    masks (:func:`omnirecon.mesh.ibr.masks_hold_scene`), times
-    :func:`omnirecon.mesh.ibr.mask_falloff` at each source's pixel for the points on the mesh (as the mesh renderer's
-    ``MeshRenderOptions.source_masks``); ``visible`` becomes the sources with weight."""
-    from omnirecon.mesh.ibr import angle_weights, apply_mask_factor, mask_factor, mask_falloff, masks_hold_scene
-
-    cams = scene.cameras[sources].to(dtype=torch.float32)
-    falloff = mask_falloff(scene.masks[sources]) if source_masks and masks_hold_scene(scene) else None
-    for v in pixels:
-        proj = cams.project(v.points)
-        seen = (proj.in_image & (proj.depth > 0)).T  # [P, K]
-        if v.occlusion is None and v.visible is not None:
-            v.occlusion = v.visible  # the occlusion test's result, kept: a second call starts from it again
-        if v.occlusion is not None:
-            seen &= v.occlusion
-        if v.index in sources:  # a view never blends its own photo (validation views are sources under --nearest)
-            seen[:, sources.index(v.index)] = False
-        v.weights = angle_weights(v.points, v.origin, cams.centers, seen, k or len(sources))
-        if falloff is not None:
-            fac = mask_factor(falloff, proj.uv.permute(0, 2, 1)).T  # [P, K]
-            fac[v.covered:] = 1.0  # the fill's points: off the objects where the view sees no surface
-            v.weights = apply_mask_factor(v.weights, fac)
-        v.visible = v.weights > 0
-
-
-def pick_validation(train_views: list[int], sources: list[int], n: int, scene=None,
-                    how: str = "spread") -> list[int]:
-    """``n`` training views, never one of ``sources``; always leaves a view to tune on. ``how`` (``--val-choice``):
-    ``spread``, evenly spaced; ``isolated`` (needs ``scene``), one at a time the candidate farthest from its nearest
-    other training view not yet chosen."""
-    cand = [i for i in train_views if i not in set(sources)]
-    n = min(n, len(cand), len(train_views) - 1)
-    if n < 1:
-        return []
-    if how == "isolated":
-        return isolated_views(scene, train_views, cand, n)
-    return [cand[i] for i in np.unique(np.linspace(0, len(cand) - 1, n + 2).round().astype(int))[1:-1][:n]] or cand[:n]
-
-
-def isolated_views(scene, train_views: list[int], cand: list[int], n: int) -> list[int]:
-    """``n`` of ``cand``, greedily the one whose nearest other remaining training view is farthest (by angle about
-    the look-at centre on object rigs, camera distance otherwise: ``engine.views.view_metric``)."""
-    from omnirecon.cameras import closest_point_to_axes, view_distances
-    from omnirecon.engine.views import view_metric
-
-    by = view_metric(scene)
-    cams = scene.cameras[train_views]
-    d = view_distances(cams, cams, by=by, center=closest_point_to_axes(scene.cameras) if by == "angle" else None)
-    d = d.double().clone().fill_diagonal_(float("inf"))  # [T, T]
-    left, chosen = list(range(len(train_views))), []
-    for _ in range(n):
-        score = {j: float(d[j, [m for m in left if m != j]].min()) for j in left if train_views[j] in set(cand)}
-        best = max(score, key=lambda j: (score[j], -j))
-        chosen.append(train_views[best])
-        left.remove(best)
-    return sorted(chosen)
-
-
-# ---------------------------------------------------------------------- the run
-@dataclass
-class Setup:
-    """What one run tunes on: the model, the scene, its views, and the mesh's pixels per view."""
-
-    model: torch.nn.Module
-    meta: dict
-    scene: object
-    views: list[int]
-    """Source views."""
-    targets: list[int]
-    """Held-out views scored at each evaluation."""
-    val_views: list[int]
-    """Training views kept out of tuning to choose the returned state."""
-    sources: Sources
-    background: tuple[float, float, float]
-    mesh: object
-    """The fixed mesh, scene frame (``trimesh.Trimesh``)."""
-    fill: bool
-    scored_by: str
-    """``"objects"`` (the protocol scores the object masks and the scene has them) or ``"image"``."""
-    train_px: list[ViewPixels]
-    held_px: list[ViewPixels]
-    val_px: list[ViewPixels]
-    blend: str = "network"
-    """``--blend``, ``auto`` resolved (:func:`omnirecon.mesh.ibr.scene_blend`)."""
-    fill_mode: str = "far"
-    """``--fill``, ``auto`` resolved: ``far``, ``nearest`` or ``background``."""
-    angle_k: int = 0
-    """With the angle blend: sources per point (``--angle-sources`` or ``--nearest``)."""
-    angle_scores: dict | None = None
-    """With several ``--angle-sources``: the validation score of each."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -663,254 +327,6 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
                  fill, scored_by(proto, scene), train_px, held_px, val_px, blend, fill_mode)
-
-
-def scored_by(proto, scene) -> str:
-    """What the scene's results are scored by: ``"objects"`` when its protocol scores the object masks
-    (``Protocol.masked``: DTU, Blender) and it has them, else ``"image"``."""
-    return "objects" if proto.masked and scene.masks is not None else "image"
-
-
-def validation_gain(val: dict, start: dict, scored: str, guard: float) -> tuple[float, bool]:
-    """A state's validation gain over the start on what the scene is scored by (``psnr_masked`` for
-    ``scored == "objects"`` when measured, else ``psnr``), and whether every other score dropped by at most
-    ``guard`` dB."""
-    key = "psnr_masked" if scored == "objects" and "psnr_masked" in val else "psnr"
-    gain = val[key] - start[key]
-    return gain, all(val[k] - start[k] >= -guard for k in val if k != key)
-
-
-@torch.no_grad()
-def score_held_out(model, feats, scene, held_px: list[ViewPixels], background, residual=None,
-                   soften: float = 0.0) -> dict:
-    """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
-    covers; ``coverage``; the ``renders`` (with ``soften``, blurred by that many pixels at the mesh's depth edges:
-    ``--soften``)."""
-    renders = [soften_edges(full_image(scene, v, render_pixels(model, feats, v, residual=residual), background),
-                            mesh_depth(scene, v), soften) for v in held_px]
-    gts = [scene.images[v.index].float() for v in held_px]
-    cover = [coverage_mask(scene, v) for v in held_px]
-    r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),
-         "per_view": [metrics.psnr(x, y) for x, y in zip(renders, gts)], "renders": renders,
-         "coverage": float(torch.stack(cover).float().mean())}
-    if scene.masks is not None:  # the objects only (a mesh cleaned with the masks has no background)
-        masks = [scene.masks[v.index].bool() for v in held_px]
-        r["psnr_masked"] = float(np.mean([metrics.psnr(x, y, m) for x, y, m in zip(renders, gts, masks)]))
-        r["coverage_masked"] = float(sum(int((c & m).sum()) for c, m in zip(cover, masks)) /
-                                     max(sum(int(m.sum()) for m in masks), 1))
-        cover = [c & m for c, m in zip(cover, masks)]
-    covered = [metrics.psnr(x, y, c) for x, y, c in zip(renders, gts, cover) if c.any()]
-    if covered:  # appearance alone: the pixels the mesh covers (inside the masks when there are masks)
-        r["psnr_covered"] = float(np.mean(covered))
-    return r
-
-
-class Tuner:
-    """The tuned parameters of one run, their optimiser and exposure, and the scores of their current state."""
-
-    def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
-        self.s, self.reg, model, self.consensus = s, cfg.reg, s.model, cfg.consensus
-        self.soften = cfg.soften
-        """``--soften``: the held-out renders' blur at the mesh's depth edges (px)."""
-        self.exposure = Exposure(len(s.views))
-        modules = {"encoder": model.encoder, "appearance": model.appearance}
-        nets = [] if s.blend == "angle" else [  # the angle blend uses neither network
-            p for name in dict.fromkeys(cfg.tune) if name in modules for p in modules[name].parameters()]
-        self.residual = ResidualColour(s.scene.bounds, cfg.residual_res) if "residual" in cfg.tune else None
-        self.params = nets + ([self.residual.grid] if self.residual is not None else [])
-        self.start = [p.detach().clone() for p in self.params]
-        if "exposure" in cfg.tune:
-            with torch.no_grad():
-                self.exposure.gain.copy_(estimate_gains(model, s.sources, s.train_px, g))
-        for p in model.parameters():
-            p.requires_grad_(False)
-        for p in self.params:
-            p.requires_grad_(True)
-        groups = [g for g in ({"params": nets, "lr": cfg.lr},
-                              {"params": self.params[len(nets):], "lr": cfg.residual_lr}) if g["params"]]
-        self.opt = torch.optim.Adam(groups) if groups else None
-        model.train()
-        self.exposed = "exposure" in cfg.tune
-        """Whether the blend mixes exposure-corrected colours (else the photos as they are: no identity pass)."""
-        self.frozen = None
-        """The features when the encoder is not tuned (they do not change: encoded once)."""
-        if "encoder" not in cfg.tune or s.blend == "angle":  # the encoder is not tuned: encoded once
-            with torch.no_grad():
-                self.frozen = self.features()
-        self.autocast = torch.autocast(device_type="cpu", dtype=torch.bfloat16, enabled=cfg.precision == "bf16")
-        self.pending = None
-        """The features of the current state with their graph, encoded for a score: the next step reuses them
-        (fp32 only: a bf16 step encodes under autocast) and charges ``pending_cost`` to the budget."""
-        self.pending_cost = 0.0
-        self.reuse = cfg.precision == "fp32" and self.frozen is None and not any(  # eval-mode BN would differ
-            getattr(m, "track_running_stats", False) for m in model.encoder.modules())
-        self.read = time.perf_counter if cfg.clock == "wall" else time.process_time
-
-    def set_gains(self, gain: torch.Tensor) -> None:
-        """Load exposure gains ``# [K, 1, 1, 3]`` (re-encoding the frozen features that mix them)."""
-        self.pending, self.pending_cost = None, 0.0  # encoded with the old gains
-        with torch.no_grad():
-            self.exposure.gain.copy_(gain)
-            if self.frozen is not None:
-                self.frozen = self.features()
-
-    def features(self):  # the encoder sees the photos as they are; the blend mixes exposure-corrected colours
-        return encode_maps(self.s.model, self.s.sources, colours=self.exposure(self.s.sources) if self.exposed else None)
-
-    def scoring_features(self):
-        """The current state's features for a score (no graph). Encoded with their graph when the next step can
-        reuse them (:attr:`pending`): a score between steps costs no encoder pass of its own."""
-        if self.frozen is not None:
-            return self.frozen
-        if not self.reuse:
-            return self.features()
-        if self.pending is None:
-            start = self.read()
-            with torch.enable_grad():
-                self.pending = self.features()
-            self.pending_cost = self.read() - start
-        return OmniReconFeatures(self.pending.sources, self.pending.maps.detach(), self.pending.volume, self.pending.box)
-
-    def step(self, batch: Batch) -> float:
-        """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start). Returns the seconds of a
-        reused encoder pass (:meth:`scoring_features`), which the budget is charged."""
-        reused, self.pending, charge = self.pending, None, self.pending_cost
-        self.pending_cost = 0.0
-        with self.autocast:
-            feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
-            if batch.weights is not None:  # --blend angle (with --tune residual): the fixed weights
-                rgb = self.s.model.gather(feats, batch.points[:, None], batch.origins).rgb[:, 0]  # [n, K, 3]
-                rgb = (consensus_weights(rgb, batch.weights.to(rgb), self.consensus)[:, :, None] * rgb).sum(1)
-            else:
-                rgb = self.s.model.shade(feats, batch.points, batch.origins, batch.visible)["rgb"]
-        if self.residual is not None:
-            rgb = rgb.float() + self.residual(batch.points)
-        loss = (rgb.float() - batch.target).square().mean()
-        if self.reg > 0 and self.params:
-            loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
-                p.numel() for p in self.params)
-        self.opt.zero_grad(set_to_none=True)
-        loss.backward()
-        self.opt.step()
-        return charge if reused is not None else 0.0
-
-    @torch.no_grad()
-    def validate(self, val_idx: list[torch.Tensor], val_obj: list[torch.Tensor] | None = None) -> dict[str, float]:
-        """PSNR of the current state on the validation pixels (``psnr``; NaN without validation views) and, given
-        which of them lie on the objects (``val_obj``), on those (``psnr_masked``)."""
-        if not self.s.val_px:
-            return {"psnr": float("nan")}
-        model = self.s.model
-        model.eval()
-        feats = self.scoring_features()
-        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual).clamp(0, 1) - v.target[i]).square().mean(-1)
-                        for v, i in zip(self.s.val_px, val_idx)])
-        model.train()
-        out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
-        if val_obj is not None and bool(torch.cat(val_obj).any()):
-            out["psnr_masked"] = float(-10 * torch.log10(se[torch.cat(val_obj)].mean().clamp_min(1e-10)))
-        return out
-
-    @torch.no_grad()
-    def test_scores(self) -> dict:
-        self.s.model.eval()
-        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background,
-                           self.residual, self.soften)
-        self.s.model.train()
-        return r
-
-    def state(self) -> list[torch.Tensor]:
-        return [p.detach().clone() for p in self.params]
-
-    def swap(self, state: list[torch.Tensor]) -> list[torch.Tensor]:
-        """Load ``state`` into the tuned parameters; returns the state they had. Drops :attr:`pending` (its graph
-        holds the weights this overwrites)."""
-        self.pending, self.pending_cost = None, 0.0
-        old = self.state()
-        with torch.no_grad():
-            for p, s in zip(self.params, state):
-                p.copy_(s)
-        return old
-
-
-@dataclass
-class Tuned:
-    """What the tuning loop measured and returns."""
-
-    curve: list[dict]
-    validation: list[dict]
-    before: dict
-    after: dict
-    best_val: dict
-    """The returned state's validation scores (``psnr``, ``psnr_masked``)."""
-    best_gain: float
-    """Its validation gain over the start (0: the start is returned)."""
-    best_at: tuple[float, int]
-    steps: int
-    budget_spent: float = 0.0
-    """Seconds of optimisation on the budget's clock (steps, and the encoder passes they reused)."""
-
-
-class Batch(NamedTuple):
-    """One step's pixels, from one or several tuning views."""
-
-    points: torch.Tensor
-    """``# [n, 3]``"""
-    origins: torch.Tensor
-    """Camera centre of each pixel's view. ``# [n, 3]``"""
-    visible: torch.Tensor | None
-    """Sources each point may blend (``None``: no test). ``# [n, K]`` bool"""
-    target: torch.Tensor
-    """``# [n, 3]``"""
-    weights: torch.Tensor | None = None
-    """With ``--blend angle``: each point's fixed blend weights (``ViewPixels.weights``). ``# [n, K]``"""
-
-
-def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
-    """``view``'s pixels at ``idx`` as a :class:`Batch`."""
-    return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx],
-                 None if view.weights is None else view.weights[idx])
-
-
-class PixelSampler:
-    """Each step's pixels: ``--rays`` shaded pixels (on the mesh and, with ``--fill far``, on the fill's layer: both
-    are scored; a ``--objects`` share of them on the mesh inside the object masks) of one tuning view drawn by its
-    shaded pixel count (``--step-views 1``) or spread over every tuning view in proportion to it (``0``)."""
-
-    def __init__(self, cfg: FinetuneConfig, s: Setup, g: torch.Generator):
-        self.cfg, self.views, self.g = cfg, s.train_px, g
-        self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
-        masks = s.scene.masks
-        self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
-                       else v.pixels[:0] for v in s.train_px]  # mesh pixels on the objects, per tuning view
-
-    def pick(self, k: int, n: int) -> torch.Tensor:
-        """``n`` pixel rows of tuning view ``k`` (the ``--objects`` share inside its masks)."""
-        view, inside = self.views[k], self.inside[k]
-        n = min(n, len(view.points))
-        idx = torch.randint(len(view.points), (n,), generator=self.g)
-        if self.cfg.objects > 0 and len(inside):
-            m = int(round(self.cfg.objects * n))
-            idx[:m] = inside[torch.randint(len(inside), (m,), generator=self.g)]
-        return idx
-
-    def views_and_rows(self) -> list[tuple[int, torch.Tensor]]:
-        """This step's ``(tuning view, pixel rows)`` pairs."""
-        if self.cfg.step_views == 1:
-            k = int(torch.multinomial(self.counts, 1, generator=self.g))
-            return [(k, self.pick(k, self.cfg.rays))]
-        per = torch.bincount(torch.multinomial(self.counts, self.cfg.rays, replacement=True, generator=self.g),
-                             minlength=len(self.views))  # [T] pixels per view, by shaded pixel count
-        return [(k, self.pick(k, int(n))) for k, n in enumerate(per.tolist()) if n > 0]
-
-    def __call__(self) -> Batch:
-        parts = [batch_of(self.views[k], idx) for k, idx in self.views_and_rows()]
-        if len(parts) == 1:
-            return parts[0]
-        vis = None if parts[0].visible is None else torch.cat([b.visible for b in parts])
-        return Batch(*(torch.cat([getattr(b, f) for b in parts]) for f in ("points", "origins")), vis,
-                     torch.cat([b.target for b in parts]),
-                     None if parts[0].weights is None else torch.cat([b.weights for b in parts]))
 
 
 def curve_point(t_check: float, step: int, r: dict, val: dict, best_val: dict, best_at: tuple[float, int]) -> dict:

@@ -151,7 +151,7 @@ def test_real_time_angle_blend_and_nearest_fill_render_what_finetune_scores(setu
     occlusion test on, gives the colours ``finetune --blend angle --fill nearest`` scores (its rasterized pixels,
     per-point angle weights over the same sources, the far layer seen by every source) on a mesh with holes; the
     nearest fill moves pixels next to the mesh onto its depth, so it differs from the far layer there."""
-    from omnirecon.workflows.finetune import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
+    from omnirecon.mesh.pixels import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
 
     scene, mesh, model, sources, target = setup
     keep = np.asarray(mesh.triangles_center)[:, 0] < np.median(np.asarray(mesh.triangles_center)[:, 0])
@@ -186,7 +186,7 @@ def test_angle_blend_samples_only_the_sources_it_weighs(setup, source_masks):
 
     import torch.nn.functional as F
 
-    from omnirecon.mesh.ibr import angle_weights, apply_mask_factor, mask_factor
+    from omnirecon.mesh.kernel import angle_weights, apply_mask_factor, mask_factor
 
     scene, mesh, model, sources, target = setup
     if source_masks:  # an object capture whose masks hold the scene
@@ -385,7 +385,7 @@ def test_the_far_layer_of_an_object_rig_lies_at_the_far_depth(setup):
     from dataclasses import replace
 
     from omnirecon.mesh.fill import layer_box
-    from omnirecon.workflows.finetune import rasterize_views
+    from omnirecon.mesh.pixels import rasterize_views
 
     scene, mesh, *_ = setup
     assert scene.rig == "object"
@@ -406,7 +406,7 @@ def test_the_far_layer_of_an_object_rig_lies_at_the_far_depth(setup):
 def test_mask_falloff_weighs_sources_by_their_masks():
     """``mask_falloff``: 1 from ``reach`` pixels inside a source's mask, less toward its edge, ``floor`` off it;
     ``apply_mask_factor`` renormalises and keeps rows whose weights all vanish."""
-    from omnirecon.mesh.ibr import apply_mask_factor, mask_factor, mask_falloff
+    from omnirecon.mesh.kernel import apply_mask_factor, mask_factor, mask_falloff
 
     masks = torch.zeros(2, 9, 9, dtype=torch.bool)
     masks[0, 1:8, 1:8] = True  # source 1 sees no object at all
@@ -429,7 +429,7 @@ def test_real_time_source_masks_render_what_finetune_scores(setup):
     from dataclasses import replace
 
     from omnirecon.mesh.ibr import masks_hold_scene
-    from omnirecon.workflows.finetune import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
+    from omnirecon.mesh.pixels import angle_blend, encode_maps, full_image, rasterize_views, render_pixels
 
     scene, mesh, model, sources, target = setup
     assert scene.masks is not None and not masks_hold_scene(scene)

@@ -185,7 +185,7 @@ def test_validation_scores_what_the_scene_is_scored_by():
     from types import SimpleNamespace
 
     from omnirecon.engine.protocols import PROTOCOLS
-    from omnirecon.workflows.finetune import scored_by, validation_gain
+    from omnirecon.engine.tuning import scored_by, validation_gain
 
     masks, none = SimpleNamespace(masks=torch.ones(1)), SimpleNamespace(masks=None)
     assert scored_by(PROTOCOLS["dtu"], masks) == "objects" and scored_by(PROTOCOLS["dtu"], none) == "image"
@@ -210,7 +210,7 @@ def test_visibility_masks_the_sources_that_see_something_else(setup):
     from omnirecon.engine.scenes import load_at_resolution
     from omnirecon.mesh.complete import DepthRenderer
     from omnirecon.mesh.files import read_mesh
-    from omnirecon.workflows.finetune import rasterize_views
+    from omnirecon.mesh.pixels import rasterize_views
 
     _, path = setup
     scene = load_at_resolution(path, 48)
@@ -242,9 +242,10 @@ def test_nearest_sources_blend_only_the_views_nearest_each_view(setup):
     own photo (a tuning view that is a source), and a point the occlusion test hides from all of them blends those
     ``k``; ``k`` = 0 changes nothing."""
     from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.engine.tuning import restrict_to_nearest
     from omnirecon.engine.views import select_sources
     from omnirecon.mesh.files import read_mesh
-    from omnirecon.workflows.finetune import rasterize_views, restrict_to_nearest
+    from omnirecon.mesh.pixels import rasterize_views
 
     _, path = setup
     scene = load_at_resolution(path, 48)
@@ -301,7 +302,7 @@ def test_isolated_validation_views_are_the_training_views_farthest_from_the_othe
     from types import SimpleNamespace
 
     from omnirecon.cameras import Cameras, look_at
-    from omnirecon.workflows.finetune import pick_validation
+    from omnirecon.engine.tuning import pick_validation
 
     az = [*range(0, 100, 10), 135, *range(180, 280, 10), 315]  # degrees: 135 and 315 alone, 45 degrees from the rest
     eyes = torch.tensor([[2 * math.cos(math.radians(a)), 2 * math.sin(math.radians(a)), 0.5] for a in az],
@@ -325,7 +326,8 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path, step_vi
     views, ``--rays`` pixels in all, and its batch carries each pixel's own view (origin, target)."""
     import trimesh
 
-    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, prepare
+    from omnirecon.engine.tuning import PixelSampler
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
 
     root, scene = setup
     mesh = trimesh.load(scene / "mesh.ply", process=False, force="mesh")
@@ -360,7 +362,7 @@ def test_tuning_samples_the_fill_pixels_it_is_scored_on(setup, tmp_path, step_vi
 def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
     """``angle_weights``: only the ``k`` seen sources with the smallest viewing angle get weight, the nearer more,
     weights sum to 1, a source at the (k+1)-th angle gets none, and a point no source sees blends all uniformly."""
-    from omnirecon.mesh.ibr import angle_weights
+    from omnirecon.mesh.kernel import angle_weights
 
     angles = torch.tensor([0.05, 0.10, 0.20, 0.30, 0.02])  # radians from the target's ray, source 4 nearest
     centers = torch.stack([torch.stack([torch.sin(a), torch.zeros(()), -torch.cos(a)]) * 2 for a in angles])
@@ -376,7 +378,7 @@ def test_angle_weights_blend_the_k_nearest_seen_sources_by_angle():
 def test_consensus_weights_drop_the_source_whose_colour_disagrees():
     """``consensus_weights``: three sources agree on grey, one sees a white highlight; the highlight's weight falls
     and the blend moves to grey; sigma 0 leaves the weights; weights that all vanish are kept."""
-    from omnirecon.mesh.ibr import consensus_weights
+    from omnirecon.mesh.kernel import consensus_weights
 
     rgb = torch.tensor([[[0.5] * 3, [0.52] * 3, [0.48] * 3, [1.0] * 3]])  # [1, 4, 3]
     w = torch.full((1, 4), 0.25)
@@ -416,8 +418,9 @@ def test_soften_blurs_the_held_out_renders_at_the_meshs_depth_edges_only(setup, 
     """``--soften`` (default 0.7 px): the held-out renders are blurred at the mesh's depth edges and nowhere else
     (``omnirecon.render.edges.soften_edges`` of the unsoftened render), the record says so (the real-time path
     follows it); ``--soften 0`` is the render as it was."""
+    from omnirecon.mesh.pixels import mesh_depth, score_held_out
     from omnirecon.render.edges import depth_edges, soften_edges
-    from omnirecon.workflows.finetune import FinetuneConfig, mesh_depth, prepare, score_held_out
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
 
     root, scene = setup
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, blend="angle",
@@ -443,8 +446,8 @@ def test_nearest_fill_puts_missed_pixels_at_the_nearest_covered_depth():
     """``--fill nearest``: a missed pixel within reach of the covered ones moves onto its own ray at the z-depth of
     the nearest covered pixel; one beyond reach, and every covered point, stay where they were."""
     from omnirecon.cameras import Cameras, look_at
+    from omnirecon.mesh.pixels import nearest_depth_points
     from omnirecon.render.raster import Surface
-    from omnirecon.workflows.finetune import nearest_depth_points
 
     W = H = 40
     c2w = look_at(torch.zeros(1, 3), torch.tensor([[0, 0, 1.0]]), torch.tensor([0, -1.0, 0]))
@@ -494,7 +497,9 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
     its seconds to the budget): validation scores and the tuned weights are exactly those of a run that encodes
     for each of them; a swapped-in state drops the reusable pass; the sources' depth is rasterized once for the
     tuning, held-out and validation views alike."""
-    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, rasterize_views
+    from omnirecon.engine.tuning import PixelSampler, Tuner
+    from omnirecon.mesh.pixels import rasterize_views
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
 
     root, scene = setup
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256,
@@ -527,7 +532,9 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
 def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
     """``--tune residual``: a 3-D colour offset added to the blend, zero at start (the start's colours unchanged);
     under the angle blend too (whose weights are fixed: the steps use them), steps lower the tuning loss."""
-    from omnirecon.workflows.finetune import FinetuneConfig, PixelSampler, Tuner, prepare, render_pixels
+    from omnirecon.engine.tuning import PixelSampler, Tuner
+    from omnirecon.mesh.pixels import render_pixels
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
 
     root, scene = setup
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=512,

@@ -17,7 +17,7 @@
 //      network (ANGLE 0): omega = softmax_k MLP([ReLU(W F_k + b); u - u_k]) over the frame's sources (the nearest
 //        `frame_sources` to its camera, uSel; -1e9 where a source does not see the point);
 //      angle (ANGLE 1): the KA sources nearest by viewing angle among those that see the point get
-//        (1 - a_k / a_next) / a_k (omnirecon.mesh.ibr.angle_weights), times mask_falloff at their pixel on points of
+//        (1 - a_k / a_next) / a_k (omnirecon.mesh.kernel.angle_weights), times mask_falloff at their pixel on points of
 //        the mesh (MASKS), normalised; a point no source weighs blends every source of the frame alike.
 // "Sees": in front, inside the image and, with the visibility test, z <= (1 + tol) * the largest rasterized source
 // depth of the 2x2 pixel block around the projection (depth.bin).
@@ -252,7 +252,7 @@ bool framed(float z, vec2 uv) {
   return z > 1e-6 && uv.x >= 0.0 && uv.y >= 0.0 && uv.x < uImageSize.x && uv.y < uImageSize.y;
 }
 
-// the occlusion test (omnirecon.mesh.ibr.unoccluded)
+// the occlusion test (omnirecon.mesh.kernel.unoccluded)
 bool unoccluded(int k, vec2 uv, float z) {
   int b = int(clamp(floor(uv.x - 0.5), -1.0, uImageSize.x - 1.0)) + 1;
   int a = int(clamp(floor(uv.y - 0.5), -1.0, uImageSize.y - 1.0)) + 1;
@@ -275,7 +275,7 @@ vec3 sampleImage(int k, vec2 uv) {
   return t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y);
 }
 
-// mask_falloff at the pixel uv falls in (omnirecon.mesh.ibr.mask_factor): clip(d / reach, floor, 1)
+// mask_falloff at the pixel uv falls in (omnirecon.mesh.kernel.mask_factor): clip(d / reach, floor, 1)
 float maskFactor(int k, vec2 uv) {
   ivec2 q = ivec2(clamp(floor(uv), vec2(0.0), uImageSize - 1.0));
   float d2 = floor(texelFetch(uImages, ivec3(q, k), 0).a * 255.0 + 0.5);
