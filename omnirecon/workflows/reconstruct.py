@@ -49,7 +49,7 @@ from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import NoDepth
+from omnirecon.mesh.confidence import NoDepth
 from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
