@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import torch
 import trimesh
@@ -57,6 +57,7 @@ from omnirecon.mesh.stages import COHERENT, FUSED, MeshState, StageClock, run
 from omnirecon.mesh.stereo import StereoOptions
 from omnirecon.mesh.stereo_refine import RefineOptions, refine_depths
 from omnirecon.mesh.surface import SurfaceOptions
+from omnirecon.scene_kind import scene_kind
 
 DTU_SHIFT = 25.0 / 684.0
 """VolRecon's virtual-view shift (25 mm along the camera x axis) over DTU's camera distance to the
@@ -76,9 +77,11 @@ class MeshOptions:
     fusion: str = "fit"
     """The preset these settings came from: ``"fit"`` (fitted to the depth it gets) or ``"reference"``
     (VolRecon's protocol: see :data:`PRESETS`)."""
-    depth: str = "model"
+    depth: str = "auto"
     """Depth source: ``model``, ``stereo``, ``stereo+model`` (stereo where it matched, the model's depth
-    for the rest) or ``oracle`` (the exact depth of a procedural scene)."""
+    for the rest), ``oracle`` (the exact depth of a procedural scene) or ``auto``: the scene kind's
+    (:meth:`omnirecon.scene_kind.SceneKind.depth`; ``stereo+model`` with the model's coarse pass), as ``omnirecon
+    mesh --depth auto`` (:func:`resolved`)."""
     shifts: tuple[float, ...] = (0.0,)
     """Depth maps per view: x-axis shifts as fractions of the camera's distance to the bounds centre
     (VolRecon renders at the source shifted by :data:`DTU_SHIFT`); model and oracle depth only."""
@@ -255,8 +258,9 @@ class MeshOptions:
     def check(self) -> None:
         if self.fusion not in PRESETS:
             raise InputError(f"--fusion must be one of {', '.join(PRESETS)}, got {self.fusion!r}", None, "use --fusion fit")
-        if self.depth not in DEPTHS:
-            raise InputError(f"--depth must be one of {', '.join(DEPTHS)}, got {self.depth!r}", None, "use --depth stereo")
+        if self.depth not in ("auto", *DEPTHS):
+            raise InputError(f"--depth must be auto or one of {', '.join(DEPTHS)}, got {self.depth!r}", None,
+                             "use --depth stereo")
         if self.depth_pass not in ("coarse", "fine"):
             raise InputError(f"--depth-pass must be coarse or fine, got {self.depth_pass!r}", None, "use --depth-pass fine")
         if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
@@ -346,6 +350,7 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     """The depth maps of ``options.depth`` at ``views`` of ``scene`` (``model`` for model depth). ``stereo+model``
     renders the model only at the pixels fusion takes from it (:func:`holes`; inside the dilated ``masks``)."""
     views = list(views)
+    options = resolved(options, scene, model is not None, masks is not None)
     if options.depth in ("model", "stereo+model") and model is None:
         raise InputError(f"--depth {options.depth} needs a model", None, "pass --ckpt or --model floor, or --depth stereo")
 
@@ -359,7 +364,7 @@ def depth_maps(options: MeshOptions, scene, views, model=None, device="cpu", on_
     stereo = stereo_maps(scene, views, options.stereo, on_view)
     if masks is None and options.drop_background:  # no surface where the photo shows the known background colour
         stereo = without_background(stereo, scene)  # (fusion drops it anyway): not refined, not propagated
-    refine = options.refine if scene.rig != "forward" and masks is None else "none"  # object captures without masks
+    refine = options.refine if scene_kind(scene, masks is not None).object_without_masks else "none"
     if refine == "stereo" or (refine == "all" and options.depth == "stereo"):
         stereo = refined(stereo, scene, options)
     if options.depth == "stereo":
@@ -433,7 +438,7 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
         A :class:`MeshResult`: the mesh in the scene frame, a JSON-serialisable record of the settings,
         face counts and seconds per stage, and the depth maps that were fused.
     """
-    options = options or MeshOptions()
+    options = resolved(options or MeshOptions(), scene, model is not None, use_masks)
     options.check()
     views = list(views)
     n_maps = len(views) * {"model": len(options.shifts), "oracle": 0, "stereo": 1, "stereo+model": 2}[options.depth]
@@ -461,46 +466,29 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
     return made
 
 
+def resolved(options: MeshOptions, scene, has_model: bool, masks: bool) -> MeshOptions:
+    """``options`` with ``depth="auto"`` made the scene kind's source (:func:`default_depth`), rendered with the
+    model's coarse pass when that is ``stereo+model`` (the model only fills stereo's holes), as ``omnirecon mesh``
+    picks them."""
+    if options.depth != "auto":
+        return options
+    depth = default_depth(scene, has_model, masks)
+    return replace(options, depth=depth, depth_pass="coarse" if depth == "stereo+model" else options.depth_pass)
+
+
 def default_surface(scene=None, masks: bool = False) -> str:
-    """The surface ``omnirecon mesh --surface auto`` (and so ``reconstruct`` and ``demo``) makes per scene kind, by
-    what ``python -m bench extrapolation`` (held-out views beyond the photos and the path a user watches) and ``python
-    -m bench depth_sources`` (interpolated held-out views) measured (BENCHMARKS "Away from the photos"):
-
-    * a walk (cameras that move along their view direction, :func:`omnirecon.trajectory.is_walk`: a street walked
-      forward, or out and back, whatever the rig): ``coherent``. Completion's fills, each from one photo's depth, are what its later
-      photos and any other viewpoint see of the street;
-    * every other scene: ``fusion`` (with completion): forward-facing captures, objects with masks or a known
-      background colour, and objects without either.
-    """
-    from omnirecon.trajectory import is_walk
-
-    cams = getattr(scene, "cameras", None)
-    if cams is not None and is_walk(cams):
-        return "coherent"
-    return "fusion"
+    """The surface ``omnirecon mesh --surface auto`` (and so ``reconstruct`` and ``demo``) makes: the scene kind's
+    (:attr:`omnirecon.scene_kind.SceneKind.surface`: ``coherent`` on a walk, ``fusion`` with completion elsewhere)."""
+    return scene_kind(scene, masks).surface
 
 
 def default_depth(scene=None, has_model: bool = True, masks: bool = False) -> str:
-    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct`` and ``demo``) picks per scene kind,
-    by what ``python -m bench depth_sources`` measured (BENCHMARKS "Depth sources", all training views but the
-    held-out ones, scored with finetune's visibility test; held-out PSNR before -> after 60 CPU-s of tuning).
-    ``stereo`` below is stereo with completion (``MeshOptions.complete``, on by default; the bench's
-    ``stereo+fill`` row):
-
-    * forward-facing captures (``scene.rig == "forward"``): ``stereo``, model or not. On fern it scores a little
-      above ``stereo+model`` (``--rows fern:stereo+fill fern:stereo+model``), both cover every pixel, and it needs
-      no model pass;
-    * object captures meshed with their masks (``--masks``): ``stereo``. On dtu_scan24 / dtu_scan37 (``--rows
-      dtu_scan24:stereo+fill dtu_scan24:stereo+model ...``) it scores above ``stereo+model`` over the mask at about
-      the same IoU;
-    * other scenes with a model (object rigs without masks, unknown rigs): ``stereo+model`` (stereo where it
-      matched, the model's coarse depth at 128 px for the rest). It scores above ``stereo`` on the demo's
-      procedural scene (``--rows demo:stereo+fill demo:stereo+model``), and on a 3-view procedural capture stereo
-      alone left most held-out depth uncovered (``tests/mesh/test_mesh.py::test_mesh_cli_floor``): stereo pairs
-      only views within 60 degrees;
-    * without a model, ``stereo``.
-    """
-    rig = getattr(scene, "rig", "unknown")
-    if not has_model or rig == "forward" or (masks and getattr(scene, "masks", None) is not None):
-        return "stereo"
-    return "stereo+model"
+    """The depth source ``omnirecon mesh --depth auto`` (and so ``reconstruct``, ``demo`` and ``MeshOptions()``)
+    picks: the scene kind's (:meth:`omnirecon.scene_kind.SceneKind.depth`; ``masks``: meshed with the scene's masks).
+    ``stereo`` there is stereo with completion (``MeshOptions.complete``; the bench's ``stereo+fill`` row): on fern it
+    scores a little above ``stereo+model`` (``python -m bench depth_sources --rows fern:stereo+fill
+    fern:stereo+model``), and on dtu_scan24 / dtu_scan37 over the mask at about the same IoU; on the demo's
+    procedural scene ``stereo+model`` scores above ``stereo`` (``--rows demo:stereo+fill demo:stereo+model``), and on
+    a 3-view procedural capture stereo alone left most held-out depth uncovered
+    (``tests/mesh/test_mesh.py::test_mesh_cli_floor``)."""
+    return scene_kind(scene, masks).depth(has_model)

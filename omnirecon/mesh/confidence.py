@@ -14,6 +14,7 @@ from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
 from omnirecon.mesh import clean, fusion
 from omnirecon.mesh.depth import DepthMaps, background_pixels, without_background
+from omnirecon.scene_kind import SceneKind, scene_kind
 
 if TYPE_CHECKING:
     from omnirecon.mesh.build import MeshOptions
@@ -94,9 +95,12 @@ def require_depth(depth: Tensor, given: DepthMaps, lost: str) -> None:
         raise NoDepth(depth_found(given), "source" if not bool((given.depth > 0).any()) else lost)
 
 
-def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) -> tuple[Prepared, DepthMaps]:
+def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None,
+            kind: SceneKind | None = None) -> tuple[Prepared, DepthMaps]:
     """The confidence stage: depth, weights and evidence of ``maps`` for fusion (module docstring, 2), and ``maps``
-    without the known background's pixels (what completion reads). :class:`NoDepth` when no pixel is left to fuse."""
+    without the known background's pixels (what completion reads). :class:`NoDepth` when no pixel is left to fuse.
+    ``kind``: the scene's (default: :func:`scene_kind` of ``scene`` with ``masks``)."""
+    kind = kind or scene_kind(scene, masks is not None)
     given, empty = maps, None
     if masks is None and options.drop_background:  # the known background colour: no surface there, and (carve) empty space on its rays
         empty = background_pixels(maps, scene, options.shifts)
@@ -110,7 +114,7 @@ def prepare(maps: DepthMaps, scene, options: MeshOptions, masks: Tensor | None) 
     needs = options.weights or options.complete or options.surface == "coherent"
     agree = fusion.consistency(cams, depth, rel=rel) if len(cams) > 1 and needs else None
     occluded = 0.0
-    if options.occlusion > 0 and agree is not None and scene.rig != "forward":  # behind a surface others see: too far
+    if options.occlusion > 0 and agree is not None and kind.occlusion:  # behind a surface others see: too far
         depth, weight, agree, occluded = drop_occluded(cams, depth, weight, agree, options, masks is None)
     if options.weights and agree is not None:
         weight = weight * fusion.geometric_weight(agree, len(cams))

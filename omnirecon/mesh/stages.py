@@ -28,6 +28,7 @@ from omnirecon.mesh import clean, fusion
 from omnirecon.mesh.complete import complete_surface
 from omnirecon.mesh.confidence import Prepared, prepare
 from omnirecon.mesh.depth import DepthMaps
+from omnirecon.scene_kind import SceneKind, scene_kind
 
 if TYPE_CHECKING:
     from omnirecon.mesh.build import MeshOptions
@@ -109,15 +110,10 @@ class MeshState:
         return clean.dilate_masks(self.masks[self.views].cpu().numpy().astype(bool),
                                   self.options.hull_dilate * self.scene.width)
 
-    @property
-    def forward(self) -> bool:
-        """A forward-facing scene."""
-        return self.scene.rig == "forward"
-
-    @property
-    def fill(self) -> bool:
-        """The hole filling of object captures without masks (``MeshOptions.fill_holes``)."""
-        return self.scene.rig != "forward" and self.masks is None
+    @cached_property
+    def kind(self) -> SceneKind:
+        """The scene's kind, with ``masks`` as given (it picks the stages' scene-dependent steps)."""
+        return scene_kind(self.scene, self.masks is not None)
 
 
 @dataclass(frozen=True)
@@ -146,7 +142,7 @@ def run(stages: list[Stage], state: MeshState, clock: StageClock) -> None:
 # ---------------------------------------------------------------------- shared stages
 def confidence(s: MeshState) -> None:
     """Depth, weights and evidence for fusion (:func:`~omnirecon.mesh.confidence.prepare`)."""
-    s.prep, s.maps = prepare(s.maps, s.scene, s.options, s.masks)
+    s.prep, s.maps = prepare(s.maps, s.scene, s.options, s.masks, s.kind)
     if s.options.surface == "coherent" and s.prep.agree is None:
         raise InputError("the coherent surface needs at least two depth maps to confirm each other", s.scene.path,
                          "mesh from more views, or use --surface fusion")
@@ -183,7 +179,7 @@ def clean_fused(s: MeshState) -> None:
 
 def decimate_fused(s: MeshState) -> None:
     """The face budget, then small holes closed (:func:`within_budget`)."""
-    s.fused = s.mesh = within_budget(s.mesh, s.options.max_faces, s.options, s.counts, fill=s.fill)
+    s.fused = s.mesh = within_budget(s.mesh, s.options.max_faces, s.options, s.counts, s.kind.object_without_masks)
     s.stage_done("decimated")
 
 
@@ -224,7 +220,7 @@ def refit(s: MeshState) -> list[Stage]:
     if room < budget // 4:  # the fused surface keeps at least a quarter of the budget
         trim_fused(s)
         return []
-    s.fused = s.mesh = within_budget(s.fused, room, s.options, s.counts, s.fill)
+    s.fused = s.mesh = within_budget(s.fused, room, s.options, s.counts, s.kind.object_without_masks)
     s.completion = None
     return [*FILLS, Stage("budget", trim_fused)]
 
@@ -304,7 +300,7 @@ def backdrop(s: MeshState) -> None:
 COHERENT = [Stage("confidence", confidence), Stage("fuse", fuse_fine, when=fine_tsdf),
             Stage("clean", clean_fine, when=fine_tsdf), Stage("coherent surface", coherent, key="surface"),
             Stage("hull trim", hull_trim, when=lambda s: s.hull is not None), Stage("decimate", decimate),
-            Stage("backdrop", backdrop, when=lambda s: s.forward and s.options.backdrop_pad >= 0)]
+            Stage("backdrop", backdrop, when=lambda s: s.kind.forward and s.options.backdrop_pad >= 0)]
 """The coherent surface's stages (``--surface coherent``)."""
 
 
@@ -331,12 +327,12 @@ def completed(s: MeshState) -> tuple[trimesh.Trimesh, dict]:
     """Completion (:func:`complete_surface`) of the mesh so far at ``s.views``, then the visual-hull trim of the
     fills: ``(mesh, completion's record)``."""
     mesh, prep, scene, options, masks = s.mesh, s.prep, s.scene, s.options, s.masks
-    view_depths = completion_depths(s.maps, s.views, options, prep.agree if not s.forward else None)
-    content = None if masks is not None or s.forward or options.content_fill <= 0 else \
+    view_depths = completion_depths(s.maps, s.views, options, prep.agree if s.kind.confirmed_fill else None)
+    content = None if not s.kind.content_fill or options.content_fill <= 0 else \
         content_pixels(scene, s.views, options.content_fill, view_depths)
     surface = len(mesh.faces)
-    mesh, completion = complete_surface(mesh, s.view_cams, view_depths, scene.bounds, s.view_masks, forward=s.forward,
-                                        occlusion_rel=prep.rel if options.fill_occlusion and masks is None else None,
+    mesh, completion = complete_surface(mesh, s.view_cams, view_depths, scene.bounds, s.view_masks,
+                                        forward=s.kind.forward, occlusion_rel=prep.rel if options.fill_occlusion and masks is None else None,
                                         backdrop_pad=options.backdrop_pad, content=content)
     if s.hull is not None:  # fills from a view's own depth obey the other views' silhouettes too
         keep = clean.hull_keep(mesh, s.view_cams, s.hull, options.hull_misses)
