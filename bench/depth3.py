@@ -88,7 +88,7 @@ def score_scene(model, es, ref: np.ndarray) -> dict:
     res["stereo_pixels"] = float((ref > 0).mean())
     if scene.masks is not None:  # silhouette IoU of the 3-view mesh against the object masks
         views = geometry_sources(es, K)
-        made = mesh_from_model(model, scene, views, MeshOptions(), "cpu")
+        made = mesh_from_model(model, scene, views, MeshOptions(depth="model"), "cpu")
         if len(made.mesh.faces):
             iou = geo.evaluate_mesh(made.mesh, dataclasses.replace(scene, depths=None), targets)["mask_iou"]
             res["mask_iou"], res["mask_iou_against"] = iou["mean"], iou["against"]

@@ -88,7 +88,7 @@ def run_scene(path: Path, name: str, times, tiny: bool, results: Path, threads: 
     else:
         from omnirecon.mesh.build import MeshOptions, mesh_from_model
 
-        mesh = mesh_from_model(model, scene, default_views(scene, 3), MeshOptions()).mesh
+        mesh = mesh_from_model(model, scene, default_views(scene, 3), MeshOptions(depth="model")).mesh
     vis = visibility_psnr(model, scene, ft["sources"], ft["held_out"], mesh)
     figures = results / "figures"
     figures.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,7 @@ from omnirecon.data.scene import Scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, same_scene, scene_name
 from omnirecon.errors import InputError
 from omnirecon.rays import Rays, Sources
+from omnirecon.scene_kind import scene_kind
 from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS, VAL_SEEDS
 
 RIGS = ("object", "frontal", "forward")
@@ -219,7 +220,7 @@ def prepare(scene: Scene, name: str) -> PreparedScene:
     if len(targets) < 2:
         raise InputError(f"scene has {len(targets)} training view(s); training needs at least 2", scene.path,
                          "use a scene with more views")
-    by = "angle" if scene.rig == "object" else "distance"
+    by = scene_kind(scene).rank_by
     center = closest_point_to_axes(scene.cameras) if by == "angle" else None
     cams = scene.cameras[targets]
     d = view_distances(cams, cams, by=by, center=center).double()

@@ -128,7 +128,7 @@ def evaluate(
         raise InputError(f"--chunk must be at least 1, got {chunk}", None, "use e.g. 4096")
     if max_targets is not None and max_targets < 1:
         raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
-    options = mesh_options or MeshOptions(chunk=chunk)
+    options = mesh_options or MeshOptions(depth="model", chunk=chunk)  # the model's geometry
     if model is None and not (geometry and options.depth in ("stereo", "oracle")):
         raise InputError("evaluating without a model needs geometry with a depth source that needs none", None,
                          "pass a model, or geometry=True with MeshOptions(depth='stereo')")

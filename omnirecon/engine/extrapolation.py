@@ -25,6 +25,7 @@ from torch import Tensor
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.engine.views import select_sources
 from omnirecon.metrics import psnr
+from omnirecon.scene_kind import scene_kind
 from omnirecon.trajectory import is_walk
 
 PATH_BEYOND = 15.0
@@ -38,7 +39,7 @@ def user_path(scene, views: list[int], frames: int, beyond: float = PATH_BEYOND)
     if is_walk(cams):  # before the rig: a street walked out and back has converging axes, an "object" rig
         keys = default_keyframes(len(views))
         return camera_path(cams, "interp", frames, keyframes=keys), "walk"
-    if scene.rig == "object":
+    if scene_kind(scene).object:
         return camera_path(cams, "orbit", frames, closest_point_to_axes(cams), arc=None, beyond=beyond), "orbit"
     near, far = float(scene.near[views].min()), float(scene.far[views].max())
     return camera_path(cams, "spiral", frames, near=near, far=far), "spiral"

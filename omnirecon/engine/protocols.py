@@ -13,6 +13,7 @@ import numpy as np
 from omnirecon.data.io import read_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.scene_kind import scene_kind
 
 SYNTH_PREFIX = "synth:eval"
 """Scene spec of the held-out procedural set (``synth:eval`` or ``synth:eval:<rig>``)."""
@@ -191,7 +192,7 @@ def extrapolation_split(scene: Scene, pool: list[int] | None = None, arc: float 
     from omnirecon.trajectory import azimuth_frame, azimuths, captured_arc, is_walk
 
     pool = sorted(pool) if pool is not None else list(range(len(scene)))
-    if scene.rig == "forward" or is_walk(scene.cameras[pool]):
+    if scene_kind(scene).forward or is_walk(scene.cameras[pool]):
         n_test = max(2, round(WALK_HOLD * len(pool)))
         train, test = pool[:-n_test], pool[-n_test:]
         split = ExtrapolationSplit(train, test, "walk", [float(k + 1) for k in range(n_test)])

@@ -19,6 +19,7 @@ from omnirecon.engine.protocols import (
     protocol_for,
 )
 from omnirecon.errors import InputError
+from omnirecon.scene_kind import scene_kind
 from omnirecon.splits import EVAL_SEEDS
 
 
@@ -46,7 +47,8 @@ def object_masks(path: Path, fmt: str = "auto") -> bool:
     ``--masks``, DTU, ethiopianHead: what ``reconstruct`` meshes with its masks."""
     fmt = detect_format(path) if fmt == "auto" else fmt
     probe = load_scene(path, fmt, ReadOptions(max_views=1))
-    return probe.rig == "object" and probe.masks is not None
+    kind = scene_kind(probe)
+    return kind.object and kind.masks
 
 
 @dataclass

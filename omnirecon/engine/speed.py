@@ -62,6 +62,7 @@ from omnirecon.mesh.ibr import (
 from omnirecon.models.registry import build_model
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
+from omnirecon.scene_kind import scene_kind
 
 CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
 """The model timed: the shipped checkpoint (``--ckpt`` picks another)."""
@@ -218,7 +219,7 @@ def measure(cfg: BenchConfig) -> dict:
         held_out = scene.splits.get("test") or [0]
         train = [i for i in (scene.splits.get("train") or range(len(scene))) if i not in held_out]
         targets = [scene.cameras[i].to(device=device, dtype=torch.float32) for i in held_out]
-        by = "distance" if scene.rig == "forward" else "angle"
+        by = "distance" if scene_kind(scene).forward else "angle"
     else:
         scene, mesh = procedural_scene(args.seed, args.source_resolution)
         held_out = scene.splits.get("test", []) + scene.splits.get("val", [])

@@ -9,6 +9,7 @@ from torch import Tensor
 from omnirecon.cameras import closest_point_to_axes, nearest_views
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
+from omnirecon.scene_kind import scene_kind
 
 DTU_VIEWS = (23, 24, 33)
 """The sparse-view DTU setting of SparseNeuS / VolRecon / Omni-Recon (the first 3 of set 0)."""
@@ -19,7 +20,7 @@ MAX_HELD_OUT = 8
 
 def view_metric(scene: Scene) -> str:
     """``"angle"`` (around the look-at centre) for object rigs, ``"distance"`` otherwise."""
-    return "angle" if scene.rig == "object" else "distance"
+    return scene_kind(scene).rank_by
 
 
 def select_sources(scene: Scene, camera, pool: list[int], k: int, center: Tensor | None = None) -> list[int]:

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from omnirecon.errors import InputError
 from omnirecon.lift.blend import lift_points, normalise
-from omnirecon.mesh.build import mesh_from_model
+from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.geometry import ground_truth_mesh, load_mesh_file
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
@@ -44,7 +44,7 @@ def scene_mesh(model, scene, views: list[int], mesh: str | Path = "auto") -> tup
             raise InputError("the scene has no exact mesh", scene.path, "use --mesh model or a mesh file")
     if spec in ("auto", "model"):
 
-        made = mesh_from_model(model, scene, views, device=next(model.parameters()).device)
+        made = mesh_from_model(model, scene, views, MeshOptions(depth="model"), device=next(model.parameters()).device)
         if len(made.mesh.faces) == 0:
             raise InputError("the model's mesh is empty", scene.path, "use more --num-views or a mesh file")
         return made.mesh, "model"

@@ -69,6 +69,7 @@ from omnirecon.mesh.shader import ShadeResult, SourceShader
 from omnirecon.rays import Sources
 from omnirecon.render.edges import SOFTEN, soften_edges
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
+from omnirecon.scene_kind import SceneKind, scene_kind
 
 
 @dataclass
@@ -153,9 +154,8 @@ def scene_blend(rig: str, masks: bool, background: bool) -> tuple[str, str]:
       nothing to tune, so it is not the default there);
     * otherwise (forward-facing scenes such as fern): the network's blend and the far layer. (``masks`` no longer
       changes the choice.)"""
-    real_object = rig == "object" and not background
-    fill = "background" if background else ("nearest" if real_object else "far")
-    return ("angle" if real_object else "network"), fill
+    kind = SceneKind(rig, masks, background)
+    return kind.blend, kind.fill
 
 
 def masks_hold_scene(scene) -> bool:
@@ -163,7 +163,7 @@ def masks_hold_scene(scene) -> bool:
     rig, masks, no known background colour), so a source pixel off its mask shows background, never surface: where
     the angle blend weighs sources by :func:`mask_falloff` (``finetune --source-masks``,
     ``MeshRenderOptions.source_masks``)."""
-    return scene.rig == "object" and scene.masks is not None and scene.background is None
+    return scene_kind(scene).source_masks
 
 
 REALTIME_SOURCES = 6
@@ -218,7 +218,8 @@ def video_options(setting: dict, background, workers: int = 1, face_budget: int 
 def scene_defaults(scene) -> tuple[str, str]:
     """:func:`scene_blend` for a loaded scene (``rig``, ``masks``, ``background``). Scenes composited on a known colour
     (procedural ones, Blender's NeRF-synthetic: ``Scene.background`` set) keep the network's blend and that colour."""
-    return scene_blend(scene.rig, scene.masks is not None, scene.background is not None)
+    kind = scene_kind(scene)
+    return kind.blend, kind.fill
 
 
 REALTIME_FACE_BUDGET = 200_000

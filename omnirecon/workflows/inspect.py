@@ -30,6 +30,7 @@ from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
 from omnirecon.options import check_options
+from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
@@ -108,7 +109,7 @@ def neighbour_pairs(scene: Scene, count: int) -> list[tuple[int, int]]:
     """``count`` (view, nearest other view) pairs spread over the capture."""
     n = len(scene)
     views = np.linspace(0, n - 1, min(count, n)).round().astype(int).tolist()
-    by = "angle" if scene.rig == "object" else "distance"
+    by = scene_kind(scene).rank_by
     cams = scene.cameras
     nn = nearest_views(cams[views], cams, 1, by=by, exclude=torch.tensor(views))[:, 0]
     return [(a, int(b)) for a, b in zip(views, nn)]

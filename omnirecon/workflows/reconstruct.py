@@ -49,10 +49,11 @@ from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
-from omnirecon.mesh.build import NoDepth
+from omnirecon.mesh.confidence import NoDepth
 from omnirecon.options import check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
+from omnirecon.scene_kind import scene_kind
 from omnirecon.trajectory import nearest_photo_degrees
 from omnirecon.workflows.export import ExportConfig, run_export
 from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune
@@ -367,7 +368,7 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
     defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
     fps = 1.0 / statistics.median(times)
-    center = closest_point_to_axes(scene.cameras) if scene.rig == "object" else scene.bounds.double().mean(0)
+    center = closest_point_to_axes(scene.cameras) if scene_kind(scene).object else scene.bounds.double().mean(0)
     away = nearest_photo_degrees(cams.c2w, scene.cameras[train], center)  # [F]: how far frames extrapolate
     reach = {"median": round(float(away.median()), 1), "max": round(float(away.max()), 1)}
     mean = {k: round(float(np.mean([d[k] for d in defects])), 4) for k in defects[0]}

@@ -32,6 +32,7 @@ from omnirecon.models.guided import GuidedOptions, render_guided
 from omnirecon.options import check_options
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
+from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
@@ -105,7 +106,7 @@ def scene_camera_path(scene, kind: trajectory.PathKind, frames: int, keyframes: 
     ``None``: the arc the photos cover, reaching ``beyond`` degrees past its ends), a spiral spans the scene's near
     and far depths."""
     cams = scene.cameras
-    center = closest_point_to_axes(cams) if scene.rig == "object" else scene.bounds.double().mean(0)
+    center = closest_point_to_axes(cams) if scene_kind(scene).object else scene.bounds.double().mean(0)
     return trajectory.camera_path(cams, kind, frames, center, float(scene.near.min()), float(scene.far.max()),
                                   keyframes, arc, rots, beyond)
 

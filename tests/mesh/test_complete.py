@@ -220,8 +220,8 @@ def test_content_pixels_are_the_photos_non_background_colour(tmp_path):
     but for antialiased outline pixels; none more than a pixel away from it. No background colour: None."""
     from scipy.ndimage import binary_dilation
 
-    from omnirecon.mesh.build import content_pixels
     from omnirecon.mesh.geometry import ground_truth_mesh, mesh_depth
+    from omnirecon.mesh.stages import content_pixels
 
     scene = load_at_resolution(generate_scene(tmp_path, 900_322, SynthOptions(resolution=48, views=4)), 48)
     assert scene.background is not None

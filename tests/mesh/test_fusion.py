@@ -15,8 +15,9 @@ from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.errors import InputError
 from omnirecon.mesh import fusion, geometry
-from omnirecon.mesh.build import MeshOptions, drop_occluded, mesh_from_depths
+from omnirecon.mesh.build import MeshOptions, mesh_from_depths
 from omnirecon.mesh.clean import decimate
+from omnirecon.mesh.confidence import drop_occluded
 from omnirecon.mesh.depth import ViewGroups, model_depths, oracle_depths
 from omnirecon.models.registry import build_model
 from tests.mesh.test_mesh import ring_cameras, sphere_depth

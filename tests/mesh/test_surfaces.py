@@ -183,8 +183,8 @@ def test_completion_takes_no_depth_that_no_other_view_confirms():
     """Completion fills a view's uncovered pixels from its own depth only where another map confirms it
     (MeshOptions.confirmed_fill): on the demo scene the unconfirmed fills floated in the sky and in front
     of the objects of held-out views (whole image 19.85 -> 20.68 dB without them, bench notes)."""
-    from omnirecon.mesh.build import completion_depths
     from omnirecon.mesh.fusion import consistency
+    from omnirecon.mesh.stages import completion_depths
 
     cams = ring_cameras(8, res=32)
     depth = sphere_depth(cams, 0.8)

@@ -170,7 +170,8 @@ def test_no_depth_names_what_the_source_gave(tmp_path):
     `reconstruct`, the stage, the poses and a fix in its own options (no --depth, no --min-acc)."""
     import torch
 
-    from omnirecon.mesh.build import MeshOptions, NoDepth, prepare
+    from omnirecon.mesh.build import MeshOptions
+    from omnirecon.mesh.confidence import NoDepth, prepare
     from omnirecon.mesh.depth import DepthMaps
     from omnirecon.workflows.reconstruct import ReconstructConfig, failed, stage_depends
     from omnirecon.workflows.stages import Stages
