@@ -3,11 +3,17 @@
     python -m bench poses                    # 7 real scenes, 20 images each at their stored size, 1 thread
     python -m bench poses --tiny             # one procedural scene (for tests)
     python -m bench poses --scenes blender/lego --masked --methods sift hybrid --out bench/results/poses_hybrid.json
+    python -m bench poses --scenes --masked --videos instant_ngp/fox --out bench/results/poses_video.json
 
 ``--methods``: ``sift`` is SIFT alone (``SfmOptions.learned = "off"``); ``hybrid`` adds learned matches
 (DISK + LightGlue) for the views SIFT left out (``learned = "auto"``, needs the ``capture-learned`` extra);
 ``learned`` keeps that model whenever it poses more views (``learned = "prefer"``).
 Each row also carries the pose check's summary (views dropped as contradicting their matches).
+
+``--videos``: a phone walk-around clip made from a scene's frames in capture order (fox: one loop around
+the subject), every frame once, resized to ``--video-size`` pixels on the long side and spread over
+``--video-seconds`` (fox: 67 frames, 136x240, 40 s), given to ``process`` as a video at its default
+``--fps 2``. Each registered frame is matched to its source frame by pixel difference, then scored as above.
 
 For each scene, ``--images`` views are taken evenly spaced over its views (the ``train`` split where
 the scene has one), their image files (only) are handed to :func:`omnirecon.capture.process.process`,
@@ -109,6 +115,68 @@ def run_scene(path: Path, count: int, options, work: Path, split: str = "train",
     return row
 
 
+def make_clip(ref, dest: Path, long_side: int, seconds: float) -> tuple[Path, np.ndarray, list[int]]:
+    """An H.264 clip of every view of ``ref`` in name order at ``long_side`` pixels (even sides), the whole set over
+    ``seconds``; returns its path, the frames ``# [N, H, W, 3]`` uint8 and their view indices (clip order)."""
+    import imageio_ffmpeg
+
+    order = sorted(range(len(ref)), key=lambda i: ref.names[i])
+    w, h = ref.width, ref.height
+    s = long_side / max(w, h)
+    size = (2 * round(w * s / 2), 2 * round(h * s / 2))
+    frames = np.stack([np.asarray(Image.open(Path(ref.path) / ref.names[i]).convert("RGB").resize(size, Image.LANCZOS))
+                       for i in order])
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    writer = imageio_ffmpeg.write_frames(str(dest), size, fps=len(order) / seconds, quality=8, macro_block_size=2)
+    writer.send(None)
+    for f in frames:
+        writer.send(np.ascontiguousarray(f))
+    writer.close()
+    return dest, frames, order
+
+
+def run_video(path: Path, long_side: int, seconds: float, options, work: Path, method: str = "sift") -> dict:
+    """:func:`make_clip` of scene ``path`` given to ``process``; the row of :func:`run_scene`'s shape."""
+    from omnirecon.capture.align import pose_errors
+    from omnirecon.capture.process import process
+    from omnirecon.data import load_scene
+    from omnirecon.errors import InputError
+
+    ref = load_scene(path)
+    clip, frames, order = make_clip(ref, work / "clip.mp4", long_side, seconds)
+    out = work / "scene"
+    shutil.rmtree(out, ignore_errors=True)
+    row = {"scene": f"{path.name} (video)", "path": str(path.relative_to(SHARED)) if SHARED in path.parents else str(path),
+           "images": len(order), "size": [int(frames.shape[2]), int(frames.shape[1])], "seconds_clip": seconds,
+           "rig": ref.rig, "masks": False, "method": method, "load_1min_start": round(os.getloadavg()[0], 2)}
+    options = replace(options, learned={"sift": "off", "hybrid": "auto", "learned": "prefer"}[method])
+    t0 = time.perf_counter()
+    try:
+        summary = process(clip, out, options, quiet=True)
+    except InputError as e:
+        row.update(error=e.one_line(), registered=0, registered_fraction=0.0, seconds=round(time.perf_counter() - t0, 2))
+        return row
+    row["seconds"] = round(time.perf_counter() - t0, 2)
+    est = load_scene(out)
+    small = frames.reshape(len(frames), -1).astype(np.float32)  # [N, H*W*3]
+    idx = []
+    for n in est.names:  # the clip frame each registered frame was sampled from
+        a = np.asarray(Image.open(Path(est.path) / n).convert("RGB").resize((frames.shape[2], frames.shape[1])),
+                       np.float32).reshape(1, -1)
+        idx.append(order[int(np.argmin(((small - a) ** 2).mean(1)))])
+    c2w_est = est.cameras.transformed(est.to_input).c2w.numpy()
+    extent = float((ref.bounds[1] - ref.bounds[0]).double().norm())
+    err = pose_errors(c2w_est, ref.cameras.c2w[idx].numpy(), extent)
+    sampled = sum(p["frames"] for p in summary["video_passes"][-1:])
+    row.update(registered=len(idx), sampled=sampled, registered_fraction=round(len(idx) / max(sampled, 1), 4),
+               distinct_views=len(set(idx)), video_passes=summary["video_passes"],
+               rotation_deg_median=round(err["rotation_deg_median"], 4), rotation_deg_max=round(err["rotation_deg_max"], 4),
+               centre_pct_median=round(err["centre_pct_median"], 4), centre_pct_max=round(err["centre_pct_max"], 4),
+               extent=round(extent, 5), reprojection_px=round(summary["mean_reprojection_error_px"], 4),
+               stage_seconds=summary["seconds"], pose_check=summary.get("pose_check"))
+    return row
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="*", default=list(SCENES), help="paths under the shared data folder")
@@ -128,6 +196,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--methods", nargs="+", default=["sift"], choices=["sift", "hybrid", "learned"],
                         help="sift: SIFT alone; hybrid: plus learned matches where SIFT fails, kept under the retry "
                              "rule; learned: the learned model kept whenever it poses more (capture-learned extra)")
+    parser.add_argument("--videos", nargs="*", default=[], help="scenes also run as a walk-around video clip")
+    parser.add_argument("--video-size", type=int, default=240, help="the clip's long side (pixels)")
+    parser.add_argument("--video-seconds", type=float, default=40.0, help="the clip's length (seconds)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
@@ -158,6 +229,7 @@ def main(argv: list[str] | None = None) -> dict:
         if not args.tiny:
             jobs += [(SHARED / s, True) for s in args.masked if (SHARED / s).is_dir()]
         jobs = [(p, masked, m) for p, masked in jobs for m in args.methods]
+        videos = [(SHARED / s, m) for s in args.videos if (SHARED / s).is_dir() for m in args.methods]
         calls = [(p, args.images, replace(options, mask_dilate=args.mask_dilate) if masked else options,
                   tmp / f"work{k}", "all" if args.tiny else "train", masked, m)
                  for k, (p, masked, m) in enumerate(jobs)]
@@ -172,10 +244,14 @@ def main(argv: list[str] | None = None) -> dict:
                 rows.append(run_scene(*c))
                 print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "attempts", "dropped")},
                       flush=True)
+        for k, (p, m) in enumerate(videos):
+            rows.append(run_video(p, args.video_size, args.video_seconds, options, tmp / f"video{k}", m))
+            print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "video_passes")}, flush=True)
     prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
     result = {
         "provenance": prov,
         "config": {"images_per_scene": args.images, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
+                   "videos": {"scenes": args.videos, "long_side": args.video_size, "seconds": args.video_seconds},
                    "methods": args.methods,
                    "size": "each scene's stored image size (long side <= 400 px)",
                    "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options),

@@ -25,8 +25,8 @@ def learned_pairs(db_path: Path, names: list[str], unplaced: list[str], video: b
                   k: int = NEIGHBOURS, seed: int = 0) -> list[tuple[int, int]]:
     """Index pairs ``(i, j)``, ``i < j`` of ``names``: each of ``unplaced`` with ``k`` partners, its nearest
     frames (``video``: ``k / 2`` on each side), or for photos its ``k`` most similar images among the posed
-    ones (a group SIFT posed apart is most similar to itself: its own matches are not what it lacks) and
-    its ``k / 2`` most similar among the other unplaced ones."""
+    ones (a group SIFT posed apart is most similar to itself: its own matches are not what it lacks), those
+    ``k`` among themselves, and its ``k / 2`` most similar among the other unplaced ones."""
     index = {n: i for i, n in enumerate(names)}
     pairs = set()
     if video:
@@ -45,10 +45,15 @@ def learned_pairs(db_path: Path, names: list[str], unplaced: list[str], video: b
     away[[index[u] for u in unplaced]] = True
     for u in unplaced:
         i = index[u]
-        for pool, count in ((~away, k), (away, max(1, k // 2))):
+        chosen = {}
+        for side, pool, count in (("posed", ~away, k), ("unposed", away, max(1, k // 2))):
             cand = np.flatnonzero(pool & np.isfinite(sim[i]))
-            for j in cand[np.argsort(-sim[i, cand], kind="stable")[:count]]:
-                pairs.add((min(i, int(j)), max(i, int(j))))
+            chosen[side] = [int(j) for j in cand[np.argsort(-sim[i, cand], kind="stable")[:count]]]
+            pairs.update((min(i, j), max(i, j)) for j in chosen[side])
+        posed = chosen["posed"]
+        # the posed partners matched among themselves: their learned keypoints get 3-D points, through which
+        # the mapper registers the unplaced view (it poses a view from 2-D to 3-D matches only)
+        pairs.update((a, b) for a in posed for b in posed if a < b)
     return sorted(pairs)
 
 
