@@ -34,13 +34,17 @@ class Rule:
     hi: float | None = None
     above: bool = False
     example: str = ""
+    unit: str = ""
+    """The values' unit, said after the range (``voxels``); empty for plain numbers."""
 
     def text(self) -> str:
         if self.lo is not None and self.hi is not None:
-            return f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
-        if self.lo is not None:
-            return f"{'>' if self.above else '>='} {_num(self.lo)}"
-        return f"<= {_num(self.hi)}"
+            text = f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
+        elif self.lo is not None:
+            text = f"{'>' if self.above else '>='} {_num(self.lo)}"
+        else:
+            text = f"<= {_num(self.hi)}"
+        return f"{text} {self.unit}" if self.unit else text
 
     def ok(self, v: float) -> bool:
         if self.lo is not None and (v <= self.lo if self.above else v < self.lo):
@@ -102,9 +106,9 @@ RULES: dict[str, Rule] = {
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
     "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
-    "trunc": Rule(0, 1e6, above=True, example="e.g. 0.02"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
+    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
     "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
-    "shifts": Rule(-1e6, 1e6, example="e.g. 0.036"),
+    "shifts": Rule(-1, 1, example="e.g. 0.036 (a fraction of the camera's distance)"),
     # photos in
     "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
     "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),
@@ -123,6 +127,12 @@ RULES: dict[str, Rule] = {
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
     "val_margin": Rule(0, 100, example="e.g. 0.1 (dB)"),
     "val_guard": Rule(0, 100, example="e.g. 0 (dB)"),
+    # nested option groups (``--group.field``)
+    "guided.prior_scale": Rule(1, 64, example="e.g. 4"), "guided.band_samples": Rule(2, 1024, example="e.g. 8"),
+    "guided.guard_samples": Rule(0, 1024, example="e.g. 4"), "guided.band": Rule(0, 1, example="e.g. 0.03"),
+    "guided.max_spread": FRACTION, "guided.min_opacity": FRACTION,
+    "pet.options.steps": Rule(0, 1_000_000_000, example="e.g. 40"), "options.rank": Rule(1, 1024, example="e.g. 4"),
+    "options.alpha": Rule(0, 1e6, above=True, example="e.g. 4"), "options.min_weight": FRACTION,
     # procedural scenes
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
@@ -167,35 +177,61 @@ def numeric_fields(cls) -> list[str]:
     return out
 
 
+def option_fields(cls, prefix: str = "") -> list[str]:
+    """:func:`numeric_fields` of ``cls`` and of its nested option groups, as dotted names (``guided.band``)."""
+    hints = typing.get_type_hints(cls)
+    out = [prefix + name for name in numeric_fields(cls)]
+    for f in dataclasses.fields(cls):
+        sub = _group(hints[f.name])
+        if sub is not None:
+            out += option_fields(sub, f"{prefix}{f.name}.")
+    return out
+
+
+def _group(hint) -> type | None:
+    """The dataclass a field's type names (a nested option group), else ``None``."""
+    return hint if isinstance(hint, type) and dataclasses.is_dataclass(hint) else None
+
+
 def rule_for(command: str | None, name: str) -> Rule | None:
-    return RULES.get(f"{command}.{name}") or RULES.get(name)
+    """The rule of option ``name`` (dotted inside a nested group): ``command.name``, ``name``, then the rule of its
+    last part (a nested ``options.seed`` is a seed)."""
+    return RULES.get(f"{command}.{name}") or RULES.get(name) or RULES.get(name.rsplit(".", 1)[-1])
 
 
-def check_options(command: str | None, config) -> None:
-    """InputError for the first option of ``config`` (a command's parsed dataclass) that is not finite, out of
-    its range, or would need more memory than the run may use."""
+def check_options(command: str | None, config, prefix: str = "") -> None:
+    """InputError for the first option of ``config`` (a command's parsed dataclass, its nested option groups
+    included) that is not finite, out of its range, or would need more memory than the run may use.
+    ``prefix``: the group's dotted name when ``config`` is a nested group checked on its own (``"guided."``)."""
     if not dataclasses.is_dataclass(config):
         return
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
+        name = prefix + f.name
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_options(command, value, f"{name}.")  # a nested group: --group.field
+            continue
         if f.name == "device" and isinstance(value, str) and not DEVICE.match(value):
             raise InputError(f"--device {value!r} is not a device", None, "use --device cpu, cuda, cuda:0 or auto")
-        numbers = _numbers(value)
-        if numbers is None:
-            continue
-        rule = rule_for(command, f.name)
-        shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
-        for v in numbers:
-            if not math.isfinite(v):
-                want = f"{rule.text()} (a finite number)" if rule else "a finite number"
-                raise InputError(f"{_flag(f.name)} must be {want}, got {shown}", None,
-                                 f"use {rule.example}" if rule and rule.example else "pass a finite number")
-            if rule is not None and not rule.ok(v):
-                raise InputError(f"{_flag(f.name)} must be {rule.text()}, got {shown}", None,
-                                 f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
-    estimate = MEMORY.get(command or "")
+        _check_value(name, _numbers(value), rule_for(command, name))
+    estimate = MEMORY.get(command or "") if not prefix else None
     if estimate is not None:
         _check_memory(estimate(config))
+
+
+def _check_value(name: str, numbers: list | None, rule: Rule | None) -> None:
+    """InputError naming ``--name`` when one of ``numbers`` is not finite or outside ``rule``."""
+    if numbers is None:
+        return
+    shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
+    for v in numbers:
+        if not math.isfinite(v):
+            want = f"{rule.text()} (a finite number)" if rule else "a finite number"
+            raise InputError(f"{_flag(name)} must be {want}, got {shown}", None,
+                             f"use {rule.example}" if rule and rule.example else "pass a finite number")
+        if rule is not None and not rule.ok(v):
+            raise InputError(f"{_flag(name)} must be {rule.text()}, got {shown}", None,
+                             f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
 
 
 # ---------------------------------------------------------------------------- memory

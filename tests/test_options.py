@@ -7,31 +7,50 @@ import pytest
 
 from omnirecon.cli import COMMANDS, _load
 from omnirecon.errors import InputError
-from omnirecon.options import RULES, _check_memory, check_options, numeric_fields, rule_for
+from omnirecon.options import RULES, _check_memory, check_options, option_fields, rule_for
 
 
 def test_every_numeric_option_of_every_command_has_a_rule():
-    missing = [(name, f) for name, spec in COMMANDS.items() for f in numeric_fields(_load(spec))
+    missing = [(name, f) for name, spec in COMMANDS.items() for f in option_fields(_load(spec))
                if rule_for(name, f) is None]
     assert not missing, missing
 
 
 def test_every_default_passes_its_rule():
-    """The shipped defaults are inside their own rules (a rule that refuses a default is wrong)."""
+    """The shipped defaults, nested groups' too, are inside their own rules (a rule that refuses a default is wrong)."""
+    for name, spec in COMMANDS.items():
+        config = _default(_load(spec))
+        for f in option_fields(_load(spec)):
+            value = _get(config, f) if config is not None else None
+            if value is not None:
+                values = value if isinstance(value, tuple) else (value,)
+                rule = rule_for(name, f)
+                assert all(rule.ok(v) for v in values), (name, f, value, rule)
+
+
+def _default(cls):
+    """``cls`` with its defaults, the required fields given any value (``None`` when that fails)."""
     import dataclasses
 
-    for name, spec in COMMANDS.items():
-        for f in dataclasses.fields(_load(spec)):
-            if f.name in numeric_fields(_load(spec)) and f.default not in (dataclasses.MISSING, None):
-                values = f.default if isinstance(f.default, tuple) else (f.default,)
-                rule = rule_for(name, f.name)
-                assert all(rule.ok(v) for v in values), (name, f.name, f.default, rule)
+    required = {f.name: "x" for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING}
+    try:
+        return cls(**required)
+    except Exception:  # noqa: BLE001 - a config that checks its inputs on construction: tested by its own tests
+        return None
+
+
+def _get(config, dotted: str):
+    for part in dotted.split("."):
+        config = getattr(config, part)
+    return config
 
 
 def test_unused_rules_are_few():
     """Rules name real fields (a renamed option must not leave a dead rule behind)."""
-    used = {f for spec in COMMANDS.values() for f in numeric_fields(_load(spec))}
-    dead = [k for k in RULES if k.split(".")[-1] not in used]
+    used = {f for spec in COMMANDS.values() for f in option_fields(_load(spec))}
+    used |= {f.rsplit(".", 1)[-1] for f in used}
+    dead = [k for k in RULES if k.split(".", 1)[-1] not in used and k not in used]
     assert not dead, dead
 
 
@@ -63,3 +82,57 @@ def test_notes_printed_while_parsing_reach_stderr(tmp_path, capsys):
                "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert rc == 2 and "omnirecon: note: --chunk" in err and str(tmp_path / "nope") in err.splitlines()[-1], err
+
+
+@pytest.mark.parametrize("group, value, flag", [("guided", {"band": 2.0}, "--guided.band must be in [0, 1]"),
+                                                ("options", {"rank": 0}, "--options.rank must be in [1, 1024]"),
+                                                ("options", {"lr": float("nan")}, "--options.lr must be")])
+def test_nested_groups_are_checked_with_their_dotted_flag(group, value, flag):
+    import dataclasses
+    import pathlib
+
+    from omnirecon.workflows.pet import PETConfig
+    from omnirecon.workflows.render import RenderConfig
+
+    config = (RenderConfig(scene=pathlib.Path("s"), model="floor") if group == "guided"
+              else PETConfig(ckpt=pathlib.Path("c")))
+    config = dataclasses.replace(config, **{group: dataclasses.replace(getattr(config, group), **value)})
+    with pytest.raises(InputError) as e:
+        check_options("render" if group == "guided" else "pet", config)
+    assert flag in e.value.one_line(), e.value.one_line()
+
+
+def test_mesh_rules_are_one_place():
+    """``MeshOptions.check`` (the library) and the CLI refuse ``trunc`` with the same rule and message."""
+    import pathlib
+
+    from omnirecon.mesh.build import MeshOptions
+    from omnirecon.workflows.mesh import MeshConfig
+
+    with pytest.raises(InputError) as lib:
+        MeshOptions(trunc=0.5).check()
+    with pytest.raises(InputError) as cli:
+        check_options("mesh", MeshConfig(scene=pathlib.Path("s"), trunc=0.5))
+    assert lib.value.one_line() == cli.value.one_line() and "[1, 100] voxels" in lib.value.one_line()
+
+
+def test_mesh_options_follow_the_preset_and_every_given_flag():
+    """``omnirecon mesh``'s options reach :class:`MeshOptions` by name (no hand copy): a flag left at its default
+    yields to the preset (``--fusion reference``: no face budget, no completion), a given one wins."""
+    import dataclasses
+    import pathlib
+
+    from omnirecon.mesh.build import PRESETS, MeshOptions
+    from omnirecon.workflows.mesh import MESH_FIELDS, MeshConfig
+
+    base = dict(scene=pathlib.Path("s"), depth="model", surface="fusion", depth_pass="fine")
+    ref = MeshConfig(**base, fusion="reference").mesh_options()
+    assert (ref.max_faces, ref.complete, ref.trunc) == (0, False, PRESETS["reference"]["trunc"])
+    assert MeshConfig(**base, fusion="reference", max_faces=5000).mesh_options().max_faces == 5000
+    assert MeshConfig(**base).mesh_options().max_faces == MeshOptions().max_faces
+    given = {"shifts": (0.01,), "voxel": 0.01, "trunc": 5.0, "weights": False, "max_faces": 1234, "min_acc": 0.25,
+             "min_views": 3, "min_component": 0.01, "cull_hidden": False, "complete": False}
+    made = MeshConfig(**base, **given).mesh_options()
+    fields = {f.name for f in dataclasses.fields(MeshConfig)} & MESH_FIELDS
+    assert fields == set(given) | {"depth", "surface", "depth_pass", "chunk"}, fields  # a new shared field: add it here
+    assert all(getattr(made, k) == v for k, v in given.items()), made

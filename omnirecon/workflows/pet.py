@@ -61,10 +61,7 @@ class PETConfig(ThreadsConfig, FolderVerb):
         import copy
 
         o = self.options
-        if o.steps < 0 or o.rays < 1 or o.rank < 1 or o.lr <= 0 or o.num_views < 1:
-            raise InputError("--options.steps >= 0, --options.rays >= 1, --options.rank >= 1, --options.lr > 0 and "
-                             "--options.num-views >= 1 are required", None, "use the defaults")
-        check_options("pet", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+        check_options("pet", self)  # the numbers, --options.* too (omnirecon/options.py); for callers other than the CLI
         set_threads(self.threads)
         base, info = load_model(self.ckpt, None, "cpu")
         if not isinstance(base, OmniRecon):
