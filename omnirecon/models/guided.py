@@ -25,14 +25,12 @@ no coarse pass. Guided rendering changes the output: it is a render option with 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.errors import InputError
 
 
 @dataclass
