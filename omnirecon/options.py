@@ -1,4 +1,11 @@
-"""Every numeric option of every command, checked in one place before the command starts.
+"""The options several commands share, declared once, and every numeric option of every command, checked in one
+place before the command starts.
+
+The shared options are small ``kw_only`` dataclasses a command's configuration inherits (:class:`Seeded`,
+:class:`Overwrites`, :class:`OutFolder`, :class:`SceneInput`, :class:`SourceViews`, :class:`SceneCache`,
+:class:`ProtocolScenes`, :class:`SynthEvalScenes`, :class:`ViewerBundle`, :class:`CaptureInput`; the model and
+machine groups are in :mod:`omnirecon.engine.machine`), so a flag is spelled, typed and described once
+(``tests/test_options.py`` refuses a field declared twice). Nested groups (``--guided.*``) are checked too.
 
 :func:`check_options` runs in ``omnirecon.cli`` on the parsed configuration of whichever command was chosen,
 before its ``main()``: each ``int``/``float`` field (and each element of a tuple of them) must be finite and
@@ -20,7 +27,8 @@ import math
 import re
 import typing
 from dataclasses import dataclass
-from typing import Callable
+from pathlib import Path
+from typing import Callable, Literal
 
 from omnirecon.chunk import memory_bytes
 from omnirecon.errors import InputError
@@ -232,6 +240,99 @@ def _check_value(name: str, numbers: list | None, rule: Rule | None) -> None:
         if rule is not None and not rule.ok(v):
             raise InputError(f"{_flag(name)} must be {rule.text()}, got {shown}", None,
                              f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
+
+
+# ---------------------------------------------------------------------------- shared options
+@dataclass(kw_only=True)
+class Seeded:
+    """A command with random draws."""
+
+    seed: int = 0
+    """Random seed of the run's draws (sampled pixels, rays and views, initial weights, procedural scenes, SfM's
+    RANSAC; synth: the first scene's): the same seed repeats the run."""
+
+
+@dataclass(kw_only=True)
+class Overwrites:
+    """A command that refuses an existing output unless told."""
+
+    overwrite: bool = False
+    """Replace an existing --out (without it the command refuses it; mesh and bench replace the files an earlier run
+    of theirs wrote either way; synth regenerates the scene folders it finds instead of keeping them, so without it
+    an interrupted run resumes)."""
+
+
+@dataclass(kw_only=True)
+class OutFolder:
+    """A command that writes one output folder, named after its input when not given."""
+
+    out: Path | None = None
+    """Output folder (default: a folder under outputs/<command>/ named after the input, printed at the end)."""
+
+
+@dataclass(kw_only=True)
+class SourceViews:
+    """A command that renders or fuses from the K nearest source views."""
+
+    num_views: int = 3
+    """Source views K: the nearest views each rendered pixel, depth map or target draws on (and where a command picks
+    its views itself and none are given, how many it picks)."""
+
+
+@dataclass(kw_only=True)
+class SceneCache:
+    """A command that may generate the procedural synth:eval scenes."""
+
+    cache: Path = Path("outputs/cache")
+    """Where the synth:eval scenes are generated (once; later runs read them)."""
+
+
+@dataclass(kw_only=True)
+class SceneInput:
+    """A command that reads one scene folder."""
+
+    scene: Path
+    """Scene folder (any supported format: COLMAP, LLFF, Blender, DTU, procedural), normalised as every command reads
+    it; its resolution: the command's --resolution where it has one."""
+
+
+@dataclass(kw_only=True)
+class ProtocolScenes(SceneCache):
+    """A command that runs on held-out scenes under an evaluation protocol (lift, edit, pet)."""
+
+    scene: str = "synth:eval"
+    """A scene folder (any supported format; edit and pet need its label maps) or synth:eval[:object|frontal|forward]
+    (held-out procedural scenes with ground-truth labels, normals and depth)."""
+
+    protocol_set: Literal["cpu", "full"] = "cpu"
+    """Resolution and targets: cpu (64 px, fewer targets) or full (128 px, the published protocols)."""
+
+
+@dataclass(kw_only=True)
+class SynthEvalScenes(ProtocolScenes):
+    """A command that runs on several held-out procedural scenes (lift, pet)."""
+
+    synth_count: int = 1
+    """Scenes taken from a synth:eval set (seeds 900000, 900001, ...; each run separately)."""
+
+
+@dataclass(kw_only=True)
+class ViewerBundle:
+    """A command that may write the web viewer (export, reconstruct)."""
+
+    viewer: bool = True
+    """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer, done by `make setup`)."""
+
+
+@dataclass(kw_only=True)
+class CaptureInput:
+    """A command that finds camera poses for photos or a video (process, reconstruct)."""
+
+    masks: Path | None = None
+    """Photos: a folder of masks named like the photos; features only where a mask is non-zero (an object on a
+    turntable, whose background does not move with it)."""
+    fps: float = 2.0
+    """Video input: frames sampled per second of video."""
 
 
 # ---------------------------------------------------------------------------- memory

@@ -136,3 +136,83 @@ def test_mesh_options_follow_the_preset_and_every_given_flag():
     fields = {f.name for f in dataclasses.fields(MeshConfig)} & MESH_FIELDS
     assert fields == set(given) | {"depth", "surface", "depth_pass", "chunk"}, fields  # a new shared field: add it here
     assert all(getattr(made, k) == v for k, v in given.items()), made
+
+
+SAME_NAME = {
+    # name: {classes allowed to declare it}: a different meaning, type or default under one word
+    "ckpt": {"ModelChoice", "CheckpointInput", "ShippedCheckpoint"},  # optional beside --model / required / shipped
+    "out": {"OutFolder", "MeshConfig", "BenchConfig", "SynthConfig", "ProcessCommand", "DemoConfig",
+            "ReconstructConfig"},  # mesh files / a JSON file / a folder of scenes / folders with a fixed default
+    "scene": {"SceneInput", "ProtocolScenes", "BenchConfig"},  # required / also synth:eval names / optional
+    "num_views": {"SourceViews", "EvalCommand", "ExportConfig", "TrainConfig", "RenderConfig"},  # a list of K /
+    # all views when not given / the model's K when not given / render's larger default K
+    "model": {"ModelChoice", "TrainConfig"},  # the floor instead of a checkpoint / the preset to train
+    "cache": {"SceneCache", "TrainConfig"},  # synth:eval scenes / training scenes
+    "synth_count": {"SynthEvalScenes", "EvalCommand"}, "protocol_set": {"ProtocolScenes", "EvalCommand"},  # eval: the
+    # published protocol's 10 scenes at full resolution by default, the others one scene at cpu size
+    "resolution": {"FinetuneConfig", "MeshConfig", "ExportConfig", "TrainConfig", "BenchConfig", "RenderConfig",
+                   "ReconstructConfig", "DemoConfig", "SynthOptions"},  # each command's own default image size
+    "frames": {"DemoConfig", "BenchConfig", "RenderConfig", "ReconstructConfig"},  # video frames / timed frames
+    "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # a count / indices
+    "path": {"LiftConfig", "RenderConfig", "ReconstructConfig", "EditConfig", "InspectConfig"},  # render path / input
+    "mesh": {"LiftConfig", "BenchConfig", "FinetuneConfig", "ExportConfig", "EditConfig"},  # a file / a choice
+    "masks": {"CaptureInput", "MeshConfig", "ExportConfig"},  # a folder of masks / use the scene's masks
+    "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # per step / per timed batch
+    "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"}, "steps": {"PETOptions", "TrainConfig"},
+    "fps": {"CaptureInput", "RenderConfig"},  # frames sampled from a video / of the written video
+    "threads": {"ThreadsConfig", "SfmOptions"},  # torch's / COLMAP's
+    "resume": {"TrainConfig", "ReconstructConfig"},  # --resume a run (off) / kept stages (on)
+    "voxel": {"MeshConfig", "ExportConfig"},  # the preset's by default / export's fixed default
+    "camera_model": {"SfmOptions", "ReconstructConfig"},  # reconstruct passes it on to its process stage
+    # the mesh-path renderer's settings: one options group once the mesh path is one kernel (issue 45 item 1)
+    "visibility": {"LiftConfig", "FinetuneConfig", "ExportConfig", "EditConfig"},
+    "fill": {"FinetuneConfig", "ExportConfig", "EditConfig"}, "cracks": {"FinetuneConfig", "ExportConfig"},
+    "blend": {"FinetuneConfig", "ExportConfig"}, "angle_sources": {"FinetuneConfig", "ExportConfig"},
+    "precision": {"FinetuneConfig", "RenderConfig"}, "targets": {"LiftConfig", "EditConfig"},
+    # one word, two things
+    "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"}, "quick": {"DemoConfig", "BenchConfig"},
+    "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},
+    "max_views": {"TrainConfig", "InspectConfig"}, "val_every": {"TrainConfig", "FinetuneConfig"},
+    "val_views": {"TrainConfig", "FinetuneConfig"}, "quiet": {"ViewCommand", "ProcessCommand"},
+    "geometry": {"EvalCommand", "EditConfig"},
+}
+"""Field names more than one class of the command tree declares, each with the classes allowed to."""
+
+
+def config_tree() -> set[type]:
+    """Every dataclass a command's options are made of: the commands, their bases and nested option groups."""
+    import dataclasses
+    import typing
+
+    seen: set[type] = set()
+
+    def walk(cls: type) -> None:
+        for k in cls.__mro__:
+            if dataclasses.is_dataclass(k) and k not in seen:
+                seen.add(k)
+                for hint in typing.get_type_hints(k).values():
+                    for t in (hint, *typing.get_args(hint)):
+                        if isinstance(t, type) and dataclasses.is_dataclass(t):
+                            walk(t)
+
+    for spec in COMMANDS.values():
+        walk(_load(spec))
+    return seen
+
+
+def test_no_config_field_is_declared_twice():
+    """A flag shared by several commands is declared once (an option group they inherit: omnirecon/options.py,
+    omnirecon/engine/machine.py); the same word meaning different things is listed in ``SAME_NAME``."""
+    import collections
+    import dataclasses
+
+    declared = collections.defaultdict(set)
+    for cls in config_tree():
+        own = {f.name for f in dataclasses.fields(cls)} & set(cls.__dict__.get("__annotations__", {}))
+        for name in own:
+            declared[name].add(cls.__name__)
+    twice = {n: sorted(c - SAME_NAME.get(n, set())) for n, c in declared.items()
+             if len(c) > 1 and c - SAME_NAME.get(n, set())}
+    assert not twice, f"declared in more than one class (declare it once in an option group): {twice}"
+    stale = {n: sorted(c - declared.get(n, set())) for n, c in SAME_NAME.items() if c - declared.get(n, set())}
+    assert not stale, f"SAME_NAME lists classes that no longer declare the field: {stale}"

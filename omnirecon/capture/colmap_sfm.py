@@ -30,6 +30,7 @@ import numpy as np
 from PIL import Image
 
 from omnirecon.errors import InputError
+from omnirecon.options import Seeded
 from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -55,7 +56,7 @@ MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's def
 
 
 @dataclass
-class SfmOptions:
+class SfmOptions(Seeded):
     """How COLMAP runs."""
 
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
@@ -112,8 +113,6 @@ class SfmOptions:
     round (:mod:`omnirecon.capture.consistency`); 0 turns the check off."""
     threads: int = 1
     """CPU threads for COLMAP (1 gives reproducible models)."""
-    seed: int = 0
-    """Random seed of the mapper's RANSAC and initial-pair choice."""
 
     def check(self) -> None:
         if self.camera_model not in CAMERA_MODELS:

@@ -19,7 +19,7 @@ from typing import Literal
 
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import MachineConfig, ModelChoice, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import protocol_for
 from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views, held_out_views
@@ -27,30 +27,22 @@ from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
 from omnirecon.mesh.build import PRESETS, MeshOptions, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
-from omnirecon.options import check_options
+from omnirecon.options import Overwrites, SceneInput, SourceViews, check_options
 from omnirecon.outputs import remove_written
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
-class MeshConfig(MachineConfig):
+class MeshConfig(SceneInput, ModelChoice, SourceViews, Overwrites, MachineConfig):
     """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
     rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
     the masks for objects), a face budget and completion (every content pixel of every view gets a
     surface); written in the input scene's frame with its metrics."""
 
-    scene: Path
-    """Scene folder (any supported format); read at --resolution, normalised."""
-    ckpt: Path | None = None
-    """Checkpoint folder written by `omnirecon train` (its model must render depth)."""
-    model: Literal["floor"] | None = None
-    """Mesh with a non-learned model instead: `floor` is the plane-sweep baseline."""
     views: tuple[str, ...] | None = None
     """View indices to render depth at (default: 23 24 33 on DTU, else --num-views evenly spaced train
     views), or `all`: every training view, each rendered from its own --num-views nearest views."""
-    num_views: int = 3
-    """Source views K: how many views when --views is not given, and the sources per depth map."""
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
@@ -100,9 +92,6 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    overwrite: bool = False
-    """Replace existing files of the set that this tool did not write (without it such a file is refused;
-    files an earlier run wrote are replaced either way)."""
     surface: Literal["auto", "fusion", "poisson", "coherent"] = "auto"
     """`auto`: per scene kind (omnirecon.mesh.build.default_surface: `coherent` on a walk, `fusion` elsewhere);
     `fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);

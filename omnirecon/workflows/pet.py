@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 import numpy as np
 
 from omnirecon.data.io import write_json
-from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.machine import CheckpointInput, ThreadsConfig, load_model, set_threads
 from omnirecon.engine.protocols import targets_and_pool
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.errors import InputError
@@ -24,32 +24,20 @@ from omnirecon.lift import tune as T
 from omnirecon.lift.predictors import class_table
 from omnirecon.lift.tune import PETOptions
 from omnirecon.models.omnirecon import OmniRecon
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, SynthEvalScenes, check_options
 from omnirecon.provenance import provenance
 from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class PETConfig(ThreadsConfig, FolderVerb):
+class PETConfig(CheckpointInput, OutFolder, SynthEvalScenes, ThreadsConfig, FolderVerb):
     """Tune LoRA adapters or biases of Omni-Recon's appearance branch with a semantic cross-entropy on a
     few labelled views (leave-one-out lifting); mIoU of lifted labels on held-out targets before/after."""
 
-    ckpt: Path
-    """Omni-Recon checkpoint folder."""
-    scene: str = "synth:eval"
-    """A scene folder with label maps, or synth:eval[:rig]."""
-    synth_count: int = 1
-    """Scenes taken from a synth:eval set (each tuned separately)."""
     labelled: int = 6
     """Labelled views per scene (evenly spaced over the protocol's pool)."""
     options: PETOptions = field(default_factory=PETOptions)
     """Tuning settings (mode, rank, steps, ...)."""
-    out: Path | None = None
-    """Output folder (default outputs/pet/<checkpoint>_<mode>)."""
-    protocol_set: Literal["cpu", "full"] = "cpu"
-    """Resolution/targets: cpu (64 px) or full (128 px)."""
-    cache: Path = Path("outputs/cache")
-    """Where synth:eval scenes are generated."""
 
     command: ClassVar[str] = "pet"
 

@@ -43,14 +43,14 @@ from omnirecon.cameras import closest_point_to_axes
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.machine import MachineConfig
+from omnirecon.engine.machine import MachineConfig, ShippedCheckpoint
 from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
-from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
+from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import NoDepth
-from omnirecon.options import check_options
+from omnirecon.options import CaptureInput, Overwrites, SourceViews, ViewerBundle, check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.trajectory import nearest_photo_degrees
@@ -61,12 +61,9 @@ from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video
 from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
-CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
-"""The shipped Omni-Recon checkpoint (the default model)."""
-
 
 @dataclass
-class ReconstructConfig(MachineConfig):
+class ReconstructConfig(ViewerBundle, ShippedCheckpoint, SourceViews, Overwrites, CaptureInput, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or
@@ -76,10 +73,6 @@ class ReconstructConfig(MachineConfig):
     """A folder of photos, a video, or a scene folder in any supported format."""
     out: Path = Path("outputs/reconstruct")
     """Output folder (replaced only with --overwrite)."""
-    ckpt: Path = CHECKPOINT
-    """Omni-Recon checkpoint (default: the shipped omnirecon-tiny)."""
-    num_views: int = 3
-    """Sources per depth map and per rendered pixel."""
     mesh_resolution: int | None = None
     """Long side of the images meshed (default: the photos' own, at most 512: stereo matches at it, the model's
     depth for stereo's holes is rendered at 128)."""
@@ -89,16 +82,8 @@ class ReconstructConfig(MachineConfig):
     """Fine-tuning budget in wall seconds (0: export and render the checkpoint as it is)."""
     frames: int = 48
     """Frames of the camera-path video."""
-    fps: float = 2.0
-    """Frames sampled per second when PATH is a video."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """COLMAP camera model when PATH holds photos or a video (see `omnirecon process`)."""
-    masks: Path | None = None
-    """Photos only: masks named like the photos; features only inside them (turntable captures)."""
-    viewer: bool = True
-    """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer)."""
-    overwrite: bool = False
-    """Replace an existing --out folder."""
     resume: bool = True
     """Continue from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial, when
     the input's files and the options each stage depends on are unchanged; --no-resume starts over."""
