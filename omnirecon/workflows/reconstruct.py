@@ -268,7 +268,9 @@ def _stages(cfg: ReconstructConfig, out: Path, stages: Stages) -> dict:
     :class:`Capture` holding what they share; returns the record (``lines``: what to print)."""
     cap = Capture(work=out, ckpt=Path(cfg.ckpt))
     with holding(cap.held, cap.reads):
-        return _run_stages(cfg, cap, stages)
+        record = _run_stages(cfg, cap, stages)
+    record["reads"] = dict(cap.reads)  # what was read from disk (not in reconstruct.json: a resumed run reads less)
+    return record
 
 
 def _run_stages(cfg: ReconstructConfig, cap: Capture, stages: Stages) -> dict:
