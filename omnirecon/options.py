@@ -76,7 +76,7 @@ RULES: dict[str, Rule] = {
     "resolution": PIXELS, "mesh_resolution": PIXELS, "source_resolution": PIXELS,
     "render.samples": Rule(2, 4096, example="e.g. 24"),
     "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
-    "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(1, 100_000, example="e.g. 300"),
+    "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(3, 100_000, example="e.g. 300"),
     "rays": Rule(1, 1_048_576, example="e.g. 1024"), "chunk": Rule(1, 1_048_576, example="e.g. 4096"),
     "views": Rule(0, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
     "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),

@@ -40,8 +40,6 @@ class ProcessCommand(Overwrites, CaptureInput, SfmOptions):
                              "pip install pycolmap (or pip install -e '.[capture]')") from e
         if self.source is None:
             raise InputError("no input given", None, "pass a folder of photos or a video: omnirecon process PATH --out SCENE")
-        if self.max_frames < 3:
-            raise InputError(f"--max-frames must be at least 3, got {self.max_frames}", None, "use e.g. 300")
         prepare_out(self.out)  # the common preflight: writable, nothing in the way, before the run
         options = SfmOptions(**{f.name: getattr(self, f.name) for f in fields(SfmOptions)})
         summary = process(self.source, self.out, options, fps=self.fps, max_frames=self.max_frames,
