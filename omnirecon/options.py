@@ -130,6 +130,8 @@ RULES: dict[str, Rule] = {
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),
     "residual_res": Rule(1, 256, example="e.g. 16"), "residual_lr": Rule(0, 1, above=True, example="e.g. 1e-2"),
     # verbs that need more than the shared rule
+    "bench.resolution": Rule(16, 16_384, example="e.g. 512"), "bench.size": Rule(16, 16_384, example="e.g. 504 378"),
+    "bench.views": Rule(1, 1_000_000, example="e.g. 3"),
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),

@@ -60,7 +60,7 @@ from omnirecon.mesh.ibr import (
     video_options,
 )
 from omnirecon.models.registry import build_model
-from omnirecon.options import Overwrites, Seeded
+from omnirecon.options import Overwrites, Seeded, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
 
@@ -116,9 +116,7 @@ class BenchConfig(ShippedCheckpoint, Seeded, Overwrites, DeviceConfig):
 
     def check(self) -> BenchConfig:
         """Validated settings, with ``--quick`` applied."""
-        if self.resolution < 16 or self.views < 1 or self.frames < 1 or (self.size and min(self.size) < 16):
-            raise InputError("--resolution and --size must be >= 16, --views and --frames >= 1", None,
-                             "use e.g. --resolution 512 --views 3 --frames 30, or --size 504 378")
+        check_options("bench", self)  # --resolution, --size, --views, --frames...: omnirecon/options.py
         if (self.scene is None) != (self.mesh is None):
             raise InputError("--scene and --mesh go together", self.scene or self.mesh,
                              "pass both, e.g. --scene ../shared/data/llff/fern --mesh outputs/mesh/fern.ply")
