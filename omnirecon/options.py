@@ -269,7 +269,7 @@ class OutFolder:
     """A command that writes one output folder, named after its input when not given."""
 
     out: Path | None = None
-    """Output folder (default: a folder under outputs/<command>/ named after the input, printed at the end)."""
+    """Output folder (default: a folder under outputs/<command>/ named after the input or the model)."""
 
 
 @dataclass(kw_only=True)

@@ -154,8 +154,8 @@ SAME_NAME = {
                    "ReconstructConfig", "DemoConfig", "SynthOptions"},  # each command's own default image size
     "frames": {"DemoConfig", "BenchConfig", "RenderConfig", "ReconstructConfig"},  # video frames / timed frames
     "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # a count / indices
-    "path": {"LiftConfig", "RenderConfig", "ReconstructConfig", "EditConfig", "InspectConfig"},  # render path / input
-    "mesh": {"LiftConfig", "BenchConfig", "FinetuneConfig", "ExportConfig", "EditConfig"},  # a file / a choice
+    "path": {"LiftedTargets", "RenderConfig", "ReconstructConfig", "InspectConfig"},  # blend path / camera path / input
+    "mesh": {"LiftedTargets", "BenchConfig", "FinetuneConfig", "ExportConfig"},  # a choice or a file / a file
     "masks": {"CaptureInput", "MeshConfig", "ExportConfig"},  # a folder of masks / use the scene's masks
     "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # per step / per timed batch
     "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"}, "steps": {"PETOptions", "TrainConfig"},
@@ -165,10 +165,10 @@ SAME_NAME = {
     "voxel": {"MeshConfig", "ExportConfig"},  # the preset's by default / export's fixed default
     "camera_model": {"SfmOptions", "ReconstructConfig"},  # reconstruct passes it on to its process stage
     # the mesh-path renderer's settings: one options group once the mesh path is one kernel (issue 45 item 1)
-    "visibility": {"LiftConfig", "FinetuneConfig", "ExportConfig", "EditConfig"},
+    "visibility": {"LiftedTargets", "FinetuneConfig", "ExportConfig"},
     "fill": {"FinetuneConfig", "ExportConfig", "EditConfig"}, "cracks": {"FinetuneConfig", "ExportConfig"},
     "blend": {"FinetuneConfig", "ExportConfig"}, "angle_sources": {"FinetuneConfig", "ExportConfig"},
-    "precision": {"FinetuneConfig", "RenderConfig"}, "targets": {"LiftConfig", "EditConfig"},
+    "precision": {"FinetuneConfig", "RenderConfig"},
     # one word, two things
     "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"}, "quick": {"DemoConfig", "BenchConfig"},
     "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},

@@ -36,11 +36,11 @@ from omnirecon.models.omnirecon import OmniRecon
 from omnirecon.options import OutFolder, ProtocolScenes, SourceViews, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
-from omnirecon.workflows.folder import FolderVerb
+from omnirecon.workflows.folder import FolderVerb, LiftedTargets
 
 
 @dataclass
-class EditConfig(CheckpointInput, SourceViews, OutFolder, ProtocolScenes, ChunkConfig, FolderVerb):
+class EditConfig(LiftedTargets, CheckpointInput, SourceViews, OutFolder, ProtocolScenes, ChunkConfig, FolderVerb):
     """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
     before/after, and delete or recolour its faces on the baked mesh (GLB)."""
 
@@ -61,10 +61,6 @@ class EditConfig(CheckpointInput, SourceViews, OutFolder, ProtocolScenes, ChunkC
     """--action remove: paint with the scene's background colour, or biharmonic inpainting."""
     dilation: int = 1
     """--action remove: grow the object's pixels by this many px first (anti-aliased rims)."""
-    path: Literal["volumetric", "mesh"] = "volumetric"
-    """Re-blend through the model's ray weights, or through the mesh (Omni-Recon only)."""
-    visibility: bool = True
-    """--path mesh: mask out sources in which a surface point is occluded (a depth test; not in the paper)."""
     reencode: bool = False
     """Re-run the model on the edited sources (the paper's loop: new features and, volumetric, new
     geometry) instead of blending the edited images with the original weights."""
@@ -73,11 +69,6 @@ class EditConfig(CheckpointInput, SourceViews, OutFolder, ProtocolScenes, ChunkC
     face_views: int = 12
     """Views whose label maps and images are lifted to the mesh's faces: the sources plus the nearest pool
     views to the first target up to this many (faces hidden in every view take their neighbours' labels)."""
-    mesh: str = "auto"
-    """Mesh for --path mesh and the mesh edit: gt (procedural exact mesh), model (baked from the model at
-    the sources), auto (gt if any, else model) or a mesh file in the input frame."""
-    targets: tuple[int, ...] = ()
-    """Target view indices (default: the protocol's targets)."""
 
     command: ClassVar[str] = "edit"
 

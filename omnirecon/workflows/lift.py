@@ -34,14 +34,14 @@ from omnirecon.models.omnirecon import OmniRecon
 from omnirecon.options import OutFolder, Seeded, SourceViews, SynthEvalScenes, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
-from omnirecon.workflows.folder import FolderVerb
+from omnirecon.workflows.folder import FolderVerb, LiftedTargets
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
                         "oracle-normals", "oracle-depth", "torchscript"]
 
 
 @dataclass
-class LiftConfig(CheckpointInput, SourceViews, Seeded, OutFolder, SynthEvalScenes, MachineConfig, FolderVerb):
+class LiftConfig(LiftedTargets, CheckpointInput, SourceViews, Seeded, OutFolder, SynthEvalScenes, MachineConfig, FolderVerb):
     """Lift a 2-D predictor into novel views with a model's own blend weights (predict-then-blend), compare
     with render-then-predict, write label/heat maps, overlays and a metrics table."""
 
@@ -55,19 +55,6 @@ class LiftConfig(CheckpointInput, SourceViews, Seeded, OutFolder, SynthEvalScene
     """--predictor torchscript: a TorchScript file mapping [1, 3, H, W] RGB in [0, 1] to [1, C, h, w]."""
     user_kind: Literal["probabilities", "regression", "embedding"] = "probabilities"
     """--predictor torchscript: what its output is (probabilities: softmax over the logits it returns)."""
-    path: Literal["volumetric", "mesh"] = "volumetric"
-    """volumetric: blend with the model's ray weights; mesh: one surface point per pixel of a mesh (Omni-Recon
-    only; the render-then-predict baseline then runs on the mesh path's render)."""
-    mesh: str = "auto"
-    """--path mesh: gt (a procedural scene's exact mesh), model (baked from the model's depth at all the
-    targets' sources, `omnirecon mesh`'s protocol), auto (gt if any, else model) or a mesh file in the
-    scene's input frame."""
-    visibility: bool = True
-    """--path mesh: mask out of each surface point's blend the sources in which it is occluded (a depth test
-    against each source's rasterized mesh; not in the paper). Without it an occluded source blends the
-    occluder's prediction in."""
-    targets: tuple[int, ...] = ()
-    """Target view indices (default: the protocol's targets)."""
     noise: float = 0.2
     """noisy-labels: fraction of each source view's pixels set to a wrong random class."""
 
