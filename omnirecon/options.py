@@ -32,6 +32,7 @@ from typing import Callable, Literal
 
 from omnirecon.chunk import memory_bytes
 from omnirecon.errors import InputError
+from omnirecon.splits import EVAL_SEEDS
 
 
 @dataclass(frozen=True)
@@ -81,8 +82,8 @@ RULES: dict[str, Rule] = {
     "views": Rule(0, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
     "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),
     "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
-    "synth_count": Rule(1, 10_000, example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
-    "max_views": COUNT, "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
+    "synth_count": Rule(1, len(EVAL_SEEDS), example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
+    "max_views": COUNT, "train.max_views": Rule(2, 1_000_000, example="e.g. 40"), "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
     "max_faces": Rule(0, example="e.g. 200000"), "face_budget": Rule(0, example="e.g. 200000 (0: the full mesh)"),
     "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
     "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
@@ -101,7 +102,7 @@ RULES: dict[str, Rule] = {
     # optimisation (finite, or the run writes NaN weights)
     "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
     "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
-    "clip": Rule(0, 1e6, above=True, example="e.g. 1.0"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
+    "clip": Rule(0, 1e6, example="e.g. 1.0 (0: off)"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
     "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION,
     # camera paths and video
     "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
@@ -114,8 +115,8 @@ RULES: dict[str, Rule] = {
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
     "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
-    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
-    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
+    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(0, 1, example="e.g. 0.005 (0: off)"),
+    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1, example="e.g. 0.01"),
     "shifts": Rule(-1, 1, example="e.g. 0.036 (a fraction of the camera's distance)"),
     # photos in
     "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
@@ -144,7 +145,7 @@ RULES: dict[str, Rule] = {
     "pet.options.steps": Rule(0, 1_000_000_000, example="e.g. 40"), "options.rank": Rule(1, 1024, example="e.g. 4"),
     "options.alpha": Rule(0, 1e6, above=True, example="e.g. 4"), "options.min_weight": FRACTION,
     # procedural scenes
-    "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
+    "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 2, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
     "shininess": Rule(0, 10_000, above=True, example="e.g. 32"), "light_variation": FRACTION,
     "white_balance": FRACTION, "vignetting": FRACTION,
