@@ -230,6 +230,11 @@ def check_options(command: str | None, config, prefix: str = "") -> None:
         _check_memory(estimate(config))
 
 
+def check_value(name: str, value, command: str | None = None) -> None:
+    """InputError naming ``--name`` when ``value`` breaks its rule (for a library function given one option)."""
+    _check_value(name, _numbers(value), rule_for(command, name))
+
+
 def _check_value(name: str, numbers: list | None, rule: Rule | None) -> None:
     """InputError naming ``--name`` when one of ``numbers`` is not finite or outside ``rule``."""
     if numbers is None:

@@ -17,6 +17,7 @@ from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.errors import InputError
 from omnirecon.models.guided import GuidedOptions
 from omnirecon.models.registry import build_model
+from omnirecon.options import check_value
 
 
 def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
@@ -41,8 +42,7 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
 def set_threads(threads: int | None) -> None:
     """Set torch's CPU thread count (``None`` keeps it)."""
     if threads is not None:
-        if threads < 1:
-            raise InputError(f"--threads must be at least 1, got {threads}", None, "use e.g. 1")
+        check_value("threads", threads)  # its rule: omnirecon/options.py
         torch.set_num_threads(threads)
 
 
