@@ -22,7 +22,7 @@ def default_name(ckpt: Path | None, model_name: str) -> str:
 
 
 @dataclass
-class EvalCommand(ModelChoice, OutFolder, SceneCache, GuidedRendering, MachineConfig):
+class EvalCommand(GuidedRendering, SceneCache, OutFolder, ModelChoice, MachineConfig):
     """Evaluate a checkpoint (or the non-learned plane-sweep floor) on held-out views: PSNR, SSIM,
     ST-LPIPS (and LPIPS where its weights are on the machine), per scene and averaged, under the
     fixed protocols of docs/evaluation.md. Writes results.json, results.md and one

@@ -15,7 +15,7 @@ from omnirecon.outputs import prepare_out
 
 
 @dataclass
-class ProcessCommand(Overwrites, CaptureInput, SfmOptions):
+class ProcessCommand(CaptureInput, Overwrites, SfmOptions):
     """Find camera poses for photos (or a video's frames) with COLMAP: SIFT features, matching,
     incremental mapping, undistortion to PINHOLE. Writes a COLMAP scene (sparse/0, images, images_2,
     images_4, process.json) that every omnirecon command reads. Needs `pip install pycolmap`

@@ -70,7 +70,7 @@ GOALS = {"cpu_fps_512": 30.0, "ratio": 1000.0, "gpu_fps_800x600": 500.0}
 
 
 @dataclass
-class BenchConfig(ShippedCheckpoint, Seeded, Overwrites, DeviceConfig):
+class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, DeviceConfig):
     """Frames per second of Omni-Recon's mesh path and of its volumetric path in one run (warm-up,
     median of N frames, same resolution, same source views, CUDA synchronised), and their ratio."""
 

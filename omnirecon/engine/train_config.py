@@ -36,7 +36,7 @@ RESUMABLE_CHANGES = {"num_views_range", "resolution"}
 
 
 @dataclass
-class TrainConfig(Seeded, OutFolder, DeviceConfig):
+class TrainConfig(OutFolder, Seeded, DeviceConfig):
     """Train a generalizable renderer (GPNR, IBRNet or Omni-Recon) on procedural and/or real scenes.
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the

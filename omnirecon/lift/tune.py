@@ -127,7 +127,7 @@ def trainable(model) -> dict[str, Tensor]:
 
 # ---------------------------------------------------------------------- leave-one-out supervision
 @dataclass
-class PETOptions(SourceViews, Seeded):
+class PETOptions(Seeded, SourceViews):
     """How to tune."""
 
     mode: Mode = "lora"

@@ -45,7 +45,7 @@ them."""
 
 
 @dataclass
-class DemoConfig(SourceViews, GuidedRendering, ThreadsConfig):
+class DemoConfig(GuidedRendering, SourceViews, ThreadsConfig):
     """Run the whole pipeline on one scene with the shipped checkpoints and write an HTML report:
     novel-view videos (GPNR, Omni-Recon), held-out view scores against the non-learned floor, and a
     mesh with its Chamfer distance to the ground truth."""

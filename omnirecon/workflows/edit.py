@@ -40,7 +40,7 @@ from omnirecon.workflows.folder import FolderVerb, LiftedTargets
 
 
 @dataclass
-class EditConfig(LiftedTargets, CheckpointInput, SourceViews, OutFolder, ProtocolScenes, ChunkConfig, FolderVerb):
+class EditConfig(ProtocolScenes, OutFolder, SourceViews, CheckpointInput, LiftedTargets, ChunkConfig, FolderVerb):
     """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
     before/after, and delete or recolour its faces on the baked mesh (GLB)."""
 

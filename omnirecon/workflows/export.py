@@ -21,7 +21,7 @@ from omnirecon.viewer.export import ExportOptions, export_scene
 
 
 @dataclass
-class ExportConfig(ViewerBundle, SceneInput, CheckpointInput, OutFolder, MachineConfig):
+class ExportConfig(OutFolder, CheckpointInput, SceneInput, ViewerBundle, MachineConfig):
     """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
     renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
 

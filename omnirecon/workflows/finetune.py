@@ -77,7 +77,7 @@ VAL_PIXELS = 8192
 
 
 @dataclass
-class FinetuneConfig(SceneInput, CheckpointInput, SourceViews, Seeded, OutFolder, ThreadsConfig):
+class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput, ThreadsConfig):
     """Tune Omni-Recon's 2-D encoder and appearance branch on one scene's training views through its
     mesh, within a time budget, keeping the best state on validation views; writes a PSNR-vs-time
     curve on the held-out views."""

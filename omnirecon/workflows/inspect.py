@@ -33,7 +33,7 @@ from omnirecon.options import OutFolder, Seeded, check_options
 
 
 @dataclass
-class InspectConfig(Seeded, OutFolder):
+class InspectConfig(OutFolder, Seeded):
     """Validate a scene, print a summary, write pictures of its cameras and epipolar lines, and
     print numeric pose-consistency scores."""
 

@@ -41,7 +41,7 @@ PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", 
 
 
 @dataclass
-class LiftConfig(LiftedTargets, CheckpointInput, SourceViews, Seeded, OutFolder, SynthEvalScenes, MachineConfig, FolderVerb):
+class LiftConfig(SynthEvalScenes, OutFolder, Seeded, SourceViews, CheckpointInput, LiftedTargets, MachineConfig, FolderVerb):
     """Lift a 2-D predictor into novel views with a model's own blend weights (predict-then-blend), compare
     with render-then-predict, write label/heat maps, overlays and a metrics table."""
 

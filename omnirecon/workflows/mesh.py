@@ -34,7 +34,7 @@ from omnirecon.progress import progress_bar
 PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
-class MeshConfig(SceneInput, ModelChoice, SourceViews, Overwrites, MachineConfig):
+class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig):
     """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
     rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
     the masks for objects), a face budget and completion (every content pixel of every view gets a

@@ -30,7 +30,7 @@ from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class PETConfig(CheckpointInput, OutFolder, SynthEvalScenes, ThreadsConfig, FolderVerb):
+class PETConfig(SynthEvalScenes, OutFolder, CheckpointInput, ThreadsConfig, FolderVerb):
     """Tune LoRA adapters or biases of Omni-Recon's appearance branch with a semantic cross-entropy on a
     few labelled views (leave-one-out lifting); mIoU of lifted labels on held-out targets before/after."""
 

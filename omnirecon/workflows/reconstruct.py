@@ -66,7 +66,7 @@ from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
 
 @dataclass
-class ReconstructConfig(ViewerBundle, ShippedCheckpoint, SourceViews, Overwrites, CaptureInput, MachineConfig):
+class ReconstructConfig(CaptureInput, Overwrites, SourceViews, ShippedCheckpoint, ViewerBundle, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or

@@ -35,7 +35,7 @@ from omnirecon.rays import Sources
 
 
 @dataclass
-class RenderConfig(SceneInput, ModelChoice, OutFolder, GuidedRendering, MachineConfig):
+class RenderConfig(GuidedRendering, OutFolder, ModelChoice, SceneInput, MachineConfig):
     """Render a camera path (orbit, LLFF-style spiral, or interpolation between scene cameras)
     through a scene with a checkpoint or the plane-sweep floor; writes PNG frames and a video."""
 

@@ -17,7 +17,7 @@ from omnirecon.progress import progress_bar
 
 
 @dataclass
-class SynthConfig(Seeded, Overwrites, SynthOptions):
+class SynthConfig(Overwrites, Seeded, SynthOptions):
     """Generate procedural scenes of textured primitives with exact ground truth (depth, normals,
     labels, masks, mesh) in the Blender/NeRF-synthetic layout. Scene i uses seed ``seed + i``; the
     same seed always gives byte-identical files."""
