@@ -20,8 +20,11 @@ up to the export is kept there (:class:`~omnirecon.workflows.stages.Stages`: wha
 files; the mesh stage also its meshes, exactly): after a failure the error names the stage and what is kept, and
 the next run of the command continues from the first stage whose input files or options changed. Every
 record in it names files inside it relative to ``--out`` (``scene``, ``export/mesh.glb``), so no record
-points into the work folder. The meshes go from stage to stage in memory (as read back from the kept copy, so a
-resumed run and an uninterrupted one go on alike); ``mesh.ply`` is written once, for the user.
+points into the work folder. One :class:`Capture` goes from stage to stage: the scene folder, the side its images
+are used at, the meshes (in memory, as read back from the kept copy, so a resumed run and an uninterrupted one go on
+alike; ``mesh.ply`` is written once, for the user) and the checkpoint; every scene and checkpoint a stage reads is
+read from disk once in a run (:mod:`omnirecon.engine.held`). ``--out`` is claimed here alone: the process stage
+writes its scene into the claimed work folder.
 
 Size: the stages, the record and page they make, and their errors in this command's terms, in one place.
 """
