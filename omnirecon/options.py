@@ -79,14 +79,14 @@ RULES: dict[str, Rule] = {
     "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
     "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(3, 100_000, example="e.g. 300"),
     "rays": Rule(1, 1_048_576, example="e.g. 1024"), "chunk": Rule(1, 1_048_576, example="e.g. 4096"),
-    "views": Rule(0, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
+    "views": Rule(0, 1_000_000, example="e.g. 40"), "synth.views": Rule(1, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
     "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),
     "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
     "synth_count": Rule(1, len(EVAL_SEEDS), example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
     "max_views": COUNT, "train.max_views": Rule(2, 1_000_000, example="e.g. 40"), "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
     "max_faces": Rule(0, example="e.g. 200000"), "face_budget": Rule(0, example="e.g. 200000 (0: the full mesh)"),
     "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
-    "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
+    "max_objects": Rule(1, 254, example="e.g. 6"), "min_objects": Rule(1, 254, example="e.g. 2"),
     "min_views": Rule(1, 10_000, example="e.g. 2"), "num_pairs": Rule(1, 1_000, example="e.g. 4"),
     "labelled": Rule(1, 100_000, example="e.g. 6"), "pool": COUNT, "keep": Rule(1, 100_000, example="e.g. 2"),
     # time and steps (finite, so a run ends)
@@ -210,22 +210,23 @@ def rule_for(command: str | None, name: str) -> Rule | None:
     return RULES.get(f"{command}.{name}") or RULES.get(name) or RULES.get(name.rsplit(".", 1)[-1])
 
 
-def check_options(command: str | None, config, prefix: str = "") -> None:
+def check_options(command: str | None, config, prefix: str = "", memory: bool = True) -> None:
     """InputError for the first option of ``config`` (a command's parsed dataclass, its nested option groups
-    included) that is not finite, out of its range, or would need more memory than the run may use.
-    ``prefix``: the group's dotted name when ``config`` is a nested group checked on its own (``"guided."``)."""
+    included) that is not finite, out of its range, or (``memory``: ``config`` is the command's whole configuration)
+    would need more memory than the run may use. ``prefix``: the group's dotted name when ``config`` is a nested
+    group checked on its own (``"guided."``)."""
     if not dataclasses.is_dataclass(config):
         return
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
         name = prefix + f.name
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
-            check_options(command, value, f"{name}.")  # a nested group: --group.field
+            check_options(command, value, f"{name}.", memory=False)  # a nested group: --group.field
             continue
         if f.name == "device" and isinstance(value, str) and not DEVICE.match(value):
             raise InputError(f"--device {value!r} is not a device", None, "use --device cpu, cuda, cuda:0 or auto")
         _check_value(name, _numbers(value), rule_for(command, name))
-    estimate = MEMORY.get(command or "") if not prefix else None
+    estimate = MEMORY.get(command or "") if memory else None
     if estimate is not None:
         _check_memory(estimate(config))
 

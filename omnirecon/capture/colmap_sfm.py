@@ -117,7 +117,7 @@ class SfmOptions(Seeded):
     def check(self) -> None:
         if self.camera_model not in CAMERA_MODELS:
             raise InputError(f"unsupported --camera-model {self.camera_model}", None, f"use one of {', '.join(CAMERA_MODELS)}")
-        check_options("process", self)  # every number's range: omnirecon/options.py
+        check_options("process", self, memory=False)  # every number's range: omnirecon/options.py
 
 
 @dataclass

@@ -295,7 +295,7 @@ class MeshOptions:
                              f"{self.occlusion_rel}", None, "use e.g. 2 and 0.05")
         self.stereo.check()
         self.refine_options.check()
-        check_options("mesh", self)  # voxel, trunc, min_acc, min_views, min_component, max_faces, chunk: omnirecon/options.py
+        check_options("mesh", self, memory=False)  # voxel, trunc, min_acc, max_faces, chunk...: omnirecon/options.py
         if self.refine not in ("none", "stereo", "all"):
             raise InputError(f"refine must be none, stereo or all, got {self.refine!r}", None, "use refine='stereo'")
 

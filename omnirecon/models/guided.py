@@ -66,7 +66,7 @@ class GuidedOptions:
         """InputError naming the first option out of its range (its rules: ``guided.*`` in ``omnirecon.options``)."""
         from omnirecon.options import check_options
 
-        check_options(None, self, "guided.")
+        check_options(None, self, "guided.", memory=False)
 
     def resolved(self, model) -> GuidedOptions:
         """These options with every None filled from :data:`FAMILY_DEFAULTS` for ``model``'s class."""
