@@ -1,4 +1,11 @@
-"""Every numeric option of every command, checked in one place before the command starts.
+"""The options several commands share, declared once, and every numeric option of every command, checked in one
+place before the command starts.
+
+The shared options are small ``kw_only`` dataclasses a command's configuration inherits (:class:`Seeded`,
+:class:`Overwrites`, :class:`OutFolder`, :class:`SceneInput`, :class:`SourceViews`, :class:`SceneCache`,
+:class:`ProtocolScenes`, :class:`SynthEvalScenes`, :class:`ViewerBundle`, :class:`CaptureInput`; the model and
+machine groups are in :mod:`omnirecon.engine.machine`), so a flag is spelled, typed and described once
+(``tests/test_options.py`` refuses a field declared twice). Nested groups (``--guided.*``) are checked too.
 
 :func:`check_options` runs in ``omnirecon.cli`` on the parsed configuration of whichever command was chosen,
 before its ``main()``: each ``int``/``float`` field (and each element of a tuple of them) must be finite and
@@ -20,10 +27,12 @@ import math
 import re
 import typing
 from dataclasses import dataclass
-from typing import Callable
+from pathlib import Path
+from typing import Callable, Literal
 
 from omnirecon.chunk import memory_bytes
 from omnirecon.errors import InputError
+from omnirecon.splits import EVAL_SEEDS
 
 
 @dataclass(frozen=True)
@@ -34,13 +43,17 @@ class Rule:
     hi: float | None = None
     above: bool = False
     example: str = ""
+    unit: str = ""
+    """The values' unit, said after the range (``voxels``); empty for plain numbers."""
 
     def text(self) -> str:
         if self.lo is not None and self.hi is not None:
-            return f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
-        if self.lo is not None:
-            return f"{'>' if self.above else '>='} {_num(self.lo)}"
-        return f"<= {_num(self.hi)}"
+            text = f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
+        elif self.lo is not None:
+            text = f"{'>' if self.above else '>='} {_num(self.lo)}"
+        else:
+            text = f"<= {_num(self.hi)}"
+        return f"{text} {self.unit}" if self.unit else text
 
     def ok(self, v: float) -> bool:
         if self.lo is not None and (v <= self.lo if self.above else v < self.lo):
@@ -64,16 +77,16 @@ RULES: dict[str, Rule] = {
     "resolution": PIXELS, "mesh_resolution": PIXELS, "source_resolution": PIXELS,
     "render.samples": Rule(2, 4096, example="e.g. 24"),
     "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
-    "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(1, 100_000, example="e.g. 300"),
+    "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(3, 100_000, example="e.g. 300"),
     "rays": Rule(1, 1_048_576, example="e.g. 1024"), "chunk": Rule(1, 1_048_576, example="e.g. 4096"),
-    "views": Rule(0, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
+    "views": Rule(0, 1_000_000, example="e.g. 40"), "synth.views": Rule(1, 1_000_000, example="e.g. 40"), "num_views": COUNT, "num_views_range": COUNT,
     "bake_views": COUNT, "face_views": COUNT, "val_views": COUNT, "synth_views": Rule(2, 10_000, example="e.g. 40"),
     "num_scenes": Rule(1, 100_000, example="e.g. 1"), "synth_scenes": Rule(1, 100_000, example="e.g. 32"),
-    "synth_count": Rule(1, 10_000, example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
-    "max_views": COUNT, "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
+    "synth_count": Rule(1, len(EVAL_SEEDS), example="e.g. 10"), "scenes_in_memory": Rule(1, 10_000, example="e.g. 8"),
+    "max_views": COUNT, "train.max_views": Rule(2, 1_000_000, example="e.g. 40"), "max_targets": COUNT, "nearest": Rule(0, 1_000_000, example="e.g. 4, or 0 for every source"), "angle_sources": Rule(0, 1_000_000, example="e.g. 6, or 0 for every source"), "max_held_out": Rule(1, 10_000, example="e.g. 4"),
     "max_faces": Rule(0, example="e.g. 200000"), "face_budget": Rule(0, example="e.g. 200000 (0: the full mesh)"),
     "max_features": Rule(64, 1_000_000, example="e.g. 8192"),
-    "max_objects": Rule(1, 64, example="e.g. 6"), "min_objects": Rule(0, 64, example="e.g. 2"),
+    "max_objects": Rule(1, 254, example="e.g. 6"), "min_objects": Rule(1, 254, example="e.g. 2"),
     "min_views": Rule(1, 10_000, example="e.g. 2"), "num_pairs": Rule(1, 1_000, example="e.g. 4"),
     "labelled": Rule(1, 100_000, example="e.g. 6"), "pool": COUNT, "keep": Rule(1, 100_000, example="e.g. 2"),
     # time and steps (finite, so a run ends)
@@ -89,7 +102,7 @@ RULES: dict[str, Rule] = {
     # optimisation (finite, or the run writes NaN weights)
     "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
     "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
-    "clip": Rule(0, 1e6, above=True, example="e.g. 1.0"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
+    "clip": Rule(0, 1e6, example="e.g. 1.0 (0: off)"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
     "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION,
     # camera paths and video
     "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
@@ -102,9 +115,9 @@ RULES: dict[str, Rule] = {
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
     "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
-    "trunc": Rule(0, 1e6, above=True, example="e.g. 0.02"), "max_edge": Rule(0, 1e6, example="e.g. 0 (off)"),
-    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1e6, example="e.g. 0.01"),
-    "shifts": Rule(-1e6, 1e6, example="e.g. 0.036"),
+    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(0, 1, example="e.g. 0.005 (0: off)"),
+    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1, example="e.g. 0.01"),
+    "shifts": Rule(-1, 1, example="e.g. 0.036 (a fraction of the camera's distance)"),
     # photos in
     "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
     "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),
@@ -118,13 +131,21 @@ RULES: dict[str, Rule] = {
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),
     "residual_res": Rule(1, 256, example="e.g. 16"), "residual_lr": Rule(0, 1, above=True, example="e.g. 1e-2"),
     # verbs that need more than the shared rule
+    "bench.resolution": Rule(16, 16_384, example="e.g. 512"), "bench.size": Rule(16, 16_384, example="e.g. 504 378"),
+    "bench.views": Rule(1, 1_000_000, example="e.g. 3"),
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),
     "finetune.val_every": Rule(0, DAY, above=True, example="e.g. 2 (seconds)"),
     "val_margin": Rule(0, 100, example="e.g. 0.1 (dB)"),
     "val_guard": Rule(0, 100, example="e.g. 0 (dB)"),
+    # nested option groups (``--group.field``)
+    "guided.prior_scale": Rule(1, 64, example="e.g. 4"), "guided.band_samples": Rule(2, 1024, example="e.g. 8"),
+    "guided.guard_samples": Rule(0, 1024, example="e.g. 4"), "guided.band": Rule(0, 1, example="e.g. 0.03"),
+    "guided.max_spread": FRACTION, "guided.min_opacity": FRACTION,
+    "pet.options.steps": Rule(0, 1_000_000_000, example="e.g. 40"), "options.rank": Rule(1, 1024, example="e.g. 4"),
+    "options.alpha": Rule(0, 1e6, above=True, example="e.g. 4"), "options.min_weight": FRACTION,
     # procedural scenes
-    "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 8, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
+    "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 2, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
     "shininess": Rule(0, 10_000, above=True, example="e.g. 32"), "light_variation": FRACTION,
     "white_balance": FRACTION, "vignetting": FRACTION,
@@ -167,35 +188,160 @@ def numeric_fields(cls) -> list[str]:
     return out
 
 
+def option_fields(cls, prefix: str = "") -> list[str]:
+    """:func:`numeric_fields` of ``cls`` and of its nested option groups, as dotted names (``guided.band``)."""
+    hints = typing.get_type_hints(cls)
+    out = [prefix + name for name in numeric_fields(cls)]
+    for f in dataclasses.fields(cls):
+        sub = _group(hints[f.name])
+        if sub is not None:
+            out += option_fields(sub, f"{prefix}{f.name}.")
+    return out
+
+
+def _group(hint) -> type | None:
+    """The dataclass a field's type names (a nested option group), else ``None``."""
+    return hint if isinstance(hint, type) and dataclasses.is_dataclass(hint) else None
+
+
 def rule_for(command: str | None, name: str) -> Rule | None:
-    return RULES.get(f"{command}.{name}") or RULES.get(name)
+    """The rule of option ``name`` (dotted inside a nested group): ``command.name``, ``name``, then the rule of its
+    last part (a nested ``options.seed`` is a seed)."""
+    return RULES.get(f"{command}.{name}") or RULES.get(name) or RULES.get(name.rsplit(".", 1)[-1])
 
 
-def check_options(command: str | None, config) -> None:
-    """InputError for the first option of ``config`` (a command's parsed dataclass) that is not finite, out of
-    its range, or would need more memory than the run may use."""
+def check_options(command: str | None, config, prefix: str = "", memory: bool = True) -> None:
+    """InputError for the first option of ``config`` (a command's parsed dataclass, its nested option groups
+    included) that is not finite, out of its range, or (``memory``: ``config`` is the command's whole configuration)
+    would need more memory than the run may use. ``prefix``: the group's dotted name when ``config`` is a nested
+    group checked on its own (``"guided."``)."""
     if not dataclasses.is_dataclass(config):
         return
     for f in dataclasses.fields(config):
         value = getattr(config, f.name)
+        name = prefix + f.name
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            check_options(command, value, f"{name}.", memory=False)  # a nested group: --group.field
+            continue
         if f.name == "device" and isinstance(value, str) and not DEVICE.match(value):
             raise InputError(f"--device {value!r} is not a device", None, "use --device cpu, cuda, cuda:0 or auto")
-        numbers = _numbers(value)
-        if numbers is None:
-            continue
-        rule = rule_for(command, f.name)
-        shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
-        for v in numbers:
-            if not math.isfinite(v):
-                want = f"{rule.text()} (a finite number)" if rule else "a finite number"
-                raise InputError(f"{_flag(f.name)} must be {want}, got {shown}", None,
-                                 f"use {rule.example}" if rule and rule.example else "pass a finite number")
-            if rule is not None and not rule.ok(v):
-                raise InputError(f"{_flag(f.name)} must be {rule.text()}, got {shown}", None,
-                                 f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
-    estimate = MEMORY.get(command or "")
+        _check_value(name, _numbers(value), rule_for(command, name))
+    estimate = MEMORY.get(command or "") if memory else None
     if estimate is not None:
         _check_memory(estimate(config))
+
+
+def check_value(name: str, value, command: str | None = None) -> None:
+    """InputError naming ``--name`` when ``value`` breaks its rule (for a library function given one option)."""
+    _check_value(name, _numbers(value), rule_for(command, name))
+
+
+def _check_value(name: str, numbers: list | None, rule: Rule | None) -> None:
+    """InputError naming ``--name`` when one of ``numbers`` is not finite or outside ``rule``."""
+    if numbers is None:
+        return
+    shown = " ".join(_num(v) if math.isfinite(v) else str(v) for v in numbers)
+    for v in numbers:
+        if not math.isfinite(v):
+            want = f"{rule.text()} (a finite number)" if rule else "a finite number"
+            raise InputError(f"{_flag(name)} must be {want}, got {shown}", None,
+                             f"use {rule.example}" if rule and rule.example else "pass a finite number")
+        if rule is not None and not rule.ok(v):
+            raise InputError(f"{_flag(name)} must be {rule.text()}, got {shown}", None,
+                             f"use {rule.example}" if rule.example else f"pass a value {rule.text()}")
+
+
+# ---------------------------------------------------------------------------- shared options
+@dataclass(kw_only=True)
+class Seeded:
+    """A command with random draws."""
+
+    seed: int = 0
+    """Random seed of the run's draws (sampled pixels, rays and views, initial weights, procedural scenes, SfM's
+    RANSAC; synth: the first scene's): the same seed repeats the run."""
+
+
+@dataclass(kw_only=True)
+class Overwrites:
+    """A command that refuses an existing output unless told."""
+
+    overwrite: bool = False
+    """Replace an existing --out (without it the command refuses it; mesh and bench replace the files an earlier run
+    of theirs wrote either way; synth regenerates the scene folders it finds instead of keeping them, so without it
+    an interrupted run resumes)."""
+
+
+@dataclass(kw_only=True)
+class OutFolder:
+    """A command that writes one output folder, named after its input when not given."""
+
+    out: Path | None = None
+    """Output folder (default: a folder under outputs/<command>/ named after the input or the model)."""
+
+
+@dataclass(kw_only=True)
+class SourceViews:
+    """A command that renders or fuses from the K nearest source views."""
+
+    num_views: int = 3
+    """Source views K: the nearest views each rendered pixel, depth map or target draws on (and where a command picks
+    its views itself and none are given, how many it picks)."""
+
+
+@dataclass(kw_only=True)
+class SceneCache:
+    """A command that may generate the procedural synth:eval scenes."""
+
+    cache: Path = Path("outputs/cache")
+    """Where the synth:eval scenes are generated (once; later runs read them)."""
+
+
+@dataclass(kw_only=True)
+class SceneInput:
+    """A command that reads one scene folder."""
+
+    scene: Path
+    """Scene folder (any supported format: COLMAP, LLFF, Blender, DTU, procedural), normalised as every command reads
+    it; its resolution: the command's --resolution where it has one."""
+
+
+@dataclass(kw_only=True)
+class ProtocolScenes(SceneCache):
+    """A command that runs on held-out scenes under an evaluation protocol (lift, edit, pet)."""
+
+    scene: str = "synth:eval"
+    """A scene folder (any supported format; edit and pet need its label maps) or synth:eval[:object|frontal|forward]
+    (held-out procedural scenes with ground-truth labels, normals and depth)."""
+
+    protocol_set: Literal["cpu", "full"] = "cpu"
+    """Resolution and targets: cpu (64 px, fewer targets) or full (128 px, the published protocols)."""
+
+
+@dataclass(kw_only=True)
+class SynthEvalScenes(ProtocolScenes):
+    """A command that runs on several held-out procedural scenes (lift, pet)."""
+
+    synth_count: int = 1
+    """Scenes taken from a synth:eval set (seeds 900000, 900001, ...; each run separately)."""
+
+
+@dataclass(kw_only=True)
+class ViewerBundle:
+    """A command that may write the web viewer (export, reconstruct)."""
+
+    viewer: bool = True
+    """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer, done by `make setup`)."""
+
+
+@dataclass(kw_only=True)
+class CaptureInput:
+    """A command that finds camera poses for photos or a video (process, reconstruct)."""
+
+    masks: Path | None = None
+    """Photos: a folder of masks named like the photos; features only where a mask is non-zero (an object on a
+    turntable, whose background does not move with it)."""
+    fps: float = 2.0
+    """Video input: frames sampled per second of video."""
 
 
 # ---------------------------------------------------------------------------- memory

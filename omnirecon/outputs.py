@@ -34,7 +34,7 @@
   :func:`relative_records` rewrites every JSON file's paths into the temporary folder as paths relative
   to it (so they hold for ``--out``).
 
-Size: the whole output policy (checks, lock, marker, swap, records) in one module, so that every verb
+Size: the whole output policy (checks, lock, marker, swap) in one module, so that every verb
 follows the same rules.
 """
 
@@ -54,6 +54,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.records import real, relative_records, relative_to  # noqa: F401  (relative_to: part of this API)
 
 # .NAME.pid123.abc.ext (atomic_path), .viewer.pid123.abc/ (bundles), .scene_00001.tmp123/ (synth)
 STALE = re.compile(r"^\..+\.(?:pid|tmp)(\d+)(?:\..*)?$")
@@ -182,11 +183,6 @@ def held_signals():
     finally:
         if old is not None:
             signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def real(path: Path) -> Path:
-    """``path`` absolute with every existing link resolved (the same folder reached two ways compares equal)."""
-    return Path(os.path.realpath(os.path.abspath(path)))
 
 
 def check_outside_inputs(out: Path, inputs, flag: str = "--out") -> None:
@@ -404,46 +400,6 @@ def restore_swapped(out: Path) -> None:
         if pid.isdigit() and not pid_alive(int(pid)):
             os.rename(old, out)
             return
-
-
-def relative_to(value, folder: Path):
-    """``value`` (JSON-like) with every string naming ``folder`` or a path inside it made relative to
-    ``folder`` (``"."`` for the folder itself); other strings unchanged."""
-    prefixes = sorted({str(folder), str(Path(folder).absolute()), str(real(folder))}, key=len, reverse=True)
-
-    def fix(v):
-        if isinstance(v, str):
-            for p in prefixes:
-                if v == p:
-                    return "."
-                if v.startswith(p + os.sep):
-                    return v[len(p) + 1:]
-            return v
-        if isinstance(v, list):
-            return [fix(x) for x in v]
-        if isinstance(v, dict):
-            return {k: fix(x) for k, x in v.items()}
-        return v
-
-    return fix(value)
-
-
-def relative_records(folder: Path) -> list[Path]:
-    """Apply :func:`relative_to` to every JSON file under ``folder`` (rewritten atomically); returns those
-    changed. Files that are not JSON are left alone."""
-    changed = []
-    for f in sorted(Path(folder).rglob("*.json")):
-        try:
-            data = json.loads(f.read_text())
-        except (OSError, ValueError):
-            continue
-        new = relative_to(data, folder)
-        if new != data:
-            tmp = f.parent / f".{f.stem}.pid{os.getpid()}.json"
-            tmp.write_text(json.dumps(new, indent=1))
-            os.replace(tmp, f)
-            changed.append(f)
-    return changed
 
 
 @dataclass

@@ -7,31 +7,50 @@ import pytest
 
 from omnirecon.cli import COMMANDS, _load
 from omnirecon.errors import InputError
-from omnirecon.options import RULES, _check_memory, check_options, numeric_fields, rule_for
+from omnirecon.options import RULES, _check_memory, check_options, option_fields, rule_for
 
 
 def test_every_numeric_option_of_every_command_has_a_rule():
-    missing = [(name, f) for name, spec in COMMANDS.items() for f in numeric_fields(_load(spec))
+    missing = [(name, f) for name, spec in COMMANDS.items() for f in option_fields(_load(spec))
                if rule_for(name, f) is None]
     assert not missing, missing
 
 
 def test_every_default_passes_its_rule():
-    """The shipped defaults are inside their own rules (a rule that refuses a default is wrong)."""
+    """The shipped defaults, nested groups' too, are inside their own rules (a rule that refuses a default is wrong)."""
+    for name, spec in COMMANDS.items():
+        config = _default(_load(spec))
+        for f in option_fields(_load(spec)):
+            value = _get(config, f) if config is not None else None
+            if value is not None:
+                values = value if isinstance(value, tuple) else (value,)
+                rule = rule_for(name, f)
+                assert all(rule.ok(v) for v in values), (name, f, value, rule)
+
+
+def _default(cls):
+    """``cls`` with its defaults, the required fields given any value (``None`` when that fails)."""
     import dataclasses
 
-    for name, spec in COMMANDS.items():
-        for f in dataclasses.fields(_load(spec)):
-            if f.name in numeric_fields(_load(spec)) and f.default not in (dataclasses.MISSING, None):
-                values = f.default if isinstance(f.default, tuple) else (f.default,)
-                rule = rule_for(name, f.name)
-                assert all(rule.ok(v) for v in values), (name, f.name, f.default, rule)
+    required = {f.name: "x" for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING}
+    try:
+        return cls(**required)
+    except Exception:  # noqa: BLE001 - a config that checks its inputs on construction: tested by its own tests
+        return None
+
+
+def _get(config, dotted: str):
+    for part in dotted.split("."):
+        config = getattr(config, part)
+    return config
 
 
 def test_unused_rules_are_few():
     """Rules name real fields (a renamed option must not leave a dead rule behind)."""
-    used = {f for spec in COMMANDS.values() for f in numeric_fields(_load(spec))}
-    dead = [k for k in RULES if k.split(".")[-1] not in used]
+    used = {f for spec in COMMANDS.values() for f in option_fields(_load(spec))}
+    used |= {f.rsplit(".", 1)[-1] for f in used}
+    dead = [k for k in RULES if k.split(".", 1)[-1] not in used and k not in used]
     assert not dead, dead
 
 
@@ -63,3 +82,137 @@ def test_notes_printed_while_parsing_reach_stderr(tmp_path, capsys):
                "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert rc == 2 and "omnirecon: note: --chunk" in err and str(tmp_path / "nope") in err.splitlines()[-1], err
+
+
+@pytest.mark.parametrize("group, value, flag", [("guided", {"band": 2.0}, "--guided.band must be in [0, 1]"),
+                                                ("options", {"rank": 0}, "--options.rank must be in [1, 1024]"),
+                                                ("options", {"lr": float("nan")}, "--options.lr must be")])
+def test_nested_groups_are_checked_with_their_dotted_flag(group, value, flag):
+    import dataclasses
+    import pathlib
+
+    from omnirecon.workflows.pet import PETConfig
+    from omnirecon.workflows.render import RenderConfig
+
+    config = (RenderConfig(scene=pathlib.Path("s"), model="floor") if group == "guided"
+              else PETConfig(ckpt=pathlib.Path("c")))
+    config = dataclasses.replace(config, **{group: dataclasses.replace(getattr(config, group), **value)})
+    with pytest.raises(InputError) as e:
+        check_options("render" if group == "guided" else "pet", config)
+    assert flag in e.value.one_line(), e.value.one_line()
+
+
+def test_mesh_rules_are_one_place():
+    """``MeshOptions.check`` (the library) and the CLI refuse ``trunc`` with the same rule and message."""
+    import pathlib
+
+    from omnirecon.mesh.build import MeshOptions
+    from omnirecon.workflows.mesh import MeshConfig
+
+    with pytest.raises(InputError) as lib:
+        MeshOptions(trunc=0.5).check()
+    with pytest.raises(InputError) as cli:
+        check_options("mesh", MeshConfig(scene=pathlib.Path("s"), trunc=0.5))
+    assert lib.value.one_line() == cli.value.one_line() and "[1, 100] voxels" in lib.value.one_line()
+
+
+def test_mesh_options_follow_the_preset_and_every_given_flag():
+    """``omnirecon mesh``'s options reach :class:`MeshOptions` by name (no hand copy): a flag left at its default
+    yields to the preset (``--fusion reference``: no face budget, no completion), a given one wins."""
+    import dataclasses
+    import pathlib
+
+    from omnirecon.mesh.build import PRESETS, MeshOptions
+    from omnirecon.workflows.mesh import MESH_FIELDS, MeshConfig
+
+    base = dict(scene=pathlib.Path("s"), depth="model", surface="fusion", depth_pass="fine")
+    ref = MeshConfig(**base, fusion="reference").mesh_options()
+    assert (ref.max_faces, ref.complete, ref.trunc) == (0, False, PRESETS["reference"]["trunc"])
+    assert MeshConfig(**base, fusion="reference", max_faces=5000).mesh_options().max_faces == 5000
+    assert MeshConfig(**base).mesh_options().max_faces == MeshOptions().max_faces
+    given = {"shifts": (0.01,), "voxel": 0.01, "trunc": 5.0, "weights": False, "max_faces": 1234, "min_acc": 0.25,
+             "min_views": 3, "min_component": 0.01, "cull_hidden": False, "complete": False}
+    made = MeshConfig(**base, **given).mesh_options()
+    fields = {f.name for f in dataclasses.fields(MeshConfig)} & MESH_FIELDS
+    assert fields == set(given) | {"depth", "surface", "depth_pass", "chunk"}, fields  # a new shared field: add it here
+    assert all(getattr(made, k) == v for k, v in given.items()), made
+
+
+SAME_NAME = {
+    # name: {classes allowed to declare it}: a different meaning, type or default under one word
+    "ckpt": {"ModelChoice", "CheckpointInput", "ShippedCheckpoint"},  # optional beside --model / required / shipped
+    "out": {"OutFolder", "MeshConfig", "BenchConfig", "SynthConfig", "ProcessCommand", "DemoConfig",
+            "ReconstructConfig"},  # mesh files / a JSON file / a folder of scenes / folders with a fixed default
+    "scene": {"SceneInput", "ProtocolScenes", "BenchConfig"},  # required / also synth:eval names / optional
+    "num_views": {"SourceViews", "EvalCommand", "ExportConfig", "TrainConfig", "RenderConfig"},  # a list of K /
+    # all views when not given / the model's K when not given / render's larger default K
+    "model": {"ModelChoice", "TrainConfig"},  # the floor instead of a checkpoint / the preset to train
+    "cache": {"SceneCache", "TrainConfig"},  # synth:eval scenes / training scenes
+    "synth_count": {"SynthEvalScenes", "EvalCommand"}, "protocol_set": {"ProtocolScenes", "EvalCommand"},  # eval: the
+    # published protocol's 10 scenes at full resolution by default, the others one scene at cpu size
+    "resolution": {"FinetuneConfig", "MeshConfig", "ExportConfig", "TrainConfig", "BenchConfig", "RenderConfig",
+                   "ReconstructConfig", "DemoConfig", "SynthOptions"},  # each command's own default image size
+    "frames": {"DemoConfig", "BenchConfig", "RenderConfig", "ReconstructConfig"},  # video frames / timed frames
+    "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # a count / indices
+    "path": {"LiftedTargets", "RenderConfig", "ReconstructConfig", "InspectConfig"},  # blend path / camera path / input
+    "mesh": {"LiftedTargets", "BenchConfig", "FinetuneConfig", "ExportConfig"},  # a choice or a file / a file
+    "masks": {"CaptureInput", "MeshConfig", "ExportConfig"},  # a folder of masks / use the scene's masks
+    "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # per step / per timed batch
+    "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"}, "steps": {"PETOptions", "TrainConfig"},
+    "fps": {"CaptureInput", "RenderConfig"},  # frames sampled from a video / of the written video
+    "threads": {"ThreadsConfig", "SfmOptions"},  # torch's / COLMAP's
+    "resume": {"TrainConfig", "ReconstructConfig"},  # --resume a run (off) / kept stages (on)
+    "voxel": {"MeshConfig", "ExportConfig"},  # the preset's by default / export's fixed default
+    "camera_model": {"SfmOptions", "ReconstructConfig"},  # reconstruct passes it on to its process stage
+    # the mesh-path renderer's settings: one options group once the mesh path is one kernel (issue 45 item 1)
+    "visibility": {"LiftedTargets", "FinetuneConfig", "ExportConfig"},
+    "fill": {"FinetuneConfig", "ExportConfig", "EditConfig"}, "cracks": {"FinetuneConfig", "ExportConfig"},
+    "blend": {"FinetuneConfig", "ExportConfig"}, "angle_sources": {"FinetuneConfig", "ExportConfig"},
+    "precision": {"FinetuneConfig", "RenderConfig"},
+    # one word, two things
+    "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"}, "quick": {"DemoConfig", "BenchConfig"},
+    "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},
+    "max_views": {"TrainConfig", "InspectConfig"}, "val_every": {"TrainConfig", "FinetuneConfig"},
+    "val_views": {"TrainConfig", "FinetuneConfig"}, "quiet": {"ViewCommand", "ProcessCommand"},
+    "geometry": {"EvalCommand", "EditConfig"},
+}
+"""Field names more than one class of the command tree declares, each with the classes allowed to."""
+
+
+def config_tree() -> set[type]:
+    """Every dataclass a command's options are made of: the commands, their bases and nested option groups."""
+    import dataclasses
+    import typing
+
+    seen: set[type] = set()
+
+    def walk(cls: type) -> None:
+        for k in cls.__mro__:
+            if dataclasses.is_dataclass(k) and k not in seen:
+                seen.add(k)
+                for hint in typing.get_type_hints(k).values():
+                    for t in (hint, *typing.get_args(hint)):
+                        if isinstance(t, type) and dataclasses.is_dataclass(t):
+                            walk(t)
+
+    for spec in COMMANDS.values():
+        walk(_load(spec))
+    return seen
+
+
+def test_no_config_field_is_declared_twice():
+    """A flag shared by several commands is declared once (an option group they inherit: omnirecon/options.py,
+    omnirecon/engine/machine.py); the same word meaning different things is listed in ``SAME_NAME``."""
+    import collections
+    import dataclasses
+
+    declared = collections.defaultdict(set)
+    for cls in config_tree():
+        own = {f.name for f in dataclasses.fields(cls)} & set(cls.__dict__.get("__annotations__", {}))
+        for name in own:
+            declared[name].add(cls.__name__)
+    twice = {n: sorted(c - SAME_NAME.get(n, set())) for n, c in declared.items()
+             if len(c) > 1 and c - SAME_NAME.get(n, set())}
+    assert not twice, f"declared in more than one class (declare it once in an option group): {twice}"
+    stale = {n: sorted(c - declared.get(n, set())) for n, c in SAME_NAME.items() if c - declared.get(n, set())}
+    assert not stale, f"SAME_NAME lists classes that no longer declare the field: {stale}"

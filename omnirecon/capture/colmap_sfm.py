@@ -30,6 +30,7 @@ import numpy as np
 from PIL import Image
 
 from omnirecon.errors import InputError
+from omnirecon.options import Seeded, check_options
 from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -55,7 +56,7 @@ MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's def
 
 
 @dataclass
-class SfmOptions:
+class SfmOptions(Seeded):
     """How COLMAP runs."""
 
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
@@ -112,23 +113,11 @@ class SfmOptions:
     round (:mod:`omnirecon.capture.consistency`); 0 turns the check off."""
     threads: int = 1
     """CPU threads for COLMAP (1 gives reproducible models)."""
-    seed: int = 0
-    """Random seed of the mapper's RANSAC and initial-pair choice."""
 
     def check(self) -> None:
         if self.camera_model not in CAMERA_MODELS:
             raise InputError(f"unsupported --camera-model {self.camera_model}", None, f"use one of {', '.join(CAMERA_MODELS)}")
-        if self.overlap < 1 or self.threads < 1 or self.loop_pairs < 0 or self.max_image_size < 64 or self.max_features < 64:
-            raise InputError("--overlap and --threads must be at least 1, --loop-pairs at least 0, --max-image-size "
-                             "and --max-features at least 64", None, "use the defaults")
-        if not 0 <= self.retry_below <= 1 or self.mask_dilate < 0 or not -1 <= -self.first_octave <= 3:
-            raise InputError("--retry-below must be in [0, 1], --mask-dilate at least 0, --first-octave in [-3, 1]",
-                             None, "use the defaults")
-        if not 0 < self.max_ratio <= 1:
-            raise InputError(f"--max-ratio must be in (0, 1], got {self.max_ratio}", None, "use e.g. 0.8")
-        if not 0 <= self.min_registered <= 1 or not 0 <= self.min_explained <= 1:
-            raise InputError(f"--min-registered and --min-explained must be fractions in [0, 1], got "
-                             f"{self.min_registered} and {self.min_explained}", None, "use e.g. 0.5")
+        check_options("process", self, memory=False)  # every number's range: omnirecon/options.py
 
 
 @dataclass

@@ -42,11 +42,13 @@ MIN_SIDE = 16
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
-            overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None) -> dict:
+            overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None,
+            claimed: bool = False) -> dict:
     """Run structure from motion on the photos in folder ``source`` (or the frames of video ``source``)
     and write the scene ``out``. ``masks``: a folder of masks matched to the photos by name; features
     are detected only inside them (objects on a turntable), and the scene keeps them as its object masks. Returns the summary that is also saved
-    as ``out/process.json``."""
+    as ``out/process.json``. ``claimed``: the caller holds the claim of a folder ``out`` lies in (``reconstruct``'s
+    work folder), so ``out`` (absent) is written in place instead of claimed."""
     options = options or SfmOptions()
     options.check()
     source, out = Path(source), Path(out)
@@ -59,6 +61,10 @@ def process(source: Path, out: Path, options: SfmOptions | None = None, fps: flo
         raise InputError(f"not a folder or a video ({source.suffix or 'no extension'})", source,
                          f"pass a folder of photos, or a video ({', '.join(VIDEO_EXTS)})")
     t0 = time.perf_counter()
+    if claimed:
+        shutil.rmtree(out, ignore_errors=True)  # the caller's folder: a scene a cut-off run half wrote goes
+        out.mkdir()  # _build takes an empty folder
+        return _build(source, out, options, fps, max_frames, quiet, keep_work, masks, is_video, t0)
     with claim(out, "process", inputs=(source, masks), mode="replace", overwrite=overwrite) as owned:
         return _build(source, owned.work, options, fps, max_frames, quiet, keep_work, masks, is_video, t0)
 

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 from omnirecon.engine.evaluate import evaluate
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import GuidedRendering, MachineConfig, ModelChoice, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
-from omnirecon.models.guided import GuidedOptions
+from omnirecon.options import OutFolder, SceneCache
 from omnirecon.outputs import claim
 
 
@@ -22,7 +22,7 @@ def default_name(ckpt: Path | None, model_name: str) -> str:
 
 
 @dataclass
-class EvalCommand(MachineConfig):
+class EvalCommand(GuidedRendering, SceneCache, OutFolder, ModelChoice, MachineConfig):
     """Evaluate a checkpoint (or the non-learned plane-sweep floor) on held-out views: PSNR, SSIM,
     ST-LPIPS (and LPIPS where its weights are on the machine), per scene and averaged, under the
     fixed protocols of docs/evaluation.md. Writes results.json, results.md and one
@@ -31,14 +31,8 @@ class EvalCommand(MachineConfig):
     scenes: tuple[str, ...] = (SYNTH_PREFIX,)
     """Scene folders (any supported format) and/or synth:eval[:object|frontal|forward] (the held-out
     procedural set, generated on first use)."""
-    ckpt: Path | None = None
-    """Checkpoint folder written by `omnirecon train` (holds meta.json and model.safetensors)."""
-    model: Literal["floor"] | None = None
-    """Evaluate a non-learned model instead of a checkpoint: `floor` is the plane-sweep baseline."""
     num_views: tuple[int, ...] = (3, 10)
     """Source-view counts K to evaluate (3 and 10 are the standard settings)."""
-    out: Path | None = None
-    """Output folder (default: outputs/eval/<model name>)."""
     synth_count: int = 10
     """Scenes in the synth:eval set (seeds 900000, 900001, ...)."""
     max_targets: int | None = None
@@ -46,8 +40,6 @@ class EvalCommand(MachineConfig):
     results are marked as not following the protocol)."""
     save_images: bool = True
     """Write a GT | render | |error| panel per target."""
-    cache: Path = Path("outputs/cache")
-    """Where the synth:eval scenes are generated."""
     protocol_set: Literal["full", "cpu"] = "full"
     """``full``: the published protocols (128 px); ``cpu``: the same rules at 64 px with fewer targets
     (the CPU benchmark of the tiny presets; not comparable with ``full``)."""
@@ -55,9 +47,6 @@ class EvalCommand(MachineConfig):
     """Also extract a mesh per scene and K (`omnirecon mesh`'s protocol; sources: DTU's 23 24 33 or K
     evenly spaced pool views) and score it: Chamfer / F-score against a procedural scene's exact
     mesh, silhouette IoU on the targets' masks. Per-target depth errors need no flag."""
-    guided: GuidedOptions = field(default_factory=GuidedOptions)
-    """Surface-guided rendering of the targets (``--guided.on``; see ``omnirecon render --help``): changes the
-    renders, recorded in results.json."""
 
     def main(self) -> None:
         out = self.out or Path("outputs/eval") / default_name(self.ckpt, self.model or "model")

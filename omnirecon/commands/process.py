@@ -10,11 +10,12 @@ import tyro
 from omnirecon.capture.colmap_sfm import SfmOptions
 from omnirecon.capture.process import process, summary_lines
 from omnirecon.errors import InputError
+from omnirecon.options import CaptureInput, Overwrites
 from omnirecon.outputs import prepare_out
 
 
 @dataclass
-class ProcessCommand(SfmOptions):
+class ProcessCommand(CaptureInput, Overwrites, SfmOptions):
     """Find camera poses for photos (or a video's frames) with COLMAP: SIFT features, matching,
     incremental mapping, undistortion to PINHOLE. Writes a COLMAP scene (sparse/0, images, images_2,
     images_4, process.json) that every omnirecon command reads. Needs `pip install pycolmap`
@@ -24,15 +25,8 @@ class ProcessCommand(SfmOptions):
     """Folder of photos (JPEG/PNG; EXIF orientation honoured) or a video file."""
     out: Path = Path("outputs/scene")
     """Scene folder to write (built in a temporary folder, renamed at the end)."""
-    masks: Path | None = None
-    """Folder of masks named like the photos: features only where a mask is non-zero (use it for an
-    object on a turntable, whose background does not move with it)."""
-    fps: float = 2.0
-    """Video input: frames sampled per second of video."""
     max_frames: int = 300
     """Video input: keep at most this many frames."""
-    overwrite: bool = False
-    """Replace an existing --out folder."""
     keep_work: bool = False
     """Keep COLMAP's database and raw models in <out>/colmap_work (for debugging)."""
     quiet: bool = False
@@ -46,8 +40,6 @@ class ProcessCommand(SfmOptions):
                              "pip install pycolmap (or pip install -e '.[capture]')") from e
         if self.source is None:
             raise InputError("no input given", None, "pass a folder of photos or a video: omnirecon process PATH --out SCENE")
-        if self.max_frames < 3:
-            raise InputError(f"--max-frames must be at least 3, got {self.max_frames}", None, "use e.g. 300")
         prepare_out(self.out)  # the common preflight: writable, nothing in the way, before the run
         options = SfmOptions(**{f.name: getattr(self, f.name) for f in fields(SfmOptions)})
         summary = process(self.source, self.out, options, fps=self.fps, max_frames=self.max_frames,

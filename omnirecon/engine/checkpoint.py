@@ -23,6 +23,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from omnirecon.data.io import write_json
+from omnirecon.engine.held import held
 from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.errors import InputError
 from omnirecon.models.registry import model_config_dict
@@ -69,9 +70,13 @@ def read_meta(folder: Path) -> dict:
 def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
     """Rebuild the model from ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`). Returns
     ``(model, meta)``."""
+    folder = checkpoint_folder(folder)
+    return held("checkpoint", (str(Path(folder).resolve()), str(device)), lambda: _load_checkpoint(folder, device))
+
+
+def _load_checkpoint(folder: Path, device: str | torch.device):
     from omnirecon.engine.checkpoint_check import build_checked, read_weights
 
-    folder = checkpoint_folder(folder)
     meta = read_meta(folder)
     model = build_checked(meta, folder)
     state = read_weights(folder / "model.safetensors", device)  # missing / unreadable / NaN: InputError

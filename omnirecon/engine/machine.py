@@ -1,18 +1,23 @@
 """Machine settings every command shares: device, CPU threads and rays per rendering chunk, and the
-model a command runs (a checkpoint or the non-learned floor)."""
+model a command runs (a checkpoint or the non-learned floor): the option groups (``kw_only`` dataclasses a
+command's configuration inherits, each field declared once; the others are in :mod:`omnirecon.options`) and
+the functions that apply them."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import torch
 
 from omnirecon.chunk import pick_chunk
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.shipped import checkpoint_folder
+from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.errors import InputError
+from omnirecon.models.guided import GuidedOptions
 from omnirecon.models.registry import build_model
+from omnirecon.options import check_value
 
 
 def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
@@ -37,8 +42,7 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
 def set_threads(threads: int | None) -> None:
     """Set torch's CPU thread count (``None`` keeps it)."""
     if threads is not None:
-        if threads < 1:
-            raise InputError(f"--threads must be at least 1, got {threads}", None, "use e.g. 1")
+        check_value("threads", threads)  # its rule: omnirecon/options.py
         torch.set_num_threads(threads)
 
 
@@ -73,8 +77,8 @@ class DeviceConfig(ThreadsConfig):
 
 
 @dataclass(kw_only=True)
-class MachineConfig(DeviceConfig):
-    """Threads, device and the rendering chunk of a command that renders images."""
+class ChunkConfig(ThreadsConfig):
+    """Threads and the rendering chunk of a command that renders on the CPU."""
 
     chunk: int | None = None
     """Rays rendered per chunk: bounds memory (default: from the free memory, at most 4096; a one-line note
@@ -82,3 +86,44 @@ class MachineConfig(DeviceConfig):
 
     def __post_init__(self) -> None:
         self.chunk = pick_chunk(self.chunk)  # None: from the free memory
+
+
+@dataclass(kw_only=True)
+class MachineConfig(DeviceConfig, ChunkConfig):
+    """Threads, device and the rendering chunk of a command that renders images."""
+
+
+@dataclass(kw_only=True)
+class ModelChoice:
+    """A command that runs a checkpoint or the non-learned floor (exactly one: :func:`load_model`)."""
+
+    ckpt: Path | None = None
+    """Checkpoint folder written by `omnirecon train` (holds meta.json and model.safetensors), or a shipped
+    checkpoint's name (e.g. omnirecon-tiny)."""
+    model: Literal["floor"] | None = None
+    """A non-learned model instead of a checkpoint: `floor` is the plane-sweep baseline."""
+
+
+@dataclass(kw_only=True)
+class CheckpointInput:
+    """A command that needs a trained checkpoint (which models it takes: the command's description)."""
+
+    ckpt: Path
+    """Checkpoint folder written by `omnirecon train`, or a shipped checkpoint's name (e.g. omnirecon-tiny)."""
+
+
+@dataclass(kw_only=True)
+class ShippedCheckpoint:
+    """A command that runs Omni-Recon, the shipped one unless told."""
+
+    ckpt: Path = shipped_checkpoint("omnirecon-tiny")
+    """Omni-Recon checkpoint folder or shipped name (default: the shipped omnirecon-tiny)."""
+
+
+@dataclass(kw_only=True)
+class GuidedRendering:
+    """A command whose volumetric renders may be surface-guided."""
+
+    guided: GuidedOptions = field(default_factory=GuidedOptions)
+    """Surface-guided rendering (``--guided.on``): each ray sampled in a band around a prior depth from a low-resolution
+    render, the full path where the prior is missing or untrusted; changes the renders, recorded with them."""

@@ -9,6 +9,7 @@ from pathlib import Path
 from omnirecon.data import ReadOptions, detect_format, load_scene
 from omnirecon.data.scene import Scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
+from omnirecon.engine.held import held
 from omnirecon.engine.protocols import (
     FORMAT_PROTOCOL,
     PROTOCOL_SETS,
@@ -23,22 +24,28 @@ from omnirecon.scene_kind import scene_kind
 from omnirecon.splits import EVAL_SEEDS
 
 
+def _read(path: Path, fmt: str, options: ReadOptions) -> Scene:
+    """``load_scene``, read once while a run holds its reads (:mod:`omnirecon.engine.held`)."""
+    kind = "scene_probe" if options.max_views == 1 else "scene"
+    return held(kind, (str(Path(path).resolve()), fmt, repr(options)), lambda: load_scene(path, fmt, options))
+
+
 def load_at_resolution(path: Path, long_side: int, background: str = "white", fmt: str = "auto") -> Scene:
     """Read ``path`` with its long side area-downscaled to at most ``long_side`` px, normalised
     (``Scene.normalized``: content centred in the unit sphere, as training does)."""
     if long_side < 8:
         raise InputError(f"resolution must be at least 8 px, got {long_side}", None, "use e.g. 128")
     fmt = detect_format(path) if fmt == "auto" else fmt
-    probe = load_scene(path, fmt, ReadOptions(max_views=1))  # one image: the native size
+    probe = _read(path, fmt, ReadOptions(max_views=1))  # one image: the native size
     native = max(probe.width, probe.height)
-    scene = load_scene(path, fmt, ReadOptions(downscale=max(1.0, native / long_side), background=background))
+    scene = _read(path, fmt, ReadOptions(downscale=max(1.0, native / long_side), background=background))
     return scene.normalized()
 
 
 def photo_side(path: Path, cap: int = 512, fmt: str = "auto") -> int:
     """The long side of the scene's photos in pixels, at most ``cap`` (what users look at)."""
     fmt = detect_format(path) if fmt == "auto" else fmt
-    probe = load_scene(path, fmt, ReadOptions(max_views=1))
+    probe = _read(path, fmt, ReadOptions(max_views=1))
     return min(cap, max(probe.width, probe.height))
 
 
@@ -46,7 +53,7 @@ def object_masks(path: Path, fmt: str = "auto") -> bool:
     """The scene is an object capture (``rig == "object"``) with object masks, e.g. photos processed with
     ``--masks``, DTU, ethiopianHead: what ``reconstruct`` meshes with its masks."""
     fmt = detect_format(path) if fmt == "auto" else fmt
-    probe = load_scene(path, fmt, ReadOptions(max_views=1))
+    probe = _read(path, fmt, ReadOptions(max_views=1))
     kind = scene_kind(probe)
     return kind.object and kind.masks
 

@@ -46,9 +46,9 @@ from omnirecon.data import load_scene
 from omnirecon.data.io import write_json
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.machine import DeviceConfig, pick_device
+from omnirecon.engine.machine import DeviceConfig, ShippedCheckpoint, pick_device
 from omnirecon.engine.scenes import load_at_resolution, photo_side
-from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint, shipped_folder
+from omnirecon.engine.shipped import checkpoint_folder, shipped_folder
 from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import (
@@ -60,24 +60,21 @@ from omnirecon.mesh.ibr import (
     video_options,
 )
 from omnirecon.models.registry import build_model
+from omnirecon.options import Overwrites, Seeded, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
 from omnirecon.scene_kind import scene_kind
 
-CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
-"""The model timed: the shipped checkpoint (``--ckpt`` picks another)."""
 GOALS = {"cpu_fps_512": 30.0, "ratio": 1000.0, "gpu_fps_800x600": 500.0}
 """Speed goals the record is checked against (targets, not measurements): frames per second at 512x512 on the
 2-core CPU, the mesh path's speed-up over the volumetric path, frames per second at 800x600 on a GPU."""
 
 
 @dataclass
-class BenchConfig(DeviceConfig):
+class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, DeviceConfig):
     """Frames per second of Omni-Recon's mesh path and of its volumetric path in one run (warm-up,
     median of N frames, same resolution, same source views, CUDA synchronised), and their ratio."""
 
-    ckpt: Path = CHECKPOINT
-    """Omni-Recon checkpoint (default: the shipped omnirecon-tiny; random weights when it is missing)."""
     resolution: int = 512
     """Target width = height in pixels."""
     size: tuple[int, int] | None = None
@@ -95,8 +92,6 @@ class BenchConfig(DeviceConfig):
     """Rays per timed volumetric batch."""
     volume_repeats: int = 3
     """Timed volumetric batches (median)."""
-    seed: int = 0
-    """Procedural scene seed."""
     workers: int | None = None
     """Mesh path: threads that shade chunks side by side (`MeshRenderOptions.workers`), each op on one torch
     thread (default: --threads; 1 when --threads is not given). The volumetric path keeps --threads torch
@@ -119,14 +114,10 @@ class BenchConfig(DeviceConfig):
     """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
     """JSON result file."""
-    overwrite: bool = False
-    """Replace an existing --out that this tool did not write (one it wrote is replaced either way)."""
 
     def check(self) -> BenchConfig:
         """Validated settings, with ``--quick`` applied."""
-        if self.resolution < 16 or self.views < 1 or self.frames < 1 or (self.size and min(self.size) < 16):
-            raise InputError("--resolution and --size must be >= 16, --views and --frames >= 1", None,
-                             "use e.g. --resolution 512 --views 3 --frames 30, or --size 504 378")
+        check_options("bench", self)  # --resolution, --size, --views, --frames...: omnirecon/options.py
         if (self.scene is None) != (self.mesh is None):
             raise InputError("--scene and --mesh go together", self.scene or self.mesh,
                              "pass both, e.g. --scene ../shared/data/llff/fern --mesh outputs/mesh/fern.ply")

@@ -49,6 +49,7 @@ from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.train_config import FAMILY_DEFAULTS, OPERATIONAL, RESUMABLE_CHANGES, TrainConfig, parse_overrides
 from omnirecon.errors import InputError
 from omnirecon.models.registry import _families, build_model, family_of, model_config_dict
+from omnirecon.options import check_options
 from omnirecon.outputs import swap_in
 from omnirecon.preflight import check_train_views
 from omnirecon.progress import progress_bar
@@ -128,18 +129,10 @@ class Trainer:
             if not ok:
                 raise InputError(what, None, fix)
 
-        need(c.steps >= 1, f"--steps must be at least 1, got {c.steps}", "use e.g. --steps 1000")
+        check_options("train", c)  # every numeric option's range: omnirecon/options.py
         need(self.rays >= 1, f"--rays must be at least 1, got {self.rays}", "use e.g. --rays 256")
-        need(c.resolution >= 8, f"--resolution must be at least 8, got {c.resolution}", "use e.g. --resolution 64")
         need(self.lr > 0, f"--lr must be positive, got {self.lr}", "use e.g. --lr 5e-4")
-        need(c.encoder_lr_scale is None or c.encoder_lr_scale >= 0, "--encoder-lr-scale must be >= 0", "use e.g. 1")
-        need(c.warmup >= 0, f"--warmup must be >= 0, got {c.warmup}", "use e.g. --warmup 100")
-        need(0 <= c.min_lr_ratio <= 1, f"--min-lr-ratio must be in [0, 1], got {c.min_lr_ratio}", "use e.g. 0.05")
-        need(c.weight_decay >= 0, "--weight-decay must be >= 0", "use 0 (the reference) or e.g. 0.01")
-        need(c.clip >= 0, "--clip must be >= 0 (0 disables)", "use e.g. --clip 1")
-        need(c.aux_weight >= 0, "--aux-weight must be >= 0", "use e.g. 1")
         need(self.depth_weight >= 0, "--depth-weight must be >= 0", "use e.g. 0.1 (0 disables)")
-        need(c.mask_weight >= 0, "--mask-weight must be >= 0", "use e.g. 0.1 (0 disables)")
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
         need(self.pool >= self.K, f"--pool ({self.pool}) must be at least --num-views ({self.K})",
              "pass --pool >= --num-views")
@@ -149,24 +142,10 @@ class Trainer:
                  "use e.g. --num-views-range 3 10")
             need(c.pool is None or c.pool >= hi, f"--pool ({c.pool}) must be at least the range's top ({hi})",
                  "pass --pool >= hi or leave it out (2K)")
-        need(0 <= c.foreground <= 1, f"--foreground must be in [0, 1], got {c.foreground}", "use e.g. 0.5")
-        need(c.switch_every >= 1, "--switch-every must be at least 1", "use e.g. --switch-every 10")
-        need(c.scenes_in_memory >= 1, "--scenes-in-memory must be at least 1", "use e.g. 8")
-        need(c.synth_scenes >= 1 and c.synth_views >= 2, "--synth-scenes must be >= 1 and --synth-views >= 2",
-             "use e.g. --synth-scenes 32 --synth-views 40")
-        need(c.max_views is None or c.max_views >= 2, "--max-views must be at least 2", "use e.g. --max-views 40")
-        need(c.log_every >= 1, "--log-every must be at least 1", "use e.g. --log-every 10")
-        need(c.val_every >= 0 and c.ckpt_every >= 0, "--val-every and --ckpt-every must be >= 0", "0 disables them")
-        need(c.val_views >= 1, "--val-views must be at least 1", "use e.g. --val-views 1")
-        need(c.keep >= 1, "--keep must be at least 1", "use e.g. --keep 2")
         need(len(c.data) >= 1, "--data needs at least one source", "use e.g. --data synth:object")
         need(c.data_weights is None or (len(c.data_weights) == len(c.data) and all(w > 0 for w in c.data_weights)),
              f"--data-weights needs one positive weight per --data source ({len(c.data)})",
              "e.g. --data-weights 0.7 0.3")
-        need(c.stop_at is None or c.stop_at >= 1, "--stop-at must be at least 1", "use a step number")
-        need(c.time_budget is None or c.time_budget > 0, "--time-budget must be positive (seconds)", "e.g. 2700")
-        need(c.cpu_budget is None or c.cpu_budget > 0, "--cpu-budget must be positive (CPU seconds)", "e.g. 2400")
-        need(c.threads is None or c.threads >= 1, "--threads must be at least 1", "use e.g. --threads 2")
         if self.out.exists() and not self.out.is_dir():
             raise InputError("run folder path is a file", self.out, "pass a folder for --out")
         from omnirecon.engine.checkpoint_check import resume_folder

@@ -12,6 +12,7 @@ from typing import Literal
 
 from omnirecon.engine.machine import DeviceConfig
 from omnirecon.errors import InputError
+from omnirecon.options import OutFolder, Seeded
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
 # (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
@@ -35,7 +36,7 @@ RESUMABLE_CHANGES = {"num_views_range", "resolution"}
 
 
 @dataclass
-class TrainConfig(DeviceConfig):
+class TrainConfig(OutFolder, Seeded, DeviceConfig):
     """Train a generalizable renderer (GPNR, IBRNet or Omni-Recon) on procedural and/or real scenes.
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the
@@ -123,8 +124,6 @@ class TrainConfig(DeviceConfig):
     """Steps between checkpoints (0: only at the end)."""
     keep: int = 2
     """Periodic checkpoints kept (plus checkpoints/final)."""
-    out: Path | None = None
-    """Run folder (None: outputs/train/<model>)."""
     resume: bool = False
     """Continue exactly from the latest checkpoint in --out."""
     init: Path | None = None
@@ -134,8 +133,6 @@ class TrainConfig(DeviceConfig):
     which continues from the run's own checkpoint."""
     stop_at: int | None = None
     """Stop (and checkpoint) after this step without finishing the schedule; continue with --resume."""
-    seed: int = 0
-    """Seed of the weights, the procedural training scenes and every per-step random draw."""
     amp: Literal["none", "bf16", "fp16"] = "none"
     """Mixed precision autocast (CUDA only)."""
     time_budget: float | None = None

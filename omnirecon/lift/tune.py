@@ -39,6 +39,7 @@ from omnirecon.errors import InputError
 from omnirecon.lift import metrics as M
 from omnirecon.lift.blend import render_lifted
 from omnirecon.lift.predictors import labels_to_classes
+from omnirecon.options import Seeded, SourceViews
 from omnirecon.rays import Rays, Sources
 
 Mode = Literal["lora", "bias", "full"]
@@ -126,7 +127,7 @@ def trainable(model) -> dict[str, Tensor]:
 
 # ---------------------------------------------------------------------- leave-one-out supervision
 @dataclass
-class PETOptions:
+class PETOptions(Seeded, SourceViews):
     """How to tune."""
 
     mode: Mode = "lora"
@@ -141,12 +142,8 @@ class PETOptions:
     """Adam learning rate."""
     rays: int = 256
     """Random rays per step."""
-    num_views: int = 3
-    """K: labelled views lifted onto each labelled view (its nearest others)."""
     min_weight: float = 0.05
     """Rays whose total blend weight (opacity) is below this are not supervised."""
-    seed: int = 0
-    """Seed of the adapters' initialisation and the ray sampling."""
 
 
 @dataclass

@@ -57,6 +57,7 @@ from omnirecon.mesh.stages import COHERENT, FUSED, MeshState, StageClock, run
 from omnirecon.mesh.stereo import StereoOptions
 from omnirecon.mesh.stereo_refine import RefineOptions, refine_depths
 from omnirecon.mesh.surface import SurfaceOptions
+from omnirecon.options import check_options
 from omnirecon.scene_kind import scene_kind
 
 DTU_SHIFT = 25.0 / 684.0
@@ -266,25 +267,13 @@ class MeshOptions:
         if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
             raise InputError(f"--shifts must be finite fractions in (-1, 1), got {list(self.shifts)}", None,
                              f"use e.g. --shifts {DTU_SHIFT:.4f}")
-        if self.voxel is not None and not (math.isfinite(self.voxel) and 0 < self.voxel <= 0.1):
-            raise InputError(f"--voxel must be in (0, 0.1] (a fraction of the bounds diagonal), got {self.voxel}",
-                             None, "use e.g. 0.004")
-        if self.trunc is not None and not (math.isfinite(self.trunc) and 1 <= self.trunc <= 100):
-            raise InputError(f"--trunc must be in [1, 100] voxels, got {self.trunc}", None, "use e.g. 3")
-        if not 0 <= self.min_acc <= 1:
-            raise InputError(f"--min-acc must be in [0, 1], got {self.min_acc}", None, "use e.g. 0.5")
         if self.hull_misses < -1 or not (math.isfinite(self.hull_dilate) and 0 <= self.hull_dilate < 0.1):
             raise InputError(f"hull_misses must be >= -1 and hull_dilate in [0, 0.1), got {self.hull_misses}, "
                              f"{self.hull_dilate}", None, "use e.g. 1 and 0.0075")
-        if self.min_views < 1:
-            raise InputError(f"--min-views must be at least 1, got {self.min_views}", None, "use e.g. 2")
         if not (math.isfinite(self.content_fill) and 0 <= self.content_fill < 1):
             raise InputError(f"content_fill must be in [0, 1), got {self.content_fill}", None, "use e.g. 0.15 (0: off)")
-        if not 0 <= self.min_component < 1:
-            raise InputError(f"--min-component must be in [0, 1), got {self.min_component}", None, "use e.g. 0.001")
-        if self.neighbours < 1 or self.max_faces < 0:
-            raise InputError(f"--neighbours must be >= 1 and --max-faces >= 0, got {self.neighbours}, "
-                             f"{self.max_faces}", None, "use e.g. --neighbours 3 --max-faces 200000")
+        if self.neighbours < 1:
+            raise InputError(f"neighbours must be >= 1, got {self.neighbours}", None, "use e.g. 3")
         if self.max_voxels < 1000:
             raise InputError(f"max_voxels must be at least 1000, got {self.max_voxels}", None, "use e.g. 67108864")
         if self.model_side < 0 or 0 < self.model_side < 8:
@@ -293,8 +282,6 @@ class MeshOptions:
             raise InputError(f"--surface must be one of {', '.join(SURFACES)}, got {self.surface!r}", None,
                              "use --surface coherent")
         self.coherent.check()
-        if self.chunk < 1:
-            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 4096")
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
             raise InputError(f"cull_samples must be > 0 and grow_rings >= 0, got {self.cull_samples}, {self.grow_rings}",
                              None, "use e.g. 2 and 1")
@@ -313,6 +300,7 @@ class MeshOptions:
                              f"{self.occlusion_rel}", None, "use e.g. 2 and 0.05")
         self.stereo.check()
         self.refine_options.check()
+        check_options("mesh", self, memory=False)  # voxel, trunc, min_acc, max_faces, chunk...: omnirecon/options.py
         if self.refine not in ("none", "stereo", "all"):
             raise InputError(f"refine must be none, stereo or all, got {self.refine!r}", None, "use refine='stereo'")
 

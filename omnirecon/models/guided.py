@@ -25,14 +25,12 @@ no coarse pass. Guided rendering changes the output: it is a render option with 
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
-from omnirecon.errors import InputError
 
 
 @dataclass
@@ -65,16 +63,10 @@ class GuidedOptions:
     (GPNR) trust every ``valid`` prior pixel."""
 
     def check(self) -> None:
-        """InputError naming the first option out of its range (nested options are not in ``omnirecon.options``)."""
-        rules = {"prior_scale": (1, 64), "band_samples": (2, 1024), "guard_samples": (0, 1024), "band": (0.0, 1.0),
-                 "max_spread": (0.0, 1.0), "min_opacity": (0.0, 1.0)}
-        for name, (lo, hi) in rules.items():
-            value = getattr(self, name)
-            if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and lo <= value <= hi):
-                default = getattr(GuidedOptions, name)
-                raise InputError(f"--guided.{name.replace('_', '-')} must be in [{lo}, {hi}], got {value}", None,
-                                 f"pass a value in [{lo}, {hi}] or leave it out (" +
-                                 ("the model family's value)" if default is None else f"default {default})"))
+        """InputError naming the first option out of its range (its rules: ``guided.*`` in ``omnirecon.options``)."""
+        from omnirecon.options import check_options
+
+        check_options(None, self, "guided.", memory=False)
 
     def resolved(self, model) -> GuidedOptions:
         """These options with every None filled from :data:`FAMILY_DEFAULTS` for ``model``'s class."""

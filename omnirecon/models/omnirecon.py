@@ -62,8 +62,8 @@ Departures (documented choices, each a config field where it matters):
 * **Tiny preset**: §11.2 widths (halved CNN, 16-d appearance feature, D = 32, 2 heads, FFN x2),
   a 32^3 lattice, 32 + 16 samples, 6 PE frequencies and no dropout (a short CPU budget).
 
-Size: the model's two branches, its feature volume and its SDF renderer share one config and one state-
-dict layout that the shipped checkpoints depend on.
+Size: the model's two branches and its SDF renderer share one config and one state-dict layout that the shipped
+checkpoints depend on (the feature volume: :mod:`omnirecon.models.feature_volume`).
 """
 
 from __future__ import annotations
@@ -78,9 +78,10 @@ from torch import Tensor, nn
 from omnirecon.cameras import Cameras, closest_point_to_axes, nearest_views
 from omnirecon.models.base import Capabilities, GeneralizableModel
 from omnirecon.models.fast import compiled, grad_mode, net_autocast
+from omnirecon.models.feature_volume import VolumeDecoder, lattice, mean_var_volume, volume_box
 from omnirecon.models.gpnr import fourier
 from omnirecon.models.pretrained import PyramidMaps
-from omnirecon.models.projector import gather, project, sample
+from omnirecon.models.projector import gather, project
 from omnirecon.models.sampler import coarse_depths, fine_depths
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.volume import alpha_from_sdf, composite, weights_from_alpha
@@ -246,68 +247,6 @@ class FPNEncoder(nn.Module):
     def _head(self, x2: Tensor, x3: Tensor) -> Tensor:
         top = F.interpolate(x3, size=x2.shape[-2:], mode="bilinear", align_corners=False) + self.lateral(x2)
         return self.out(top)
-
-
-# ---------------------------------------------------------------------- feature volume (§2.2)
-def volume_box(sources: Sources, mode: str, margin: float, forward: str = "content") -> Tensor:
-    """The volume's ``[min, max]`` corners (``forward``: see :attr:`OmniReconConfig.forward_box`). ``# [2, 3]``"""
-    dtype, device = sources.images.dtype, sources.images.device
-    if mode == "unit" or sources.bounds is None:
-        return torch.tensor([[-1.0] * 3, [1.0] * 3], dtype=dtype, device=device)
-    lo, hi = sources.bounds.to(device=device, dtype=dtype)
-    if forward == "cameras" and sources.rig == "forward":
-        centres = sources.cameras.centers.to(device=device, dtype=dtype)  # [K, 3]
-        lo, hi = torch.minimum(lo, centres.amin(0)), torch.maximum(hi, centres.amax(0))
-    pad = margin * float((hi - lo).max()) / 2
-    return torch.stack([lo - pad, hi + pad])
-
-
-def lattice(box: Tensor, res: int) -> Tensor:
-    """Voxel centres of a ``res^3`` lattice over ``box``, z-major so they reshape to ``[Z, Y, X]``. ``# [res^3, 3]``"""
-    steps = (torch.arange(res, dtype=box.dtype, device=box.device) + 0.5) / res  # [res]
-    axes = box[0][:, None] + steps[None] * (box[1] - box[0])[:, None]  # [3, res]
-    zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-    return torch.stack([xx, yy, zz], -1).reshape(-1, 3)
-
-
-def mean_var_volume(maps: Tensor, cameras: Cameras, points: Tensor, res: int) -> Tensor:
-    """Masked mean and variance over views of ``maps # [V, C, h, w]`` at the voxel centres
-    ``points # [res^3, 3]`` (invalid views: outside the image or behind the camera). ``# [1, 2C, res, res, res]``"""
-    proj = project(cameras, points, maps.dtype)
-    f = sample(maps, proj, "zeros")  # [V, C, P]
-    m = proj.in_image.to(maps.dtype)[:, None]  # [V, 1, P]
-    w = m / (m.sum(0, keepdim=True) + 1e-8)
-    mean = (w * f).sum(0)  # [C, P]
-    var = (w * (f - mean) ** 2).sum(0)
-    return torch.cat([mean, var], 0).reshape(1, -1, res, res, res)
-
-
-def _cbr3(cin: int, cout: int, running: bool) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(cin, cout, 3, padding=1, bias=False),
-                         nn.BatchNorm3d(cout, track_running_stats=running), nn.ReLU())
-
-
-def _tcbr3(cin: int, cout: int, running: bool) -> nn.Sequential:
-    return nn.Sequential(nn.ConvTranspose3d(cin, cout, 3, stride=2, padding=1, output_padding=1, bias=False),
-                         nn.BatchNorm3d(cout, track_running_stats=running), nn.ReLU())
-
-
-class VolumeDecoder(nn.Module):
-    """Top-down 3-D decoder (``VolumeRegularization_Multi_Res``): levels ``[L0, L1, L2]`` (fine to coarse) -> ``V``."""
-
-    def __init__(self, cfg: OmniReconConfig):
-        super().__init__()
-        c0, c1, c2 = (2 * c for c in cfg.pyramid_channels)
-        run = cfg.bn_running_stats
-        self.a2, self.up1 = _cbr3(c2, c2, run), nn.Sequential(_cbr3(c2, c2, run), _tcbr3(c2, c1, run))
-        self.a1, self.up0 = _cbr3(c1, c1, run), nn.Sequential(_cbr3(c1, c1, run), _tcbr3(c1, c0, run))
-        self.a0, self.out = _cbr3(c0, c0, run), nn.Conv3d(c0, c0, 3, padding=1)
-
-    def forward(self, levels: list[Tensor]) -> Tensor:
-        l0, l1, l2 = levels
-        u1 = self.up1(self.a2(l2))  # [1, c1, N/2, N/2, N/2]
-        u0 = self.up0(u1 + self.a1(l1))  # [1, c0, N, N, N]
-        return self.out(u0 + self.a0(l0))
 
 
 # ---------------------------------------------------------------------- geometry branch (§3)

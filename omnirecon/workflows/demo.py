@@ -20,13 +20,13 @@ they are here together because only the demo uses them.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
-from omnirecon.engine.machine import ThreadsConfig
+from omnirecon.engine.machine import GuidedRendering, ThreadsConfig
 from omnirecon.engine.shipped import shipped_folder
 from omnirecon.errors import InputError
-from omnirecon.models.guided import GuidedOptions
+from omnirecon.options import SourceViews
 
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
@@ -45,7 +45,7 @@ them."""
 
 
 @dataclass
-class DemoConfig(ThreadsConfig):
+class DemoConfig(GuidedRendering, SourceViews, ThreadsConfig):
     """Run the whole pipeline on one scene with the shipped checkpoints and write an HTML report:
     novel-view videos (GPNR, Omni-Recon), held-out view scores against the non-learned floor, and a
     mesh with its Chamfer distance to the ground truth."""
@@ -63,13 +63,8 @@ class DemoConfig(ThreadsConfig):
     raise it on a GPU)."""
     resolution: int = 80
     """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
-    num_views: int = 3
-    """Source views K for rendering, scoring and meshing (the papers' sparse setting)."""
     quick: bool = False
     """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
-    guided: GuidedOptions = field(default_factory=GuidedOptions)
-    """Surface-guided rendering of the orbits and the scored views (``--guided.on``; see ``omnirecon render
-    --help``)."""
 def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
     path = Path(cfg.checkpoints) / name
     return path if (path / "model.safetensors").is_file() else None

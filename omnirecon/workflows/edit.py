@@ -17,9 +17,8 @@ from typing import ClassVar, Literal
 
 import numpy as np
 
-from omnirecon.chunk import pick_chunk
 from omnirecon.data.io import write_image, write_json
-from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.machine import CheckpointInput, ChunkConfig, load_model, set_threads
 from omnirecon.engine.protocols import given_targets
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.engine.views import select_sources
@@ -34,21 +33,17 @@ from omnirecon.lift.surface import face_maps, gt_face_labels, labels_from_probs,
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, ProtocolScenes, SourceViews, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
-from omnirecon.workflows.folder import FolderVerb
+from omnirecon.workflows.folder import FolderVerb, LiftedTargets
 
 
 @dataclass
-class EditConfig(ThreadsConfig, FolderVerb):
+class EditConfig(ProtocolScenes, OutFolder, SourceViews, CheckpointInput, LiftedTargets, ChunkConfig, FolderVerb):
     """Recolour or remove an object (picked by label or click) in the source images, re-blend novel views
     before/after, and delete or recolour its faces on the baked mesh (GLB)."""
 
-    ckpt: Path
-    """Checkpoint folder (Omni-Recon for --path mesh and the mesh edit; IBRNet/GPNR with --no-geometry)."""
-    scene: str = "synth:eval"
-    """A scene folder with label maps, or synth:eval[:rig] (held-out procedural scenes)."""
     action: Literal["recolour", "remove"] = "recolour"
     """recolour: new hue and saturation, shading kept; remove: background colour or inpainting."""
     label: int | None = None
@@ -66,10 +61,6 @@ class EditConfig(ThreadsConfig, FolderVerb):
     """--action remove: paint with the scene's background colour, or biharmonic inpainting."""
     dilation: int = 1
     """--action remove: grow the object's pixels by this many px first (anti-aliased rims)."""
-    path: Literal["volumetric", "mesh"] = "volumetric"
-    """Re-blend through the model's ray weights, or through the mesh (Omni-Recon only)."""
-    visibility: bool = True
-    """--path mesh: mask out sources in which a surface point is occluded (a depth test; not in the paper)."""
     reencode: bool = False
     """Re-run the model on the edited sources (the paper's loop: new features and, volumetric, new
     geometry) instead of blending the edited images with the original weights."""
@@ -78,22 +69,6 @@ class EditConfig(ThreadsConfig, FolderVerb):
     face_views: int = 12
     """Views whose label maps and images are lifted to the mesh's faces: the sources plus the nearest pool
     views to the first target up to this many (faces hidden in every view take their neighbours' labels)."""
-    mesh: str = "auto"
-    """Mesh for --path mesh and the mesh edit: gt (procedural exact mesh), model (baked from the model at
-    the sources), auto (gt if any, else model) or a mesh file in the input frame."""
-    num_views: int = 3
-    """Source views K per target (the K nearest of the protocol's pool)."""
-    targets: tuple[int, ...] = ()
-    """Target view indices (default: the protocol's targets)."""
-    out: Path | None = None
-    """Output folder (default outputs/edit/<checkpoint>_<action>)."""
-    protocol_set: Literal["cpu", "full"] = "cpu"
-    """Resolution/targets: cpu (64 px) or full (128 px)."""
-    cache: Path = Path("outputs/cache")
-    """Where synth:eval scenes are generated."""
-    chunk: int | None = None
-    """Rays rendered per chunk (edits run on the CPU; default: from the free memory, at most 4096; a note
-    when above 25% of RAM)."""
 
     command: ClassVar[str] = "edit"
 
@@ -102,8 +77,6 @@ class EditConfig(ThreadsConfig, FolderVerb):
 
     def run(self, folder: Path | None = None) -> list[str]:
         lines: list[str] = []
-        self.chunk = pick_chunk(self.chunk)  # None: from the free memory
-
         check_options("edit", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         if (self.label is None) == (self.click is None):
             raise InputError("give exactly one of --label or --click", None, "e.g. --label 2 or --click 30 20")

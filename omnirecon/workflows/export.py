@@ -8,27 +8,23 @@ from pathlib import Path
 from typing import Literal
 
 from omnirecon.data import detect_format
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import CheckpointInput, MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import protocol_for
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, SceneInput, ViewerBundle, check_options
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
 
 
 @dataclass
-class ExportConfig(MachineConfig):
+class ExportConfig(OutFolder, CheckpointInput, SceneInput, ViewerBundle, MachineConfig):
     """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
     renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
 
-    scene: Path
-    """Scene folder (any supported format); read at its eval-protocol resolution, normalised."""
-    ckpt: Path
-    """Checkpoint folder of an Omni-Recon model (`omnirecon train --model omnirecon-*`)."""
     views: tuple[int, ...] | None = None
     """Source view indices: every view the viewer may blend (default: --finetune's sources, else every train view,
     as the real-time mesh path blends)."""
@@ -39,8 +35,6 @@ class ExportConfig(MachineConfig):
     record: blend, fill, sources per frame, angle sources, source masks, cracks) over its sources."""
     mesh: Path | None = None
     """Mesh file in the input frame (e.g. from `omnirecon mesh`); default: mesh the scene with the model."""
-    out: Path | None = None
-    """Output folder (default: outputs/export/<scene>)."""
     resolution: int | None = None
     """Long side of the source images in pixels (default: --finetune's, else the scene's eval protocol, 128)."""
     bake_views: int = 3
@@ -49,8 +43,6 @@ class ExportConfig(MachineConfig):
     """The viewer starts with the per-source occlusion test on (toggle it in the viewer)."""
     visibility_tol: float = 0.01
     """Relative depth tolerance of the occlusion test."""
-    viewer: bool = True
-    """Write the viewer bundle (needs three.js: `npm install` in omnirecon/viewer, done by `make setup`)."""
     max_edge: float = 0.0
     """Subdivide triangles until no edge exceeds this fraction of the bounds diagonal before baking, so
     the vertex colours can carry the texture of large triangles (0: keep the mesh; e.g. 0.005)."""

@@ -55,7 +55,7 @@ import torch
 from omnirecon.data import detect_format
 from omnirecon.data.io import atomic_path, write_image, write_json
 from omnirecon.engine.checkpoint import load_checkpoint, save_checkpoint
-from omnirecon.engine.machine import ThreadsConfig, set_threads
+from omnirecon.engine.machine import CheckpointInput, ThreadsConfig, set_threads
 from omnirecon.engine.protocols import protocol_for, targets_and_pool
 from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.tuning import (
@@ -77,7 +77,7 @@ from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.mesh.pixels import angle_blend, rasterize_groups
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, SceneInput, Seeded, SourceViews, check_options
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
@@ -92,15 +92,11 @@ VAL_PIXELS = 8192
 
 
 @dataclass
-class FinetuneConfig(ThreadsConfig):
+class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput, ThreadsConfig):
     """Tune Omni-Recon's 2-D encoder and appearance branch on one scene's training views through its
     mesh, within a time budget, keeping the best state on validation views; writes a PSNR-vs-time
     curve on the held-out views."""
 
-    ckpt: Path
-    """Omni-Recon checkpoint folder (written by `omnirecon train`)."""
-    scene: Path
-    """Scene folder (any supported format)."""
     seconds: float = 60.0
     """Optimisation budget (see --clock); evaluations are not counted."""
     eval_at: tuple[float, ...] = EVAL_AT
@@ -111,8 +107,6 @@ class FinetuneConfig(ThreadsConfig):
     views: tuple[int, ...] | None = None
     """Source views (default: every training view with --nearest, the validation views too; with --nearest 0 DTU's
     23 24 33, else --num-views evenly spaced train views); never a held-out view."""
-    num_views: int = 3
-    """Source views K when neither --views nor --nearest is given."""
     mesh: Path | None = None
     """Mesh file in the input scene's frame (default: `omnirecon mesh`'s mesh from the model at the sources)."""
     resolution: int | None = None
@@ -254,12 +248,8 @@ class FinetuneConfig(ThreadsConfig):
     ``, 8 held-out``); fern and the procedural scenes hold out fewer. On DTU the 4 extra views are the harder ones
     (views 19 and 6 of scan37 are darker than the photos around them: the blend cannot know a held-out photo's
     exposure), and they cost rasterizing and scoring 4 more views."""
-    out: Path | None = None
-    """Output folder (default: outputs/finetune/<scene>)."""
     save: bool = False
     """Also write the tuned checkpoint to <out>/checkpoint."""
-    seed: int = 0
-    """Seed of the pixel sampling."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:

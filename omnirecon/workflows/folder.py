@@ -10,8 +10,9 @@ library (``LiftConfig(...).run()``, e.g. by the demo), ``run`` writes into ``--o
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from omnirecon.outputs import claim
 
@@ -38,3 +39,22 @@ class FolderVerb:
         """``run`` into the temporary twin of --out, swapped in when it succeeds; returns the lines to print."""
         with claim(self.out or self.default_out(), self.command, inputs=self.inputs(), mode="replace") as c:
             return self.run(c.work)
+
+
+@dataclass(kw_only=True)
+class LiftedTargets:
+    """The options of ``lift`` and ``edit``: which targets, and the path their sources' signals are blended by."""
+
+    targets: tuple[int, ...] = ()
+    """Target view indices (default: the protocol's targets)."""
+    path: Literal["volumetric", "mesh"] = "volumetric"
+    """volumetric: blend with the model's ray weights; mesh: one surface point per pixel of a mesh (Omni-Recon only;
+    lift's render-then-predict baseline then runs on the mesh path's render)."""
+    mesh: str = "auto"
+    """--path mesh (and edit's mesh edit): gt (a procedural scene's exact mesh), model (baked from the model's depth at
+    the targets' sources, `omnirecon mesh`'s protocol), auto (gt if any, else model) or a mesh file in the scene's
+    input frame."""
+    visibility: bool = True
+    """--path mesh: mask out of each surface point's blend the sources in which it is occluded (a depth test against
+    each source's rasterized mesh; not in the paper). Without it an occluded source blends the occluder's prediction
+    in."""

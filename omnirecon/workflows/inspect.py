@@ -29,12 +29,12 @@ from omnirecon.data import Format, ReadOptions, load_scene
 from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, Seeded, check_options
 from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
-class InspectConfig:
+class InspectConfig(OutFolder, Seeded):
     """Validate a scene, print a summary, write pictures of its cameras and epipolar lines, and
     print numeric pose-consistency scores."""
 
@@ -42,8 +42,6 @@ class InspectConfig:
     """Scene folder (any supported format)."""
     format: Format = "auto"
     """Force a reader instead of detecting the format."""
-    out: Path | None = None
-    """Folder for cameras.png, epipolar.png and summary.json (default: outputs/inspect/<scene name>)."""
     downscale: float = 1.0
     """Divide the image resolution by this factor while loading (faster on large captures)."""
     max_views: int | None = None
@@ -52,8 +50,6 @@ class InspectConfig:
     """View pair for the epipolar picture (default: view 0 and its nearest neighbour)."""
     num_pairs: int = 4
     """How many neighbouring view pairs the consistency scores average over."""
-    seed: int = 0
-    """Seed for pixel sampling in the scores."""
 def default_out(cfg: InspectConfig) -> Path:
     """The output folder when --out is not given."""
     return Path("outputs/inspect") / Path(cfg.path).resolve().name

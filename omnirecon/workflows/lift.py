@@ -19,7 +19,7 @@ from typing import ClassVar, Literal
 import numpy as np
 
 from omnirecon.data.io import write_image, write_json
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import CheckpointInput, MachineConfig, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import given_targets
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.engine.views import select_sources
@@ -31,25 +31,20 @@ from omnirecon.lift.predictors import builtin, from_torchscript, labels_to_class
 from omnirecon.lift.surface import scene_mesh
 from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.omnirecon import OmniRecon
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, Seeded, SourceViews, SynthEvalScenes, check_options
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
-from omnirecon.workflows.folder import FolderVerb
+from omnirecon.workflows.folder import FolderVerb, LiftedTargets
 
 PredictorName = Literal["oracle-labels", "noisy-labels", "knn-labels", "sobel", "canny", "hed", "harris", "slic",
                         "oracle-normals", "oracle-depth", "torchscript"]
 
 
 @dataclass
-class LiftConfig(MachineConfig, FolderVerb):
+class LiftConfig(SynthEvalScenes, OutFolder, Seeded, SourceViews, CheckpointInput, LiftedTargets, MachineConfig, FolderVerb):
     """Lift a 2-D predictor into novel views with a model's own blend weights (predict-then-blend), compare
     with render-then-predict, write label/heat maps, overlays and a metrics table."""
 
-    ckpt: Path
-    """Checkpoint folder (Omni-Recon, IBRNet or GPNR; e.g. checkpoints/ibrnet-tiny)."""
-    scene: str = "synth:eval"
-    """A scene folder (any supported format) or synth:eval[:object|frontal|forward] (held-out procedural
-    scenes with ground-truth labels, normals and depth)."""
     predictor: PredictorName = "oracle-labels"
     """2-D predictor: oracle-labels / noisy-labels / oracle-normals / oracle-depth read a procedural scene's
     ground truth; knn-labels is a pixel classifier fitted on labelled non-source views; sobel, canny,
@@ -60,33 +55,8 @@ class LiftConfig(MachineConfig, FolderVerb):
     """--predictor torchscript: a TorchScript file mapping [1, 3, H, W] RGB in [0, 1] to [1, C, h, w]."""
     user_kind: Literal["probabilities", "regression", "embedding"] = "probabilities"
     """--predictor torchscript: what its output is (probabilities: softmax over the logits it returns)."""
-    num_views: int = 3
-    """Source views K per target (the K nearest of the protocol's pool)."""
-    path: Literal["volumetric", "mesh"] = "volumetric"
-    """volumetric: blend with the model's ray weights; mesh: one surface point per pixel of a mesh (Omni-Recon
-    only; the render-then-predict baseline then runs on the mesh path's render)."""
-    mesh: str = "auto"
-    """--path mesh: gt (a procedural scene's exact mesh), model (baked from the model's depth at all the
-    targets' sources, `omnirecon mesh`'s protocol), auto (gt if any, else model) or a mesh file in the
-    scene's input frame."""
-    visibility: bool = True
-    """--path mesh: mask out of each surface point's blend the sources in which it is occluded (a depth test
-    against each source's rasterized mesh; not in the paper). Without it an occluded source blends the
-    occluder's prediction in."""
-    targets: tuple[int, ...] = ()
-    """Target view indices (default: the protocol's targets)."""
-    out: Path | None = None
-    """Output folder (default outputs/lift/<checkpoint>_<predictor>)."""
     noise: float = 0.2
     """noisy-labels: fraction of each source view's pixels set to a wrong random class."""
-    seed: int = 0
-    """Seed of the noisy labels and the knn-labels sample."""
-    synth_count: int = 1
-    """Scenes taken from a synth:eval set (seeds 900000, ...)."""
-    protocol_set: Literal["cpu", "full"] = "cpu"
-    """Resolution/targets: cpu (64 px, 2 targets per procedural scene) or full (128 px)."""
-    cache: Path = Path("outputs/cache")
-    """Where synth:eval scenes are generated."""
 
     command: ClassVar[str] = "lift"
 

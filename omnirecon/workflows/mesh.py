@@ -13,44 +13,36 @@ the Omni-Recon spec §6, as a preset). Outputs, for ``--out mesh.ply`` (any of `
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal
 
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import MachineConfig, ModelChoice, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import protocol_for
 from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import MeshOptions, default_depth, default_surface, mesh_from_model
+from omnirecon.mesh.build import PRESETS, MeshOptions, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
-from omnirecon.options import check_options
+from omnirecon.options import Overwrites, SceneInput, SourceViews, check_options
 from omnirecon.outputs import remove_written
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
-class MeshConfig(MachineConfig):
+class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig):
     """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
     rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
     the masks for objects), a face budget and completion (every content pixel of every view gets a
     surface); written in the input scene's frame with its metrics."""
 
-    scene: Path
-    """Scene folder (any supported format); read at --resolution, normalised."""
-    ckpt: Path | None = None
-    """Checkpoint folder written by `omnirecon train` (its model must render depth)."""
-    model: Literal["floor"] | None = None
-    """Mesh with a non-learned model instead: `floor` is the plane-sweep baseline."""
     views: tuple[str, ...] | None = None
     """View indices to render depth at (default: 23 24 33 on DTU, else --num-views evenly spaced train
     views), or `all`: every training view, each rendered from its own --num-views nearest views."""
-    num_views: int = 3
-    """Source views K: how many views when --views is not given, and the sources per depth map."""
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
     resolution: int | None = None
@@ -100,9 +92,6 @@ class MeshConfig(MachineConfig):
     """Score the mesh and write <out>_metrics.json."""
     preview: bool = True
     """Write <out>_preview.png (the mesh seen from the first source view)."""
-    overwrite: bool = False
-    """Replace existing files of the set that this tool did not write (without it such a file is refused;
-    files an earlier run wrote are replaced either way)."""
     surface: Literal["auto", "fusion", "poisson", "coherent"] = "auto"
     """`auto`: per scene kind (omnirecon.mesh.build.default_surface: `coherent` on a walk, `fusion` elsewhere);
     `fusion`: the fused TSDF surface (with --complete: fills from each view's own depth cover every content pixel);
@@ -113,16 +102,25 @@ class MeshConfig(MachineConfig):
     """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
     forward-facing scenes, hole filling); only with the fit preset."""
     def mesh_options(self, scene=None, has_model: bool = True) -> MeshOptions:
-        given = {"shifts": None if self.shifts is None else tuple(self.shifts), "voxel": self.voxel,
-                 "trunc": self.trunc, "weights": self.weights}
+        """The pipeline's settings: the --fusion preset, with every option of this command that names a
+        :class:`MeshOptions` field on top when given (``None`` and ``auto`` are not given, and a flag left at its
+        default yields to a preset that sets it: ``--fusion reference`` keeps its face budget and completion)."""
+        preset = PRESETS.get(self.fusion, {})
+        given = {}
+        for f in fields(MeshConfig):
+            value = getattr(self, f.name)
+            if f.name not in MESH_FIELDS or value is None or value == "auto" or (value == f.default and f.name in preset):
+                continue
+            given[f.name] = tuple(value) if isinstance(value, list) else value
         depth = self.depth if self.depth != "auto" else default_depth(scene, has_model, self.masks)
         surface = self.surface if self.surface != "auto" else default_surface(scene, self.masks)
         depth_pass = self.depth_pass if self.depth_pass != "auto" else "coarse" if depth == "stereo+model" else "fine"
-        return MeshOptions.preset(self.fusion, **{k: v for k, v in given.items() if v is not None}, depth=depth,
-                                  min_acc=self.min_acc, min_views=self.min_views, cull_hidden=self.cull_hidden,
-                                  min_component=self.min_component, chunk=self.chunk, neighbours=self.num_views,
-                                  max_faces=self.max_faces, depth_pass=depth_pass, surface=surface,
-                                  **({} if self.fusion == "reference" else {"complete": self.complete}))
+        return MeshOptions.preset(self.fusion, **{**given, "depth": depth, "surface": surface, "depth_pass": depth_pass,
+                                                  "chunk": self.chunk, "neighbours": self.num_views})
+
+
+MESH_FIELDS = frozenset(f.name for f in fields(MeshOptions)) - {"fusion"}
+"""The :class:`MeshOptions` fields a command option of the same name sets (``--fusion`` picks the preset)."""
 
 
 def run_mesh(cfg: MeshConfig) -> dict:

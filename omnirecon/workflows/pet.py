@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import ClassVar
 
 import numpy as np
 
 from omnirecon.data.io import write_json
-from omnirecon.engine.machine import ThreadsConfig, load_model, set_threads
+from omnirecon.engine.machine import CheckpointInput, ThreadsConfig, load_model, set_threads
 from omnirecon.engine.protocols import targets_and_pool
 from omnirecon.engine.scenes import prepare_scenes
 from omnirecon.errors import InputError
@@ -24,32 +24,20 @@ from omnirecon.lift import tune as T
 from omnirecon.lift.predictors import class_table
 from omnirecon.lift.tune import PETOptions
 from omnirecon.models.omnirecon import OmniRecon
-from omnirecon.options import check_options
+from omnirecon.options import OutFolder, SynthEvalScenes, check_options
 from omnirecon.provenance import provenance
 from omnirecon.workflows.folder import FolderVerb
 
 
 @dataclass
-class PETConfig(ThreadsConfig, FolderVerb):
+class PETConfig(SynthEvalScenes, OutFolder, CheckpointInput, ThreadsConfig, FolderVerb):
     """Tune LoRA adapters or biases of Omni-Recon's appearance branch with a semantic cross-entropy on a
     few labelled views (leave-one-out lifting); mIoU of lifted labels on held-out targets before/after."""
 
-    ckpt: Path
-    """Omni-Recon checkpoint folder."""
-    scene: str = "synth:eval"
-    """A scene folder with label maps, or synth:eval[:rig]."""
-    synth_count: int = 1
-    """Scenes taken from a synth:eval set (each tuned separately)."""
     labelled: int = 6
     """Labelled views per scene (evenly spaced over the protocol's pool)."""
     options: PETOptions = field(default_factory=PETOptions)
     """Tuning settings (mode, rank, steps, ...)."""
-    out: Path | None = None
-    """Output folder (default outputs/pet/<checkpoint>_<mode>)."""
-    protocol_set: Literal["cpu", "full"] = "cpu"
-    """Resolution/targets: cpu (64 px) or full (128 px)."""
-    cache: Path = Path("outputs/cache")
-    """Where synth:eval scenes are generated."""
 
     command: ClassVar[str] = "pet"
 
@@ -61,10 +49,7 @@ class PETConfig(ThreadsConfig, FolderVerb):
         import copy
 
         o = self.options
-        if o.steps < 0 or o.rays < 1 or o.rank < 1 or o.lr <= 0 or o.num_views < 1:
-            raise InputError("--options.steps >= 0, --options.rays >= 1, --options.rank >= 1, --options.lr > 0 and "
-                             "--options.num-views >= 1 are required", None, "use the defaults")
-        check_options("pet", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
+        check_options("pet", self)  # the numbers, --options.* too (omnirecon/options.py); for callers other than the CLI
         set_threads(self.threads)
         base, info = load_model(self.ckpt, None, "cpu")
         if not isinstance(base, OmniRecon):

@@ -20,8 +20,11 @@ up to the export is kept there (:class:`~omnirecon.workflows.stages.Stages`: wha
 files; the mesh stage also its meshes, exactly): after a failure the error names the stage and what is kept, and
 the next run of the command continues from the first stage whose input files or options changed. Every
 record in it names files inside it relative to ``--out`` (``scene``, ``export/mesh.glb``), so no record
-points into the work folder. The meshes go from stage to stage in memory (as read back from the kept copy, so a
-resumed run and an uninterrupted one go on alike); ``mesh.ply`` is written once, for the user.
+points into the work folder. One :class:`Capture` goes from stage to stage: the scene folder, the side its images
+are used at, the meshes (in memory, as read back from the kept copy, so a resumed run and an uninterrupted one go on
+alike; ``mesh.ply`` is written once, for the user) and the checkpoint; every scene and checkpoint a stage reads is
+read from disk once in a run (:mod:`omnirecon.engine.held`). ``--out`` is claimed here alone: the process stage
+writes its scene into the claimed work folder.
 
 Size: the stages, the record and page they make, and their errors in this command's terms, in one place.
 """
@@ -31,7 +34,8 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from dataclasses import dataclass, replace
+from collections import Counter
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -42,15 +46,17 @@ import tyro
 from omnirecon.cameras import closest_point_to_axes
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_image, write_json
+from omnirecon.data.scene import Scene
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.machine import MachineConfig
+from omnirecon.engine.held import holding
+from omnirecon.engine.machine import MachineConfig, ShippedCheckpoint
 from omnirecon.engine.report import Section, write_report
 from omnirecon.engine.scenes import load_at_resolution, object_masks, photo_side
-from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
+from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.confidence import NoDepth
-from omnirecon.options import check_options
+from omnirecon.options import CaptureInput, Overwrites, SourceViews, ViewerBundle, check_options
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.scene_kind import scene_kind
@@ -62,12 +68,9 @@ from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video
 from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
-CHECKPOINT = shipped_checkpoint("omnirecon-tiny")
-"""The shipped Omni-Recon checkpoint (the default model)."""
-
 
 @dataclass
-class ReconstructConfig(MachineConfig):
+class ReconstructConfig(CaptureInput, Overwrites, SourceViews, ShippedCheckpoint, ViewerBundle, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or
@@ -77,10 +80,6 @@ class ReconstructConfig(MachineConfig):
     """A folder of photos, a video, or a scene folder in any supported format."""
     out: Path = Path("outputs/reconstruct")
     """Output folder (replaced only with --overwrite)."""
-    ckpt: Path = CHECKPOINT
-    """Omni-Recon checkpoint (default: the shipped omnirecon-tiny)."""
-    num_views: int = 3
-    """Sources per depth map and per rendered pixel."""
     mesh_resolution: int | None = None
     """Long side of the images meshed (default: the photos' own, at most 512: stereo matches at it, the model's
     depth for stereo's holes is rendered at 128)."""
@@ -90,16 +89,8 @@ class ReconstructConfig(MachineConfig):
     """Fine-tuning budget in wall seconds (0: export and render the checkpoint as it is)."""
     frames: int = 48
     """Frames of the camera-path video."""
-    fps: float = 2.0
-    """Frames sampled per second when PATH is a video."""
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
     """COLMAP camera model when PATH holds photos or a video (see `omnirecon process`)."""
-    masks: Path | None = None
-    """Photos only: masks named like the photos; features only inside them (turntable captures)."""
-    viewer: bool = True
-    """Write the web viewer bundle (needs three.js: `npm install` in omnirecon/viewer)."""
-    overwrite: bool = False
-    """Replace an existing --out folder."""
     resume: bool = True
     """Continue from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial, when
     the input's files and the options each stage depends on are unchanged; --no-resume starts over."""
@@ -244,38 +235,79 @@ def _reset_peak_rss() -> bool:
         return False
 
 
+@dataclass
+class Capture:
+    """What ``reconstruct`` holds once and hands from stage to stage: the scene folder the stages read (PATH, or the
+    scene the process stage posed), the side its images are used at, the meshes, the checkpoint the later stages
+    use, and every scene and checkpoint read, held (:mod:`omnirecon.engine.held`: each read from disk once)."""
+
+    work: Path
+    """The work folder (``OUT.partial``): the one folder the run writes, claimed once by :func:`run_reconstruct`."""
+    ckpt: Path
+    """The checkpoint the stages use: ``--ckpt``, the tuned one once the finetune stage saved it."""
+    path: Path | None = None
+    """The scene folder (after the process stage)."""
+    processed: dict | None = None
+    """The process stage's record (``None`` when PATH already is a scene)."""
+    side: int = 0
+    """Long side (px) of the images tuned, scored, exported and rendered."""
+    meshes: dict = field(default_factory=dict)
+    """The mesh in the scene's frame (``scene``) and in the input's (``input``)."""
+    held: dict = field(default_factory=dict)
+    """The scenes and checkpoints read, by what was read (``omnirecon.engine.held``)."""
+    reads: Counter = field(default_factory=Counter)
+    """Reads from disk per kind (``scene``, ``scene_probe``, ``checkpoint``)."""
+
+    def scene(self) -> Scene:
+        """The scene at :attr:`side`, normalised (held: read once)."""
+        return load_at_resolution(self.path, self.side)
+
+    def model(self):
+        """``(model, meta)`` of :attr:`ckpt` (held: loaded once; a copy each time)."""
+        return load_checkpoint(self.ckpt)
+
+
 def _stages(cfg: ReconstructConfig, out: Path, stages: Stages) -> dict:
-    """Every stage into ``out`` (the work folder), each kept in ``stages`` when done (or read back from it); returns
-    the record (``lines``: what to print)."""
+    """Every stage into ``out`` (the work folder), each kept in ``stages`` when done (or read back from it), with one
+    :class:`Capture` holding what they share; returns the record (``lines``: what to print)."""
+    cap = Capture(work=out, ckpt=Path(cfg.ckpt))
+    with holding(cap.held, cap.reads):
+        record = _run_stages(cfg, cap, stages)
+    record["reads"] = dict(cap.reads)  # what was read from disk (not in reconstruct.json: a resumed run reads less)
+    return record
+
+
+def _run_stages(cfg: ReconstructConfig, cap: Capture, stages: Stages) -> dict:
     lines: list[str] = []
     lap = Laps()
     run = StageRunner(stages, lap, lines)
-    processed = run("process", lambda said: {"processed": process_stage(cfg, out, said)[1]})["processed"]
-    scene_path = out / "scene" if processed else Path(cfg.path)
+    cap.processed = run("process", lambda said: {"processed": process_stage(cfg, cap.work, said)[1]})["processed"]
+    cap.path = cap.work / "scene" if cap.processed else Path(cfg.path)
 
     def mesh(said: list[str]) -> dict:
-        meshed = mesh_stage(cfg, scene_path, out, said)
+        meshed = mesh_stage(cfg, cap, said)
         stages.keep_meshes("mesh", meshed.pop("meshes"))  # scene and input frame: the next stages read no mesh file
         give_back_memory()  # the fusion grid and the marching-cubes mesh are gone: the next stages start lower
         return meshed
 
     meshed = run("mesh", mesh)
-    meshes = stages.meshes("mesh")
-    side = cfg.resolution or photo_side(scene_path)
-    tuned = run("finetune", lambda said: finetune_stage(cfg, scene_path, side, meshes["scene"], out, said)[0])
-    ckpt = out / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
-    exported = run("export", lambda said: export_stage(cfg, scene_path, side, ckpt, meshes["input"], out, tuned))
+    cap.meshes = stages.meshes("mesh")
+    cap.side = cfg.resolution or photo_side(cap.path)
+    tuned = run("finetune", lambda said: finetune_stage(cfg, cap, said))
+    cap.ckpt = cap.work / "finetune" / "checkpoint" if cfg.finetune_seconds > 0 else Path(cfg.ckpt)
+    exported = run("export", lambda said: export_stage(cfg, cap, tuned))
     fill_from = (meshed.get("completion") or {}).get("surface_faces") if meshed.get("options", {}).get("surface") \
         != "coherent" else None
     stages.current = "path"
-    path = path_stage(cfg, scene_path, side, ckpt, meshes["scene"], out, lines, tuned, fill_from)
+    path = path_stage(cfg, cap, lines, tuned, fill_from)
     lap("path")
     stages.current = "report"
+    out = cap.work
     draw_cameras(path["scene"], out / "cameras.png")
-    record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(scene_path),
-              "process": processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
-                                                                         ("vertices", "depth_maps", "views", "masks")},
-              "finetune": {"resolution": side, "curve": tuned["curve"]}, "export": exported["files"],
+    record = {"provenance": provenance(seed=0), "input": str(cfg.path), "scene": str(cap.path),
+              "process": cap.processed, "checkpoint": str(cfg.ckpt), "mesh": {k: meshed[k] for k in
+                                                                             ("vertices", "depth_maps", "views", "masks")},
+              "finetune": {"resolution": cap.side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
                        "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
                        "blend": path["setting"], "defects": path["defects"]},
@@ -284,7 +316,7 @@ def _stages(cfg: ReconstructConfig, out: Path, stages: Stages) -> dict:
     lap("report")
     record["seconds"]["total"] = round(sum(lap.seconds.values()), 2)
     write_json(out / "reconstruct.json", record)
-    write_page(cfg, scene_path, meshed, tuned["curve"], path, record, " ".join(lines[-2:]), out, tuned["line"])
+    write_page(cfg, cap.path, meshed, tuned["curve"], path, record, " ".join(lines[-2:]), out, tuned["line"])
     record["lines"] = lines
     return record
 
@@ -299,18 +331,18 @@ def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[
         from omnirecon.capture.process import process, summary_lines  # lazy: as above
 
         processed = process(Path(cfg.path), out / "scene", SfmOptions(camera_model=cfg.camera_model), fps=cfg.fps,
-                            masks=cfg.masks)
+                            masks=cfg.masks, claimed=True)  # out: the work folder run_reconstruct claimed
         lines += summary_lines(processed)
         return out / "scene", processed
 
 
-def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[str]) -> dict:
+def mesh_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str]) -> dict:
     """A mesh from every view (``mesh.ply``), carved and cleaned with the object masks on object captures that
     have them (``mesh --masks``: photos processed with ``--masks``, DTU); the record holds the meshes in memory
     under ``meshes``."""
-    masks = object_masks(scene_path)
-    mesh_cfg = MeshConfig(scene=scene_path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
-                          out=(out / "mesh.ply",), resolution=cfg.mesh_resolution or photo_side(scene_path),
+    masks = object_masks(cap.path)
+    mesh_cfg = MeshConfig(scene=cap.path, ckpt=cfg.ckpt, views=("all",), num_views=cfg.num_views,
+                          out=(cap.work / "mesh.ply",), resolution=cfg.mesh_resolution or photo_side(cap.path),
                           masks=masks, device=cfg.device, threads=cfg.threads, chunk=cfg.chunk)
     meshed = run_mesh(mesh_cfg)
     lines.append(f"mesh: {meshed['vertices']:,} vertices from {meshed['depth_maps']} depth maps"
@@ -318,38 +350,38 @@ def mesh_stage(cfg: ReconstructConfig, scene_path: Path, out: Path, lines: list[
     return meshed
 
 
-def finetune_stage(cfg: ReconstructConfig, scene_path: Path, side: int, mesh, out: Path,
-                   lines: list[str]) -> tuple[dict, Path]:
-    """Fine-tune at the photos' resolution into ``out/finetune``; returns its record and the checkpoint to use."""
+def finetune_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str]) -> dict:
+    """Fine-tune at the photos' resolution into ``finetune/`` of the work folder; returns its record."""
     budget = cfg.finetune_seconds
-    tuned = run_finetune(FinetuneConfig(ckpt=cfg.ckpt, scene=scene_path, seconds=max(budget, 1e-3),
+    tuned = run_finetune(FinetuneConfig(ckpt=cap.ckpt, scene=cap.path, seconds=max(budget, 1e-3),
                                         eval_at=(0.0, *(t for t in (10.0, 30.0, 60.0) if t < budget), budget),
-                                        num_views=cfg.num_views, mesh=out / "mesh.ply", resolution=side,
-                                        out=out / "finetune", save=budget > 0, threads=cfg.threads), mesh=mesh)
+                                        num_views=cfg.num_views, mesh=cap.work / "mesh.ply", resolution=cap.side,
+                                        out=cap.work / "finetune", save=budget > 0, threads=cfg.threads),
+                         mesh=cap.meshes["scene"])
     curve = tuned["curve"]
     objects = (f"; on the object masks {curve[0]['psnr_masked']:.2f} -> {curve[-1]['psnr_masked']:.2f} dB"
                if "psnr_masked" in curve[0] else "")
     tuned["line"] = (f"held-out mesh-path PSNR {curve[0]['psnr']:.2f} dB before, {curve[-1]['psnr']:.2f} dB after "
                      f"{curve[-1]['seconds']:g} s of fine-tuning (coverage {tuned['coverage']:.0%}{objects})")
     lines.append(tuned["line"])
-    return tuned, out / "finetune" / "checkpoint" if budget > 0 else Path(cfg.ckpt)
+    return tuned
 
 
-def export_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
-                 tuned: dict | None = None) -> dict:
+def export_stage(cfg: ReconstructConfig, cap: Capture, tuned: dict | None = None) -> dict:
     """``out/export``: the baked mesh and the viewer bundle (over the sources ``tuned``, the finetune record in
     ``out/finetune``, blended, starting with the setting it scored); marks ``finetune/`` and ``export/`` as outputs."""
+    out = cap.work
     record = out / "finetune" if tuned and (out / "finetune" / "curve.json").is_file() else None
-    exported = run_export(ExportConfig(scene=scene_path, ckpt=ckpt, mesh=out / "mesh.ply", out=out / "export",
-                                       resolution=side, finetune=record, viewer=cfg.viewer, device=cfg.device,
-                                       threads=cfg.threads, chunk=cfg.chunk), mesh=mesh)
+    exported = run_export(ExportConfig(scene=cap.path, ckpt=cap.ckpt, mesh=out / "mesh.ply", out=out / "export",
+                                       resolution=cap.side, finetune=record, viewer=cfg.viewer, device=cfg.device,
+                                       threads=cfg.threads, chunk=cfg.chunk), mesh=cap.meshes["input"])
     for sub, verb in (("finetune", "finetune"), ("export", "export")):  # each output folder carries the marker
         write_marker(out / sub, verb)
     return exported
 
 
-def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, mesh, out: Path,
-               lines: list[str], tuned: dict | None = None, fill_from: int | None = None) -> dict:
+def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: dict | None = None,
+               fill_from: int | None = None) -> dict:
     """``path.mp4``: the camera path a user watches (:func:`~omnirecon.engine.extrapolation.user_path`: the photos'
     arc and past its ends, or the walk) through the tuned mesh path, blended as ``tuned`` (the finetune record) scored
     (:func:`~omnirecon.mesh.ibr.realtime_setting`); each frame's defect shares (:mod:`omnirecon.mesh.defects`;
@@ -358,8 +390,7 @@ def path_stage(cfg: ReconstructConfig, scene_path: Path, side: int, ckpt: Path, 
     from omnirecon.engine.extrapolation import user_path  # lazy: fast --help
     from omnirecon.mesh.ibr import realtime_setting
 
-    scene = load_at_resolution(scene_path, side)
-    model, _ = load_checkpoint(ckpt)
+    scene, (model, _), mesh, out = cap.scene(), cap.model(), cap.meshes["scene"], cap.work
     train = scene.splits.get("train") or list(range(len(scene)))
     cams, kind = user_path(scene, train, cfg.frames)
     setting = realtime_setting(scene, tuned)

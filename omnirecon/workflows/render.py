@@ -13,7 +13,7 @@ look-at centre for object rigs, by camera-centre distance otherwise; the same ru
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -23,29 +23,23 @@ import torch
 from omnirecon import trajectory
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.data.io import atomic_path, write_image, write_json
-from omnirecon.engine.machine import MachineConfig, load_model, pick_device, set_threads
+from omnirecon.engine.machine import GuidedRendering, MachineConfig, ModelChoice, load_model, pick_device, set_threads
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.models.fast import switches
-from omnirecon.models.guided import GuidedOptions, render_guided
-from omnirecon.options import check_options
+from omnirecon.models.guided import render_guided
+from omnirecon.options import OutFolder, SceneInput, check_options
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
-class RenderConfig(MachineConfig):
+class RenderConfig(GuidedRendering, OutFolder, ModelChoice, SceneInput, MachineConfig):
     """Render a camera path (orbit, LLFF-style spiral, or interpolation between scene cameras)
     through a scene with a checkpoint or the plane-sweep floor; writes PNG frames and a video."""
 
-    scene: Path
-    """Scene folder (any supported format)."""
-    ckpt: Path | None = None
-    """Checkpoint folder written by `omnirecon train`."""
-    model: Literal["floor"] | None = None
-    """Render with a non-learned model instead of a checkpoint: `floor` is the plane-sweep baseline."""
     path: Literal["orbit", "spiral", "interp"] = "orbit"
     """orbit: circle the scene centre at the cameras' mean distance/elevation; spiral: LLFF-style
     around the mean pose (forward-facing scenes); interp: through the scene cameras in order."""
@@ -65,8 +59,6 @@ class RenderConfig(MachineConfig):
     """spiral: number of turns."""
     fps: int = 24
     """Frames per second of the video."""
-    out: Path | None = None
-    """Output folder (default: outputs/render/<scene>_<path>)."""
     video: bool = True
     """Also write video.mp4 (or video.gif)."""
     render_pass: Literal["auto", "coarse", "fine"] = "auto"
@@ -82,10 +74,6 @@ class RenderConfig(MachineConfig):
     PSNR; IBRNet and Omni-Recon gain nothing; several times slower on CPUs without it, e.g. AVX2 only); auto: the
     checkpoint's (gpnr-tiny: bf16) where the device computes bf16 natively, else fp32 (BENCHMARKS "Render levers of
     the tiny presets")."""
-    guided: GuidedOptions = field(default_factory=GuidedOptions)
-    """Surface-guided rendering (``--guided.on``): each ray samples a band around a depth prior (the model's own
-    render at 1/4 size) plus a few guard samples, rays without a trusted prior the full path; changes the output
-    (``python -m bench guided`` measures speed and PSNR per shipped checkpoint)."""
 
     def check(self) -> None:
         check_options("render", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI

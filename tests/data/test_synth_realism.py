@@ -96,5 +96,5 @@ def test_effects_on_a_flat_image():
 def test_bad_values_are_one_line_errors():
     with pytest.raises(InputError, match="--noise must be"):
         replace(BASE, noise=-0.1).check()
-    with pytest.raises(InputError, match="--vignetting must be at most 1"):
+    with pytest.raises(InputError, match=r"--vignetting must be in \[0, 1\]"):
         replace(BASE, vignetting=1.5).check()

@@ -103,5 +103,5 @@ def test_eval_guided_option_records_its_settings(run_cli, scene_path, tmp_path):
     guided = json.loads((tmp_path / "on" / "results.json").read_text())["guided"]
     assert guided["on"] and guided["band_samples"] == 8 and guided["band"] == 0.01  # Omni-Recon's family values
     rc, _, err = run_cli([*args, "--guided.band", "2", "--out", tmp_path / "bad"])
-    assert rc == 2 and "--guided.band must be in [0.0, 1.0]" in err and "Traceback" not in err
+    assert rc == 2 and "--guided.band must be in [0, 1]" in err and "Traceback" not in err
     assert not (tmp_path / "bad").exists()

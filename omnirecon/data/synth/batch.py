@@ -12,12 +12,12 @@ from pathlib import Path
 
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
 from omnirecon.errors import InputError
-from omnirecon.options import check_options
+from omnirecon.options import Overwrites, Seeded, check_options
 from omnirecon.progress import progress_bar
 
 
 @dataclass
-class SynthConfig(SynthOptions):
+class SynthConfig(Overwrites, Seeded, SynthOptions):
     """Generate procedural scenes of textured primitives with exact ground truth (depth, normals,
     labels, masks, mesh) in the Blender/NeRF-synthetic layout. Scene i uses seed ``seed + i``; the
     same seed always gives byte-identical files."""
@@ -26,12 +26,8 @@ class SynthConfig(SynthOptions):
     """Folder that receives one ``scene_{seed:05d}`` folder per scene."""
     num_scenes: int = 1
     """How many scenes to generate."""
-    seed: int = 0
-    """Seed of the first scene."""
     workers: int | None = None
     """Parallel processes (default: all CPU cores)."""
-    overwrite: bool = False
-    """Regenerate existing scene folders (by default they are kept: an interrupted run resumes)."""
     def check(self) -> None:
         check_options("synth", self)  # the numbers (omnirecon/options.py); here for callers other than the CLI
         super().check()

@@ -47,11 +47,12 @@ import trimesh
 from omnirecon.data.io import write_image, write_json
 from omnirecon.data.synth import rigs
 from omnirecon.data.synth.layout import GROUND_ID, Layout, make_layout
-from omnirecon.data.synth.photo import REALISM, camera_effects, options_record, scene_light
+from omnirecon.data.synth.photo import camera_effects, options_record, scene_light
 from omnirecon.data.synth.primitives import corner_normals, face_normals
 from omnirecon.data.synth.render import Mesh, render_view
 from omnirecon.data.synth.textures import make_atlas, make_texture
 from omnirecon.errors import InputError
+from omnirecon.options import check_options
 from omnirecon.outputs import swap_in
 
 GENERATOR_VERSION = "omnirecon-synth/1"
@@ -110,25 +111,10 @@ class SynthOptions:
         """Raise :class:`InputError` for out-of-range options."""
         if self.rig not in ("object", "frontal", "forward"):
             raise InputError(f"unknown rig {self.rig!r}", None, "use --rig object, frontal or forward")
-        if self.views < 1:
-            raise InputError(f"--views must be at least 1, got {self.views}", None, "ask for 1 or more views")
-        if self.resolution < 8:
-            raise InputError(f"--resolution must be at least 8 pixels, got {self.resolution}", None,
-                             "use e.g. --resolution 128")
-        if not 1 <= self.min_objects <= self.max_objects <= 254:
-            raise InputError(f"need 1 <= --min-objects <= --max-objects <= 254, got {self.min_objects} and "
+        if self.min_objects > self.max_objects:
+            raise InputError(f"need --min-objects <= --max-objects, got {self.min_objects} and "
                              f"{self.max_objects}", None, "fix the object counts")
-        if not 1 <= self.antialias <= 8:
-            raise InputError(f"--antialias must be in 1..8, got {self.antialias}", None, "use 1 (off) to 4")
-        if self.detail not in (0, 1, 2):
-            raise InputError(f"--detail must be 0, 1 or 2, got {self.detail}", None, "use 0, 1 or 2")
-        for name in REALISM:
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value >= 0):
-                raise InputError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {value}", None,
-                                 "use 0 (off) or a small positive value")
-        if self.vignetting > 1:
-            raise InputError(f"--vignetting must be at most 1, got {self.vignetting}", None, "use e.g. 0.3")
+        check_options("synth", self, memory=False)  # every number's range: omnirecon/options.py
 
 
 def view_split(i: int, views: int) -> str:
