@@ -27,6 +27,7 @@ NOT_POLICY = {
     "models/sampler.py": "as above",
     "models/floor.py": "as above",
     "models/omnirecon.py": "as above (and its scene box on forward-facing rigs)",
+    "models/feature_volume.py": "the feature volume's box on forward-facing rigs (a ray bundle's Sources.rig)",
     "mesh/fill.py": "layer_box reads a ray bundle's rig (Sources.rig)",
 }
 
