@@ -352,15 +352,16 @@ def replaces(current: int | None, candidate: int, agree: tuple[float, float] | N
     return (candidate > current and agrees) or (affine and candidate == current > 0 and not agrees)
 
 
-def _check_poses(db: Path, rec, options: SfmOptions) -> tuple[dict[str, str], dict | None]:
+def _check_poses(db: Path, rec, options: SfmOptions, groups: list[list[str]] = ()) -> tuple[dict[str, str], dict | None]:
     """The pose check (:attr:`SfmOptions.min_explained`) on the chosen model ``rec``, in place: the views it
-    de-registered with their reasons, and its summary (None when off)."""
+    de-registered with their reasons, and its summary (None when off). ``groups``: views posed apart before
+    learned matches joined them (:func:`omnirecon.capture.consistency.contested_groups`)."""
     if options.min_explained <= 0:
         return {}, None
     from omnirecon.capture.consistency import check_poses
 
     t0 = time.perf_counter()
-    reasons, summary = check_poses(db, rec, options.min_explained, MIN_MATCHES, options.seed)
+    reasons, summary = check_poses(db, rec, options.min_explained, MIN_MATCHES, options.seed, groups)
     summary["seconds"] = round(time.perf_counter() - t0, 3)
     return reasons, summary
 
@@ -434,7 +435,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
 
     with stages.stage("mapping", n) as advance:
         models, chosen = attempt("default settings", db, False, advance=advance), 0
-    best_db, learned_info = db, None
+    best_db, learned_info, apart = db, None, []
     if options.retry_below > 0 and (not models or models[0].num_reg_images() < options.retry_below * n):
         with stages.stage("retries", None):
 
@@ -453,12 +454,13 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
                 consider(attempt("affine SIFT", db2, False), db2, affine=True)
+            apart = [_names(m) for m in models[1:]]  # SIFT's separate models: joined only by learned matches
             learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
                 cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
                 if cand:  # its flipped views go before it is compared (their reasons kept with it)
-                    learned_info["dropped"], _ = _check_poses(db3, cand[0], options)
+                    learned_info["dropped"], _ = _check_poses(db3, cand[0], options, apart)
                     attempts[-1]["registered"] = cand[0].num_reg_images()
                     attempts[-1]["pose_check_dropped"] = sorted(learned_info["dropped"])
                 consider(cand, db3, prefer=options.learned == "prefer")
@@ -474,8 +476,9 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "take more overlapping photos (each spot seen from 3+ viewpoints, 60-80% overlap), "
                          "with texture and without motion blur")
     best = models[0]
-    checked, pose_check = _check_poses(best_db, best, options)
-    if learned_info and best_db == Path(learned_info.get("database", "")):
+    learned_db = learned_info and best_db == Path(learned_info.get("database", ""))
+    checked, pose_check = _check_poses(best_db, best, options, apart if learned_db else ())
+    if learned_db:
         checked = {**learned_info.get("dropped", {}), **checked}
     if best.num_points3D() < MIN_POINTS:
         raise InputError(f"the largest model has {best.num_reg_images()} images but only {best.num_points3D()} 3-D "

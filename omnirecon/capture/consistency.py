@@ -20,8 +20,12 @@ A group of views can be wrong together: on lego (20 views, learned matches), fiv
 posed apart were joined to the rest through one pair of 72 matches taken front to back, and came out
 about 174 degrees wrong while each of their own pairs was explained. :func:`contested_groups` finds such
 joins: a pair the model explains whose removal cuts the graph of explained pairs in two (a bridge),
-while as many other verified pairs between the two sides contradict the model. One pair for and one
-against is no evidence for the join, so the smaller side goes (no pose is better than a wrong one).
+while another verified pair between the two sides contradicts the model (one pair for and one against
+is no evidence for the join), and a group the caller knows was posed apart (SIFT's separate models,
+joined by learned matches) when a quarter of the pairs between it and the rest contradict the model: on
+lego with more learned pairs, the same five views came out 179 degrees wrong, joined through nine
+explained pairs (true angles of 118-161 degrees: front matched to back) against six unexplained ones.
+The group goes, not the rest (no pose is better than a wrong one).
 """
 
 from __future__ import annotations
@@ -139,40 +143,50 @@ def inconsistent_views(checks: list[PairCheck], min_share: float) -> dict[str, t
 
 @dataclass
 class ContestedJoin:
-    """A group of views joined to the rest through one explained pair while other pairs contradict it."""
+    """A group of views joined to the rest while verified pairs between them contradict the join."""
 
     views: list[str]
-    """The smaller side of the cut: the views dropped."""
-    bridge: PairCheck
-    """The one pair between the two sides that the model explains."""
+    """The group: the views dropped."""
+    support: list[PairCheck]
+    """The pairs between the group and the rest that the model explains."""
     against: list[PairCheck]
-    """The other verified pairs between the two sides, none of which the model explains."""
+    """The pairs between the group and the rest that the model does not explain."""
 
 
-def contested_groups(checks: list[PairCheck], min_share: float) -> list[ContestedJoin]:
-    """Groups to drop (see the module's note), found one at a time: among the bridges of the graph of pairs
-    the model explains (share >= ``min_share``), the first whose cut is crossed by at least as many
-    contradicting pairs as explained ones (that is, by one or more); its smaller side (fewer views, then
-    fewer verified matches) is dropped and the search repeats on the rest."""
+CONTESTED = 0.25
+"""Share of the pairs between a group and the rest that, unexplained, makes the join contested. A bridge (one
+explained pair) is contested by any pair against it; in a correct model, unexplained pairs are a few outliers
+spread over the graph, not a quarter of one cut."""
+
+
+def contested_groups(checks: list[PairCheck], min_share: float, groups: list[list[str]] = ()) -> list[ContestedJoin]:
+    """Groups to drop (see the module's note), found one at a time. The candidates: each of ``groups``
+    (views the caller knows were posed apart, e.g. SIFT's separate models before learned matches joined
+    them), then the smaller side (fewer views, then fewer verified matches) of each bridge of the graph of
+    pairs the model explains (share >= ``min_share``). A candidate goes when at least :data:`CONTESTED` of
+    the pairs between it and the rest are not explained; the search repeats on the rest."""
     import networkx as nx  # a dependency of torch
 
     left, out = list(checks), []
     while True:
         g = nx.Graph()
-        g.add_edges_from((c.a, c.b, {"check": c}) for c in left if c.explained >= min_share)
+        g.add_nodes_from(n for c in left for n in (c.a, c.b))
+        g.add_edges_from((c.a, c.b) for c in left if c.explained >= min_share)
         inliers = {n: sum(c.inliers for c in left if n in (c.a, c.b)) for n in g}
-        found = None
+        sides = [set(grp) & set(g) for grp in groups]
         for a, b in list(nx.bridges(g)):
-            bridge = g.edges[a, b]["check"]
             g.remove_edge(a, b)
-            sides = nx.node_connected_component(g, a), nx.node_connected_component(g, b)
-            g.add_edge(a, b, check=bridge)
-            small = min(sides, key=lambda s: (len(s), sum(inliers[n] for n in s), sorted(s)))
-            big = sides[1] if small is sides[0] else sides[0]
-            cross = [c for c in left if (c.a in small and c.b in big) or (c.b in small and c.a in big)]
+            cut = nx.node_connected_component(g, a), nx.node_connected_component(g, b)
+            g.add_edge(a, b)
+            sides.append(min(cut, key=lambda s: (len(s), sum(inliers[n] for n in s), sorted(s))))
+        found = None
+        for side in sides:
+            if not side or len(side) >= len(g):
+                continue
+            cross = [c for c in left if (c.a in side) != (c.b in side)]
             against = [c for c in cross if c.explained < min_share]
-            if against and len(against) >= len(cross) - len(against):
-                found = ContestedJoin(sorted(small), bridge, against)
+            if against and len(against) >= CONTESTED * len(cross):
+                found = ContestedJoin(sorted(side), [c for c in cross if c.explained >= min_share], against)
                 break
         if found is None:
             return out
@@ -180,10 +194,11 @@ def contested_groups(checks: list[PairCheck], min_share: float) -> list[Conteste
         left = [c for c in left if c.a not in found.views and c.b not in found.views]
 
 
-def check_poses(db_path: Path, rec, min_share: float, min_matches: int = 15, seed: int = 0) -> tuple[dict, dict]:
+def check_poses(db_path: Path, rec, min_share: float, min_matches: int = 15, seed: int = 0,
+                groups: list[list[str]] = ()) -> tuple[dict, dict]:
     """De-register from ``rec`` (in place) the views :func:`inconsistent_views` finds, then the groups
-    :func:`contested_groups` finds among the rest; returns one reason per dropped view and a summary
-    (pairs checked, the median share explained, the views dropped)."""
+    :func:`contested_groups` finds among the rest (``groups``: its known candidates); returns one reason
+    per dropped view and a summary (pairs checked, the median share explained, the views dropped)."""
     checks = pair_checks(db_path, rec, min_matches, seed)
     bad = inconsistent_views(checks, min_share) if min_share > 0 else {}
     reasons = {}
@@ -192,16 +207,15 @@ def check_poses(db_path: Path, rec, min_share: float, min_matches: int = 15, see
                          f"matches, median of {k} pairs; {min_share:.0%} needed), e.g. a view placed the wrong way "
                          "round on a symmetric subject")
     rest = [c for c in checks if c.a not in bad and c.b not in bad]
-    joins = contested_groups(rest, min_share) if min_share > 0 else []
+    joins = contested_groups(rest, min_share, groups) if min_share > 0 else []
     for j in joins:
         worst = max(j.against, key=lambda c: c.inliers)
         for name in j.views:
             reasons[name] = (f"pose dropped: it is one of {len(j.views)} views ({', '.join(j.views[:4])}"
-                             f"{', ...' if len(j.views) > 4 else ''}) joined to the others through one pair "
-                             f"({j.bridge.a}-{j.bridge.b}, {j.bridge.inliers} matches) while {len(j.against)} other "
-                             f"pair(s) between them contradict that join (e.g. {worst.a}-{worst.b}: the model "
-                             f"explains {worst.explained:.0%} of its {worst.inliers} matches), e.g. a symmetric "
-                             "subject matched front to back")
+                             f"{', ...' if len(j.views) > 4 else ''}) joined to the others through {len(j.support)} "
+                             f"pair(s) while {len(j.against)} other pair(s) between them contradict that join (e.g. "
+                             f"{worst.a}-{worst.b}: the model explains {worst.explained:.0%} of its {worst.inliers} "
+                             "matches), e.g. a symmetric subject matched front to back")
     by_name = {rec.images[i].name: rec.images[i] for i in rec.reg_image_ids()}
     for name in reasons:
         rec.deregister_frame(by_name[name].frame_id)

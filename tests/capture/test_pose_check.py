@@ -130,12 +130,19 @@ def test_group_joined_by_one_contested_pair_is_dropped():
              PairCheck("x", "y", 0.99, 800), PairCheck("y", "z", 1.0, 700), PairCheck("x", "z", 0.99, 900)]
     join, against = PairCheck("z", "b", 0.9, 72), PairCheck("x", "a", 0.33, 33)
     groups = contested_groups(inner + [join, against], 0.5)
-    assert [g.views for g in groups] == [["x", "y", "z"]] and groups[0].bridge == join
+    assert [g.views for g in groups] == [["x", "y", "z"]] and groups[0].support == [join]
     assert groups[0].against == [against]
     assert contested_groups(inner + [join], 0.5) == []
     assert contested_groups(inner + [join, against, PairCheck("y", "c", 0.8, 60)], 0.5) == []
     # the pendant view d (one explained pair, nothing against it) stays in every case
     assert all("d" not in g.views for g in contested_groups(inner + [join, against], 0.5))
+    # a group known to be posed apart (SIFT's separate model) joined through 3 explained pairs against 1
+    # unexplained one: contested (a quarter); against 1 of 5, not
+    cross = [join, PairCheck("y", "c", 0.8, 60), PairCheck("x", "b", 0.7, 50), against]
+    assert [g.views for g in contested_groups(inner + cross, 0.5, [["x", "y", "z"]])] == [["x", "y", "z"]]
+    assert contested_groups(inner + cross, 0.5) == []  # no bridge: nothing without the known group
+    more = cross + [PairCheck("z", "a", 0.9, 80)]
+    assert contested_groups(inner + more, 0.5, [["x", "y", "z"]]) == []
 
 
 def test_summary_names_the_dropped_pose():
