@@ -73,7 +73,7 @@ from omnirecon.engine.tuning import (
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
-from omnirecon.mesh.files import read_mesh
+from omnirecon.mesh.files import read_mesh, write_mesh
 from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.mesh.pixels import angle_blend, rasterize_groups
@@ -131,7 +131,7 @@ class FinetuneConfig(ThreadsConfig):
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
     """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
-    tune: tuple[Literal["encoder", "appearance", "exposure", "residual"], ...] = ("encoder", "appearance")
+    tune: tuple[Literal["encoder", "appearance", "exposure", "residual", "surface"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
@@ -260,6 +260,18 @@ class FinetuneConfig(ThreadsConfig):
     """Also write the tuned checkpoint to <out>/checkpoint."""
     seed: int = 0
     """Seed of the pixel sampling."""
+    surface_lr: float = 0.05
+    """With ``--tune surface`` (the mesh's vertices moved along their normals by a tuned scalar each, through the
+    photometric loss across the sources at the points each pixel's fixed face and barycentrics give:
+    :class:`~omnirecon.mesh.offsets.SurfaceOffsets`): the Adam learning rate of the offsets' unbounded parameter
+    (``offset = --surface-limit * mean edge length * tanh(parameter)``). With --save, the returned state's moved mesh
+    is written to <out>/mesh.ply (input frame)."""
+    surface_limit: float = 0.5
+    """With ``--tune surface``: the largest offset along a vertex normal, in the mesh's mean edge lengths (the pixels'
+    faces are those of the start mesh: a small bound keeps what they see close to the moved mesh's)."""
+    surface_smooth: float = 1.0
+    """With ``--tune surface``: weight of the Laplacian term, the mean squared difference of the offsets across the
+    mesh's edges in mean edge lengths squared (0: each vertex moves alone)."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -309,9 +321,10 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"
-    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual"}  # no step will sample
+    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual", "surface"}  # no step samples
     train_px, held_px, val_px = rasterize_groups(mesh, scene, [[] if idle else tune_views, targets, val_views], fill,
-                                                 vis, nearest_fill=near, cracks=cfg.cracks)  # sources' depth once
+                                                 vis, nearest_fill=near, cracks=cfg.cracks,
+                                                 faces="surface" in cfg.tune)  # sources' depth once
     train_px = [v for v in train_px if len(v.points)]
     chosen_later = for_run and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
     for px in (train_px, held_px, val_px):
@@ -483,7 +496,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
               "reg": cfg.reg, "fill": s.fill_mode,
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual")],
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual",
+                                                                                            "surface")],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
@@ -497,6 +511,11 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "gain_db": t.curve[-1]["psnr"] - t.before["psnr"],
               "before": {k: t.before[k] for k in ("psnr", "psnr_masked", "psnr_covered") if k in t.before},
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
+    if tuner.surface is not None:  # the returned state's offsets (scene units; the mean edge length to compare)
+        d = tuner.surface.offsets().detach().abs()
+        result["surface"] = {"mean_abs_offset": float(d.mean()), "max_abs_offset": float(d.max()),
+                             "mean_edge": tuner.surface.edge, "limit": cfg.surface_limit, "lr": cfg.surface_lr,
+                             "smooth": cfg.surface_smooth}
     if "exposure" in cfg.tune:
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
                               "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
@@ -587,6 +606,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -
     result["defects"] = held_out_defects(s, fill_from)
     result["cpu_seconds"] = cpu_split(cpu, tuned.budget_spent, time.process_time())
     write_json(out / "curve.json", result)
+    if cfg.save and tuner.surface is not None:  # the returned state's surface, in the input frame
+        write_mesh(tuner.surface.moved(s.mesh), [out / "mesh.ply"], s.scene.to_input)
     if cfg.save:
         save_checkpoint(out / "checkpoint", s.model, s.meta["preset"], step=tuned.steps,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
