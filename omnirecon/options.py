@@ -120,6 +120,7 @@ RULES: dict[str, Rule] = {
     "surface_lr": Rule(0, 10, above=True, example="e.g. 0.05"),
     "surface_limit": Rule(0, 10, above=True, example="e.g. 0.5 (mean edge lengths)"),
     "surface_smooth": Rule(0, 1e6, example="e.g. 1 (0: off)"),
+    "surface_every": Rule(0, 1_000_000, example="e.g. 50 (steps; 0: never)"),
     # verbs that need more than the shared rule
     "demo.resolution": Rule(16, 16_384, example="e.g. 96"), "demo.num_views": Rule(2, 1_000_000, example="e.g. 3"),
     "reconstruct.frames": Rule(2, 1_000_000, example="e.g. 48"), "pet.labelled": Rule(2, 100_000, example="e.g. 6"),

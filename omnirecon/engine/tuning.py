@@ -3,6 +3,9 @@
 the tuned parameters with their optimiser and scores (:class:`Tuner`), each step's pixels (:class:`PixelSampler`) and
 the budget's clock (:class:`Clock`). The pixels and their blend are :mod:`omnirecon.mesh.pixels`' (the mesh path's
 kernel, :mod:`omnirecon.mesh.kernel`, with gradients on).
+
+Size: one concern, what a tuning step changes and on which pixels: the tuner with every lever (networks, exposure,
+residual colour, the surface's offsets and their re-rasterization), its sampler and the choice of views.
 """
 
 from __future__ import annotations
@@ -176,6 +179,11 @@ class Tuner:
         self.surface = SurfaceOffsets(s.mesh, cfg.surface_limit) if "surface" in cfg.tune else None
         """``--tune surface``: the mesh's per-vertex offsets along its normals (``None``: the surface is fixed)."""
         self.smooth = cfg.surface_smooth
+        self.retrace = None
+        """With ``--surface-every``: a moved mesh -> the tuning views' pixels rasterized on it (set by the workflow)."""
+        self.every, self.steps = cfg.surface_every, 0
+        self.base = None
+        """The offsets the tuning views were last rasterized at (``None``: the start mesh). ``# [V]``"""
         self.params = nets + ([self.residual.grid] if self.residual is not None else []) + (
             [self.surface.raw] if self.surface is not None else [])
         self.start = [p.detach().clone() for p in self.params]
@@ -240,7 +248,7 @@ class Tuner:
         reused, self.pending, charge = self.pending, None, self.pending_cost
         self.pending_cost = 0.0
         points = batch.points if self.surface is None else batch.points + self.surface.shift(
-            batch.face, batch.bary, batch.points, batch.origins)
+            batch.face, batch.bary, batch.points, batch.origins, self.base)
         with self.autocast:
             feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
             rgb = point_colours(self.s.model, feats, points, batch.origins, batch.visible, batch.weights,
@@ -256,7 +264,17 @@ class Tuner:
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+        self.steps += 1
+        if self.retrace is not None and self.every > 0 and self.steps % self.every == 0:
+            self.follow()
         return charge if reused is not None else 0.0
+
+    @torch.no_grad()
+    def follow(self) -> None:
+        """Rasterize the tuning views again on the mesh the offsets move (``--surface-every``): their faces, points
+        and occlusion follow the surface; validation and held-out views keep the start's."""
+        self.s.train_px = self.retrace(self.surface.moved(self.s.mesh))
+        self.base = self.surface.offsets().detach().clone()
 
     @torch.no_grad()
     def validate(self, val_idx: list[torch.Tensor], val_obj: list[torch.Tensor] | None = None) -> dict[str, float]:
@@ -348,7 +366,13 @@ class PixelSampler:
     run's ``FinetuneConfig`` (``rays``, ``objects``, ``step_views``)."""
 
     def __init__(self, cfg, s: Setup, g: torch.Generator):
-        self.cfg, self.views, self.g = cfg, s.train_px, g
+        self.cfg, self.s, self.g = cfg, s, g
+        self.sync()
+
+    def sync(self) -> None:
+        """Take the setup's tuning views (again, after ``Tuner.follow`` rasterized them on the moved surface)."""
+        s = self.s
+        self.views = s.train_px
         self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
         masks = s.scene.masks
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
@@ -374,6 +398,8 @@ class PixelSampler:
         return [(k, self.pick(k, int(n))) for k, n in enumerate(per.tolist()) if n > 0]
 
     def __call__(self) -> Batch:
+        if self.views is not self.s.train_px:
+            self.sync()
         parts = [batch_of(self.views[k], idx) for k, idx in self.views_and_rows()]
         if len(parts) == 1:
             return parts[0]

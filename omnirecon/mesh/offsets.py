@@ -64,14 +64,17 @@ class SurfaceOffsets(torch.nn.Module):
         """Offsets along the normals, scene units. ``# [V]``"""
         return self.limit * self.edge * torch.tanh(self.raw)
 
-    def shift(self, face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor, origins: torch.Tensor) -> torch.Tensor:
+    def shift(self, face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor, origins: torch.Tensor,
+              base: torch.Tensor | None = None) -> torch.Tensor:
         """How far the points ``# [n, 3]`` seen from ``origins # [n, 3]`` on ``face # [n]`` (-1: not on the mesh, no
         shift) at ``bary # [n, 3]`` move along their rays to the moved face: the displacement ``sum_j b_j d_j n_j``'s
-        component along the face normal over the ray's (the ray's at least :data:`GRAZING` in magnitude). ``# [n, 3]``"""
+        component along the face normal over the ray's (the ray's at least :data:`GRAZING` in magnitude); with
+        ``base # [V]``, the offsets the points were rasterized at, only the offsets' change since. ``# [n, 3]``"""
         on = face >= 0
         f = face.clamp_min(0)
         corners = self.faces[f]  # [n, 3]
-        d = self.offsets()[corners] * on[:, None]  # [n, 3]
+        offsets = self.offsets() if base is None else self.offsets() - base
+        d = offsets[corners] * on[:, None]  # [n, 3]
         disp = ((bary * d)[..., None] * self.normals[corners]).sum(1)  # [n, 3]
         nf = self.face_normals[f]  # [n, 3]
         ray = torch.nn.functional.normalize(points - origins, dim=-1)

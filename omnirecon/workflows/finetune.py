@@ -76,7 +76,7 @@ from omnirecon.mesh.build import MeshOptions, mesh_from_model
 from omnirecon.mesh.files import read_mesh, write_mesh
 from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
-from omnirecon.mesh.pixels import angle_blend, rasterize_groups
+from omnirecon.mesh.pixels import angle_blend, rasterize_groups, rasterize_views
 from omnirecon.options import check_options
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
@@ -272,6 +272,10 @@ class FinetuneConfig(ThreadsConfig):
     surface_smooth: float = 1.0
     """With ``--tune surface``: weight of the Laplacian term, the mean squared difference of the offsets across the
     mesh's edges in mean edge lengths squared (0: each vertex moves alone)."""
+    surface_every: int = 0
+    """With ``--tune surface``: rasterize the tuning views again on the moved mesh every this many steps, so their
+    faces, points and occlusion test follow the surface (0: never; each pixel keeps the start mesh's face and slides
+    along its ray). Validation and held-out views keep the start's faces."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -551,6 +555,24 @@ def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, v
     return best
 
 
+def retrace_training(cfg: FinetuneConfig, s: Setup):
+    """``--surface-every``: a moved mesh -> the tuning views' pixels on it, blended as :func:`prepare` blends them
+    (their faces and barycentrics located, the occlusion test against the moved mesh)."""
+    def retrace(mesh) -> list:
+        px = rasterize_views(mesh, s.scene, [v.index for v in s.train_px], s.fill, s.views if cfg.visibility else None,
+                             nearest_fill=s.fill_mode == "nearest", cracks=cfg.cracks, faces=True)
+        px = [v for v in px if len(v.points)]
+        if s.blend == "angle":
+            for v in px:
+                v.consensus = cfg.consensus
+            angle_blend(px, s.scene, s.views, s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
+                        cfg.source_masks)
+        else:
+            restrict_to_nearest(px, s.scene, s.views, cfg.nearest, cfg.skip_nearest)
+        return px
+    return retrace
+
+
 def cpu_split(cpu: dict, budget: float, end: float) -> dict:
     """This run's process CPU-seconds: ``prepare`` (loading, rasterizing), ``budget`` (the tuning steps, on
     ``--clock cpu`` the budget itself), ``outside_budget`` (validation and held-out scores, pictures and records),
@@ -592,6 +614,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -
     tuner = Tuner(cfg, s, g)
     if s.blend == "angle" and len(cfg.angle_sources) > 1 and s.val_px:
         s.angle_k = choose_angle_sources(cfg, s, tuner, val_idx, val_obj)
+    tuner.retrace = retrace_training(cfg, s) if tuner.surface is not None else None
 
     def write(t: Tuned, partial: bool = False) -> dict:  # at every evaluation: an interrupted run keeps its curve
         plot_curve(cfg, s, t, out)
