@@ -6,7 +6,9 @@ and 60 CPU-seconds, on the demo's procedural scene and on real captures (issue 4
 
 Rows (``ROWS``): ``default``, ``finetune``'s defaults (the 2-D encoder and the appearance branch; nothing under the
 angle blend, which real object captures such as fox get); ``surface``, the mesh's per-vertex offsets along its normals
-alone (:class:`omnirecon.mesh.offsets.SurfaceOffsets`); ``surface+default``, both. Every row is ``omnirecon finetune``
+alone (:class:`omnirecon.mesh.offsets.SurfaceOffsets`; ``_grid32``: a 32-cube grid of offsets sampled at the vertices;
+``_every50``: the tuning views rasterized again on the moved mesh every 50 steps); ``+default``, with the default
+levers. Every row is ``omnirecon finetune``
 with the same mesh, sources, validation and held-out views (4 at most), ``--clock cpu --threads 1``, the returned state
 the best on validation (the start a candidate). A surface row also scores its returned moved mesh rasterized afresh
 (``after_rerasterized``: what the real-time renderer would draw; the curve's scores keep each pixel's start face). Each
@@ -27,7 +29,9 @@ ROOT = Path(__file__).resolve().parents[1]
 ROWS = {
     "default": {},
     "surface": {"tune": ("surface",)},
-    "surface+default": {"tune": ("encoder", "appearance", "surface")},
+    "surface_grid32": {"tune": ("surface",), "surface_res": 32},
+    "surface_grid32_every50": {"tune": ("surface",), "surface_res": 32, "surface_every": 50},
+    "surface_grid32+default": {"tune": ("encoder", "appearance", "surface"), "surface_res": 32},
 }
 """Rows: overrides of :class:`~omnirecon.workflows.finetune.FinetuneConfig`."""
 TIMES = (0.0, 10.0, 30.0, 60.0)

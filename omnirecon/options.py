@@ -118,7 +118,8 @@ RULES: dict[str, Rule] = {
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),
     "residual_res": Rule(1, 256, example="e.g. 16"), "residual_lr": Rule(0, 1, above=True, example="e.g. 1e-2"),
     "surface_lr": Rule(0, 10, above=True, example="e.g. 0.05"),
-    "surface_limit": Rule(0, 10, above=True, example="e.g. 0.5 (mean edge lengths)"),
+    "surface_limit": Rule(0, 1, above=True, example="e.g. 0.01 (of the scene box's diagonal)"),
+    "surface_res": Rule(0, 512, example="e.g. 32, or 0 for an offset per vertex"),
     "surface_smooth": Rule(0, 1e6, example="e.g. 1 (0: off)"),
     "surface_every": Rule(0, 1_000_000, example="e.g. 50 (steps; 0: never)"),
     # verbs that need more than the shared rule

@@ -176,7 +176,7 @@ class Tuner:
         nets = [] if s.blend == "angle" else [  # the angle blend uses neither network
             p for name in dict.fromkeys(cfg.tune) if name in modules for p in modules[name].parameters()]
         self.residual = ResidualColour(s.scene.bounds, cfg.residual_res) if "residual" in cfg.tune else None
-        self.surface = SurfaceOffsets(s.mesh, cfg.surface_limit) if "surface" in cfg.tune else None
+        self.surface = SurfaceOffsets(s.mesh, cfg.surface_limit, s.scene.bounds, cfg.surface_res) if "surface" in cfg.tune else None
         """``--tune surface``: the mesh's per-vertex offsets along its normals (``None``: the surface is fixed)."""
         self.smooth = cfg.surface_smooth
         self.retrace = None

@@ -6,9 +6,11 @@ offsets ``d`` (scene units, zero at start) along the start mesh's unit vertex no
 ray meets that moved face (to first order: the point slides along the ray by the displacement's component along the
 face normal over the ray's, :meth:`SurfaceOffsets.shift`), so the pixel keeps its colour target while the point's
 projection into each source moves with ``d``: the photometric loss across the sources moves the surface.
-Offsets are bounded to ``limit`` times the mesh's mean edge length (``d = limit * edge * tanh(raw)``), so that the
-fixed visibility stays close to what rasterizing the moved mesh would give, and smoothed by a Laplacian term (the
-mean squared difference of the offsets across each edge, in edge lengths).
+Offsets are bounded to ``limit`` times the diagonal of the scene's box (``d = limit * diagonal * tanh(raw)``), so that
+the fixed visibility stays close to what rasterizing the moved mesh would give, and smoothed by a Laplacian term (the
+mean squared difference of the offsets across each edge, in edge lengths). With ``res`` > 0 the offsets are a coarse
+``res``-cube grid over the box sampled trilinearly at each vertex (a dense mesh's vertices then move together: one
+pixel's gradient reaches a cell's worth of them), smoothed across the grid's neighbouring cells instead.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ would slide a point far along itself for a small offset)."""
 class SurfaceOffsets(torch.nn.Module):
     """Per-vertex offsets along the start mesh's vertex normals (``--tune surface``), zero at start."""
 
-    def __init__(self, mesh: trimesh.Trimesh, limit: float):
+    def __init__(self, mesh: trimesh.Trimesh, limit: float, box: torch.Tensor, res: int = 0):
         super().__init__()
         verts, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
         self.register_buffer("vertices", torch.from_numpy(verts).float())  # [V, 3]
@@ -56,13 +58,23 @@ class SurfaceOffsets(torch.nn.Module):
         self.register_buffer("edges", torch.from_numpy(edges))  # [E, 2]
         self.edge = float(np.linalg.norm(verts[edges[:, 0]] - verts[edges[:, 1]], axis=1).mean()) if len(edges) else 1.0
         """The mesh's mean edge length (scene units)."""
-        self.limit = limit
-        self.raw = torch.nn.Parameter(torch.zeros(len(verts)), requires_grad=False)
-        """Unbounded offsets: ``d = limit * edge * tanh(raw)``. ``# [V]``"""
+        box = box.float()
+        self.bound = float(limit * (box[1] - box[0]).norm())
+        """The largest offset (scene units)."""
+        self.register_buffer("cell", ((self.vertices - box[0]) / (box[1] - box[0]).clamp_min(1e-9) * 2 - 1))  # [V, 3]
+        self.res = res
+        self.raw = torch.nn.Parameter(torch.zeros((len(verts),) if res <= 0 else (1, 1, res, res, res)),
+                                      requires_grad=False)
+        """Unbounded offsets, per vertex ``# [V]`` or per grid cell ``# [1, 1, R, R, R]`` (z-major): ``d = bound *
+        tanh(raw)``."""
 
-    def offsets(self) -> torch.Tensor:
-        """Offsets along the normals, scene units. ``# [V]``"""
-        return self.limit * self.edge * torch.tanh(self.raw)
+    def offsets(self, idx: torch.Tensor | None = None) -> torch.Tensor:
+        """Offsets along the normals of the vertices ``idx`` (all when ``None``), scene units. ``# [n]``"""
+        d = self.bound * torch.tanh(self.raw)
+        if self.res <= 0:
+            return d if idx is None else d[idx]
+        g = (self.cell if idx is None else self.cell[idx]).reshape(1, 1, 1, -1, 3)
+        return torch.nn.functional.grid_sample(d, g, align_corners=True, padding_mode="border").reshape(-1)
 
     def shift(self, face: torch.Tensor, bary: torch.Tensor, points: torch.Tensor, origins: torch.Tensor,
               base: torch.Tensor | None = None) -> torch.Tensor:
@@ -73,8 +85,8 @@ class SurfaceOffsets(torch.nn.Module):
         on = face >= 0
         f = face.clamp_min(0)
         corners = self.faces[f]  # [n, 3]
-        offsets = self.offsets() if base is None else self.offsets() - base
-        d = offsets[corners] * on[:, None]  # [n, 3]
+        d = self.offsets(corners.reshape(-1)).reshape(corners.shape)  # [n, 3]
+        d = (d if base is None else d - base[corners]) * on[:, None]
         disp = ((bary * d)[..., None] * self.normals[corners]).sum(1)  # [n, 3]
         nf = self.face_normals[f]  # [n, 3]
         ray = torch.nn.functional.normalize(points - origins, dim=-1)
@@ -85,6 +97,9 @@ class SurfaceOffsets(torch.nn.Module):
     def smoothness(self) -> torch.Tensor:
         """Mean squared offset difference across the mesh's edges, in mean edge lengths squared (the Laplacian
         term's energy)."""
+        if self.res > 0:  # the grid's neighbouring cells
+            d = self.bound * torch.tanh(self.raw[0, 0]) / self.edge  # [R, R, R]
+            return sum((d.diff(dim=k)).square().mean() for k in range(3)) / 3 if self.res > 1 else d.sum() * 0
         if not len(self.edges):
             return self.raw.new_zeros(())
         d = self.offsets() / self.edge

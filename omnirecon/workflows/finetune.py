@@ -264,11 +264,16 @@ class FinetuneConfig(ThreadsConfig):
     """With ``--tune surface`` (the mesh's vertices moved along their normals by a tuned scalar each, through the
     photometric loss across the sources at the points each pixel's fixed face and barycentrics give:
     :class:`~omnirecon.mesh.offsets.SurfaceOffsets`): the Adam learning rate of the offsets' unbounded parameter
-    (``offset = --surface-limit * mean edge length * tanh(parameter)``). With --save, the returned state's moved mesh
+    (``offset = --surface-limit * the scene box's diagonal * tanh(parameter)``). With --save, the returned state's moved mesh
     is written to <out>/mesh.ply (input frame)."""
-    surface_limit: float = 0.5
-    """With ``--tune surface``: the largest offset along a vertex normal, in the mesh's mean edge lengths (the pixels'
-    faces are those of the start mesh: a small bound keeps what they see close to the moved mesh's)."""
+    surface_limit: float = 0.01
+    """With ``--tune surface``: the largest offset along a vertex normal, as a fraction of the diagonal of the scene's
+    box (the pixels' faces are those of the start mesh: a small bound keeps what they see close to the moved
+    mesh's)."""
+    surface_res: int = 0
+    """With ``--tune surface``: 0, an offset per vertex; R > 0, the offsets a grid of R cells per side over the scene's
+    box sampled trilinearly at each vertex (a dense mesh's neighbouring vertices move together; the Laplacian term
+    then compares neighbouring cells)."""
     surface_smooth: float = 1.0
     """With ``--tune surface``: weight of the Laplacian term, the mean squared difference of the offsets across the
     mesh's edges in mean edge lengths squared (0: each vertex moves alone)."""

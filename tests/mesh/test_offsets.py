@@ -22,17 +22,17 @@ def test_barycentrics_rebuild_the_points_and_zero_offsets_shift_nothing():
     w = w / w.sum(-1, keepdim=True)
     points = (w[..., None] * verts[faces[face]]).sum(1)
     assert torch.allclose(face_barycentrics(verts, faces, face, points), w, atol=1e-5)
-    surf = SurfaceOffsets(mesh, limit=0.5)
+    surf = SurfaceOffsets(mesh, limit=0.1, box=torch.tensor([[-1.0] * 3, [1.0] * 3]))
     origins = torch.full((50, 3), 5.0)
     assert torch.equal(surf.shift(face, w, points, origins), torch.zeros(50, 3))
     with torch.no_grad():
         surf.raw.fill_(10.0)  # every vertex pushed out by the bound: points slide along their rays onto it
     moved = points + surf.shift(face, w, points, origins)
-    assert surf.offsets().max() <= 0.5 * surf.edge + 1e-6
+    assert surf.offsets().max() <= surf.bound + 1e-6 and abs(surf.bound - 0.1 * 12 ** 0.5) < 1e-6
     ray = torch.nn.functional.normalize(points - origins, dim=-1)
     off_ray = (moved - points) - ((moved - points) * ray).sum(-1, keepdim=True) * ray
     assert float(off_ray.abs().max()) < 1e-5 and float((moved.norm(dim=-1) - points.norm(dim=-1)).min()) > 0
-    assert np.allclose(np.linalg.norm(surf.moved(mesh).vertices, axis=1), 1 + 0.5 * surf.edge * np.tanh(10.0), atol=1e-4)
+    assert np.allclose(np.linalg.norm(surf.moved(mesh).vertices, axis=1), 1 + surf.bound * np.tanh(10.0), atol=1e-4)
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,7 @@ def test_tuning_the_surface_moves_a_planted_error_toward_the_truth_and_raises_va
     root, scene, region, push = planted
     torch.set_num_threads(1)
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=root / "planted.ply", resolution=64, rays=4096,
-                         tune=("surface",), blend="angle", angle_sources=(), surface_limit=1.0)
+                         tune=("surface",), blend="angle", angle_sources=(), surface_limit=0.02)
     s = prepare(cfg)
     g = torch.Generator().manual_seed(0)
     tuner = Tuner(cfg, s, g)
