@@ -523,8 +523,9 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
     if tuner.surface is not None:  # the returned state's offsets (scene units; the mean edge length to compare)
         d = tuner.surface.offsets().detach().abs()
         result["surface"] = {"mean_abs_offset": float(d.mean()), "max_abs_offset": float(d.max()),
-                             "mean_edge": tuner.surface.edge, "limit": cfg.surface_limit, "lr": cfg.surface_lr,
-                             "smooth": cfg.surface_smooth}
+                             "mean_edge": tuner.surface.edge, "bound": tuner.surface.bound, "limit": cfg.surface_limit,
+                             "lr": cfg.surface_lr, "smooth": cfg.surface_smooth, "res": cfg.surface_res,
+                             "every": cfg.surface_every}
     if "exposure" in cfg.tune:
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
                               "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
