@@ -79,3 +79,20 @@ def test_tuning_the_surface_moves_a_planted_error_toward_the_truth_and_raises_va
     assert tuner.validate(idx)["psnr"] > start + 1.5
     # the rest drifts (measured 0.013: photometric noise the Laplacian term does not hold), less than the push
     assert float(tuner.surface.offsets().detach()[~region].abs().mean()) < push / scale
+
+
+def test_save_writes_the_returned_moved_mesh_in_the_input_frame(planted):
+    """``--save`` with ``--tune surface`` writes ``mesh.ply``: the start mesh's faces, its vertices moved along their
+    normals by at most the bound (input frame); with no validation views the state at the end is returned."""
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+
+    root, scene, _, _ = planted
+    out = root / "saved"
+    r = run_finetune(FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=root / "planted.ply", resolution=32,
+                                    rays=1024, tune=("surface",), blend="angle", angle_sources=(), seconds=1.0,
+                                    eval_at=(0.0,), clock="cpu", threads=1, val_views=0, out=out, save=True))
+    start = trimesh.load(root / "planted.ply", process=False, force="mesh")
+    moved = trimesh.load(out / "mesh.ply", process=False, force="mesh")
+    assert np.array_equal(moved.faces, start.faces) and r["tuned"] == ["surface"] and r["curve"][-1]["steps"] > 0
+    step = np.linalg.norm(moved.vertices - start.vertices, axis=1)  # input units (this scene's are 1.33 scene units)
+    assert 0 < step.max() <= 2 * r["surface"]["max_abs_offset"] and r["surface"]["max_abs_offset"] <= r["surface"]["bound"]
