@@ -74,7 +74,7 @@ def test_tuning_the_surface_moves_a_planted_error_toward_the_truth_and_raises_va
     sample = PixelSampler(cfg, s, g)
     for _ in range(150):
         tuner.step(sample())
-    # measured: mean |offset error| over the pushed vertices 0.023 -> 0.002 (scene units), validation 25.3 -> 28.3 dB
+    # measured: mean |offset error| over the pushed vertices 0.023 -> 0.003 (scene units), validation 25.3 -> 28.5 dB
     assert error() < 0.5 * err0, (err0, error())
     assert tuner.validate(idx)["psnr"] > start + 1.5
     # the rest drifts (measured 0.013: photometric noise the Laplacian term does not hold), less than the push
