@@ -130,6 +130,11 @@ RULES: dict[str, Rule] = {
     "skip_nearest": Rule(0, 1_000_000, example="e.g. 1, or 0 for the nearest sources"),
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),
     "residual_res": Rule(1, 256, example="e.g. 16"), "residual_lr": Rule(0, 1, above=True, example="e.g. 1e-2"),
+    "surface_lr": Rule(0, 10, above=True, example="e.g. 0.05"),
+    "surface_limit": Rule(0, 1, above=True, example="e.g. 0.01 (of the scene box's diagonal)"),
+    "surface_res": Rule(0, 512, example="e.g. 32, or 0 for an offset per vertex"),
+    "surface_smooth": Rule(0, 1e6, example="e.g. 1 (0: off)"),
+    "surface_every": Rule(0, 1_000_000, example="e.g. 50 (steps; 0: never)"),
     # verbs that need more than the shared rule
     "bench.resolution": Rule(16, 16_384, example="e.g. 512"), "bench.size": Rule(16, 16_384, example="e.g. 504 378"),
     "bench.views": Rule(1, 1_000_000, example="e.g. 3"),

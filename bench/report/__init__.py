@@ -17,6 +17,7 @@ from bench.report import (
     extrapolation,
     finetune_curves,
     finetune_levers,
+    finetune_surface,
     finetune_validation,
     geometry,
     geometry_budget,
@@ -44,7 +45,8 @@ from bench.report import (
 # The page, in order.
 SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, extrapolation,
             depth_sources,
-            realtime_blend, mesh_lod, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_validation, hostile,
+            realtime_blend, mesh_lod, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_surface,
+            finetune_validation, hostile,
             speed, guided, peer, levers, end_to_end, training, quality, geometry,
             mesh_path, geometry_budget, lift)
 

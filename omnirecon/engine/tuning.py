@@ -3,6 +3,9 @@
 the tuned parameters with their optimiser and scores (:class:`Tuner`), each step's pixels (:class:`PixelSampler`) and
 the budget's clock (:class:`Clock`). The pixels and their blend are :mod:`omnirecon.mesh.pixels`' (the mesh path's
 kernel, :mod:`omnirecon.mesh.kernel`, with gradients on).
+
+Size: one concern, what a tuning step changes and on which pixels: the tuner with every lever (networks, exposure,
+residual colour, the surface's offsets and their re-rasterization), its sampler and the choice of views.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import numpy as np
 import torch
 
 from omnirecon.engine.views import select_sources
+from omnirecon.mesh.offsets import SurfaceOffsets
 from omnirecon.mesh.pixels import (
     Exposure,
     ResidualColour,
@@ -172,7 +176,16 @@ class Tuner:
         nets = [] if s.blend == "angle" else [  # the angle blend uses neither network
             p for name in dict.fromkeys(cfg.tune) if name in modules for p in modules[name].parameters()]
         self.residual = ResidualColour(s.scene.bounds, cfg.residual_res) if "residual" in cfg.tune else None
-        self.params = nets + ([self.residual.grid] if self.residual is not None else [])
+        self.surface = SurfaceOffsets(s.mesh, cfg.surface_limit, s.scene.bounds, cfg.surface_res) if "surface" in cfg.tune else None
+        """``--tune surface``: the mesh's per-vertex offsets along its normals (``None``: the surface is fixed)."""
+        self.smooth = cfg.surface_smooth
+        self.retrace = None
+        """With ``--surface-every``: a moved mesh -> the tuning views' pixels rasterized on it (set by the workflow)."""
+        self.every, self.steps = cfg.surface_every, 0
+        self.base = None
+        """The offsets the tuning views were last rasterized at (``None``: the start mesh). ``# [V]``"""
+        self.params = nets + ([self.residual.grid] if self.residual is not None else []) + (
+            [self.surface.raw] if self.surface is not None else [])
         self.start = [p.detach().clone() for p in self.params]
         if "exposure" in cfg.tune:
             with torch.no_grad():
@@ -182,7 +195,10 @@ class Tuner:
         for p in self.params:
             p.requires_grad_(True)
         groups = [g for g in ({"params": nets, "lr": cfg.lr},
-                              {"params": self.params[len(nets):], "lr": cfg.residual_lr}) if g["params"]]
+                              {"params": [self.residual.grid] if self.residual is not None else [],
+                               "lr": cfg.residual_lr},
+                              {"params": [self.surface.raw] if self.surface is not None else [],
+                               "lr": cfg.surface_lr}) if g["params"]]
         self.opt = torch.optim.Adam(groups) if groups else None
         model.train()
         self.exposed = "exposure" in cfg.tune
@@ -231,20 +247,34 @@ class Tuner:
         reused encoder pass (:meth:`scoring_features`), which the budget is charged."""
         reused, self.pending, charge = self.pending, None, self.pending_cost
         self.pending_cost = 0.0
+        points = batch.points if self.surface is None else batch.points + self.surface.shift(
+            batch.face, batch.bary, batch.points, batch.origins, self.base)
         with self.autocast:
             feats = self.frozen if self.frozen is not None else reused if reused is not None else self.features()
-            rgb = point_colours(self.s.model, feats, batch.points, batch.origins, batch.visible, batch.weights,
+            rgb = point_colours(self.s.model, feats, points, batch.origins, batch.visible, batch.weights,
                                 self.consensus)  # --blend angle (with --tune residual): the fixed weights
         if self.residual is not None:
-            rgb = rgb.float() + self.residual(batch.points)
+            rgb = rgb.float() + self.residual(points)
         loss = (rgb.float() - batch.target).square().mean()
+        if self.surface is not None and self.smooth > 0:
+            loss = loss + self.smooth * self.surface.smoothness()
         if self.reg > 0 and self.params:
             loss = loss + self.reg * sum((p - p0).square().sum() for p, p0 in zip(self.params, self.start)) / sum(
                 p.numel() for p in self.params)
         self.opt.zero_grad(set_to_none=True)
         loss.backward()
         self.opt.step()
+        self.steps += 1
+        if self.retrace is not None and self.every > 0 and self.steps % self.every == 0:
+            self.follow()
         return charge if reused is not None else 0.0
+
+    @torch.no_grad()
+    def follow(self) -> None:
+        """Rasterize the tuning views again on the mesh the offsets move (``--surface-every``): their faces, points
+        and occlusion follow the surface; validation and held-out views keep the start's."""
+        self.s.train_px = self.retrace(self.surface.moved(self.s.mesh))
+        self.base = self.surface.offsets().detach().clone()
 
     @torch.no_grad()
     def validate(self, val_idx: list[torch.Tensor], val_obj: list[torch.Tensor] | None = None) -> dict[str, float]:
@@ -255,7 +285,8 @@ class Tuner:
         model = self.s.model
         model.eval()
         feats = self.scoring_features()
-        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual).clamp(0, 1) - v.target[i]).square().mean(-1)
+        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual, surface=self.surface).clamp(0, 1)
+                         - v.target[i]).square().mean(-1)
                         for v, i in zip(self.s.val_px, val_idx)])
         model.train()
         out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
@@ -267,7 +298,7 @@ class Tuner:
     def test_scores(self) -> dict:
         self.s.model.eval()
         r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background,
-                           self.residual, self.soften)
+                           self.residual, self.soften, self.surface)
         self.s.model.train()
         return r
 
@@ -316,12 +347,16 @@ class Batch(NamedTuple):
     """``# [n, 3]``"""
     weights: torch.Tensor | None = None
     """With ``--blend angle``: each point's fixed blend weights (``ViewPixels.weights``). ``# [n, K]``"""
+    face: torch.Tensor | None = None
+    """With ``--tune surface``: each point's mesh face, -1 off the mesh (``ViewPixels.face``). ``# [n]``"""
+    bary: torch.Tensor | None = None
+    """With ``--tune surface``: each point's barycentrics on its face. ``# [n, 3]``"""
 
 
 def batch_of(view: ViewPixels, idx: torch.Tensor) -> Batch:
     """``view``'s pixels at ``idx`` as a :class:`Batch`."""
     return Batch(view.points[idx], view.origin.expand(len(idx), 3), visible_at(view, idx), view.target[idx],
-                 None if view.weights is None else view.weights[idx])
+                 *(None if x is None else x[idx] for x in (view.weights, view.face, view.bary)))
 
 
 class PixelSampler:
@@ -331,7 +366,13 @@ class PixelSampler:
     run's ``FinetuneConfig`` (``rays``, ``objects``, ``step_views``)."""
 
     def __init__(self, cfg, s: Setup, g: torch.Generator):
-        self.cfg, self.views, self.g = cfg, s.train_px, g
+        self.cfg, self.s, self.g = cfg, s, g
+        self.sync()
+
+    def sync(self) -> None:
+        """Take the setup's tuning views (again, after ``Tuner.follow`` rasterized them on the moved surface)."""
+        s = self.s
+        self.views = s.train_px
         self.counts = torch.tensor([len(v.points) for v in s.train_px], dtype=torch.float64)  # shaded pixels
         masks = s.scene.masks
         self.inside = [masks[v.index].reshape(-1).bool()[v.pixels[:v.covered]].nonzero()[:, 0] if masks is not None
@@ -357,12 +398,12 @@ class PixelSampler:
         return [(k, self.pick(k, int(n))) for k, n in enumerate(per.tolist()) if n > 0]
 
     def __call__(self) -> Batch:
+        if self.views is not self.s.train_px:
+            self.sync()
         parts = [batch_of(self.views[k], idx) for k, idx in self.views_and_rows()]
         if len(parts) == 1:
             return parts[0]
-        vis = None if parts[0].visible is None else torch.cat([b.visible for b in parts])
-        return Batch(*(torch.cat([getattr(b, f) for b in parts]) for f in ("points", "origins")), vis,
-                     torch.cat([b.target for b in parts]),
-                     None if parts[0].weights is None else torch.cat([b.weights for b in parts]))
+        return Batch(*(None if getattr(parts[0], f) is None else torch.cat([getattr(b, f) for b in parts])
+                       for f in Batch._fields))
 
 

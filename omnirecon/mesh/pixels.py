@@ -57,6 +57,11 @@ class ViewPixels:
     """With ``--blend angle``: the occlusion test's ``visible`` before :func:`angle_blend` narrowed it. ``# [P, K]``"""
     consensus: float = 0.0
     """With ``--blend angle``: ``--consensus`` (:func:`omnirecon.mesh.kernel.consensus_weights`; 0: off)."""
+    face: torch.Tensor | None = None
+    """With ``faces`` (``--tune surface``): the mesh face under each pixel, -1 off the mesh (the fill's rows).
+    ``# [P]`` int64"""
+    bary: torch.Tensor | None = None
+    """With ``faces``: each point's barycentrics on its face (0 off the mesh). ``# [P, 3]``"""
 
 
 def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.Tensor]:
@@ -70,18 +75,20 @@ def nearest_depth_points(surf, covered: int, cam) -> tuple[torch.Tensor, torch.T
 
 
 def rasterize_views(mesh, scene, indices, fill: bool = True, sources: list[int] | None = None,
-                    tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS) -> list[ViewPixels]:
+                    tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS,
+                    faces: bool = False) -> list[ViewPixels]:
     """Rasterize ``mesh`` (scene frame) at each of ``indices`` once; with ``fill``, every pixel the mesh
     misses gets the mesh renderer's background layer (with ``nearest_fill``: a point at the nearest covered pixel's
     depth, :func:`nearest_depth_points`), and with ``cracks`` > 0 the missed pixels the mesh encloses a point at the
     nearest covered pixel's depth whatever ``fill`` (:func:`omnirecon.mesh.fill.shaded_surface`); with ``sources``
     (scene views), each mesh point gets the occlusion test against those views (:func:`omnirecon.mesh.kernel.unoccluded`,
-    relative tolerance ``tol``)."""
-    return rasterize_groups(mesh, scene, [indices], fill, sources, tol, nearest_fill, cracks)[0]
+    relative tolerance ``tol``); with ``faces``, each mesh point its face and barycentrics (``--tune surface``)."""
+    return rasterize_groups(mesh, scene, [indices], fill, sources, tol, nearest_fill, cracks, faces)[0]
 
 
 def rasterize_groups(mesh, scene, groups: list[list[int]], fill: bool = True, sources: list[int] | None = None,
-                     tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS) -> list[list[ViewPixels]]:
+                     tol: float = 0.01, nearest_fill: bool = False, cracks: int = CRACK_RADIUS,
+                     faces: bool = False) -> list[list[ViewPixels]]:
     """:func:`rasterize_views` for several groups of views (tuning, held-out, validation) with one rasterizer and
     the sources' depth maps rasterized once for all of them."""
     far, bounds = float(scene.far.max()), scene.bounds.float()
@@ -90,9 +97,29 @@ def rasterize_groups(mesh, scene, groups: list[list[int]], fill: bool = True, so
         if sources:
             dmax = block_depth_max(torch.stack([rast.rasterize(scene.cameras[k], normals="none").depth
                                                 for k in sources]).float())
-        return [[view_pixels(rast, scene, i, far, bounds, fill, sources, dmax, tol, nearest_fill, cracks)
-                 for i in indices]
-                for indices in groups]
+        groups = [[view_pixels(rast, scene, i, far, bounds, fill, sources, dmax, tol, nearest_fill, cracks)
+                   for i in indices] for indices in groups]
+        if faces:
+            for v in (v for views in groups for v in views):
+                locate_faces(rast, scene, v)
+        return groups
+
+
+def locate_faces(rast, scene, view: ViewPixels) -> None:
+    """Set ``view.face`` and ``view.bary`` (in place): the face under each of its mesh pixels (``rast.face_ids``)
+    and the point's barycentrics on it (:func:`omnirecon.mesh.offsets.face_barycentrics`)."""
+    from omnirecon.mesh.offsets import face_barycentrics
+
+    n_faces = len(rast.faces)
+    ids = torch.from_numpy(rast.face_ids(scene.cameras[view.index]).reshape(-1))[view.pixels[:view.covered]]
+    ok = ids >= 0  # [covered] (a pixel the surface pass covers and the face pass misses: left undisplaced)
+    face = torch.full((len(view.points),), -1, dtype=torch.int64)
+    face[:view.covered] = torch.where(ok, ids % n_faces, -1)  # the reference backend's flipped copy: same face
+    bary = torch.zeros(len(view.points), 3)
+    on = face >= 0
+    bary[on] = face_barycentrics(torch.from_numpy(rast.vertices), torch.from_numpy(rast.faces), face[on],
+                                 view.points[on])
+    view.face, view.bary = face, bary
 
 
 def view_pixels(rast, scene, i: int, far: float, bounds, fill: bool, sources, dmax, tol: float,
@@ -186,14 +213,23 @@ def encode_maps(model, sources, colours: Sources | None = None):
     return feats if colours is None else replace(feats, sources=colours)
 
 
-def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,
-                  residual: ResidualColour | None = None) -> torch.Tensor:
-    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch (plus ``residual``, ``--tune
-    residual``). ``# [P, 3]``"""
-    if residual is not None:
-        points = view.points if idx is None else view.points[idx]
-        return render_pixels(model, features, view, idx, chunk) + residual(points)
+def shaded_points(view: ViewPixels, idx: torch.Tensor | None = None, surface=None) -> torch.Tensor:
+    """``view``'s points (or those at ``idx``), moved by ``surface``'s offsets (``--tune surface``:
+    :class:`omnirecon.mesh.offsets.SurfaceOffsets`; ``None``: as rasterized). ``# [n, 3]``"""
     points = view.points if idx is None else view.points[idx]
+    if surface is None:
+        return points
+    return points + surface.shift(view.face if idx is None else view.face[idx],
+                                  view.bary if idx is None else view.bary[idx], points, view.origin.expand_as(points))
+
+
+def render_pixels(model, features, view: ViewPixels, idx: torch.Tensor | None = None, chunk: int = 16384,
+                  residual: ResidualColour | None = None, surface=None) -> torch.Tensor:
+    """Colours of ``view``'s pixels (or of those at ``idx``) through the appearance branch (plus ``residual``, ``--tune
+    residual``), at the points moved by ``surface`` (``--tune surface``, :func:`shaded_points`). ``# [P, 3]``"""
+    points = shaded_points(view, idx, surface)
+    if residual is not None:
+        return render_pixels(model, features, view, idx, chunk, surface=surface) + residual(points)
     weights = None if view.weights is None else (view.weights if idx is None else view.weights[idx])
     out = [point_colours(model, features, points[s:s + chunk], view.origin.expand(len(points[s:s + chunk]), 3),
                          visible_at(view, idx, s, s + chunk), None if weights is None else weights[s:s + chunk],
@@ -272,11 +308,12 @@ def angle_blend(pixels: list[ViewPixels], scene, sources: list[int], k: int, sou
 
 @torch.no_grad()
 def score_held_out(model, feats, scene, held_px: list[ViewPixels], background, residual=None,
-                   soften: float = 0.0) -> dict:
+                   soften: float = 0.0, surface=None) -> dict:
     """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
     covers; ``coverage``; the ``renders`` (with ``soften``, blurred by that many pixels at the mesh's depth edges:
-    ``--soften``)."""
-    renders = [soften_edges(full_image(scene, v, render_pixels(model, feats, v, residual=residual), background),
+    ``--soften``; with ``surface``, at the points its offsets move)."""
+    renders = [soften_edges(full_image(scene, v, render_pixels(model, feats, v, residual=residual, surface=surface),
+                                       background),
                             mesh_depth(scene, v), soften) for v in held_px]
     gts = [scene.images[v.index].float() for v in held_px]
     cover = [coverage_mask(scene, v) for v in held_px]

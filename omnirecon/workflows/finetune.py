@@ -73,10 +73,10 @@ from omnirecon.engine.tuning import (
 from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions, mesh_from_model
-from omnirecon.mesh.files import read_mesh
+from omnirecon.mesh.files import read_mesh, write_mesh
 from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
-from omnirecon.mesh.pixels import angle_blend, rasterize_groups
+from omnirecon.mesh.pixels import angle_blend, rasterize_groups, rasterize_views
 from omnirecon.options import OutFolder, SceneInput, Seeded, SourceViews, check_options
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
@@ -125,7 +125,7 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
     lr: float = 5e-4
     """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
-    tune: tuple[Literal["encoder", "appearance", "exposure", "residual"], ...] = ("encoder", "appearance")
+    tune: tuple[Literal["encoder", "appearance", "exposure", "residual", "surface"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
     from the tuning views' mesh pixels, and kept only when it beats the input, no gains, on the validation views by
@@ -250,6 +250,29 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     exposure), and they cost rasterizing and scoring 4 more views."""
     save: bool = False
     """Also write the tuned checkpoint to <out>/checkpoint."""
+    surface_lr: float = 0.05
+    """With ``--tune surface`` (the mesh's vertices moved along their normals by a tuned scalar each, through the
+    photometric loss across the sources at the points each pixel's fixed face and barycentrics give:
+    :class:`~omnirecon.mesh.offsets.SurfaceOffsets`): the Adam learning rate of the offsets' unbounded parameter
+    (``offset = --surface-limit * the scene box's diagonal * tanh(parameter)``). With --save, the returned state's moved mesh
+    is written to <out>/mesh.ply (input frame). Not in the default --tune: it moves a planted error back (the test) but
+    on stereo meshes of the demo's procedural scene and of fox validation returned the start at every budget
+    (`python -m bench finetune_surface`; BENCHMARKS "Tuning the surface")."""
+    surface_limit: float = 0.01
+    """With ``--tune surface``: the largest offset along a vertex normal, as a fraction of the diagonal of the scene's
+    box (the pixels' faces are those of the start mesh: a small bound keeps what they see close to the moved
+    mesh's)."""
+    surface_res: int = 0
+    """With ``--tune surface``: 0, an offset per vertex; R > 0, the offsets a grid of R cells per side over the scene's
+    box sampled trilinearly at each vertex (a dense mesh's neighbouring vertices move together; the Laplacian term
+    then compares neighbouring cells)."""
+    surface_smooth: float = 1.0
+    """With ``--tune surface``: weight of the Laplacian term, the mean squared difference of the offsets across the
+    mesh's edges in mean edge lengths squared (0: each vertex moves alone)."""
+    surface_every: int = 0
+    """With ``--tune surface``: rasterize the tuning views again on the moved mesh every this many steps, so their
+    faces, points and occlusion test follow the surface (0: never; each pixel keeps the start mesh's face and slides
+    along its ray). Validation and held-out views keep the start's faces."""
 
 
 def split_views(cfg: FinetuneConfig, scene, proto) -> tuple[list[int], list[int], list[int], list[int]]:
@@ -299,9 +322,10 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
     blend, fill_mode = auto_blend if cfg.blend == "auto" else cfg.blend, auto_fill if cfg.fill == "auto" else cfg.fill
     fill = fill_mode in ("far", "nearest")
     vis, near = views if cfg.visibility else None, fill_mode == "nearest"
-    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual"}  # no step will sample
+    idle = for_run and blend == "angle" and not set(cfg.tune) & {"exposure", "residual", "surface"}  # no step samples
     train_px, held_px, val_px = rasterize_groups(mesh, scene, [[] if idle else tune_views, targets, val_views], fill,
-                                                 vis, nearest_fill=near, cracks=cfg.cracks)  # sources' depth once
+                                                 vis, nearest_fill=near, cracks=cfg.cracks,
+                                                 faces="surface" in cfg.tune)  # sources' depth once
     train_px = [v for v in train_px if len(v.points)]
     chosen_later = for_run and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
     for px in (train_px, held_px, val_px):
@@ -473,7 +497,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
               "reg": cfg.reg, "fill": s.fill_mode,
-              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual")],
+              "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual",
+                                                                                            "surface")],
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
@@ -487,6 +512,12 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "gain_db": t.curve[-1]["psnr"] - t.before["psnr"],
               "before": {k: t.before[k] for k in ("psnr", "psnr_masked", "psnr_covered") if k in t.before},
               "provenance": provenance(seed=cfg.seed), "out": str(out)}
+    if tuner.surface is not None:  # the returned state's offsets (scene units; the mean edge length to compare)
+        d = tuner.surface.offsets().detach().abs()
+        result["surface"] = {"mean_abs_offset": float(d.mean()), "max_abs_offset": float(d.max()),
+                             "mean_edge": tuner.surface.edge, "bound": tuner.surface.bound, "limit": cfg.surface_limit,
+                             "lr": cfg.surface_lr, "smooth": cfg.surface_smooth, "res": cfg.surface_res,
+                             "every": cfg.surface_every}
     if "exposure" in cfg.tune:
         result["exposure"] = {"gain": tuner.exposure.gain.detach().reshape(-1, 3).tolist(),
                               "offset": tuner.exposure.offset.detach().reshape(-1, 3).tolist()}
@@ -520,6 +551,24 @@ def choose_angle_sources(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, v
         angle_blend(px, s.scene, s.views, best, cfg.source_masks)
     s.angle_scores = scores
     return best
+
+
+def retrace_training(cfg: FinetuneConfig, s: Setup):
+    """``--surface-every``: a moved mesh -> the tuning views' pixels on it, blended as :func:`prepare` blends them
+    (their faces and barycentrics located, the occlusion test against the moved mesh)."""
+    def retrace(mesh) -> list:
+        px = rasterize_views(mesh, s.scene, [v.index for v in s.train_px], s.fill, s.views if cfg.visibility else None,
+                             nearest_fill=s.fill_mode == "nearest", cracks=cfg.cracks, faces=True)
+        px = [v for v in px if len(v.points)]
+        if s.blend == "angle":
+            for v in px:
+                v.consensus = cfg.consensus
+            angle_blend(px, s.scene, s.views, s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
+                        cfg.source_masks)
+        else:
+            restrict_to_nearest(px, s.scene, s.views, cfg.nearest, cfg.skip_nearest)
+        return px
+    return retrace
 
 
 def cpu_split(cpu: dict, budget: float, end: float) -> dict:
@@ -563,6 +612,7 @@ def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -
     tuner = Tuner(cfg, s, g)
     if s.blend == "angle" and len(cfg.angle_sources) > 1 and s.val_px:
         s.angle_k = choose_angle_sources(cfg, s, tuner, val_idx, val_obj)
+    tuner.retrace = retrace_training(cfg, s) if tuner.surface is not None else None
 
     def write(t: Tuned, partial: bool = False) -> dict:  # at every evaluation: an interrupted run keeps its curve
         plot_curve(cfg, s, t, out)
@@ -577,6 +627,8 @@ def run_finetune(cfg: FinetuneConfig, mesh=None, fill_from: int | None = None) -
     result["defects"] = held_out_defects(s, fill_from)
     result["cpu_seconds"] = cpu_split(cpu, tuned.budget_spent, time.process_time())
     write_json(out / "curve.json", result)
+    if cfg.save and tuner.surface is not None:  # the returned state's surface, in the input frame
+        write_mesh(tuner.surface.moved(s.mesh), [out / "mesh.ply"], s.scene.to_input)
     if cfg.save:
         save_checkpoint(out / "checkpoint", s.model, s.meta["preset"], step=tuned.steps,
                         extra={"finetuned_on": str(cfg.scene), "seconds": cfg.seconds,
