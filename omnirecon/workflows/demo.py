@@ -374,7 +374,8 @@ def finetune_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, o
                      lines: list[str]):
     """Fine-tune the mesh path for 30 s (quick: 3 s) and show the held-out gain."""
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
-    from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune  # lazy: demo --help stays fast
+    from omnirecon.workflows.finetune import FinetuneConfig, run_finetune  # lazy: demo --help stays fast
+    from omnirecon.workflows.finetune_curve import curve_table
 
     seconds = 3.0 if cfg.quick else 30.0
     r = run_finetune(FinetuneConfig(ckpt=ckpt, scene=path, seconds=seconds, eval_at=(0.0, 10.0, seconds),

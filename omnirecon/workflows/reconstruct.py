@@ -62,7 +62,8 @@ from omnirecon.provenance import provenance
 from omnirecon.scene_kind import scene_kind
 from omnirecon.trajectory import nearest_photo_degrees
 from omnirecon.workflows.export import ExportConfig, run_export
-from omnirecon.workflows.finetune import FinetuneConfig, curve_table, run_finetune
+from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
+from omnirecon.workflows.finetune_curve import curve_table
 from omnirecon.workflows.inspect import draw_cameras
 from omnirecon.workflows.mesh import MeshConfig, run_mesh
 from omnirecon.workflows.render import mesh_path_video
