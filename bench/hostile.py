@@ -475,6 +475,7 @@ def _http_case(argv: list[str]) -> int:
     try:
         if argv[0] == "http_stalled":  # the stalled connections must not keep a normal request waiting
             status, seconds = stalled_then_get(port, int(argv[1]), timeout=1.0)
+            print(f"GET answered {status} in {seconds:.3f} s beside {argv[1]} stalled connections", file=sys.stderr)
             return 0 if status == 200 and seconds <= 1.0 else 3
         if argv[0] == "http_hosts":
             head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in argv[1:]) + "Connection: close\r\n\r\n"
