@@ -29,14 +29,13 @@ from dataclasses import asdict
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
-from omnirecon.capture.images import VIDEO_EXTS, StagedImages, count_files, stage_images, stage_masks
+from omnirecon.capture.images import MIN_SIDE, VIDEO_EXTS, check_sizes, count_files, stage_images, stage_masks
 from omnirecon.capture.video import clip_rate
 from omnirecon.capture.video_sfm import video_sfm
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
 
-MIN_SIDE = 16
 """Shortest side (pixels) of a photo given to SfM: pycolmap's feature extraction crashed the process on
 1-, 4- and 8-pixel photos instead of failing."""
 
@@ -106,25 +105,19 @@ def sample_rate(video: Path, fps: float, say=print) -> float:
     """The rate to sample ``video`` at for ``--fps fps``: at most the clip's own frame rate (above it ffmpeg
     repeats frames; ``say`` is told), and refused when it samples less than one frame of the clip."""
     rate, seconds = clip_rate(video)
+    frames = round(rate * seconds) if rate and seconds else None
+    if frames is not None and frames < 3:  # no --fps gives the 3 views a pose needs
+        raise InputError(f"the clip holds {frames} frame{'s' * (frames != 1)} ({seconds:.2g} s): too short to pose",
+                         video, "record a clip of several seconds, walking slowly around the subject")
     if seconds is not None and fps * seconds < 1:
         raise InputError(f"--fps {fps:g} samples no frame from a {seconds:.1f} s clip", None,
-                         f"use --fps of at least {1 / seconds:.3g}, e.g. --fps {min(2.0, rate or 2.0):g}")
+                         f"use --fps of at least {1 / seconds:.3g}, e.g. --fps {min(rate or 1e9, max(2.0, 3 / seconds)):.3g}")
     if rate is not None and fps > rate:
         if say is not None:
             say(f"note: --fps {fps:g} is above the clip's own {rate:g} frames per second: sampling every frame "
                 f"({rate:g} per second) instead of repeating frames")
         return rate
     return fps
-
-
-def check_sizes(staged: StagedImages, video: Path | None = None) -> None:
-    """Refuse a photo (or a video's frames: ``video`` is named) with a side under :data:`MIN_SIDE` pixels."""
-    for name in staged.names:
-        w, h = staged.sizes[name]
-        if min(w, h) < MIN_SIDE:
-            raise InputError(f"{'frames are' if video else 'photo is'} {w}x{h} pixels, too small to match (SfM needs "
-                             f"at least {MIN_SIDE} px a side)", video or staged.sources[name],
-                             f"use photos at least {MIN_SIDE}x{MIN_SIDE} pixels (better hundreds)")
 
 
 def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
@@ -136,7 +129,6 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
     with Stages(quiet) as stages:
         if video is not None:
             result, staged, passes, kept = video_sfm(source, work, options, video[0], video[1], stages, mask_dir)
-            check_sizes(staged, source)
             folder, objects = staged.folder, None if mask_dir is None else kept / "objects"
             video = {"passes": passes, "rotated": staged.rotated}
         else:

@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import SfmOptions, SfmResult, Stages, needed, run_sfm
-from omnirecon.capture.images import StagedImages, stage_images, stage_masks
+from omnirecon.capture.images import StagedImages, check_sizes, stage_images, stage_masks
 from omnirecon.capture.video import sample_frames, video_duration
 from omnirecon.errors import InputError
 
@@ -31,8 +31,13 @@ def video_pass(source: Path, work: Path, options: SfmOptions, fps: float, max_fr
     ``work/objects``); returns the result (None when no model came out), the staged frames and a record."""
     suffix = "" if work.name == "pass0" else f" ({fps:g} fps)"
     with stages.stage(f"frames{suffix}", None) as advance:
-        sample_frames(source, work / "frames_raw", fps, max_frames, on_frame=lambda i, expected: advance(1, expected))
+        names = sample_frames(source, work / "frames_raw", fps, max_frames, on_frame=lambda i, e: advance(1, e))
+    if len(names) < 3:  # a frames folder is no photo folder: say it in the clip's terms
+        raise InputError(f"--fps {fps:g} samples {len(names)} frame{'s' * (len(names) != 1)} of the clip; structure "
+                         "from motion needs at least 3", source, "raise --fps, or record a longer clip walking "
+                         "slowly around the subject")
     staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
+    check_sizes(staged, source)  # before SfM: frames too small crash it
     mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
                                                       objects=work / "objects")
     record = {"fps": round(fps, 4), "frames": len(staged.names), "loop_pairs": options.loop_pairs, "registered": 0}

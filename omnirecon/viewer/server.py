@@ -17,9 +17,11 @@ thread (:class:`HeaderReader`, a ``selectors`` loop) collects every new connecti
 closes a connection that has not sent them within :data:`IDLE_TIMEOUT` seconds of connecting (a trickle of bytes
 does not extend it) or whose headers pass :data:`MAX_HEAD` bytes, and, when more connections wait on their headers
 than the file-descriptor limit leaves room for (:func:`waiting_cap`), closes the oldest waiting one. A connection
-whose headers are complete gets a thread of its own (at most :data:`MAX_CONNECTIONS` at once, a 503 beyond),
-whose socket reads and writes wait at most :data:`IDLE_TIMEOUT` seconds each. So a normal request is answered at
-once however many stalled connections are open.
+whose headers are complete gets a thread of its own, whose socket reads and writes wait at most
+:data:`IDLE_TIMEOUT` seconds each; at most :data:`MAX_CONNECTIONS` are served at once: beyond them a new one takes
+the place of the served one whose client has read nothing for the longest, at least :data:`STUCK` seconds (a client
+that requests a large file and never reads it), else it is answered 503. So a normal request is answered at once
+however many stalled connections are open.
 """
 
 from __future__ import annotations
@@ -49,6 +51,10 @@ IDLE_TIMEOUT = 10.0
 """Seconds a connection's socket read or write may wait before the connection is closed."""
 MAX_CONNECTIONS = 64
 """Connections served at once once their headers are in (a thread each); beyond it a new one is answered 503."""
+STUCK = 0.2
+"""Seconds a served client may go without reading before a new connection beyond :data:`MAX_CONNECTIONS` takes its place."""
+COPY_CHUNK = 65536
+"""Bytes of a file sent per write (the client's progress is noted between writes)."""
 MAX_HEAD = 65536
 """Bytes of request line and headers a connection may send; beyond them it is closed."""
 HEAD_END = re.compile(rb"\r?\n\r?\n")
@@ -164,7 +170,9 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
 
     def copyfile(self, source, outputfile):
         try:
-            super().copyfile(source, outputfile)
+            while chunk := source.read(COPY_CHUNK):
+                outputfile.write(chunk)
+                self.server.progressed(self.request)
         except DISCONNECTS:
             self.close_connection = True  # the client went away mid-response: nothing to report
 
@@ -278,6 +286,7 @@ class ViewerServer(http.server.ThreadingHTTPServer):
 
     def __init__(self, folder: Path, port: int = 8765, quiet: bool = False):
         self._heads: dict[socket.socket, bytes] = {}  # connections with their headers read, to their serving threads
+        self._progress: dict[socket.socket, float] = {}  # served connections -> when their client last took a chunk
         self._lock = threading.Lock()
         folder = Path(folder)
         if not folder.is_dir():
@@ -299,9 +308,10 @@ class ViewerServer(http.server.ThreadingHTTPServer):
     def _serve(self, request, client_address, head: bytes) -> None:
         """A thread for ``request`` whose headers are ``head``, within :data:`MAX_CONNECTIONS` (else a 503)."""
         with self._lock:
-            busy = len(self._heads) >= MAX_CONNECTIONS
+            busy = len(self._heads) >= MAX_CONNECTIONS and not self._evict_stuck()
             if not busy:
                 self._heads[request] = head
+                self._progress[request] = time.monotonic()
         if busy:
             try:
                 request.settimeout(0.1)
@@ -311,6 +321,25 @@ class ViewerServer(http.server.ThreadingHTTPServer):
             request.close()
             return
         super().process_request(request, client_address)
+
+    def _evict_stuck(self) -> bool:
+        """Close the served connection whose client has read nothing for the longest, if that is over :data:`STUCK`
+        seconds (its thread's blocked write fails and the thread ends); whether one was closed. Holds the lock."""
+        oldest = min(self._progress, key=self._progress.get, default=None)
+        if oldest is None or time.monotonic() - self._progress[oldest] < STUCK:
+            return False
+        del self._heads[oldest], self._progress[oldest]
+        try:
+            oldest.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        return True
+
+    def progressed(self, request) -> None:
+        """The client of ``request`` took another chunk of its file."""
+        with self._lock:
+            if request in self._progress:
+                self._progress[request] = time.monotonic()
 
     def take_head(self, request) -> bytes:
         """The request line and headers the reader collected for ``request`` (its serving thread reads them)."""
@@ -323,6 +352,7 @@ class ViewerServer(http.server.ThreadingHTTPServer):
         finally:
             with self._lock:
                 self._heads.pop(request, None)
+                self._progress.pop(request, None)
 
     def handle_error(self, request, client_address):
         """A client that disconnects (or stalls out) is routine, not an error: no traceback for it."""

@@ -71,3 +71,55 @@ def test_an_fps_that_samples_no_frame_is_blamed_on_the_option(clip, tmp_path):
         process(clip, tmp_path / "out", fps=1e-30, quiet=True)
     assert "--fps" in str(e.value) and str(clip) not in str(e.value), e.value
     assert list(tmp_path.iterdir()) == []
+
+
+def _clip(path, frames: int, side: int = 64):
+    import imageio_ffmpeg
+
+    writer = imageio_ffmpeg.write_frames(str(path), (side, side), fps=4, quality=8, macro_block_size=1)
+    writer.send(None)
+    for i in range(frames):
+        writer.send((np.random.default_rng(i).random((side, side, 3)) * 255).astype(np.uint8).tobytes())
+    writer.close()
+    return path
+
+
+def test_a_clip_too_short_to_pose_gets_video_advice(tmp_path):
+    """A one-frame clip: named, told to record longer (not "add more photos", not "use --fps of at least 4, e.g. 2")."""
+    clip = _clip(tmp_path / "one.mp4", 1)
+    with pytest.raises(InputError) as e:
+        process(clip, tmp_path / "out", quiet=True)
+    assert str(clip) in str(e.value) and "holds 1 frame" in str(e.value) and "record a clip" in str(e.value), e.value
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["one.mp4"]
+
+
+def test_an_fps_that_samples_under_three_frames_names_the_clip_and_the_option(clip, tmp_path):
+    """--fps 0.5 on a 3 s clip samples 2 frames: the clip and --fps are named (not the work folder's frames)."""
+    with pytest.raises(InputError) as e:
+        process(clip, tmp_path / "out", fps=0.5, quiet=True)
+    assert str(e.value).startswith(f"{clip}: --fps 0.5 samples 2 frames") and "raise --fps" in str(e.value), e.value
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_frames_too_small_to_match_are_refused_before_sfm(tmp_path):
+    """A clip of 8x8 frames: refused naming the clip before pycolmap runs (it crashed on them)."""
+    clip = _clip(tmp_path / "tiny.mp4", 12, side=8)
+    with pytest.raises(InputError) as e:
+        process(clip, tmp_path / "out", fps=4, quiet=True)
+    assert str(clip) in str(e.value) and "frames are 8x8 pixels" in str(e.value) and "crashed" not in str(e.value)
+
+
+def test_an_all_black_mask_is_named(tmp_path):
+    """A mask with no white pixel would leave its photo without a feature: refused naming the mask, not answered
+    "take more overlapping photos" after SfM."""
+    from omnirecon.capture.images import stage_masks
+
+    src = photos(tmp_path / "p", 32)
+    masks = tmp_path / "m"
+    masks.mkdir()
+    for i in range(4):
+        Image.fromarray(np.full((32, 32), 255 * (i != 2), np.uint8)).save(masks / f"p{i}.png")
+    staged = stage_images(src, tmp_path / "staged")
+    with pytest.raises(InputError) as e:
+        stage_masks(masks, staged, tmp_path / "staged_masks")
+    assert str(e.value).startswith(f"{masks / 'p2.png'}: the mask is all black"), e.value
