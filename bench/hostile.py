@@ -19,7 +19,22 @@ Classes of cases (each built here, in a temporary folder):
 * ``capture``: photos too small for SfM, a clip sampled above its own frame rate or at almost none.
 * ``memory``: ``mesh --voxel`` and ``finetune --val-every`` values whose allocation exceeds the memory.
 * ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
-  1,000 connections that stall in their headers while a normal request must be answered within 1 s.
+  1,000 connections that stall in their headers while a normal request must be answered within 1 s; bad requests
+  (huge or endless headers, garbage, HTTP/0.9, traversal in every spelling, CONNECT, a body never sent), a
+  slowloris trickle, clients that request a large file and never read it, connections that send nothing.
+
+The set written for the verbs and options added since (:func:`fresh_cases`):
+
+* ``video``: clips in 10-bit H.264 and HEVC, VP9, 16-bit FFV1, MPEG-4 and with a rotation must decode upright;
+  corrupt, empty, truncated, audio-only, one- and two-frame, 2x2-pixel, FIFO, device and looping "videos" refused.
+* ``folders_valid`` / ``folders``: photo folders of mixed sizes, CMYK / grey JPEG, 16-bit PNG, EXIF-rotated,
+  WebP, BMP, TIFF (staged); and with a truncated JPEG / PNG, a JPEG claiming 65000 px sides, a link loop, a file
+  reading fails on, HEIC, an animated GIF, a folder linking to itself, none / one / two photos (refused).
+* ``options``: depth sources, surfaces (``--surface auto|fusion|coherent|poisson``), view lists, finetune blends
+  and fills on a broken mesh, ``--guided.*`` on render / eval, ``process --learned`` and ``--masks`` (all black),
+  ``bench --realtime --face-budget`` with a bad mesh; refused naming the option or file, or accepted.
+* ``resume``: `reconstruct --resume / --no-resume` over an ``OUT.partial`` that is the user's folder, a file, a link
+  (or holds a link as its record folder), or a garbage record: refused or started over, no file of the user's lost.
 
 A refused case counts as handled only with exit 2, one stderr line ``omnirecon: error: ...`` naming the
 file or option and carrying a ``(fix: ...)`` clause, no traceback, nothing added, removed or changed
@@ -27,7 +42,7 @@ under the fixtures, no ``--out`` and nothing in the working folder. Each case ru
 package imported once in the parent) with a time limit (a hang) and an address-space limit (killed for
 memory). Writes ``bench/results/hostile.json`` with a provenance header.
 
-Size: the case builders of five classes, the forked runner and the verdict are one measurement; the builders
+Size: the case builders of fifteen classes, the forked runner and the verdict are one measurement; the builders
 are short functions read one at a time.
 """
 
@@ -622,7 +637,7 @@ def option_cases(p: dict[str, Path], work: Path) -> list[dict]:
         (["--model", "floor", "--guided.on"], "--guided.on"), (["--ckpt", C, "--keyframes", "99"], "--keyframes"),
         (["--ckpt", C, "--path", "interp", "--keyframes", "0", "0"], "--keyframes"), (["--ckpt", C, "--guided.on"], S)]]
     out.append({"class": "options", "args": [*ft, "--val-views", "100"], "named": "--val-views", "accept_or_refuse": True})
-    out.append({"class": "options", "named": "--guided.on", "args": ["eval", "--model", "floor", "--scenes", S, "--out",
+    out.append({"class": "options", "named": S, "args": ["eval", "--model", "floor", "--scenes", S, "--out",
                                                                       "{out}", "--guided.on", *tiny]})
     out.append({"class": "options", "named": str(work / "nope"), "args": ["eval", "--ckpt", C, "--scenes", str(work / "nope"),
                                                                           "--out", "{out}", "--guided.on", *tiny]})
@@ -670,7 +685,7 @@ def _partial_setup(kind: str):
         if kind == "link_inside":  # the tool's own work folder, its record folder a link to the user's folder
             part.mkdir()
             os.symlink(user, part / ".omnirecon-partial")
-            return [user]
+            return [part, user]
         (part / ".omnirecon-partial").mkdir(parents=True)
         (part / ".omnirecon-partial" / "stages.json").write_text(
             {"garbage": "{{{", "deep": "[" * 50_000 + "]" * 50_000, "list": '{"stages": [1, 2]}'}[kind])
@@ -708,6 +723,16 @@ def _tree(root: Path) -> dict[str, tuple]:
             # a folder's own time changes with a lock file made and removed in it: its entries are compared
             out[str(q.relative_to(root))] = (st.st_mode, st.st_size, 0 if stat.S_ISDIR(st.st_mode) else st.st_mtime_ns)
     return out
+
+
+def _state(path: Path):
+    """What a user's file, link or folder (its entries) is, for a before/after comparison (None: gone)."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    if path.is_dir() and not path.is_symlink():
+        return _tree(path)
+    st = os.lstat(path)
+    return st.st_mode, st.st_size, st.st_mtime_ns, os.readlink(path) if path.is_symlink() else None
 
 
 def _child(argv: list[str], cwd: Path, err: Path, limit: int) -> None:
@@ -911,7 +936,7 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
     argv = [a.replace("{out}", str(out)) for a in case["args"]]
     named = case["named"].replace("{out}", str(out)) if case["named"] else None
     users = case["setup"](out) if case.get("setup") else []  # what the user (or a crash) left at OUT before the run
-    users_before = [_tree(u) if u.is_dir() and not u.is_symlink() else os.lstat(u) for u in users]
+    users_before = [_state(u) for u in users]
     err = work / "stderr.txt"
     before = _tree(p["root"])
     t0 = time.perf_counter()
@@ -933,9 +958,7 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
     text = err.read_text(errors="replace") if err.exists() else ""
     lines = [ln for ln in text.strip().splitlines() if ln.strip()]
     rc = os.waitstatus_to_exitcode(status) if verdict is None else None
-    changed = _tree(p["root"]) != before or any(
-        not u.exists() and not u.is_symlink() or (_tree(u) if u.is_dir() and not u.is_symlink() else os.lstat(u)) != b
-        for u, b in zip(users, users_before))
+    changed = _tree(p["root"]) != before or [_state(u) for u in users] != users_before
     kept = "rerun the same command to continue" in text  # reconstruct keeps its finished stages in OUT.partial, and says so
     leftovers = [str(q) for q in cwd.parent.glob(out.name + "*") if not (kept and q.name == f"{out.name}.partial")
                  and q not in users] + \

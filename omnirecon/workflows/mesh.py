@@ -25,7 +25,7 @@ from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
-from omnirecon.mesh.build import MeshOptions, default_depth, default_surface, mesh_from_model
+from omnirecon.mesh.build import MeshOptions, NoDepth, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
 from omnirecon.options import check_options
 from omnirecon.outputs import remove_written
@@ -139,7 +139,11 @@ def run_mesh(cfg: MeshConfig) -> dict:
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
     with progress_bar(transient=False) as bar:
-        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+        try:
+            made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+        except NoDepth as e:
+            e.path = Path(cfg.scene)  # the line names the scene whose views gave no depth
+            raise
     if len(made.mesh.faces) == 0:
         raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
                          "try a trained checkpoint, more --views, --no-masks or a larger --voxel")
