@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import shutil
 import signal
 import time
@@ -137,7 +138,21 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
     return result.stats(), info, dict(stages.seconds), video
 
 
-def _sfm_child(conn, args: tuple) -> None:
+def _die_with(parent: int) -> None:
+    """End this process when ``parent`` ends, even by SIGKILL (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing):
+    a killed command leaves no SfM child writing into its work folder."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _sfm_child(conn, args: tuple, parent: int) -> None:
+    _die_with(parent)
     try:
         out = ("done", _sfm(args))
     except InputError as e:
@@ -156,7 +171,7 @@ def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict, dict | No
     carrying the child's traceback."""
     ctx = multiprocessing.get_context("spawn")
     receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_sfm_child, args=(send, args), name="omnirecon-sfm", daemon=True)
+    child = ctx.Process(target=_sfm_child, args=(send, args, os.getpid()), name="omnirecon-sfm", daemon=True)
     child.start()
     send.close()
     try:

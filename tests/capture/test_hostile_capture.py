@@ -2,6 +2,8 @@
 a native crash of pycolmap is one error line (its process is a child), and a video's ``--fps`` is capped at
 the clip's own rate and blamed when it samples no frame (issue 46 item 4)."""
 
+import sys
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -123,3 +125,57 @@ def test_an_all_black_mask_is_named(tmp_path):
     with pytest.raises(InputError) as e:
         stage_masks(masks, staged, tmp_path / "staged_masks")
     assert str(e.value).startswith(f"{masks / 'p2.png'}: the mask is all black"), e.value
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` and that run multiprocessing's spawned main (the SfM child)."""
+    from pathlib import Path
+
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmd = (stat.parent / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and b"spawn_main" in cmd:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    from pathlib import Path
+
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_a_killed_process_leaves_no_sfm_child(tmp_path):
+    """`process` killed with SIGKILL while pycolmap runs in its child: the child ends with it (it went on writing into
+    the killed run's work folder until SfM finished)."""
+    import os
+    import subprocess
+    import time
+    from pathlib import Path
+
+    from conftest import procedural_photos
+
+    photos = procedural_photos(tmp_path, 128)  # 12 views: SfM runs for several seconds
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), "OMP_NUM_THREADS": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "omnirecon.cli", "process", str(photos), "--out",
+                             str(tmp_path / "out"), "--threads", "1", "--quiet"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not list(tmp_path.glob(".out.*/database.db")) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)  # until pycolmap is at work (its feature database made)
+    children = _children(proc.pid)
+    assert children, f"no SfM child seen (process exit {proc.poll()})"
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 2
+    while any(_alive(c) for c in children) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_alive(c) for c in children)
