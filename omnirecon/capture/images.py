@@ -170,7 +170,8 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 
 
 
 MIN_SIDE = 16
-"""Pixels a photo (or a video's frame) needs on its shorter side for SfM to match it (smaller ones crashed pycolmap)."""
+"""Shortest side (pixels) of a photo or a video's frame given to SfM: pycolmap's feature extraction crashed the process
+on 1-, 4- and 8-pixel photos instead of failing."""
 
 
 def check_sizes(staged: StagedImages, video: Path | None = None) -> None:

@@ -37,9 +37,6 @@ from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
 
-"""Shortest side (pixels) of a photo given to SfM: pycolmap's feature extraction crashed the process on
-1-, 4- and 8-pixel photos instead of failing."""
-
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
             overwrite: bool = False, quiet: bool = False, keep_work: bool = False, masks: Path | None = None) -> dict:

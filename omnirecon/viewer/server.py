@@ -50,7 +50,8 @@ DISCONNECTS = (ConnectionError, TimeoutError)
 IDLE_TIMEOUT = 10.0
 """Seconds a connection's socket read or write may wait before the connection is closed."""
 MAX_CONNECTIONS = 64
-"""Connections served at once once their headers are in (a thread each); beyond it a new one is answered 503."""
+"""Connections served at once once their headers are in (a thread each); beyond it a new one takes a stuck one's place
+(:data:`STUCK`) or is answered 503."""
 STUCK = 0.2
 """Seconds a served client may go without reading before a new connection beyond :data:`MAX_CONNECTIONS` takes its place."""
 COPY_CHUNK = 65536
@@ -259,7 +260,10 @@ class HeaderReader:
             self.selector.unregister(sock)
             del self.waiting[sock]
             sock.setblocking(True)
-            self.ready(sock, address, bytes(head))
+            try:
+                self.ready(sock, address, bytes(head))
+            except (OSError, RuntimeError):  # no thread could start for it: this connection goes, the server stays
+                sock.close()
 
     def _drop(self, sock: socket.socket) -> None:
         self.selector.unregister(sock)
@@ -320,7 +324,13 @@ class ViewerServer(http.server.ThreadingHTTPServer):
                 pass
             request.close()
             return
-        super().process_request(request, client_address)
+        try:
+            super().process_request(request, client_address)
+        except RuntimeError:  # no thread could start: the slot is free again (the reader closes the connection)
+            with self._lock:
+                self._heads.pop(request, None)
+                self._progress.pop(request, None)
+            raise
 
     def _evict_stuck(self) -> bool:
         """Close the served connection whose client has read nothing for the longest, if that is over :data:`STUCK`
