@@ -179,3 +179,28 @@ def test_a_killed_process_leaves_no_sfm_child(tmp_path):
     while any(_alive(c) for c in children) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not any(_alive(c) for c in children)
+
+
+def test_a_clip_is_never_sampled_again_above_its_own_rate(clip, tmp_path):
+    """Noise frames of a 4 fps clip at --fps 240 (so at 4): no second pass at 12 fps (it staged each frame three
+    times); the line says every frame was sampled and advises a higher frame rate, not more --fps."""
+    with pytest.raises(InputError) as e:
+        process(clip, tmp_path / "out", fps=240, quiet=True)
+    line = str(e.value)
+    assert "of 12 video frames registered at 4 fps" in line and "every frame of the clip was sampled" in line, line
+    assert "sampled again" not in line and "record at a higher frame rate" in line and "--fps (up to" not in line
+
+
+def test_visual_words_of_alike_frames_warn_nothing():
+    """Few, identical descriptors leave k-means clusters empty: harmless (such a word is never counted), and no
+    scipy warning reaches the user."""
+    import warnings
+
+    from omnirecon.capture.retrieval import word_histograms
+
+    rng = np.random.default_rng(0)
+    same = rng.random((1, 128)).astype(np.float32).repeat(40, 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hist = word_histograms([same, same, same], words=8)
+    assert hist.shape == (3, 8) and np.isfinite(hist).all()
