@@ -50,6 +50,8 @@ def kill_sweep(results: Path) -> list[str]:
             f"{', '.join(k['uninterrupted_twice_differs']) or 'nothing'}. *Provenance: commit "
             f"{k['provenance'].get('commit')}, {k['provenance'].get('date')}, load average "
             f"{k['provenance'].get('load_average', ['?'])[0]:.1f}.*", "", "| killed | stages kept | rerun | same output |",
-            "|---|---|---:|---|"] + [f"| {name} ({r['killed_at_s']} s) | {', '.join(r['kept']) or '-'} | "
+            "|---|---|---:|---|"] + [f"| {name} ({r['killed_at_s']} s) | "
+                                      + ("(it ended before the kill)" if r["ended_before_kill"] else
+                                         ", ".join(r["kept"]) or "-") + " | "
                                       f"{r['rerun_seconds']} s | {'yes' if r['same'] else r['differs']} |"
                                       for name, r in runs.items()]
