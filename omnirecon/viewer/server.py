@@ -22,6 +22,8 @@ whose headers are complete gets a thread of its own, whose socket reads and writ
 the place of the served one whose client has read nothing for the longest, at least :data:`STUCK` seconds (a client
 that requests a large file and never reads it), else it is answered 503. So a normal request is answered at once
 however many stalled connections are open.
+
+Size: the path checks, the header reader and the connection rules are one concern, serving a folder to hostile clients.
 """
 
 from __future__ import annotations
