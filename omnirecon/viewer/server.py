@@ -131,6 +131,9 @@ class BundleRequestHandler(http.server.SimpleHTTPRequestHandler):
         super().setup()
         self.rfile.close()
         self.rfile = io.BytesIO(self.server.take_head(self.request))  # read by the HeaderReader (HTTP/1.0: one request)
+        # a send buffer of a few chunks: a client that stops reading stops this thread's progress at once (the kernel's
+        # own, megabytes on loopback, took seconds to fill under load and hid it from STUCK)
+        self.request.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 4 * COPY_CHUNK)
 
     def send_head(self):
         status, file = self.resolve()
