@@ -19,7 +19,22 @@ Classes of cases (each built here, in a temporary folder):
 * ``capture``: photos too small for SfM, a clip sampled above its own frame rate or at almost none.
 * ``memory``: ``mesh --voxel`` and ``finetune --val-every`` values whose allocation exceeds the memory.
 * ``viewer``: HTTP requests with several ``Host`` headers (must be 400), clients that disconnect, and up to
-  1,000 connections that stall in their headers while a normal request must be answered within 1 s.
+  1,000 connections that stall in their headers while a normal request must be answered within 1 s; bad requests
+  (huge or endless headers, garbage, HTTP/0.9, traversal in every spelling, CONNECT, a body never sent), a
+  slowloris trickle, clients that request a large file and never read it, connections that send nothing.
+
+The set written for the verbs and options added since (:func:`fresh_cases`):
+
+* ``video``: clips in 10-bit H.264 and HEVC, VP9, 16-bit FFV1, MPEG-4 and with a rotation must decode upright;
+  corrupt, empty, truncated, audio-only, one- and two-frame, 2x2-pixel, FIFO, device and looping "videos" refused.
+* ``folders_valid`` / ``folders``: photo folders of mixed sizes, CMYK / grey JPEG, 16-bit PNG, EXIF-rotated,
+  WebP, BMP, TIFF (staged); and with a truncated JPEG / PNG, a JPEG claiming 65000 px sides, a link loop, a file
+  reading fails on, HEIC, an animated GIF, a folder linking to itself, none / one / two photos (refused).
+* ``options``: depth sources, surfaces (``--surface auto|fusion|coherent|poisson``), view lists, finetune blends
+  and fills on a broken mesh, ``--guided.*`` on render / eval, ``process --learned`` and ``--masks`` (all black),
+  ``bench --realtime --face-budget`` with a bad mesh; refused naming the option or file, or accepted.
+* ``resume``: `reconstruct --resume / --no-resume` over an ``OUT.partial`` that is the user's folder, a file, a link
+  (or holds a link as its record folder), or a garbage record: refused or started over, no file of the user's lost.
 
 A refused case counts as handled only with exit 2, one stderr line ``omnirecon: error: ...`` naming the
 file or option and carrying a ``(fix: ...)`` clause, no traceback, nothing added, removed or changed
@@ -27,7 +42,7 @@ under the fixtures, no ``--out`` and nothing in the working folder. Each case ru
 package imported once in the parent) with a time limit (a hang) and an address-space limit (killed for
 memory). Writes ``bench/results/hostile.json`` with a provenance header.
 
-Size: the case builders of five classes, the forked runner and the verdict are one measurement; the builders
+Size: the case builders of fifteen classes, the forked runner and the verdict are one measurement; the builders
 are short functions read one at a time.
 """
 
@@ -295,7 +310,17 @@ def cases(p: dict[str, Path], work: Path) -> list[dict]:
         out.append({"class": "viewer", "args": ["http_disconnect", str(n)], "named": None})
     for n in (100, 1000):
         out.append({"class": "viewer", "args": ["http_stalled", str(n)], "named": None})
-    return out + user_file_cases(p, work) + capture_cases(work) + memory_cases(p)
+    out += user_file_cases(p, work) + capture_cases(work) + memory_cases(p)
+    return out + fresh_cases(p, work)
+
+
+def fresh_cases(p: dict[str, Path], work: Path) -> list[dict]:
+    """The set written for the verbs and options added since the classes above (issue 46 item 4)."""
+    viewer = [{"class": "viewer", "args": ["http_raw", name], "named": None} for name in BAD_REQUESTS]
+    viewer += [{"class": "viewer", "args": [kind, str(n)], "named": None}
+               for kind, n in (("http_trickle", 50), ("http_slow_readers", 100), ("http_silent", 1000))]
+    return (video_cases(work) + valid_folder_cases(work) + folder_cases(work) + option_cases(p, work)
+            + resume_cases(p, work) + viewer)
 
 
 def memory_cases(p: dict[str, Path]) -> list[dict]:
@@ -373,6 +398,321 @@ def user_file_cases(p: dict[str, Path], work: Path) -> list[dict]:
     return out
 
 
+# ---------------------------------------------------------------------------- fresh set (issue 46 item 4)
+def _ffmpeg(*args: str) -> None:
+    import subprocess
+
+    import imageio_ffmpeg
+
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-loglevel", "error", "-y", *args], check=True)
+
+
+def _videos(d: Path) -> dict[str, Path]:
+    """Clips of 12 noise frames (64x48, 4 fps) in several codecs and shapes, and hostile files named as videos."""
+    d.mkdir(parents=True)
+    src = d / "src_%02d.png"
+    import numpy as np
+    from PIL import Image
+
+    for i in range(12):
+        Image.fromarray((np.random.default_rng(i).random((48, 64, 3)) * 255).astype(np.uint8)).save(str(src) % i)
+    v = {}
+    enc = {"h264.mp4": ["-c:v", "libx264", "-pix_fmt", "yuv420p"], "h264_10bit.mp4": ["-c:v", "libx264", "-pix_fmt",
+           "yuv420p10le"], "hevc_10bit.mp4": ["-c:v", "libx265", "-pix_fmt", "yuv420p10le", "-x265-params", "log-level=0"],
+           "vp9.webm": ["-c:v", "libvpx-vp9", "-pix_fmt", "yuv420p"], "ffv1_rgb48.mkv": ["-c:v", "ffv1", "-pix_fmt",
+           "rgb48le"], "mpeg4.avi": ["-c:v", "mpeg4"]}
+    for name, codec in enc.items():
+        v[name] = d / name
+        _ffmpeg("-framerate", "4", "-i", str(src), *codec, str(v[name]))
+    v["rotated.mp4"] = d / "rotated.mp4"  # a phone held upright: 64x48 stored, shown 48x64
+    _ffmpeg("-display_rotation", "90", "-i", str(v["h264.mp4"]), "-c", "copy", str(v["rotated.mp4"]))
+    v["one_frame.mp4"] = d / "one_frame.mp4"
+    _ffmpeg("-framerate", "4", "-i", str(src) % 0, "-c:v", "libx264", "-pix_fmt", "yuv420p", str(v["one_frame.mp4"]))
+    v["two_frames.mp4"] = d / "two_frames.mp4"
+    _ffmpeg("-framerate", "4", "-i", str(src), "-frames:v", "2", "-c:v", "libx264", "-pix_fmt", "yuv420p",
+            str(v["two_frames.mp4"]))
+    v["audio_only.mp4"] = d / "audio_only.mp4"
+    _ffmpeg("-f", "lavfi", "-i", "anullsrc=r=8000:cl=mono", "-t", "1", "-c:a", "aac", str(v["audio_only.mp4"]))
+    v["tiny_2x2.mkv"] = d / "tiny_2x2.mkv"
+    _ffmpeg("-framerate", "4", "-i", str(src), "-vf", "scale=2:2", "-c:v", "ffv1", str(v["tiny_2x2.mkv"]))
+    for f in d.glob("src_*.png"):
+        f.unlink()
+    good = v["h264.mp4"].read_bytes()
+    for name, data in {"zero_length.mp4": b"", "noise.mp4": os.urandom(50_000), "truncated.mp4": good[: len(good) // 2],
+                       "header_only.mp4": good[:64], "text.mov": b"not a video\n" * 100}.items():
+        v[name] = d / name
+        v[name].write_bytes(data)
+    v["png_as.mp4"] = d / "png_as.mp4"  # a photo renamed: ffmpeg reads it as a one-frame clip
+    Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(v["png_as.mp4"], format="PNG")
+    v["fifo.mp4"] = d / "fifo.mp4"
+    os.mkfifo(v["fifo.mp4"])
+    v["dev_zero.mp4"] = d / "dev_zero.mp4"
+    os.symlink("/dev/zero", v["dev_zero.mp4"])
+    v["folder.mp4"] = d / "folder.mp4"
+    v["folder.mp4"].mkdir()
+    v["loop.mp4"] = d / "loop.mp4"
+    os.symlink("loop.mp4", v["loop.mp4"])
+    return v
+
+
+def video_cases(work: Path) -> list[dict]:
+    """``video``: clips a phone or an editor writes (10-bit, HEVC, VP9, rotated, 16-bit FFV1, odd codecs) must decode
+    upright; corrupt, empty, truncated, audio-only, one-frame and non-file "videos" are refused naming the file."""
+    v = _videos(work / "videos")
+    out = []
+    for name, (w, h) in {"h264.mp4": (64, 48), "h264_10bit.mp4": (64, 48), "hevc_10bit.mp4": (64, 48),
+                         "vp9.webm": (64, 48), "ffv1_rgb48.mkv": (64, 48), "mpeg4.avi": (64, 48), "rotated.mp4": (48, 64)}.items():
+        out.append({"class": "video", "args": ["probe_video", str(v[name]), str(w), str(h)], "named": None, "accept": True})
+    tiny = ["--threads", "1", "--quiet"]
+    for name in ("zero_length.mp4", "noise.mp4", "truncated.mp4", "header_only.mp4", "audio_only.mp4", "one_frame.mp4",
+                 "two_frames.mp4", "png_as.mp4", "tiny_2x2.mkv", "fifo.mp4", "dev_zero.mp4", "loop.mp4", "text.mov"):
+        out.append({"class": "video", "args": ["process", str(v[name]), "--out", "{out}", *tiny], "named": str(v[name])})
+        if name in ("zero_length.mp4", "noise.mp4", "truncated.mp4", "audio_only.mp4", "one_frame.mp4", "fifo.mp4"):
+            out.append({"class": "video", "args": ["reconstruct", str(v[name]), "--out", "{out}", "--threads", "1",
+                                                   "--no-viewer"], "named": str(v[name])})
+    out.append({"class": "video", "args": ["process", str(v["one_frame.mp4"]), "--fps", "30", "--out", "{out}", *tiny],
+                "named": str(v["one_frame.mp4"])})
+    out.append({"class": "video", "args": ["process", str(v["h264.mp4"]), "--max-frames", "1", "--out", "{out}", *tiny],
+                "named": "--max-frames"})
+    return out
+
+
+def _photo(path: Path, seed: int, size=(40, 30), mode="RGB", **save) -> Path:
+    import numpy as np
+    from PIL import Image
+
+    im = Image.fromarray((np.random.default_rng(seed).random((size[1], size[0], 3)) * 255).astype(np.uint8))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    im.convert(mode).save(path, **save)
+    return path
+
+
+def _photo16(path: Path, seed: int, channels: int) -> Path:
+    import cv2
+    import numpy as np
+
+    a = (np.random.default_rng(seed).random((30, 40, channels)) * 65535).astype(np.uint16)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), a if channels > 1 else a[..., 0])
+    return path
+
+
+def _exif_rotated(path: Path, seed: int) -> Path:
+    from PIL import Image
+
+    _photo(path, seed, format="JPEG")
+    im = Image.open(path)
+    exif = im.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees on display
+    im.save(path, format="JPEG", exif=exif)
+    return path
+
+
+def valid_folder_cases(work: Path) -> list[dict]:
+    """``folders_valid``: photo folders a user's devices write (mixed sizes, CMYK JPEG, 16-bit colour and grey PNG,
+    grey JPEG, EXIF-rotated JPEG, upper-case extensions, WebP, BMP, TIFF): staged as `process` stages them."""
+    makers = {
+        "mixed_sizes": lambda d, i: _photo(d / f"p{i}.jpg", i, size=(40 + 8 * i, 30 + 4 * i)),
+        "cmyk_jpeg": lambda d, i: _photo(d / f"p{i}.jpg", i, mode="CMYK", format="JPEG"),
+        "rgb16_png": lambda d, i: _photo16(d / f"p{i}.png", i, 3),
+        "grey16_png": lambda d, i: _photo16(d / f"p{i}.png", i, 1),
+        "grey_jpeg": lambda d, i: _photo(d / f"p{i}.jpg", i, mode="L", format="JPEG"),
+        "exif_rotated": lambda d, i: _exif_rotated(d / f"p{i}.jpg", i),
+        "upper_ext": lambda d, i: _photo(d / f"P{i}.JPG", i, format="JPEG"),
+        "webp": lambda d, i: _photo(d / f"p{i}.webp", i, format="WEBP"),
+        "bmp": lambda d, i: _photo(d / f"p{i}.bmp", i, format="BMP"),
+        "jpeg_named_png": lambda d, i: _photo(d / f"p{i}.png", i, format="JPEG"),
+        "mixed_formats": lambda d, i: _photo(d / f"p{i}.{('jpg', 'png', 'webp', 'tif')[i]}", i,
+                                             format=("JPEG", "PNG", "WEBP", "TIFF")[i]),
+    }
+    out = []
+    for name, make in makers.items():
+        d = work / "folders" / f"valid_{name}"
+        for i in range(4):
+            make(d, i)
+        out.append({"class": "folders_valid", "args": ["inspect_photos", str(d), *["per_image"] * (name == "mixed_sizes")],
+                    "named": None, "accept": True})
+    d = work / "folders" / "valid_mixed_sizes"  # one camera model for all: refused, naming the photo and the option
+    out.append({"class": "folders_valid", "args": ["process", str(d), "--out", "{out}", "--threads", "1"],
+                "named": "--per-image-cameras"})
+    return out
+
+
+def _hostile_member(d: Path, kind: str) -> Path:
+    """Put a hostile member into the photo folder ``d``; the path the error must name."""
+    good = (d / "p0.jpg").read_bytes()
+    bad = d / "p9.jpg"
+    if kind == "truncated_jpeg":
+        bad.write_bytes(good[: len(good) // 2])
+    elif kind == "truncated_png":
+        _photo(d / "p9.png", 9, format="PNG")
+        bad = d / "p9.png"
+        bad.write_bytes(bad.read_bytes()[:-40])
+    elif kind == "jpeg_bomb":  # a SOF0 frame header claiming 65000 x 65000
+        i = good.index(b"\xff\xc0")
+        bad.write_bytes(good[: i + 5] + struct.pack(">HH", 65000, 65000) + good[i + 9:])
+    elif kind == "link_loop":
+        os.symlink("p8.jpg", bad)
+        os.symlink("p9.jpg", d / "p8.jpg")
+    elif kind == "unreadable":  # reading it fails (EIO), as an unreadable file does for a user without the right
+        os.symlink("/proc/self/mem", bad)
+    elif kind == "heic":
+        bad = d / "p9.heic"
+        bad.write_bytes(b"\x00\x00\x00\x18ftypheic\x00\x00\x00\x00mif1heic" + os.urandom(200))
+    elif kind == "gif_animated":
+        from PIL import Image
+
+        bad = d / "p9.gif"
+        frames = [Image.open(d / f"p{i}.jpg").convert("P") for i in range(2)]
+        frames[0].save(bad, save_all=True, append_images=frames[1:])
+        return bad
+    elif kind == "zero_width_jpeg":
+        i = good.index(b"\xff\xc0")
+        bad.write_bytes(good[: i + 5] + struct.pack(">HH", 30, 0) + good[i + 9:])
+    elif kind == "text_jpg":
+        bad.write_text("a note, not a photo\n")
+    else:
+        raise ValueError(kind)
+    return bad
+
+
+def folder_cases(work: Path) -> list[dict]:
+    """``folders``: photo folders with one hostile member (truncated JPEG / PNG, a JPEG claiming 65000 px sides, a link
+    loop, a file reading fails on, HEIC, an animated GIF, a zero-width JPEG, text named .jpg), a folder linking to
+    itself, an empty one, one photo: `process` and `reconstruct` refuse naming the member, leave nothing."""
+    out = []
+    tiny = ["--threads", "1", "--quiet"]
+    for kind in ("truncated_jpeg", "truncated_png", "jpeg_bomb", "link_loop", "unreadable", "heic", "gif_animated",
+                 "zero_width_jpeg", "text_jpg"):
+        d = work / "folders" / kind
+        for i in range(4):
+            _photo(d / f"p{i}.jpg", i, format="JPEG")
+        bad = _hostile_member(d, kind)
+        named = str(d) if kind == "link_loop" else str(bad)  # either link of the loop
+        out.append({"class": "folders", "args": ["process", str(d), "--out", "{out}", *tiny], "named": named})
+        out.append({"class": "folders", "args": ["reconstruct", str(d), "--out", "{out}", "--threads", "1",
+                                                 "--no-viewer"], "named": named})
+    d = work / "folders" / "dir_loop"
+    for i in range(4):
+        _photo(d / f"p{i}.jpg", i, format="JPEG")
+    os.symlink("..", d / "sub")
+    out.append({"class": "folders", "args": ["process", str(d), "--out", "{out}", *tiny], "named": str(d)})
+    for name, count in (("empty", 0), ("one_photo", 1), ("two_photos", 2)):
+        d = work / "folders" / name
+        d.mkdir(parents=True)
+        for i in range(count):
+            _photo(d / f"p{i}.jpg", i, format="JPEG")
+        for verb in ("process", "reconstruct"):
+            out.append({"class": "folders", "args": [verb, str(d), "--out", "{out}", "--threads", "1"], "named": str(d)})
+    return out
+
+
+def option_cases(p: dict[str, Path], work: Path) -> list[dict]:
+    """``options``: the verbs' newer options given what they cannot use: surfaces and depth sources a scene cannot
+    give, view lists out of range, unknown mesh suffixes, finetune blends and fills without what they need,
+    ``--guided.*`` on a model without depth, ``process --learned`` and ``--masks`` misuse, ``bench --realtime`` with a
+    bad mesh; each refused naming the option or file (or accepted when it is a valid choice)."""
+    S, C, tiny = str(p["scene"]), str(p["ck"]), ["--threads", "1"]
+    mesh = ["mesh", "--scene", S, "--model", "floor", "--out", "{out}.ply", *tiny]
+    out = [{"class": "options", "args": [*mesh, *extra], "named": named} for extra, named in [
+        (["--depth", "oracle"], "--depth"), (["--views", "99"], "--views"), (["--views", "-1"], "--views"),
+        (["--views", "x"], "--views"), (["--views", "0", "0", "0"], "--views"), (["--out", "{out}.xyz"], "{out}.xyz"),
+        (["--shifts", "nan"], "--shifts"), (["--shifts", "1e9"], "--shifts")]]
+    for extra in (["--depth", "model"], ["--num-views", "50", "--views", "all"], ["--out", "{out}.ply", "{out}.ply"],
+                  ["--surface", "poisson"], ["--surface", "poisson", "--fusion", "reference"],
+                  ["--fusion", "reference", "--complete"], ["--surface", "coherent"], ["--surface", "fusion"],
+                  ["--surface", "auto"], ["--surface", "coherent", "--depth", "stereo", "--no-complete"]):
+        out.append({"class": "options", "args": [*mesh, *extra], "named": S, "accept_or_refuse": True})
+    mf = work / "options" / "not_a_mesh.ply"
+    mf.parent.mkdir(parents=True, exist_ok=True)
+    mf.write_text("ply\nformat ascii 1.0\nend_header\n")
+    ft = ["finetune", "--ckpt", C, "--scene", S, "--out", "{out}", "--seconds", "1", *tiny]
+    out += [{"class": "options", "args": [*ft, *extra], "named": named} for extra, named in [
+        (["--views", "99"], "--views"), (["--views", "-3"], "--views"), (["--mesh", str(work / "no_such.ply")],
+        str(work / "no_such.ply")), (["--mesh", str(work)], str(work)), (["--mesh", str(mf)], str(mf)),
+        (["--blend", "angle", "--angle-sources", "--mesh", str(mf)], str(mf)),
+        (["--fill", "nearest", "--mesh", str(mf)], str(mf))]]
+    rnd = ["render", "--scene", S, "--out", "{out}", "--no-video", "--num-views", "3", "--frames", "2", *tiny]
+    out += [{"class": "options", "args": [*rnd, *extra], "named": named, "accept_or_refuse": True} for extra, named in [
+        (["--model", "floor", "--guided.on"], "--guided.on"), (["--ckpt", C, "--keyframes", "99"], "--keyframes"),
+        (["--ckpt", C, "--path", "interp", "--keyframes", "0", "0"], "--keyframes"), (["--ckpt", C, "--guided.on"], S)]]
+    out.append({"class": "options", "args": [*ft, "--val-views", "100"], "named": "--val-views", "accept_or_refuse": True})
+    out.append({"class": "options", "named": S, "args": ["eval", "--model", "floor", "--scenes", S, "--out",
+                                                                      "{out}", "--guided.on", *tiny]})
+    out.append({"class": "options", "named": str(work / "nope"), "args": ["eval", "--ckpt", C, "--scenes", str(work / "nope"),
+                                                                          "--out", "{out}", "--guided.on", *tiny]})
+    ph = str(p["photos"])
+    out += [{"class": "options", "args": ["process", ph, "--out", "{out}", "--threads", "1", *extra], "named": named}
+            for extra, named in [(["--learned", "prefer"], ph), (["--masks", str(work / "no_masks")], str(work / "no_masks")),
+                                 (["--masks", str(p["a_file"])], str(p["a_file"])),
+                                 (["--masks", str(_zero_masks(work, p["photos"]))], str(work / "masks_zero")),
+                                 (["--matcher", "sequential", "--overlap", "0"], "--overlap")]]
+    bn = ["bench", "--ckpt", C, "--quick", "--out", "{out}.json", "--realtime"]
+    out += [{"class": "options", "args": [*bn, *extra], "named": named} for extra, named in [
+        (["--mesh", str(work / "no_such.ply")], str(work / "no_such.ply")), (["--mesh", str(mf)], str(mf)),
+        (["--scene", str(work / "nope")], str(work / "nope")), (["--face-budget", "-5"], "--face-budget")]]
+    return out
+
+
+def _zero_masks(work: Path, photos: Path) -> Path:
+    import numpy as np
+    from PIL import Image
+
+    d = work / "masks_zero"
+    d.mkdir(parents=True, exist_ok=True)
+    for f in sorted(photos.glob("*.png")):
+        w, h = Image.open(f).size
+        Image.fromarray(np.zeros((h, w), np.uint8)).save(d / f.name)
+    return d
+
+
+def _partial_setup(kind: str):
+    """What ``OUT.partial`` (and a folder of the user's beside it) holds before the run: the paths to keep intact."""
+    def setup(out: Path) -> list[Path]:
+        part, user = out.parent / f"{out.name}.partial", out.parent / f"{out.name}_mine"
+        user.mkdir()
+        (user / "notes.txt").write_text("the user's\n")
+        if kind == "user_folder":
+            part.mkdir()
+            (part / "notes.txt").write_text("the user's\n")
+            return [part, user]
+        if kind == "a_file":
+            part.write_text("the user's\n")
+            return [part, user]
+        if kind == "link_to_user":
+            os.symlink(user, part)
+            return [part, user]
+        if kind == "link_inside":  # the tool's own work folder, its record folder a link to the user's folder
+            part.mkdir()
+            os.symlink(user, part / ".omnirecon-partial")
+            return [part, user]
+        (part / ".omnirecon-partial").mkdir(parents=True)
+        (part / ".omnirecon-partial" / "stages.json").write_text(
+            {"garbage": "{{{", "deep": "[" * 50_000 + "]" * 50_000, "list": '{"stages": [1, 2]}'}[kind])
+        (part / "scene").mkdir()
+        return [user]
+    return setup
+
+
+def resume_cases(p: dict[str, Path], work: Path) -> list[dict]:
+    """``resume``: `reconstruct`'s work folder ``OUT.partial`` as a user or a crash leaves it: the user's own folder of
+    that name, a file of that name, a link to the user's folder (or a record folder linking there), a kept record that
+    is garbage (the run starts over and finishes), with ``--resume`` and ``--no-resume``. No file of the user's lost."""
+    from omnirecon.data.synth.generate import SynthOptions, generate_scene
+
+    scene = generate_scene(work / "resume_scene", 0, SynthOptions(rig="object", views=8, resolution=32))
+    rec = ["reconstruct", str(scene), "--out", "{out}", "--threads", "1", "--no-viewer", "--resolution", "32",
+           "--mesh-resolution", "32", "--finetune-seconds", "0", "--frames", "2"]
+    out = []
+    for kind in ("user_folder", "a_file", "link_to_user", "link_inside", "garbage", "deep", "list"):
+        for flag in ("--resume", "--no-resume"):
+            refused = kind in ("user_folder", "a_file", "link_to_user")
+            out.append({"class": "resume", "args": [*rec, flag], "setup": _partial_setup(kind),
+                        "named": "{out}.partial" if refused or kind == "link_inside" else None,
+                        "accept": not refused and kind != "link_inside", "accept_or_refuse": kind == "link_inside"})
+    return out
+
+
 # ---------------------------------------------------------------------------- running
 def _tree(root: Path) -> dict[str, tuple]:
     out = {}
@@ -383,6 +723,16 @@ def _tree(root: Path) -> dict[str, tuple]:
             # a folder's own time changes with a lock file made and removed in it: its entries are compared
             out[str(q.relative_to(root))] = (st.st_mode, st.st_size, 0 if stat.S_ISDIR(st.st_mode) else st.st_mtime_ns)
     return out
+
+
+def _state(path: Path):
+    """What a user's file, link or folder (its entries) is, for a before/after comparison (None: gone)."""
+    if not path.exists() and not path.is_symlink():
+        return None
+    if path.is_dir() and not path.is_symlink():
+        return _tree(path)
+    st = os.lstat(path)
+    return st.st_mode, st.st_size, st.st_mtime_ns, os.readlink(path) if path.is_symlink() else None
 
 
 def _child(argv: list[str], cwd: Path, err: Path, limit: int) -> None:
@@ -398,10 +748,21 @@ def _child(argv: list[str], cwd: Path, err: Path, limit: int) -> None:
     try:
         if argv[0] == "inspect_photos":  # valid unusual photos: stage them as process does (COLMAP not run)
             from omnirecon.capture.images import stage_images
-            stage_images(Path(argv[1]), cwd / "staged")
+            stage_images(Path(argv[1]), cwd / "staged", shared_camera=argv[2:] != ["per_image"])
             import shutil
             shutil.rmtree(cwd / "staged")
             rc = 0
+        elif argv[0] == "probe_video":  # a valid clip: sampled as process samples it, upright, at its shown size
+            from PIL import Image
+
+            from omnirecon.capture.video import sample_frames
+
+            names = sample_frames(Path(argv[1]), cwd / "staged", fps=4)
+            size = Image.open(cwd / "staged" / names[0]).size
+            import shutil
+            shutil.rmtree(cwd / "staged")
+            rc = 0 if size == (int(argv[2]), int(argv[3])) and len(names) >= 10 else 3
+            print(f"{len(names)} frames of {size[0]}x{size[1]}", file=sys.stderr)
         elif argv[0].startswith("http_"):
             rc = _http_case(argv)
         else:
@@ -457,6 +818,65 @@ def stalled_then_get(port: int, stalled: int, timeout: float = 1.0) -> tuple[int
             s.close()
 
 
+H = "Host: 127.0.0.1\r\n"
+BAD_REQUESTS = {
+    "big_header": f"GET /index.html HTTP/1.0\r\n{H}X-Big: {'a' * 70_000}\r\n\r\n",
+    "many_headers": "GET /index.html HTTP/1.0\r\n" + H + "".join(f"X-{i}: v\r\n" for i in range(300)) + "\r\n",
+    "long_line": f"GET /{'a' * 70_000} HTTP/1.0\r\n{H}\r\n", "garbage": "\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03\r\n\r\n",
+    "http09": "GET /index.html\r\n\r\n", "post_huge": f"POST /index.html HTTP/1.0\r\n{H}Content-Length: 10000000000\r\n\r\n",
+    "bad_version": f"GET /index.html HTTP/9.9\r\n{H}\r\n", "no_colon": "GET /index.html HTTP/1.0\r\nHost 127.0.0.1\r\n\r\n",
+    "nul_path": f"GET /index.html%00.png HTTP/1.0\r\n{H}\r\n", "dotdot": f"GET /../../../../etc/passwd HTTP/1.0\r\n{H}\r\n",
+    "dotdot_encoded": f"GET /%2e%2e/%2e%2e/%2e%2e/etc/passwd HTTP/1.0\r\n{H}\r\n",
+    "slash_encoded": f"GET /..%2f..%2f..%2fetc%2fpasswd HTTP/1.0\r\n{H}\r\n", "double_slash": f"GET //etc/passwd HTTP/1.0\r\n{H}\r\n",
+    "absolute": f"GET http://127.0.0.1/../etc/passwd HTTP/1.0\r\n{H}\r\n", "bad_utf8": f"GET /%ff%fe HTTP/1.0\r\n{H}\r\n",
+    "connect": f"CONNECT 127.0.0.1:22 HTTP/1.1\r\n{H}\r\n", "trace": f"TRACE / HTTP/1.1\r\n{H}\r\n",
+    "long_host": f"GET /index.html HTTP/1.0\r\nHost: {'a' * 60_000}\r\n\r\n", "bare_lf": "GET /index.html HTTP/1.0\nHost: 127.0.0.1\n\n",
+    "pipelined": f"GET /index.html HTTP/1.1\r\n{H}\r\nGET /big.bin HTTP/1.1\r\n{H}\r\n",
+    "range_bad": f"GET /big.bin HTTP/1.1\r\n{H}Range: bytes=999999999-1\r\nConnection: close\r\n\r\n",
+}
+"""Requests a hostile client sends the viewer: each gets an answer that serves nothing outside the folder (or the
+connection is closed), and the server then answers a normal GET within 1 s."""
+
+
+def _raw_answer(port: int, raw: bytes) -> bytes:
+    """What the server sends back to ``raw`` (the client half-closes after sending; b"" when it closes first)."""
+    import socket
+
+    data = b""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+        try:
+            s.sendall(raw)
+            s.shutdown(socket.SHUT_WR)
+            while chunk := s.recv(65536):
+                data += chunk
+        except OSError:  # reset by the server (a request it refused while still sending)
+            pass
+    return data
+
+
+def _clients(port: int, kind: str, n: int) -> list:
+    """``n`` hostile connections: ``http_trickle`` sends a request a byte at a time (slowloris), ``http_slow_readers``
+    requests the 16 MB file and never reads, ``http_silent`` connects and sends nothing."""
+    import socket
+
+    held = []
+    for _ in range(n):
+        s = socket.create_connection(("127.0.0.1", port), timeout=10)
+        if kind == "http_slow_readers":
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            s.sendall(f"GET /big.bin HTTP/1.0\r\n{H}\r\n".encode())
+        elif kind == "http_trickle":
+            s.sendall(b"G")
+        held.append(s)
+    if kind == "http_trickle":
+        for byte in b"ET /index.html HTTP/1.0\r\nX-":
+            time.sleep(0.05)
+            for s in held:
+                s.sendall(bytes([byte]))
+    time.sleep(0.3)
+    return held
+
+
 def _http_case(argv: list[str]) -> int:
     """0 when the viewer answers as it must: 400 for several Host headers; quiet and alive after disconnects."""
     import socket
@@ -475,6 +895,22 @@ def _http_case(argv: list[str]) -> int:
     try:
         if argv[0] == "http_stalled":  # the stalled connections must not keep a normal request waiting
             status, seconds = stalled_then_get(port, int(argv[1]), timeout=1.0)
+            print(f"GET answered {status} in {seconds:.3f} s beside {argv[1]} stalled connections", file=sys.stderr)
+            return 0 if status == 200 and seconds <= 1.0 else 3
+        if argv[0] == "http_raw":  # a bad request: no file outside the folder, and the server goes on
+            answer = _raw_answer(port, BAD_REQUESTS[argv[1]].encode("latin-1"))
+            status = answer.split(b" ", 2)[1].decode() if answer.startswith(b"HTTP/") else "closed"
+            print(f"answered {status}", file=sys.stderr)
+            leaked = b"root:" in answer or (status == "200" and argv[1] not in ("bare_lf", "pipelined", "range_bad"))
+            return 3 if leaked or get(b"GET /index.html HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n") != 200 else 0
+        if argv[0] in ("http_trickle", "http_slow_readers", "http_silent"):
+            held = _clients(port, argv[0], int(argv[1]))
+            try:
+                status, seconds = stalled_then_get(port, 0, timeout=1.0)
+            finally:
+                for s in held:
+                    s.close()
+            print(f"GET answered {status} in {seconds:.3f} s beside {argv[1]} {argv[0][5:]} connections", file=sys.stderr)
             return 0 if status == 200 and seconds <= 1.0 else 3
         if argv[0] == "http_hosts":
             head = "GET /index.html HTTP/1.1\r\n" + "".join(f"Host: {h}\r\n" for h in argv[1:]) + "Connection: close\r\n\r\n"
@@ -498,6 +934,9 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
     cwd = Path(tempfile.mkdtemp(prefix="cwd_", dir=work))
     out = cwd.parent / (cwd.name + "_out")
     argv = [a.replace("{out}", str(out)) for a in case["args"]]
+    named = case["named"].replace("{out}", str(out)) if case["named"] else None
+    users = case["setup"](out) if case.get("setup") else []  # what the user (or a crash) left at OUT before the run
+    users_before = [_state(u) for u in users]
     err = work / "stderr.txt"
     before = _tree(p["root"])
     t0 = time.perf_counter()
@@ -519,9 +958,10 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
     text = err.read_text(errors="replace") if err.exists() else ""
     lines = [ln for ln in text.strip().splitlines() if ln.strip()]
     rc = os.waitstatus_to_exitcode(status) if verdict is None else None
-    changed = _tree(p["root"]) != before
+    changed = _tree(p["root"]) != before or [_state(u) for u in users] != users_before
     kept = "rerun the same command to continue" in text  # reconstruct keeps its finished stages in OUT.partial, and says so
-    leftovers = [str(q) for q in cwd.parent.glob(out.name + "*") if not (kept and q.name == f"{out.name}.partial")] + \
+    leftovers = [str(q) for q in cwd.parent.glob(out.name + "*") if not (kept and q.name == f"{out.name}.partial")
+                 and q not in users] + \
         [str(q) for q in cwd.rglob("*")]
     if verdict is None:
         if rc is not None and rc < 0:
@@ -530,10 +970,10 @@ def run_case(case: dict, p: dict[str, Path], work: Path, limit: int) -> dict:
             verdict = "memory"
         elif changed:
             verdict = "data_changed"
-        elif case.get("accept") or case["class"] == "viewer":
+        elif case.get("accept") or case["class"] == "viewer" or (case.get("accept_or_refuse") and rc == 0):
             verdict = "handled" if rc == 0 and "Traceback" not in text else "not_handled"
         elif (rc == 2 and len(lines) == 1 and lines[0].startswith("omnirecon: error: ") and "(fix: " in lines[0]
-              and "Traceback" not in text and not leftovers and case["named"] in lines[0]):
+              and "Traceback" not in text and not leftovers and named in lines[0]):
             verdict = "handled"
         else:
             verdict = "not_handled"
@@ -554,7 +994,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=HERE / "results" / "hostile.json")
     parser.add_argument("--limit", type=int, default=None, help="run only the first N cases (a quick look)")
-    parser.add_argument("--only", default=None, help="only cases of this class")
+    parser.add_argument("--only", default=None, help="only cases of these classes (comma-separated)")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     import torch
@@ -572,7 +1012,7 @@ def main(argv: list[str] | None = None) -> dict:
     p = build(work / "fx")
     todo = cases(p, work / "fx" / "cases")
     if args.only:
-        todo = [c for c in todo if c["class"] == args.only]
+        todo = [c for c in todo if c["class"] in args.only.split(",")]
     todo = todo[: args.limit] if args.limit else todo
     limit = _vm_bytes() + EXTRA_MEMORY
     t0 = time.perf_counter()

@@ -540,7 +540,7 @@ def kept_stages(work: Path) -> list[str]:
     """The stages a resumable run recorded as finished in ``work`` (none when there is no record)."""
     try:
         stages = json.loads((Path(work) / PARTIAL / "stages.json").read_text()).get("stages", {})
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         return []
     return list(stages) if isinstance(stages, dict) else []
 
@@ -549,9 +549,9 @@ def _resumable(out: Path, command: str, replaced: str | None, flag: str):
     """``claim(mode="resume")``'s work folder: reused when a run left it, kept after a failure when a stage finished
     in it, else removed; when the block succeeds, its resume record goes and it is swapped in at ``out``."""
     work = partial_folder(out)
-    if work.is_symlink() or (work.exists() and not work.is_dir()):
-        raise InputError(f"{flag}'s work folder {work.name} exists and is not a folder", work,
-                         f"move it away, or choose another {flag}")
+    if work.is_symlink() or (work.exists() and not work.is_dir()) or (work / PARTIAL).is_symlink():
+        raise InputError(f"{flag}'s work folder {work.name} exists and is not a folder (or its {PARTIAL} is a link)",
+                         work, f"move it away, or choose another {flag}")
     if work.is_dir() and any(work.iterdir()) and not (work / PARTIAL).is_dir() and read_marker(work) is None:
         raise InputError(f"{flag}'s work folder holds files this tool did not write (no {PARTIAL}): it is never "
                          "replaced", work, f"move it away, or choose another {flag}")

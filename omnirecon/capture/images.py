@@ -153,6 +153,9 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 
         if m.size != staged.sizes[name]:
             raise InputError(f"mask is {m.size[0]}x{m.size[1]} but its photo is "
                              f"{staged.sizes[name][0]}x{staged.sizes[name][1]}", src, "give masks at the photos' size")
+        if m.getextrema()[1] == 0:  # SfM would find no feature in the photo: not a reason to take more photos
+            raise InputError("the mask is all black: no pixel of its photo may be matched", src,
+                             "make the masks white (non-zero) where the subject is, black only where to ignore")
         read[name] = m
         m = m.point(lambda v: 255 if v > 0 else 0)
         if dilate > 0:
@@ -164,3 +167,19 @@ def stage_masks(mask_dir: Path, staged: StagedImages, dest: Path, dilate: int = 
         for name, m in read.items():
             m.point(lambda v: 255 if v > cut else 0).save(objects / f"{name}.png")
     return dest
+
+
+MIN_SIDE = 16
+"""Shortest side (pixels) of a photo or a video's frame given to SfM: pycolmap's feature extraction crashed the process
+on 1-, 4- and 8-pixel photos instead of failing."""
+
+
+def check_sizes(staged: StagedImages, video: Path | None = None) -> None:
+    """Refuse a photo (or a video's frames: ``video`` is named) with a side under :data:`MIN_SIDE` pixels."""
+    for name in staged.names:
+        w, h = staged.sizes[name]
+        if min(w, h) < MIN_SIDE:
+            raise InputError(f"{'frames are' if video else 'photo is'} {w}x{h} pixels, too small to match (SfM needs "
+                             f"at least {MIN_SIDE} px a side)", video or staged.sources[name],
+                             "record the clip at a larger frame size (hundreds of pixels a side)" if video else
+                             f"use photos at least {MIN_SIDE}x{MIN_SIDE} pixels (better hundreds)")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import shutil
 import signal
 import time
@@ -29,16 +30,12 @@ from dataclasses import asdict
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
-from omnirecon.capture.images import VIDEO_EXTS, StagedImages, count_files, stage_images, stage_masks
+from omnirecon.capture.images import MIN_SIDE, VIDEO_EXTS, check_sizes, count_files, stage_images, stage_masks
 from omnirecon.capture.video import clip_rate
 from omnirecon.capture.video_sfm import video_sfm
 from omnirecon.data.photo import regular_file
 from omnirecon.errors import InputError
 from omnirecon.outputs import claim
-
-MIN_SIDE = 16
-"""Shortest side (pixels) of a photo given to SfM: pycolmap's feature extraction crashed the process on
-1-, 4- and 8-pixel photos instead of failing."""
 
 
 def process(source: Path, out: Path, options: SfmOptions | None = None, fps: float = 2.0, max_frames: int = 300,
@@ -112,25 +109,19 @@ def sample_rate(video: Path, fps: float, say=print) -> float:
     """The rate to sample ``video`` at for ``--fps fps``: at most the clip's own frame rate (above it ffmpeg
     repeats frames; ``say`` is told), and refused when it samples less than one frame of the clip."""
     rate, seconds = clip_rate(video)
+    frames = round(rate * seconds) if rate and seconds else None
+    if frames is not None and frames < 3:  # no --fps gives the 3 views a pose needs
+        raise InputError(f"the clip holds {frames} frame{'s' * (frames != 1)} ({seconds:.2g} s): too short to pose",
+                         video, "record a clip of several seconds, walking slowly around the subject")
     if seconds is not None and fps * seconds < 1:
         raise InputError(f"--fps {fps:g} samples no frame from a {seconds:.1f} s clip", None,
-                         f"use --fps of at least {1 / seconds:.3g}, e.g. --fps {min(2.0, rate or 2.0):g}")
+                         f"use --fps of at least {1 / seconds:.3g}, e.g. --fps {min(rate or 1e9, max(2.0, 3 / seconds)):.3g}")
     if rate is not None and fps > rate:
         if say is not None:
             say(f"note: --fps {fps:g} is above the clip's own {rate:g} frames per second: sampling every frame "
                 f"({rate:g} per second) instead of repeating frames")
         return rate
     return fps
-
-
-def check_sizes(staged: StagedImages, video: Path | None = None) -> None:
-    """Refuse a photo (or a video's frames: ``video`` is named) with a side under :data:`MIN_SIDE` pixels."""
-    for name in staged.names:
-        w, h = staged.sizes[name]
-        if min(w, h) < MIN_SIDE:
-            raise InputError(f"{'frames are' if video else 'photo is'} {w}x{h} pixels, too small to match (SfM needs "
-                             f"at least {MIN_SIDE} px a side)", video or staged.sources[name],
-                             f"use photos at least {MIN_SIDE}x{MIN_SIDE} pixels (better hundreds)")
 
 
 def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
@@ -142,7 +133,6 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
     with Stages(quiet) as stages:
         if video is not None:
             result, staged, passes, kept = video_sfm(source, work, options, video[0], video[1], stages, mask_dir)
-            check_sizes(staged, source)
             folder, objects = staged.folder, None if mask_dir is None else kept / "objects"
             video = {"passes": passes, "rotated": staged.rotated}
         else:
@@ -151,7 +141,21 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
     return result.stats(), info, dict(stages.seconds), video
 
 
-def _sfm_child(conn, args: tuple) -> None:
+def _die_with(parent: int) -> None:
+    """End this process when ``parent`` ends, even by SIGKILL (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing):
+    a killed command leaves no SfM child writing into its work folder."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+
+def _sfm_child(conn, args: tuple, parent: int) -> None:
+    _die_with(parent)
     try:
         out = ("done", _sfm(args))
     except InputError as e:
@@ -170,7 +174,7 @@ def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict, dict | No
     carrying the child's traceback."""
     ctx = multiprocessing.get_context("spawn")
     receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_sfm_child, args=(send, args), name="omnirecon-sfm", daemon=True)
+    child = ctx.Process(target=_sfm_child, args=(send, args, os.getpid()), name="omnirecon-sfm", daemon=True)
     child.start()
     send.close()
     try:

@@ -10,6 +10,7 @@ that are further than ``skip`` frames away.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,9 @@ def word_histograms(descriptors: list[np.ndarray], words: int = WORDS, seed: int
     every = np.concatenate([d for d in descriptors if len(d)] or [np.zeros((1, 128), np.float32)])  # [D, 128]
     sample = every[rng.choice(len(every), min(SAMPLE, len(every)), replace=False)]
     words = max(1, min(words, len(sample) // 4))
-    centres, _ = kmeans2(sample, words, iter=10, minit="points", seed=seed)  # [words, 128]; "++" costs O(words^2 n)
+    with warnings.catch_warnings():  # a word no descriptor falls in (few, alike frames) is harmless: never counted
+        warnings.filterwarnings("ignore", "One of the clusters is empty", UserWarning)
+        centres, _ = kmeans2(sample, words, iter=10, minit="points", seed=seed)  # [words, 128]; "++": O(words^2 n)
     hist = np.zeros((len(descriptors), words), np.float64)
     for i, d in enumerate(descriptors):
         if len(d):

@@ -14,8 +14,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import SfmOptions, SfmResult, Stages, needed, run_sfm
-from omnirecon.capture.images import StagedImages, stage_images, stage_masks
-from omnirecon.capture.video import sample_frames, video_duration
+from omnirecon.capture.images import StagedImages, check_sizes, stage_images, stage_masks
+from omnirecon.capture.video import clip_rate, sample_frames
 from omnirecon.errors import InputError
 
 DENSER = 3.0
@@ -31,8 +31,13 @@ def video_pass(source: Path, work: Path, options: SfmOptions, fps: float, max_fr
     ``work/objects``); returns the result (None when no model came out), the staged frames and a record."""
     suffix = "" if work.name == "pass0" else f" ({fps:g} fps)"
     with stages.stage(f"frames{suffix}", None) as advance:
-        sample_frames(source, work / "frames_raw", fps, max_frames, on_frame=lambda i, expected: advance(1, expected))
+        names = sample_frames(source, work / "frames_raw", fps, max_frames, on_frame=lambda i, e: advance(1, e))
+    if len(names) < 3:  # a frames folder is no photo folder: say it in the clip's terms
+        raise InputError(f"--fps {fps:g} samples {len(names)} frame{'s' * (len(names) != 1)} of the clip; structure "
+                         "from motion needs at least 3", source, "raise --fps, or record a longer clip walking "
+                         "slowly around the subject")
     staged = stage_images(work / "frames_raw", work / "input", min_images=3, shared_camera=True)
+    check_sizes(staged, source)  # before SfM: frames too small crash it
     mask_dir = None if masks is None else stage_masks(masks, staged, work / "masks", options.mask_dilate,
                                                       objects=work / "objects")
     record = {"fps": round(fps, 4), "frames": len(staged.names), "loop_pairs": options.loop_pairs, "registered": 0}
@@ -52,9 +57,11 @@ def video_sfm(source: Path, work: Path, options: SfmOptions, fps: float, max_fra
     :func:`video_pass`); returns the kept pass's result, frames, the record of every pass and the kept
     pass's folder (its ``objects/``: the staged object masks). Raises :class:`InputError` naming what was tried
     when neither pass registers :attr:`SfmOptions.min_registered` of its frames."""
-    duration = video_duration(source)
-    dense = fps * DENSER if duration is None else min(fps * DENSER, max_frames / duration)
+    rate, duration = clip_rate(source)
+    dense = min(fps * DENSER, max_frames / duration if duration else fps * DENSER, rate or fps * DENSER)
     more = dense > 1.2 * fps  # room for a denser pass: the first one uses SIFT alone (more frames cost less)
+    limit = "every frame of the clip was sampled" if rate and dense >= rate else \
+        f"--max-frames {max_frames} leaves no room to sample more densely"
     result, staged, first = video_pass(source, work / "pass0", replace(options, learned="off") if more else options,
                                        fps, max_frames, stages, masks)
     passes = [first]
@@ -66,14 +73,15 @@ def video_sfm(source: Path, work: Path, options: SfmOptions, fps: float, max_fra
         passes.append(second)
         if second["registered"] >= needed(options.min_registered, second["frames"]):
             return result, staged, passes, work / "pass1"
-    raise InputError(failure(passes, options.min_registered, max_frames), source,
+    raise InputError(failure(passes, options.min_registered, limit), source,
                      "walk more slowly around the subject and keep it in view, add light (blur and noise leave too "
-                     "few features), or sample more frames with --fps (up to --max-frames); lower --min-registered "
-                     "to accept a partial model")
+                     "few features), or " + ("record at a higher frame rate" if limit.startswith("every") else
+                     "sample more frames with --fps (up to --max-frames)") + "; lower --min-registered to accept a "
+                     "partial model")
 
 
-def failure(passes: list[dict], min_registered: float, max_frames: int) -> str:
-    """What the video passes tried and got, in one line."""
+def failure(passes: list[dict], min_registered: float, limit: str) -> str:
+    """What the video passes tried and got, in one line (``limit``: why there was no denser pass)."""
     first = passes[0]
     text = (f"only {first['registered']} of {first['frames']} video frames registered at {first['fps']:g} fps "
             f"(need {needed(min_registered, first['frames'])})")
@@ -82,5 +90,5 @@ def failure(passes: list[dict], min_registered: float, max_frames: int) -> str:
         text += (f"; sampled again at {p['fps']:g} fps and matched in sequence with loop detection: "
                  f"{p['registered']} of {p['frames']} (need {needed(min_registered, p['frames'])})")
     else:
-        text += f"; --max-frames {max_frames} leaves no room to sample more densely"
+        text += f"; {limit}"
     return text

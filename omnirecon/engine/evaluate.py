@@ -172,6 +172,9 @@ def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tu
     """One job per (scene, K) that can run, and one result record per scene (skips noted there)."""
     jobs, records = [], []
     for es in scenes:
+        if min(es.scene.width, es.scene.height) < metrics.SSIM_WINDOW:  # scored with SSIM's window: no smaller
+            raise InputError(f"images are {es.scene.width}x{es.scene.height} px, smaller than SSIM's "
+                             f"{metrics.SSIM_WINDOW} px window", es.path, "evaluate a scene with larger images")
         targets, pool = targets_and_pool(es.protocol, es.scene, max_targets)
         rec = {"name": es.name, "path": None if es.path is None else str(es.path), "protocol": es.protocol.name,
                "rig": es.scene.rig, "resolution": [es.scene.width, es.scene.height], "targets": targets,

@@ -26,6 +26,7 @@ from omnirecon.engine.views import check_views, default_views, held_out_views
 from omnirecon.errors import InputError
 from omnirecon.mesh import geometry
 from omnirecon.mesh.build import PRESETS, MeshOptions, default_depth, default_surface, mesh_from_model
+from omnirecon.mesh.confidence import NoDepth
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
 from omnirecon.options import Overwrites, SceneInput, SourceViews, check_options
 from omnirecon.outputs import remove_written
@@ -137,7 +138,11 @@ def run_mesh(cfg: MeshConfig) -> dict:
     if outs is None:
         outs = [Path("outputs/mesh") / f"{Path(cfg.scene).name}_{info['name']}.ply"]
     with progress_bar(transient=False) as bar:
-        made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+        try:
+            made = mesh_from_model(net, scene, views, options, device, cfg.masks, bar)
+        except NoDepth as e:
+            e.path = Path(cfg.scene)  # the line names the scene whose views gave no depth
+            raise
     if len(made.mesh.faces) == 0:
         raise InputError("the mesh is empty: no fused surface survived (see the depth maps and masks)", cfg.scene,
                          "try a trained checkpoint, more --views, --no-masks or a larger --voxel")

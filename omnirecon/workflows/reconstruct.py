@@ -158,6 +158,8 @@ def stage_error(cfg: ReconstructConfig, e: InputError, stages: Stages) -> InputE
     video = bool(processed and processed.get("kind") == "video")
     more = ("walk slower around the subject or raise --fps (more frames that overlap)" if video else
             "photograph textured surfaces, each photo overlapping its neighbours by more than half")
+    if stages.current != "mesh":  # a process stage's error is about the photos: as it is (PATH is no scene yet)
+        return e
     side = cfg.mesh_resolution or photo_side(stages.work / "scene" if processed else Path(cfg.path))
     if isinstance(e, NoDepth):
         if e.lost == "source":

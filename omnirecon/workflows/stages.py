@@ -66,8 +66,9 @@ class Stages:
     def _load(self, resume: bool, say) -> dict[str, dict]:
         try:
             old = json.loads((self.folder / "stages.json").read_text()).get("stages", {})
-        except (OSError, ValueError, AttributeError):
+        except (OSError, ValueError, AttributeError, RecursionError):  # garbage (deep JSON): nothing kept
             old = {}
+        old = old if isinstance(old, dict) else {}
         kept, changed = {}, []
         for name, depends in self.depends.items():
             record = old.get(name) if resume else None

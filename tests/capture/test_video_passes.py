@@ -78,8 +78,9 @@ def test_video_failure_names_what_was_tried(capsys, tmp_path):
     noise = tmp_path / "noise.mp4"
     write_clip(noise, [rng.integers(0, 256, (128, 128, 3), dtype=np.uint8) for _ in range(6)], 2)
     err = refused(capsys, tmp_path, noise, "--fps", 1)
-    assert "video frames registered at 1 fps" in err and "sampled again at 3 fps" in err, err
-    assert "loop detection" in err and "walk more slowly" in err and "light" in err and "--fps" in err, err
+    assert "video frames registered at 1 fps" in err and "sampled again at 2 fps" in err, err  # the clip's own rate
+    assert "loop detection" in err and "walk more slowly" in err and "light" in err, err
+    assert "record at a higher frame rate" in err and "--fps (up to" not in err, err  # every frame was sampled
     assert "add photos" not in err
     err = refused(capsys, tmp_path, noise, "--fps", 1, "--max-frames", 3)  # 3 s: no room for more frames
     assert "--max-frames 3 leaves no room" in err, err

@@ -122,12 +122,17 @@ def test_client_disconnect_mid_response_is_quiet(tmp_path, capfd):
     assert "Traceback" not in err and "Error" not in err, err
 
 
-def test_stalled_connections_hold_bounded_threads_and_never_starve_a_request(tmp_path):
-    """300 connections that send a request line and never finish their headers: the server keeps at most
-    MAX_CONNECTIONS of them (a thread each), and a normal GET from another client is answered at once."""
+def test_stalled_connections_hold_no_thread_and_never_starve_a_request(tmp_path):
+    """1,000 connections that send a request line and never finish their headers: no thread is started for them (one
+    reader thread holds them all), and a normal GET from another client is answered."""
+    import resource
     import threading
     import time
 
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if min(hard, 4096) < 2300:
+        pytest.skip("needs 2,300 file descriptors (both ends of 1,000 connections in this process)")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (max(soft, min(hard, 4096)), hard))
     root = tmp_path / "bundle"
     root.mkdir()
     (root / "index.html").write_text("<p>viewer</p>")
@@ -137,13 +142,43 @@ def test_stalled_connections_hold_bounded_threads_and_never_starve_a_request(tmp
     port = server.server_address[1]
     held = []
     try:
-        for _ in range(300):
+        for _ in range(1000):
             held.append(socket.create_connection(("127.0.0.1", port), timeout=5))
             held[-1].sendall(b"GET /index.html HTTP/1.1\r\n")
         time.sleep(0.5)
-        assert threading.active_count() - threads <= MAX_CONNECTIONS + 1
+        assert threading.active_count() == threads and len(server.reader.waiting) == 1000
         assert raw_get(port, "/index.html") == (200, b"<p>viewer</p>")
         assert stalled_then_get(port, 100, timeout=5.0)[0] == 200
+    finally:
+        for s in held:
+            s.close()
+        server.stop()
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+
+def test_clients_that_never_read_a_large_file_give_way_to_a_new_request(tmp_path):
+    """MAX_CONNECTIONS + 16 clients request a 16 MB file and never read it (every serving slot held): a normal GET
+    takes the place of one that has read nothing for STUCK seconds and is answered, not refused with 503."""
+    import time
+
+    from omnirecon.viewer.server import STUCK
+
+    root = tmp_path / "bundle"
+    root.mkdir()
+    (root / "index.html").write_text("<p>viewer</p>")
+    (root / "big.bin").write_bytes(os.urandom(16 * 2**20))
+    server = ViewerServer(root, port=0, quiet=True)
+    server.start()
+    port = server.server_address[1]
+    held = []
+    try:
+        for _ in range(MAX_CONNECTIONS + 16):
+            s = socket.create_connection(("127.0.0.1", port), timeout=5)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            s.sendall(b"GET /big.bin HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n")
+            held.append(s)
+        time.sleep(STUCK + 0.3)
+        assert raw_get(port, "/index.html") == (200, b"<p>viewer</p>")
     finally:
         for s in held:
             s.close()
