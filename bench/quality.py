@@ -27,7 +27,7 @@ from omnirecon.data.io import write_json
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 REAL = ["neus_dtu/dtu_scan24", "neus_dtu/dtu_scan37", "llff/fern", "instant_ngp/fox", "blender/lego"]
-SETS = {"cpu": ("cpu",), "cpu256": ("cpu256", "cpu256-extrapolation")}
+SETS = {"cpu": ("cpu",), "cpu256": ("cpu256", "cpu256-extrapolation"), "cpu256-extrapolation": ("cpu256-extrapolation",)}
 """``--protocol-set`` -> the protocol sets it scores (one results file each)."""
 
 
@@ -84,7 +84,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--protocol-set", choices=list(SETS), default="cpu",
                    help="cpu: 64-px long side, procedural and real scenes; cpu256: the real scenes at a 256-px long "
-                        "side, under their protocols and on the extrapolation split's test views")
+                        "side, under their protocols and on the extrapolation split's test views; "
+                        "cpu256-extrapolation: only the latter")
     p.add_argument("--guided", action="store_true", help="render the targets surface-guided (--guided.on)")
     p.add_argument("--ks", type=int, nargs="+", default=None, help="source-view counts (default: 3 and 10)")
     p.add_argument("--scenes", nargs="+", default=None, help="only these real scenes (fern, dtu_scan24, ...)")

@@ -138,7 +138,7 @@ def at_256(results: Path, rows64: dict) -> list[str]:
             r256, f256 = rows[m].get(n, {}).get("3"), rows.get("floor", {}).get(n, {}).get("3")
             cells += [_cell(r64, f64), _cell(r256, f256)]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
-    return out + [""] + goals_256(rows, names) + guided_256(results) + [
+    return out + [""] + goals_256(rows, names) + guided_256(results) + cost_256(results) + [
         f"{m} (256 px): " + prov(rows[m]["_prov"]) for m in models] + [""]
 
 
@@ -192,3 +192,23 @@ def guided_256(results: Path) -> list[str]:
         a, g = full[m][n]["3"]["psnr"], guided[m][n]["3"]["psnr"]
         out.append(f"| {m} | {n} | {a:.2f} | {g:.2f} | {g - a:+.2f} |")
     return out + [""]
+
+
+def cost_256(results: Path) -> list[str]:
+    """Process CPU-seconds of one 256-px target (encode + render, one thread) per model and sampling."""
+    out = []
+    for m in QUALITY_MODELS:
+        for tag, how in (("", "full sampling"), ("_guided", "surface-guided")):
+            views = []
+            for pset in ("cpu256", "cpu256-extrapolation"):
+                f = results / f"quality_{pset}{tag}_{m}.json"
+                scenes = json.loads(f.read_text())["scenes"] if f.is_file() else []
+                views += [v for sc in scenes for x in sc["settings"].values() for v in x["views"]]
+            if views:
+                cpu = [v["cpu_seconds"] for v in views]
+                out.append(f"| {m} | {how} | {len(cpu)} | {sum(cpu) / len(cpu):.1f} | {min(cpu):.1f}-{max(cpu):.1f} |")
+    if not out:
+        return []
+    return ["**Cost of one 256-px target** (process CPU-seconds, encode + render, one thread, on the shared 2-core "
+            "machine at the load in the provenance lines: compare within a column only):", "",
+            "| model | sampling | targets | mean CPU-s | range |", "|---|---|---|---|---|", *out, ""]

@@ -1,6 +1,6 @@
 """The novel-view quality section of BENCHMARKS.md reads only its results JSON: the 64-px (``cpu``) tables, and
 beside them the 256-px sets (``cpu256`` and ``cpu256-extrapolation``) against the floor, issue 47's goals and the PSNR
-cost of surface-guided rendering."""
+cost of surface-guided rendering and the CPU-seconds of one 256-px view."""
 
 import json
 
@@ -9,7 +9,8 @@ def _result(protocol_set: str, model: str, rows: dict, guided: bool = False) -> 
     from omnirecon.provenance import provenance
 
     scenes = [{"name": n, "protocol": "dtu" if n.startswith("dtu") else "llff",
-               "settings": {"3": {"mean": m}}} for n, m in rows.items()]
+               "settings": {"3": {"mean": m, "views": [{"cpu_seconds": 8.0 if guided else 12.0}]}}}
+              for n, m in rows.items()]
     return {"provenance": provenance(seed=0), "protocol_set": protocol_set, "model": {"name": model},
             "scenes": scenes, "means": {}, **({"guided": {"on": True}} if guided else {})}
 
@@ -35,3 +36,5 @@ def test_section_puts_256_px_beside_64_px_with_the_floor_and_goals(tmp_path):
     assert "| fern (extrapolation) | – | 15.00 | – | 17.00 [+2.00] |" in text
     assert "- ibrnet-tiny: fern +1.80 (met); DTU mask +0.50 (short); extrapolation +2.00 (met)" in text
     assert "| ibrnet-tiny | fern | 19.00 | 18.80 | -0.20 |" in text
+    assert "| ibrnet-tiny | full sampling | 1 | 12.0 | 12.0-12.0 |" in text
+    assert "| ibrnet-tiny | surface-guided | 3 | 8.0 | 8.0-8.0 |" in text
