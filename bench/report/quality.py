@@ -128,7 +128,8 @@ def at_256(results: Path, rows64: dict) -> list[str]:
            "size. The 64-px column repeats the `cpu` set's K = 3 value above (full sampling). At 256 px the learned "
            "models render surface-guided (`--guided`, each model family's default band: full sampling made the "
            "whole set too costly on the shared cores; the table after the goals gives the PSNR cost of guided "
-           "rendering where both were scored) except in cells marked `full`; the floor samples fully.", "",
+           "rendering where both were scored) except in cells marked `full`; the floor samples fully. `–`: not "
+           "scored (the goals below are over the rows scored).", "",
            "| scene | " + " | ".join(f"{m} 64 px | {m} 256 px" for m in models) + " |", "|---|" + "---|" * 2 * len(models)]
     for n in names:
         cells = []

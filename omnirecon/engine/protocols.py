@@ -64,8 +64,8 @@ PROTOCOLS: dict[str, Protocol] = {
 CPU_TARGETS = {"blender": 3, "dtu": 4, "llff": 3, "ngp": 3, "colmap": 3, "synth": 2}
 """Targets per scene of the ``cpu`` protocol set (evenly spaced over the full protocol's candidates)."""
 CPU256_TARGETS = 2
-"""Targets per scene of the ``cpu256`` and ``cpu256-extrapolation`` sets (evenly spaced): one 256-px view costs a
-tiny model tens of CPU-seconds (BENCHMARKS "Novel-view quality")."""
+"""Targets per scene of the ``cpu256`` and ``cpu256-extrapolation`` sets (evenly spaced), for CPU cost: BENCHMARKS
+"Novel-view quality" gives the CPU-seconds of one 256-px view per model."""
 CPU256 = {k: replace(p, long_side=256, max_targets=CPU256_TARGETS, pick="even") for k, p in PROTOCOLS.items()}
 PROTOCOL_SETS: dict[str, dict[str, Protocol]] = {
     "full": PROTOCOLS,
