@@ -40,9 +40,10 @@ class EvalCommand(GuidedRendering, SceneCache, OutFolder, ModelChoice, MachineCo
     results are marked as not following the protocol)."""
     save_images: bool = True
     """Write a GT | render | |error| panel per target."""
-    protocol_set: Literal["full", "cpu"] = "full"
+    protocol_set: Literal["full", "cpu", "cpu256", "cpu256-extrapolation"] = "full"
     """``full``: the published protocols (128 px); ``cpu``: the same rules at 64 px with fewer targets
-    (the CPU benchmark of the tiny presets; not comparable with ``full``)."""
+    (the CPU benchmark of the tiny presets; not comparable with ``full``); ``cpu256``: at 256 px, 2 targets per
+    scene; ``cpu256-extrapolation``: ``cpu256`` scored on the extrapolation split's test views."""
     geometry: bool = False
     """Also extract a mesh per scene and K (`omnirecon mesh`'s protocol; sources: DTU's 23 24 33 or K
     evenly spaced pool views) and score it: Chamfer / F-score against a procedural scene's exact

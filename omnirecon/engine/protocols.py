@@ -44,6 +44,9 @@ class Protocol:
     """Also report ``psnr_masked``: PSNR over the foreground-mask pixels of the ground truth."""
     crop: float = 0.0
     """Fraction of each border cropped before scoring (0 = the full image)."""
+    split: Literal["protocol", "extrapolation"] = "protocol"
+    """``protocol``: targets and pool by ``rule``; ``extrapolation``: the test views of :func:`extrapolation_split`
+    are the targets and its training views the pool (views beyond those a user photographed)."""
 
 
 PROTOCOLS: dict[str, Protocol] = {
@@ -60,13 +63,21 @@ PROTOCOLS: dict[str, Protocol] = {
 
 CPU_TARGETS = {"blender": 3, "dtu": 4, "llff": 3, "ngp": 3, "colmap": 3, "synth": 2}
 """Targets per scene of the ``cpu`` protocol set (evenly spaced over the full protocol's candidates)."""
+CPU256_TARGETS = 2
+"""Targets per scene of the ``cpu256`` and ``cpu256-extrapolation`` sets (evenly spaced), for CPU cost: BENCHMARKS
+"Novel-view quality" gives the CPU-seconds of one 256-px view per model."""
+CPU256 = {k: replace(p, long_side=256, max_targets=CPU256_TARGETS, pick="even") for k, p in PROTOCOLS.items()}
 PROTOCOL_SETS: dict[str, dict[str, Protocol]] = {
     "full": PROTOCOLS,
     "cpu": {k: replace(p, long_side=64, max_targets=CPU_TARGETS[k], pick="even") for k, p in PROTOCOLS.items()},
+    "cpu256": CPU256,
+    "cpu256-extrapolation": {k: replace(p, split="extrapolation", fixed_sources=()) for k, p in CPU256.items()},
 }
 """``full``: the published protocols. ``cpu``: the same rules at a 64-px long side (the tiny presets'
-training resolution) with fewer targets, so a CPU can score GPNR and IBRNet in minutes; its numbers
-are labelled with the set's name and are not comparable with ``full`` numbers."""
+training resolution) with fewer targets, so a CPU can score GPNR and IBRNet in minutes. ``cpu256``: the same rules
+at a 256-px long side (near the size users look at) with :data:`CPU256_TARGETS` targets. ``cpu256-extrapolation``:
+``cpu256`` with the extrapolation split's test views as targets and its training views as the pool (no fixed
+sources). Numbers are labelled with the set's name and are not comparable across sets."""
 
 FORMAT_PROTOCOL = {"blender": "blender", "ngp": "ngp", "llff": "llff", "dtu_neus": "dtu", "dtu_mvsnet": "dtu",
                    "colmap": "colmap"}
@@ -99,7 +110,10 @@ def targets_and_pool(protocol: Protocol, scene: Scene, max_targets: int | None =
     """
     n = len(scene)
     cap = protocol.max_targets if max_targets is None else max_targets
-    if protocol.rule == "test_split":
+    if protocol.split == "extrapolation":
+        split = extrapolation_split(scene)
+        candidates, pool_from = split.test, split.train
+    elif protocol.rule == "test_split":
         test = scene.splits.get("test", [])
         if not test:
             raise InputError("scene has no test split", scene.path, f"the {protocol.name} protocol scores the "

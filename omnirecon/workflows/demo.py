@@ -62,24 +62,32 @@ class DemoConfig(GuidedRendering, SourceViews, ThreadsConfig):
     on one without native bf16, so the default keeps the whole demo to a few CPU-minutes: BENCHMARKS "End to end";
     raise it on a GPU)."""
     resolution: int = 80
-    """Long side of the rendered frames, in pixels (volumetric rendering dominates the demo's time)."""
+    """Long side of the novel-view orbits' frames, in pixels (volumetric rendering dominates the demo's time; the
+    embedded scene is generated at this size for them, at least 128 px). 256 shows them at a size a user looks at,
+    for about 2.5 times the demo's CPU time (BENCHMARKS "Novel-view quality" gives one 256-px view's cost)."""
     quick: bool = False
     """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
+    orbit_guided: bool = False
+    """Render the novel-view orbits surface-guided with each model family's default band even without
+    ``--guided.on`` (fewer samples per ray at the orbits' size; ``--guided.on`` sets the options instead)."""
 def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
     path = Path(cfg.checkpoints) / name
     return path if (path / "model.safetensors").is_file() else None
 
 
-def demo_scene(cfg: DemoConfig) -> Path:
-    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated into ``<out>/scene``)."""
+def demo_scene(cfg: DemoConfig, resolution: int | None = None) -> Path:
+    """The scene folder: ``--data`` (checked) or the embedded procedural scene (generated into ``<out>/scene``, at
+    ``resolution`` px: ``<out>/scene_<resolution>``; default 128, quick 64)."""
     from omnirecon.data import detect_format  # lazy: demo --help stays fast
     from omnirecon.data.synth.generate import SynthOptions, generate_scene  # lazy: demo --help stays fast
 
     if cfg.data is not None:
         detect_format(Path(cfg.data))  # one-line error for a missing or unsupported folder
         return Path(cfg.data)
-    res = 64 if cfg.quick else 128
-    return generate_scene(Path(cfg.out) / "scene", DEMO_SEED, SynthOptions(rig="object", views=24, resolution=res))
+    default = 64 if cfg.quick else 128
+    res = resolution if resolution is not None and resolution > default else default
+    folder = Path(cfg.out) / ("scene" if res == default else f"scene_{res}")
+    return generate_scene(folder, DEMO_SEED, SynthOptions(rig="object", views=24, resolution=res))
 
 
 def run_demo(cfg: DemoConfig) -> dict:
@@ -148,19 +156,23 @@ def scene_section(cfg: DemoConfig, out: Path, numbers: dict, lines: list[str]):
 def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines: list[str]):
     """Stage 2: a novel-view orbit per model of :data:`RENDER_MODELS`."""
     from omnirecon.engine.report import Section  # lazy: demo --help stays fast
+    from omnirecon.models.guided import GuidedOptions  # lazy: demo --help stays fast
     from omnirecon.workflows.render import RenderConfig, run_render  # lazy: demo --help stays fast
 
     frames, res = (4, 48) if cfg.quick else (cfg.frames, cfg.resolution)
+    path = demo_scene(cfg, res)  # the embedded scene at the frames' size (sources are never upscaled)
+    guided = cfg.guided if cfg.guided.on or not cfg.orbit_guided else GuidedOptions(on=True)
     videos = Section("Novel views").text(
         f"An orbit of {frames} frames at a {res}-px long side, each frame rendered from its {cfg.num_views} "
-        "nearest source views, with no per-scene training.")
+        "nearest source views, with no per-scene training" + (", surface-guided (a band around the model's own "
+                                                              "low-resolution depth)." if guided.on else "."))
     for name in RENDER_MODELS:
         ckpt = _checkpoint(cfg, name)
         if ckpt is None:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
         render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                              num_views=cfg.num_views, out=out / f"orbit_{name}", guided=cfg.guided)
+                              num_views=cfg.num_views, out=out / f"orbit_{name}", guided=guided)
         folder, video = timed(numbers, f"orbit_{name}", run_render, render)
         videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")

@@ -186,3 +186,20 @@ def test_eval_geometry_without_a_model_meshes_stereo(synth_scene):
     for kwargs in ({}, {"geometry": True}):
         with pytest.raises(InputError, match="without a model"):
             evaluate(None, [synth_scene], num_views=(3,), out=None, progress=False, **kwargs)
+
+
+def test_cpu256_sets_score_the_rules_and_the_extrapolation_split_at_256_px(shared_data):
+    from omnirecon.engine.protocols import CPU256_TARGETS, extrapolation_split, targets_and_pool
+    from omnirecon.engine.scenes import prepare_scenes
+
+    for rel in ("llff/fern", "neus_dtu/dtu_scan24"):
+        full = prepare_scenes([shared_data(rel)], protocol_set="full")[0]
+        big = prepare_scenes([shared_data(rel)], protocol_set="cpu256")[0]
+        extra = prepare_scenes([shared_data(rel)], protocol_set="cpu256-extrapolation")[0]
+        assert max(big.scene.width, big.scene.height) == 256 and big.protocol.rule == full.protocol.rule
+        t_full, _ = targets_and_pool(full.protocol, full.scene)
+        t_big, pool_big = targets_and_pool(big.protocol, big.scene)
+        assert set(t_big) <= set(t_full) and len(t_big) == CPU256_TARGETS and not set(t_big) & set(pool_big)
+        split = extrapolation_split(extra.scene)
+        t_x, pool_x = targets_and_pool(extra.protocol, extra.scene)
+        assert set(t_x) <= set(split.test) and pool_x == split.train and not extra.protocol.fixed_sources
