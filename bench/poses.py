@@ -183,6 +183,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--masked", nargs="*", default=list(MASKED),
                         help="scenes also run with their masks given to process (turntable captures)")
     parser.add_argument("--images", type=int, default=20, help="images per scene (evenly spaced)")
+    parser.add_argument("--split", default="train", help="the scene split the images are taken from (all: every view)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--camera-model", default="SIMPLE_RADIAL")
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None) -> dict:
         jobs = [(p, masked, m) for p, masked in jobs for m in args.methods]
         videos = [(SHARED / s, m) for s in args.videos if (SHARED / s).is_dir() for m in args.methods]
         calls = [(p, args.images, replace(options, mask_dilate=args.mask_dilate) if masked else options,
-                  tmp / f"work{k}", "all" if args.tiny else "train", masked, m)
+                  tmp / f"work{k}", "all" if args.tiny else args.split, masked, m)
                  for k, (p, masked, m) in enumerate(jobs)]
         if args.jobs > 1:  # scenes side by side, each in its own process at --threads (rows keep their order)
             from concurrent.futures import ProcessPoolExecutor
@@ -250,7 +251,7 @@ def main(argv: list[str] | None = None) -> dict:
     prov["loadavg_1min_end"] = round(os.getloadavg()[0], 2)
     result = {
         "provenance": prov,
-        "config": {"images_per_scene": args.images, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
+        "config": {"images_per_scene": args.images, "split": args.split, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
                    "videos": {"scenes": args.videos, "long_side": args.video_size, "seconds": args.video_seconds},
                    "methods": args.methods,
                    "size": "each scene's stored image size (long side <= 400 px)",

@@ -99,7 +99,8 @@ def hybrid(results: Path) -> list[str]:
             "on the views both pose. Both methods end with the pose check (views whose pose explains under half of "
             "their verified pairs' matches are dropped, then a group of views joined to the rest through one explained "
             "pair while other pairs between them contradict it); learned: the learned model kept whenever it poses "
-            "more. Load = 1-minute load average at the scene's start on the shared 2-core machine.",
+            "more. SIFT alone on the same views: the table above (a file that holds only hybrid rows compares with it). "
+            "Load = 1-minute load average at the scene's start on the shared 2-core machine.",
             "", *rows, "", prov(r["provenance"]), *video(results)]
 
 
@@ -121,10 +122,20 @@ def video(results: Path) -> list[str]:
                     f"{x['rotation_deg_median']:.2f} / {x['rotation_deg_max']:.2f} | {x['centre_pct_median']:.2f} / "
                     f"{x['centre_pct_max']:.2f} | {x['reprojection_px']:.2f} | {x['seconds']:.1f} | "
                     f"{x.get('load_1min_start', '')} |")
+    f67 = read(results, "poses_fox67.json")
+    for x in (f67 or {}).get("scenes", []):  # the same frames as photos (process on the folder)
+        if "rotation_deg_median" in x:
+            rows.append(f"| {x['scene']} as {x['images']} photos ({x['size'][0]}x{x['size'][1]}) | {x['method']} | "
+                        f"{x['images']} | {x['registered']} ({100 * x['registered_fraction']:.0f}%) | "
+                        f"{x['rotation_deg_median']:.2f} / {x['rotation_deg_max']:.2f} | {x['centre_pct_median']:.2f} / "
+                        f"{x['centre_pct_max']:.2f} | {x['reprojection_px']:.2f} | {x['seconds']:.1f} | "
+                        f"{x.get('load_1min_start', '')} |")
     return ["", "### A walk-around video (`python -m bench poses --videos instant_ngp/fox`)", "",
             f"A phone clip made from a scene's frames in capture order (fox: one loop around the subject), every frame "
             f"once, {v.get('long_side', '?')} px on the long side over {v.get('seconds', '?')} s, given to `process` "
             "as a video at its default --fps 2 (above the clip's own rate: every frame is sampled once). Each registered "
             "frame is matched to its source frame by pixel difference and scored against the scene's poses as above. "
-            "Goal: >= 90% of the sampled frames registered, centres within 1% of the extent.",
-            "", *rows, "", prov(r["provenance"])]
+            "The last row: the same 67 frames at their stored size as a photo folder (`python -m bench poses --scenes "
+            "instant_ngp/fox --masked --images 67 --split all --out bench/results/poses_fox67.json`). Goals: >= 90% of the sampled "
+            "frames registered (>= 95% of the photos), centres within 1% of the extent.",
+            "", *rows, "", prov(r["provenance"]), *([prov(f67["provenance"])] if f67 else [])]

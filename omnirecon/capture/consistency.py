@@ -163,8 +163,9 @@ def contested_groups(checks: list[PairCheck], min_share: float, groups: list[lis
     """Groups to drop (see the module's note), found one at a time. The candidates: each of ``groups``
     (views the caller knows were posed apart, e.g. SIFT's separate models before learned matches joined
     them), then the smaller side (fewer views, then fewer verified matches) of each bridge of the graph of
-    pairs the model explains (share >= ``min_share``). A candidate goes when at least :data:`CONTESTED` of
-    the pairs between it and the rest are not explained; the search repeats on the rest."""
+    pairs the model explains (share >= ``min_share``) when it holds two views or more (a single view is
+    judged by the median of its own pairs). A candidate goes when at least :data:`CONTESTED` of the pairs
+    between it and the rest are not explained; the search repeats on the rest."""
     import networkx as nx  # a dependency of torch
 
     left, out = list(checks), []
@@ -178,7 +179,9 @@ def contested_groups(checks: list[PairCheck], min_share: float, groups: list[lis
             g.remove_edge(a, b)
             cut = nx.node_connected_component(g, a), nx.node_connected_component(g, b)
             g.add_edge(a, b)
-            sides.append(min(cut, key=lambda s: (len(s), sum(inliers[n] for n in s), sorted(s))))
+            side = min(cut, key=lambda s: (len(s), sum(inliers[n] for n in s), sorted(s)))
+            if len(side) > 1:  # a single view is judged by its own pairs (inconsistent_views)
+                sides.append(side)
         found = None
         for side in sides:
             if not side or len(side) >= len(g):

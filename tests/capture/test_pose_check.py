@@ -134,8 +134,10 @@ def test_group_joined_by_one_contested_pair_is_dropped():
     assert groups[0].against == [against]
     assert contested_groups(inner + [join], 0.5) == []
     assert contested_groups(inner + [join, against, PairCheck("y", "c", 0.8, 60)], 0.5) == []
-    # the pendant view d (one explained pair, nothing against it) stays in every case
+    # the pendant view d (one explained pair, nothing against it) stays in every case; a single view joined by
+    # one pair is judged by its own pairs' median (inconsistent_views), not as a group
     assert all("d" not in g.views for g in contested_groups(inner + [join, against], 0.5))
+    assert contested_groups(inner + [PairCheck("c", "e", 0.9, 40), PairCheck("a", "e", 0.3, 20)], 0.5) == []
     # a group known to be posed apart (SIFT's separate model) joined through 3 explained pairs against 1
     # unexplained one: contested (a quarter); against 1 of 5, not
     cross = [join, PairCheck("y", "c", 0.8, 60), PairCheck("x", "b", 0.7, 50), against]
