@@ -172,9 +172,6 @@ def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tu
     """One job per (scene, K) that can run, and one result record per scene (skips noted there)."""
     jobs, records = [], []
     for es in scenes:
-        if min(es.scene.width, es.scene.height) < metrics.SSIM_WINDOW:  # scored with SSIM's window: no smaller
-            raise InputError(f"images are {es.scene.width}x{es.scene.height} px, smaller than SSIM's "
-                             f"{metrics.SSIM_WINDOW} px window", es.path, "evaluate a scene with larger images")
         targets, pool = targets_and_pool(es.protocol, es.scene, max_targets)
         rec = {"name": es.name, "path": None if es.path is None else str(es.path), "protocol": es.protocol.name,
                "rig": es.scene.rig, "resolution": [es.scene.width, es.scene.height], "targets": targets,
@@ -186,6 +183,9 @@ def _plan(scenes: list[EvalScene], ks: list[int], max_targets: int | None) -> tu
             if k not in fixed and len(pool) < k:
                 rec["skipped"][str(k)] = f"the source pool has {len(pool)} views, fewer than {k}"
                 continue
+            if min(es.scene.width, es.scene.height) < metrics.SSIM_WINDOW:  # scored with SSIM's window: no smaller
+                raise InputError(f"images are {es.scene.width}x{es.scene.height} px, smaller than SSIM's "
+                                 f"{metrics.SSIM_WINDOW} px window", es.path, "evaluate a scene with larger images")
             sources = [list(fixed[k]) if k in fixed else select_sources(es.scene, es.scene.cameras[t], pool, k, center)
                        for t in targets]
             jobs.append({"scene": es, "k": k, "targets": targets, "sources": sources, "record": rec})

@@ -61,6 +61,8 @@ def test_eval_on_images_smaller_than_ssims_window_is_one_line(tmp_path, run_cli)
     from tests.data.test_bad_input import blender_scene
 
     scene = blender_scene(tmp_path / "scene")
+    train = json.loads((scene / "transforms_train.json").read_text())
+    (scene / "transforms_test.json").write_text(json.dumps(train))  # a test split: the protocol's targets
     code, _, err = run_cli(["eval", "--model", "floor", "--scenes", scene, "--out", tmp_path / "ev", "--threads", "1"])
     assert code == 2 and len(err.strip().splitlines()) == 1, err
     assert "images are 8x8 px, smaller than SSIM's 11 px window" in err and str(scene) in err
