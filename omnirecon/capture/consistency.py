@@ -16,15 +16,13 @@ the inliers. A flipped or mirrored view explains almost none of its pairs' inlie
 :func:`inconsistent_views` drops, worst first, every view whose pairs (weighted by their inliers)
 the model explains less than a threshold; :func:`check_poses` de-registers them with one reason each.
 
-A group of views can be wrong together: on lego (20 views, learned matches), five views that SIFT had
-posed apart were joined to the rest through one pair of 72 matches taken front to back, and came out
-about 174 degrees wrong while each of their own pairs was explained. :func:`contested_groups` finds such
-joins: a pair the model explains whose removal cuts the graph of explained pairs in two (a bridge),
-while another verified pair between the two sides contradicts the model (one pair for and one against
-is no evidence for the join), and a group the caller knows was posed apart (SIFT's separate models,
-joined by learned matches) when a quarter of the pairs between it and the rest contradict the model: on
-lego with more learned pairs, the same five views came out 179 degrees wrong, joined through nine
-explained pairs (true angles of 118-161 degrees: front matched to back) against six unexplained ones.
+A group of views can be wrong together: on a symmetric object, learned matches can join views that SIFT
+posed apart to the rest through pairs that match the front to the back, and the group comes out turned
+about 180 degrees while each of its own pairs is explained (BENCHMARKS "Pose recovery": lego, chair).
+:func:`contested_groups` finds such joins: a group the caller knows was posed apart (SIFT's separate
+models, joined by learned matches) when a quarter of the pairs between it and the rest contradict the
+model, and a side of two or more views that a bridge (the one explained pair between the two sides) joins
+while another verified pair across contradicts it (one pair for and one against is no evidence).
 The group goes, not the rest (no pose is better than a wrong one).
 """
 
