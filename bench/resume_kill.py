@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from omnirecon.outputs import kept_stages
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 SMALL = ["--resolution", "32", "--mesh-resolution", "32", "--finetune-seconds", "0", "--frames", "2", "--no-viewer",
@@ -36,17 +38,11 @@ MARKS = ("process", "mesh", "finetune", "export", "finish")
 """Kill points by stage: just after the stage is recorded as finished (``finish``: the marker is written)."""
 
 
-def _cli(args: list, cwd: Path) -> subprocess.Popen:
+def start_cli(args: list, cwd: Path) -> subprocess.Popen:
+    """``omnirecon ARGS`` started in ``cwd`` from this checkout (one thread), its output piped."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     return subprocess.Popen([sys.executable, "-m", "omnirecon.cli", *map(str, args)], cwd=cwd, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _kept(partial: Path) -> list[str]:
-    try:
-        return list(json.loads((partial / ".omnirecon-partial" / "stages.json").read_text())["stages"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return []
 
 
 def _untimed(value):
@@ -73,9 +69,9 @@ def differences(a: Path, b: Path) -> list[str]:
 def killed_run(cmd: list, cwd: Path, out: Path, mark: str | None, at: float | None) -> dict:
     """Start ``cmd``, SIGKILL it at stage ``mark`` or ``at`` seconds, rerun it to its end; what was kept, the rerun."""
     partial = out.parent / f"{out.name}.partial"
-    proc, t0 = _cli(cmd, cwd), time.monotonic()
+    proc, t0 = start_cli(cmd, cwd), time.monotonic()
     while proc.poll() is None:
-        kept = _kept(partial)
+        kept = kept_stages(partial)
         if mark == "finish" and (partial / ".omnirecon-output.json").is_file() or mark in kept \
                 or at is not None and time.monotonic() - t0 >= at:
             break
@@ -84,12 +80,12 @@ def killed_run(cmd: list, cwd: Path, out: Path, mark: str | None, at: float | No
     if not ended:
         proc.send_signal(signal.SIGKILL)  # our own child
     proc.communicate(timeout=120)
-    state = {"killed_at_s": round(time.monotonic() - t0, 2), "ended_before_kill": ended, "kept": _kept(partial),
+    state = {"killed_at_s": round(time.monotonic() - t0, 2), "ended_before_kill": ended, "kept": kept_stages(partial),
              "output_existed": out.exists()}
     if ended:  # the run outlived its kill (a faster run than the reference): its output is compared as it is
         return {**state, "rerun_exit": None, "rerun_seconds": 0.0, "rerun_said": [], "rerun_error": None}
     t1 = time.monotonic()
-    rerun = _cli(cmd, cwd)
+    rerun = start_cli(cmd, cwd)
     stdout, stderr = rerun.communicate(timeout=1800)
     return {**state, "rerun_exit": rerun.returncode, "rerun_seconds": round(time.monotonic() - t1, 1),
             "rerun_said": [ln for ln in stdout.splitlines() if "continuing from" in ln or "starting over" in ln],
@@ -113,12 +109,12 @@ def main(argv: list[str] | None = None) -> dict:
         runs: dict[str, dict] = {}
         t0 = time.monotonic()
         whole = work / "whole"
-        done = _cli(["reconstruct", photos, "--out", whole, *SMALL], work).communicate(timeout=1800)
+        done = start_cli(["reconstruct", photos, "--out", whole, *SMALL], work).communicate(timeout=1800)
         length = time.monotonic() - t0
         if not (whole / "reconstruct.json").is_file():
             raise SystemExit(f"the uninterrupted run failed: {done[1][-2000:]}")
         again = work / "again"
-        _cli(["reconstruct", photos, "--out", again, *SMALL], work).communicate(timeout=1800)
+        start_cli(["reconstruct", photos, "--out", again, *SMALL], work).communicate(timeout=1800)
         baseline = differences(whole, again)
         points = [(m, None) for m in MARKS] + [(None, round(length * (i + 1) / (args.grid + 1), 1))
                                                for i in range(args.grid)]

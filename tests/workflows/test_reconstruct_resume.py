@@ -8,8 +8,6 @@ import json
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -18,9 +16,10 @@ import numpy as np
 import pytest
 from conftest import procedural_photos
 
+from bench.resume_kill import start_cli
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
-from omnirecon.outputs import MARKER, PARTIAL
+from omnirecon.outputs import MARKER, PARTIAL, kept_stages
 
 ROOT = Path(__file__).resolve().parents[2]
 CK = ROOT / "checkpoints" / "omnirecon-tiny"
@@ -126,19 +125,6 @@ def test_changed_options_keep_what_they_do_not_touch(photos, tmp_path):
     assert said[-1] == f"PATH's files changed since the run that kept {work}: starting over"
 
 
-def _start(args: list, cwd: Path) -> subprocess.Popen:
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    return subprocess.Popen([sys.executable, "-m", "omnirecon.cli", *map(str, args)], cwd=cwd, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _kept(partial: Path) -> list[str]:
-    try:
-        return list(json.loads((partial / PARTIAL / "stages.json").read_text())["stages"])
-    except (OSError, ValueError, KeyError):
-        return []
-
-
 @pytest.mark.slow
 def test_kill_9_then_rerun_gives_the_uninterrupted_output(tmp_path, run_cli):
     """``kill -9`` once the mesh stage is kept (fine-tuning or later runs), then the same command: it continues from
@@ -148,14 +134,14 @@ def test_kill_9_then_rerun_gives_the_uninterrupted_output(tmp_path, run_cli):
     code, _, err = run_cli(["reconstruct", scene, "--out", whole, *SMALL])
     assert code == 0, err
     out = tmp_path / "rec"
-    proc = _start(["reconstruct", scene, "--out", out, *SMALL], tmp_path)
+    proc = start_cli(["reconstruct", scene, "--out", out, *SMALL], tmp_path)
     deadline = time.monotonic() + 300
-    while "mesh" not in _kept(tmp_path / "rec.partial") and proc.poll() is None and time.monotonic() < deadline:
+    while "mesh" not in kept_stages(tmp_path / "rec.partial") and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
     assert proc.poll() is None, f"the run ended before its mesh was kept: {proc.communicate()[1][-2000:]}"
     proc.send_signal(signal.SIGKILL)
     proc.communicate(timeout=60)
-    assert not out.exists() and _kept(tmp_path / "rec.partial")[:2] == ["process", "mesh"]
+    assert not out.exists() and kept_stages(tmp_path / "rec.partial")[:2] == ["process", "mesh"]
     code, stdout, err = run_cli(["reconstruct", scene, "--out", out, *SMALL])
     assert code == 0, err
     assert f"continuing from {tmp_path / 'rec.partial'}: process, mesh" in stdout
