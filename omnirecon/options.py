@@ -257,6 +257,29 @@ def _check_value(name: str, numbers: list | None, rule: Rule | None) -> None:
 
 
 # ---------------------------------------------------------------------------- shared options
+def command_defaults(**values):
+    """Class decorator, below ``@dataclass``: a command's own defaults of options declared in the option groups it
+    inherits. Each field keeps its group's type and help (declared once); only its default is the command's, in
+    the dataclass's ``__init__`` (the library) and so in ``omnirecon VERB --help``'s ``(default: ...)`` (the CLI).
+    The names are kept in the class's ``COMMAND_DEFAULTS`` (``tests/test_options.py`` tells them from a field
+    declared twice)."""
+
+    def apply(cls):
+        own = dict(cls.__dict__.get("__annotations__", {}))
+        for name, value in values.items():
+            group = next((b for b in cls.__mro__[1:] if name in getattr(b, "__dataclass_fields__", {})), None)
+            if group is None or name in own:
+                raise TypeError(f"{cls.__name__}.{name}: a command default needs the field declared in an option "
+                                "group it inherits, and not again in the command")
+            own[name] = typing.get_type_hints(group)[name]  # the group's type, resolved in the group's module
+            setattr(cls, name, dataclasses.field(default=value, kw_only=True))
+        cls.__annotations__ = own
+        cls.COMMAND_DEFAULTS = {**getattr(cls, "COMMAND_DEFAULTS", {}), **values}
+        return cls
+
+    return apply
+
+
 @dataclass(kw_only=True)
 class Seeded:
     """A command with random draws."""
@@ -294,11 +317,31 @@ class SourceViews:
 
 
 @dataclass(kw_only=True)
+class OutPath:
+    """A command that writes one output folder of a fixed default name (demo, process, synth, reconstruct)."""
+
+    out: Path = Path("outputs")
+    """Output folder: demo, its report (index.html, demo.json, videos, meshes, pictures); process, the scene folder;
+    synth, one scene_NNNNN folder per scene; reconstruct, the whole run. process and reconstruct build it beside
+    and rename it into place at the end. The default is the command's own."""
+
+
+@dataclass(kw_only=True)
 class SceneCache:
-    """A command that may generate the procedural synth:eval scenes."""
+    """A command that may generate procedural scenes (the synth:eval sets, train's scenes)."""
 
     cache: Path = Path("outputs/cache")
-    """Where the synth:eval scenes are generated (once; later runs read them)."""
+    """Where procedural scenes are generated, once (later runs read them): the synth:eval sets; train, its training
+    scenes in <rig>_<resolution> sub-folders."""
+
+
+@dataclass(kw_only=True)
+class SynthCount:
+    """A command that runs on several scenes of a synth:eval set."""
+
+    synth_count: int = 1
+    """Scenes taken from a synth:eval set (seeds 900000, 900001, ...): eval scores them together, lift and pet run
+    each separately."""
 
 
 @dataclass(kw_only=True)
@@ -323,11 +366,8 @@ class ProtocolScenes(SceneCache):
 
 
 @dataclass(kw_only=True)
-class SynthEvalScenes(ProtocolScenes):
+class SynthEvalScenes(ProtocolScenes, SynthCount):
     """A command that runs on several held-out procedural scenes (lift, pet)."""
-
-    synth_count: int = 1
-    """Scenes taken from a synth:eval set (seeds 900000, 900001, ...; each run separately)."""
 
 
 @dataclass(kw_only=True)
@@ -347,6 +387,99 @@ class CaptureInput:
     turntable, whose background does not move with it)."""
     fps: float = 2.0
     """Video input: frames sampled per second of video."""
+
+
+
+@dataclass(kw_only=True)
+class ImageSize:
+    """A command that renders or generates images at one size of its own (render, train, bench, demo, synth)."""
+
+    resolution: int = 128
+    """Long side of the images, in pixels (procedural scenes are square; photos are never upscaled): render, the
+    frames and their sources; train, the procedural scenes generated and the real ones read; bench, the timed
+    targets; demo, the novel-view orbits (its embedded scene is generated at this size, at least 128 px); synth, the
+    scenes written. The default is the command's own."""
+
+
+@dataclass(kw_only=True)
+class PhotoSize:
+    """A command that reads a scene's photos at a size it may choose (finetune, mesh, export, reconstruct)."""
+
+    resolution: int | None = None
+    """Long side of the images read, in pixels, never upscaled: mesh, the images meshed; finetune, the views tuned
+    and scored; reconstruct, fine-tuning, the held-out scores and the video; export, the source images. Default: the
+    photos' own, at most 512; export: --finetune's, else the scene's evaluation protocol's (128)."""
+
+
+@dataclass(kw_only=True)
+class CameraPath:
+    """A command that renders a video along a camera path (render, reconstruct, demo)."""
+
+    frames: int = 60
+    """Frames of the camera-path video (demo: of each novel-view orbit, whose volumetric frames dominate its time on
+    a CPU; raise it on a GPU). The default is the command's own."""
+
+
+@dataclass(kw_only=True)
+class MeshFile:
+    """A command that may take a mesh made before (finetune, export, bench)."""
+
+    mesh: Path | None = None
+    """Mesh file in the input scene's frame, as `omnirecon mesh` writes it. finetune and export without it: the mesh
+    `omnirecon mesh` makes from the model at the sources; bench: the mesh it times, with --scene."""
+
+
+@dataclass(kw_only=True)
+class Meshing:
+    """A command that meshes a scene from depth maps (mesh; export without --mesh)."""
+
+    voxel: float | None = None
+    """TSDF voxel edge as a fraction of the bounds diagonal (None: the --fusion preset's, the depth maps' pixel
+    footprint for `fit`); export: when it meshes the scene (without --mesh)."""
+    masks: bool = False
+    """Mesh with the source views' object masks when the scene has them: free space carved outside them and the
+    mesh cleaned with them (objects only; without them the background, e.g. the ground, is kept); export: when it
+    meshes the scene (without --mesh)."""
+
+
+@dataclass(kw_only=True)
+class SourceOcclusion:
+    """A command that blends source views at the surface points of a mesh (the mesh path)."""
+
+    visibility: bool = True
+    """Blend at each surface point only the sources that see it: the mesh renderer's occlusion test against each
+    source's rasterized depth (``MeshRenderOptions.visibility``; fill points keep every source). Without it a source
+    that sees the ground behind an object paints the object with the ground. export: the viewer's starting state
+    (it can toggle it); lift and edit: with --path mesh."""
+
+
+@dataclass(kw_only=True)
+class MeshBlend(SourceOcclusion):
+    """A command that renders through the mesh path with a blend and a fill of its choosing (finetune, export)."""
+
+    blend: Literal["auto", "network", "angle"] = "auto"
+    """How each pixel mixes its sources' colours: `network`, the appearance branch's weights over the view's nearest
+    sources (the paper; finetune: --nearest of them, export: 6); `angle`, each point's --angle-sources nearest sources
+    by viewing angle among those that see it, weighted by angle alone (:func:`omnirecon.mesh.kernel.angle_weights`;
+    finetune then tunes nothing, --seconds only scores); `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`:
+    `angle` for real object captures, `network` for procedural and forward-facing scenes); export: --finetune's
+    first, and the viewer can switch."""
+    fill: Literal["auto", "far", "nearest", "background"] = "auto"
+    """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend (finetune tunes on
+    its pixels too); `nearest`, the z-depth of the nearest pixel of the same view that the mesh covers (its own
+    rendered depth), shaded like mesh points with the occlusion test, `far` where the view misses the mesh entirely;
+    `background`, the scene's background colour; `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`:
+    `background` for scenes that declare their background colour, `nearest` for real object captures, else `far`);
+    export: --finetune's first, and the viewer can switch."""
+
+
+@dataclass(kw_only=True)
+class CameraModel:
+    """A command that finds camera poses with COLMAP (process, reconstruct)."""
+
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
+    """COLMAP camera model estimated during mapping (the images are undistorted to PINHOLE afterwards); reconstruct:
+    when PATH holds photos or a video."""
 
 
 # ---------------------------------------------------------------------------- memory

@@ -139,42 +139,44 @@ def test_mesh_options_follow_the_preset_and_every_given_flag():
 
 
 SAME_NAME = {
-    # name: {classes allowed to declare it}: a different meaning, type or default under one word
+    # name: {classes allowed to declare it}: one word for different things (a shared concept is declared once in an
+    # option group, a command's own default of it given by ``command_defaults``), each with why
     "ckpt": {"ModelChoice", "CheckpointInput", "ShippedCheckpoint"},  # optional beside --model / required / shipped
-    "out": {"OutFolder", "MeshConfig", "BenchConfig", "SynthConfig", "ProcessCommand", "DemoConfig",
-            "ReconstructConfig"},  # mesh files / a JSON file / a folder of scenes / folders with a fixed default
-    "scene": {"SceneInput", "ProtocolScenes", "BenchConfig"},  # required / also synth:eval names / optional
-    "num_views": {"SourceViews", "EvalCommand", "ExportConfig", "TrainConfig", "RenderConfig"},  # a list of K /
-    # all views when not given / the model's K when not given / render's larger default K
+    "out": {"OutFolder", "OutPath", "MeshConfig", "BenchConfig"},  # a folder named after the input (None) / a folder
+    # of a fixed default name / mesh files (several) / a JSON file
+    "scene": {"SceneInput", "ProtocolScenes", "BenchConfig"},  # a required folder / also synth:eval names / optional,
+    # instead of bench's procedural scene
+    "num_views": {"SourceViews", "EvalCommand", "ExportConfig", "TrainConfig"},  # K / the list of K evaluated / how
+    # many train views export keeps (not K) / K per training step, None: the model's
     "model": {"ModelChoice", "TrainConfig"},  # the floor instead of a checkpoint / the preset to train
-    "cache": {"SceneCache", "TrainConfig"},  # synth:eval scenes / training scenes
-    "synth_count": {"SynthEvalScenes", "EvalCommand"}, "protocol_set": {"ProtocolScenes", "EvalCommand"},  # eval: the
-    # published protocol's 10 scenes at full resolution by default, the others one scene at cpu size
-    "resolution": {"FinetuneConfig", "MeshConfig", "ExportConfig", "TrainConfig", "BenchConfig", "RenderConfig",
-                   "ReconstructConfig", "DemoConfig", "SynthOptions"},  # each command's own default image size
-    "frames": {"DemoConfig", "BenchConfig", "RenderConfig", "ReconstructConfig"},  # video frames / timed frames
-    "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # a count / indices
+    "protocol_set": {"ProtocolScenes", "EvalCommand"},  # eval has more protocols (cpu256, ...) and defaults to full
+    "resolution": {"ImageSize", "PhotoSize"},  # a size the command renders at / None: the photos' own, at most 512
+    "frames": {"CameraPath", "BenchConfig"},  # a video's frames / frames timed
+    "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # K / depth views or
+    # `all` / finetune's sources (None: by --nearest) / the sources the viewer may blend / views generated
     "path": {"LiftedTargets", "RenderConfig", "ReconstructConfig", "InspectConfig"},  # blend path / camera path / input
-    "mesh": {"LiftedTargets", "BenchConfig", "FinetuneConfig", "ExportConfig"},  # a choice or a file / a file
-    "masks": {"CaptureInput", "MeshConfig", "ExportConfig"},  # a folder of masks / use the scene's masks
-    "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # per step / per timed batch
-    "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"}, "steps": {"PETOptions", "TrainConfig"},
+    "mesh": {"LiftedTargets", "MeshFile"},  # gt, model, auto or a file / a file
+    "masks": {"CaptureInput", "Meshing"},  # a folder of masks for pose finding / mesh with the scene's masks
+    "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # PET's rays per step / per timed batch /
+    # per training step (None: the preset's) / mesh-path pixels per tuning step
+    "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"},  # PET's Adam / the schedule's peak (None: 5e-4) / tuning's
+    "steps": {"PETOptions", "TrainConfig"},  # PET's steps cycle the labelled views (0 allowed) / the schedule's length
     "fps": {"CaptureInput", "RenderConfig"},  # frames sampled from a video / of the written video
     "threads": {"ThreadsConfig", "SfmOptions"},  # torch's / COLMAP's
     "resume": {"TrainConfig", "ReconstructConfig"},  # --resume a run (off) / kept stages (on)
-    "voxel": {"MeshConfig", "ExportConfig"},  # the preset's by default / export's fixed default
-    "camera_model": {"SfmOptions", "ReconstructConfig"},  # reconstruct passes it on to its process stage
-    # the mesh-path renderer's settings: one options group once the mesh path is one kernel (issue 45 item 1)
-    "visibility": {"LiftedTargets", "FinetuneConfig", "ExportConfig"},
-    "fill": {"FinetuneConfig", "ExportConfig", "EditConfig"}, "cracks": {"FinetuneConfig", "ExportConfig"},
-    "blend": {"FinetuneConfig", "ExportConfig"}, "angle_sources": {"FinetuneConfig", "ExportConfig"},
-    "precision": {"FinetuneConfig", "RenderConfig"},
-    # one word, two things
+    "fill": {"MeshBlend", "EditConfig"},  # the mesh path's uncovered pixels / a removed object's pixels
+    "cracks": {"FinetuneConfig", "ExportConfig"},  # the radius tuned and scored with / None: --finetune's, else 2
+    "angle_sources": {"FinetuneConfig", "ExportConfig"},  # candidates the validation views choose from / the one
+    # the viewer starts with (None: --finetune's choice)
+    "precision": {"FinetuneConfig", "RenderConfig"},  # the tuning steps' arithmetic / rendering's, `auto` per model
     "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"}, "quick": {"DemoConfig", "BenchConfig"},
     "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},
-    "max_views": {"TrainConfig", "InspectConfig"}, "val_every": {"TrainConfig", "FinetuneConfig"},
-    "val_views": {"TrainConfig", "FinetuneConfig"}, "quiet": {"ViewCommand", "ProcessCommand"},
-    "geometry": {"EvalCommand", "EditConfig"},
+    "max_views": {"TrainConfig", "InspectConfig"},  # views read per training scene / views inspect reads
+    "val_every": {"TrainConfig", "FinetuneConfig"},  # steps / seconds between validations
+    "val_views": {"TrainConfig", "FinetuneConfig"},  # test views rendered per validation scene / training views held
+    # out of tuning to choose the returned state
+    "quiet": {"ViewCommand", "ProcessCommand"},  # no request log / no progress bars
+    "geometry": {"EvalCommand", "EditConfig"},  # also mesh and score / also edit the mesh
 }
 """Field names more than one class of the command tree declares, each with the classes allowed to."""
 
@@ -209,6 +211,7 @@ def test_no_config_field_is_declared_twice():
     declared = collections.defaultdict(set)
     for cls in config_tree():
         own = {f.name for f in dataclasses.fields(cls)} & set(cls.__dict__.get("__annotations__", {}))
+        own -= set(cls.__dict__.get("COMMAND_DEFAULTS", {}))  # a command's default of a group's field (command_defaults)
         for name in own:
             declared[name].add(cls.__name__)
     twice = {n: sorted(c - SAME_NAME.get(n, set())) for n, c in declared.items()
@@ -216,3 +219,25 @@ def test_no_config_field_is_declared_twice():
     assert not twice, f"declared in more than one class (declare it once in an option group): {twice}"
     stale = {n: sorted(c - declared.get(n, set())) for n, c in SAME_NAME.items() if c - declared.get(n, set())}
     assert not stale, f"SAME_NAME lists classes that no longer declare the field: {stale}"
+
+
+def test_a_command_default_keeps_its_groups_type_and_help(capsys):
+    """``command_defaults`` changes a group field's default only: the type and the help stay the group's, the library
+    (the dataclass) and the CLI (``--help``) show the command's default, and a field no group declares is refused."""
+    import dataclasses
+    import typing
+
+    from omnirecon.cli import main
+    from omnirecon.options import SourceViews, command_defaults
+
+    for cls in config_tree():
+        for name, value in cls.__dict__.get("COMMAND_DEFAULTS", {}).items():
+            group = next(b for b in cls.__mro__[1:] if name in b.__dict__.get("__annotations__", {}))
+            assert typing.get_type_hints(cls)[name] == typing.get_type_hints(group)[name], (cls, name)
+            assert {f.name: f.default for f in dataclasses.fields(cls)}[name] == value, (cls, name)
+    with pytest.raises(SystemExit):
+        main(["render", "--help"])
+    flag = " ".join(capsys.readouterr().out.replace("│", " ").split("--num-views INT", 1)[1].split()).split(" --")[0]
+    assert flag.startswith("Source views K") and flag.endswith("(default: 10)"), flag  # SourceViews' help, render's 10
+    with pytest.raises(TypeError, match="option group"):
+        command_defaults(nearest=2)(type("X", (SourceViews,), {}))

@@ -30,7 +30,7 @@ import numpy as np
 from PIL import Image
 
 from omnirecon.errors import InputError
-from omnirecon.options import Seeded, check_options
+from omnirecon.options import CameraModel, Seeded, check_options
 from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -56,11 +56,9 @@ MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's def
 
 
 @dataclass
-class SfmOptions(Seeded):
+class SfmOptions(CameraModel, Seeded):
     """How COLMAP runs."""
 
-    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
-    """COLMAP camera model estimated during mapping (images are undistorted to PINHOLE afterwards)."""
     per_image_cameras: bool = False
     """One camera per image (photos from several cameras or zoom settings); default one shared camera."""
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"

@@ -9,7 +9,7 @@ from typing import Literal
 from omnirecon.engine.evaluate import evaluate
 from omnirecon.engine.machine import GuidedRendering, MachineConfig, ModelChoice, load_model, pick_device, set_threads
 from omnirecon.engine.protocols import SYNTH_PREFIX
-from omnirecon.options import OutFolder, SceneCache
+from omnirecon.options import OutFolder, SceneCache, SynthCount, command_defaults
 from omnirecon.outputs import claim
 
 
@@ -22,7 +22,8 @@ def default_name(ckpt: Path | None, model_name: str) -> str:
 
 
 @dataclass
-class EvalCommand(GuidedRendering, SceneCache, OutFolder, ModelChoice, MachineConfig):
+@command_defaults(synth_count=10)
+class EvalCommand(GuidedRendering, SceneCache, SynthCount, OutFolder, ModelChoice, MachineConfig):
     """Evaluate a checkpoint (or the non-learned plane-sweep floor) on held-out views: PSNR, SSIM,
     ST-LPIPS (and LPIPS where its weights are on the machine), per scene and averaged, under the
     fixed protocols of docs/evaluation.md. Writes results.json, results.md and one
@@ -33,8 +34,6 @@ class EvalCommand(GuidedRendering, SceneCache, OutFolder, ModelChoice, MachineCo
     procedural set, generated on first use)."""
     num_views: tuple[int, ...] = (3, 10)
     """Source-view counts K to evaluate (3 and 10 are the standard settings)."""
-    synth_count: int = 10
-    """Scenes in the synth:eval set (seeds 900000, 900001, ...)."""
     max_targets: int | None = None
     """Score at most this many targets per scene instead of the protocol's choice (quick checks;
     results are marked as not following the protocol)."""

@@ -10,12 +10,13 @@ import tyro
 from omnirecon.capture.colmap_sfm import SfmOptions
 from omnirecon.capture.process import process, summary_lines
 from omnirecon.errors import InputError
-from omnirecon.options import CaptureInput, Overwrites
+from omnirecon.options import CaptureInput, OutPath, Overwrites, command_defaults
 from omnirecon.outputs import prepare_out
 
 
 @dataclass
-class ProcessCommand(CaptureInput, Overwrites, SfmOptions):
+@command_defaults(out=Path("outputs/scene"))
+class ProcessCommand(CaptureInput, OutPath, Overwrites, SfmOptions):
     """Find camera poses for photos (or a video's frames) with COLMAP: SIFT features, matching,
     incremental mapping, undistortion to PINHOLE. Writes a COLMAP scene (sparse/0, images, images_2,
     images_4, process.json) that every omnirecon command reads. Needs `pip install pycolmap`
@@ -23,8 +24,6 @@ class ProcessCommand(CaptureInput, Overwrites, SfmOptions):
 
     source: tyro.conf.Positional[Path | None] = None
     """Folder of photos (JPEG/PNG; EXIF orientation honoured) or a video file."""
-    out: Path = Path("outputs/scene")
-    """Scene folder to write (built in a temporary folder, renamed at the end)."""
     max_frames: int = 300
     """Video input: keep at most this many frames."""
     keep_work: bool = False

@@ -60,7 +60,7 @@ from omnirecon.mesh.ibr import (
     video_options,
 )
 from omnirecon.models.registry import build_model
-from omnirecon.options import Overwrites, Seeded, check_options
+from omnirecon.options import ImageSize, MeshFile, Overwrites, Seeded, check_options, command_defaults
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
 from omnirecon.scene_kind import scene_kind
@@ -71,12 +71,11 @@ GOALS = {"cpu_fps_512": 30.0, "ratio": 1000.0, "gpu_fps_800x600": 500.0}
 
 
 @dataclass
-class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, DeviceConfig):
+@command_defaults(resolution=512)
+class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, DeviceConfig):
     """Frames per second of Omni-Recon's mesh path and of its volumetric path in one run (warm-up,
     median of N frames, same resolution, same source views, CUDA synchronised), and their ratio."""
 
-    resolution: int = 512
-    """Target width = height in pixels."""
     size: tuple[int, int] | None = None
     """Target width and height instead of --resolution, e.g. a capture's own photo size (fern: 504 378,
     DTU: 400 300); the procedural sources are then rendered at the larger side too."""
@@ -100,8 +99,6 @@ class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, DeviceConfig):
     """A real scene folder to time instead of the procedural scene, with --mesh (e.g. fern and its
     `omnirecon mesh` file): read with its long side at --size's (default: the photos' own, at most 512),
     targets its test views at that size, sources the --views training views nearest the first target."""
-    mesh: Path | None = None
-    """With --scene: the mesh file to time (in the input scene's frame, as `omnirecon mesh` writes it)."""
     realtime: bool = False
     """Time the path the real-time videos take (``reconstruct``'s, ``demo``'s): the scene kind's blend, fill and sources
     (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking

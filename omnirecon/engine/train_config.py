@@ -12,7 +12,7 @@ from typing import Literal
 
 from omnirecon.engine.machine import DeviceConfig
 from omnirecon.errors import InputError
-from omnirecon.options import OutFolder, Seeded
+from omnirecon.options import ImageSize, OutFolder, SceneCache, Seeded, command_defaults
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
 # (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
@@ -36,7 +36,8 @@ RESUMABLE_CHANGES = {"num_views_range", "resolution"}
 
 
 @dataclass
-class TrainConfig(OutFolder, Seeded, DeviceConfig):
+@command_defaults(resolution=64, cache=Path("outputs/cache/synth"))
+class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, DeviceConfig):
     """Train a generalizable renderer (GPNR, IBRNet or Omni-Recon) on procedural and/or real scenes.
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the
@@ -60,12 +61,8 @@ class TrainConfig(OutFolder, Seeded, DeviceConfig):
     """Procedural scenes per synth:RIG source without a count."""
     synth_views: int = 40
     """Views per procedural scene."""
-    cache: Path = Path("outputs/cache/synth")
-    """Where procedural scenes are generated (sub-folder <rig>_<resolution>)."""
     max_views: int | None = None
     """Load at most this many views of each real scene (evenly spaced)."""
-    resolution: int = 64
-    """Training image size: procedural scenes are generated at it, real scenes downscaled to this long side."""
     steps: int = 1000
     """Optimisation steps (the learning-rate schedule spans them)."""
     rays: int | None = None

@@ -26,7 +26,7 @@ from pathlib import Path
 from omnirecon.engine.machine import GuidedRendering, ThreadsConfig
 from omnirecon.engine.shipped import shipped_folder
 from omnirecon.errors import InputError
-from omnirecon.options import SourceViews
+from omnirecon.options import CameraPath, ImageSize, OutPath, SourceViews, command_defaults
 
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
@@ -45,26 +45,17 @@ them."""
 
 
 @dataclass
-class DemoConfig(GuidedRendering, SourceViews, ThreadsConfig):
+@command_defaults(out=Path("outputs/demo"), frames=12, resolution=80)
+class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, ThreadsConfig):
     """Run the whole pipeline on one scene with the shipped checkpoints and write an HTML report:
     novel-view videos (GPNR, Omni-Recon), held-out view scores against the non-learned floor, and a
     mesh with its Chamfer distance to the ground truth."""
 
     data: Path | None = None
     """Any supported scene folder instead of the embedded procedural scene."""
-    out: Path = Path("outputs/demo")
-    """Output folder (index.html, demo.json, videos, meshes, pictures)."""
     checkpoints: Path = shipped_folder()
     """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
     package carries: omnirecon/engine/shipped.py)."""
-    frames: int = 12
-    """Frames of each novel-view orbit (gpnr-tiny's volumetric frames dominate the demo's time on a CPU, more so
-    on one without native bf16, so the default keeps the whole demo to a few CPU-minutes: BENCHMARKS "End to end";
-    raise it on a GPU)."""
-    resolution: int = 80
-    """Long side of the novel-view orbits' frames, in pixels (volumetric rendering dominates the demo's time; the
-    embedded scene is generated at this size for them, at least 128 px). 256 shows them at a size a user looks at,
-    for about 2.5 times the demo's CPU time (BENCHMARKS "Novel-view quality" gives one 256-px view's cost)."""
     quick: bool = False
     """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
     orbit_guided: bool = False

@@ -15,13 +15,25 @@ from omnirecon.engine.views import check_views, default_views
 from omnirecon.errors import InputError
 from omnirecon.mesh.build import MeshOptions
 from omnirecon.mesh.files import read_mesh
-from omnirecon.options import OutFolder, SceneInput, ViewerBundle, check_options
+from omnirecon.options import (
+    MeshBlend,
+    MeshFile,
+    Meshing,
+    OutFolder,
+    PhotoSize,
+    SceneInput,
+    ViewerBundle,
+    check_options,
+    command_defaults,
+)
 from omnirecon.progress import progress_bar
 from omnirecon.viewer.export import ExportOptions, export_scene
 
 
 @dataclass
-class ExportConfig(OutFolder, CheckpointInput, SceneInput, ViewerBundle, MachineConfig):
+@command_defaults(voxel=1 / 256, masks=True)
+class ExportConfig(OutFolder, CheckpointInput, SceneInput, MeshFile, PhotoSize, Meshing, MeshBlend, ViewerBundle,
+                   MachineConfig):
     """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
     renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
 
@@ -33,37 +45,18 @@ class ExportConfig(OutFolder, CheckpointInput, SceneInput, ViewerBundle, Machine
     finetune: Path | None = None
     """An `omnirecon finetune` output folder (or its curve.json): the viewer starts with what it scored (its "render"
     record: blend, fill, sources per frame, angle sources, source masks, cracks) over its sources."""
-    mesh: Path | None = None
-    """Mesh file in the input frame (e.g. from `omnirecon mesh`); default: mesh the scene with the model."""
-    resolution: int | None = None
-    """Long side of the source images in pixels (default: --finetune's, else the scene's eval protocol, 128)."""
     bake_views: int = 3
     """Most frontal visible source views blended per vertex for the baked colours."""
-    visibility: bool = True
-    """The viewer starts with the per-source occlusion test on (toggle it in the viewer)."""
     visibility_tol: float = 0.01
     """Relative depth tolerance of the occlusion test."""
     max_edge: float = 0.0
     """Subdivide triangles until no edge exceeds this fraction of the bounds diagonal before baking, so
     the vertex colours can carry the texture of large triangles (0: keep the mesh; e.g. 0.005)."""
-    voxel: float = 1 / 256
-    """Without --mesh: TSDF voxel size as a fraction of the bounds diagonal."""
-    masks: bool = True
-    """Without --mesh: clean the mesh with the source views' object masks when the scene has them."""
     background: Literal["white", "black"] = "white"
     """Colour RGBA inputs are composited on."""
-    blend: Literal["auto", "network", "angle"] = "auto"
-    """The blend the viewer starts with (it can switch): `network`, the appearance branch's weights over each frame's
-    6 nearest sources; `angle`, each point's --angle-sources nearest sources by viewing angle (as `finetune --blend
-    angle`); `auto`, --finetune's, else per scene kind as `finetune` (angle on real object captures with masks such as
-    DTU, else network)."""
     angle_sources: int | None = None
     """Sources per point of the angle blend (0: every source that sees it; default: --finetune's, else 4, what
     `finetune --angle-sources 3 4 6 8` chose on its validation views on the DTU scans)."""
-    fill: Literal["auto", "far", "nearest", "background"] = "auto"
-    """Where no triangle covers a pixel (it can switch): `far`, the background layer; `nearest`, the nearest covered
-    pixel's depth near the mesh, the far layer beyond; `background`, the colour; `auto`, --finetune's, else per scene
-    kind as `finetune`."""
     cracks: int | None = None
     """The crack fill's radius in pixels (0: off; default: --finetune's, else 2)."""
 

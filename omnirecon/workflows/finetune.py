@@ -77,7 +77,16 @@ from omnirecon.mesh.files import read_mesh, write_mesh
 from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.mesh.pixels import angle_blend, rasterize_groups, rasterize_views
-from omnirecon.options import OutFolder, SceneInput, Seeded, SourceViews, check_options
+from omnirecon.options import (
+    MeshBlend,
+    MeshFile,
+    OutFolder,
+    PhotoSize,
+    SceneInput,
+    Seeded,
+    SourceViews,
+    check_options,
+)
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
 from omnirecon.rays import Sources
@@ -93,7 +102,8 @@ VAL_PIXELS = 8192
 
 
 @dataclass
-class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput, ThreadsConfig):
+class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput, MeshFile, PhotoSize, MeshBlend,
+                     ThreadsConfig):
     """Tune Omni-Recon's 2-D encoder and appearance branch on one scene's training views through its
     mesh, within a time budget, keeping the best state on validation views; writes a PSNR-vs-time
     curve on the held-out views."""
@@ -108,11 +118,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     views: tuple[int, ...] | None = None
     """Source views (default: every training view with --nearest, the validation views too; with --nearest 0 DTU's
     23 24 33, else --num-views evenly spaced train views); never a held-out view."""
-    mesh: Path | None = None
-    """Mesh file in the input scene's frame (default: `omnirecon mesh`'s mesh from the model at the sources)."""
-    resolution: int | None = None
-    """Long side of the images in pixels (default: the photos' own, at most 512): the training views are
-    rasterized once at this size and tuning samples their pixels; the held-out views are scored at it."""
     rays: int = 8192
     """Pixels per step (the encoder's pass over the source photos dominates a step's cost; more pixels per
     step cost little: `python -m bench finetune_levers`)."""
@@ -173,17 +178,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     demo) may drop by at most this many dB on validation for a state to be returned (0: never worse on either)."""
     val_every: float = 2.0
     """Seconds of optimisation between validation scores (also scored at every --eval-at)."""
-    fill: Literal["auto", "far", "background", "nearest"] = "auto"
-    """Pixels the mesh misses: `far`, the mesh renderer's background layer shaded by the same blend; `nearest`, the
-    z-depth of the nearest pixel of the same view that the mesh covers (its own rendered depth, never a photo), points
-    on those rays shaded like mesh points with the occlusion test (object captures whose mesh stops short of the
-    silhouette; pixels of a view the mesh misses entirely: `far`); `background`, the scene's background colour;
-    `auto`: per scene kind (:func:`omnirecon.mesh.ibr.scene_blend`): `background` for scenes that declare their
-    background colour (procedural: `nearest` paints the sky beside the objects), `nearest` for real object captures
-    (an object rig without a known background colour, with masks or without), else `far` (forward-facing scenes).
-    With `far`, tuning samples the fill's pixels too (they are scored: on dtu_scan24 tuning only the mesh's pixels
-    lowered the whole image on validation while raising the objects). Each fill per scene: BENCHMARKS "Depth
-    sources"."""
     cracks: int = CRACK_RADIUS
     """Whatever --fill, a pixel the mesh misses but encloses (inside the closing of the covered pixels by a
     ``2 cracks + 1`` square: pinholes and seams between completion's fills) is shaded at the nearest covered pixel's
@@ -202,22 +196,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
     finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene and fern returned the start with 1 and 2,
     so 0 stays the default."""
-    visibility: bool = True
-    """Blend only the sources that see each surface point (the mesh renderer's occlusion test against each
-    source's rasterized depth, ``MeshRenderOptions.visibility``), in tuning and scoring; fill points keep every
-    source. Without it a source that sees the ground behind an object paints the object with ground texture; it
-    raised the held-out score before tuning on the demo scene (exact and stereo+model meshes), fern and
-    dtu_scan24."""
-    blend: Literal["auto", "network", "angle"] = "auto"
-    """How each pixel mixes its sources' colours: ``network``, the appearance branch's weights over the --nearest
-    sources of the view (the paper); ``angle``, each point's --nearest sources by viewing angle among those that
-    see it, weighted by angle alone (:func:`omnirecon.mesh.kernel.angle_weights`, the unstructured lumigraph's
-    blend). With ``angle`` nothing the blend uses is tuned (the encoder and the appearance branch are unused):
-    --seconds only scores. ``auto`` (:func:`omnirecon.mesh.ibr.scene_blend`): ``angle`` for real object captures
-    (an object rig without a known background colour, with masks or without), ``network`` for procedural scenes
-    (a known background colour; the blend stays tunable) and for forward-facing scenes. On DTU the angle blend
-    scores higher over the masks but loses off the objects (ghosts on the table); each blend per scene:
-    BENCHMARKS "Depth sources"."""
     angle_sources: tuple[int, ...] = (3, 4, 6, 8)
     """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
     the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Literal
 
+from omnirecon.options import SourceOcclusion
 from omnirecon.outputs import claim
 
 
@@ -42,7 +43,7 @@ class FolderVerb:
 
 
 @dataclass(kw_only=True)
-class LiftedTargets:
+class LiftedTargets(SourceOcclusion):
     """The options of ``lift`` and ``edit``: which targets, and the path their sources' signals are blended by."""
 
     targets: tuple[int, ...] = ()
@@ -54,7 +55,3 @@ class LiftedTargets:
     """--path mesh (and edit's mesh edit): gt (a procedural scene's exact mesh), model (baked from the model's depth at
     the targets' sources, `omnirecon mesh`'s protocol), auto (gt if any, else model) or a mesh file in the scene's
     input frame."""
-    visibility: bool = True
-    """--path mesh: mask out of each surface point's blend the sources in which it is occluded (a depth test against
-    each source's rasterized mesh; not in the paper). Without it an occluded source blends the occluder's prediction
-    in."""

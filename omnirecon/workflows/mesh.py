@@ -28,14 +28,14 @@ from omnirecon.mesh import geometry
 from omnirecon.mesh.build import PRESETS, MeshOptions, default_depth, default_surface, mesh_from_model
 from omnirecon.mesh.confidence import NoDepth
 from omnirecon.mesh.files import check_mesh_paths, read_mesh, to_input_frame, write_mesh
-from omnirecon.options import Overwrites, SceneInput, SourceViews, check_options
+from omnirecon.options import Meshing, Overwrites, PhotoSize, SceneInput, SourceViews, check_options
 from omnirecon.outputs import remove_written
 from omnirecon.progress import progress_bar
 
 PREVIEW_SIDE = 512
 """Long side of the preview picture in pixels (the source camera, upscaled, never downscaled)."""
 @dataclass
-class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig):
+class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, PhotoSize, Meshing, MachineConfig):
     """Extract a mesh: depth at the views (classical stereo, a checkpoint's or the plane-sweep floor's
     rendered depth, or both), fused into a TSDF over the scene bounds, marching cubes, cleaning (with
     the masks for objects), a face budget and completion (every content pixel of every view gets a
@@ -46,10 +46,6 @@ class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig
     views), or `all`: every training view, each rendered from its own --num-views nearest views."""
     out: tuple[Path, ...] = ()
     """Mesh file(s): .ply, .obj and/or .glb (default: outputs/mesh/<scene>_<model>.ply)."""
-    resolution: int | None = None
-    """Long side of the images meshed, in pixels (default: the photos' own, at most 512, as `reconstruct`).
-    Meshing at a lower resolution scored lower on fern and dtu_scan24 for about the same or a little less CPU time
-    (`python -m bench mesh_resolution`; BENCHMARKS "Mesh resolution")."""
     depth: Literal["auto", "model", "stereo", "stereo+model", "oracle"] = "auto"
     """Depth source: the model's rendered depth, classical stereo (OpenCV SGBM on neighbour pairs; needs
     no model), stereo with the model's depth where stereo finds none, or a procedural scene's exact
@@ -58,8 +54,6 @@ class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig
     shifts: tuple[float, ...] | None = None
     """Virtual views per view: shifts along the camera x axis as fractions of its distance to the
     scene centre (default: the preset's: 0 for fit, VolRecon's 25 mm on DTU for reference)."""
-    voxel: float | None = None
-    """Voxel size as a fraction of the bounds diagonal (default: the depth maps' pixel footprint)."""
     trunc: float | None = None
     """TSDF truncation in voxels (default: the preset's: 4 for `fit`, widened to twice the depth error the
     maps show; 3 for `reference`, VolRecon's)."""
@@ -80,9 +74,6 @@ class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, MachineConfig
     measured), fine otherwise."""
     min_acc: float = 0.5
     """Models that return accumulated opacity (IBRNet): pixels below it get no depth."""
-    masks: bool = False
-    """Carve free space outside the source views' object masks and clean with them (objects only;
-    without it the background, e.g. the ground, is kept)."""
     min_views: int = 2
     """Keep vertices inside the masks of at least this many source views."""
     min_component: float = 0.001

@@ -37,7 +37,6 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -56,7 +55,18 @@ from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.confidence import NoDepth
-from omnirecon.options import CaptureInput, Overwrites, SourceViews, ViewerBundle, check_options
+from omnirecon.options import (
+    CameraModel,
+    CameraPath,
+    CaptureInput,
+    OutPath,
+    Overwrites,
+    PhotoSize,
+    SourceViews,
+    ViewerBundle,
+    check_options,
+    command_defaults,
+)
 from omnirecon.outputs import claim, relative_to, write_marker
 from omnirecon.provenance import provenance
 from omnirecon.scene_kind import scene_kind
@@ -71,7 +81,9 @@ from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
 
 @dataclass
-class ReconstructConfig(CaptureInput, Overwrites, SourceViews, ShippedCheckpoint, ViewerBundle, MachineConfig):
+@command_defaults(out=Path("outputs/reconstruct"), frames=48)
+class ReconstructConfig(CaptureInput, CameraModel, OutPath, Overwrites, SourceViews, ShippedCheckpoint, PhotoSize, CameraPath,
+                        ViewerBundle, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or
@@ -79,19 +91,11 @@ class ReconstructConfig(CaptureInput, Overwrites, SourceViews, ShippedCheckpoint
 
     path: tyro.conf.Positional[Path]
     """A folder of photos, a video, or a scene folder in any supported format."""
-    out: Path = Path("outputs/reconstruct")
-    """Output folder (replaced only with --overwrite)."""
     mesh_resolution: int | None = None
     """Long side of the images meshed (default: the photos' own, at most 512: stereo matches at it, the model's
     depth for stereo's holes is rendered at 128)."""
-    resolution: int | None = None
-    """Long side for fine-tuning, the held-out scores and the video (default: the photos' own, at most 512)."""
     finetune_seconds: float = 60.0
     """Fine-tuning budget in wall seconds (0: export and render the checkpoint as it is)."""
-    frames: int = 48
-    """Frames of the camera-path video."""
-    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = "SIMPLE_RADIAL"
-    """COLMAP camera model when PATH holds photos or a video (see `omnirecon process`)."""
     resume: bool = True
     """Continue from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial, when
     the input's files and the options each stage depends on are unchanged; --no-resume starts over."""

@@ -29,26 +29,30 @@ from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
 from omnirecon.models.fast import switches
 from omnirecon.models.guided import render_guided
-from omnirecon.options import OutFolder, SceneInput, check_options
+from omnirecon.options import (
+    CameraPath,
+    ImageSize,
+    OutFolder,
+    SceneInput,
+    SourceViews,
+    check_options,
+    command_defaults,
+)
 from omnirecon.progress import progress_bar
 from omnirecon.rays import Sources
 from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
-class RenderConfig(GuidedRendering, OutFolder, ModelChoice, SceneInput, MachineConfig):
+@command_defaults(num_views=10)
+class RenderConfig(GuidedRendering, OutFolder, ModelChoice, SceneInput, SourceViews, ImageSize, CameraPath,
+                   MachineConfig):
     """Render a camera path (orbit, LLFF-style spiral, or interpolation between scene cameras)
     through a scene with a checkpoint or the plane-sweep floor; writes PNG frames and a video."""
 
     path: Literal["orbit", "spiral", "interp"] = "orbit"
     """orbit: circle the scene centre at the cameras' mean distance/elevation; spiral: LLFF-style
     around the mean pose (forward-facing scenes); interp: through the scene cameras in order."""
-    frames: int = 60
-    """Number of frames."""
-    resolution: int = 128
-    """Long side of the rendered frames and of the source images, in pixels (never upscaled)."""
-    num_views: int = 10
-    """Source views K per frame (the K nearest scene views)."""
     keyframes: tuple[int, ...] | None = None
     """interp: scene view indices to pass through, in order (default: up to 8 views evenly spaced)."""
     arc: float | None = None

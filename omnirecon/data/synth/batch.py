@@ -12,18 +12,17 @@ from pathlib import Path
 
 from omnirecon.data.synth.generate import SynthOptions, generate_scene, scene_name
 from omnirecon.errors import InputError
-from omnirecon.options import Overwrites, Seeded, check_options
+from omnirecon.options import OutPath, Overwrites, Seeded, check_options, command_defaults
 from omnirecon.progress import progress_bar
 
 
 @dataclass
-class SynthConfig(Overwrites, Seeded, SynthOptions):
+@command_defaults(out=Path("outputs/synth"))
+class SynthConfig(OutPath, Overwrites, Seeded, SynthOptions):
     """Generate procedural scenes of textured primitives with exact ground truth (depth, normals,
     labels, masks, mesh) in the Blender/NeRF-synthetic layout. Scene i uses seed ``seed + i``; the
     same seed always gives byte-identical files."""
 
-    out: Path = Path("outputs/synth")
-    """Folder that receives one ``scene_{seed:05d}`` folder per scene."""
     num_scenes: int = 1
     """How many scenes to generate."""
     workers: int | None = None

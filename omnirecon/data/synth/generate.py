@@ -52,7 +52,7 @@ from omnirecon.data.synth.primitives import corner_normals, face_normals
 from omnirecon.data.synth.render import Mesh, render_view
 from omnirecon.data.synth.textures import make_atlas, make_texture
 from omnirecon.errors import InputError
-from omnirecon.options import check_options
+from omnirecon.options import ImageSize, check_options
 from omnirecon.outputs import swap_in
 
 GENERATOR_VERSION = "omnirecon-synth/1"
@@ -62,7 +62,7 @@ TEST_EVERY = 8
 
 
 @dataclass
-class SynthOptions:
+class SynthOptions(ImageSize):
     """What each generated scene looks like.
 
     Rigs: ``object`` puts the cameras on a sphere around the objects (upper hemisphere when there
@@ -75,8 +75,6 @@ class SynthOptions:
     """object: 360 degrees around the objects; frontal: DTU-like +-40 degree arc; forward: LLFF-like grid."""
     views: int = 40
     """Views per scene: view i is test when i % 8 == 0, val when i % 8 == 4, else train."""
-    resolution: int = 128
-    """Image width and height in pixels."""
     ground: bool = True
     """Add a textured ground patch (plus a backdrop wall in forward scenes), label 255."""
     min_objects: int = 2
