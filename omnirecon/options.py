@@ -45,20 +45,27 @@ class Rule:
     example: str = ""
     unit: str = ""
     """The values' unit, said after the range (``voxels``); empty for plain numbers."""
+    below: bool = False
+    """``v < hi`` instead of ``v <= hi``."""
+    off: bool = False
+    """0 is allowed too, outside the range (it turns the option off)."""
 
     def text(self) -> str:
         if self.lo is not None and self.hi is not None:
-            text = f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}]"
+            text = f"in {'(' if self.above else '['}{_num(self.lo)}, {_num(self.hi)}{')' if self.below else ']'}"
         elif self.lo is not None:
             text = f"{'>' if self.above else '>='} {_num(self.lo)}"
         else:
-            text = f"<= {_num(self.hi)}"
+            text = f"{'<' if self.below else '<='} {_num(self.hi)}"
+        text = f"0 (off) or {text}" if self.off else text
         return f"{text} {self.unit}" if self.unit else text
 
     def ok(self, v: float) -> bool:
+        if self.off and v == 0:
+            return True
         if self.lo is not None and (v <= self.lo if self.above else v < self.lo):
             return False
-        return self.hi is None or v <= self.hi
+        return self.hi is None or (v < self.hi if self.below else v <= self.hi)
 
 
 def _num(v: float) -> str:
@@ -114,10 +121,10 @@ RULES: dict[str, Rule] = {
     "label": Rule(0, 1_000_000, example="e.g. 1"), "dilation": Rule(0, 1_000, example="e.g. 1"),
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
-    "voxel": Rule(0, 1e6, above=True, example="e.g. 0.004"), "mesh.voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"), "export.voxel": Rule(0, 1e6, example="e.g. 0.004"),
-    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(0, 1, example="e.g. 0.005 (0: off)"),
-    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1, example="e.g. 0.01"),
-    "shifts": Rule(-1, 1, example="e.g. 0.036 (a fraction of the camera's distance)"),
+    "voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"),
+    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(1e-4, 1, off=True, example="e.g. 0.005 (0: off)"),
+    "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1, below=True, example="e.g. 0.01"),
+    "shifts": Rule(-1, 1, above=True, below=True, example="e.g. 0.036 (a fraction of the camera's distance)"),
     # photos in
     "downscale": Rule(0, 1024, above=True, example="e.g. 1 or 4"), "min_registered": FRACTION,
     "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),

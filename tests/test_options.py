@@ -241,3 +241,69 @@ def test_a_command_default_keeps_its_groups_type_and_help(capsys):
     assert flag.startswith("Source views K") and flag.endswith("(default: 10)"), flag  # SourceViews' help, render's 10
     with pytest.raises(TypeError, match="option group"):
         command_defaults(nearest=2)(type("X", (SourceViews,), {}))
+
+
+def test_mesh_library_defaults_are_the_clis():
+    """Each ``omnirecon mesh`` option that sets a :class:`MeshOptions` field defaults to the library's value or to
+    ``None`` (the preset's), and ``auto`` is resolved the same way in both (``surface``, ``depth``, ``depth_pass``)."""
+    import dataclasses
+    import pathlib
+
+    from omnirecon.mesh.build import MeshOptions, resolved
+    from omnirecon.workflows.mesh import MESH_FIELDS, MeshConfig
+
+    lib = {f.name: f.default for f in dataclasses.fields(MeshOptions)}
+    cli = {("neighbours" if f.name == "num_views" else f.name): f.default for f in dataclasses.fields(MeshConfig)}
+    differ = {k: (v, lib[k]) for k, v in cli.items() if k in MESH_FIELDS and v is not None and v != lib[k]}
+    assert not differ, differ
+    made = MeshConfig(scene=pathlib.Path("s")).mesh_options(None, has_model=True)
+    assert resolved(MeshOptions(), None, True, False) == dataclasses.replace(made, chunk=MeshOptions().chunk)
+
+
+@pytest.mark.parametrize("args, line", [
+    (["--surface", "poisson"], "--surface poisson needs --masks"),
+    (["--fusion", "reference", "--complete"], "--complete works only with --fusion fit"),
+    (["--shifts", "1.5"], "--shifts must be in (-1, 1), got 1.5"),
+    (["--voxel", "0.5"], "--voxel must be in (0, 0.1], got 0.5")])
+def test_mesh_refuses_flags_that_cannot_work(args, line, tmp_path, capsys):
+    """One line, exit 2, before the scene is read (the scene here does not exist)."""
+    from omnirecon.cli import main
+
+    rc = main(["mesh", "--scene", str(tmp_path / "nope"), "--model", "floor", *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and line in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_reference_fusion_keeps_its_sources_per_depth_map():
+    """``--fusion reference`` renders each depth map from every view (its preset) unless --num-views is given."""
+    import pathlib
+
+    from omnirecon.mesh.build import PRESETS
+    from omnirecon.workflows.mesh import MeshConfig
+
+    s = pathlib.Path("s")
+    assert MeshConfig(scene=s, fusion="reference").mesh_options().neighbours == PRESETS["reference"]["neighbours"]
+    assert MeshConfig(scene=s, fusion="reference", num_views=5).mesh_options().neighbours == 5
+    assert MeshConfig(scene=s).mesh_options().neighbours == 3
+
+
+@pytest.mark.parametrize("name, value", [("shifts", (1.0,)), ("max_edge", 1e-5), ("visibility_tol", 1.0)])
+def test_library_checks_use_the_one_rule(name, value):
+    """The library's own checks (``MeshOptions.check``, ``ExportOptions.check``) refuse with the CLI's message."""
+    import dataclasses
+    import pathlib
+
+    from omnirecon.mesh.build import MeshOptions
+    from omnirecon.viewer.export import ExportOptions
+    from omnirecon.workflows.export import ExportConfig
+    from omnirecon.workflows.mesh import MeshConfig
+
+    lib = MeshOptions(shifts=value) if name == "shifts" else dataclasses.replace(ExportOptions(), **{name: value})
+    with pytest.raises(InputError) as a:
+        lib.check()
+    command = "mesh" if name == "shifts" else "export"
+    config = (MeshConfig if name == "shifts" else ExportConfig)(scene=pathlib.Path("s"), ckpt=pathlib.Path("c"),
+                                                                 **{name: value})
+    with pytest.raises(InputError) as b:
+        check_options(command, config)
+    assert a.value.one_line() == b.value.one_line(), (a.value.one_line(), b.value.one_line())

@@ -39,6 +39,7 @@ from omnirecon.mesh.depth import depth_from_outputs
 from omnirecon.mesh.files import write_mesh
 from omnirecon.mesh.geometry import depth_errors
 from omnirecon.models.guided import GuidedOptions, render_guided
+from omnirecon.options import check_value
 from omnirecon.preflight import check_planned
 from omnirecon.progress import progress_bar
 from omnirecon.provenance import provenance
@@ -122,12 +123,10 @@ def evaluate(
     """
 
     ks = [int(k) for k in num_views]
-    if not ks or min(ks) < 1:
-        raise InputError(f"--num-views must be positive integers, got {list(num_views)}", None, "use e.g. 3 10")
-    if chunk < 1:
-        raise InputError(f"--chunk must be at least 1, got {chunk}", None, "use e.g. 4096")
-    if max_targets is not None and max_targets < 1:
-        raise InputError(f"--max-targets must be at least 1, got {max_targets}", None, "leave it unset")
+    if not ks:
+        raise InputError("--num-views needs at least one count", None, "use e.g. 3 10")
+    for name, value in (("num_views", tuple(ks)), ("chunk", chunk), ("max_targets", max_targets)):
+        check_value(name, value)  # the rules: omnirecon/options.py (None: unset)
     options = mesh_options or MeshOptions(depth="model", chunk=chunk)  # the model's geometry
     if model is None and not (geometry and options.depth in ("stereo", "oracle")):
         raise InputError("evaluating without a model needs geometry with a depth source that needs none", None,

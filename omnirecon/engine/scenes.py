@@ -20,6 +20,7 @@ from omnirecon.engine.protocols import (
     protocol_for,
 )
 from omnirecon.errors import InputError
+from omnirecon.options import check_value
 from omnirecon.scene_kind import scene_kind
 from omnirecon.splits import EVAL_SEEDS
 
@@ -33,8 +34,7 @@ def _read(path: Path, fmt: str, options: ReadOptions) -> Scene:
 def load_at_resolution(path: Path, long_side: int, background: str = "white", fmt: str = "auto") -> Scene:
     """Read ``path`` with its long side area-downscaled to at most ``long_side`` px, normalised
     (``Scene.normalized``: content centred in the unit sphere, as training does)."""
-    if long_side < 8:
-        raise InputError(f"resolution must be at least 8 px, got {long_side}", None, "use e.g. 128")
+    check_value("resolution", long_side)  # the rule: omnirecon/options.py
     fmt = detect_format(path) if fmt == "auto" else fmt
     probe = _read(path, fmt, ReadOptions(max_views=1))  # one image: the native size
     native = max(probe.width, probe.height)
@@ -84,8 +84,7 @@ def synth_eval_paths(spec: str, count: int = 10, cache: Path = Path("outputs/cac
     if parts[:2] != ["synth", "eval"] or len(parts) > 3 or rig not in ("object", "frontal", "forward"):
         raise InputError(f"bad scene spec {spec!r}", None, "use synth:eval, synth:eval:object, synth:eval:frontal "
                          "or synth:eval:forward")
-    if not 1 <= count <= len(EVAL_SEEDS):
-        raise InputError(f"--synth-count must be in 1..{len(EVAL_SEEDS)}, got {count}", None, "use e.g. 10")
+    check_value("synth_count", count)  # the rule: omnirecon/options.py
     res = PROTOCOLS["synth"].long_side
     out = Path(cache) / "synth_eval" / f"{rig}_{res}"
     options = SynthOptions(rig=rig, views=SYNTH_VIEWS, resolution=res)

@@ -31,8 +31,8 @@ import torch
 import trimesh
 from torch import Tensor
 
-from omnirecon.errors import InputError
 from omnirecon.mesh.files import to_input_frame
+from omnirecon.options import check_value
 from omnirecon.render.raster import vertex_normals
 
 
@@ -47,10 +47,8 @@ class BakeOptions:
 
     def check(self) -> None:
 
-        if self.views < 1:
-            raise InputError(f"--bake-views must be at least 1, got {self.views}", None, "use e.g. 3")
-        if self.chunk < 1:
-            raise InputError(f"--chunk must be at least 1, got {self.chunk}", None, "use e.g. 8192")
+        check_value("bake_views", self.views)  # the rules: omnirecon/options.py
+        check_value("chunk", self.chunk)
 
 
 @dataclass

@@ -112,10 +112,12 @@ class MeshOptions:
     """Face budget of the written mesh, completion's fills and backdrop included (0 = no limit): the fused
     surface is decimated to it, and when the fills push the total over, to what they leave (:func:`~omnirecon.mesh.stages.refit`).
     Decimation has a floor (meshes of a few hundred faces may stay above it)."""
-    depth_pass: str = "fine"
+    depth_pass: str = "auto"
     """Which pass of a two-pass model (IBRNet, Omni-Recon) renders the depth maps: ``"fine"`` (coarse +
     importance samples, as the colour is rendered) or ``"coarse"`` (the coarse samples only, several times
-    faster; on the demo scene, all views, omnirecon-tiny: a lower F-score and a larger held-out depth error)."""
+    faster; on the demo scene, all views, omnirecon-tiny: a lower F-score and a larger held-out depth error);
+    ``"auto"``: coarse for ``stereo+model`` (the model only fills stereo's holes), else fine (:func:`resolved`), as
+    ``omnirecon mesh --depth-pass auto``."""
     min_acc: float = 0.5
     """Models that return ``acc`` (accumulated opacity): pixels below it have no depth, and depth is
     divided by ``acc`` (the expected depth of the ray given that it hits)."""
@@ -146,12 +148,12 @@ class MeshOptions:
     """Drop connected components with fewer faces than this fraction of the largest (the reference drops
     components under 500 faces of meshes of ~10^5-10^6 faces). A larger fraction removed much of the plane-sweep
     floor's fragmented DTU scan24 mesh and lowered its held-out IoU."""
-    surface: str = "fusion"
+    surface: str = "auto"
     """``fusion``: the fused, cleaned surface as it is; ``poisson``: with object masks, screened Poisson
     over it, trimmed to the masks (:mod:`omnirecon.mesh.poisson`, needs pymeshlab), which closes the holes
-    fusion leaves; without masks it is skipped (no silhouette to trim a watertight surface to); ``coherent``: one
-    surface from the depth several views confirm, kept where views support it, no fills (:mod:`omnirecon.mesh.surface`,
-    needs pymeshlab)."""
+    fusion leaves (``omnirecon mesh`` refuses it without --masks); ``coherent``: one surface from the depth several
+    views confirm, kept where views support it, no fills (:mod:`omnirecon.mesh.surface`, needs pymeshlab); ``auto``:
+    the scene kind's (:func:`default_surface`), as ``omnirecon mesh --surface auto``."""
     coherent: SurfaceOptions = field(default_factory=SurfaceOptions)
     """Settings of the coherent surface."""
     complete: bool = True
@@ -262,11 +264,11 @@ class MeshOptions:
         if self.depth not in ("auto", *DEPTHS):
             raise InputError(f"--depth must be auto or one of {', '.join(DEPTHS)}, got {self.depth!r}", None,
                              "use --depth stereo")
-        if self.depth_pass not in ("coarse", "fine"):
-            raise InputError(f"--depth-pass must be coarse or fine, got {self.depth_pass!r}", None, "use --depth-pass fine")
-        if not self.shifts or not all(math.isfinite(s) and abs(s) < 1 for s in self.shifts):
-            raise InputError(f"--shifts must be finite fractions in (-1, 1), got {list(self.shifts)}", None,
-                             f"use e.g. --shifts {DTU_SHIFT:.4f}")
+        if self.depth_pass not in ("auto", "coarse", "fine"):
+            raise InputError(f"--depth-pass must be auto, coarse or fine, got {self.depth_pass!r}", None,
+                             "use --depth-pass fine")
+        if not self.shifts:  # their range: check_options below
+            raise InputError("--shifts needs at least one shift", None, f"use e.g. --shifts {DTU_SHIFT:.4f}")
         if self.hull_misses < -1 or not (math.isfinite(self.hull_dilate) and 0 <= self.hull_dilate < 0.1):
             raise InputError(f"hull_misses must be >= -1 and hull_dilate in [0, 0.1), got {self.hull_misses}, "
                              f"{self.hull_dilate}", None, "use e.g. 1 and 0.0075")
@@ -278,8 +280,8 @@ class MeshOptions:
             raise InputError(f"max_voxels must be at least 1000, got {self.max_voxels}", None, "use e.g. 67108864")
         if self.model_side < 0 or 0 < self.model_side < 8:
             raise InputError(f"model_side must be 0 or at least 8 px, got {self.model_side}", None, "use e.g. 128")
-        if self.surface not in SURFACES:
-            raise InputError(f"--surface must be one of {', '.join(SURFACES)}, got {self.surface!r}", None,
+        if self.surface not in ("auto", *SURFACES):
+            raise InputError(f"--surface must be auto or one of {', '.join(SURFACES)}, got {self.surface!r}", None,
                              "use --surface coherent")
         self.coherent.check()
         if not (math.isfinite(self.cull_samples) and self.cull_samples > 0) or self.grow_rings < 0:
@@ -395,6 +397,8 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
         stages: Filled with the mesh after each stage when given.
         on_stage: Called with the name of each stage as it starts (progress bars).
     """
+    if options.surface == "auto":  # the scene kind's, as mesh_from_model's
+        options = replace(options, surface=default_surface(scene, masks is not None))
     s = MeshState(maps, scene, list(views), options, masks, device, stages)
     clock = StageClock(on_stage)
     run(COHERENT if options.surface == "coherent" else FUSED, s, clock)
@@ -455,13 +459,16 @@ def mesh_from_model(model, scene, views, options: MeshOptions | None = None, dev
 
 
 def resolved(options: MeshOptions, scene, has_model: bool, masks: bool) -> MeshOptions:
-    """``options`` with ``depth="auto"`` made the scene kind's source (:func:`default_depth`), rendered with the
-    model's coarse pass when that is ``stereo+model`` (the model only fills stereo's holes), as ``omnirecon mesh``
-    picks them."""
-    if options.depth != "auto":
-        return options
-    depth = default_depth(scene, has_model, masks)
-    return replace(options, depth=depth, depth_pass="coarse" if depth == "stereo+model" else options.depth_pass)
+    """``options`` with each ``auto`` made what ``omnirecon mesh`` picks: ``surface`` the scene kind's
+    (:func:`default_surface`), ``depth`` its source (:func:`default_depth`), ``depth_pass`` the model's coarse pass for
+    ``stereo+model`` (the model only fills stereo's holes), else the fine pass."""
+    if options.surface == "auto":
+        options = replace(options, surface=default_surface(scene, masks))
+    if options.depth == "auto":
+        options = replace(options, depth=default_depth(scene, has_model, masks))
+    if options.depth_pass == "auto":
+        options = replace(options, depth_pass="coarse" if options.depth == "stereo+model" else "fine")
+    return options
 
 
 def default_surface(scene=None, masks: bool = False) -> str:

@@ -28,6 +28,7 @@ from omnirecon.mesh.bake import BakeOptions, bake_vertex_colors, colored_mesh
 from omnirecon.mesh.build import mesh_from_model
 from omnirecon.mesh.files import to_scene_frame, write_mesh
 from omnirecon.mesh.ibr import MeshRenderer, realtime_options
+from omnirecon.options import check_value
 from omnirecon.rays import Sources
 from omnirecon.viewer.bundle import three_unavailable_reason, write_bundle
 
@@ -66,19 +67,15 @@ class ExportOptions:
     coarse mesh (a ground plane of two triangles) needs this to carry its texture."""
 
     def check(self) -> None:
-        if self.bake_views < 1:
-            raise InputError(f"--bake-views must be at least 1, got {self.bake_views}", None, "use e.g. 3")
-        if not 0 <= self.visibility_tol < 1:
-            raise InputError(f"--visibility-tol must be in [0, 1), got {self.visibility_tol}", None, "use e.g. 0.01")
+        for name in ("bake_views", "visibility_tol", "max_edge", "angle_sources", "cracks"):
+            check_value(name, getattr(self, name))  # the rules: omnirecon/options.py
         if self.blend not in (None, "network", "angle"):
             raise InputError(f"--blend must be network or angle, got {self.blend!r}", None, "use e.g. --blend angle")
         if self.fill not in (None, "far", "nearest", "background"):
             raise InputError(f"--fill must be far, nearest or background, got {self.fill!r}", None,
                              "use e.g. --fill nearest")
-        for name in ("angle_sources", "frame_sources", "cracks"):
-            if (getattr(self, name) or 0) < 0:
-                raise InputError(f"--{name.replace('_', '-')} must be >= 0, got {getattr(self, name)}", None,
-                                 "use e.g. 6 (0: all / off)")
+        if (self.frame_sources or 0) < 0:
+            raise InputError(f"frame_sources must be >= 0, got {self.frame_sources}", None, "use e.g. 6 (0: all)")
 
     def setting(self, scene, record: dict | None = None) -> dict:
         """The real-time setting the bundle starts with: :func:`omnirecon.mesh.ibr.realtime_setting` of ``scene`` and
@@ -91,8 +88,6 @@ class ExportOptions:
         out.update({k: v for k, v in given.items() if v is not None})
         out["source_masks"] = bool(out["source_masks"]) and masks_hold_scene(scene)
         return out
-        if not (self.max_edge == 0 or 1e-4 <= self.max_edge <= 1):
-            raise InputError(f"--max-edge must be 0 (off) or in [1e-4, 1], got {self.max_edge}", None, "use e.g. 0.005")
 
 
 def subdivide(vertices: np.ndarray, faces: np.ndarray, max_edge: float, max_faces: int = 4_000_000):

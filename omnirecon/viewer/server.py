@@ -44,6 +44,7 @@ from functools import partial
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.options import check_value
 from omnirecon.viewer.format import check_bundle
 
 HOST = "127.0.0.1"
@@ -300,8 +301,7 @@ class ViewerServer(http.server.ThreadingHTTPServer):
         folder = Path(folder)
         if not folder.is_dir():
             raise InputError("not a folder", folder, "pass the folder written by `omnirecon export`")
-        if not 0 <= port <= 65535:
-            raise InputError(f"--port must be in 0..65535, got {port}", None, "use e.g. 8765, or 0 for any free port")
+        check_value("port", port)  # the rule: omnirecon/options.py
         self.folder = folder.resolve()
         try:
             super().__init__((HOST, port), partial(BundleRequestHandler, directory=str(self.folder), quiet=quiet))

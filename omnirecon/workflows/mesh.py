@@ -17,6 +17,8 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Literal
 
+import tyro
+
 from omnirecon.data import detect_format
 from omnirecon.data.io import write_json
 from omnirecon.engine.machine import MachineConfig, ModelChoice, load_model, pick_device, set_threads
@@ -90,25 +92,39 @@ class MeshConfig(Overwrites, SourceViews, ModelChoice, SceneInput, PhotoSize, Me
     `coherent`: one screened-Poisson surface from the depth several views confirm, kept only where views support it,
     no fills (omnirecon.mesh.surface); `poisson` (with --masks): screened Poisson over the fused surface, trimmed to
     the masks. `coherent` and `poisson` need the `surface` extra (pymeshlab)."""
-    complete: bool = True
+    complete: tyro.conf.DisallowNone[bool | None] = None
     """Give every content pixel of every view a surface (fill from the view's own depth, a backdrop on
-    forward-facing scenes, hole filling); only with the fit preset."""
+    forward-facing scenes, hole filling); default (None): the preset's, on for `fit`; `reference` never completes."""
+
     def mesh_options(self, scene=None, has_model: bool = True) -> MeshOptions:
         """The pipeline's settings: the --fusion preset, with every option of this command that names a
         :class:`MeshOptions` field on top when given (``None`` and ``auto`` are not given, and a flag left at its
-        default yields to a preset that sets it: ``--fusion reference`` keeps its face budget and completion)."""
+        default yields to a preset that sets it: ``--fusion reference`` keeps its face budget, its completion and its
+        sources per depth map, every view, unless --num-views is given). InputError for flags that cannot work
+        together (:meth:`check_together`)."""
+        self.check_together()
         preset = PRESETS.get(self.fusion, {})
         given = {}
         for f in fields(MeshConfig):
+            name = "neighbours" if f.name == "num_views" else f.name  # --num-views: sources per depth map
             value = getattr(self, f.name)
-            if f.name not in MESH_FIELDS or value is None or value == "auto" or (value == f.default and f.name in preset):
+            if name not in MESH_FIELDS or value is None or value == "auto" or (value == f.default and name in preset):
                 continue
-            given[f.name] = tuple(value) if isinstance(value, list) else value
+            given[name] = tuple(value) if isinstance(value, list) else value
         depth = self.depth if self.depth != "auto" else default_depth(scene, has_model, self.masks)
         surface = self.surface if self.surface != "auto" else default_surface(scene, self.masks)
         depth_pass = self.depth_pass if self.depth_pass != "auto" else "coarse" if depth == "stereo+model" else "fine"
         return MeshOptions.preset(self.fusion, **{**given, "depth": depth, "surface": surface, "depth_pass": depth_pass,
-                                                  "chunk": self.chunk, "neighbours": self.num_views})
+                                                  "chunk": self.chunk})
+
+    def check_together(self) -> None:
+        """InputError (one line, the fix named) for flags that cannot work together."""
+        if self.surface == "poisson" and not self.masks:
+            raise InputError("--surface poisson needs --masks: its surface is trimmed to the object masks", None,
+                             "add --masks (a scene with object masks), or use --surface fusion or coherent")
+        if self.fusion == "reference" and self.complete:
+            raise InputError("--complete works only with --fusion fit (reference, VolRecon's protocol, never completes)",
+                             None, "drop --complete, or use --fusion fit")
 
 
 MESH_FIELDS = frozenset(f.name for f in fields(MeshOptions)) - {"fusion"}
@@ -124,6 +140,9 @@ def run_mesh(cfg: MeshConfig) -> dict:
     device = pick_device(cfg.device)
     net, info, scene, fmt, load_seconds = load_inputs(cfg, device)
     views = check_views(cfg.views, len(scene), cfg.scene, scene) if cfg.views else default_views(scene, cfg.num_views)
+    if cfg.surface == "poisson" and scene.masks is None:
+        raise InputError("--surface poisson needs object masks, and the scene has none", cfg.scene,
+                         "use --surface fusion or coherent, or a scene with masks")
     options = cfg.mesh_options(scene, net is not None)
     options.check()
     if outs is None:
