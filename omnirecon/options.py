@@ -462,7 +462,13 @@ class SourceOcclusion:
 
 @dataclass(kw_only=True)
 class MeshBlend(SourceOcclusion):
-    """A command that renders through the mesh path with a blend and a fill of its choosing (finetune, export)."""
+    """A command that renders through the mesh path with sources, a blend and a fill of its choosing (finetune,
+    export)."""
+
+    views: tuple[int, ...] | None = None
+    """Source view indices, never a held-out view: the views the mesh path may blend. Default: finetune, every
+    training view with --nearest (the validation views too), with --nearest 0 DTU's 23 24 33, else --num-views evenly
+    spaced train views; export, --finetune's sources, else every train view (as the real-time mesh path blends)."""
 
     blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: `network`, the appearance branch's weights over the view's nearest

@@ -152,8 +152,8 @@ SAME_NAME = {
     "protocol_set": {"ProtocolScenes", "EvalCommand"},  # eval has more protocols (cpu256, ...) and defaults to full
     "resolution": {"ImageSize", "PhotoSize"},  # a size the command renders at / None: the photos' own, at most 512
     "frames": {"CameraPath", "BenchConfig"},  # a video's frames / frames timed
-    "views": {"BenchConfig", "MeshConfig", "FinetuneConfig", "ExportConfig", "SynthOptions"},  # K / depth views or
-    # `all` / finetune's sources (None: by --nearest) / the sources the viewer may blend / views generated
+    "views": {"BenchConfig", "MeshConfig", "MeshBlend", "SynthOptions"},  # K / depth views or `all` / the mesh path's
+    # sources / views generated
     "path": {"LiftedTargets", "RenderConfig", "ReconstructConfig", "InspectConfig"},  # blend path / camera path / input
     "mesh": {"LiftedTargets", "MeshFile"},  # gt, model, auto or a file / a file
     "masks": {"CaptureInput", "Meshing"},  # a folder of masks for pose finding / mesh with the scene's masks

@@ -37,9 +37,6 @@ class ExportConfig(OutFolder, CheckpointInput, SceneInput, MeshFile, PhotoSize, 
     """Export a mesh with baked vertex colours (PLY and GLB, input frame) and a static web viewer that
     renders it in real time with the model's image-based shading in a WebGL2 shader (`omnirecon view`)."""
 
-    views: tuple[int, ...] | None = None
-    """Source view indices: every view the viewer may blend (default: --finetune's sources, else every train view,
-    as the real-time mesh path blends)."""
     num_views: int | None = None
     """With neither --views nor --finetune: this many evenly spaced train views instead of all of them."""
     finetune: Path | None = None

@@ -115,9 +115,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     --seconds itself is always scored)."""
     clock: Literal["wall", "cpu"] = "wall"
     """Budget clock: wall time, or this process's CPU time (fair when other jobs share the machine)."""
-    views: tuple[int, ...] | None = None
-    """Source views (default: every training view with --nearest, the validation views too; with --nearest 0 DTU's
-    23 24 33, else --num-views evenly spaced train views); never a held-out view."""
     rays: int = 8192
     """Pixels per step (the encoder's pass over the source photos dominates a step's cost; more pixels per
     step cost little: `python -m bench finetune_levers`)."""
