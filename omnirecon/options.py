@@ -2,10 +2,12 @@
 place before the command starts.
 
 The shared options are small ``kw_only`` dataclasses a command's configuration inherits (:class:`Seeded`,
-:class:`Overwrites`, :class:`OutFolder`, :class:`SceneInput`, :class:`SourceViews`, :class:`SceneCache`,
-:class:`ProtocolScenes`, :class:`SynthEvalScenes`, :class:`ViewerBundle`, :class:`CaptureInput`; the model and
-machine groups are in :mod:`omnirecon.engine.machine`), so a flag is spelled, typed and described once
-(``tests/test_options.py`` refuses a field declared twice). Nested groups (``--guided.*``) are checked too.
+:class:`Overwrites`, :class:`OutFolder`, :class:`OutPath`, :class:`SceneInput`, :class:`SourceViews`,
+:class:`SceneCache`, :class:`ProtocolScenes`, :class:`SynthEvalScenes`, :class:`ViewerBundle`, :class:`CaptureInput`,
+:class:`ImageSize`, :class:`PhotoSize`, :class:`CameraPath`, :class:`MeshFile`, :class:`Meshing`, :class:`MeshBlend`,
+:class:`CameraModel`, ...; the model and machine groups are in :mod:`omnirecon.engine.machine`), so a flag is
+spelled, typed and described once (``tests/test_options.py`` refuses a field declared twice); where only the default
+differs, a command states its own with :func:`command_defaults`. Nested groups (``--guided.*``) are checked too.
 
 :func:`check_options` runs in ``omnirecon.cli`` on the parsed configuration of whichever command was chosen,
 before its ``main()``: each ``int``/``float`` field (and each element of a tuple of them) must be finite and
@@ -16,8 +18,8 @@ an out-of-reach value is refused with the number, the limit and the fix before a
 A numeric field without a rule is a bug (``tests/test_options.py`` walks every command); ``None`` always
 means "the default" and is not checked. ``--device`` is checked for its spelling here too.
 
-Size: one table of rules for every option of every command (~100 fields) and the memory model; splitting
-it by command would scatter the one place this module exists to be.
+Size: one table of rules for every option of every command (~100 fields), the option groups that declare the
+shared ones and the memory model; splitting it by command would scatter the one place this module exists to be.
 """
 
 from __future__ import annotations
@@ -122,7 +124,8 @@ RULES: dict[str, Rule] = {
     "colour": Rule(0, 1, example="e.g. 0.9 0.1 0.8"),
     # meshing
     "voxel": Rule(0, 0.1, above=True, example="e.g. 0.004"),
-    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"), "max_edge": Rule(1e-4, 1, off=True, example="e.g. 0.005 (0: off)"),
+    "trunc": Rule(1, 100, example="e.g. 4", unit="voxels"),
+    "max_edge": Rule(1e-4, 1, off=True, example="e.g. 0.005 (0: off)"),
     "min_acc": FRACTION, "min_component": FRACTION, "visibility_tol": Rule(0, 1, below=True, example="e.g. 0.01"),
     "shifts": Rule(-1, 1, above=True, below=True, example="e.g. 0.036 (a fraction of the camera's distance)"),
     # photos in
@@ -396,7 +399,6 @@ class CaptureInput:
     """Video input: frames sampled per second of video."""
 
 
-
 @dataclass(kw_only=True)
 class ImageSize:
     """A command that renders or generates images at one size of its own (render, train, bench, demo, synth)."""
@@ -469,7 +471,6 @@ class MeshBlend(SourceOcclusion):
     """Source view indices, never a held-out view: the views the mesh path may blend. Default: finetune, every
     training view with --nearest (the validation views too), with --nearest 0 DTU's 23 24 33, else --num-views evenly
     spaced train views; export, --finetune's sources, else every train view (as the real-time mesh path blends)."""
-
     blend: Literal["auto", "network", "angle"] = "auto"
     """How each pixel mixes its sources' colours: `network`, the appearance branch's weights over the view's nearest
     sources (the paper; finetune: --nearest of them, export: 6); `angle`, each point's --angle-sources nearest sources

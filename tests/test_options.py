@@ -211,7 +211,7 @@ def test_no_config_field_is_declared_twice():
     declared = collections.defaultdict(set)
     for cls in config_tree():
         own = {f.name for f in dataclasses.fields(cls)} & set(cls.__dict__.get("__annotations__", {}))
-        own -= set(cls.__dict__.get("COMMAND_DEFAULTS", {}))  # a command's default of a group's field (command_defaults)
+        own -= set(cls.__dict__.get("COMMAND_DEFAULTS", {}))  # a command's default of a group's field
         for name in own:
             declared[name].add(cls.__name__)
     twice = {n: sorted(c - SAME_NAME.get(n, set())) for n, c in declared.items()

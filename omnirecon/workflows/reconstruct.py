@@ -82,8 +82,8 @@ from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
 @dataclass
 @command_defaults(out=Path("outputs/reconstruct"), frames=48)
-class ReconstructConfig(CaptureInput, CameraModel, OutPath, Overwrites, SourceViews, ShippedCheckpoint, PhotoSize, CameraPath,
-                        ViewerBundle, MachineConfig):
+class ReconstructConfig(CaptureInput, CameraModel, OutPath, Overwrites, SourceViews, ShippedCheckpoint, PhotoSize,
+                        CameraPath, ViewerBundle, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or
