@@ -488,6 +488,33 @@ class MeshBlend(SourceOcclusion):
 
 
 @dataclass(kw_only=True)
+class ViewLimit:
+    """A command that reads real scenes and may read a subset of their views (train, inspect)."""
+
+    max_views: int | None = None
+    """Read at most this many views of each real scene, evenly spaced (default: every view)."""
+
+
+@dataclass(kw_only=True)
+class QuickRun:
+    """A command with a reduced run for tests (demo, bench)."""
+
+    quick: bool = False
+    """A reduced run for tests: demo, 4 frames at 48 px, one target, a coarse mesh; bench, 128x128, 3 frames, a
+    64-ray volumetric batch."""
+
+
+@dataclass(kw_only=True)
+class Resumes:
+    """A command whose interrupted run can be continued (train, reconstruct)."""
+
+    resume: bool = False
+    """Continue an interrupted run: train, exactly from the latest checkpoint in --out; reconstruct (on unless
+    --no-resume), from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial,
+    each when the input's files and the options it depends on are unchanged."""
+
+
+@dataclass(kw_only=True)
 class CameraModel:
     """A command that finds camera poses with COLMAP (process, reconstruct)."""
 

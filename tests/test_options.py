@@ -163,15 +163,13 @@ SAME_NAME = {
     "steps": {"PETOptions", "TrainConfig"},  # PET's steps cycle the labelled views (0 allowed) / the schedule's length
     "fps": {"CaptureInput", "RenderConfig"},  # frames sampled from a video / of the written video
     "threads": {"ThreadsConfig", "SfmOptions"},  # torch's / COLMAP's
-    "resume": {"TrainConfig", "ReconstructConfig"},  # --resume a run (off) / kept stages (on)
     "fill": {"MeshBlend", "EditConfig"},  # the mesh path's uncovered pixels / a removed object's pixels
     "cracks": {"FinetuneConfig", "ExportConfig"},  # the radius tuned and scored with / None: --finetune's, else 2
     "angle_sources": {"FinetuneConfig", "ExportConfig"},  # candidates the validation views choose from / the one
     # the viewer starts with (None: --finetune's choice)
     "precision": {"FinetuneConfig", "RenderConfig"},  # the tuning steps' arithmetic / rendering's, `auto` per model
-    "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"}, "quick": {"DemoConfig", "BenchConfig"},
+    "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"},
     "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},
-    "max_views": {"TrainConfig", "InspectConfig"},  # views read per training scene / views inspect reads
     "val_every": {"TrainConfig", "FinetuneConfig"},  # steps / seconds between validations
     "val_views": {"TrainConfig", "FinetuneConfig"},  # test views rendered per validation scene / training views held
     # out of tuning to choose the returned state

@@ -60,7 +60,7 @@ from omnirecon.mesh.ibr import (
     video_options,
 )
 from omnirecon.models.registry import build_model
-from omnirecon.options import ImageSize, MeshFile, Overwrites, Seeded, check_options, command_defaults
+from omnirecon.options import ImageSize, MeshFile, Overwrites, QuickRun, Seeded, check_options, command_defaults
 from omnirecon.provenance import provenance
 from omnirecon.rays import Rays, Sources
 from omnirecon.scene_kind import scene_kind
@@ -72,7 +72,7 @@ GOALS = {"cpu_fps_512": 30.0, "ratio": 1000.0, "gpu_fps_800x600": 500.0}
 
 @dataclass
 @command_defaults(resolution=512)
-class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, DeviceConfig):
+class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, QuickRun, DeviceConfig):
     """Frames per second of Omni-Recon's mesh path and of its volumetric path in one run (warm-up,
     median of N frames, same resolution, same source views, CUDA synchronised), and their ratio."""
 
@@ -107,8 +107,6 @@ class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, De
     face_budget: int | None = None
     """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
     default: REALTIME_FACE_BUDGET with --realtime, else 0)."""
-    quick: bool = False
-    """128x128, 3 frames, a 64-ray volumetric batch (tests)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
     """JSON result file."""
 

@@ -26,7 +26,7 @@ from pathlib import Path
 from omnirecon.engine.machine import GuidedRendering, ThreadsConfig
 from omnirecon.engine.shipped import shipped_folder
 from omnirecon.errors import InputError
-from omnirecon.options import CameraPath, ImageSize, OutPath, SourceViews, command_defaults
+from omnirecon.options import CameraPath, ImageSize, OutPath, QuickRun, SourceViews, command_defaults
 
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
@@ -46,7 +46,7 @@ them."""
 
 @dataclass
 @command_defaults(out=Path("outputs/demo"), frames=12, resolution=80)
-class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, ThreadsConfig):
+class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, QuickRun, ThreadsConfig):
     """Run the whole pipeline on one scene with the shipped checkpoints and write an HTML report:
     novel-view videos (GPNR, Omni-Recon), held-out view scores against the non-learned floor, and a
     mesh with its Chamfer distance to the ground truth."""
@@ -56,8 +56,6 @@ class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, T
     checkpoints: Path = shipped_folder()
     """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
     package carries: omnirecon/engine/shipped.py)."""
-    quick: bool = False
-    """Reduced mode for tests: 4 frames at 48 px, one target, coarse mesh."""
     orbit_guided: bool = False
     """Render the novel-view orbits surface-guided with each model family's default band even without
     ``--guided.on`` (fewer samples per ray at the orbits' size; ``--guided.on`` sets the options instead)."""

@@ -29,12 +29,12 @@ from omnirecon.data import Format, ReadOptions, load_scene
 from omnirecon.data.io import atomic_path, write_json
 from omnirecon.data.scene import Scene
 from omnirecon.errors import InputError
-from omnirecon.options import OutFolder, Seeded, check_options
+from omnirecon.options import OutFolder, Seeded, ViewLimit, check_options
 from omnirecon.scene_kind import scene_kind
 
 
 @dataclass
-class InspectConfig(OutFolder, Seeded):
+class InspectConfig(OutFolder, Seeded, ViewLimit):
     """Validate a scene, print a summary, write pictures of its cameras and epipolar lines, and
     print numeric pose-consistency scores."""
 
@@ -44,8 +44,6 @@ class InspectConfig(OutFolder, Seeded):
     """Force a reader instead of detecting the format."""
     downscale: float = 1.0
     """Divide the image resolution by this factor while loading (faster on large captures)."""
-    max_views: int | None = None
-    """Read at most this many views, evenly spaced."""
     pair: tuple[int, int] | None = None
     """View pair for the epipolar picture (default: view 0 and its nearest neighbour)."""
     num_pairs: int = 4

@@ -62,6 +62,7 @@ from omnirecon.options import (
     OutPath,
     Overwrites,
     PhotoSize,
+    Resumes,
     SourceViews,
     ViewerBundle,
     check_options,
@@ -81,9 +82,9 @@ from omnirecon.workflows.stages import StageRunner, Stages, files_digest
 
 
 @dataclass
-@command_defaults(out=Path("outputs/reconstruct"), frames=48)
+@command_defaults(out=Path("outputs/reconstruct"), frames=48, resume=True)
 class ReconstructConfig(CaptureInput, CameraModel, OutPath, Overwrites, SourceViews, ShippedCheckpoint, PhotoSize,
-                        CameraPath, ViewerBundle, MachineConfig):
+                        CameraPath, Resumes, ViewerBundle, MachineConfig):
     """Reconstruct a capture with one command: camera poses (when PATH holds photos or a video), a mesh
     from every view, a short fine-tune of the real-time mesh path, an export for the web viewer, a
     camera-path video at the photos' resolution and a report page (open DIR/index.html, or
@@ -96,9 +97,6 @@ class ReconstructConfig(CaptureInput, CameraModel, OutPath, Overwrites, SourceVi
     depth for stereo's holes is rendered at 128)."""
     finetune_seconds: float = 60.0
     """Fine-tuning budget in wall seconds (0: export and render the checkpoint as it is)."""
-    resume: bool = True
-    """Continue from the stages (poses, mesh, fine-tune, export) a failed or interrupted run kept in OUT.partial, when
-    the input's files and the options each stage depends on are unchanged; --no-resume starts over."""
 
 
 KEPT = {"process": "the poses", "mesh": "the mesh", "finetune": "the tuned model", "export": "the export"}
