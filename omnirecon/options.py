@@ -515,6 +515,34 @@ class Resumes:
 
 
 @dataclass(kw_only=True)
+class Steps:
+    """A command that optimises for a number of steps (train, pet)."""
+
+    steps: int = 1000
+    """Optimisation steps: train, the learning-rate schedule spans them; pet, Adam steps, each on one labelled view
+    (cycling). The default is the command's own."""
+
+
+@dataclass(kw_only=True)
+class AdamRate:
+    """A command that tunes with Adam at a fixed learning rate (finetune, pet)."""
+
+    lr: float = 5e-4
+    """Adam learning rate: finetune, of the encoder and the appearance branch (the appearance branch alone takes a
+    larger one); pet, of its adapters. The default is the command's own."""
+
+
+@dataclass(kw_only=True)
+class StepRays:
+    """A command that samples rays (pixels) at random each optimisation step (finetune, pet)."""
+
+    rays: int = 256
+    """Rays sampled per step: finetune, pixels of the mesh path (the encoder's pass over the source photos dominates
+    a step's cost, so more pixels cost little: `python -m bench finetune_levers`); pet, rays of the labelled views.
+    The default is the command's own."""
+
+
+@dataclass(kw_only=True)
 class CameraModel:
     """A command that finds camera poses with COLMAP (process, reconstruct)."""
 

@@ -157,10 +157,9 @@ SAME_NAME = {
     "path": {"LiftedTargets", "RenderConfig", "ReconstructConfig", "InspectConfig"},  # blend path / camera path / input
     "mesh": {"LiftedTargets", "MeshFile"},  # gt, model, auto or a file / a file
     "masks": {"CaptureInput", "Meshing"},  # a folder of masks for pose finding / mesh with the scene's masks
-    "rays": {"PETOptions", "BenchConfig", "TrainConfig", "FinetuneConfig"},  # PET's rays per step / per timed batch /
-    # per training step (None: the preset's) / mesh-path pixels per tuning step
-    "lr": {"PETOptions", "TrainConfig", "FinetuneConfig"},  # PET's Adam / the schedule's peak (None: 5e-4) / tuning's
-    "steps": {"PETOptions", "TrainConfig"},  # PET's steps cycle the labelled views (0 allowed) / the schedule's length
+    "rays": {"StepRays", "BenchConfig", "TrainConfig"},  # per tuning step / per timed batch / per training step and
+    # process (None: the preset's)
+    "lr": {"AdamRate", "TrainConfig"},  # a fixed rate / the schedule's peak (None: 5e-4)
     "fps": {"CaptureInput", "RenderConfig"},  # frames sampled from a video / of the written video
     "threads": {"ThreadsConfig", "SfmOptions"},  # torch's / COLMAP's
     "fill": {"MeshBlend", "EditConfig"},  # the mesh path's uncovered pixels / a removed object's pixels

@@ -12,7 +12,7 @@ from typing import Literal
 
 from omnirecon.engine.machine import DeviceConfig
 from omnirecon.errors import InputError
-from omnirecon.options import ImageSize, OutFolder, Resumes, SceneCache, Seeded, ViewLimit, command_defaults
+from omnirecon.options import ImageSize, OutFolder, Resumes, SceneCache, Seeded, Steps, ViewLimit, command_defaults
 
 # Per-family defaults: rays per step (docs/gpnr_ibrnet.md Part E), learning rate, Adam betas/eps
 # (GPNR: optax.adamw b2 0.98, eps 1e-9; IBRNet: torch Adam), the image encoder's lr multiplier
@@ -37,7 +37,7 @@ RESUMABLE_CHANGES = {"num_views_range", "resolution"}
 
 @dataclass
 @command_defaults(resolution=64, cache=Path("outputs/cache/synth"))
-class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, ViewLimit, Resumes, DeviceConfig):
+class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, ViewLimit, Resumes, Steps, DeviceConfig):
     """Train a generalizable renderer (GPNR, IBRNet or Omni-Recon) on procedural and/or real scenes.
 
     Writes a run folder: checkpoints/step_XXXXXXX (last --keep), checkpoints/latest (link to the
@@ -61,8 +61,6 @@ class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, ViewLimit, Resumes, 
     """Procedural scenes per synth:RIG source without a count."""
     synth_views: int = 40
     """Views per procedural scene."""
-    steps: int = 1000
-    """Optimisation steps (the learning-rate schedule spans them)."""
     rays: int | None = None
     """Target rays per step and process (None: gpnr 256, ibrnet 512, omnirecon 256)."""
     lr: float | None = None

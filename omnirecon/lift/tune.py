@@ -39,7 +39,7 @@ from omnirecon.errors import InputError
 from omnirecon.lift import metrics as M
 from omnirecon.lift.blend import render_lifted
 from omnirecon.lift.predictors import labels_to_classes
-from omnirecon.options import Seeded, SourceViews
+from omnirecon.options import AdamRate, Seeded, SourceViews, StepRays, Steps, command_defaults
 from omnirecon.rays import Rays, Sources
 
 Mode = Literal["lora", "bias", "full"]
@@ -127,7 +127,8 @@ def trainable(model) -> dict[str, Tensor]:
 
 # ---------------------------------------------------------------------- leave-one-out supervision
 @dataclass
-class PETOptions(Seeded, SourceViews):
+@command_defaults(steps=40, lr=1e-2)
+class PETOptions(Seeded, SourceViews, Steps, AdamRate, StepRays):
     """How to tune."""
 
     mode: Mode = "lora"
@@ -136,12 +137,6 @@ class PETOptions(Seeded, SourceViews):
     """LoRA rank r."""
     alpha: float | None = None
     """LoRA scale numerator (update scaled by alpha / r; default r, i.e. 1)."""
-    steps: int = 40
-    """Adam steps (each on one labelled view, cycling)."""
-    lr: float = 1e-2
-    """Adam learning rate."""
-    rays: int = 256
-    """Random rays per step."""
     min_weight: float = 0.05
     """Rays whose total blend weight (opacity) is below this are not supervised."""
 

@@ -78,6 +78,7 @@ from omnirecon.mesh.fill import CRACK_RADIUS
 from omnirecon.mesh.ibr import scene_defaults
 from omnirecon.mesh.pixels import angle_blend, rasterize_groups, rasterize_views
 from omnirecon.options import (
+    AdamRate,
     MeshBlend,
     MeshFile,
     OutFolder,
@@ -85,7 +86,9 @@ from omnirecon.options import (
     SceneInput,
     Seeded,
     SourceViews,
+    StepRays,
     check_options,
+    command_defaults,
 )
 from omnirecon.preflight import check_memory
 from omnirecon.provenance import provenance
@@ -102,8 +105,9 @@ VAL_PIXELS = 8192
 
 
 @dataclass
+@command_defaults(rays=8192)
 class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput, MeshFile, PhotoSize, MeshBlend,
-                     ThreadsConfig):
+                     StepRays, AdamRate, ThreadsConfig):
     """Tune Omni-Recon's 2-D encoder and appearance branch on one scene's training views through its
     mesh, within a time budget, keeping the best state on validation views; writes a PSNR-vs-time
     curve on the held-out views."""
@@ -115,9 +119,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     --seconds itself is always scored)."""
     clock: Literal["wall", "cpu"] = "wall"
     """Budget clock: wall time, or this process's CPU time (fair when other jobs share the machine)."""
-    rays: int = 8192
-    """Pixels per step (the encoder's pass over the source photos dominates a step's cost; more pixels per
-    step cost little: `python -m bench finetune_levers`)."""
     step_views: int = 1
     """Tuning views each step's pixels come from: 1, one view drawn by its shaded pixel count; 0, every tuning view
     in proportion to it (the step's encoder pass covers every source either way, so mixing views costs nothing).
@@ -126,8 +127,6 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     it can go")."""
     precision: Literal["fp32", "bf16"] = "fp32"
     """Arithmetic of the tuning steps (`bf16`: autocast; validation and scores stay fp32)."""
-    lr: float = 5e-4
-    """Adam learning rate (5e-4 with the encoder tuned; 3e-3 measured best for the appearance branch alone)."""
     tune: tuple[Literal["encoder", "appearance", "exposure", "residual", "surface"], ...] = ("encoder", "appearance")
     """What is tuned: the 2-D encoder, the appearance branch, and/or `exposure` (a colour gain per source
     view and channel, applied to the source colours the blend mixes; estimated once before tuning, robustly,
