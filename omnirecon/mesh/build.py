@@ -151,7 +151,7 @@ class MeshOptions:
     surface: str = "auto"
     """``fusion``: the fused, cleaned surface as it is; ``poisson``: with object masks, screened Poisson
     over it, trimmed to the masks (:mod:`omnirecon.mesh.poisson`, needs pymeshlab), which closes the holes
-    fusion leaves (``omnirecon mesh`` refuses it without --masks); ``coherent``: one surface from the depth several
+    fusion leaves (without masks it is skipped, and ``omnirecon mesh`` refuses it); ``coherent``: one surface from the depth several
     views confirm, kept where views support it, no fills (:mod:`omnirecon.mesh.surface`, needs pymeshlab); ``auto``:
     the scene kind's (:func:`default_surface`), as ``omnirecon mesh --surface auto``."""
     coherent: SurfaceOptions = field(default_factory=SurfaceOptions)
