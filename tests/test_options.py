@@ -167,8 +167,10 @@ SAME_NAME = {
     "angle_sources": {"FinetuneConfig", "ExportConfig"},  # candidates the validation views choose from / the one
     # the viewer starts with (None: --finetune's choice)
     "precision": {"FinetuneConfig", "RenderConfig"},  # the tuning steps' arithmetic / rendering's, `auto` per model
-    "noise": {"LiftConfig", "SynthOptions"}, "data": {"DemoConfig", "TrainConfig"},
-    "warmup": {"BenchConfig", "TrainConfig"}, "workers": {"BenchConfig", "SynthConfig"},
+    "noise": {"LiftConfig", "SynthOptions"},  # the share of wrong source labels / sensor noise
+    "data": {"DemoConfig", "TrainConfig"},  # a scene instead of the demo's own / the training sources
+    "warmup": {"BenchConfig", "TrainConfig"},  # untimed frames / the learning rate's warm-up steps
+    "workers": {"BenchConfig", "SynthConfig"},  # shading threads / generating processes
     "val_every": {"TrainConfig", "FinetuneConfig"},  # steps / seconds between validations
     "val_views": {"TrainConfig", "FinetuneConfig"},  # test views rendered per validation scene / training views held
     # out of tuning to choose the returned state
