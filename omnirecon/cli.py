@@ -43,8 +43,37 @@ def _load(spec: str):
     return getattr(importlib.import_module(module), name)
 
 
+def reflow_help(text: str) -> str:
+    """A docstring as help text: its lines dedented (``inspect.cleandoc``) and joined into paragraphs; blank lines
+    part paragraphs and a line opening a list item (``- ``, ``* ``) starts a new line."""
+    import inspect
+
+    paragraphs = []
+    for para in inspect.cleandoc(text).split("\n\n"):
+        lines: list[str] = []
+        for line in para.splitlines():
+            line = line.strip()
+            if lines and not line.startswith(("- ", "* ")):
+                lines[-1] += f" {line}"
+            elif line:
+                lines.append(line)
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(p for p in paragraphs if p)
+
+
+def _use_reflow() -> None:
+    """tyro joins a docstring's lines before removing their indentation, so an indented continuation line starts a
+    new line of the help; its joiner is replaced by :func:`reflow_help` (where this tyro has it)."""
+    import tyro._strings as tyro_strings
+
+    if hasattr(tyro_strings, "remove_single_line_breaks"):
+        tyro_strings.remove_single_line_breaks = reflow_help
+
+
 def main(argv: list[str] | None = None) -> int:
     import tyro
+
+    _use_reflow()
 
     argv = list(sys.argv[1:] if argv is None else argv)
     verbose = any(a in ("--verbose", "-v") for a in argv)

@@ -306,3 +306,18 @@ def test_library_checks_use_the_one_rule(name, value):
     with pytest.raises(InputError) as b:
         check_options(command, config)
     assert a.value.one_line() == b.value.one_line(), (a.value.one_line(), b.value.one_line())
+
+
+def test_help_text_reads_as_paragraphs(capsys, monkeypatch):
+    """A field's multi-line docstring is one paragraph of ``--help``: its indented continuation lines are joined (tyro
+    alone starts a new help line at each), blank lines and list items still break."""
+    from omnirecon.cli import main, reflow_help
+
+    assert reflow_help("First line\n    goes on.\n\n    - item one\n    - item\n      two") == (
+        "First line goes on.\n\n- item one\n- item two")
+    monkeypatch.setenv("COLUMNS", "400")  # each help entry on one terminal line
+    with pytest.raises(SystemExit):
+        main(["mesh", "--help"])
+    out = capsys.readouterr().out
+    chunk = next(line for line in out.splitlines() if "--chunk" in line)
+    assert "at most 4096; a one-line note when a given value" in chunk, chunk
