@@ -68,6 +68,7 @@ from omnirecon.mesh.kernel import block_depth_max, mask_falloff
 from omnirecon.mesh.shader import ShadeResult, SourceShader
 from omnirecon.rays import Sources
 from omnirecon.render.edges import SOFTEN, soften_edges
+from omnirecon.render.glblend import GLBlend
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 from omnirecon.scene_kind import SceneKind, scene_kind
 
@@ -133,6 +134,13 @@ class MeshRenderOptions:
     the grid points within ``frame_grid`` rows of it (points no candidate weighs: every source). The work per pixel
     follows the candidates, not every source. 0: every point ranks every source (the reference path; what ``finetune``
     scores). The real-time videos take :data:`REALTIME_FRAME_GRID`."""
+    shader: Literal["auto", "gl", "torch"] = "auto"
+    """How the frame path (:meth:`MeshRenderer.frame`) shades: ``"gl"``, one fragment-shader pass in the GL rasterizer's
+    context (:class:`omnirecon.render.glblend.GLBlend`; with ``frame_grid``, candidate sources per tile of ``2
+    frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``), else the torch shader;
+    ``"torch"``: the fused torch shader (:mod:`omnirecon.mesh.shader`, the GL pass's reference twin); ``"auto"``: the
+    GL pass for the angle blend, the torch shader for the network blend (the faster of the two for each, ``python -m
+    bench mesh_lod``)."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -285,6 +293,7 @@ class MeshRenderer(SourceShader):
             """The encoded sources (once per scene; :meth:`ViewCache.features`: once per set of views)."""
             self._setup_sources(model, sources)
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
+        self._gl: GLBlend | bool | None = None  # the frame path's GL pass (False: it does not apply; _gl_blend)
         self._centres: dict[tuple[int, int], Tensor] = {}
         self.mask_falloff: Tensor | None = None
         """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`~omnirecon.mesh.kernel.mask_falloff`.
@@ -394,6 +403,9 @@ class MeshRenderer(SourceShader):
         writes its rows of the image: no compaction, no scatter and no serial fill. Its reference twin is
         :meth:`render` with ``extras=True`` (rasterized world points, :func:`~omnirecon.mesh.fill.with_fill`,
         :meth:`Surface.image`); fused shader only."""
+        gl = self._gl_blend()
+        if gl is not None:
+            return self._gl_frame(gl, camera)
         H, W = camera.height, camera.width
         depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
         mesh_z = depth  # [H, W] the mesh's own depth (no fill): its depth edges are softened
@@ -441,6 +453,42 @@ class MeshRenderer(SourceShader):
         with torch.inference_mode():
             self._run_chunks(shade, H * W)
             return soften_edges(out.reshape(H, W, 3), mesh_z, self.options.soften)
+
+    def _gl_blend(self) -> GLBlend | None:
+        """The frame path's GL pass (``MeshRenderOptions.shader``), built on the first frame; ``None`` where it does
+        not apply (the torch shader then shades)."""
+        o = self.options
+        if self._gl is None:
+            self._gl = False
+            wanted = o.shader == "gl" or (o.shader == "auto" and o.blend == "angle")
+            if (wanted and o.fused and self.rasterizer.context is not None and self.dtype == torch.float32
+                    and not (o.blend == "angle" and o.consensus > 0)):
+                K, angle = self.num_views, o.blend == "angle"
+                net = {}
+                if not angle:
+                    w1z, w1d, b1, w2, b2, w3, b3 = self._mlp  # [C, h1], [3, h1], [h1], [h2, h1], [h2, 1], [1, h2], [1, 1]
+                    a = self._feat  # the folded maps, bordered by b: its first K (h + 2) (w + 2) texel rows
+                    net = dict(mlp=[torch.cat([w1z, w1d]).T, b1, w2, b2, w3, b3],
+                               features=a.rows[:K * (a.h + 2) * (a.w + 2)].reshape(K, a.h + 2, a.w + 2, a.C).permute(0, 3, 1, 2))
+                self._gl = GLBlend(self.rasterizer.context, self.sources.images, self._proj.reshape(K, 3, 4),
+                                   self._centers_t, o.angle_sources if angle else None, self.source_depth_max,
+                                   o.visibility_tol, self.mask_falloff if angle else None, **net)
+        return self._gl or None
+
+    def _gl_frame(self, gl: GLBlend, camera: Cameras) -> Tensor:
+        """:meth:`frame` through the GL pass: the depth pass, the nearest/crack fill on the CPU, one fragment-shader pass
+        (:meth:`GLBlend.shade`), the blur at depth edges. ``# [H, W, 3]``"""
+        mesh_z = self.rasterizer.depth(camera)  # [H, W]; 0 = background (the rasterizer's host buffer)
+        depth = mesh_z.numpy()
+        if self.options.fill == "nearest" or self.options.cracks > 0:
+            depth = nearest_depth(depth, NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0, self.options.cracks)
+        A, origin = ray_basis(camera)
+        far, box = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
+        rgb = gl.shade(depth, mesh_z.numpy() > 0, A, origin, self.options.fill != "background", self.options.background,
+                       far, box, self.options.frame_grid, lambda d: exit_depth(d, origin, far, box))
+        rgb = rgb.to(self.device, self.dtype, copy=True)  # [H, W, 3] off the pass's reused host buffer
+        with torch.inference_mode():
+            return soften_edges(rgb, mesh_z.to(self.device), self.options.soften)
 
     # ------------------------------------------------------------------ images
     def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:
@@ -499,6 +547,9 @@ class MeshRenderer(SourceShader):
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+        if self._gl:
+            self._gl.close()
+        self._gl = None
         if self._shared is None:
             self.rasterizer.close()
 
