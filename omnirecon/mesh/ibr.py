@@ -32,7 +32,10 @@ where torch's intra-op threads split only the ops above its grain size.
 only the z-depth, and each chunk of pixels, in row-major order on the worker threads, unprojects its
 pixel centres, puts the fill's layer where the mesh misses, shades and writes its rows of the image, so
 nothing but the depth pass runs on one thread. Its reference twin is ``render()`` (rasterized world points,
-fill and scatter); ``python -m bench mesh_fps`` times it.
+fill and scatter); ``python -m bench mesh_fps`` times it. With ``MeshRenderOptions.shader`` (by default for the angle
+blend) the frame is instead the depth pass, the fill's distance transform on the CPU and one fragment-shader pass in the
+rasterizer's GL context (:class:`omnirecon.render.glblend.GLBlend`: the same blend, the viewer's GLSL), whose twin is
+this torch shader (``tests/mesh/test_ibr_gl.py``).
 
 **Level of detail and candidate sources** (the real-time videos, ``omnirecon bench --realtime``):
 ``MeshRenderOptions.face_budget`` (:func:`level_of_detail`) and ``frame_grid`` (:meth:`MeshRenderer._frame_sources`);

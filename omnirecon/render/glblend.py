@@ -4,8 +4,9 @@ The GL twin of the fused shader's frame path (:mod:`omnirecon.mesh.shader`, :met
 in the GL context of a :class:`~omnirecon.render.raster.MeshRasterizer` (Mesa llvmpipe on the CPU: it JIT-compiles the
 shader and shades the frame's tiles on its ``LP_NUM_THREADS`` threads). Tensors in, image out; the weights of the
 appearance MLP come in as tensors, no model. The GLSL is the web viewer's shading pass
-(``omnirecon/viewer/static/shaders.js``, ``shadeShader``) for desktop GL 4.3 (the sources' maps in storage buffers: on
-llvmpipe a plain load costs less than a ``texelFetch``), over every source of the renderer or, with the angle blend and
+(``omnirecon/viewer/static/shaders.js``, ``shadeShader``) for desktop GL 4.3 (the sources' colours and folded features
+sampled by GL's bilinear filter, their occlusion depths and mask falloff read from storage buffers: on llvmpipe both cost
+less than ``texelFetch``), over every source of the renderer or, with the angle blend and
 a candidate grid, each tile's candidates (:meth:`GLBlend.candidates`):
 
 per pixel ``(j + 0.5, i + 0.5)``, the point ``o + z d(u, v)`` on its ray (``d`` at camera z = 1: ``u A0 + v A1 + A2``,
@@ -22,8 +23,8 @@ colour; then
   point (the folded appearance branch, bilinear in the ``b``-bordered feature maps);
 
 and the colour is the weighted sum of the sources' colours at the point's projections (bilinear, border padding, as
-``grid_sample(align_corners=False, padding_mode="border")``), in float32 (the folded features in half precision: a
-colour change below 1e-4, ``tests/mesh/test_ibr_gl.py``), no GL filtering.
+``grid_sample(align_corners=False, padding_mode="border")``: GL's bilinear filter, clamped to the edge), in float32
+(the folded features in half precision; colours within 1e-4 of the torch shader's, ``tests/mesh/test_ibr_gl.py``).
 
 Cost on llvmpipe: its SIMD lanes run both sides of every branch, so a source skipped early saves nothing; the cost
 per pixel follows the sources ranked (hence the tiles' candidates) and the loads from the maps.
@@ -56,10 +57,10 @@ _FRAGMENT = """
 #define VISIBILITY {VISIBILITY}
 #define INF 1.0e30
 // storage buffers (plain loads: cheaper than texelFetch on llvmpipe)
-layout(std430, binding = 0) readonly buffer Images { vec4 images[]; };     // [K, H, W]: source k's RGB
+uniform sampler2DArray uImages;   // RGBA32F, W x H, layer k: source k's RGB, bilinear
 layout(std430, binding = 1) readonly buffer Depth { float depthMax[]; };   // [K, H + 1, W + 1]: block_depth_max
 layout(std430, binding = 2) readonly buffer Falloff { float falloff[]; };  // [K, H, W]: mask_falloff
-layout(std430, binding = 3) readonly buffer Features { uvec2 features[]; }; // [K, C4, h + 2, w + 2]: W F_k + b, 4 half floats
+uniform sampler2DArray uFeatures; // RGBA16F, (w + 2) x (h + 2), layer k C4 + j: channels 4j..4j+3 of W F_k + b, bilinear
 uniform vec4 uCams[4 * K];        // per source k: rows 0-2 of K_k [R_k | t_k], then (c_k, 1)
 uniform int uCand[K];             // the angle blend: the candidate sources of the pixels drawn (uNCand of them)
 uniform int uNCand;
@@ -78,8 +79,6 @@ uniform float uVisTol;
 out vec4 fragColor;
 
 {MLP}
-
-vec4 half4(uvec2 h) { return vec4(unpackHalf2x16(h.x), unpackHalf2x16(h.y)); }
 
 vec3 centre(int k) { return uCams[4 * k + 3].xyz; }
 
@@ -103,20 +102,8 @@ bool unoccluded(int k, vec2 uv, float z) {  // omnirecon.mesh.kernel.unoccluded
 #endif
 }
 
-vec3 sampleImage(int k, vec2 uv) {  // grid_sample(align_corners=False, padding_mode="border") at pixel coordinates
-  vec2 hi = uImageSize - 1.0;
-  vec2 xy = clamp(uv - 0.5, vec2(0.0), hi);
-  vec2 c = floor(xy);
-  vec2 f = xy - c;
-  vec2 g = 1.0 - f;
-  ivec2 i0 = ivec2(c);
-  ivec2 i1 = min(i0 + 1, ivec2(hi));
-  int W = int(uImageSize.x), r0 = (k * int(uImageSize.y) + i0.y) * W, r1 = (k * int(uImageSize.y) + i1.y) * W;
-  vec3 t00 = images[r0 + i0.x].rgb;
-  vec3 t01 = images[r0 + i1.x].rgb;
-  vec3 t10 = images[r1 + i0.x].rgb;
-  vec3 t11 = images[r1 + i1.x].rgb;
-  return t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y);
+vec3 sampleImage(int k, vec2 uv) {  // grid_sample(align_corners=False, padding_mode="border"): GL's bilinear, clamped
+  return texture(uImages, vec3(uv / uImageSize, float(k))).rgb;
 }
 
 float maskFactor(int k, vec2 uv) {  // omnirecon.mesh.kernel.mask_factor
@@ -134,22 +121,9 @@ vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh) {  // softmax over the sourc
     bool seen = framed(uvz.z, uv) && (layer || unoccluded(k, uv, uvz.z));
     float l = -1.0e9;
     if (seen) {
-      vec2 xy = uv / uImageSize * uFeatSize + 0.5;  // texel-centre coordinates in the padded map
-      vec2 c = floor(xy);
-      vec2 f = xy - c;
-      vec2 g = 1.0 - f;
-      ivec2 i0 = clamp(ivec2(c), ivec2(0), ivec2(uFeatSize) + 1);
-      ivec2 i1 = min(i0 + 1, ivec2(uFeatSize) + 1);
+      vec2 st = (uv / uImageSize * uFeatSize + 1.0) / (uFeatSize + 2.0);  // in the padded map (GL's bilinear, clamped)
       vec4 z4[C4];
-      int fw = int(uFeatSize.x) + 2, fh = int(uFeatSize.y) + 2;
-      for (int j = 0; j < C4; j++) {
-        int r0 = ((k * C4 + j) * fh + i0.y) * fw, r1 = ((k * C4 + j) * fh + i1.y) * fw;
-        vec4 t00 = half4(features[r0 + i0.x]);
-        vec4 t01 = half4(features[r0 + i1.x]);
-        vec4 t10 = half4(features[r1 + i0.x]);
-        vec4 t11 = half4(features[r1 + i1.x]);
-        z4[j] = max(t00 * (g.x * g.y) + t01 * (f.x * g.y) + t10 * (g.x * f.y) + t11 * (f.x * f.y), 0.0);
-      }
+      for (int j = 0; j < C4; j++) z4[j] = max(texture(uFeatures, vec3(st, float(k * C4 + j))), 0.0);
       vec3 dk = p - centre(k);
       l = appearanceLogit(z4, t - dk / max(length(dk), 1e-12));
     }
@@ -339,7 +313,9 @@ class GLBlend:
             self.program = self._keep(ctx.program(vertex_shader=_VERTEX, fragment_shader=source))
             self._vao = self._keep(ctx.vertex_array(self.program, []))
             rgba = torch.cat([images.detach().cpu().float(), torch.ones(K, H, W, 1)], -1)  # [K, H, W, 4]
-            buffers = {0: rgba, 1: depth_max, 2: falloff if angle else None}
+            buffers = {1: depth_max, 2: falloff if angle else None}
+            self._images = self._keep(ctx.texture_array((W, H, K), 4, _f32(rgba).tobytes(), dtype="f4"))
+            self._images.repeat_x = self._images.repeat_y = False  # clamp to the edge: border padding
             cams = torch.cat([proj.detach().cpu().float(), torch.cat([centers.detach().cpu().float(),
                                                                       torch.ones(K, 1)], 1)[:, None]], 1)  # [K, 4, 4]
             self._write("uCams", _f32(cams))
@@ -347,11 +323,15 @@ class GLBlend:
             self._proj = proj.detach().cpu().float()  # [K, 3, 4]
             self._size = (float(W), float(H))
             self.K, self.KA = K, KA
+            self._features = None
             if not angle:
                 C4, (h2, w2) = defines["C4"], features.shape[2:]
                 maps = torch.cat([features.detach().cpu().float(),
                                   torch.zeros(K, 4 * C4 - C, h2, w2)], 1)  # [K, 4 C4, h + 2, w + 2]
-                buffers[3] = maps.reshape(K, C4, 4, h2, w2).permute(0, 1, 3, 4, 2).half()  # [K, C4, h + 2, w + 2, 4]
+                layers = maps.reshape(K, C4, 4, h2, w2).permute(0, 1, 3, 4, 2).half()  # [K, C4, h + 2, w + 2, 4]
+                self._features = self._keep(ctx.texture_array((w2, h2, K * C4), 4, layers.contiguous().numpy().tobytes(),
+                                                              dtype="f2"))
+                self._features.repeat_x = self._features.repeat_y = False  # clamp to the edge: the border texels
                 self._set("uFeatSize", (float(w2 - 2), float(h2 - 2)))
             self._buffers = {i: self._keep(ctx.buffer((b if b.dtype == torch.float16 else b.float()).detach()
                                                       .cpu().contiguous().numpy().tobytes()))
@@ -407,6 +387,11 @@ class GLBlend:
             z_tex.write(host_z.tobytes())
             z_tex.use(0)
             self._set("uZ", 0)
+            self._images.use(2)
+            self._set("uImages", 2)
+            if self._features is not None:
+                self._features.use(1)
+                self._set("uFeatures", 1)
             for binding, buffer in self._buffers.items():  # other passes in this context may bind theirs
                 buffer.bind_to_storage_buffer(binding)
             self._set("uA", tuple(_f32(A).reshape(-1).tolist()))  # mat3 column-major: columns A[0], A[1], A[2]

@@ -59,7 +59,7 @@ def test_gl_pass_gives_the_torch_shaders_colours(scene_mesh, blend, fill, visibi
             diff = (a - b).abs().amax(-1)
             assert diff.max() < TOLERANCE, (view, float(diff.max()))
             assert 0.1 < float(gl.rasterizer.depth(target).gt(0).float().mean()) < 0.9  # holes and surface
-        images = gl._gl._buffers[0]  # [K, H, W, 4] float32: each source's colours
+        images = gl._gl._images  # [K, H, W, 4] float32: each source's colours
         rgba = torch.cat([sources.images, torch.ones(*sources.images.shape[:3], 1)], -1)
         with gl.rasterizer.context:
             images.write(rgba.roll(1, 0).numpy().tobytes())  # each source's weights on its neighbour's colours
