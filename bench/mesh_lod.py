@@ -8,7 +8,7 @@ Per scene: the mesh ``reconstruct`` builds (``omnirecon mesh --ckpt checkpoints/
 the reference path (the full mesh, every source ranked at every point, the torch shader: what the videos drew before)
 and each face budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate sources (``--grid``,
 ``MeshRenderOptions.frame_grid``) and each frame shader of ``--shader`` (``MeshRenderOptions.shader``; ``auto``: the GL
-pass for the angle blend, the torch shader for the network's):
+pass):
 
 * **speed**: ``MeshRenderer.render(extras=False)`` (the frame path) of the held-out views at the photos' size (the
   demo scene at the demo's 256 px), blended as the real-time videos blend (:func:`omnirecon.mesh.ibr.realtime_setting`
@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--budgets", nargs="+", type=int, default=list(BUDGETS), help="face budgets (0: the full mesh)")
     p.add_argument("--mesh", nargs="*", default=[], help="NAME=FILE: a scene's mesh (input frame) instead of building it")
     p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
-    p.add_argument("--shader", nargs="+", default=["auto"], choices=["auto", "gl", "torch"], help="the budget rows' "
+    p.add_argument("--shader", nargs="+", default=["auto"], choices=["auto", "torch"], help="the budget rows' "
                    "frame shaders, a row each (MeshRenderOptions.shader; the reference row: torch)")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
     p.add_argument("--frames", type=int, default=10, help="timed frames (median)")

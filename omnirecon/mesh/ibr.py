@@ -32,8 +32,8 @@ where torch's intra-op threads split only the ops above its grain size.
 only the z-depth, and each chunk of pixels, in row-major order on the worker threads, unprojects its
 pixel centres, puts the fill's layer where the mesh misses, shades and writes its rows of the image, so
 nothing but the depth pass runs on one thread. Its reference twin is ``render()`` (rasterized world points,
-fill and scatter); ``python -m bench mesh_fps`` times it. With ``MeshRenderOptions.shader`` (by default for the angle
-blend) the frame is instead the depth pass, the fill's distance transform on the CPU and one fragment-shader pass in the
+fill and scatter); ``python -m bench mesh_fps`` times it. With ``MeshRenderOptions.shader`` (by default, where the GL
+rasterizer runs) the frame is instead the depth pass, the fill's distance transform on the CPU and one fragment-shader pass in the
 rasterizer's GL context (:class:`omnirecon.render.glblend.GLBlend`: the same blend, the viewer's GLSL), whose twin is
 this torch shader (``tests/mesh/test_ibr_gl.py``).
 
@@ -137,13 +137,12 @@ class MeshRenderOptions:
     the grid points within ``frame_grid`` rows of it (points no candidate weighs: every source). The work per pixel
     follows the candidates, not every source. 0: every point ranks every source (the reference path; what ``finetune``
     scores). The real-time videos take :data:`REALTIME_FRAME_GRID`."""
-    shader: Literal["auto", "gl", "torch"] = "auto"
-    """How the frame path (:meth:`MeshRenderer.frame`) shades: ``"gl"``, one fragment-shader pass in the GL rasterizer's
-    context (:class:`omnirecon.render.glblend.GLBlend`; with ``frame_grid``, candidate sources per tile of ``2
-    frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``), else the torch shader;
-    ``"torch"``: the fused torch shader (:mod:`omnirecon.mesh.shader`, the GL pass's reference twin); ``"auto"``: the
-    GL pass for the angle blend, the torch shader for the network blend (the faster of the two for each, ``python -m
-    bench mesh_lod``)."""
+    shader: Literal["auto", "torch"] = "auto"
+    """How the frame path (:meth:`MeshRenderer.frame`) shades: ``"auto"``, one fragment-shader pass in the GL
+    rasterizer's context (:class:`omnirecon.render.glblend.GLBlend`; with ``frame_grid`` and the angle blend, candidate
+    sources per tile of ``2 frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``),
+    else the torch shader; ``"torch"``: the fused torch shader (:mod:`omnirecon.mesh.shader`, the GL pass's reference
+    twin). ``python -m bench mesh_lod`` times both."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -313,6 +312,8 @@ class MeshRenderer(SourceShader):
             self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype)) if shared is None \
                 else shared[0].per_view("depth_max", shared[1], lambda k: block_depth_max(
                     self.rasterizer.depth(sources.cameras[k])[None].to(self.device, self.dtype)))
+        with torch.inference_mode():
+            self._gl_blend()  # built here, not in a timed frame
 
     def source_depths(self) -> Tensor:
         """Rasterized z-depth of the mesh at every source camera, 0 = background (the depth pass). ``# [K, H, W]``"""
@@ -458,13 +459,12 @@ class MeshRenderer(SourceShader):
             return soften_edges(out.reshape(H, W, 3), mesh_z, self.options.soften)
 
     def _gl_blend(self) -> GLBlend | None:
-        """The frame path's GL pass (``MeshRenderOptions.shader``), built on the first frame; ``None`` where it does
-        not apply (the torch shader then shades)."""
+        """The frame path's GL pass (``MeshRenderOptions.shader``), built once; ``None`` where it does not apply (the
+        torch shader then shades)."""
         o = self.options
         if self._gl is None:
             self._gl = False
-            wanted = o.shader == "gl" or (o.shader == "auto" and o.blend == "angle")
-            if (wanted and o.fused and self.rasterizer.context is not None and self.dtype == torch.float32
+            if (o.shader == "auto" and o.fused and self.rasterizer.context is not None and self.dtype == torch.float32
                     and not (o.blend == "angle" and o.consensus > 0)):
                 K, angle = self.num_views, o.blend == "angle"
                 net = {}

@@ -310,8 +310,12 @@ class GLBlend:
         self._objects: list = []
         self._frames: dict[tuple[int, int], tuple] = {}
         with ctx:
-            self.program = self._keep(ctx.program(vertex_shader=_VERTEX, fragment_shader=source))
-            self._vao = self._keep(ctx.vertex_array(self.program, []))
+            programs = ctx.extra if isinstance(ctx.extra, dict) else {}  # compiled once per context and source
+            ctx.extra = programs
+            if source not in programs:  # released with the context (a video's source sets share them)
+                program = ctx.program(vertex_shader=_VERTEX, fragment_shader=source)
+                programs[source] = (program, ctx.vertex_array(program, []))
+            self.program, self._vao = programs[source]
             rgba = torch.cat([images.detach().cpu().float(), torch.ones(K, H, W, 1)], -1)  # [K, H, W, 4]
             buffers = {1: depth_max, 2: falloff if angle else None}
             self._images = self._keep(ctx.texture_array((W, H, K), 4, _f32(rgba).tobytes(), dtype="f4"))

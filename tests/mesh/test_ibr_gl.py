@@ -1,6 +1,6 @@
-"""The frame path's GL pass (:mod:`omnirecon.render.glblend`, ``MeshRenderOptions.shader="gl"``, the angle blend's
-default) against its reference twin, the fused torch shader (``shader="torch"``), on a procedural scene; and where it
-does not apply."""
+"""The frame path's GL pass (:mod:`omnirecon.render.glblend`, ``MeshRenderOptions.shader="auto"``, the default)
+against its reference twin, the fused torch shader (``shader="torch"``), on a procedural scene; and where it does not
+apply."""
 
 from dataclasses import replace
 
@@ -37,7 +37,7 @@ def scene_mesh(tmp_path_factory):
                           ("angle", "background", True, True), ("network", "far", True, False),
                           ("network", "background", False, False), ("network", "nearest", True, False)])
 def test_gl_pass_gives_the_torch_shaders_colours(scene_mesh, blend, fill, visibility, source_masks):
-    """The same frame through the GL pass (``shader="gl"``) and through the torch shader (every source ranked at every
+    """The same frame through the GL pass (``shader="auto"``) and through the torch shader (every source ranked at every
     point: frame_grid 0), with the occlusion test, each fill, the source masks, the cracks and the blur at depth edges: the same colours
     within :data:`TOLERANCE` at every pixel; both cover the mesh and its holes, and a GL pass over the wrong sources'
     images (rolled) would not pass."""
@@ -47,7 +47,7 @@ def test_gl_pass_gives_the_torch_shaders_colours(scene_mesh, blend, fill, visibi
     sources = Sources.from_scene(scene, list(range(1, 12)))
     opts = MeshRenderOptions(background=(0.2, 0.3, 0.4), fill=fill, visibility=visibility, blend=blend,
                              angle_sources=3, source_masks=source_masks, cull_back_faces=False, soften=0.7, workers=2,
-                             shader="gl")
+                             shader="auto")
     with MeshRenderer(model, mesh, sources, opts) as gl, \
             MeshRenderer(model, mesh, sources, replace(opts, shader="torch")) as ref:
         assert gl._gl_blend() is not None and ref._gl_blend() is None
@@ -93,13 +93,13 @@ def test_gl_pass_with_candidate_tiles_renders_close_to_every_source(scene_mesh):
     assert same > 0.9 and metrics.psnr(b, a) > 40, (float(same), metrics.psnr(b, a))
 
 
-@pytest.mark.parametrize("case", ["torch", "auto network", "consensus", "reference backend", "plain model shade"])
+@pytest.mark.parametrize("case", ["torch", "consensus", "reference backend", "plain model shade"])
 def test_frame_falls_back_to_the_torch_shader(scene_mesh, case):
-    """Where the GL pass does not apply or is not chosen (asked for the torch shader, ``"auto"`` with the network blend,
-    the angle blend's consensus, the NumPy rasterizer, ``fused=False``) the frame path shades with torch, and renders."""
+    """Where the GL pass does not apply (asked for the torch shader, the angle blend's consensus, the NumPy rasterizer,
+    ``fused=False``) the frame path shades with torch, and renders."""
     scene, mesh, model = scene_mesh
     opts = MeshRenderOptions(blend="angle" if case == "consensus" else "network", consensus=0.1 * (case == "consensus"),
-                             shader={"torch": "torch", "auto network": "auto"}.get(case, "gl"),
+                             shader="torch" if case == "torch" else "auto",
                              backend="reference" if case == "reference backend" else "auto",
                              fused=case != "plain model shade")
     with MeshRenderer(model, mesh, Sources.from_scene(scene, [1, 2, 3, 4]), opts) as r:
