@@ -62,8 +62,10 @@ layout(std430, binding = 1) readonly buffer Depth { float depthMax[]; };   // [K
 layout(std430, binding = 2) readonly buffer Falloff { float falloff[]; };  // [K, H, W]: mask_falloff
 uniform sampler2DArray uFeatures; // RGBA16F, (w + 2) x (h + 2), layer k C4 + j: channels 4j..4j+3 of W F_k + b, bilinear
 uniform vec4 uCams[4 * K];        // per source k: rows 0-2 of K_k [R_k | t_k], then (c_k, 1)
-uniform int uCand[K];             // the angle blend: the candidate sources of the pixels drawn (uNCand of them)
-uniform int uNCand;
+layout(std430, binding = 4) readonly buffer Candidates { int cand[]; };  // per tile: its count, then its sources
+uniform int uTile;                // the candidate tiles' size in pixels
+uniform int uTilesX;              // tiles per row
+int gTile;                        // this pixel's tile's first entry in cand
 uniform sampler2D uZ;             // RG32F: the frame's z-depth after the fill (<= 0: none), 1 on the mesh
 uniform mat3 uA;                  // columns: the ray at camera z = 1 is u A[0] + v A[1] + A[2]
 uniform vec3 uOrigin;
@@ -178,6 +180,8 @@ void main() {
     z = exitDepth(uOrigin, d);
     layer = true;
   }
+  ivec2 tile = px / uTile;
+  gTile = (tile.y * uTilesX + tile.x) * (K + 1);
   vec3 p = uOrigin + z * d;
   vec3 t = d / max(length(d), 1e-12);
   fragColor = vec4(shade(p, t, layer, zh.g > 0.5), 1.0);
@@ -193,8 +197,7 @@ def _lit(x: float) -> str:
 def angle_source(ka: int) -> str:
     """GLSL of the angle blend's ranking and weights for ``ka`` sources per point (``KA``), unrolled: the ``ka + 1``
     nearest sources in plain variables (``c0 >= c1 >= ...``), no arrays (llvmpipe keeps dynamically indexed arrays in
-    memory). ``rank(n, fromCand)`` ranks the first ``n`` candidates (``uCand``) or sources; ``weigh`` writes the
-    normalised weights ``w0..`` and returns their total before normalising."""
+    memory); first over the pixel's tile's candidates, then (where none of them weighs it) over every source."""
     J = range(ka + 1)
     decl = "\n".join(f"float c{j} = -2.0; int i{j} = 0; vec2 v{j} = vec2(0.0);" for j in J)
     insert = "\n".join(f"      if (c > c{j}) {{ float oc = c{j}; int ok = i{j}; vec2 ov = v{j}; "
@@ -213,11 +216,11 @@ def angle_source(ka: int) -> str:
   // the KA + 1 sources that see p with the largest cosines, descending: among the candidates, then (where none of
   // them weighs p) among every source
   for (int pass = 0; pass < 2; pass++) {{
-    int n = pass == 0 ? uNCand : K;
-    if (pass == 1 && uNCand == K) break;
+    int n = pass == 0 ? cand[gTile] : K;
+    if (pass == 1 && cand[gTile] == K) break;
 {decl}
     for (int i = 0; i < n; i++) {{
-      int k = pass == 0 ? uCand[i] : i;
+      int k = pass == 0 ? cand[gTile + 1 + i] : i;
       vec3 dk = p - centre(k);
       float c = dot(t, dk) / max(length(dk), 1e-12);
       vec3 uvz = project(k, p);
@@ -308,6 +311,7 @@ class GLBlend:
         for key, value in defines.items():
             source = source.replace("{" + key + "}", str(value))
         self._objects: list = []
+        self._cand = None  # the candidate tiles' storage buffer (grown as needed)
         self._frames: dict[tuple[int, int], tuple] = {}
         with ctx:
             programs = ctx.extra if isinstance(ctx.extra, dict) else {}  # compiled once per context and source
@@ -412,25 +416,28 @@ class GLBlend:
             self.ctx.disable(moderngl.DEPTH_TEST | moderngl.CULL_FACE)
             fbo.use()
             self.ctx.viewport = (0, 0, W, H)
-            tiles = [((0, 0, W, H), np.arange(self.K))]
-            if "uCand" in self.program and grid > 0 and self.K > self.KA + 1:
-                tiles = self.candidates(depth, A, origin, grid, far_z if fill else None)
-            for scissor, cand in tiles:  # one draw per tile (uniforms per draw)
-                self._write("uCand", np.pad(cand, (0, self.K - len(cand))).astype(np.int32))
-                self._set("uNCand", len(cand))
-                self.ctx.scissor = scissor
-                self._vao.render(moderngl.TRIANGLES, vertices=3)
-            self.ctx.scissor = None
+            if "uTile" in self.program:  # the angle blend: each tile's candidates
+                tile, table = 1 << 20, np.concatenate([[self.K], np.arange(self.K)])[None]  # one tile, every source
+                if grid > 0 and self.K > self.KA + 1:
+                    tile, table = 2 * grid, self.candidates(depth, A, origin, grid, far_z if fill else None)
+                self._set("uTile", tile)
+                self._set("uTilesX", -(-W // tile))
+                data = table.astype(np.int32).tobytes()
+                if self._cand is None or self._cand.size < len(data):
+                    self._cand = self._keep(self.ctx.buffer(reserve=len(data)))
+                self._cand.write(data)
+                self._cand.bind_to_storage_buffer(4)
+            self._vao.render(moderngl.TRIANGLES, vertices=3)
             fbo.read_into(host_rgb, components=4, attachment=0, dtype="f4")
         return torch.from_numpy(host_rgb)[..., :3]
 
-    def candidates(self, depth: np.ndarray, A: Tensor, origin: Tensor, grid: int,
-                   far_z=None) -> list[tuple[tuple[int, int, int, int], np.ndarray]]:
+    def candidates(self, depth: np.ndarray, A: Tensor, origin: Tensor, grid: int, far_z=None) -> np.ndarray:
         """The angle blend's candidate sources per tile of a frame (``MeshRenderOptions.frame_grid``): at every ``grid``-th
         pixel (its depth of ``depth # [H, W]``; where none, ``far_z(rays # [3, g]) # [g]``, the far layer, unless
         ``None``), the ``2 (KA + 1)`` sources
         nearest by angle that frame it; a ``2 grid``-px tile takes those of the grid pixels within ``grid`` px of it
-        (every source when no grid pixel has any). ``[(scissor (x, y, w, h), sources # [M] int)]``"""
+        (every source when no grid pixel has any). Per tile, row-major: its count ``M`` and its sources, sorted, then
+        the rest. ``# [tiles, K + 1]`` int"""
         H, W = depth.shape
         rows, cols = np.arange(grid // 2, H, grid), np.arange(grid // 2, W, grid)
         z = torch.from_numpy(depth[rows][:, cols].reshape(-1).astype(np.float32))  # [G]
@@ -450,12 +457,11 @@ class GLBlend:
         th, tw = -(-H // (2 * grid)), -(-W // (2 * grid))
         member = torch.nn.functional.pad(member, (1, 2 * tw + 1 - len(cols), 1, 2 * th + 1 - len(rows)))
         member = torch.nn.functional.max_pool2d(member, 4, stride=2)[0] > 0  # [K, th, tw]
-        T, out = 2 * grid, []
-        for ty in range(th):
-            for tx in range(tw):
-                cand = member[:, ty, tx].nonzero()[:, 0].numpy()
-                out.append(((tx * T, ty * T, min(T, W - tx * T), min(T, H - ty * T)), cand if len(cand) else np.arange(self.K)))
-        return out
+        member = member.reshape(self.K, -1)  # [K, tiles]
+        count = member.sum(0)
+        member[:, count == 0] = True  # no candidate: every source
+        order = torch.argsort((~member).to(torch.uint8), dim=0, stable=True)  # [K, tiles]: candidates first, ascending
+        return torch.cat([member.sum(0)[None], order]).T.numpy()
 
     def close(self) -> None:
         """Free the program, textures and framebuffers (the context stays with its owner)."""
