@@ -140,9 +140,9 @@ class MeshRenderOptions:
     shader: Literal["auto", "torch"] = "auto"
     """How the frame path (:meth:`MeshRenderer.frame`) shades: ``"auto"``, one fragment-shader pass in the GL
     rasterizer's context (:class:`omnirecon.render.glblend.GLBlend`; with ``frame_grid`` and the angle blend, candidate
-    sources per tile of ``2 frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``),
-    else the torch shader; ``"torch"``: the fused torch shader (:mod:`omnirecon.mesh.shader`, the GL pass's reference
-    twin). ``python -m bench mesh_lod`` times both."""
+    sources per tile of ``2 frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``,
+    at most ``GLBlend.MAX_SOURCES`` sources), else the torch shader; ``"torch"``: the fused torch shader
+    (:mod:`omnirecon.mesh.shader`, the GL pass's reference twin). ``python -m bench mesh_lod`` times both."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -465,7 +465,7 @@ class MeshRenderer(SourceShader):
         if self._gl is None:
             self._gl = False
             if (o.shader == "auto" and o.fused and self.rasterizer.context is not None and self.dtype == torch.float32
-                    and not (o.blend == "angle" and o.consensus > 0)):
+                    and not (o.blend == "angle" and o.consensus > 0) and self.num_views <= GLBlend.MAX_SOURCES):
                 K, angle = self.num_views, o.blend == "angle"
                 net = {}
                 if not angle:

@@ -56,7 +56,7 @@ _FRAGMENT = """
 #define MASKS {MASKS}
 #define VISIBILITY {VISIBILITY}
 #define INF 1.0e30
-// storage buffers (plain loads: cheaper than texelFetch on llvmpipe)
+// the maps GL filters are textures, the others storage buffers (plain loads: cheaper than texelFetch on llvmpipe)
 uniform sampler2DArray uImages;   // RGBA32F, W x H, layer k: source k's RGB, bilinear
 layout(std430, binding = 1) readonly buffer Depth { float depthMax[]; };   // [K, H + 1, W + 1]: block_depth_max
 layout(std430, binding = 2) readonly buffer Falloff { float falloff[]; };  // [K, H, W]: mask_falloff
@@ -295,6 +295,9 @@ class GLBlend:
         features: The folded feature maps ``W F_k + b`` with a one-texel border of ``b`` (what zero padding samples
             before the fold). ``# [K, C, h + 2, w + 2]``
     """
+
+    MAX_SOURCES = 512
+    """The most sources one pass takes (their cameras are uniforms: llvmpipe holds 4096 ``vec4`` per shader)."""
 
     def __init__(self, ctx, images: Tensor, proj: Tensor, centers: Tensor, angle_sources: int | None,
                  depth_max: Tensor | None = None, tol: float = 0.01, falloff: Tensor | None = None,
