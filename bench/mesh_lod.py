@@ -5,9 +5,10 @@
 
 Per scene: the mesh ``reconstruct`` builds (``omnirecon mesh --ckpt checkpoints/omnirecon-tiny --views all``,
 ``reconstruct``'s mesh stage; built into ``outputs/bench/mesh_lod/<scene>.ply`` unless ``--mesh`` names one), then for
-the reference path (the full mesh, every source ranked at every point: what the videos drew before) and each face
-budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate sources (``--grid``,
-``MeshRenderOptions.frame_grid``):
+the reference path (the full mesh, every source ranked at every point, the torch shader: what the videos drew before)
+and each face budget (``MeshRenderOptions.face_budget``, 0: the full mesh) with the candidate sources (``--grid``,
+``MeshRenderOptions.frame_grid``) and each frame shader of ``--shader`` (``MeshRenderOptions.shader``; ``auto``: the GL
+pass):
 
 * **speed**: ``MeshRenderer.render(extras=False)`` (the frame path) of the held-out views at the photos' size (the
   demo scene at the demo's 256 px), blended as the real-time videos blend (:func:`omnirecon.mesh.ibr.realtime_setting`
@@ -75,9 +76,11 @@ def timed(fn, cams: list, frames: int) -> tuple[float, float]:
     return round(1000 * statistics.median(wall), 2), round(1000 * statistics.median(cpu), 2)
 
 
-def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args) -> dict:
-    """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget`` and candidate grid ``grid``
-    (``MeshRenderOptions.frame_grid``; module docstring), timed at ``side`` px long side, scored at the scene's."""
+def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args,
+                   shader: str = "auto") -> dict:
+    """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget``, candidate grid ``grid``
+    (``MeshRenderOptions.frame_grid``) and frame shader ``shader`` (``MeshRenderOptions.shader``; module docstring), timed
+    at ``side`` px long side, scored at the scene's."""
     import torch
 
     from omnirecon import metrics
@@ -88,7 +91,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
     vertices, faces = level_of_detail(mesh, budget)
     decimate_s = time.perf_counter() - start
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid)
+    opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid, shader=shader)
     train = scene.splits.get("train") or list(range(len(scene)))
     test = (scene.splits.get("test") or [0])[:args.max_views]
     cams = [scene.cameras[i].to(dtype=torch.float32) for i in test]
@@ -102,11 +105,12 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
             wall, cpu = timed(lambda c: r.render(c, extras=False), timed_cams, args.frames)
             depth_wall, depth_cpu = timed(lambda c: r.rasterizer.depth(c), timed_cams, args.frames)
             load = round(max(load, os.getloadavg()[0]), 2)
+            used = "gl" if r._gl_blend() is not None else "torch"
         for j, t in enumerate(test):
             with cache.renderer(picks[t]) as r:
                 rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
             psnr.append(metrics.psnr(rgb, scene.images[t].float()))
-    return {"face_budget": budget, "frame_grid": grid, "faces": int(len(faces)), "vertices": int(len(vertices)),
+    return {"face_budget": budget, "frame_grid": grid, "shader": used, "faces": int(len(faces)), "vertices": int(len(vertices)),
             "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu, "fps": round(1000 / wall, 2),
             "fps_from_cpu_time": round(1000 / cpu, 2), "depth_pass_ms": depth_wall, "depth_pass_cpu_ms": depth_cpu,
             "loadavg_1min": load, "psnr": round(float(statistics.mean(psnr)), 3), "psnr_views": len(psnr)}
@@ -133,10 +137,10 @@ def run_scene(name: str, model, args) -> dict | None:
     mesh = read_mesh(mesh_file, scene.to_input)
     setting = realtime_setting(scene)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
-    rows = []
-    runs = [(0, 0)] + [(b, args.grid) for b in args.budgets if b < len(mesh.faces)]  # before: the reference path
-    for budget, grid in dict.fromkeys(runs):
-        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args))
+    rows = []  # the reference path first
+    runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in args.budgets if b < len(mesh.faces) for sh in args.shader]
+    for budget, grid, shader in dict.fromkeys(runs):
+        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader))
         print(name, rows[-1], flush=True)
     full = rows[0]
     for r in rows:
@@ -159,6 +163,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--budgets", nargs="+", type=int, default=list(BUDGETS), help="face budgets (0: the full mesh)")
     p.add_argument("--mesh", nargs="*", default=[], help="NAME=FILE: a scene's mesh (input frame) instead of building it")
     p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
+    p.add_argument("--shader", nargs="+", default=["auto"], choices=["auto", "torch"], help="the budget rows' "
+                   "frame shaders, a row each (MeshRenderOptions.shader; the reference row: torch)")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
     p.add_argument("--frames", type=int, default=10, help="timed frames (median)")
     p.add_argument("--max-views", type=int, default=8, help="held-out views scored")

@@ -10,6 +10,7 @@ from bench.report.common import prov, read
 def _line(scene: dict, row: dict) -> str:
     what = ("reference (full mesh, every source)" if row["face_budget"] == 0 and row["frame_grid"] == 0 else
             f"budget {row['face_budget'] or 'none'}, grid {row['frame_grid']}")
+    what += f", {row['shader']} shader" if "shader" in row else ""
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
             f"{row['frame_cpu_ms']:.0f} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
@@ -27,7 +28,8 @@ def section(results: Path) -> str | None:
            f"{r['threads']} shading threads and llvmpipe threads; median of {r['frames']} frames over the held-out "
            "views. Rows: the reference path (full mesh, every source ranked at every point), then face budgets "
            "(`MeshRenderOptions.face_budget`, quadric decimation once at load) with each chunk's candidate sources "
-           "(`frame_grid`). PSNR: held-out whole image through the same blend; the change is against the reference row. "
+           "(`frame_grid`) and the frame's shader (`MeshRenderOptions.shader`: the GL pass or the torch shader). "
+           "PSNR: held-out whole image through the same blend; the change is against the reference row. "
            f"Shipped: budget {r['realtime_face_budget']:,}, grid {r['realtime_frame_grid']}. "
            f"{r['machine_note']}.", "",
            "| scene | size | path | faces | wall ms | FPS | CPU ms | depth pass CPU ms | decimate s | PSNR | dB vs "

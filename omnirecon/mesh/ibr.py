@@ -32,7 +32,10 @@ where torch's intra-op threads split only the ops above its grain size.
 only the z-depth, and each chunk of pixels, in row-major order on the worker threads, unprojects its
 pixel centres, puts the fill's layer where the mesh misses, shades and writes its rows of the image, so
 nothing but the depth pass runs on one thread. Its reference twin is ``render()`` (rasterized world points,
-fill and scatter); ``python -m bench mesh_fps`` times it.
+fill and scatter); ``python -m bench mesh_fps`` times it. With ``MeshRenderOptions.shader`` (by default, where the GL
+rasterizer runs) the frame is instead the depth pass, the fill's distance transform on the CPU and one fragment-shader pass in the
+rasterizer's GL context (:class:`omnirecon.render.glblend.GLBlend`: the same blend, the viewer's GLSL), whose twin is
+this torch shader (``tests/mesh/test_ibr_gl.py``).
 
 **Level of detail and candidate sources** (the real-time videos, ``omnirecon bench --realtime``):
 ``MeshRenderOptions.face_budget`` (:func:`level_of_detail`) and ``frame_grid`` (:meth:`MeshRenderer._frame_sources`);
@@ -68,6 +71,7 @@ from omnirecon.mesh.kernel import block_depth_max, mask_falloff
 from omnirecon.mesh.shader import ShadeResult, SourceShader
 from omnirecon.rays import Sources
 from omnirecon.render.edges import SOFTEN, soften_edges
+from omnirecon.render.glblend import GLBlend
 from omnirecon.render.raster import Backend, MeshRasterizer, Surface
 from omnirecon.scene_kind import SceneKind, scene_kind
 
@@ -133,6 +137,12 @@ class MeshRenderOptions:
     the grid points within ``frame_grid`` rows of it (points no candidate weighs: every source). The work per pixel
     follows the candidates, not every source. 0: every point ranks every source (the reference path; what ``finetune``
     scores). The real-time videos take :data:`REALTIME_FRAME_GRID`."""
+    shader: Literal["auto", "torch"] = "auto"
+    """How the frame path (:meth:`MeshRenderer.frame`) shades: ``"auto"``, one fragment-shader pass in the GL
+    rasterizer's context (:class:`omnirecon.render.glblend.GLBlend`; with ``frame_grid`` and the angle blend, candidate
+    sources per tile of ``2 frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``,
+    at most ``GLBlend.MAX_SOURCES`` sources), else the torch shader; ``"torch"``: the fused torch shader
+    (:mod:`omnirecon.mesh.shader`, the GL pass's reference twin). ``python -m bench mesh_lod`` times both."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -285,6 +295,7 @@ class MeshRenderer(SourceShader):
             """The encoded sources (once per scene; :meth:`ViewCache.features`: once per set of views)."""
             self._setup_sources(model, sources)
         self._pool = ThreadPoolExecutor(self.options.workers) if self.options.workers > 1 and self.options.fused else None
+        self._gl: GLBlend | bool | None = None  # the frame path's GL pass (False: it does not apply; _gl_blend)
         self._centres: dict[tuple[int, int], Tensor] = {}
         self.mask_falloff: Tensor | None = None
         """With the angle blend and ``options.source_masks``, sources that carry masks: :func:`~omnirecon.mesh.kernel.mask_falloff`.
@@ -301,6 +312,8 @@ class MeshRenderer(SourceShader):
             self.source_depth_max = block_depth_max(self.source_depths().to(self.device, self.dtype)) if shared is None \
                 else shared[0].per_view("depth_max", shared[1], lambda k: block_depth_max(
                     self.rasterizer.depth(sources.cameras[k])[None].to(self.device, self.dtype)))
+        with torch.inference_mode():
+            self._gl_blend()  # built here, not in a timed frame
 
     def source_depths(self) -> Tensor:
         """Rasterized z-depth of the mesh at every source camera, 0 = background (the depth pass). ``# [K, H, W]``"""
@@ -394,6 +407,9 @@ class MeshRenderer(SourceShader):
         writes its rows of the image: no compaction, no scatter and no serial fill. Its reference twin is
         :meth:`render` with ``extras=True`` (rasterized world points, :func:`~omnirecon.mesh.fill.with_fill`,
         :meth:`Surface.image`); fused shader only."""
+        gl = self._gl_blend()
+        if gl is not None:
+            return self._gl_frame(gl, camera)
         H, W = camera.height, camera.width
         depth = self.rasterizer.depth(camera)  # [H, W]; 0 = background
         mesh_z = depth  # [H, W] the mesh's own depth (no fill): its depth edges are softened
@@ -441,6 +457,41 @@ class MeshRenderer(SourceShader):
         with torch.inference_mode():
             self._run_chunks(shade, H * W)
             return soften_edges(out.reshape(H, W, 3), mesh_z, self.options.soften)
+
+    def _gl_blend(self) -> GLBlend | None:
+        """The frame path's GL pass (``MeshRenderOptions.shader``), built once; ``None`` where it does not apply (the
+        torch shader then shades)."""
+        o = self.options
+        if self._gl is None:
+            self._gl = False
+            if (o.shader == "auto" and o.fused and self.rasterizer.context is not None and self.dtype == torch.float32
+                    and not (o.blend == "angle" and o.consensus > 0) and self.num_views <= GLBlend.MAX_SOURCES):
+                K, angle = self.num_views, o.blend == "angle"
+                net = {}
+                if not angle:
+                    w1z, w1d, b1, w2, b2, w3, b3 = self._mlp  # [C, h1], [3, h1], [h1], [h2, h1], [h2, 1], [1, h2], [1, 1]
+                    a = self._feat  # the folded maps, bordered by b: its first K (h + 2) (w + 2) texel rows
+                    net = dict(mlp=[torch.cat([w1z, w1d]).T, b1, w2, b2, w3, b3],
+                               features=a.rows[:K * (a.h + 2) * (a.w + 2)].reshape(K, a.h + 2, a.w + 2, a.C).permute(0, 3, 1, 2))
+                self._gl = GLBlend(self.rasterizer.context, self.sources.images, self._proj.reshape(K, 3, 4),
+                                   self._centers_t, o.angle_sources if angle else None, self.source_depth_max,
+                                   o.visibility_tol, self.mask_falloff if angle else None, **net)
+        return self._gl or None
+
+    def _gl_frame(self, gl: GLBlend, camera: Cameras) -> Tensor:
+        """:meth:`frame` through the GL pass: the depth pass, the nearest/crack fill on the CPU, one fragment-shader pass
+        (:meth:`GLBlend.shade`), the blur at depth edges. ``# [H, W, 3]``"""
+        mesh_z = self.rasterizer.depth(camera)  # [H, W]; 0 = background (the rasterizer's host buffer)
+        depth = mesh_z.numpy()
+        if self.options.fill == "nearest" or self.options.cracks > 0:
+            depth = nearest_depth(depth, NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0, self.options.cracks)
+        A, origin = ray_basis(camera)
+        far, box = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
+        rgb = gl.shade(depth, mesh_z.numpy() > 0, A, origin, self.options.fill != "background", self.options.background,
+                       far, box, self.options.frame_grid, lambda d: exit_depth(d, origin, far, box))
+        rgb = rgb.to(self.device, self.dtype, copy=True)  # [H, W, 3] off the pass's reused host buffer
+        with torch.inference_mode():
+            return soften_edges(rgb, mesh_z.to(self.device), self.options.soften)
 
     # ------------------------------------------------------------------ images
     def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:
@@ -499,6 +550,9 @@ class MeshRenderer(SourceShader):
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+        if self._gl:
+            self._gl.close()
+        self._gl = None
         if self._shared is None:
             self.rasterizer.close()
 

@@ -304,6 +304,12 @@ class MeshRasterizer:
         self.backend: str = "gl" if self._ctx is not None else "reference"
         """The backend in use: ``"gl"`` or ``"reference"``."""
 
+    @property
+    def context(self):
+        """The GL backend's moderngl context (``None`` on the reference backend or once closed): other passes
+        (:class:`omnirecon.render.glblend.GLBlend`) draw in it."""
+        return self._ctx
+
     @classmethod
     def from_trimesh(cls, mesh, **kwargs) -> MeshRasterizer:
         """Build from a ``trimesh.Trimesh`` (its vertices and faces as they are)."""
