@@ -33,6 +33,35 @@ def table(result: dict) -> str:
     return "\n".join(lines)
 
 
+def warm_start(results: Path) -> list[str]:
+    """Lines: real-scene weight 3 as a warm start of the shipped checkpoint against its control
+    (``train_ft_real3.json``), or none before a run."""
+    r = read(results, "train_ft_real3.json")
+    if r is None:
+        return []
+    keys = ("procedural_3", "procedural_10", "real_3", "real_10")
+    rows = [("shipped ibrnet-tiny (trained samples)", None, r["shipped"])] + [
+        (name, run, run) for name, run in r["runs"].items()]
+    lines = ["### Real-scene weight 3 as a warm start, against a control (issue 47)", "",
+             f"{r['question'][0].upper()}{r['question'][1:]}. Parent: {r['parent']}, continued with a fresh optimizer "
+             f"(peak lr {r['settings']['lr']:g}, "
+             f"{r['settings']['warmup']} warm-up steps, cosine), K drawn from [3, 10], seed 0, 1 thread; both arms "
+             "ran side by side. Scored as the lever rows (validation only, mean PSNR in dB, trained 32 + 16 samples).",
+             "", "| run | real weight | steps | CPU-s | procedural K=3 | K=10 | real K=3 | K=10 |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, run, v in rows:
+        weight = f"{run['real_weight']:g}" if run else "1"
+        steps = f"+{run['steps']}" if run else "7000"
+        cpu = f"+{run['cpu_s']:.0f}" if run else "8202"
+        lines.append(f"| {name} | {weight} | {steps} | {cpu} | " + " | ".join(
+            f"{v[k]:.2f}" if v.get(k) is not None else "-" for k in keys) + " |")
+    d = r["weight3_minus_control"]
+    lines += ["", "Weight 3 minus the control: " + ", ".join(f"{k} {d[k]:+.2f}" for k in keys) + f". {r['verdict']}.",
+              "Resume the weight-3 run (`checkpoints/runs/ibrnet-tiny_vgg16_ft_w3/README.md`): "
+              + " && ".join(f"`{c}`" for c in r["resume"]) + ".", "", prov(r["provenance"]), ""]
+    return lines
+
+
 def gpnr_gap(results: Path) -> list[str]:
     """Lines: gpnr-tiny against ibrnet-tiny per scene (``python -m bench train_gpnr_gap``), or none before a run."""
     r = read(results, "train_gpnr_gap.json")
@@ -82,10 +111,12 @@ def section(results: Path) -> str:
         "the noise of one seed. Below the lever rows, the shipped checkpoint (rendering as shipped) and the candidates "
         "that were scored for it (the VGG16 run's states with its trained sample counts, shipped since 2026-11-24; "
         "ibrnet-tiny_ft_real3: the encoder-from-scratch ibrnet-tiny warm-started with `--init` for 1000 more steps "
-        "with real-scene weight 3), scored the same way at their own budgets (their CPU-s: the candidate's own run).", "",
+        "with real-scene weight 3; ibrnet-tiny_vgg16_ft_w3 / _w1: the VGG16 ibrnet-tiny warm-started for 250 more "
+        "steps with real-scene weight 3 / with the old weight 1 as its control, below), scored the same way at their "
+        "own budgets (their CPU-s: the candidate's own run).", "",
         table(r), "",
         *([f"![validation against CPU-seconds]({r['curves']['figure']})", "",
            "Monitoring validation (the runs' own `val_psnr`: 2 views of seeds 901000-901001, K = the preset's) against "
            "training CPU-seconds: ibrnet-tiny with its encoder from scratch (shipped until 2026-11-24) and the "
            "ibrnet-tiny + VGG16 run (shipped since).", ""] if r.get("curves") else []),
-        prov(r["provenance"]), "", *gpnr_gap(results)])
+        prov(r["provenance"]), "", *warm_start(results), *gpnr_gap(results)])
