@@ -50,11 +50,10 @@ def warm_start(results: Path) -> list[str]:
              "", "| run | real weight | steps | CPU-s | procedural K=3 | K=10 | real K=3 | K=10 |",
              "|---|---|---|---|---|---|---|---|"]
     for name, run, v in rows:
-        weight = f"{run['real_weight']:g}" if run else "1"
-        steps = f"+{run['steps']}" if run else "7000"
-        cpu = f"+{run['cpu_s']:.0f}" if run else "8202"
-        lines.append(f"| {name} | {weight} | {steps} | {cpu} | " + " | ".join(
-            f"{v[k]:.2f}" if v.get(k) is not None else "-" for k in keys) + " |")
+        extra = "+" if run else ""  # a warm start's steps and CPU-s come on top of the shipped checkpoint's
+        lines.append(f"| {name} | {v['real_weight']:g} | {extra}{v.get('steps', v.get('step'))} | "
+                     f"{extra}{v['cpu_s']:.0f} | " + " | ".join(
+                         f"{v[k]:.2f}" if v.get(k) is not None else "-" for k in keys) + " |")
     d = r["weight3_minus_control"]
     lines += ["", "Weight 3 minus the control: " + ", ".join(f"{k} {d[k]:+.2f}" for k in keys) + f". {r['verdict']}.",
               "Resume the weight-3 run (`checkpoints/runs/ibrnet-tiny_vgg16_ft_w3/README.md`): "
@@ -68,6 +67,21 @@ def ibrnet_change(r: dict, name: str) -> float:
     return psnr[f"{name} (black background)"] - psnr[name]
 
 
+def content_test(r: dict) -> list[str]:
+    """Lines: how gpnr-tiny's gap to ibrnet-tiny changes with a black background (train_gpnr_gap.json ``r``)."""
+    gaps = {n: s["mean"]["gpnr-tiny"]["psnr"] - s["mean"]["ibrnet-tiny"]["psnr"] for n, s in r["scenes"].items()}
+    black = [(n.split(" (")[0], g) for n, g in gaps.items() if n.endswith("(black background)")]
+    if not black:
+        return []
+    return ["", "Content test on validation data: with a black background behind the object, gpnr-tiny's gap to "
+            "ibrnet-tiny goes from " + ", ".join(f"{gaps[n]:+.2f} to {g:+.2f} dB on {n}" for n, g in black)
+            + ", the size of the DTU deficit (ibrnet-tiny itself changes by "
+            + ", ".join(f"{ibrnet_change(r, n):+.2f} dB on {n}" for n, _ in black) + "). Black backgrounds do "
+            "occur in training (a third of the procedural scenes have one), but never behind the real training "
+            "objects, which are loaded on white. The lever this points to (not yet probed): the masked real training "
+            "objects also on black or random backgrounds, scored on validation scenes with a black background."]
+
+
 def gpnr_gap(results: Path) -> list[str]:
     """Lines: gpnr-tiny against ibrnet-tiny per scene (``python -m bench train_gpnr_gap``), or none before a run."""
     r = read(results, "train_gpnr_gap.json")
@@ -76,10 +90,9 @@ def gpnr_gap(results: Path) -> list[str]:
     lines = ["### Where gpnr-tiny loses to ibrnet-tiny (`python -m bench train_gpnr_gap`)", "",
              f"Both shipped checkpoints on the same views and sources (`cpu` protocol, 64 px, K = {r['num_views']}): "
              "mean PSNR over the target views (whole image, dB), the share of *dark leaks* (pixels bright in the "
-             "ground truth, luminance > 0.6, rendered dark, < 0.3), of gross errors (luminance off by more than 0.5) and of "
-             "pixels no source sees at any sample depth. lego and chair are also scored with a black background "
-             "behind the object (a content test on validation data). "
-             "A diagnosis: nothing was trained or chosen on it; the DTU scenes are the final table's, looked at only "
+             "ground truth, luminance > 0.6, rendered dark, < 0.3), of gross errors (luminance off by more than "
+             "0.5) and of pixels no source sees at any sample depth. lego and chair are also scored with a black "
+             "background behind the object (a content test on validation data). A diagnosis: nothing was trained or chosen on it; the DTU scenes are the final table's, looked at only "
              f"to describe the failure. {r['cpu_s']:.0f} CPU-s.", "",
              "| scene | role | gpnr-tiny PSNR | ibrnet-tiny PSNR | gpnr - ibrnet | dark leaks gpnr / ibrnet | gross "
              "errors gpnr / ibrnet | unseen | camera distance | horizontal FOV | aspect |",
@@ -90,16 +103,7 @@ def gpnr_gap(results: Path) -> list[str]:
                      f"{100 * g['dark_leak']:.1f} % / {100 * i['dark_leak']:.1f} % | "
                      f"{100 * g['gross']:.1f} % / {100 * i['gross']:.1f} % | {100 * g['unseen']:.1f} % | "
                      f"{geo['camera_distance']:.2f} | {geo['hfov_deg']:.0f} deg | {geo['aspect']:.2f} |")
-    gaps = {n: s["mean"]["gpnr-tiny"]["psnr"] - s["mean"]["ibrnet-tiny"]["psnr"] for n, s in r["scenes"].items()}
-    black = [(n.split(" (")[0], g) for n, g in gaps.items() if n.endswith("(black background)")]
-    if black:
-        lines += ["", "Content test on validation data: with a black background behind the object, gpnr-tiny's gap to "
-                  "ibrnet-tiny goes from " + ", ".join(f"{gaps[n]:+.2f} to {g:+.2f} dB on {n}" for n, g in black)
-                  + ", the size of the DTU deficit (ibrnet-tiny itself changes by "
-                  + ", ".join(f"{ibrnet_change(r, n):+.2f} dB on {n}" for n, _ in black) + "). Black backgrounds do occur in training (a third of the procedural scenes have one), but never "
-                  "behind the real training objects, which are loaded on white. The lever this points to (not yet "
-                  "probed): the masked real training objects also on black or random backgrounds, scored on "
-                  "validation scenes with a black background."]
+    lines += content_test(r)
     if r.get("figure"):
         lines += ["", f"![dtu_scan37: sources; ground truth, gpnr-tiny, ibrnet-tiny]({r['figure']})", "",
                   "dtu_scan37, K = 3 (top: the protocol's sources 23, 24, 33; then per target: ground truth | "
