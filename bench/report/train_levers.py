@@ -92,8 +92,9 @@ def gpnr_gap(results: Path) -> list[str]:
              "mean PSNR over the target views (whole image, dB), the share of *dark leaks* (pixels bright in the "
              "ground truth, luminance > 0.6, rendered dark, < 0.3), of gross errors (luminance off by more than "
              "0.5) and of pixels no source sees at any sample depth. lego and chair are also scored with a black "
-             "background behind the object (a content test on validation data). A diagnosis: nothing was trained or chosen on it; the DTU scenes are the final table's, looked at only "
-             f"to describe the failure. {r['cpu_s']:.0f} CPU-s.", "",
+             "background behind the object (a content test on validation data). A diagnosis: nothing was trained "
+             "or chosen on it; the DTU scenes are the final table's, looked at only to describe the failure. "
+             f"{r['cpu_s']:.0f} CPU-s.", "",
              "| scene | role | gpnr-tiny PSNR | ibrnet-tiny PSNR | gpnr - ibrnet | dark leaks gpnr / ibrnet | gross "
              "errors gpnr / ibrnet | unseen | camera distance | horizontal FOV | aspect |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
