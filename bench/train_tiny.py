@@ -89,11 +89,23 @@ def train(model: str, cpu_budget: float, threads: int, synth_scenes: int, steps:
     subprocess.run(cmd, check=True, cwd=ROOT)
     # recorded once the run made (and marked) its folder: train writes only into a folder it owns
     record_stage(out, {"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": start,
-                       **({"stop_at": stop_at} if stop_at else {}),
+                       **ended_at(out, steps, stop_at),
                        **({"model_overrides": list(overrides)} if overrides else {}),
                        **({"num_views_range": list(views)} if views else {}),
                        **{k: str(v) for k, v in tune.items()}})
     return out
+
+
+def ended_at(run: Path, steps: int, stop_at: int | None) -> dict:
+    """``{"stop_at": step}`` for a stage given ``--stop-at`` or ended early (SIGTERM, the CPU budget): the step of
+    the run's latest checkpoint, so that the stage's recorded command stops where the run did; ``{}`` for a stage
+    that finished its ``steps``-long schedule."""
+    latest = run / "checkpoints" / "latest" / "meta.json"
+    reached = json.loads(latest.read_text())["step"] if latest.is_file() else None
+    end = min(stop_at or steps, steps)
+    if reached is not None and reached < end:
+        return {"stop_at": reached}
+    return {"stop_at": stop_at} if stop_at else {}
 
 
 def record_stage(run: Path, stage: dict) -> None:
