@@ -35,7 +35,14 @@ from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 MIN_POINTS = 8  # the COLMAP reader needs this many to bound depths
-EXHAUSTIVE_MAX = 100  # "auto" matching: exhaustive up to this many images, sequential above
+EXHAUSTIVE_MAX = 20  # "auto" matching of photos: exhaustive up to this many images (190 pairs), retrieval above
+NEAR = 2
+"""Retrieval matching: each photo is matched with this many next ones in name order (a walk's photos are
+numbered in order), besides its :attr:`SfmOptions.retrieval_pairs` most similar ones."""
+BRIDGE_ROUNDS = 3
+"""Retrieval matching: rounds of bridge pairs at most (:func:`_matched_pairs`)."""
+BRIDGE_PAIRS = 10
+"""Retrieval matching: the most similar pairs between a group left apart and the other images, per round."""
 MAPPER = {"init_min_tri_angle": 4.0, "init_min_num_inliers": 50, "abs_pose_min_num_inliers": 15,
           "abs_pose_min_inlier_ratio": 0.15}
 """COLMAP mapper settings relaxed from its defaults (16 degrees, 100, 30, 0.25) for small captures:
@@ -63,8 +70,12 @@ class SfmOptions(Seeded):
     """COLMAP camera model estimated during mapping (images are undistorted to PINHOLE afterwards)."""
     per_image_cameras: bool = False
     """One camera per image (photos from several cameras or zoom settings); default one shared camera."""
-    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """Image pairs to match: auto = sequential for video frames or more than 100 images, else exhaustive."""
+    matcher: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
+    """Image pairs to match: auto = sequential for video frames, exhaustive for up to 20 photos, retrieval above
+    (each photo with its next 2 in name order and its ``retrieval_pairs`` most similar ones by visual words,
+    :mod:`omnirecon.capture.retrieval`, then bridge pairs while groups of photos share no verified match)."""
+    retrieval_pairs: int = 6
+    """Retrieval matching: each photo is also matched with this many of the photos most like it."""
     overlap: int = 10
     """Sequential matching: each image is matched with this many following ones (plus 2^k further)."""
     loop_pairs: int = 0
@@ -222,6 +233,43 @@ def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]
             pairs.add((i, i + d))
             d *= 2
     return sorted(pairs)
+
+
+def matcher_kind(matcher: str, n: int, video: bool) -> str:
+    """The pairs :attr:`SfmOptions.matcher` means for ``n`` images: exhaustive, sequential or retrieval."""
+    if matcher != "auto":
+        return matcher
+    return "sequential" if video else "exhaustive" if n <= EXHAUSTIVE_MAX else "retrieval"
+
+
+def _matched_pairs(db: Path, work: Path, names: list[str], kind: str, options: SfmOptions, stages: Stages) -> list:
+    """Choose the image pairs of matcher ``kind`` (:func:`matcher_kind`), match them into ``db`` and return them.
+
+    Retrieval: the pairs of :func:`omnirecon.capture.retrieval.chosen_pairs`; while the verified matches leave
+    groups of images apart, up to :data:`BRIDGE_ROUNDS` more rounds match each smaller group's
+    :data:`BRIDGE_PAIRS` most similar pairs with the other images."""
+    from omnirecon.capture import retrieval
+    from omnirecon.capture.dropped import match_graph
+
+    if kind != "retrieval":
+        pairs = image_pairs(len(names), kind == "sequential", options.overlap)
+        if kind == "sequential" and options.loop_pairs:
+            pairs = sorted(set(pairs) | set(retrieval.similar_pairs(db, names, options.loop_pairs, options.overlap,
+                                                                    options.seed)))
+        _match(db, work, names, pairs, options, stages)
+        return pairs
+    sim = retrieval.similarity(db, names, options.seed)  # [N, N]
+    pairs = retrieval.chosen_pairs(sim, NEAR, options.retrieval_pairs)
+    _match(db, work, names, pairs, options, stages)
+    index = {nm: i for i, nm in enumerate(names)}
+    for _ in range(BRIDGE_ROUNDS):
+        groups = [[index[nm] for nm in g] for g in match_graph(db).groups(MIN_MATCHES)]
+        extra = retrieval.bridge_pairs(sim, groups, BRIDGE_PAIRS, set(pairs))
+        if not extra:
+            break
+        _match(db, work, names, extra, options, stages, stage="matching (bridges)")
+        pairs = sorted(set(pairs) | set(extra))
+    return pairs
 
 
 def _quiet_colmap() -> None:
@@ -387,6 +435,24 @@ def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list
     return {"status": "used", "unplaced": len(unplaced), **info, "database": str(out)}
 
 
+def without_focal_prior(db: Path, out: Path) -> bool:
+    """Copy database ``db`` to ``out`` (may be ``db``) with its cameras' focal lengths marked as unknown (COLMAP
+    then estimates them from the matches instead of trusting the EXIF focal length). Returns False, writing
+    nothing, when no camera has a focal length from EXIF."""
+    import pycolmap  # lazy: the optional 'capture' extra
+
+    with pycolmap.Database.open(str(db)) as d:
+        if not any(c.has_prior_focal_length for c in d.read_all_cameras()):
+            return False
+    if out != db:
+        shutil.copyfile(db, out)
+    with pycolmap.Database.open(str(out)) as d:
+        for c in d.read_all_cameras():
+            c.has_prior_focal_length = False
+            d.update_camera(c)
+    return True
+
+
 def needed(min_registered: float, n: int) -> int:
     """Images that must get a pose out of ``n`` (:attr:`SfmOptions.min_registered`, at least 3)."""
     return max(3, int(-(-min_registered * n // 1)))
@@ -416,13 +482,9 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     db = work / "database.db"
     n = len(names)
     _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
-    sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
-    pairs = image_pairs(n, sequential, options.overlap)
-    if sequential and options.loop_pairs:
-        from omnirecon.capture.retrieval import similar_pairs
-
-        pairs = sorted(set(pairs) | set(similar_pairs(db, names, options.loop_pairs, options.overlap, options.seed)))
-    _match(db, work, names, pairs, options, stages)
+    kind = matcher_kind(options.matcher, n, video)
+    sequential = kind == "sequential"
+    pairs = _matched_pairs(db, work, names, kind, options, stages)
 
     attempts: list[dict] = []
 
@@ -449,13 +511,21 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 if replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
                     models, chosen, best_db = cand, k, database
 
-            if options.affine_retry and not options.affine_sift:
+            no_prior = work / "database_no_focal_prior.db"
+            if without_focal_prior(db, no_prior):  # an EXIF focal length the matches contradict (lund: 29 vs 3)
+                consider(attempt("EXIF focal length ignored", no_prior, False), no_prior)
+            unprior = best_db == no_prior
+            short = lambda: not models or models[0].num_reg_images() < n  # noqa: E731 - retries go on while short
+            if options.affine_retry and not options.affine_sift and short():
                 db2 = work / "database_affine.db"
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
+                if unprior:
+                    without_focal_prior(db2, db2)
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
                 consider(attempt("affine SIFT", db2, False), db2, affine=True)
             apart = [_names(m) for m in models[1:]]  # SIFT's separate models: joined only by learned matches
-            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
+            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages) \
+                if short() else {"status": "not needed"}
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
                 cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
@@ -464,7 +534,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                     attempts[-1]["registered"] = cand[0].num_reg_images()
                     attempts[-1]["pose_check_dropped"] = sorted(learned_info["dropped"])
                 consider(cand, db3, prefer=options.learned == "prefer")
-            if models:  # continue the largest model: leftovers and smaller models' images may join it
+            if models and short():  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
                 models[0].write(start)
@@ -485,7 +555,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "points", source, "take more overlapping, textured photos")
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
-                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
+                       kind, dict(stages.seconds), attempts=attempts,
                        learned=learned_info,
                        motions=still_background(best_db, best), pose_check=pose_check)  # turntable check
     if len(registered) < n:
