@@ -22,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -89,8 +89,9 @@ class SfmOptions(Seeded):
     affine_sift: bool = False
     """Affine-adapted SIFT with domain-size pooling (COLMAP's option for wide baselines; slower)."""
     guided_matching: bool = True
-    """Re-match each verified pair guided by its epipolar geometry (more matches, about 1.5x the time;
-    on 20 views of dtu_scan37 it registered 18 instead of 14)."""
+    """Re-match each verified pair guided by its epipolar geometry (more matches; on 20 views of dtu_scan37 it
+    registered 18 instead of 14). Exhaustive and sequential matching only: retrieval matching (photo sets over 20)
+    never, since guided matching of a pair of photos with thousands of keypoints each takes many times as long."""
     peak_threshold: float = 0.0067
     """SIFT detection threshold (COLMAP's default 0.0067; lower finds more features in small images)."""
     first_octave: int = -1
@@ -183,10 +184,12 @@ class SfmResult:
 
 
 class Stages:
-    """Rich progress (one bar with ETA per stage) and the seconds each stage took."""
+    """Rich progress (one bar with ETA per stage) and the seconds (wall and CPU) each stage took."""
 
     def __init__(self, quiet: bool = False):
         self.seconds: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        """CPU seconds of this process (all its threads) per stage."""
         self.quiet = quiet
         self.progress = None
 
@@ -203,7 +206,7 @@ class Stages:
     @contextlib.contextmanager
     def stage(self, name: str, total: int | None):
         """Yields ``advance(n=1, total=None)``; records the stage's seconds."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         task = self.progress.add_task(name, total=total) if self.progress is not None else None
 
         def advance(n: int = 1, total: int | None = None):
@@ -214,6 +217,7 @@ class Stages:
             yield advance
         finally:
             self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)  # a stage run twice adds up
+            self.cpu[name] = round(self.cpu.get(name, 0.0) + time.process_time() - c0, 3)
             if task is not None:
                 t = self.progress.tasks[task]
                 self.progress.update(task, completed=t.total if t.total is not None else t.completed)
@@ -484,6 +488,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
     kind = matcher_kind(options.matcher, n, video)
     sequential = kind == "sequential"
+    if kind == "retrieval":  # see SfmOptions.guided_matching
+        options = replace(options, guided_matching=False)
     pairs = _matched_pairs(db, work, names, kind, options, stages)
 
     attempts: list[dict] = []
@@ -512,7 +518,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                     models, chosen, best_db = cand, k, database
 
             no_prior = work / "database_no_focal_prior.db"
-            if without_focal_prior(db, no_prior):  # an EXIF focal length the matches contradict (lund: 29 vs 3)
+            if without_focal_prior(db, no_prior):  # an EXIF focal length the matches contradict
                 consider(attempt("EXIF focal length ignored", no_prior, False), no_prior)
             unprior = best_db == no_prior
             short = lambda: not models or models[0].num_reg_images() < n  # noqa: E731 - retries go on while short

@@ -61,3 +61,33 @@ def test_retrieval_matching_poses_a_shuffled_capture(tmp_path):
     assert result.pairs < 12 * 11 // 2
     assert len(match_graph(tmp_path / "work" / "database.db").groups()) == 1
     assert len(result.registered) == 12
+
+
+def test_without_focal_prior(tmp_path):
+    """Photos whose EXIF gives a focal length: the copy of their database has it marked unknown (the mapping
+    retry for an EXIF focal length the matches contradict), the original keeps it; without one nothing is written."""
+    from PIL import Image
+
+    from omnirecon.capture.colmap_sfm import without_focal_prior
+
+    rng = np.random.default_rng(0)
+    for exif_focal, folder in ((35, "exif"), (None, "plain")):
+        (tmp_path / folder).mkdir()
+        for k in range(2):
+            exif = Image.Exif()
+            if exif_focal is not None:
+                exif.get_ifd(0x8769)[41989] = exif_focal  # FocalLengthIn35mmFilm
+            Image.fromarray(rng.integers(0, 255, (96, 128, 3), dtype=np.uint8)).save(
+                tmp_path / folder / f"{k}.jpg", exif=exif)
+        db = tmp_path / f"{folder}.db"
+        pycolmap.extract_features(db, tmp_path / folder, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  device=pycolmap.Device.cpu)
+        out = tmp_path / f"{folder}_no_prior.db"
+        assert without_focal_prior(db, out) == (exif_focal is not None)
+        with pycolmap.Database.open(str(db)) as d:
+            assert all(c.has_prior_focal_length == (exif_focal is not None) for c in d.read_all_cameras())
+        if exif_focal is None:
+            assert not out.exists()
+            continue
+        with pycolmap.Database.open(str(out)) as d:
+            assert not any(c.has_prior_focal_length for c in d.read_all_cameras())
