@@ -4,12 +4,15 @@
 undistorts its largest model to PINHOLE cameras and writes a standard COLMAP scene (``sparse/0/`` +
 ``images/`` + ``images_2/``, ``images_4/``) that :mod:`omnirecon.data.colmap` reads.
 
-Matching: every pair of images (``exhaustive``), or each image with the next ``overlap`` images and
-those 2, 4, 8, ... further on (``sequential``, for video frames and large sets), plus with ``loop_pairs``
-the images most like it (retrieval: a walk's loop closures). The pairs are
+Matching: every pair of images (``exhaustive``, up to 20 photos), or each image with the next ``overlap``
+images and those 2, 4, 8, ... further on (``sequential``, for video frames), plus with ``loop_pairs``
+the images most like it (a walk's loop closures), or each photo with its next 2 in name order and the
+ones most like it, then bridge pairs while the verified matches leave groups apart (``retrieval``, more
+than 20 photos). The pairs are
 matched in chunks so that progress and its ETA advance while COLMAP works. One thread by default
 (``threads``), a fixed seed: the same input gives the same model. When too few images register,
-the mapping is retried with relaxed settings and affine-adapted features (:class:`SfmOptions`). The
+the mapping is retried without the EXIF focal length, with affine-adapted features and with relaxed
+settings (:class:`SfmOptions`). The
 kept model's poses are checked against their verified pairs and a contradicted view is dropped
 (:mod:`omnirecon.capture.consistency`).
 
@@ -100,11 +103,12 @@ class SfmOptions(Seeded):
     max_ratio: float = 0.8
     """Lowe's ratio test when matching (COLMAP's default 0.8; higher keeps more ambiguous matches)."""
     retry_below: float = 1.0
-    """When the first mapping registers fewer than this fraction of the images, retry: map again with
-    affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
-    settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
-    current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
-    images all register is never retried."""
+    """When the first mapping registers fewer than this fraction of the images, retry: map again with the
+    focal length estimated from the matches instead of the EXIF one (photos with a focal length in their
+    EXIF), with affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
+    settings (:data:`RELAXED`), stopping once every image has a pose; a retry's model is kept when it has
+    more images and agrees with the current one on the images both pose (:data:`AGREE_DEG`). 0 turns
+    retries off; a capture whose images all register is never retried."""
     learned: Literal["auto", "prefer", "off"] = "off"
     """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
