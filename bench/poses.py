@@ -4,11 +4,15 @@
     python -m bench poses --tiny             # one procedural scene (for tests)
     python -m bench poses --scenes blender/lego --masked --methods sift hybrid --out bench/results/poses_hybrid.json
     python -m bench poses --scenes --masked --videos instant_ngp/fox --out bench/results/poses_video.json
+    python -m bench poses --scenes --masked --photos photos/lund --reference SCENE --threads 2 --out bench/results/poses_lund.json
 
 ``--methods``: ``sift`` is SIFT alone (``SfmOptions.learned = "off"``); ``hybrid`` adds learned matches
 (DISK + LightGlue) for the views SIFT left out (``learned = "auto"``, needs the ``capture-learned`` extra);
 ``learned`` keeps that model whenever it poses more views (``learned = "prefer"``).
 Each row also carries the pose check's summary (views dropped as contradicting their matches).
+
+``--photos``: photo folders without poses (lund's 29 street photos), with ``process``'s own defaults, compared
+with a posed ``--reference`` copy of them (:mod:`bench.poses_photos`).
 
 ``--videos``: a phone walk-around clip made from a scene's frames in capture order (fox: one loop around
 the subject), every frame once, resized to ``--video-size`` pixels on the long side and spread over
@@ -206,6 +210,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--videos", nargs="*", default=[], help="scenes also run as a walk-around video clip")
     parser.add_argument("--video-size", type=int, default=240, help="the clip's long side (pixels)")
     parser.add_argument("--video-seconds", type=float, default=40.0, help="the clip's length (seconds)")
+    parser.add_argument("--photos", nargs="*", default=[], help="photo folders without poses (paths under the shared "
+                        "data folder, e.g. photos/lund) run through process with its own defaults (bench/poses_photos.py)")
+    parser.add_argument("--reference", type=Path, default=None,
+                        help="a posed scene of the same photos whose camera centres the --photos rows are compared with")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "poses.json")
     args = parser.parse_args(argv)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
@@ -251,6 +259,12 @@ def main(argv: list[str] | None = None) -> dict:
                 rows.append(run_scene(*c))
                 print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "attempts", "dropped")},
                       flush=True)
+        for k, p in enumerate(SHARED / s for s in args.photos):  # the process defaults, at --threads
+            from bench.poses_photos import run_photos
+
+            rows.append(run_photos(p, args.reference, SfmOptions(threads=args.threads, seed=args.seed, min_registered=0.0),
+                                   tmp / f"photos{k}", SHARED))
+            print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "attempts", "options")}, flush=True)
         for k, (p, m) in enumerate(videos):
             rows.append(run_video(p, args.video_size, args.video_seconds, options, tmp / f"video{k}", m))
             print({k: v for k, v in rows[-1].items() if k not in ("stage_seconds", "video_passes")}, flush=True)
@@ -259,6 +273,8 @@ def main(argv: list[str] | None = None) -> dict:
         "provenance": prov,
         "config": {"images_per_scene": args.images, "split": args.split, "threads": args.threads, "jobs": args.jobs, "tiny": args.tiny,
                    "videos": {"scenes": args.videos, "long_side": args.video_size, "seconds": args.video_seconds},
+                   "photos": {"folders": args.photos, "reference": None if args.reference is None else str(args.reference),
+                              "sfm_options": asdict(SfmOptions(threads=args.threads, seed=args.seed, min_registered=0.0))},
                    "methods": args.methods,
                    "size": "each scene's stored image size (long side <= 400 px)",
                    "camera_model": f"{args.camera_model}, one shared camera", "sfm_options": asdict(options),

@@ -133,7 +133,7 @@ RULES: dict[str, Rule] = {
     "peak_threshold": Rule(0, 1, above=True, example="e.g. 0.0067"),
     "first_octave": Rule(-3, 1, example="e.g. -1"), "max_ratio": Rule(0, 1, above=True, example="e.g. 0.8"),
     "retry_below": FRACTION, "mask_dilate": Rule(0, 10_000, example="e.g. 0 or 8"), "min_explained": FRACTION,
-    "loop_pairs": Rule(0, 1000, example="e.g. 0 or 5"),
+    "loop_pairs": Rule(0, 1000, example="e.g. 0 or 5"), "retrieval_pairs": Rule(0, 1000, example="e.g. 6"),
     # tuning
     "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "soften": Rule(0, 10, example="e.g. 0.7 (px; 0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     "step_views": Rule(0, 1_000_000, example="e.g. 1, or 0 for every tuning view"),

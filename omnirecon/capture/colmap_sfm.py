@@ -4,12 +4,15 @@
 undistorts its largest model to PINHOLE cameras and writes a standard COLMAP scene (``sparse/0/`` +
 ``images/`` + ``images_2/``, ``images_4/``) that :mod:`omnirecon.data.colmap` reads.
 
-Matching: every pair of images (``exhaustive``), or each image with the next ``overlap`` images and
-those 2, 4, 8, ... further on (``sequential``, for video frames and large sets), plus with ``loop_pairs``
-the images most like it (retrieval: a walk's loop closures). The pairs are
+Matching: every pair of images (``exhaustive``, up to 20 photos), or each image with the next ``overlap``
+images and those 2, 4, 8, ... further on (``sequential``, for video frames), plus with ``loop_pairs``
+the images most like it (a walk's loop closures), or each photo with its next 2 in name order and the
+ones most like it, then bridge pairs while the verified matches leave groups apart (``retrieval``, more
+than 20 photos). The pairs are
 matched in chunks so that progress and its ETA advance while COLMAP works. One thread by default
 (``threads``), a fixed seed: the same input gives the same model. When too few images register,
-the mapping is retried with relaxed settings and affine-adapted features (:class:`SfmOptions`). The
+the mapping is retried without the EXIF focal length, with affine-adapted features and with relaxed
+settings (:class:`SfmOptions`). The
 kept model's poses are checked against their verified pairs and a contradicted view is dropped
 (:mod:`omnirecon.capture.consistency`).
 
@@ -22,7 +25,7 @@ from __future__ import annotations
 import contextlib
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -35,7 +38,14 @@ from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 MIN_POINTS = 8  # the COLMAP reader needs this many to bound depths
-EXHAUSTIVE_MAX = 100  # "auto" matching: exhaustive up to this many images, sequential above
+EXHAUSTIVE_MAX = 20  # "auto" matching of photos: exhaustive up to this many images (190 pairs), retrieval above
+NEAR = 2
+"""Retrieval matching: each photo is matched with this many next ones in name order (a walk's photos are
+numbered in order), besides its :attr:`SfmOptions.retrieval_pairs` most similar ones."""
+BRIDGE_ROUNDS = 3
+"""Retrieval matching: rounds of bridge pairs at most (:func:`_matched_pairs`)."""
+BRIDGE_PAIRS = 10
+"""Retrieval matching: the most similar pairs between a group left apart and the other images, per round."""
 MAPPER = {"init_min_tri_angle": 4.0, "init_min_num_inliers": 50, "abs_pose_min_num_inliers": 15,
           "abs_pose_min_inlier_ratio": 0.15}
 """COLMAP mapper settings relaxed from its defaults (16 degrees, 100, 30, 0.25) for small captures:
@@ -61,8 +71,12 @@ class SfmOptions(CameraModel, Seeded):
 
     per_image_cameras: bool = False
     """One camera per image (photos from several cameras or zoom settings); default one shared camera."""
-    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
-    """Image pairs to match: auto = sequential for video frames or more than 100 images, else exhaustive."""
+    matcher: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
+    """Image pairs to match: auto = sequential for video frames, exhaustive for up to 20 photos, retrieval above
+    (each photo with its next 2 in name order and its ``retrieval_pairs`` most similar ones by visual words,
+    :mod:`omnirecon.capture.retrieval`, then bridge pairs while groups of photos share no verified match)."""
+    retrieval_pairs: int = 6
+    """Retrieval matching: each photo is also matched with this many of the photos most like it."""
     overlap: int = 10
     """Sequential matching: each image is matched with this many following ones (plus 2^k further)."""
     loop_pairs: int = 0
@@ -76,8 +90,9 @@ class SfmOptions(CameraModel, Seeded):
     affine_sift: bool = False
     """Affine-adapted SIFT with domain-size pooling (COLMAP's option for wide baselines; slower)."""
     guided_matching: bool = True
-    """Re-match each verified pair guided by its epipolar geometry (more matches, about 1.5x the time;
-    on 20 views of dtu_scan37 it registered 18 instead of 14)."""
+    """Re-match each verified pair guided by its epipolar geometry (more matches; on 20 views of dtu_scan37 it
+    registered 18 instead of 14). Exhaustive and sequential matching only: retrieval matching (photo sets over 20)
+    never, since guided matching of a pair of photos with thousands of keypoints each takes many times as long."""
     peak_threshold: float = 0.0067
     """SIFT detection threshold (COLMAP's default 0.0067; lower finds more features in small images)."""
     first_octave: int = -1
@@ -86,11 +101,12 @@ class SfmOptions(CameraModel, Seeded):
     max_ratio: float = 0.8
     """Lowe's ratio test when matching (COLMAP's default 0.8; higher keeps more ambiguous matches)."""
     retry_below: float = 1.0
-    """When the first mapping registers fewer than this fraction of the images, retry: map again with
-    affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
-    settings (:data:`RELAXED`); a retry's model is kept when it has more images and agrees with the
-    current one on the images both pose (:data:`AGREE_DEG`). 0 turns retries off; a capture whose
-    images all register is never retried."""
+    """When the first mapping registers fewer than this fraction of the images, retry: map again with the
+    focal length estimated from the matches instead of the EXIF one (photos with a focal length in their
+    EXIF), with affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
+    settings (:data:`RELAXED`), stopping once every image has a pose; a retry's model is kept when it has
+    more images and agrees with the current one on the images both pose (:data:`AGREE_DEG`). 0 turns
+    retries off; a capture whose images all register is never retried."""
     learned: Literal["auto", "prefer", "off"] = "off"
     """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
@@ -170,10 +186,12 @@ class SfmResult:
 
 
 class Stages:
-    """Rich progress (one bar with ETA per stage) and the seconds each stage took."""
+    """Rich progress (one bar with ETA per stage) and the seconds (wall and CPU) each stage took."""
 
     def __init__(self, quiet: bool = False):
         self.seconds: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        """CPU seconds of this process (all its threads) per stage."""
         self.quiet = quiet
         self.progress = None
 
@@ -190,7 +208,7 @@ class Stages:
     @contextlib.contextmanager
     def stage(self, name: str, total: int | None):
         """Yields ``advance(n=1, total=None)``; records the stage's seconds."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         task = self.progress.add_task(name, total=total) if self.progress is not None else None
 
         def advance(n: int = 1, total: int | None = None):
@@ -201,6 +219,7 @@ class Stages:
             yield advance
         finally:
             self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)  # a stage run twice adds up
+            self.cpu[name] = round(self.cpu.get(name, 0.0) + time.process_time() - c0, 3)
             if task is not None:
                 t = self.progress.tasks[task]
                 self.progress.update(task, completed=t.total if t.total is not None else t.completed)
@@ -220,6 +239,43 @@ def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]
             pairs.add((i, i + d))
             d *= 2
     return sorted(pairs)
+
+
+def matcher_kind(matcher: str, n: int, video: bool) -> str:
+    """The pairs :attr:`SfmOptions.matcher` means for ``n`` images: exhaustive, sequential or retrieval."""
+    if matcher != "auto":
+        return matcher
+    return "sequential" if video else "exhaustive" if n <= EXHAUSTIVE_MAX else "retrieval"
+
+
+def _matched_pairs(db: Path, work: Path, names: list[str], kind: str, options: SfmOptions, stages: Stages) -> list:
+    """Choose the image pairs of matcher ``kind`` (:func:`matcher_kind`), match them into ``db`` and return them.
+
+    Retrieval: the pairs of :func:`omnirecon.capture.retrieval.chosen_pairs`; while the verified matches leave
+    groups of images apart, up to :data:`BRIDGE_ROUNDS` more rounds match each smaller group's
+    :data:`BRIDGE_PAIRS` most similar pairs with the other images."""
+    from omnirecon.capture import retrieval
+    from omnirecon.capture.dropped import match_graph
+
+    if kind != "retrieval":
+        pairs = image_pairs(len(names), kind == "sequential", options.overlap)
+        if kind == "sequential" and options.loop_pairs:
+            pairs = sorted(set(pairs) | set(retrieval.similar_pairs(db, names, options.loop_pairs, options.overlap,
+                                                                    options.seed)))
+        _match(db, work, names, pairs, options, stages)
+        return pairs
+    sim = retrieval.similarity(db, names, options.seed)  # [N, N]
+    pairs = retrieval.chosen_pairs(sim, NEAR, options.retrieval_pairs)
+    _match(db, work, names, pairs, options, stages)
+    index = {nm: i for i, nm in enumerate(names)}
+    for _ in range(BRIDGE_ROUNDS):
+        groups = [[index[nm] for nm in g] for g in match_graph(db).groups(MIN_MATCHES)]
+        extra = retrieval.bridge_pairs(sim, groups, BRIDGE_PAIRS, set(pairs))
+        if not extra:
+            break
+        _match(db, work, names, extra, options, stages, stage="matching (bridges)")
+        pairs = sorted(set(pairs) | set(extra))
+    return pairs
 
 
 def _quiet_colmap() -> None:
@@ -385,6 +441,24 @@ def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list
     return {"status": "used", "unplaced": len(unplaced), **info, "database": str(out)}
 
 
+def without_focal_prior(db: Path, out: Path) -> bool:
+    """Copy database ``db`` to ``out`` (may be ``db``) with its cameras' focal lengths marked as unknown (COLMAP
+    then estimates them from the matches instead of trusting the EXIF focal length). Returns False, writing
+    nothing, when no camera has a focal length from EXIF."""
+    import pycolmap  # lazy: the optional 'capture' extra
+
+    with pycolmap.Database.open(str(db)) as d:
+        if not any(c.has_prior_focal_length for c in d.read_all_cameras()):
+            return False
+    if out != db:
+        shutil.copyfile(db, out)
+    with pycolmap.Database.open(str(out)) as d:
+        for c in d.read_all_cameras():
+            c.has_prior_focal_length = False
+            d.update_camera(c)
+    return True
+
+
 def needed(min_registered: float, n: int) -> int:
     """Images that must get a pose out of ``n`` (:attr:`SfmOptions.min_registered`, at least 3)."""
     return max(3, int(-(-min_registered * n // 1)))
@@ -414,13 +488,11 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     db = work / "database.db"
     n = len(names)
     _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
-    sequential = options.matcher == "sequential" or (options.matcher == "auto" and (video or n > EXHAUSTIVE_MAX))
-    pairs = image_pairs(n, sequential, options.overlap)
-    if sequential and options.loop_pairs:
-        from omnirecon.capture.retrieval import similar_pairs
-
-        pairs = sorted(set(pairs) | set(similar_pairs(db, names, options.loop_pairs, options.overlap, options.seed)))
-    _match(db, work, names, pairs, options, stages)
+    kind = matcher_kind(options.matcher, n, video)
+    sequential = kind == "sequential"
+    if kind == "retrieval":  # see SfmOptions.guided_matching
+        options = replace(options, guided_matching=False)
+    pairs = _matched_pairs(db, work, names, kind, options, stages)
 
     attempts: list[dict] = []
 
@@ -447,13 +519,21 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 if replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
                     models, chosen, best_db = cand, k, database
 
-            if options.affine_retry and not options.affine_sift:
+            no_prior = work / "database_no_focal_prior.db"
+            if without_focal_prior(db, no_prior):  # an EXIF focal length the matches contradict
+                consider(attempt("EXIF focal length ignored", no_prior, False), no_prior)
+            unprior = best_db == no_prior
+            short = lambda: not models or models[0].num_reg_images() < n  # noqa: E731 - retries go on while short
+            if options.affine_retry and not options.affine_sift and short():
                 db2 = work / "database_affine.db"
                 _extract(db2, image_dir, names, options, stages, mask_dir, True, stage="features (affine)")
+                if unprior:
+                    without_focal_prior(db2, db2)
                 _match(db2, work, names, pairs, options, stages, stage="matching (affine)")
                 consider(attempt("affine SIFT", db2, False), db2, affine=True)
             apart = [_names(m) for m in models[1:]]  # SIFT's separate models: joined only by learned matches
-            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages)
+            learned_info = _learned_attempt(image_dir, names, work, models, best_db, sequential, options, stages) \
+                if short() else {"status": "not needed"}
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
                 cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
@@ -462,7 +542,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                     attempts[-1]["registered"] = cand[0].num_reg_images()
                     attempts[-1]["pose_check_dropped"] = sorted(learned_info["dropped"])
                 consider(cand, db3, prefer=options.learned == "prefer")
-            if models:  # continue the largest model: leftovers and smaller models' images may join it
+            if models and short():  # continue the largest model: leftovers and smaller models' images may join it
                 start = work / "start_model"
                 start.mkdir(exist_ok=True)
                 models[0].write(start)
@@ -483,7 +563,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                          "points", source, "take more overlapping, textured photos")
     registered = _names(best)
     result = SfmResult(best, list(names), registered, len(models), len(pairs),
-                       "sequential" if sequential else "exhaustive", dict(stages.seconds), attempts=attempts,
+                       kind, dict(stages.seconds), attempts=attempts,
                        learned=learned_info,
                        motions=still_background(best_db, best), pose_check=pose_check)  # turntable check
     if len(registered) < n:

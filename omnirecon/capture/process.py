@@ -11,6 +11,7 @@ previous folder or none. The scene holds
                        photos (:mod:`omnirecon.capture.masks`), so every command reads them as the scene's
     sparse/0/          cameras.bin, images.bin, points3D.bin: the largest model COLMAP found
     process.json       the summary: images registered / given, reprojection error, points, seconds per stage
+                       (wall, and CPU seconds of the SfM process: ``cpu_seconds``)
 
 Photos with a side under :data:`MIN_SIDE` pixels are refused before SfM, and the pycolmap stages (features,
 matching, mapping, undistortion) run in a child process (:func:`sfm_in_child`), so a native crash of the
@@ -138,7 +139,7 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
         else:
             result = run_sfm(folder, names, work, options, stages, video=is_video, source=source, mask_dir=mask_dir)
         info = write_scene(result, folder, work, scene, stages, threads=options.threads, masks=objects)
-    return result.stats(), info, dict(stages.seconds), video
+    return {**result.stats(), "cpu_seconds": dict(stages.cpu)}, info, dict(stages.seconds), video
 
 
 def _die_with(parent: int) -> None:

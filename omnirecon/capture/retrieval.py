@@ -1,11 +1,14 @@
-"""Image retrieval from the SIFT features already in a COLMAP database: loop pairs for sequential matching.
+"""Image retrieval from the SIFT features already in a COLMAP database: loop pairs for sequential matching,
+the pairs a photo folder is matched on.
 
 A video that walks around a subject comes back to where it started; sequential matching (each frame
 with its next few) never pairs its last frames with its first. :func:`similar_pairs` finds such pairs
 offline, without COLMAP's downloaded vocabulary tree: a small visual vocabulary is clustered from a
 sample of the capture's own descriptors (:func:`scipy.cluster.vq.kmeans2`), each image becomes a
 tf-idf weighted histogram of its words, and each image is paired with the images most similar to it
-that are further than ``skip`` frames away.
+that are further than ``skip`` frames away. :func:`chosen_pairs` picks a photo folder's pairs the same way
+(neighbours in name order plus the most similar images) and :func:`bridge_pairs` the pairs that may join
+groups of images the verified matches left apart.
 """
 
 from __future__ import annotations
@@ -63,8 +66,7 @@ def similar_pairs(db_path: Path, names: list[str], per_image: int, skip: int, se
     positions away."""
     if per_image < 1 or len(names) < skip + 2:
         return []
-    hist = word_histograms(read_descriptors(db_path, names), seed=seed)
-    return nearest_pairs(hist @ hist.T, per_image, skip)
+    return nearest_pairs(similarity(db_path, names, seed), per_image, skip)
 
 
 def nearest_pairs(sim: np.ndarray, per_image: int, skip: int) -> list[tuple[int, int]]:
@@ -79,3 +81,32 @@ def nearest_pairs(sim: np.ndarray, per_image: int, skip: int) -> list[tuple[int,
             if np.isfinite(sim[i, j]):
                 pairs.add((min(i, int(j)), max(i, int(j))))
     return sorted(pairs)
+
+
+def similarity(db_path: Path, names: list[str], seed: int = 0) -> np.ndarray:
+    """[N, N] cosine similarity of the images' visual-word histograms (:func:`word_histograms`)."""
+    hist = word_histograms(read_descriptors(db_path, names), seed=seed)
+    return hist @ hist.T
+
+
+def chosen_pairs(sim: np.ndarray, near: int, per_image: int) -> list[tuple[int, int]]:
+    """Index pairs ``(i, j)``, ``i < j``, to match: each image with the ``near`` next ones in name order
+    (photos of one walk are numbered in order) and with its ``per_image`` most similar among the rest
+    (``sim`` [N, N], :func:`similarity`)."""
+    n = len(sim)
+    seq = {(i, i + d) for i in range(n) for d in range(1, near + 1) if i + d < n}
+    return sorted(seq | set(nearest_pairs(sim, per_image, near)))
+
+
+def bridge_pairs(sim: np.ndarray, groups: list[list[int]], per_group: int, done: set) -> list[tuple[int, int]]:
+    """Index pairs ``(i, j)``, ``i < j``, not in ``done``: for each group of images (indices; groups that
+    share no verified match, largest first) but the first, its ``per_group`` most similar pairs with
+    images outside it, so that another round of matching may join the groups (``sim`` [N, N])."""
+    out = set()
+    for g in groups[1:]:
+        inside = np.zeros(len(sim), bool)
+        inside[g] = True
+        cand = [(sim[i, j], min(i, j), max(i, j)) for i in g for j in np.flatnonzero(~inside)
+                if (min(i, j), max(i, j)) not in done]
+        out |= {(int(i), int(j)) for _, i, j in sorted(cand, key=lambda c: -c[0])[:per_group]}
+    return sorted(out)
