@@ -85,7 +85,8 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
 
     from omnirecon import metrics
     from omnirecon.engine.views import select_sources
-    from omnirecon.mesh.ibr import ViewCache, level_of_detail, realtime_options
+    from omnirecon.mesh.frames import ViewCache
+    from omnirecon.mesh.ibr import level_of_detail, realtime_options
 
     start = time.perf_counter()
     vertices, faces = level_of_detail(mesh, budget)

@@ -91,7 +91,8 @@ def python_frames(model, mesh, scene, targets: list[int], pool: list[int], setti
     each frame's sources taken from :func:`shared_encoding` instead of encoded as a set; ``scale``: the cameras'
     resolution factor)."""
     from omnirecon.engine.views import select_sources
-    from omnirecon.mesh.ibr import ViewCache, realtime_options
+    from omnirecon.mesh.frames import ViewCache
+    from omnirecon.mesh.ibr import realtime_options
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     frames, ms = [], []

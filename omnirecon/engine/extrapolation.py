@@ -96,7 +96,8 @@ def score_frames(model, mesh, scene, train: list[int], cameras: Cameras, truth: 
     defect shares (completion's fills are the faces from ``fill_from`` on), and with ``truth # [F, H, W, 3]`` PSNR and
     coverage, with ``masks # [F, H, W]`` PSNR over them too."""
     from omnirecon.mesh.defects import DefectCounter
-    from omnirecon.mesh.ibr import ViewCache, realtime_options, realtime_setting
+    from omnirecon.mesh.frames import ViewCache
+    from omnirecon.mesh.ibr import realtime_options, realtime_setting
 
     setting = setting or realtime_setting(scene)
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)

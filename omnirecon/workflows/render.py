@@ -182,13 +182,14 @@ def mesh_path_video(model, mesh, scene, cameras: Cameras, sources: list[list[int
     ground) and write the video at ``path``.
 
     ``sources[i]``: the scene views frame ``i`` is rendered from; consecutive frames with the same views
-    share one renderer, and every renderer one :class:`~omnirecon.mesh.ibr.ViewCache` (one rasterizer, each view's
+    share one renderer, and every renderer one :class:`~omnirecon.mesh.frames.ViewCache` (one rasterizer, each view's
     occlusion depths once, each set of views encoded once: the frames are those of a renderer per set, bit for bit).
     The mesh is drawn with at most ``face_budget`` faces (default :data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`; 0:
     the full mesh), decimated once (``mesh`` stays whole); the angle blend ranks each chunk's candidate sources
     (:data:`~omnirecon.mesh.ibr.REALTIME_FRAME_GRID`); up to 2 threads shade (torch's threads, one op each). Returns the video file, the 8-bit frames ``# [H, W, 3]``, the
     seconds of each frame (after one untimed warm-up frame) and the number of faces drawn."""
-    from omnirecon.mesh.ibr import ViewCache, realtime_setting, render_frames, video_options  # lazy: fast --help
+    from omnirecon.mesh.frames import ViewCache, render_frames
+    from omnirecon.mesh.ibr import realtime_setting, video_options  # lazy: fast --help
 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     threads = torch.get_num_threads()

@@ -16,7 +16,8 @@ from conftest import ROOT
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
-from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions, ViewCache, render_frames, render_signal
+from omnirecon.mesh.frames import ViewCache, render_frames, render_signal
+from omnirecon.mesh.ibr import MeshRenderer, MeshRenderOptions
 from omnirecon.models.registry import build_model
 from omnirecon.rays import Rays, Sources
 from omnirecon.render.raster import MeshRasterizer
