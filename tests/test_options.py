@@ -7,7 +7,8 @@ import pytest
 
 from omnirecon.cli import COMMANDS, _load
 from omnirecon.errors import InputError
-from omnirecon.options import RULES, _check_memory, check_options, option_fields, rule_for
+from omnirecon.option_memory import check_sizes
+from omnirecon.options import RULES, check_options, option_fields, rule_for
 
 
 def test_every_numeric_option_of_every_command_has_a_rule():
@@ -67,9 +68,9 @@ def test_non_finite_is_refused_with_the_flag(value):
 
 def test_memory_limit_is_solved_for():
     with pytest.raises(InputError) as e:
-        _check_memory([("--frames", "5000", 5000, lambda v: v * 1000.0)], available=2_000_000)
+        check_sizes([("--frames", "5000", 5000, lambda v: v * 1000.0)], available=2_000_000)
     assert "--frames 5000" in e.value.what and "--frames 1000 or less" in e.value.fix  # 50 % of 2 MB / 1 kB
-    _check_memory([("--frames", "1000", 1000, lambda v: v * 1000.0)], available=2_000_000)
+    check_sizes([("--frames", "1000", 1000, lambda v: v * 1000.0)], available=2_000_000)
 
 
 def test_notes_printed_while_parsing_reach_stderr(tmp_path, capsys):
