@@ -29,16 +29,15 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 from PIL import Image
 
+from omnirecon.capture import consistency, retrieval
 from omnirecon.errors import InputError
 from omnirecon.options import CameraModel, Seeded, check_options
 from omnirecon.progress import progress_bar
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 MIN_POINTS = 8  # the COLMAP reader needs this many to bound depths
-EXHAUSTIVE_MAX = 20  # "auto" matching of photos: exhaustive up to this many images (190 pairs), retrieval above
 NEAR = 2
 """Retrieval matching: each photo is matched with this many next ones in name order (a walk's photos are
 numbered in order), besides its :attr:`SfmOptions.retrieval_pairs` most similar ones."""
@@ -55,13 +54,6 @@ RELAXED = {"mapper.abs_pose_min_num_inliers": 12, "mapper.abs_pose_min_inlier_ra
 """Mapper settings of the retry that continues the largest model: images posed from 12 inlier
 correspondences, and points seen in two images kept, so images at the end of a chain of weakly
 overlapping views can still be posed."""
-AGREE_DEG = (2.0, 5.0)
-"""A retry's model replaces the current one only if, on the images both pose, their rotations agree
-to this median and maximum (degrees) after a similarity alignment: more images, never other poses.
-One exception: when the affine-feature model poses exactly as many images as the first one and they
-disagree, the affine one is kept (affine-adapted descriptors are the less ambiguous; on 20 views of
-Blender's chair the first model was 9.4 degrees off, the affine one 0.2). A model of fewer than half
-the images is not protected (:func:`replaces`)."""
 MIN_MATCHES = 15  # verified matches a pair needs in every mapping (COLMAP's default)
 
 
@@ -105,7 +97,7 @@ class SfmOptions(CameraModel, Seeded):
     focal length estimated from the matches instead of the EXIF one (photos with a focal length in their
     EXIF), with affine-adapted SIFT features (``affine_retry``), then continue the largest model with relaxed
     settings (:data:`RELAXED`), stopping once every image has a pose; a retry's model is kept when it has
-    more images and agrees with the current one on the images both pose (:data:`AGREE_DEG`). 0 turns
+    more images and agrees with the current one on the images both pose (:data:`omnirecon.capture.consistency.AGREE_DEG`). 0 turns
     retries off; a capture whose images all register is never retried."""
     learned: Literal["auto", "prefer", "off"] = "off"
     """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
@@ -225,40 +217,16 @@ class Stages:
                 self.progress.update(task, completed=t.total if t.total is not None else t.completed)
 
 
-def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]:
-    """Index pairs ``(i, j)``, ``i < j``: all of them, or neighbours within ``overlap`` plus 2^k apart."""
-    if not sequential:
-        return [(i, j) for i in range(n) for j in range(i + 1, n)]
-    pairs = set()
-    for i in range(n):
-        for d in range(1, overlap + 1):
-            if i + d < n:
-                pairs.add((i, i + d))
-        d = 2 * overlap
-        while i + d < n:  # quadratic overlap: reach further back along long sequences
-            pairs.add((i, i + d))
-            d *= 2
-    return sorted(pairs)
-
-
-def matcher_kind(matcher: str, n: int, video: bool) -> str:
-    """The pairs :attr:`SfmOptions.matcher` means for ``n`` images: exhaustive, sequential or retrieval."""
-    if matcher != "auto":
-        return matcher
-    return "sequential" if video else "exhaustive" if n <= EXHAUSTIVE_MAX else "retrieval"
-
-
 def _matched_pairs(db: Path, work: Path, names: list[str], kind: str, options: SfmOptions, stages: Stages) -> list:
-    """Choose the image pairs of matcher ``kind`` (:func:`matcher_kind`), match them into ``db`` and return them.
+    """Choose the image pairs of matcher ``kind`` (:func:`omnirecon.capture.retrieval.matcher_kind`), match them into ``db`` and return them.
 
     Retrieval: the pairs of :func:`omnirecon.capture.retrieval.chosen_pairs`; while the verified matches leave
     groups of images apart, up to :data:`BRIDGE_ROUNDS` more rounds match each smaller group's
     :data:`BRIDGE_PAIRS` most similar pairs with the other images."""
-    from omnirecon.capture import retrieval
     from omnirecon.capture.dropped import match_graph
 
     if kind != "retrieval":
-        pairs = image_pairs(len(names), kind == "sequential", options.overlap)
+        pairs = retrieval.image_pairs(len(names), kind == "sequential", options.overlap)
         if kind == "sequential" and options.loop_pairs:
             pairs = sorted(set(pairs) | set(retrieval.similar_pairs(db, names, options.loop_pairs, options.overlap,
                                                                     options.seed)))
@@ -371,41 +339,6 @@ def _map(db: Path, image_dir: Path, out: Path, options: SfmOptions, relaxed: boo
     return sorted(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()), reverse=True)
 
 
-def agreement(a, b) -> tuple[float, float] | None:
-    """Median and largest rotation difference (degrees) between reconstructions ``a`` and ``b`` on the
-    images both pose, after a similarity alignment; None when they share fewer than 3 images."""
-    from omnirecon.capture.align import pose_errors
-
-    def c2w(rec) -> dict:
-        out = {}
-        for i in rec.reg_image_ids():
-            im = rec.images[i]
-            m = np.eye(4)
-            m[:3] = im.cam_from_world().inverse().matrix()  # [3, 4]
-            out[im.name] = m
-        return out
-
-    pa, pb = c2w(a), c2w(b)
-    common = sorted(set(pa) & set(pb))
-    if len(common) < 3:
-        return None
-    e = pose_errors(np.stack([pb[n] for n in common]), np.stack([pa[n] for n in common]), 1.0)
-    return round(e["rotation_deg_median"], 3), round(e["rotation_deg_max"], 3)
-
-
-def replaces(current: int | None, candidate: int, agree: tuple[float, float] | None, affine: bool,
-             total: int) -> bool:
-    """Whether a retry's model (``candidate`` of ``total`` images) replaces the current one (``current``
-    images, None when there is none): it must pose more images and agree (``agree``: median and largest
-    rotation difference in degrees, :func:`agreement`; within :data:`AGREE_DEG`), or be the
-    affine-feature model posing as many images and disagreeing (see :data:`AGREE_DEG`). A current
-    model of fewer than half the images is not protected: any model with more images replaces it."""
-    if current is None or 2 * current < total:
-        return candidate > (current or 0)
-    agrees = agree is not None and agree[0] <= AGREE_DEG[0] and agree[1] <= AGREE_DEG[1]
-    return (candidate > current and agrees) or (affine and candidate == current > 0 and not agrees)
-
-
 def _check_poses(db: Path, rec, options: SfmOptions, groups: list[list[str]] = ()) -> tuple[dict[str, str], dict | None]:
     """The pose check (:attr:`SfmOptions.min_explained`) on the chosen model ``rec``, in place: the views it
     de-registered with their reasons, and its summary (None when off). ``groups``: views posed apart before
@@ -488,7 +421,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
     db = work / "database.db"
     n = len(names)
     _extract(db, image_dir, names, options, stages, mask_dir, options.affine_sift)
-    kind = matcher_kind(options.matcher, n, video)
+    kind = retrieval.matcher_kind(options.matcher, n, video)
     sequential = kind == "sequential"
     if kind == "retrieval":  # see SfmOptions.guided_matching
         options = replace(options, guided_matching=False)
@@ -514,9 +447,9 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 k = len(attempts) - 1
                 now = models[0].num_reg_images() if models else None
                 got = cand[0].num_reg_images() if cand else 0
-                agree = agreement(models[0], cand[0]) if models and cand and got >= now else None
+                agree = consistency.agreement(models[0], cand[0]) if models and cand and got >= now else None
                 attempts[k]["agrees_deg"] = agree
-                if replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
+                if consistency.replaces(now, got, agree, affine, n) or (prefer and got > (now or 0)):
                     models, chosen, best_db = cand, k, database
 
             no_prior = work / "database_no_focal_prior.db"

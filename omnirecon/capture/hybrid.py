@@ -7,7 +7,7 @@ photos the most similar posed and unposed images by visual words of their SIFT f
 their SIFT keypoints, so every SIFT match keeps its indices; each chosen pair's LightGlue matches are
 joined to its SIFT inliers and verified again with pycolmap (:func:`pycolmap.estimate_two_view_geometry`).
 The caller maps that database like any other and keeps its model only under the retry rule
-(:func:`omnirecon.capture.colmap_sfm.replaces`: more images, the same poses on the ones both have).
+(:func:`omnirecon.capture.consistency.replaces`: more images, the same poses on the ones both have).
 """
 
 from __future__ import annotations

@@ -8,7 +8,8 @@ sample of the capture's own descriptors (:func:`scipy.cluster.vq.kmeans2`), each
 tf-idf weighted histogram of its words, and each image is paired with the images most similar to it
 that are further than ``skip`` frames away. :func:`chosen_pairs` picks a photo folder's pairs the same way
 (neighbours in name order plus the most similar images) and :func:`bridge_pairs` the pairs that may join
-groups of images the verified matches left apart.
+groups of images the verified matches left apart; :func:`image_pairs` gives the exhaustive and sequential pairs and
+:func:`matcher_kind` which of the three a capture gets.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+EXHAUSTIVE_MAX = 20  # "auto" matching of photos: exhaustive up to this many images (190 pairs), retrieval above
 WORDS = 256
 """Visual words of the vocabulary (a few hundred suffice for the frames of one capture)."""
 SAMPLE = 20000
@@ -110,3 +112,26 @@ def bridge_pairs(sim: np.ndarray, groups: list[list[int]], per_group: int, done:
                 if (min(i, j), max(i, j)) not in done]
         out |= {(int(i), int(j)) for _, i, j in sorted(cand, key=lambda c: -c[0])[:per_group]}
     return sorted(out)
+
+
+def image_pairs(n: int, sequential: bool, overlap: int) -> list[tuple[int, int]]:
+    """Index pairs ``(i, j)``, ``i < j``: all of them, or neighbours within ``overlap`` plus 2^k apart."""
+    if not sequential:
+        return [(i, j) for i in range(n) for j in range(i + 1, n)]
+    pairs = set()
+    for i in range(n):
+        for d in range(1, overlap + 1):
+            if i + d < n:
+                pairs.add((i, i + d))
+        d = 2 * overlap
+        while i + d < n:  # quadratic overlap: reach further back along long sequences
+            pairs.add((i, i + d))
+            d *= 2
+    return sorted(pairs)
+
+
+def matcher_kind(matcher: str, n: int, video: bool) -> str:
+    """The pairs :attr:`SfmOptions.matcher` means for ``n`` images: exhaustive, sequential or retrieval."""
+    if matcher != "auto":
+        return matcher
+    return "sequential" if video else "exhaustive" if n <= EXHAUSTIVE_MAX else "retrieval"

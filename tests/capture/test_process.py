@@ -15,9 +15,10 @@ import torch
 pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `capture` extra: pip install pycolmap")
 
 from omnirecon.capture.align import pose_errors, umeyama  # noqa: E402
-from omnirecon.capture.colmap_sfm import SfmOptions, image_pairs  # noqa: E402
+from omnirecon.capture.colmap_sfm import SfmOptions  # noqa: E402
 from omnirecon.capture.images import stage_images  # noqa: E402
 from omnirecon.capture.process import process  # noqa: E402
+from omnirecon.capture.retrieval import image_pairs  # noqa: E402
 from omnirecon.cli import main  # noqa: E402
 from omnirecon.data import ReadOptions, load_scene  # noqa: E402
 from omnirecon.data.synth.generate import SynthOptions, generate_scene  # noqa: E402

@@ -12,7 +12,8 @@ pycolmap = pytest.importorskip("pycolmap", reason="pycolmap is the optional `cap
 
 from conftest import procedural_photos  # noqa: E402
 
-from omnirecon.capture.colmap_sfm import AGREE_DEG, SfmOptions, agreement, replaces  # noqa: E402
+from omnirecon.capture.colmap_sfm import SfmOptions  # noqa: E402
+from omnirecon.capture.consistency import AGREE_DEG, agreement, replaces  # noqa: E402
 from omnirecon.capture.dropped import MatchGraph, drop_reasons  # noqa: E402
 from omnirecon.capture.images import stage_images, stage_masks  # noqa: E402
 from omnirecon.capture.process import process, summary_lines  # noqa: E402

@@ -99,9 +99,9 @@ def test_retrieval_finds_the_loop():
 def test_loop_pairs_from_a_real_database(tmp_path):
     """Sequential matching of 12 procedural views with 2 neighbours each plus 2 loop pairs per image from
     the database's own SIFT words: more pairs than sequential alone, all images registered."""
-    from omnirecon.capture.colmap_sfm import SfmOptions, Stages, image_pairs, run_sfm
+    from omnirecon.capture.colmap_sfm import SfmOptions, Stages, run_sfm
     from omnirecon.capture.images import stage_images
-    from omnirecon.capture.retrieval import similar_pairs
+    from omnirecon.capture.retrieval import image_pairs, similar_pairs
 
     photos = procedural_photos(tmp_path, 256)
     staged = stage_images(photos, tmp_path / "input", min_images=3, shared_camera=True)
