@@ -240,8 +240,9 @@ def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | N
               masks: bool = False) -> None:
     """Mesh one (scene, K) job with :func:`geometry_sources` and score it on the job's targets;
     fills ``job["geometry"]`` (and writes ``<out>/<scene>/k<K>/mesh.ply`` and, with ``picture``, ``mesh.png``,
-    the mesh seen from the first source view at a 512-px long side). ``cpu_seconds`` splits the process CPU
-    time by part: ``depth`` (the depth source), ``mesh`` (fusion to completion), ``score``, ``write``."""
+    the mesh seen from the first source view at a 512-px long side). ``resolved``: the
+    surface, depth source and depth pass the run's ``auto`` options became for this scene. ``cpu_seconds`` splits the
+    process CPU time by part: ``depth`` (the depth source), ``mesh`` (fusion to completion), ``score``, ``write``."""
 
     es: EvalScene = job["scene"]
     views = geometry_sources(es, job["k"])
@@ -251,7 +252,8 @@ def _mesh_job(model, job: dict, options: MeshOptions, device: str, out: Path | N
     cpu = dict(made.info["cpu_seconds"])
     base = {"views": views, "seconds": seconds, "stage_seconds": made.info["seconds"],
             "depth_source": made.info["depth_source"].get("source"),
-            "valid_depth_fraction": made.info["valid_depth_fraction"]}
+            "valid_depth_fraction": made.info["valid_depth_fraction"],
+            "resolved": {k: made.info["options"][k] for k in ("surface", "depth", "depth_pass")}}  # "auto" as used
     if len(made.mesh.faces) == 0:
         job["geometry"] = {**base, "empty": True, "cpu_seconds": cpu}
         return

@@ -179,6 +179,8 @@ def test_eval_geometry_without_a_model_meshes_stereo(synth_scene):
     setting = result["scenes"][0]["settings"]["3"]
     geo = setting["geometry"]
     assert setting["views"] == [] and result["mesh_options"]["depth"] == "stereo" and geo["depth_source"] == "stereo"
+    assert result["mesh_options"]["surface"] == "auto" and geo["resolved"]["surface"] in ("fusion", "coherent")
+    assert geo["resolved"]["depth"] == "stereo" and geo["resolved"]["depth_pass"] == "fine"  # "auto", as it ran
     assert geo["views"] == floor["scenes"][0]["settings"]["3"]["geometry"]["views"]
     assert set(geo["cpu_seconds"]) >= {"depth", "mesh"} and geo["cpu_seconds"]["depth"] >= 0
     if not geo.get("empty"):
