@@ -3,15 +3,12 @@ fused shader equals ``OmniRecon.shade``, the visibility test masks an occluded s
 blend like colours, and the FPS benchmark runs."""
 
 import json
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import ROOT
 
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.data import load_scene
@@ -314,13 +311,12 @@ def test_reference_backend_renders_the_same_image(setup):
 
 
 @pytest.mark.slow
-def test_fps_benchmark_quick(tmp_path):
+def test_fps_benchmark_quick(tmp_path, run_cli):
     out = tmp_path / "mesh_fps.json"
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    code, _, err = run_cli(["bench", "--quick", "--out", out])  # in this process: no --threads, its threads kept
     wall = time.perf_counter() - start
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert code == 0, err[-2000:]
     r = json.loads(out.read_text())
     assert r["provenance"]["commit"] and r["config"]["quick"] is True
     # the FPS is the inverse of the median frame time, and 3 timed frames fit in the command's wall time
