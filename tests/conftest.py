@@ -133,8 +133,8 @@ def pytest_collection_modifyitems(config, items):
     those marked ``slow`` first, so that the workers' last tests are short ones and the two finish together. A plain
     run keeps each file's tests together (the slow ones moved ahead use no fixture of their file)."""
     for item in items:
-        module = item.nodeid.split("::")[0]
-        shared = [d for defs in item._fixtureinfo.name2fixturedefs.values() for d in defs
+        module, info = item.nodeid.split("::")[0], getattr(item, "_fixtureinfo", None)  # None: not a test function
+        shared = [d for defs in (info.name2fixturedefs.values() if info else ()) for d in defs
                   if d.scope in ("module", "class") and d.baseid == module]
         if shared and not item.get_closest_marker("xdist_group"):
             item.add_marker(pytest.mark.xdist_group(module))
