@@ -38,7 +38,8 @@ demo: setup
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	$(BIN)/python -m pytest -q -ra -n 2 --durations=15 tests
+	@# loadgroup: the tests sharing a module fixture run on one worker (tests/conftest.py groups them)
+	$(BIN)/python -m pytest -q -ra -n 2 --dist loadgroup --durations=15 tests
 
 bench: setup
 	$(BIN)/python -m bench page

@@ -11,12 +11,16 @@ HERE = Path(__file__).resolve().parent
 
 
 def names() -> dict[str, str]:
-    """``{name: first line of its docstring}`` for every module of bench/ with a ``main`` (read, not imported)."""
+    """``{name: first line of its docstring}`` for every module of bench/ with a ``main``, and every package whose
+    ``__init__.py`` defines or imports one (read, not imported)."""
     out = {}
-    for f in sorted(HERE.glob("*.py")):
+    files = {f.stem: f for f in HERE.glob("*.py")} | {f.parent.name: f for f in HERE.glob("*/__init__.py")}
+    for name, f in sorted(files.items()):
         tree = ast.parse(f.read_text())
-        if not f.stem.startswith("_") and any(isinstance(n, ast.FunctionDef) and n.name == "main" for n in tree.body):
-            out[f.stem] = (ast.get_docstring(tree) or "").splitlines()[0]
+        if not name.startswith("_") and any(
+                (isinstance(n, ast.FunctionDef) and n.name == "main")
+                or (isinstance(n, ast.ImportFrom) and any(a.name == "main" for a in n.names)) for n in tree.body):
+            out[name] = (ast.get_docstring(tree) or "").splitlines()[0]
     return out
 
 

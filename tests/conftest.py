@@ -3,8 +3,14 @@
 import os
 from pathlib import Path
 
-import pytest
-import torch
+# The processes the tests start (python -m bench ..., the CLI, the installed wheel) run one torch thread as the tests do
+# (below), and torch.compile compiles in its own process instead of starting a pool of compile workers: the two
+# workers of `pytest -n 2` already share the 2 cores.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("TORCHINDUCTOR_COMPILE_THREADS", "1")
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 # Tests run small tensors: one thread is as fast, and on a shared 2-core machine two threads ran
 # TSDF fusion 25x and the Omni-Recon overfit 17x slower than one.
@@ -117,3 +123,19 @@ def procedural_photos(root: Path, resolution: int, views: int = 12) -> Path:
     for name in load_scene(ref).names:
         shutil.copyfile(ref / name, out / Path(name).name)
     return out
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's hook, which reads the xdist_group marks it finds
+def pytest_collection_modifyitems(config, items):
+    """The grouping and order for ``pytest -n 2 --dist loadgroup`` (Makefile's test target). Tests that use a
+    module-scoped fixture of their own file join one xdist group per file: the fixture is built once, on one worker
+    (xdist sends the groups first, the largest first, whole). The other tests go one at a time in collection order,
+    those marked ``slow`` first, so that the workers' last tests are short ones and the two finish together. A plain
+    run keeps each file's tests together (the slow ones moved ahead use no fixture of their file)."""
+    for item in items:
+        module, info = item.nodeid.split("::")[0], getattr(item, "_fixtureinfo", None)  # None: not a test function
+        shared = [d for defs in (info.name2fixturedefs.values() if info else ()) for d in defs
+                  if d.scope in ("module", "class") and d.baseid == module]
+        if shared and not item.get_closest_marker("xdist_group"):
+            item.add_marker(pytest.mark.xdist_group(module))
+    items.sort(key=lambda item: not (item.get_closest_marker("slow") and not item.get_closest_marker("xdist_group")))

@@ -11,25 +11,36 @@ from bench.report import common, speed
 from bench.report import peer as peer_report
 
 
-@pytest.mark.slow
-def test_page_tiny_writes_page_with_measured_numbers(tmp_path):
-    out = tmp_path / "BENCHMARKS.md"
-    proc = subprocess.run([sys.executable, "-m", "bench", "page", "--tiny", "--out", str(out),
-                           "--results", str(tmp_path / "results")], capture_output=True, text=True, timeout=300, cwd=ROOT)
+@pytest.fixture(scope="module")
+def tiny_page(tmp_path_factory):
+    """One ``python -m bench page --tiny`` run (synth, throughput, quality --models floor, geometry --models floor
+    stereo, at their --tiny sizes): ``(page, results folder)``, read by the test of each benchmark it ran (one run
+    instead of one per test; the tests that share it sit in one xdist group)."""
+    tmp = tmp_path_factory.mktemp("page")
+    out, results = tmp / "BENCHMARKS.md", tmp / "results"
+    proc = subprocess.run([sys.executable, "-m", "bench", "page", "--tiny", "--out", str(out), "--results", str(results)],
+                          capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    return out, results
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("bench_page_tiny")
+def test_page_tiny_writes_page_with_measured_numbers(tiny_page):
+    out, results = tiny_page
     text = out.read_text()
     assert "2 x 8" in text and "32²" in text and "Provenance: commit" in text
-    assert (tmp_path / "results" / "synth_speed.json").is_file()
+    assert (results / "synth_speed.json").is_file()
     assert "## Geometry from 3 source views" in text and "| floor |" in text  # python -m bench geometry ran and scored
 
 
-def test_quality_tiny_scores_the_floor(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "bench", "quality", "--models", "floor", "--tiny",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+@pytest.mark.xdist_group("bench_page_tiny")
+def test_quality_tiny_scores_the_floor(tiny_page):
+    """``bench quality --models floor --tiny`` (as the page runs it): the floor scored on the held-out procedural
+    scene with the CPU protocol."""
     import json
 
-    r = json.loads((tmp_path / "quality_floor.json").read_text())
+    r = json.loads((tiny_page[1] / "quality_floor.json").read_text())
     assert r["protocol_set"] == "cpu" and r["non_protocol"] == {"max_targets": 1}
     psnr = r["means"]["synth"]["3"]["psnr"]
     assert 10 < psnr < 40  # a real measurement on the held-out procedural scene
@@ -174,6 +185,7 @@ def test_peer_ibrnet_rejects_a_folder_that_is_no_checkout(tmp_path):
 PEER_ROOT = ROOT.parent / "shared" / "peer" / "IBRNet"
 
 
+@pytest.mark.slow
 def test_peer_ibrnet_runs_the_official_code_beside_ours(tmp_path):
     """With the checkout beside the clone: the official code renders and trains (CUDA calls on the CPU), our
     fast paths render bit-identically or within float rounding of our reference twin, and the page shows it."""
@@ -263,19 +275,19 @@ def test_depth3_agreement_counts_only_confident_stereo_pixels_the_model_covers()
     assert r["pixels"] == 2 and abs(r["coverage"] - 2 / 3) < 1e-9 and r["within5"] == 1.0
 
 
-def test_geometry_tiny_scores_the_stereo_row(tmp_path):
-    """The classical-stereo row: no model, the same 3 source views as the model rows, a scored mesh kept on disk,
-    no target render, and the section shows it with no PSNR."""
+@pytest.mark.xdist_group("bench_page_tiny")
+def test_geometry_tiny_scores_the_stereo_row(tiny_page):
+    """``bench geometry --models floor stereo --tiny`` (as the page runs it): the classical-stereo row: no model, the
+    same 3 source views as the model rows, a scored mesh kept on disk, no target render, and the section shows it
+    with no PSNR."""
     import json
     from pathlib import Path
 
     from bench.report import geometry as geometry_report
 
-    proc = subprocess.run([sys.executable, "-m", "bench", "geometry", "--models", "stereo", "floor", "--tiny",
-                           "--out", str(tmp_path)], capture_output=True, text=True, timeout=600, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    stereo = json.loads((tmp_path / "geometry_stereo.json").read_text())
-    floor = json.loads((tmp_path / "geometry_floor.json").read_text())
+    results = tiny_page[1]
+    stereo = json.loads((results / "geometry_stereo.json").read_text())
+    floor = json.loads((results / "geometry_floor.json").read_text())
     s, f = stereo["synth"]["scenes"][0]["settings"]["3"], floor["synth"]["scenes"][0]["settings"]["3"]
     g = s["geometry"]
     assert stereo["synth"]["mesh_options"]["depth"] == "stereo" and g["depth_source"] == "stereo"
@@ -287,8 +299,8 @@ def test_geometry_tiny_scores_the_stereo_row(tmp_path):
     assert stereo["cpu_seconds"]["target_renders"] == 0 < stereo["cpu_seconds"]["depth"]
     assert stereo["cpu_seconds"]["total"] >= sum(v for k, v in stereo["cpu_seconds"].items() if k not in ("total", "other"))
     mesh = Path(next(iter(stereo["meshes"].values())))
-    assert mesh.is_file() and tmp_path in mesh.parents  # a tiny run never overwrites the real run's meshes
-    text = geometry_report.section(tmp_path)
+    assert mesh.is_file() and results in mesh.parents  # a tiny run never overwrites the real run's meshes
+    text = geometry_report.section(results)
     row = next(line for line in text.splitlines() if line.startswith("| stereo |"))
     assert row.rstrip(" |").endswith("–") and "| floor |" in text  # no PSNR without a model to render
 

@@ -3,15 +3,12 @@ fused shader equals ``OmniRecon.shade``, the visibility test masks an occluded s
 blend like colours, and the FPS benchmark runs."""
 
 import json
-import subprocess
-import sys
 import time
 
 import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import ROOT
 
 from omnirecon.cameras import Cameras, look_at
 from omnirecon.data import load_scene
@@ -315,13 +312,12 @@ def test_reference_backend_renders_the_same_image(setup):
 
 
 @pytest.mark.slow
-def test_fps_benchmark_quick(tmp_path):
+def test_fps_benchmark_quick(tmp_path, run_cli):
     out = tmp_path / "mesh_fps.json"
     start = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--out", str(out)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    code, _, err = run_cli(["bench", "--quick", "--out", out])  # in this process: no --threads, its threads kept
     wall = time.perf_counter() - start
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert code == 0, err[-2000:]
     r = json.loads(out.read_text())
     assert r["provenance"]["commit"] and r["config"]["quick"] is True
     # the FPS is the inverse of the median frame time, and 3 timed frames fit in the command's wall time
@@ -345,7 +341,7 @@ def test_bench_refuses_a_non_omnirecon_checkpoint(tmp_path, capsys):
     assert len(err) == 1 and "needs an Omni-Recon checkpoint" in err[0]
 
 
-def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path):
+def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path, run_cli):
     """`omnirecon bench --scene S --mesh M` times the mesh path on that capture's own mesh, its test views at
     the photos' size (fern's completed meshes are what users render); --scene without --mesh is refused."""
     from omnirecon.engine.scenes import load_at_resolution
@@ -357,26 +353,22 @@ def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path):
     made = mesh_from_model(None, scene, scene.splits["train"], MeshOptions(depth="oracle", max_faces=4000))
     (mesh_file,) = write_mesh(made.mesh, [tmp_path / "mesh.ply"], scene.to_input)
     out = tmp_path / "fps.json"
-    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--threads", "1", "--scene",
-                           str(scene_dir), "--mesh", str(mesh_file), "--out", str(out)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    bench = ["bench", "--quick", "--threads", "1", "--scene", scene_dir, "--mesh", mesh_file]  # in this process
+    code, _, err = run_cli([*bench, "--out", out])
+    assert code == 0, err[-2000:]
     r = json.loads(out.read_text())
     assert r["scene"]["kind"] == "capture" and r["scene"]["rig"] == "forward"
     assert r["scene"]["faces"] == len(made.mesh.faces) and r["mesh"]["resolution"] == [48, 48]
     assert r["scene"]["target_view_ids"] == scene.splits["test"] and r["scene"]["coverage"] == 1.0
     assert not set(r["scene"]["source_view_ids"]) & set(scene.splits["test"])
     assert r["scene"]["faces_drawn"] == r["scene"]["faces"] and r["scene"]["face_budget"] == 0  # the full mesh
-    proc = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--threads", "1", "--scene",
-                           str(scene_dir), "--mesh", str(mesh_file), "--realtime", "--face-budget", "1500", "--out",
-                           str(out)], capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    code, _, err = run_cli([*bench, "--realtime", "--face-budget", "1500", "--out", out])
+    assert code == 0, err[-2000:]
     r = json.loads(out.read_text())  # the videos' blend (a forward rig: the network's, 6 sources) at 1500 faces
     assert r["scene"]["faces_drawn"] <= 1500 < r["scene"]["faces"] and r["scene"]["blend"]["blend"] == "network"
     assert len(r["scene"]["source_view_ids"]) == 6
-    bad = subprocess.run([sys.executable, "-m", "omnirecon.cli", "bench", "--quick", "--scene", str(scene_dir)],
-                         capture_output=True, text=True, timeout=300, cwd=ROOT)
-    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "--mesh" in bad.stderr
+    code, _, err = run_cli(["bench", "--quick", "--scene", scene_dir])
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "--mesh" in err
 
 
 def test_the_far_layer_of_an_object_rig_lies_at_the_far_depth(setup):
