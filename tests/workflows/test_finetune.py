@@ -49,10 +49,10 @@ def test_finetune_raises_held_out_psnr_and_writes_curve(setup, capsys):
     (["--ckpt", "{root}/omni", "--seconds", "0"], "--seconds"),
     (["--ckpt", "{root}/omni", "--mesh", "{root}/nope.ply"], "mesh file not found"),
 ])
-def test_finetune_bad_input_exit_2(setup, args, message, capsys):
+def test_finetune_bad_input_exit_2(setup, args, message, capsys, tmp_path):
     root, scene = setup
     args = [a.format(root=root) for a in args]
-    assert main(["finetune", "--scene", str(scene), "--resolution", "48", *args]) == 2
+    assert main(["finetune", "--scene", str(scene), "--resolution", "48", "--out", str(tmp_path / "out"), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
 
