@@ -660,3 +660,26 @@ def test_gaussian_blur_is_the_separable_convolution_with_replicated_border():
         ref = F.conv2d(ref, g.reshape(1, 1, 1, -1).expand(3, 1, 1, -1).contiguous(), groups=3)
         ref = F.conv2d(ref, g.reshape(1, 1, -1, 1).expand(3, 1, -1, 1).contiguous(), groups=3)[0].permute(1, 2, 0)
         assert torch.allclose(gaussian_blur(img, sigma), ref, atol=1e-6)
+
+
+def test_crack_pixels_and_nearest_depth_match_their_scipy_references():
+    """The crack search (separable max/min filters) against ``binary_closing`` by the square, and the nearest fill
+    (the transform skipped where no pixel takes it) against one full distance transform, on random coverages."""
+    from scipy.ndimage import binary_closing, distance_transform_edt
+
+    from omnirecon.mesh.fill import crack_pixels, nearest_depth
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        H, W = rng.integers(3, 40, 2)
+        depth = (rng.random((H, W)) * (rng.random((H, W)) < rng.random())).astype(np.float32)
+        cov = depth > 0
+        for r in (1, 2):
+            closed = binary_closing(np.pad(cov, r, mode="edge"), np.ones((2 * r + 1, 2 * r + 1), dtype=bool))
+            assert np.array_equal(crack_pixels(cov, r), (closed[r:-r, r:-r] & ~cov) if cov.any() and not cov.all()
+                                  else np.zeros_like(cov))
+        if cov.any() and not cov.all():
+            dist, (iy, ix) = distance_transform_edt(~cov, return_indices=True)
+            for reach in (0.0, 0.15):
+                take = (~cov & (dist <= reach * max(H, W))) | crack_pixels(cov, 2)
+                assert np.array_equal(nearest_depth(depth, reach, 2), np.where(take, depth[iy, ix], depth))
