@@ -683,3 +683,33 @@ def test_crack_pixels_and_nearest_depth_match_their_scipy_references():
             for reach in (0.0, 0.15):
                 take = (~cov & (dist <= reach * max(H, W))) | crack_pixels(cov, 2)
                 assert np.array_equal(nearest_depth(depth, reach, 2), np.where(take, depth[iy, ix], depth))
+
+
+def test_locality_order_keeps_the_triangles_and_the_depth_pass():
+    """The depth and surface passes draw the mesh in ``locality_order``: the same triangles (each face's corners, in
+    winding order), and the same depths and surface points as the reference backend draws the mesh as given."""
+    from omnirecon.render.raster import gl_available, locality_order
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    f = f[np.random.default_rng(0).permutation(len(f))]  # scattered, as meshing leaves them
+
+    def triangles(vv, ff):  # each face's corners from its smallest one on (the winding kept), sorted
+        out = []
+        for t in vv[ff].round(9).tolist():
+            s = min(range(3), key=lambda k: t[k])
+            out.append(tuple(map(tuple, t[s:] + t[:s])))
+        return sorted(out)
+
+    v2, f2 = locality_order(v, f)
+    assert len(v2) == len(v) and triangles(v2, f2) == triangles(v, f)
+    if not gl_available():
+        pytest.skip("no GL")
+    W = H = 48
+    c2w = look_at(torch.tensor([[0.3, 0.4, 3.0]]), torch.zeros(1, 3), torch.tensor([0, -1.0, 0]))
+    fl = torch.tensor([50.0])
+    cam = Cameras(fl, fl, fl * 0 + W / 2, fl * 0 + H / 2, c2w, W, H)
+    with MeshRasterizer(v, f) as gl:
+        ref = MeshRasterizer(v, f, backend="reference")
+        assert torch.allclose(gl.depth(cam), ref.depth(cam), atol=1e-4) and (gl.depth(cam) > 0).any()
+        assert torch.allclose(gl.surface(cam).points, ref.surface(cam).points, atol=1e-4)
