@@ -441,14 +441,15 @@ class MeshRasterizer:
     def close(self) -> None:
         """Release the GL context and its buffers (the rasterizer is unusable for GL afterwards)."""
         if self._ctx is not None:
-            for fbo, textures, _ in self._targets.values():
-                fbo.release()
-                for t in textures:
-                    t.release()
-            self._targets.clear()
-            for obj in [*self._vaos.values(), self._vbo, *self._indexed, *self._programs.values()]:
-                if obj is not None:
-                    obj.release()
+            with self._ctx:  # current first: GL ids are per context, another live rasterizer's would be deleted
+                for fbo, textures, _ in self._targets.values():
+                    fbo.release()
+                    for t in textures:
+                        t.release()
+                self._targets.clear()
+                for obj in [*self._vaos.values(), self._vbo, *self._indexed, *self._programs.values()]:
+                    if obj is not None:
+                        obj.release()
             self._ctx.release()
             self._ctx = None
 

@@ -713,3 +713,22 @@ def test_locality_order_keeps_the_triangles_and_the_depth_pass():
         ref = MeshRasterizer(v, f, backend="reference")
         assert torch.allclose(gl.depth(cam), ref.depth(cam), atol=1e-4) and (gl.depth(cam) > 0).any()
         assert torch.allclose(gl.surface(cam).points, ref.surface(cam).points, atol=1e-4)
+
+
+def test_closing_one_rasterizer_leaves_another_drawing():
+    """``MeshRasterizer.close`` releases its GL objects in its own context: GL ids are per context, so releasing them in
+    whichever context is current deleted a live rasterizer's (it then drew nothing)."""
+    from omnirecon.render.raster import gl_available
+
+    if not gl_available():
+        pytest.skip("no GL")
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    W = H = 32
+    c2w = look_at(torch.tensor([[0.3, 0.4, 3.0]]), torch.zeros(1, 3), torch.tensor([0, -1.0, 0]))
+    fl = torch.tensor([30.0])
+    cam = Cameras(fl, fl, fl * 0 + W / 2, fl * 0 + H / 2, c2w, W, H)
+    first = MeshRasterizer(mesh.vertices, mesh.faces)
+    expected = first.depth(cam).clone()
+    with MeshRasterizer(mesh.vertices, mesh.faces) as second:  # made after the first: its context is current
+        first.close()
+        assert (expected > 0).any() and torch.equal(second.depth(cam), expected)
