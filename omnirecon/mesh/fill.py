@@ -110,13 +110,14 @@ def crack_pixels(covered: np.ndarray, radius: int = CRACK_RADIUS) -> np.ndarray:
     gaps the covered pixels enclose. A pixel beside an outline, with a window of that size clear of every covered
     pixel, is not one; the image is padded by its edge pixels, so what runs off the border is no crack either.
     ``# [H, W]`` bool"""
-    from scipy.ndimage import binary_closing
+    from scipy.ndimage import maximum_filter, minimum_filter
 
     if radius <= 0 or covered.all() or not covered.any():
         return np.zeros_like(covered, dtype=bool)
-    padded = np.pad(covered, radius, mode="edge")
-    closed = binary_closing(padded, np.ones((2 * radius + 1, 2 * radius + 1), dtype=bool))
-    return closed[radius:-radius, radius:-radius] & ~covered
+    padded = np.pad(covered, radius, mode="edge").view(np.uint8)
+    size = 2 * radius + 1  # the closing by a square: its dilation and erosion, each separable (binary_closing's twin)
+    closed = minimum_filter(maximum_filter(padded, size, mode="constant", cval=0), size, mode="constant", cval=0)
+    return closed[radius:-radius, radius:-radius].astype(bool) & ~covered
 
 
 def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: int = 0) -> np.ndarray:
@@ -128,12 +129,16 @@ def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: 
     empty = depth <= 0
     if empty.all() or not empty.any():
         return depth
-    dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
-    near = depth[iy, ix]
-    take = empty & (dist <= reach * max(depth.shape))
-    if cracks > 0:
-        take |= crack_pixels(~empty, cracks)
-    return np.where(take, near, depth).astype(depth.dtype, copy=False)
+    take = crack_pixels(~empty, cracks) if cracks > 0 else np.zeros_like(empty)
+    limit = reach * max(depth.shape)
+    if limit < 1:  # an empty pixel is at least 1 px from a covered one: the cracks alone (the transform only if any)
+        if not take.any():
+            return depth
+        iy, ix = distance_transform_edt(empty, return_distances=False, return_indices=True)
+    else:
+        dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
+        take |= empty & (dist <= limit)
+    return np.where(take, depth[iy, ix], depth).astype(depth.dtype, copy=False)
 
 
 def nearest_fill(surface: Surface, covered: int, camera: Cameras, reach: float = NEAREST_FILL_REACH,

@@ -225,7 +225,9 @@ def angle_source(ka: int) -> str:
       float c = dot(t, dk) / max(length(dk), 1e-12);
       vec3 uvz = project(k, p);
       vec2 uv = uvz.xy / max(uvz.z, 1e-6);
-      if (framed(uvz.z, uv) && (layer || unoccluded(k, uv, uvz.z))) {{  // no continue: the loop stays uniform
+      // only a source that would enter the list is tested (the same list: below c{ka} no swap happens), so most
+      // of the occlusion test's loads, per lane on llvmpipe, are skipped; no continue: the loop stays uniform
+      if (c > c{ka} && framed(uvz.z, uv) && (layer || unoccluded(k, uv, uvz.z))) {{
 {insert}
       }}
     }}
@@ -439,8 +441,9 @@ class GLBlend:
         pixel (its depth of ``depth # [H, W]``; where none, ``far_z(rays # [3, g]) # [g]``, the far layer, unless
         ``None``), the ``2 (KA + 1)`` sources
         nearest by angle that frame it; a ``2 grid``-px tile takes those of the grid pixels within ``grid`` px of it
-        (every source when no grid pixel has any). Per tile, row-major: its count ``M`` and its sources, sorted, then
-        the rest. ``# [tiles, K + 1]`` int"""
+        (every source when no grid pixel has any). Per tile, row-major: its count ``M`` and its sources by their best
+        cosine at those grid pixels, descending (the shader's list fills with its likely members first), then the rest.
+        ``# [tiles, K + 1]`` int"""
         H, W = depth.shape
         rows, cols = np.arange(grid // 2, H, grid), np.arange(grid // 2, W, grid)
         z = torch.from_numpy(depth[rows][:, cols].reshape(-1).astype(np.float32))  # [G]
@@ -465,7 +468,12 @@ class GLBlend:
         member = member.reshape(self.K, -1)  # [K, tiles]
         count = member.sum(0)
         member[:, count == 0] = True  # no candidate: every source
-        order = torch.argsort((~member).to(torch.uint8), dim=0, stable=True)  # [K, tiles]: candidates first, ascending
+        # the candidates by their best cosine near the tile, descending: the shader's list fills with its likely
+        # members first, and the sources after them seldom pass its cheap test before the occlusion test's loads
+        best = torch.nn.functional.pad(cos.reshape(1, self.K, len(rows), len(cols)),
+                                       (1, 2 * tw + 1 - len(cols), 1, 2 * th + 1 - len(rows)), value=-2.0)
+        best = torch.nn.functional.max_pool2d(best, 4, stride=2)[0].reshape(self.K, -1)  # [K, tiles]
+        order = torch.argsort(torch.where(member, -best, 3.0), dim=0, stable=True)  # [K, tiles]: candidates first
         return torch.cat([member.sum(0)[None], order]).T.numpy()
 
     def close(self) -> None:

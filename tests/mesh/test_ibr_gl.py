@@ -89,8 +89,8 @@ def test_gl_pass_with_candidate_tiles_renders_close_to_every_source(scene_mesh):
         tiles = grid._gl_blend().candidates(depth, A, origin, 4, lambda d: torch.full(d.shape[1:], sources.far))
     K = len(sources.cameras)
     assert tiles.shape == (6 * 6, K + 1) and tiles[:, 0].min() < K  # 8-px tiles; some rank fewer than every source
-    for count, *order in tiles:  # each tile: its candidates (sorted), then every other source
-        assert sorted(order) == list(range(K)) and order[:count] == sorted(order[:count])
+    for count, *order in tiles:  # each tile: its candidates (by their best cosine), then every other source
+        assert sorted(order) == list(range(K)) and 0 < count <= K
     same = ((a - b).abs().amax(-1) < 1e-4).float().mean()
     assert same > 0.9 and metrics.psnr(b, a) > 40, (float(same), metrics.psnr(b, a))
 

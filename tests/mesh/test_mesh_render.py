@@ -634,3 +634,93 @@ def test_frame_grid_ranks_the_candidates_as_every_source(tmp_path):
     assert min(sizes) < len(train) // 2, sizes  # some of the frame's chunks rank fewer than half the sources
     same = ((a - b).abs().amax(-1) < 1e-5).float().mean()
     assert same > 0.95 and metrics.psnr(b, a) > 50, (float(same), metrics.psnr(b, a))  # measured 0.969, 56.4 dB
+
+
+def test_gaussian_blur_is_the_separable_convolution_with_replicated_border():
+    """The blur at depth edges (shifted sums) against its reference: ``F.conv2d`` per channel on a replicate-padded image."""
+    import torch.nn.functional as F
+
+    from omnirecon.render.edges import gaussian_blur
+
+    img = torch.rand(13, 17, 3, generator=torch.Generator().manual_seed(1))
+    for sigma in (0.7, 1.6):
+        r = max(2, int(round(3 * sigma)))
+        x = torch.arange(-r, r + 1, dtype=img.dtype)
+        g = torch.exp(-x * x / (2 * sigma * sigma))
+        g = g / g.sum()
+        ref = F.pad(img.permute(2, 0, 1)[None], (r, r, r, r), mode="replicate")
+        ref = F.conv2d(ref, g.reshape(1, 1, 1, -1).expand(3, 1, 1, -1).contiguous(), groups=3)
+        ref = F.conv2d(ref, g.reshape(1, 1, -1, 1).expand(3, 1, -1, 1).contiguous(), groups=3)[0].permute(1, 2, 0)
+        assert torch.allclose(gaussian_blur(img, sigma), ref, atol=1e-6)
+
+
+def test_crack_pixels_and_nearest_depth_match_their_scipy_references():
+    """The crack search (separable max/min filters) against ``binary_closing`` by the square, and the nearest fill
+    (the transform skipped where no pixel takes it) against one full distance transform, on random coverages."""
+    from scipy.ndimage import binary_closing, distance_transform_edt
+
+    from omnirecon.mesh.fill import crack_pixels, nearest_depth
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        H, W = rng.integers(3, 40, 2)
+        depth = (rng.random((H, W)) * (rng.random((H, W)) < rng.random())).astype(np.float32)
+        cov = depth > 0
+        for r in (1, 2):
+            closed = binary_closing(np.pad(cov, r, mode="edge"), np.ones((2 * r + 1, 2 * r + 1), dtype=bool))
+            assert np.array_equal(crack_pixels(cov, r), (closed[r:-r, r:-r] & ~cov) if cov.any() and not cov.all()
+                                  else np.zeros_like(cov))
+        if cov.any() and not cov.all():
+            dist, (iy, ix) = distance_transform_edt(~cov, return_indices=True)
+            for reach in (0.0, 0.15):
+                take = (~cov & (dist <= reach * max(H, W))) | crack_pixels(cov, 2)
+                assert np.array_equal(nearest_depth(depth, reach, 2), np.where(take, depth[iy, ix], depth))
+
+
+def test_locality_order_keeps_the_triangles_and_the_depth_pass():
+    """The depth and surface passes draw the mesh in ``locality_order``: the same triangles (each face's corners, in
+    winding order), and the same depths and surface points as the reference backend draws the mesh as given."""
+    from omnirecon.render.raster import gl_available, locality_order
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    f = f[np.random.default_rng(0).permutation(len(f))]  # scattered, as meshing leaves them
+
+    def triangles(vv, ff):  # each face's corners from its smallest one on (the winding kept), sorted
+        out = []
+        for t in vv[ff].round(9).tolist():
+            s = min(range(3), key=lambda k: t[k])
+            out.append(tuple(map(tuple, t[s:] + t[:s])))
+        return sorted(out)
+
+    v2, f2 = locality_order(v, f)
+    assert len(v2) == len(v) and triangles(v2, f2) == triangles(v, f)
+    if not gl_available():
+        pytest.skip("no GL")
+    W = H = 48
+    c2w = look_at(torch.tensor([[0.3, 0.4, 3.0]]), torch.zeros(1, 3), torch.tensor([0, -1.0, 0]))
+    fl = torch.tensor([50.0])
+    cam = Cameras(fl, fl, fl * 0 + W / 2, fl * 0 + H / 2, c2w, W, H)
+    with MeshRasterizer(v, f) as gl:
+        ref = MeshRasterizer(v, f, backend="reference")
+        assert torch.allclose(gl.depth(cam), ref.depth(cam), atol=1e-4) and (gl.depth(cam) > 0).any()
+        assert torch.allclose(gl.surface(cam).points, ref.surface(cam).points, atol=1e-4)
+
+
+def test_closing_one_rasterizer_leaves_another_drawing():
+    """``MeshRasterizer.close`` releases its GL objects in its own context: GL ids are per context, so releasing them in
+    whichever context is current deleted a live rasterizer's (it then drew nothing)."""
+    from omnirecon.render.raster import gl_available
+
+    if not gl_available():
+        pytest.skip("no GL")
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    W = H = 32
+    c2w = look_at(torch.tensor([[0.3, 0.4, 3.0]]), torch.zeros(1, 3), torch.tensor([0, -1.0, 0]))
+    fl = torch.tensor([30.0])
+    cam = Cameras(fl, fl, fl * 0 + W / 2, fl * 0 + H / 2, c2w, W, H)
+    first = MeshRasterizer(mesh.vertices, mesh.faces)
+    expected = first.depth(cam).clone()
+    with MeshRasterizer(mesh.vertices, mesh.faces) as second:  # made after the first: its context is current
+        first.close()
+        assert (expected > 0).any() and torch.equal(second.depth(cam), expected)
