@@ -38,8 +38,9 @@ demo: setup
 test: setup
 	$(BIN)/ruff check .
 	$(BIN)/lint-imports
-	@# loadgroup: the tests sharing a module fixture run on one worker (tests/conftest.py groups them)
-	$(BIN)/python -m pytest -q -ra -n 2 --dist loadgroup --durations=15 tests
+	@# xdist's default distribution: --dist loadgroup (a file's module fixtures built once, its tests on one worker)
+	@# left one worker running alone at the end and took longer in total
+	$(BIN)/python -m pytest -q -ra -n 2 --durations=15 tests
 
 bench: setup
 	$(BIN)/python -m bench page

@@ -125,17 +125,7 @@ def procedural_photos(root: Path, resolution: int, views: int = 12) -> Path:
     return out
 
 
-@pytest.hookimpl(tryfirst=True)  # before pytest-xdist's hook, which reads the xdist_group marks it finds
 def pytest_collection_modifyitems(config, items):
-    """The grouping and order for ``pytest -n 2 --dist loadgroup`` (Makefile's test target). Tests that use a
-    module-scoped fixture of their own file join one xdist group per file: the fixture is built once, on one worker
-    (xdist sends the groups first, the largest first, whole). The other tests go one at a time in collection order,
-    those marked ``slow`` first, so that the workers' last tests are short ones and the two finish together. A plain
-    run keeps each file's tests together (the slow ones moved ahead use no fixture of their file)."""
-    for item in items:
-        module, info = item.nodeid.split("::")[0], getattr(item, "_fixtureinfo", None)  # None: not a test function
-        shared = [d for defs in (info.name2fixturedefs.values() if info else ()) for d in defs
-                  if d.scope in ("module", "class") and d.baseid == module]
-        if shared and not item.get_closest_marker("xdist_group"):
-            item.add_marker(pytest.mark.xdist_group(module))
-    items.sort(key=lambda item: not (item.get_closest_marker("slow") and not item.get_closest_marker("xdist_group")))
+    """Tests marked ``slow`` first (collection order otherwise), so that under ``pytest -n 2`` (Makefile's test target)
+    the workers' last tests are short ones and the two finish together."""
+    items.sort(key=lambda item: not item.get_closest_marker("slow"))
