@@ -15,7 +15,7 @@ from bench.report import peer as peer_report
 def tiny_page(tmp_path_factory):
     """One ``python -m bench page --tiny`` run (synth, throughput, quality --models floor, geometry --models floor
     stereo, at their --tiny sizes): ``(page, results folder)``, read by the test of each benchmark it ran (one run
-    instead of one per test; the tests that share it sit in one xdist group)."""
+    that :func:`test_page_tiny_runs_each_benchmark_and_writes_the_page` checks for each benchmark it ran)."""
     tmp = tmp_path_factory.mktemp("page")
     out, results = tmp / "BENCHMARKS.md", tmp / "results"
     proc = subprocess.run([sys.executable, "-m", "bench", "page", "--tiny", "--out", str(out), "--results", str(results)],
@@ -25,8 +25,16 @@ def tiny_page(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("bench_page_tiny")
-def test_page_tiny_writes_page_with_measured_numbers(tiny_page):
+def test_page_tiny_runs_each_benchmark_and_writes_the_page(tiny_page):
+    """One test for the one run (a module fixture shared by several tests is built once per pytest-xdist worker that
+    runs one of them): the page, then the quality and the geometry rows the page ran."""
+    check_page(tiny_page)
+    check_quality(tiny_page)
+    check_geometry(tiny_page)
+
+
+def check_page(tiny_page) -> None:
+    """The page holds the synth speed table, the geometry section and provenance."""
     out, results = tiny_page
     text = out.read_text()
     assert "2 x 8" in text and "32²" in text and "Provenance: commit" in text
@@ -34,8 +42,7 @@ def test_page_tiny_writes_page_with_measured_numbers(tiny_page):
     assert "## Geometry from 3 source views" in text and "| floor |" in text  # python -m bench geometry ran and scored
 
 
-@pytest.mark.xdist_group("bench_page_tiny")
-def test_quality_tiny_scores_the_floor(tiny_page):
+def check_quality(tiny_page) -> None:
     """``bench quality --models floor --tiny`` (as the page runs it): the floor scored on the held-out procedural
     scene with the CPU protocol."""
     import json
@@ -275,8 +282,7 @@ def test_depth3_agreement_counts_only_confident_stereo_pixels_the_model_covers()
     assert r["pixels"] == 2 and abs(r["coverage"] - 2 / 3) < 1e-9 and r["within5"] == 1.0
 
 
-@pytest.mark.xdist_group("bench_page_tiny")
-def test_geometry_tiny_scores_the_stereo_row(tiny_page):
+def check_geometry(tiny_page) -> None:
     """``bench geometry --models floor stereo --tiny`` (as the page runs it): the classical-stereo row: no model, the
     same 3 source views as the model rows, a scored mesh kept on disk, no target render, and the section shows it
     with no PSNR."""
