@@ -56,6 +56,22 @@ class HeadlessChromium:
         if exe is None:
             raise BrowserError("no Chromium on PATH (apt-get install chromium)")
         self.timeout = timeout
+        self.events: list[dict] = []
+        """Events received so far (console messages and exceptions of the page among them)."""
+        for attempt in range(self.STARTS):
+            try:
+                self._start(exe, width, height, flags)
+                return
+            except BrowserTimeout:  # a browser that never answered its first command: start a new one
+                if attempt == self.STARTS - 1:
+                    raise
+
+    STARTS = 2
+    """Browsers started at most, when one does not answer its first protocol command in time."""
+
+    def _start(self, exe: str, width: int, height: int, flags: tuple[str, ...]) -> None:
+        """Start the browser process on a new profile, attach to its page and size the viewport; on any failure the
+        process is ended (:meth:`close`) and the error raised."""
         self.profile = tempfile.mkdtemp(prefix="omnirecon-chromium-")
         to_browser_r, self._to_browser = os.pipe()
         self._from_browser, from_browser_w = os.pipe()
@@ -82,8 +98,6 @@ class HeadlessChromium:
         self._buf = b""
         self._next_id = 0
         self._replies: dict[int, dict] = {}
-        self.events: list[dict] = []
-        """Events received so far (console messages and exceptions of the page among them)."""
         self.session = None
         try:
             targets = self.command("Target.getTargets")["targetInfos"]
@@ -236,11 +250,12 @@ class HeadlessChromium:
         try:
             if self.proc.poll() is None:
                 try:
-                    self.command("Browser.close", timeout=5)
+                    if self.session is not None:  # a browser that never attached its page is not asked
+                        self.command("Browser.close", timeout=5)
                 except (BrowserError, OSError):
                     pass
                 try:
-                    self.proc.wait(5)
+                    self.proc.wait(5 if self.session is not None else 0)
                 except subprocess.TimeoutExpired:  # the browser and its helpers: our own process group
                     os.killpg(self.proc.pid, signal.SIGKILL)
                     self.proc.wait(5)

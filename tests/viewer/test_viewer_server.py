@@ -199,3 +199,25 @@ def test_a_stalled_connection_is_closed_after_the_idle_timeout(tmp_path, monkeyp
             assert s.recv(1024) == b""  # the server closed it (a hang would raise TimeoutError after 5 s)
     finally:
         server.stop()
+
+
+def test_a_browser_that_never_answers_is_started_again(tmp_path):
+    """A Chromium that does not answer its first protocol command in time is ended and a new one started
+    (at most ``HeadlessChromium.STARTS``)."""
+    import stat
+
+    from conftest import require
+
+    from omnirecon.viewer.headless import HeadlessChromium, find_chromium
+
+    exe = find_chromium()
+    require(exe is not None, "no Chromium on PATH (apt-get install chromium)")
+    starts = tmp_path / "starts"
+    script = tmp_path / "chromium"
+    # the first start holds the pipe open and never answers; the next ones are the real browser
+    script.write_text(f"#!/bin/sh\necho x >> {starts}\nif [ $(wc -l < {starts}) -le 1 ]; then exec sleep 60; fi\n"
+                      f'exec {exe} "$@"\n')
+    script.chmod(script.stat().st_mode | stat.S_IEXEC)
+    with HeadlessChromium(64, 48, executable=str(script), timeout=10) as browser:
+        assert browser.evaluate("1 + 1") == 2
+    assert len(starts.read_text().split()) == 2
