@@ -56,7 +56,7 @@ def warm_start(results: Path) -> list[str]:
                          f"{v[k]:.2f}" if v.get(k) is not None else "-" for k in keys) + " |")
     d = r["weight3_minus_control"]
     lines += ["", "Weight 3 minus the control: " + ", ".join(f"{k} {d[k]:+.2f}" for k in keys) + f". {r['verdict']}.",
-              "Resume the weight-3 run (`checkpoints/runs/ibrnet-tiny_vgg16_ft_w3/README.md`): "
+              "Regenerate and continue the weight-3 run (`checkpoints/runs/ibrnet-tiny_vgg16_ft_w3/README.md`; its weights are not committed): "
               + " && ".join(f"`{c}`" for c in r["resume"]) + ".", "", prov(r["provenance"]), ""]
     return lines
 
