@@ -193,7 +193,10 @@ def concat_linear(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
     for p in parts:
         cols.append(layer.weight[:, start:start + p.shape[-1]])
         start += p.shape[-1]
-    first = max(range(len(parts)), key=lambda i: parts[i].shape[:-1].numel())
+    first, rows = 0, parts[0].shape[:-1].numel()  # a loop, not max(key=...): no graph break under torch.compile
+    for i in range(1, len(parts)):
+        if parts[i].shape[:-1].numel() > rows:
+            first, rows = i, parts[i].shape[:-1].numel()
     out = F.linear(parts[first], cols[first], layer.bias)
     for i, (p, w) in enumerate(zip(parts, cols)):
         if i != first:

@@ -202,22 +202,45 @@ def test_a_stalled_connection_is_closed_after_the_idle_timeout(tmp_path, monkeyp
 
 
 def test_a_browser_that_never_answers_is_started_again(tmp_path):
-    """A Chromium that does not answer its first protocol command in time is ended and a new one started
-    (at most ``HeadlessChromium.STARTS``)."""
+    """A browser that does not answer its first protocol command in time is ended and a new one started
+    (at most ``HeadlessChromium.STARTS``). The browser is a stand-in that speaks the DevTools pipe protocol (fd 3
+    in, fd 4 out, NUL-terminated JSON), so the test does not wait on a real Chromium's start under load."""
     import stat
+    import sys
 
-    from conftest import require
+    from omnirecon.viewer.headless import BrowserTimeout, HeadlessChromium
 
-    from omnirecon.viewer.headless import HeadlessChromium, find_chromium
-
-    exe = find_chromium()
-    require(exe is not None, "no Chromium on PATH (apt-get install chromium)")
     starts = tmp_path / "starts"
-    script = tmp_path / "chromium"
-    # the first start holds the pipe open and never answers; the next ones are the real browser
-    script.write_text(f"#!/bin/sh\necho x >> {starts}\nif [ $(wc -l < {starts}) -le 1 ]; then exec sleep 60; fi\n"
-                      f'exec {exe} "$@"\n')
+    script = tmp_path / "browser"
+    # start 1 holds the pipe open and never answers; later starts answer every command
+    script.write_text(f"""#!{sys.executable}
+import json, os, time
+with open({str(starts)!r}, "a") as f:
+    f.write("x\\n")
+if len(open({str(starts)!r}).read().split()) <= 1:
+    time.sleep(60)
+RESULTS = {{"Target.getTargets": {{"targetInfos": [{{"type": "page", "targetId": "t1"}}]}},
+           "Target.attachToTarget": {{"sessionId": "s1"}},
+           "Runtime.evaluate": {{"result": {{"type": "number", "value": 2}}}}}}
+buf = b""
+while True:
+    chunk = os.read(3, 65536)
+    if not chunk:
+        break
+    buf += chunk
+    while b"\\0" in buf:
+        raw, buf = buf.split(b"\\0", 1)
+        msg = json.loads(raw)
+        os.write(4, json.dumps({{"id": msg["id"], "result": RESULTS.get(msg["method"], {{}})}}).encode() + b"\\0")
+        if msg["method"] == "Browser.close":
+            raise SystemExit(0)
+""")
     script.chmod(script.stat().st_mode | stat.S_IEXEC)
-    with HeadlessChromium(64, 48, executable=str(script), timeout=10) as browser:
+    with HeadlessChromium(64, 48, executable=str(script), timeout=3) as browser:
         assert browser.evaluate("1 + 1") == 2
     assert len(starts.read_text().split()) == 2
+    starts.write_text("")  # every start silent now: after STARTS starts the timeout is raised
+    script.write_text(script.read_text().replace("<= 1", "<= 99"))
+    with pytest.raises(BrowserTimeout):
+        HeadlessChromium(64, 48, executable=str(script), timeout=1)
+    assert len(starts.read_text().split()) == HeadlessChromium.STARTS
