@@ -87,6 +87,7 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: 
 def incompatible(old: dict, new: dict) -> str | None:
     """Why ``old``'s rows cannot stand beside ``new``'s in one results file (None: they can): another checkpoint,
     protocol set, sampling (``guided``), geometry, overrides of the protocols or definition of a shared protocol."""
+    old, new = json.loads(json.dumps(old)), json.loads(json.dumps(new))  # as the file holds them (tuples: lists)
     for what, a, b in (("checkpoint", old["model"].get("sha256"), new["model"].get("sha256")),
                        ("model", old["model"].get("name"), new["model"].get("name")),
                        ("protocol set", old.get("protocol_set"), new.get("protocol_set")),

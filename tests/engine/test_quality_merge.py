@@ -19,7 +19,7 @@ def _run(date: str, rows: dict[str, list[float]], ks=(3,), sha="aaaa", load=1.0)
     return collect(records, jobs, list(ks), {
         "provenance": prov, "model": {"name": "ibrnet-tiny", "sha256": sha}, "protocol_set": "cpu256-extrapolation",
         "geometry": False, "guided": {"on": True, "band": 0.03}, "non_protocol": {},
-        "protocols": {"llff": {"name": "llff", "long_side": 256}}})
+        "protocols": {"llff": {"name": "llff", "long_side": 256, "fixed_sources": ()}}})  # a tuple, as evaluate's
 
 
 def test_a_run_for_some_scenes_keeps_the_other_rows_with_their_provenance(tmp_path):
