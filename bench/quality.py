@@ -10,6 +10,10 @@ dtu_scan37, fern (never trained on), fox and lego (training scenes: fitting, not
 with 3 and 10 source views, under the ``cpu`` protocol set of ``omnirecon.engine.evaluate`` (64 px long side,
 fewer targets; docs/evaluation.md). Writes ``bench/results/quality_<model>.json``.
 
+A run for some scenes or Ks merges its rows into the results file it writes (:func:`merge`): the rows it scored
+replace theirs, the others stay, each row with the provenance of the run that scored it. A file measured with
+another checkpoint, protocol set, sampling or overrides is replaced instead (the run says so).
+
 ``--protocol-set cpu256``: the real scenes only, at a 256-px long side with 2 targets per scene, scored twice: under
 their protocols (``cpu256``) and on the test views of the extrapolation split (``cpu256-extrapolation``: views just
 beyond those the sources are drawn from). Writes ``quality_<set>[_guided]_<model>.json`` per set.
@@ -18,6 +22,8 @@ beyond those the sources are drawn from). Writes ``quality_<set>[_guided]_<model
 from __future__ import annotations
 
 import argparse
+import copy
+import json
 from pathlib import Path
 
 import torch
@@ -60,7 +66,8 @@ def load(model_name: str):
 
 def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: str = "cpu", guided: bool = False,
         ks: tuple[int, ...] | None = None, only: list[str] | None = None) -> dict:
-    """Score ``model_name`` under every set of ``SETS[protocol_set]``; returns the last set's results."""
+    """Score ``model_name`` under every set of ``SETS[protocol_set]``, each merged into its results file (:func:`save`);
+    returns the last set's file."""
     from omnirecon.engine.evaluate import evaluate
     from omnirecon.models.guided import GuidedOptions
 
@@ -73,8 +80,70 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: 
                           model_info=info, synth_count=1 if tiny else 10, protocol_set=pset,
                           max_targets=1 if tiny else None, cache=ROOT / "outputs" / "cache", progress=not tiny,
                           guided=GuidedOptions(on=True) if guided and model_name != "floor" else None)
-        write_json(out_dir / name, result)
+        result = save(out_dir / name, result)
     return result
+
+
+def incompatible(old: dict, new: dict) -> str | None:
+    """Why ``old``'s rows cannot stand beside ``new``'s in one results file (None: they can): another checkpoint,
+    protocol set, sampling (``guided``), geometry, overrides of the protocols or definition of a shared protocol."""
+    old, new = json.loads(json.dumps(old)), json.loads(json.dumps(new))  # as the file holds them (tuples: lists)
+    for what, a, b in (("checkpoint", old["model"].get("sha256"), new["model"].get("sha256")),
+                       ("model", old["model"].get("name"), new["model"].get("name")),
+                       ("protocol set", old.get("protocol_set"), new.get("protocol_set")),
+                       ("guided options", old.get("guided"), new.get("guided")),
+                       ("geometry", old.get("geometry"), new.get("geometry")),
+                       ("overrides", old.get("non_protocol"), new.get("non_protocol")),
+                       *((f"protocol {p}", old["protocols"][p], new["protocols"][p])
+                         for p in old.get("protocols", {}) if p in new.get("protocols", {}))):
+        if a != b:
+            return f"its rows were measured with {what} {a!r}, this run with {b!r}"
+    return None
+
+
+def merge(old: dict | None, new: dict) -> dict:
+    """``new`` (one run's results) merged into ``old`` (the results file before it, None: none).
+
+    A row is one (scene, K): ``new``'s rows replace ``old``'s, ``old``'s other rows stay. Each row keeps the
+    provenance of the run that scored it in ``settings[K]["provenance"]`` (a row of a file written before rows
+    carried one takes that file's); the file's ``provenance`` is the latest run's. The per-protocol means and
+    ``seconds_per_view`` are recomputed over the merged rows. Call only when :func:`incompatible` says None."""
+    from omnirecon.engine.eval_report import protocol_means
+
+    def stamped(result: dict) -> dict:
+        result = copy.deepcopy(result)
+        for sc in result["scenes"]:
+            for row in sc["settings"].values():
+                row.setdefault("provenance", result["provenance"])
+        return result
+
+    new = stamped(new)
+    if old is None:
+        return new
+    scenes = {sc["name"]: sc for sc in stamped(old)["scenes"]}
+    for sc in new["scenes"]:
+        kept = scenes.get(sc["name"], {"settings": {}, "skipped": {}})
+        settings = kept["settings"] | sc["settings"]
+        skipped = {k: v for k, v in (kept.get("skipped", {}) | sc.get("skipped", {})).items() if k not in settings}
+        scenes[sc["name"]] = sc | {"settings": dict(sorted(settings.items(), key=lambda kv: int(kv[0]))),
+                                   "skipped": skipped}
+    records = list(scenes.values())
+    ks = sorted({int(k) for sc in records for k in sc["settings"]})
+    seconds = [v["seconds"] for sc in records for row in sc["settings"].values() for v in row["views"]]
+    return new | {"protocols": old.get("protocols", {}) | new.get("protocols", {}), "num_views": ks,
+                  "scenes": records, "means": protocol_means(records, ks),
+                  "seconds_per_view": sum(seconds) / len(seconds) if seconds else None}
+
+
+def save(path: Path, result: dict) -> dict:
+    """Write ``result`` to ``path`` merged into the results already there (:func:`merge`); returns what it wrote."""
+    old = json.loads(path.read_text()) if path.is_file() else None
+    why = incompatible(old, result) if old is not None else None
+    if why:
+        print(f"{path.name}: {why}; its earlier rows are dropped")
+    merged = merge(None if why else old, result)
+    write_json(path, merged)
+    return merged
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -100,16 +100,42 @@ def _cell(row: dict | None, floor: dict | None) -> str:
 
 
 def _rows_256(results: Path, tag: str) -> dict[str, dict[str, dict]]:
-    """``{model: {row: {K: means}}}`` of the ``cpu256`` and ``cpu256-extrapolation`` results named ``tag``."""
+    """``{model: {row: {K: means}}}`` of the ``cpu256`` and ``cpu256-extrapolation`` results named ``tag``; under
+    ``"_prov"`` each row's ``{row: provenance}`` at K = 3 (the run that scored it: rows of a merged file carry
+    their own, older files' rows their file's)."""
     out: dict[str, dict[str, dict]] = {}
     for pset, suffix in (("cpu256", ""), ("cpu256-extrapolation", " (extrapolation)")):
         for m in QUALITY_MODELS:
             f = results / f"quality_{pset}{tag}_{m}.json"
             if f.is_file():
                 r = json.loads(f.read_text())
-                out.setdefault(m, {}).update({f"{n}{suffix}": v for n, v in scene_rows(r).items()})
-                out[m]["_prov"] = r["provenance"]
+                out.setdefault(m, {"_prov": {}}).update({f"{n}{suffix}": v for n, v in scene_rows(r).items()})
+                out[m]["_prov"].update({f"{sc['name']}{suffix}": sc["settings"]["3"].get("provenance", r["provenance"])
+                                        for sc in r["scenes"] if "3" in sc["settings"]})
     return out
+
+
+RUN_KEYS = ("commit", "date", "loadavg_1min")
+"""What tells one run from another in the 256-px provenance lines; the other keys are printed once when shared."""
+
+
+def provenance_256(full: dict, guided: dict) -> list[str]:
+    """One provenance line per model, sampling and run (its commit, date and load), naming the rows (K = 3) that run
+    scored; the environment (versions, CPU, seed) once when every run shares it, else in full on each line."""
+    lines: list[tuple[str, dict]] = []
+    for m in QUALITY_MODELS:
+        for rows, how in ((full, "full sampling"), (guided, "surface-guided")):
+            runs: dict[str, tuple[dict, list[str]]] = {}
+            for n, p in rows.get(m, {}).get("_prov", {}).items():
+                runs.setdefault(json.dumps(p, sort_keys=True), (p, []))[1].append(n)
+            for p, names in sorted(runs.values(), key=lambda pn: str(pn[0].get("date"))):
+                lines.append((f"{m} (256 px{'' if m == 'floor' else ', ' + how}; {', '.join(names)})", p))
+    envs = {json.dumps({k: v for k, v in p.items() if k not in RUN_KEYS}, sort_keys=True) for _, p in lines}
+    if len(envs) != 1:
+        return [f"{label}: " + prov(p) for label, p in lines] + [""]
+    env = prov({k: v for k, v in lines[0][1].items() if k not in RUN_KEYS}).removeprefix("Provenance: ")
+    return [f"Provenance of the 256-px rows: {env}; each run's commit, date and 1-min load:", "",
+            *(f"- {label}: " + "; ".join(f"{k} `{p.get(k)}`" for k in RUN_KEYS) for label, p in lines), ""]
 
 
 def at_256(results: Path, rows64: dict) -> list[str]:
@@ -139,8 +165,8 @@ def at_256(results: Path, rows64: dict) -> list[str]:
             only_full = m != "floor" and r256 is not None and n not in guided.get(m, {})
             cells += [_cell(r64, f64), _cell(r256, f256) + (" `full`" if only_full else "")]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
-    return out + [""] + goals_256(rows, names) + guided_256(results) + cost_256(results) + [
-        f"{m} (256 px): " + prov(rows[m]["_prov"]) for m in models] + [""]
+    return out + [""] + goals_256(rows, names) + guided_256(results) + cost_256(results) + provenance_256(
+        full, guided)
 
 
 GOAL_DB = 1.5

@@ -51,6 +51,13 @@ def collect(records: list[dict], jobs: list[dict], ks: list[int], header: dict) 
         }
         if "geometry" in job:
             job["record"]["settings"][str(job["k"])]["geometry"] = job["geometry"]
+    all_seconds = [v["seconds"] for job in jobs for v in job["views"]]
+    return {**header, "num_views": ks, "scenes": records, "means": protocol_means(records, ks),
+            "seconds_per_view": _mean(all_seconds) if all_seconds else None}
+
+
+def protocol_means(records: list[dict], ks: list[int]) -> dict[str, dict[str, dict]]:
+    """``{protocol: {K: means over its scenes}}`` of scene records whose ``settings`` are filled."""
     means: dict[str, dict[str, dict]] = {}
     for proto in dict.fromkeys(r["protocol"] for r in records):
         recs = [r for r in records if r["protocol"] == proto]
@@ -68,9 +75,7 @@ def collect(records: list[dict], jobs: list[dict], ks: list[int], header: dict) 
             if geo:
                 means[proto][k]["geometry"] = {g: _mean([r[g] for r in geo if g in r]) for g in GEOMETRY_KEYS
                                                if any(g in r for r in geo)}
-    all_seconds = [v["seconds"] for job in jobs for v in job["views"]]
-    return {**header, "num_views": ks, "scenes": records, "means": means,
-            "seconds_per_view": _mean(all_seconds) if all_seconds else None}
+    return means
 
 
 def _jsonable(x):
