@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import shutil
 import signal
@@ -143,16 +144,41 @@ def _sfm(args: tuple) -> tuple[dict, dict, dict, dict | None]:
 
 
 def _die_with(parent: int) -> None:
-    """End this process when ``parent`` ends, even by SIGKILL (Linux ``prctl(PR_SET_PDEATHSIG)``; elsewhere nothing):
-    a killed command leaves no SfM child writing into its work folder."""
+    """End this process when the command ``parent`` ends, even by SIGKILL (Linux ``prctl(PR_SET_PDEATHSIG)``;
+    elsewhere nothing): a killed command leaves no SfM child writing into its work folder. The signal comes when
+    this process's own parent ends: multiprocessing's fork server, which exits when the command does (its pipe from
+    the command closes); a command already gone is checked for after the request."""
     import ctypes
 
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # 1: PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         return
-    if os.getppid() != parent:  # the parent died before the request took effect
+    server = getattr(multiprocessing.forkserver, "_forkserver", None)
+    alive = getattr(server, "_forkserver_alive_fd", None)
+    if alive is not None:  # the server's end of its pipe from the command, handed to each child: while a child
+        try:               # held it, the server never saw the command end (nor did the child)
+            os.close(alive)
+        except OSError:
+            pass
+        server._forkserver_alive_fd = None
+    try:
+        os.kill(parent, 0)  # the command ended before the request took effect
+    except ProcessLookupError:
         os._exit(1)
+
+
+PRELOAD = ["omnirecon.capture.process", "pycolmap"]
+"""What the fork server imports once, before the SfM children fork from it (a spawned child imported torch and
+pycolmap again: ~2 CPU-s per ``process`` call)."""
+
+
+def _sfm_context():
+    """multiprocessing's ``forkserver`` context with :data:`PRELOAD`: each child is a fork of a clean server process
+    (no thread of the command's torch or GUI state in it), started in milliseconds."""
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(PRELOAD)
+    return ctx
 
 
 def _sfm_child(conn, args: tuple, parent: int) -> None:
@@ -170,10 +196,10 @@ def _sfm_child(conn, args: tuple, parent: int) -> None:
 
 
 def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict, dict | None]:
-    """:func:`_sfm` in a spawned child process: its InputError is raised here as it was; a native crash
-    (the child killed by a signal) becomes an InputError naming ``source``; another exception a RuntimeError
+    """:func:`_sfm` in a child process (:func:`_sfm_context`): its InputError is raised here as it was; a native
+    crash (the child killed by a signal) becomes an InputError naming ``source``; another exception a RuntimeError
     carrying the child's traceback."""
-    ctx = multiprocessing.get_context("spawn")
+    ctx = _sfm_context()
     receive, send = ctx.Pipe(duplex=False)
     child = ctx.Process(target=_sfm_child, args=(send, args, os.getpid()), name="omnirecon-sfm", daemon=True)
     child.start()
