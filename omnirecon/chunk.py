@@ -10,8 +10,9 @@ and at least :data:`MIN_CHUNK`.
 
 from __future__ import annotations
 
-import os
 import sys
+
+from omnirecon.memory import memory_bytes
 
 BYTES_PER_RAY = 140_000
 """Peak-memory growth per ray of the chunk (bytes), measured."""
@@ -20,20 +21,6 @@ FRACTION = 0.25
 DEFAULT_MAX = 4096
 """The default never exceeds the former fixed default."""
 MIN_CHUNK = 256
-
-
-def memory_bytes() -> tuple[int, int]:
-    """``(total, available)`` RAM in bytes (``/proc/meminfo``; ``sysconf`` where that is missing)."""
-    info = {}
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                key, _, rest = line.partition(":")
-                info[key] = int(rest.split()[0]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    total = info.get("MemTotal") or os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    return total, info.get("MemAvailable", total)
 
 
 def ceiling(total: int | None = None) -> int:

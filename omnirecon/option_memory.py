@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from typing import Callable
 
-from omnirecon.chunk import memory_bytes
 from omnirecon.errors import InputError
+from omnirecon.memory import memory_bytes
 
 SHARE = 0.5
 """A run may plan on at most this share of the memory available when it starts."""

@@ -6,11 +6,10 @@ against the memory the machine has (:func:`check_memory`) rather than against a 
 from __future__ import annotations
 
 import importlib
-import os
-import resource
 from pathlib import Path
 
 from omnirecon.errors import InputError
+from omnirecon.memory import memory_bytes
 
 
 def check_format(path: Path, format: str, readers: dict[str, str]) -> None:
@@ -58,31 +57,9 @@ def check_train_views(bank, sources, k_max: int) -> None:
 
 
 def available_memory() -> int:
-    """Bytes a new allocation can get now: the machine's available memory (``psutil`` when installed, else
-    ``MemAvailable`` in /proc/meminfo), and no more than the address-space limit (``ulimit -v``) leaves."""
-    avail = None
-    try:
-        import psutil
-
-        avail = int(psutil.virtual_memory().available)
-    except ImportError:
-        try:
-            for line in Path("/proc/meminfo").read_text().splitlines():
-                if line.startswith("MemAvailable:"):
-                    avail = int(line.split()[1]) * 1024
-        except (OSError, ValueError, IndexError):
-            pass
-    if avail is None:
-        avail = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
-    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
-    if limit != resource.RLIM_INFINITY:
-        try:
-            used = int(next(ln.split()[1] for ln in Path("/proc/self/status").read_text().splitlines()
-                            if ln.startswith("VmSize:"))) * 1024
-        except (OSError, StopIteration, ValueError):
-            used = 0
-        avail = min(avail, max(0, limit - used))
-    return avail
+    """Bytes a new allocation can get now (:func:`omnirecon.memory.memory_bytes`: ``MemAvailable``, and no more than
+    the address-space limit, ``ulimit -v``, leaves)."""
+    return memory_bytes()[1]
 
 
 def check_memory(need: float, option: str, fits, path: Path | None = None) -> None:

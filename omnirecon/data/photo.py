@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from omnirecon.chunk import memory_bytes
 from omnirecon.errors import InputError
+from omnirecon.memory import memory_bytes
 
 MAX_PIXELS = 178_000_000
 """Largest image accepted (width x height): 178 MP, above any camera's photo and below Pillow's own bomb

@@ -49,3 +49,20 @@ def test_finetune_refuses_validation_times_beyond_memory(scene, tmp_path, run_cl
                             "--threads", "1"])
     assert code == 2 and "--val-every needs about" in err and "(fix: use --val-every " in err, err
     assert len(err.strip().splitlines()) == 1 and list(tmp_path.iterdir()) == []
+
+
+def test_every_reader_of_memory_sees_the_address_space_limit():
+    """Under ``ulimit -v`` the chunk default, the option checks and ``available_memory`` read one number (they read
+    /proc/meminfo and psutil apart before, and the chunk default ignored the limit)."""
+    import subprocess
+    import sys
+
+    code = ("import resource; resource.setrlimit(resource.RLIMIT_AS, (6 * 2**30, resource.RLIM_INFINITY))\n"
+            "from omnirecon import chunk, memory, preflight\n"
+            "total, avail = memory.memory_bytes()\n"
+            "assert avail == preflight.available_memory() < 6 * 2**30 <= total, (avail, total)\n"
+            "assert chunk.default_chunk() == chunk.default_chunk(available=avail)\n"
+            "print(avail)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert 0 < int(out.stdout) < 6 * 2**30
