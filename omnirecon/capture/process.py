@@ -168,9 +168,9 @@ def _die_with(parent: int) -> None:
         os._exit(1)
 
 
-PRELOAD = ["omnirecon.capture.process", "pycolmap"]
+PRELOAD = ["omnirecon.capture.sfm_server", "omnirecon.capture.process", "pycolmap"]
 """What the fork server imports once, before the SfM children fork from it (a spawned child imported torch and
-pycolmap again: ~2 CPU-s per ``process`` call)."""
+pycolmap again: ~2 CPU-s per ``process`` call); :mod:`omnirecon.capture.sfm_server` ties the server to the command."""
 
 
 def _sfm_context():

@@ -127,8 +127,9 @@ def test_an_all_black_mask_is_named(tmp_path):
     assert str(e.value).startswith(f"{masks / 'p2.png'}: the mask is all black"), e.value
 
 
-def _descendants(pid: int) -> list[int]:
-    """The processes below ``pid`` (its children, theirs, ...): the fork server and the SfM child it forked."""
+def _descendants(pid: int) -> dict[int, int]:
+    """``{process: its parent}`` of the processes below ``pid`` (its children, theirs, ...): multiprocessing's fork
+    server and resource tracker, and the SfM child the server forked."""
     from pathlib import Path
 
     parent = {}
@@ -137,10 +138,10 @@ def _descendants(pid: int) -> list[int]:
             parent[int(stat.parent.name)] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
         except (OSError, ValueError, IndexError):
             continue
-    out, frontier = [], [pid]
+    out, frontier = {}, {pid}
     while frontier:
-        frontier = [c for c, p in parent.items() if p in frontier]
-        out += frontier
+        frontier = {c for c, p in parent.items() if p in frontier}
+        out.update({c: parent[c] for c in frontier})
     return out
 
 
@@ -172,14 +173,17 @@ def test_a_killed_process_leaves_no_sfm_child(tmp_path):
     deadline = time.monotonic() + 120
     while not list(tmp_path.glob(".out.*/database.db")) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)  # until pycolmap is at work (its feature database made)
-    children = _descendants(proc.pid)
-    assert len(children) >= 2, f"no fork server and SfM child seen (process exit {proc.poll()})"
+    below = _descendants(proc.pid)
+    sfm = [c for c, p in below.items() if p != proc.pid]  # forked by the server: the child running pycolmap
+    assert sfm, f"no SfM child seen (process exit {proc.poll()})"
     proc.kill()
     proc.wait()
-    deadline = time.monotonic() + 2
-    while any(_alive(c) for c in children) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not any(_alive(c) for c in children), [open(f"/proc/{c}/cmdline","rb").read()[:200] for c in children if _alive(c)]
+    for procs, seconds in ((sfm, 2), (list(below), 30)):  # the server and the tracker end in turn (interpreter exit)
+        deadline = time.monotonic() + seconds
+        while any(_alive(c) for c in procs) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(_alive(c) for c in procs), [Path(f"/proc/{c}/cmdline").read_bytes()[:120] for c in procs
+                                                   if _alive(c)]
 
 
 def test_a_clip_is_never_sampled_again_above_its_own_rate(clip, tmp_path):
