@@ -7,13 +7,21 @@ from pathlib import Path
 from bench.report.common import prov, read
 
 
+def _main(row: dict) -> str:
+    return f"{row['frame_main_cpu_ms']:.0f}" if "frame_main_cpu_ms" in row else "–"  # rows measured before it was
+
+
+def _stream(row: dict) -> str:
+    return f"{row['stream_fps']:.1f} ({row['stream_cpu_ms']:.0f})" if "stream_fps" in row else "–"
+
+
 def _line(scene: dict, row: dict) -> str:
     what = ("reference (full mesh, every source)" if row["face_budget"] == 0 and row["frame_grid"] == 0 else
             f"budget {row['face_budget'] or 'none'}, grid {row['frame_grid']}")
     what += f", {row['shader']} shader" if "shader" in row else ""
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
-            f"{row['frame_cpu_ms']:.0f} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
+            f"{row['frame_cpu_ms']:.0f} | {_main(row)} | {_stream(row)} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
             f"{0.0 - row['psnr_loss_db']:+.2f} | {row['loadavg_1min']:.1f} | `{scene.get('commit', '–')}` |")
 
 
@@ -29,10 +37,15 @@ def section(results: Path) -> str | None:
            "views. Rows: the reference path (full mesh, every source ranked at every point), then face budgets "
            "(`MeshRenderOptions.face_budget`, quadric decimation once at load) with each chunk's candidate sources "
            "(`frame_grid`) and the frame's shader (`MeshRenderOptions.shader`: the GL pass or the torch shader). "
+           "Main-thread CPU: the calling thread's share of the frame's CPU (the serial part: the passes' front end, "
+           "the fill, the candidates, the blur at depth edges; the rest runs on llvmpipe's and the shading workers' "
+           "threads), below which the wall time cannot fall on idle cores. Streamed: the same frames as the videos "
+           "render them (`MeshRenderer.frames`, a frame ahead: each frame's GL pass shaded beside the next one's depth "
+           "pass), FPS and CPU ms per frame. "
            "PSNR: held-out whole image through the same blend; the change is against the reference row. "
            f"Shipped: budget {r['realtime_face_budget']:,}, grid {r['realtime_frame_grid']}. "
            f"{r['machine_note']}.", "",
-           "| scene | size | path | faces | wall ms | FPS | CPU ms | depth pass CPU ms | decimate s | PSNR | dB vs "
-           "reference | load | commit |", "|" + "---|" * 13]
+           "| scene | size | path | faces | wall ms | FPS | CPU ms | main-thread CPU ms | streamed FPS (CPU ms) | "
+           "depth pass CPU ms | decimate s | PSNR | dB vs reference | load | commit |", "|" + "---|" * 15]
     out += [_line(s, row) for s in r["scenes"] for row in s["rows"]]
     return "\n".join([*out, "", prov(r["provenance"]), ""])

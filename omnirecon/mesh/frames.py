@@ -90,14 +90,15 @@ def render_signal(model, mesh, sources: Sources, camera: Cameras, signal: Tensor
 
 
 def render_frames(renderer: MeshRenderer, cameras: Cameras, warmup: bool = True) -> tuple[list[np.ndarray], list[float]]:
-    """Render every camera of ``cameras`` with ``renderer`` (with ``warmup``, one untimed warm-up frame first): 8-bit
-    frames ``# [H, W, 3]`` and the wall seconds of each render."""
+    """Render every camera of ``cameras`` with ``renderer`` as a stream (:meth:`MeshRenderer.frames`: a frame ahead;
+    with ``warmup``, one untimed warm-up frame first): 8-bit frames ``# [H, W, 3]`` and the wall seconds of each frame
+    (from the previous frame's arrival)."""
     if warmup:
         renderer.render(cameras[0].to(dtype=torch.float32), extras=False)
     images, seconds = [], []
-    for i in range(len(cameras)):
-        start = time.perf_counter()
-        rgb = renderer.render(cameras[i].to(dtype=torch.float32), extras=False)["rgb"]
+    start = time.perf_counter()
+    for rgb in renderer.frames(cameras[i].to(dtype=torch.float32) for i in range(len(cameras))):
         seconds.append(time.perf_counter() - start)
         images.append((rgb.float().clamp(0, 1).cpu().numpy() * 255 + 0.5).astype(np.uint8))
+        start = time.perf_counter()
     return images, seconds

@@ -47,6 +47,7 @@ and :mod:`omnirecon.mesh.shader`, the fill's geometry in :mod:`omnirecon.mesh.fi
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
@@ -483,17 +484,44 @@ class MeshRenderer(SourceShader):
     def _gl_frame(self, gl: GLBlend, camera: Cameras) -> Tensor:
         """:meth:`frame` through the GL pass: the depth pass, the nearest/crack fill on the CPU, one fragment-shader pass
         (:meth:`GLBlend.shade`), the blur at depth edges. ``# [H, W, 3]``"""
-        mesh_z = self.rasterizer.depth(camera)  # [H, W]; 0 = background (the rasterizer's host buffer)
+        return self._gl_finish(gl, *self._gl_submit(gl, camera))
+
+    def _gl_submit(self, gl: GLBlend, camera: Cameras) -> tuple:
+        """:meth:`_gl_frame` up to the GL pass, drawn and handed to llvmpipe's threads (:meth:`GLBlend.submit`): the
+        depth pass, the fill, the candidates. Returns what :meth:`_gl_finish` takes."""
+        mesh_z = self.rasterizer.depth(camera).clone()  # [H, W]; 0 = background (off the rasterizer's host buffer)
         depth = mesh_z.numpy()
         if self.options.fill == "nearest" or self.options.cracks > 0:
             depth = nearest_depth(depth, NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0, self.options.cracks)
         A, origin = ray_basis(camera)
         far, box = self.sources.far, layer_box(self.sources.rig, self.sources.bounds)
-        rgb = gl.shade(depth, mesh_z.numpy() > 0, A, origin, self.options.fill != "background", self.options.background,
-                       far, box, self.options.frame_grid, lambda d: exit_depth(d, origin, far, box))
-        rgb = rgb.to(self.device, self.dtype, copy=True)  # [H, W, 3] off the pass's reused host buffer
+        size = gl.submit(depth, mesh_z.numpy() > 0, A, origin, self.options.fill != "background",
+                         self.options.background, far, box, self.options.frame_grid, lambda d: exit_depth(d, origin, far, box))
+        return size, mesh_z
+
+    def _gl_finish(self, gl: GLBlend, size: tuple[int, int, int], mesh_z: Tensor) -> Tensor:
+        """The GL pass's colour of a :meth:`_gl_submit` read back, blurred at depth edges. ``# [H, W, 3]``"""
+        rgb = gl.result(*size).to(self.device, self.dtype, copy=True)  # [H, W, 3] off the pass's reused host buffer
         with torch.inference_mode():
             return soften_edges(rgb, mesh_z.to(self.device), self.options.soften)
+
+    def frames(self, cameras) -> Iterator[Tensor]:
+        """:meth:`frame` of each camera of ``cameras`` (an iterable of one-camera batches), the same images bit for bit,
+        ``# [H, W, 3]`` each. Through the GL pass a frame ahead: while llvmpipe's threads shade one frame, this thread
+        reads back and blurs the frame before it and draws the next one's depth pass (the passes' front end runs on
+        this thread), so on idle cores a stream of frames takes less wall time than one :meth:`frame` after another."""
+        gl = self._gl_blend()
+        pending = None
+        for camera in cameras:
+            if gl is None:
+                yield self.frame(camera)
+                continue
+            ahead = self._gl_submit(gl, camera)
+            if pending is not None:
+                yield self._gl_finish(gl, *pending)
+            pending = ahead
+        if pending is not None:
+            yield self._gl_finish(gl, *pending)
 
     # ------------------------------------------------------------------ images
     def blend(self, shaded: ShadeResult, signal: Tensor | TexelAtlas) -> Tensor:

@@ -273,6 +273,24 @@ def mlp_source(mlp: list[Tensor]) -> str:
     return "\n".join(lines)
 
 
+_GL: list = []
+
+
+def _flush() -> None:
+    """``glFlush`` in the current context (moderngl has none): llvmpipe starts shading what was drawn on its threads
+    now, not at the next read-back or framebuffer change. A no-op where libOpenGL cannot be loaded."""
+    if not _GL:
+        import ctypes
+        import ctypes.util
+
+        try:
+            _GL.append(ctypes.CDLL(ctypes.util.find_library("OpenGL") or "libOpenGL.so.0").glFlush)
+        except (OSError, AttributeError):
+            _GL.append(None)
+    if _GL[0] is not None:
+        _GL[0]()
+
+
 def _f32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
@@ -300,6 +318,10 @@ class GLBlend:
 
     MAX_SOURCES = 512
     """The most sources one pass takes (their cameras are uniforms: llvmpipe holds 4096 ``vec4`` per shader)."""
+    PROPOSED = 3
+    """:meth:`candidates`: each grid point proposes the ``KA + PROPOSED`` sources nearest by angle that frame it (the
+    shader's loop runs over a tile's candidates: fewer proposed, less work per pixel; ``python -m bench mesh_lod``
+    times it and scores its held-out PSNR against the reference path)."""
 
     def __init__(self, ctx, images: Tensor, proj: Tensor, centers: Tensor, angle_sources: int | None,
                  depth_max: Tensor | None = None, tol: float = 0.01, falloff: Tensor | None = None,
@@ -317,7 +339,8 @@ class GLBlend:
             source = source.replace("{" + key + "}", str(value))
         self._objects: list = []
         self._cand = None  # the candidate tiles' storage buffer (grown as needed)
-        self._frames: dict[tuple[int, int], tuple] = {}
+        self._frames: dict[tuple[int, int, int], tuple] = {}
+        self._slot = 0  # the framebuffer of the last submit
         with ctx:
             programs = ctx.extra if isinstance(ctx.extra, dict) else {}  # compiled once per context and source
             ctx.extra = programs
@@ -369,9 +392,9 @@ class GLBlend:
         if name in self.program:
             self.program[name].value = value
 
-    def _frame(self, width: int, height: int) -> tuple:
-        """The depth texture, framebuffer and host arrays of one frame size (made on first use)."""
-        key = (width, height)
+    def _frame(self, width: int, height: int, slot: int) -> tuple:
+        """The depth texture, framebuffer and host arrays of one frame size and slot (made on first use)."""
+        key = (width, height, slot)
         if key not in self._frames:
             z = self._keep(self.ctx.texture((width, height), 2, dtype="f4"))
             z.filter = (self._nearest(), self._nearest())
@@ -383,8 +406,24 @@ class GLBlend:
     def shade(self, depth: np.ndarray, on_mesh: np.ndarray, A: Tensor, origin: Tensor, fill: bool,
               background=(1.0, 1.0, 1.0), far: float = 1.0, box: Tensor | None = None, grid: int = 0,
               far_z=None) -> Tensor:
-        """The blended colour of one frame: ``rgb # [H, W, 3]`` float32 (a tensor over a host buffer this object
-        reuses: valid until its next frame of that size).
+        """The blended colour of one frame: :meth:`submit` then :meth:`result`, ``rgb # [H, W, 3]`` float32."""
+        return self.result(*self.submit(depth, on_mesh, A, origin, fill, background, far, box, grid, far_z))
+
+    def result(self, width: int, height: int, slot: int) -> Tensor:
+        """The colour of the frame :meth:`submit` drew (its ``(W, H, slot)``; waits for llvmpipe's threads to shade it):
+        ``rgb # [H, W, 3]`` float32, a tensor over a host buffer this object reuses (valid until the second
+        :meth:`submit` after it at that size)."""
+        _, fbo, _, host_rgb = self._frame(width, height, slot)
+        with self.ctx:
+            fbo.read_into(host_rgb, components=4, attachment=0, dtype="f4")
+        return torch.from_numpy(host_rgb)[..., :3]
+
+    def submit(self, depth: np.ndarray, on_mesh: np.ndarray, A: Tensor, origin: Tensor, fill: bool,
+               background=(1.0, 1.0, 1.0), far: float = 1.0, box: Tensor | None = None, grid: int = 0,
+               far_z=None) -> tuple[int, int, int]:
+        """Draw the blend of one frame and hand it to llvmpipe's threads without waiting (:meth:`result` reads it
+        back; meanwhile the caller's thread may e.g. draw the next frame's depth pass). Frames go to two framebuffers in
+        turn, so one may be read while the next is drawn. Returns ``(W, H, slot)``.
 
         ``depth # [H, W]`` float32: each pixel's z-depth (after the fill; ``<= 0``: none, then with ``fill`` the far
         layer at :func:`omnirecon.mesh.fill.exit_depth` of ``box # [2, 3]`` and ``far``, else ``background``);
@@ -393,8 +432,9 @@ class GLBlend:
         ``grid`` > 0, each tile of ``2 grid`` pixels ranks only its candidate sources (:meth:`candidates`, with
         ``far_z``), its pixels that none of them weighs every source; 0: every pixel ranks every source."""
         H, W = depth.shape
+        self._slot = slot = 1 - self._slot
         with self.ctx:
-            z_tex, fbo, host_z, host_rgb = self._frame(W, H)
+            z_tex, fbo, host_z, _ = self._frame(W, H, slot)
             host_z[..., 0] = depth
             host_z[..., 1] = on_mesh
             z_tex.write(host_z.tobytes())
@@ -433,14 +473,13 @@ class GLBlend:
                 self._cand.write(data)
                 self._cand.bind_to_storage_buffer(4)
             self._vao.render(moderngl.TRIANGLES, vertices=3)
-            fbo.read_into(host_rgb, components=4, attachment=0, dtype="f4")
-        return torch.from_numpy(host_rgb)[..., :3]
+            _flush()
+        return W, H, slot
 
     def candidates(self, depth: np.ndarray, A: Tensor, origin: Tensor, grid: int, far_z=None) -> np.ndarray:
         """The angle blend's candidate sources per tile of a frame (``MeshRenderOptions.frame_grid``): at every ``grid``-th
         pixel (its depth of ``depth # [H, W]``; where none, ``far_z(rays # [3, g]) # [g]``, the far layer, unless
-        ``None``), the ``2 (KA + 1)`` sources
-        nearest by angle that frame it; a ``2 grid``-px tile takes those of the grid pixels within ``grid`` px of it
+        ``None``), the ``KA +`` :attr:`PROPOSED` sources nearest by angle that frame it; a ``2 grid``-px tile takes those of the grid pixels within ``grid`` px of it
         (every source when no grid pixel has any). Per tile, row-major: its count ``M`` and its sources by their best
         cosine at those grid pixels, descending (the shader's list fills with its likely members first), then the rest.
         ``# [tiles, K + 1]`` int"""
@@ -460,7 +499,7 @@ class GLBlend:
         t = d / d.square().sum(0).sqrt().clamp_min(1e-12)  # [3, G] unit rays
         cos = (ds * t).sum(1) / ds.square().sum(1).sqrt().clamp_min(1e-12)  # [K, G] (a plain sum: norm over 3 is slow)
         cos = cos.masked_fill(~framed | (z <= 0)[None], -2.0)
-        c, idx = cos.topk(min(2 * (self.KA + 1), self.K), dim=0)  # [m, G]
+        c, idx = cos.topk(min(self.KA + self.PROPOSED, self.K), dim=0)  # [m, G]
         member = torch.zeros(self.K, len(z)).scatter_(0, idx, (c > -1.5).float()).reshape(1, self.K, len(rows), len(cols))
         th, tw = -(-H // (2 * grid)), -(-W // (2 * grid))
         member = torch.nn.functional.pad(member, (1, 2 * tw + 1 - len(cols), 1, 2 * th + 1 - len(rows)))

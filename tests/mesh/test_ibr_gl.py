@@ -108,3 +108,22 @@ def test_frame_falls_back_to_the_torch_shader(scene_mesh, case):
         assert r._gl_blend() is None
         rgb = r.render(scene.cameras[0].to(dtype=torch.float32), extras=False)["rgb"]
     assert rgb.shape == (48, 48, 3) and torch.isfinite(rgb).all()
+
+
+@pytest.mark.parametrize("blend", ["angle", "network"])
+def test_frames_a_frame_ahead_are_the_frames(scene_mesh, blend):
+    """:meth:`MeshRenderer.frames` (each frame's GL pass shaded while the next one's depth pass is drawn, two
+    framebuffers in turn) gives :meth:`~MeshRenderer.frame`'s images bit for bit, in order, over views that differ (a
+    swapped pair of frames, or a frame read from the wrong framebuffer, would not pass)."""
+    scene, mesh, model = scene_mesh
+    opts = MeshRenderOptions(background=(0.2, 0.3, 0.4), fill="nearest", visibility=True, blend=blend, angle_sources=3,
+                             cull_back_faces=False, soften=0.7, workers=2, frame_grid=4)
+    cams = [scene.cameras[v].to(dtype=torch.float32) for v in (0, 6, 3, 0, 9)]
+    with MeshRenderer(model, mesh, Sources.from_scene(scene, list(range(1, 12))), opts) as r:
+        assert r._gl_blend() is not None
+        one = [r.frame(c).clone() for c in cams]
+        ahead = list(r.frames(cams))
+    assert len(ahead) == len(one)
+    for a, b in zip(ahead, one, strict=True):
+        assert torch.equal(a, b)
+    assert not torch.equal(one[0], one[1]) and torch.equal(one[0], one[3])
