@@ -59,7 +59,13 @@ def section(results: Path) -> str | None:
                                                                       for _, _, v, _ in cols]
     lines.append("| " + " | ".join(row) + " |")
     lines += [""] + [f"{budget} CPU-s per arm: {probe['verdict']}." for budget, probe in probes]
+    for budget, probe in probes:
+        if probe.get("figure"):
+            lines += ["", f"![chair on black, {budget} CPU-s per arm]({probe['figure']})", "",
+                      f"chair with a black background, K = {s['num_views']}, each of the protocol's targets (rows): "
+                      + " | ".join(probe["figure_columns"]) + f" ({budget} CPU-s per arm)."]
     arm = next(iter(probes[-1][1]["arms"].values()))
-    lines += ["", f"Scoring: about {arm['eval_cpu_s']:.0f} CPU-s per checkpoint. The command of an arm: `{r['command']}`.",
-              ""]
+    lines += ["", f"Scoring: about {arm['eval_cpu_s']:.0f} CPU-s per checkpoint. The command of an arm: `{r['command']}`. "
+              "A longer probe, `python -m bench train_background --cpu-budget B`, continues every arm from its longest "
+              "shorter run and adds a column per arm.", ""]
     return "\n".join(lines + [prov(p["provenance"]) + f" ({b} CPU-s probe)" for b, p in probes] + [""])
