@@ -59,7 +59,7 @@ def section(results: Path) -> str | None:
                                                                       for _, _, v, _ in cols]
     lines.append("| " + " | ".join(row) + " |")
     lines += [""] + [f"{budget} CPU-s per arm: {probe['verdict']}." for budget, probe in probes]
-    for budget, probe in probes:
+    for budget, probe in [kv for kv in probes if kv[1].get("figure")][-1:]:  # the longest probe's picture
         if probe.get("figure"):
             lines += ["", f"![chair on black, {budget} CPU-s per arm]({probe['figure']})", "",
                       f"chair with a black background, K = {s['num_views']}, each of the protocol's targets (rows): "
