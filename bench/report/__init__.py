@@ -36,6 +36,7 @@ from bench.report import (
     speed,
     synth,
     throughput,
+    train_background,
     train_levers,
     train_views,
     training,
@@ -43,7 +44,8 @@ from bench.report import (
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_views, extrapolation,
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_background, train_views,
+            extrapolation,
             depth_sources,
             realtime_blend, mesh_lod, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_surface,
             finetune_validation, hostile,

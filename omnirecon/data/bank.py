@@ -17,6 +17,8 @@ point coordinates with fixed frequencies (2^0 .. 2^(L-1)), so a scene 10x larger
 frequency bands; IBRNet places its samples in metric ``[near, far]`` and its two-sphere/ray codes
 assume a bounded scene. Training on normalised scenes lets one set of weights serve captures
 whose units differ (metres, millimetres, COLMAP's arbitrary scale).
+
+Size: sources, bank and batches are one path (a training step's data), in the sections below.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ import math
 import os
 import re
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +47,8 @@ from omnirecon.splits import EVAL_ONLY_SCENES, EVAL_SEEDS, TRAIN_SEEDS, VAL_SEED
 
 RIGS = ("object", "frontal", "forward")
 DEFAULT_SYNTH_VIEWS = SynthOptions().views
+BACKGROUNDS = ("white", "black", "random")
+"""Backgrounds behind the objects of scenes read from RGBA images (:class:`SceneBank`'s ``background``)."""
 
 
 @dataclass(frozen=True)
@@ -208,12 +212,26 @@ class PreparedScene:
     """View distance: ``"angle"`` around the scene centre (object rigs) or camera ``"distance"``."""
     center: Tensor | None
     """Look-at centre of an object rig (for ``by="angle"``). ``# [3]``"""
+    clear: Tensor | None = None
+    """For a scene read from RGBA images whose batches choose their background: the transparency ``1 - alpha``
+    of every pixel, while ``scene.images`` holds the object on black (premultiplied colour), so that
+    ``images + colour * clear`` is the object on ``colour``; ``None`` otherwise (the images as read). ``# [N, H, W, 1]``"""
+    background: str = "white"
+    """What :func:`draw_batch` puts behind the object where ``clear`` is set (one of :data:`BACKGROUNDS`)."""
 
     def sources(self, indices) -> Sources:
         return Sources.from_scene(self.scene, indices)
 
 
-def prepare(scene: Scene, name: str) -> PreparedScene:
+def prepare(scene: Scene, name: str, on_black: Scene | None = None, background: str = "white") -> PreparedScene:
+    """``scene`` ready for batches. ``on_black``: the same views read on black; where the two differ (RGBA images)
+    the batches put the object on ``background`` (:data:`BACKGROUNDS`, :attr:`PreparedScene.clear`)."""
+    if background not in BACKGROUNDS:
+        raise InputError(f"unknown training background {background!r}", None, "use one of " + ", ".join(BACKGROUNDS))
+    clear = None
+    if on_black is not None and not torch.equal(scene.images, on_black.images):
+        clear = (scene.images - on_black.images).mean(-1, keepdim=True).clamp(0, 1)  # 1 - alpha  [N, H, W, 1]
+        scene = replace(scene, images=on_black.images)
     scene = scene.normalized()
     scene.cameras = scene.cameras.to(dtype=torch.float32)
     targets = list(scene.splits.get("train") or range(len(scene)))
@@ -226,14 +244,19 @@ def prepare(scene: Scene, name: str) -> PreparedScene:
     d = view_distances(cams, cams, by=by, center=center).double()
     d.fill_diagonal_(math.inf)
     neighbours = d.argsort(dim=1, stable=True)[:, :-1]
-    return PreparedScene(name, scene, targets, neighbours, by, center)
+    return PreparedScene(name, scene, targets, neighbours, by, center, clear, background)
 
 
 class SceneBank:
     """Scenes of several weighted sources, loaded (and generated) on demand, ``capacity`` kept in memory."""
 
     def __init__(self, sources: list[list[SceneRef]], weights: list[float] | None, resolution: int,
-                 capacity: int = 8, max_views: int | None = None):
+                 capacity: int = 8, max_views: int | None = None, background: str = "white"):
+        if background not in BACKGROUNDS:
+            raise InputError(f"unknown training background {background!r}", None,
+                             "use one of " + ", ".join(BACKGROUNDS))
+        self.background = background  # not white: scenes read from disk are also read on black (prepare's on_black)
+        self._opaque: set[Path] = set()  # scenes read from disk found without alpha (read once, as they are)
         self.sources = sources
         w = torch.tensor(weights if weights else [1.0] * len(sources), dtype=torch.float64)
         self.weights = w / w.sum()
@@ -261,20 +284,26 @@ class SceneBank:
         scene = self._load(ref)
         if self.annotate is not None and ref.seed is None and scene.depths is None:
             scene = self.annotate(ref, scene)
-        prepared = prepare(scene, ref.name)
+        on_black = None
+        if self.background != "white" and ref.seed is None and ref.path not in self._opaque:  # procedural: RGB
+            on_black = self._load(ref, "black")
+            if torch.equal(on_black.images, scene.images):
+                self._opaque.add(ref.path)
+        prepared = prepare(scene, ref.name, on_black, self.background)
         self._cache[ref] = prepared
         while len(self._cache) > self.capacity:
             self._cache.popitem(last=False)
         return prepared
 
-    def _load(self, ref: SceneRef) -> Scene:
+    def _load(self, ref: SceneRef, background: str = "white") -> Scene:
         if ref.seed is not None:
             ensure_generated(ref, self.resolution)
             return load_scene(ref.path)
         if ref.path not in self._downscale:  # probe the image size with one view
             probe = load_scene(ref.path, options=ReadOptions(max_views=1))
             self._downscale[ref.path] = max(1.0, max(probe.width, probe.height) / self.resolution)
-        return load_scene(ref.path, options=ReadOptions(downscale=self._downscale[ref.path], max_views=self.max_views))
+        return load_scene(ref.path, options=ReadOptions(downscale=self._downscale[ref.path], max_views=self.max_views,
+                                                        background=background))
 
 
 def ensure_generated(ref: SceneRef, resolution: int) -> Path:
@@ -324,7 +353,8 @@ def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: tor
     """A random target of ``ps.targets``, ``num_views`` sources drawn from its ``pool`` nearest other
     targets, and ``rays`` random pixels of the target (a ``foreground`` fraction of them on the
     foreground mask, when the scene has masks), with their colours and, when the scene has depths,
-    their z-depths (already in the normalised frame: :meth:`Scene.normalized` scales them)."""
+    their z-depths (already in the normalised frame: :meth:`Scene.normalized` scales them). Where ``ps.clear`` is
+    set, target and sources show the object on one colour (:func:`backdrop`, drawn last: a white batch's draws)."""
     t = int(torch.randint(len(ps.targets), (1,), generator=gen))
     near = ps.neighbours[t, :max(pool, num_views)]  # [n]
     pick = near[torch.randperm(len(near), generator=gen)[:num_views]]
@@ -348,7 +378,22 @@ def draw_batch(ps: PreparedScene, num_views: int, pool: int, rays: int, gen: tor
     rgb = scene.images[target].reshape(-1, 3)[pix]
     depth = None if scene.depths is None else scene.depths[target].reshape(-1)[pix].to(rgb.dtype)
     mask = None if scene.masks is None else scene.masks[target].reshape(-1)[pix].to(rgb.dtype)
-    return Batch(ps.sources(source_ids), ray_batch, rgb, target, source_ids, depth, mask)
+    sources = ps.sources(source_ids)
+    if ps.clear is not None:
+        colour = backdrop(ps.background, gen).to(rgb.dtype)  # [3]
+        rgb = rgb + colour * ps.clear[target].reshape(-1, 1)[pix]
+        sources.images = sources.images + colour * ps.clear[source_ids]
+    return Batch(sources, ray_batch, rgb, target, source_ids, depth, mask)
+
+
+def backdrop(background: str, gen: torch.Generator) -> Tensor:
+    """The flat colour behind a batch's object for ``background`` (:data:`BACKGROUNDS`); ``random`` draws white,
+    black or a uniform random colour (equal odds) from ``gen``. ``# [3]``"""
+    if background == "random":
+        kind = int(torch.randint(3, (1,), generator=gen))
+        colour = torch.rand(3, generator=gen)
+        return torch.full((3,), float(kind == 0)) if kind < 2 else colour
+    return torch.full((3,), 1.0 if background == "white" else 0.0)
 
 
 def val_views(ps: PreparedScene, count: int, num_views: int) -> list[tuple[int, list[int]]]:

@@ -107,7 +107,7 @@ class Trainer:
                       synth_views=cfg.synth_views, notes=self.notes)
         self.train_sources = parse_sources(cfg.data, "train", **common)
         self.bank = SceneBank(self.train_sources, list(cfg.data_weights) if cfg.data_weights else None,
-                              cfg.resolution, cfg.scenes_in_memory, cfg.max_views)
+                              cfg.resolution, cfg.scenes_in_memory, cfg.max_views, cfg.real_background)
         if cfg.stereo_depth:
             self.bank.annotate = StereoPseudoDepth()
         val_specs = cfg.val_scenes

@@ -100,6 +100,11 @@ class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, ViewLimit, Resumes, 
     centre for object rigs, camera distance for forward-facing ones."""
     foreground: float = 0.5
     """Fraction of the rays drawn on the foreground mask, for scenes that have masks (procedural ones)."""
+    real_background: Literal["white", "black", "random"] = "white"
+    """Background behind the objects of training scenes read from RGBA images (e.g. Blender's lego and chair; the
+    alpha is the object's coverage): ``white`` as read; ``black``; ``random``: per step white, black or a uniform
+    random flat colour (equal odds, drawn from the step's seed). The target and its sources share the colour;
+    procedural scenes, photos without alpha and validation are unchanged."""
     switch_every: int = 10
     """Steps spent on one scene before drawing the next."""
     scenes_in_memory: int = 8

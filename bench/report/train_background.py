@@ -1,0 +1,71 @@
+"""BENCHMARKS.md section: real training objects on black or random backgrounds (`python -m bench train_background`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from bench.report.common import prov, read
+
+GROUPS = {"real": "mean: real scenes, held-out views", "black": "mean: lego and chair on black",
+          "validation": "mean: every real validation row", "procedural": "mean: procedural validation seeds"}
+
+
+def cell(r: dict, control: dict | None, value, key) -> str:
+    """PSNR, with the difference to the control in brackets (arms other than the control)."""
+    if value is None:
+        return "-"
+    if control is None or r is control:
+        return f"{value:.2f}"
+    return f"{value:.2f} ({value - control[key]:+.2f})"
+
+
+def section(results: Path) -> str | None:
+    """Real objects on black or random backgrounds; None before a run."""
+    r = read(results, "train_background.json")
+    if r is None or not r.get("probes"):
+        return None
+    s, shipped = r["settings"], r.get("shipped")
+    probes = sorted(r["probes"].items(), key=lambda kv: float(kv[0]))
+    cols = [(budget, arm, v, probe["arms"].get("white")) for budget, probe in probes for arm, v in probe["arms"].items()]
+    head = (["scene"] + ([f"shipped gpnr-tiny (step {shipped['step']})"] if shipped else [])
+            + [f"{arm}{' (control)' if arm == 'white' else ''}, {budget} CPU-s" for budget, arm, _, _ in cols])
+    lines = ["### Real training objects on black or random backgrounds (`python -m bench train_background`)", "",
+             "The lever the content test above points to, probed on validation data: `omnirecon train "
+             "--real-background` composites the RGBA training objects (lego, chair) on `white` (as read, the "
+             "control), `black`, or `random` (per step white, black or a uniform random flat colour, equal odds), "
+             "the target and its sources on the same colour. Each arm continues checkpoints/gpnr-tiny (`--init`, "
+             f"fresh optimizer, constant lr {s['lr']:g} after {s['warmup']} warm-up steps) for the same process-CPU "
+             "budget (1 thread, seed 0; a longer probe continues the shorter one, which the constant schedule makes "
+             f"the same run) on the shipped data mix (procedural rigs at weight 2 with {s['synth_scenes']} scenes "
+             f"each, the real training scenes at 1), K drawn from [{s['num_views_range'][0]}, "
+             f"{s['num_views_range'][1]}], a new scene every step (`--switch-every {s['switch_every']}`) so that lego "
+             "and chair get their share of the few dozen steps; the arms draw the same scenes, views and pixels step "
+             "for step, but reading lego and chair twice (on white and on black) costs the other arms a few steps. "
+             f"Scored as `train_gpnr_gap` (the `cpu` protocol's targets and sources, 64 px, K = {s['num_views']}, mean "
+             "PSNR over the targets, whole image, dB; in brackets the change against the control of the same budget), "
+             "rendering as shipped (24 samples, bf16). Validation only: the held-out views of the real training "
+             "scenes, lego and chair with a black background (the same objects the arms train on, on other views), "
+             "the procedural validation seeds; fern, dtu_scan24/37 and the evaluation seeds are not looked at.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name in r["roles"]:
+        row = [name] + ([cell(shipped["psnr"], None, shipped["psnr"].get(name), name)] if shipped else [])
+        row += [cell(v["psnr"], c and c["psnr"], v["psnr"].get(name), name) for _, _, v, c in cols]
+        lines.append("| " + " | ".join(row) + " |")
+    for g, label in GROUPS.items():
+        row = [f"**{label}**"] + ([cell(shipped["means"], None, shipped["means"].get(g), g)] if shipped else [])
+        row += [cell(v["means"], c and c["means"], v["means"].get(g), g) for _, _, v, c in cols]
+        lines.append("| " + " | ".join(row) + " |")
+    row = ["steps (on lego or chair)"] + (["-"] if shipped else []) + [f"{v['steps']} ({v['rgba_steps']})"
+                                                                      for _, _, v, _ in cols]
+    lines.append("| " + " | ".join(row) + " |")
+    lines += [""] + [f"{budget} CPU-s per arm: {probe['verdict']}." for budget, probe in probes]
+    for budget, probe in [kv for kv in probes if kv[1].get("figure")][-1:]:  # the longest probe's picture
+        if probe.get("figure"):
+            lines += ["", f"![chair on black, {budget} CPU-s per arm]({probe['figure']})", "",
+                      f"chair with a black background, K = {s['num_views']}, each of the protocol's targets (rows): "
+                      + " | ".join(probe["figure_columns"]) + f" ({budget} CPU-s per arm)."]
+    arm = next(iter(probes[-1][1]["arms"].values()))
+    lines += ["", f"Scoring: about {arm['eval_cpu_s']:.0f} CPU-s per checkpoint. The command of an arm: `{r['command']}`. "
+              "A longer probe, `python -m bench train_background --cpu-budget B`, continues every arm from its longest "
+              "shorter run and adds a column per arm.", ""]
+    return "\n".join(lines + [prov(p["provenance"]) + f" ({b} CPU-s probe)" for b, p in probes] + [""])
