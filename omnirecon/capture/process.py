@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import multiprocessing.forkserver
 import os
 import shutil
 import signal
@@ -154,7 +153,9 @@ def _die_with(parent: int) -> None:
         ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # 1: PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         return
-    server = getattr(multiprocessing.forkserver, "_forkserver", None)
+    from multiprocessing import forkserver
+
+    server = getattr(forkserver, "_forkserver", None)
     alive = getattr(server, "_forkserver_alive_fd", None)
     if alive is not None:  # the server's end of its pipe from the command, handed to each child: while a child
         try:               # held it, the server never saw the command end (nor did the child)
@@ -175,7 +176,10 @@ pycolmap again: ~2 CPU-s per ``process`` call); :mod:`omnirecon.capture.sfm_serv
 
 def _sfm_context():
     """multiprocessing's ``forkserver`` context with :data:`PRELOAD`: each child is a fork of a clean server process
-    (no thread of the command's torch or GUI state in it), started in milliseconds."""
+    (no thread of the command's torch or GUI state in it), started in milliseconds; ``spawn`` where there is no fork
+    server (Windows)."""
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return multiprocessing.get_context("spawn")
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(PRELOAD)
     return ctx
