@@ -48,8 +48,10 @@ frame of a procedural scene's mesh).
 
 Threads: llvmpipe reads ``LP_NUM_THREADS`` when the driver loads (the first context in a process).
 
-Size: the GL rasterizer and its context handling, the projection matrix and the reference backend are
-one interface with two twins; they are kept together so that they stay interchangeable.
+The GLSL programs of the passes are in :mod:`omnirecon.render.raster_shaders`.
+
+Size: the GL rasterizer and its context handling, the projection matrix and the reference backend are one interface
+with two twins; they are kept together so that they stay interchangeable.
 """
 
 from __future__ import annotations
@@ -64,86 +66,10 @@ from torch import Tensor
 
 from omnirecon.cameras import Cameras
 from omnirecon.errors import InputError
+from omnirecon.render.raster_shaders import PROGRAMS
 
 Backend = Literal["auto", "gl", "reference"]
 NormalMode = Literal["face", "vertex", "none"]
-
-_VERTEX_SHADER = """
-#version 330 core
-uniform mat4 world_to_clip;
-in vec3 in_pos;
-smooth out vec3 v_bary;
-smooth out vec3 v_world;
-flat out int v_face;
-void main() {
-    int k = gl_VertexID % 3;
-    v_bary = vec3(k == 0, k == 1, k == 2);
-    v_world = in_pos;
-    v_face = gl_VertexID / 3;
-    gl_Position = world_to_clip * vec4(in_pos, 1.0);
-}
-"""
-
-_SURFACE_VERTEX_SHADER = """
-#version 330 core
-uniform mat4 world_to_clip;
-in vec3 in_pos;
-smooth out vec3 v_world;
-void main() {
-    v_world = in_pos;
-    gl_Position = world_to_clip * vec4(in_pos, 1.0);
-}
-"""
-
-_SURFACE_FRAGMENT_SHADER = """
-#version 330 core
-smooth in vec3 v_world;
-layout(location = 0) out vec4 out_world_depth;
-void main() {
-    out_world_depth = vec4(v_world, 1.0 / gl_FragCoord.w);
-}
-"""
-
-_DEPTH_VERTEX_SHADER = """
-#version 330 core
-uniform mat4 world_to_clip;
-in vec3 in_pos;
-void main() {
-    gl_Position = world_to_clip * vec4(in_pos, 1.0);
-}
-"""
-
-_DEPTH_FRAGMENT_SHADER = """
-#version 330 core
-layout(location = 0) out float out_depth;
-void main() {
-    out_depth = 1.0 / gl_FragCoord.w;
-}
-"""
-
-_FACE_FRAGMENT_SHADER = """
-#version 330 core
-layout(location = 0) out int out_face;
-void main() {
-    out_face = gl_PrimitiveID + 1;
-}
-"""
-
-_FRAGMENT_SHADER = """
-#version 330 core
-smooth in vec3 v_bary;
-smooth in vec3 v_world;
-flat in int v_face;
-layout(location = 0) out int out_face;
-layout(location = 1) out vec4 out_bary_depth;
-layout(location = 2) out vec4 out_world;
-void main() {
-    out_face = v_face + 1;
-    out_bary_depth = vec4(v_bary, 1.0 / gl_FragCoord.w);
-    out_world = vec4(v_world, 1.0);
-}
-"""
-
 
 @dataclass
 class GBuffer:
@@ -347,12 +273,8 @@ class MeshRasterizer:
         ctx = _make_context()
         self._ctx = ctx
         self._moderngl = moderngl
-        self._programs = {
-            "gbuffer": ctx.program(vertex_shader=_VERTEX_SHADER, fragment_shader=_FRAGMENT_SHADER),
-            "surface": ctx.program(vertex_shader=_SURFACE_VERTEX_SHADER, fragment_shader=_SURFACE_FRAGMENT_SHADER),
-            "depth": ctx.program(vertex_shader=_DEPTH_VERTEX_SHADER, fragment_shader=_DEPTH_FRAGMENT_SHADER),
-            "face": ctx.program(vertex_shader=_DEPTH_VERTEX_SHADER, fragment_shader=_FACE_FRAGMENT_SHADER),
-        }
+        self._programs = {name: ctx.program(vertex_shader=vs, fragment_shader=fs)
+                          for name, (vs, fs) in PROGRAMS.items()}
         soup = self.vertices[self.faces].astype("f4")  # [F, 3, 3] unindexed triangle list
         self._vbo = ctx.buffer(soup.tobytes()) if len(self.faces) else None
         self._vaos = {} if self._vbo is None else {"gbuffer": ctx.vertex_array(self._programs["gbuffer"],
