@@ -33,9 +33,11 @@ class ViewCache:
         model, mesh, options: as :class:`MeshRenderer`.
         scene: The :class:`~omnirecon.data.scene.Scene` whose views the renderers take as sources
             (:meth:`Sources.from_scene`); the mesh is in its frame.
+        encodings: The encodings per set of views to share with other caches of the same model and scene (they do
+            not depend on the mesh: :mod:`omnirecon.engine.lod` renders one scene through several levels of detail).
     """
 
-    def __init__(self, model, mesh, scene, options: MeshRenderOptions | None = None):
+    def __init__(self, model, mesh, scene, options: MeshRenderOptions | None = None, encodings: dict | None = None):
         self.model, self.scene = model, scene
         self.options = options or MeshRenderOptions()
         vertices, faces = level_of_detail(mesh, self.options.face_budget)
@@ -43,7 +45,7 @@ class ViewCache:
                                          cull_back_faces=self.options.cull_back_faces)
         """The one rasterizer of every renderer."""
         self._views: dict[str, dict[int, Tensor]] = {}
-        self._features: dict[tuple[int, ...], object] = {}
+        self._features: dict[tuple[int, ...], object] = {} if encodings is None else encodings
 
     def renderer(self, views: list[int]) -> MeshRenderer:
         """A :class:`MeshRenderer` over the scene views ``views`` (in this order) that shares this cache."""

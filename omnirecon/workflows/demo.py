@@ -310,7 +310,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
 
     from omnirecon.data.io import write_image  # lazy: demo --help stays fast
     from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.engine.report import Section
+    from omnirecon.engine.lod import choose_face_budget
     from omnirecon.engine.views import select_sources
     from omnirecon.mesh.ibr import realtime_setting
     from omnirecon.workflows.mesh import scene_frame_mesh
@@ -326,16 +326,28 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     cams = cams.rescaled(side / max(cams.width, cams.height))
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
+    lod = choose_face_budget(model, mesh, scene, setting, train)  # the faces drawn: measured per mesh
+    lines.append(lod.line())
     video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
-                                                  setting=setting)
+                                                  setting=setting, face_budget=lod.face_budget)
     fps = 1.0 / statistics.median(times)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
-                            "faces_drawn": faces, "away": away}
+                            "faces_drawn": faces, "lod": {"face_budget": lod.face_budget, "rows": lod.rows,
+                                                          "views": lod.views, "seconds": lod.seconds}, "away": away}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
                  f"faces drawn); {away['line']}")
+    return mesh_path_page(video, fps, cams, away, out)
+
+
+def mesh_path_page(video: Path, fps: float, cams, away: dict, out: Path):
+    """The report's "Real-time mesh path" section: the orbit video, its speed, its score and the worst frame."""
+    import torch
+
+    from omnirecon.engine.report import Section
+
     return (Section("Real-time mesh path")
             .text(f"The Omni-Recon mesh rendered with the appearance branch, one surface point per pixel, source "
                   f"features encoded once: {fps:.1f} FPS at {cams.width}x{cams.height} (median of {len(cams)} frames, "

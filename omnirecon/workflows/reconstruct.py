@@ -314,7 +314,7 @@ def _run_stages(cfg: ReconstructConfig, cap: Capture, stages: Stages) -> dict:
                                                                              ("vertices", "depth_maps", "views", "masks")},
               "finetune": {"resolution": cap.side, "curve": tuned["curve"]}, "export": exported["files"],
               "path": {"frames": len(path["cams"]), "resolution": [path["cams"].width, path["cams"].height],
-                       "fps": path["fps"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
+                       "fps": path["fps"], "lod": path["lod"], "kind": path["kind"], "nearest_photo_degrees": path["nearest_photo_degrees"],
                        "blend": path["setting"], "defects": path["defects"]},
               "seconds": lap.seconds, "cpu_seconds": lap.cpu_seconds, "peak_rss_mb": lap.peak_rss_mb,
               "resumed": run.resumed, "threads": torch.get_num_threads()}
@@ -393,6 +393,7 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
     completion's fills are the faces from ``fill_from`` on), the first and the worst frame as pictures; returns
     ``{"scene", "cams", "video", "fps", "kind", "setting", "defects", "worst"}``."""
     from omnirecon.engine.extrapolation import user_path  # lazy: fast --help
+    from omnirecon.engine.lod import choose_face_budget
     from omnirecon.mesh.ibr import realtime_setting
 
     scene, (model, _), mesh, out = cap.scene(), cap.model(), cap.meshes["scene"], cap.work
@@ -401,7 +402,10 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
     setting = realtime_setting(scene, tuned)
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting)
+    lod = choose_face_budget(model, mesh, scene, setting, train)  # the faces drawn: measured per mesh
+    lines.append(lod.line())
+    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting,
+                                                  face_budget=lod.face_budget)
     defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
     fps = 1.0 / statistics.median(times)
     center = closest_point_to_axes(scene.cameras) if scene_kind(scene).object else scene.bounds.double().mean(0)
@@ -416,6 +420,8 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"{mean['fill']:.1%}, unseen {mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
+            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "rows": lod.rows, "views": lod.views,
+                    "seconds": lod.seconds},
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}
 

@@ -38,6 +38,10 @@ def test_demo_quick_writes_report_with_numbers(tmp_path, capsys):
     assert "sobel" in numbers["lift"] and "oracle-labels" in numbers["lift"]  # lifting ran (edges and labels)
     if (ROOT / "checkpoints" / "omnirecon-tiny" / "model.safetensors").is_file():
         assert numbers["mesh_path"]["fps"] > 1 and "finetune" in numbers and numbers["mesh"]["omnirecon-tiny"]["faces"] > 0
+        lod = numbers["mesh_path"]["lod"]  # the faces drawn, chosen on left-out photos (omnirecon.engine.lod)
+        drawn = numbers["mesh_path"]["faces_drawn"]
+        assert drawn <= numbers["mesh"]["omnirecon-tiny"]["faces"] and "level of detail: " in printed
+        assert lod["rows"] == [] or drawn == next(r["faces"] for r in lod["rows"] if r["budget"] == lod["face_budget"])
         for name in ("mesh_path/orbit", "finetune/curve.png", "orbit_omnirecon-tiny/video", "overview.png"):
             assert name in page, name
 

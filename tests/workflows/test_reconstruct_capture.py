@@ -20,3 +20,5 @@ def test_scene_and_checkpoint_are_read_once(tmp_path):
     # mesh, finetune, export and path read the posed scene at 32 px; every stage used --ckpt (no tuned checkpoint)
     assert record["reads"] == {"scene": 1, "scene_probe": 1, "checkpoint": 1}, record["reads"]
     assert (tmp_path / "out" / "index.html").is_file() and (tmp_path / "out" / "scene" / "process.json").is_file()
+    lod = record["path"]["lod"]  # the path's level of detail: measured only below the mesh's own face count
+    assert lod["faces"] <= lod["face_budget"] or lod["rows"] == [], lod

@@ -1,0 +1,59 @@
+"""The real-time path's level of detail chosen per mesh (:mod:`omnirecon.engine.lod`)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import trimesh
+
+from omnirecon.data import load_scene
+from omnirecon.data.synth.generate import SynthOptions, generate_scene
+from omnirecon.engine.lod import choose_face_budget, left_out_views
+from omnirecon.mesh.ibr import realtime_setting
+from omnirecon.models.registry import build_model
+
+pytestmark = pytest.mark.usefixtures("gl")  # skips without EGL, fails under CI=true (conftest)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A procedural scene, its exact mesh subdivided into 16x the faces (as fused meshes over-tessellate), a random
+    omnirecon-tiny."""
+    scene = load_scene(generate_scene(tmp_path_factory.mktemp("lod"), 5, SynthOptions(resolution=64, views=8)))
+    mesh = trimesh.load(scene.mesh_path, process=False, force="mesh").subdivide().subdivide()
+    torch.manual_seed(0)
+    return scene, mesh, build_model("omnirecon-tiny").eval()
+
+
+def test_left_out_views_spread_over_the_capture_and_leave_sources():
+    assert left_out_views(list(range(12)), 3) == [2, 6, 10]
+    assert left_out_views([4, 5], 1) == [5]
+    assert left_out_views([4, 5, 6], 3) == [4, 5, 6]
+
+
+def test_the_smallest_budget_within_the_tolerance_is_chosen_and_a_ruinous_one_never(setup):
+    """With a 1-dB tolerance, a quarter of the over-tessellated mesh (measured 0.6 dB below it on the left-out photos,
+    through a random model) is chosen and 4,000 faces (a 70th: 13 dB below) never; with no tolerance only the ceiling
+    passes."""
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    full = len(mesh.faces)
+    keep = full // 4
+    choice = choose_face_budget(model, mesh, scene, setting, train, budgets=(keep, 4000), tolerance_db=1.0,
+                                ceiling=0)
+    assert [r["budget"] for r in choice.rows] == [0, keep, 4000]
+    assert choice.rows[0]["faces"] == full and choice.rows[2]["faces"] <= 4000
+    assert choice.rows[2]["psnr"] < choice.rows[0]["psnr"] - 1.0  # the ruinous budget shows in the score
+    assert choice.face_budget == keep and choice.faces <= keep, choice.rows
+    assert choice.rows[1]["psnr"] >= choice.rows[0]["psnr"] - 1.0
+    assert len(choice.views) == 3 and choice.line().startswith(f"level of detail: {choice.faces:,} faces drawn")
+    strict = choose_face_budget(model, mesh, scene, setting, train, budgets=(4000,), tolerance_db=0.0, ceiling=0)
+    assert strict.face_budget == 0 and strict.faces == full
+
+
+def test_nothing_is_measured_where_nothing_is_smaller(setup):
+    scene, mesh, model = setup
+    choice = choose_face_budget(model, mesh, scene, realtime_setting(scene), list(range(len(scene))),
+                                budgets=(10 * len(mesh.faces),), ceiling=0)
+    assert choice.rows == [] and choice.face_budget == 0 and choice.faces == len(mesh.faces)
