@@ -138,6 +138,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
 def run_scene(name: str, model, args) -> dict | None:
     import torch
 
+    from omnirecon.engine.lod import choose_face_budget
     from omnirecon.engine.scenes import load_at_resolution, photo_side
     from omnirecon.mesh.files import read_mesh
     from omnirecon.mesh.ibr import realtime_setting
@@ -155,9 +156,12 @@ def run_scene(name: str, model, args) -> dict | None:
     scene = load_at_resolution(path, side)
     mesh = read_mesh(mesh_file, scene.to_input)
     setting = realtime_setting(scene)
+    lod = choose_face_budget(model, mesh, scene, setting, scene.splits.get("train") or list(range(len(scene))))
+    print(name, lod.line(), flush=True)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
     rows = []  # the reference path first
-    runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in args.budgets if b < len(mesh.faces) for sh in args.shader]
+    budgets = sorted({*args.budgets, lod.face_budget}, reverse=True)  # the chosen budget always has a row
+    runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in budgets if 0 < b < len(mesh.faces) for sh in args.shader]
     for budget, grid, shader in dict.fromkeys(runs):
         rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader))
         print(name, rows[-1], flush=True)
@@ -168,7 +172,9 @@ def run_scene(name: str, model, args) -> dict | None:
     timed_size = [round(scene.width * side / max(scene.width, scene.height)), round(scene.height * side / max(scene.width, scene.height))]
     return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
             "scored_resolution": [scene.width, scene.height],
-            "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows}
+            "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows,
+            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "rows": lod.rows, "views": lod.views,
+                    "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -46,13 +46,13 @@ from omnirecon.data import load_scene
 from omnirecon.data.io import write_json
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
+from omnirecon.engine.lod import choose_face_budget
 from omnirecon.engine.machine import DeviceConfig, ShippedCheckpoint, pick_device
 from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_folder
 from omnirecon.errors import InputError
 from omnirecon.mesh.files import read_mesh
 from omnirecon.mesh.ibr import (
-    REALTIME_FACE_BUDGET,
     MeshRenderer,
     MeshRenderOptions,
     level_of_detail,
@@ -103,10 +103,12 @@ class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, Qu
     """Time the path the real-time videos take (``reconstruct``'s, ``demo``'s): the scene kind's blend, fill and sources
     (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking
     each chunk's candidates (`REALTIME_FRAME_GRID`), the network's over the 6 nearest elsewhere) with the occlusion test,
-    at :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, instead of the paper's network blend over --views sources without the test on the full mesh."""
+    at the face budget they draw (:func:`omnirecon.engine.lod.choose_face_budget`: at most
+    :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`, fewer where left-out photos show no loss), instead of the paper's
+    network blend over --views sources without the test on the full mesh."""
     face_budget: int | None = None
     """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
-    default: REALTIME_FACE_BUDGET with --realtime, else 0)."""
+    default: with --realtime the budget the videos draw, chosen per mesh on left-out photos, else 0)."""
     out: Path = Path("outputs") / "bench" / "mesh_fps.json"
     """JSON result file."""
 
@@ -219,7 +221,8 @@ def measure(cfg: BenchConfig) -> dict:
     pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], min(count, len(train)), by=by)[0]
     views = [train[i] for i in pick.tolist()]
     sources = Sources.from_scene(scene, views).to(device)
-    budget = args.face_budget if args.face_budget is not None else (REALTIME_FACE_BUDGET if args.realtime else 0)
+    lod = choose_face_budget(model, mesh, scene, setting, train) if args.realtime and args.face_budget is None else None
+    budget = args.face_budget if args.face_budget is not None else (lod.face_budget if lod else 0)
     start = time.perf_counter()
     drawn = level_of_detail(mesh, budget)  # once, for every renderer below
     decimate_s = time.perf_counter() - start
@@ -285,6 +288,7 @@ def measure(cfg: BenchConfig) -> dict:
                                                  "mesh": str(args.mesh)}),
                   "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
+                  "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds},
                   "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),

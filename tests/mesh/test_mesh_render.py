@@ -366,7 +366,11 @@ def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path, run_cli):
     assert code == 0, err[-2000:]
     r = json.loads(out.read_text())  # the videos' blend (a forward rig: the network's, 6 sources) at 1500 faces
     assert r["scene"]["faces_drawn"] <= 1500 < r["scene"]["faces"] and r["scene"]["blend"]["blend"] == "network"
-    assert len(r["scene"]["source_view_ids"]) == 6
+    assert len(r["scene"]["source_view_ids"]) == 6 and r["scene"]["lod"] is None  # a given budget: nothing chosen
+    code, _, err = run_cli([*bench, "--realtime", "--out", out])
+    assert code == 0, err[-2000:]
+    r = json.loads(out.read_text())  # the budget the videos draw: below 50,000 faces nothing smaller to measure
+    assert r["scene"]["lod"]["rows"] == [] and r["scene"]["faces_drawn"] == r["scene"]["faces"]
     code, _, err = run_cli(["bench", "--quick", "--scene", scene_dir])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "--mesh" in err
 
