@@ -13,14 +13,15 @@ def test_section_gives_each_arm_against_the_control_of_its_budget(tmp_path):
     assert section(tmp_path) is None  # no results: no section
     r = json.loads(RESULTS.read_text())
     budget, probe = max(r["probes"].items(), key=lambda kv: float(kv[0]))
-    probe["arms"]["black"]["means"]["black"] = probe["arms"]["white"]["means"]["black"] + 1.25  # a planted change
+    arm = next(a for a in probe["arms"] if a != "white")  # the longest probe's first arm beside the control
+    probe["arms"][arm]["means"]["black"] = probe["arms"]["white"]["means"]["black"] + 1.25  # a planted change
     (tmp_path / "train_background.json").write_text(json.dumps(r))
     text = section(tmp_path)
     header = next(line for line in text.splitlines() if line.startswith("| scene"))
     cols = [c.strip() for c in header.strip("|").split("|")]
     row = next(line for line in text.splitlines() if line.startswith("| **mean: lego and chair on black**"))
     cells = [c.strip() for c in row.strip("|").split("|")]
-    black = cells[cols.index(f"black, {budget} CPU-s")]
+    planted = cells[cols.index(f"{arm}, {budget} CPU-s")]
     control = cells[cols.index(f"white (control), {budget} CPU-s")]
-    assert black.endswith("(+1.25)") and "(" not in control, (black, control)
+    assert planted.endswith("(+1.25)") and "(" not in control, (planted, control)
     assert len(cells) == len(cols) and f"{budget} CPU-s per arm:" in text
