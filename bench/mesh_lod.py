@@ -138,7 +138,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
 def run_scene(name: str, model, args) -> dict | None:
     import torch
 
-    from omnirecon.engine.lod import choose_face_budget
+    from omnirecon.engine.lod import choose_level_of_detail
     from omnirecon.engine.scenes import load_at_resolution, photo_side
     from omnirecon.mesh.files import read_mesh
     from omnirecon.mesh.ibr import realtime_setting
@@ -156,7 +156,7 @@ def run_scene(name: str, model, args) -> dict | None:
     scene = load_at_resolution(path, side)
     mesh = read_mesh(mesh_file, scene.to_input)
     setting = realtime_setting(scene)
-    lod = choose_face_budget(model, mesh, scene, setting, scene.splits.get("train") or list(range(len(scene))))
+    lod = choose_level_of_detail(model, mesh, scene, setting, scene.splits.get("train") or list(range(len(scene))))
     print(name, lod.line(), flush=True)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
     rows = []  # the reference path first
@@ -165,6 +165,11 @@ def run_scene(name: str, model, args) -> dict | None:
     for budget, grid, shader in dict.fromkeys(runs):
         rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader))
         print(name, rows[-1], flush=True)
+    if lod.sources is not None:  # the chosen level of detail as the videos draw it: its budget and fewer sources
+        for shader in args.shader:
+            rows.append({**measure_budget(model, mesh, scene, lod.setting(setting), lod.face_budget, args.grid, side,
+                                          args, shader), "sources": lod.sources})
+            print(name, rows[-1], flush=True)
     full = rows[0]
     for r in rows:
         r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
@@ -173,7 +178,8 @@ def run_scene(name: str, model, args) -> dict | None:
     return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
             "scored_resolution": [scene.width, scene.height],
             "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows,
-            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "rows": lod.rows, "views": lod.views,
+            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
+                    "views": lod.views,
                     "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
 
 

@@ -1,4 +1,4 @@
-"""The real-time mesh path's level of detail, chosen per mesh by measurement: :func:`choose_face_budget`.
+"""The real-time mesh path's level of detail, chosen per mesh by measurement: :func:`choose_level_of_detail`.
 
 Every face the depth pass draws costs CPU time on llvmpipe whether or not it is bigger than a pixel, while how many
 faces a mesh can lose before its images change depends on the mesh (a room's walls lose little, a fern's leaves a lot).
@@ -7,6 +7,11 @@ So the budget is measured, not fixed: a few of the photos are left out of the so
 at each smaller candidate budget, and the smallest budget whose PSNR on those photos is at most ``tolerance_db`` below
 the ceiling's is kept. The ceiling is the budget the path drew before the choice, so the choice never draws more
 faces than that and never loses more than ``tolerance_db`` on the photos it was measured on.
+
+The network blend's work per pixel grows with the sources it blends (each one projected, tested for occlusion, its
+features fetched and run through the appearance MLP), so at the chosen budget fewer sources per frame
+(:data:`LOD_SOURCES`) are measured the same way, against the same ceiling row: the fewest within ``tolerance_db`` of it
+are blended. The angle blend ranks each tile's candidates and blends a fixed few already; its sources are left alone.
 """
 
 from __future__ import annotations
@@ -20,20 +25,25 @@ LOD_BUDGETS = (100_000, 50_000)
 """Candidate face budgets below the ceiling (:data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`), largest first."""
 LOD_TOLERANCE_DB = 0.2
 """PSNR (dB) a smaller budget may lose against the ceiling on the left-out photos and still be chosen."""
+LOD_SOURCES = (4, 3)
+"""Candidate source counts per frame of the network blend below the setting's (``setting["sources"]``), most first."""
 LOD_VIEWS = 3
 """Photos left out of the sources and rendered per budget (spread over the capture's order)."""
 
 
 @dataclass
 class LodChoice:
-    """What :func:`choose_face_budget` measured and chose."""
+    """What :func:`choose_level_of_detail` measured and chose."""
 
     face_budget: int
     """The chosen budget (faces drawn at most; the mesh's own count when it has fewer)."""
     faces: int
     """Faces the chosen level of detail draws."""
+    sources: int | None = None
+    """Sources per frame the network blend takes (None: the setting's, unchanged)."""
     rows: list[dict] = field(default_factory=list)
-    """Per measured budget: ``{"budget", "faces", "psnr"}`` (dB, mean over the left-out photos), the ceiling first."""
+    """Per measured level: ``{"budget", "faces", "sources", "psnr"}`` (PSNR in dB, mean over the left-out photos; sources
+    0: every photo), the ceiling first."""
     views: list[int] = field(default_factory=list)
     """The left-out photos (scene view indices)."""
     seconds: float = 0.0
@@ -41,11 +51,20 @@ class LodChoice:
     tolerance_db: float = LOD_TOLERANCE_DB
     """The PSNR (dB) a smaller budget was allowed to lose."""
 
+    def setting(self, setting: dict) -> dict:
+        """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame."""
+        return setting if self.sources is None else {**setting, "sources": self.sources}
+
     def line(self) -> str:
-        """One line for a run's output: the chosen budget and each measured budget's PSNR."""
-        scores = ", ".join(f"{r['faces']:,} faces {r['psnr']:.2f} dB" for r in self.rows)
-        return (f"level of detail: {self.faces:,} faces drawn (the smallest within {self.tolerance_db:g} dB of the largest "
-                f"on {len(self.views)} photos left out of the sources: {scores}; {self.seconds:.1f} s)")
+        """One line for a run's output: what is drawn and each measured level's PSNR."""
+        scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
+        blended = f", {self.sources} sources per frame" if self.sources is not None else ""
+        return (f"level of detail: {self.faces:,} faces drawn{blended} (the least work within {self.tolerance_db:g} dB "
+                f"of the most on {len(self.views)} photos left out of the sources: {scores}; {self.seconds:.1f} s)")
+
+
+def _sources(row: dict) -> str:
+    return f" x {row['sources']} sources" if row.get("sources") else ""
 
 
 def left_out_views(train: list[int], count: int) -> list[int]:
@@ -56,11 +75,12 @@ def left_out_views(train: list[int], count: int) -> list[int]:
     return [train[int(step * (i + 0.5))] for i in range(count)]
 
 
-def choose_face_budget(model, mesh, scene, setting: dict, train: list[int], budgets=LOD_BUDGETS,
-                       tolerance_db: float = LOD_TOLERANCE_DB, views: int = LOD_VIEWS,
-                       ceiling: int | None = None) -> LodChoice:
-    """The smallest face budget of ``budgets`` (and the ceiling) whose mean PSNR on ``views`` left-out photos of
-    ``train`` is within ``tolerance_db`` of the ceiling's (module docstring).
+def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], budgets=LOD_BUDGETS,
+                           sources=LOD_SOURCES, tolerance_db: float = LOD_TOLERANCE_DB, views: int = LOD_VIEWS,
+                           ceiling: int | None = None) -> LodChoice:
+    """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
+    frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` of the
+    ceiling's at the setting's sources (module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -81,28 +101,41 @@ def choose_face_budget(model, mesh, scene, setting: dict, train: list[int], budg
     top = n_faces if ceiling <= 0 else min(ceiling, n_faces)
     chosen = LodChoice(face_budget=ceiling, faces=top, tolerance_db=tolerance_db)
     left = left_out_views(train, min(views, len(train) - 1))  # at least one photo stays a source
+    pool = [t for t in train if t not in left]  # no left-out photo is a source: one source set (one encoding) for all
+    k0 = min(setting["sources"] or len(pool), len(pool))
     smaller = [b for b in budgets if 0 < b < top]
-    if not left or not smaller:
+    fewer = [k for k in sources if k < k0] if setting["blend"] == "network" and setting["sources"] else []
+    if not left or not (smaller or fewer):
         chosen.seconds = round(time.perf_counter() - start, 2)
         return chosen  # nothing to measure against, or nothing smaller to try
-    pool = [t for t in train if t not in left]  # no left-out photo is a source: one source set (one encoding) for all
-    k = min(setting["sources"] or len(pool), len(pool))
-    picks = {v: sorted(select_sources(scene, scene.cameras[v], pool, k)) for v in left}
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
-    encodings: dict = {}  # each left-out photo's sources encoded once, for every budget
-    for budget in [ceiling, *smaller]:
-        drawn = level_of_detail(mesh, budget)
+    encodings: dict = {}  # each set of sources encoded once, for every budget
+
+    def score(drawn, k: int) -> float:  # mean PSNR of the left-out photos, each from its k nearest of the pool
         scores = []
         with ViewCache(model, drawn, scene, video_options(setting, bg, face_budget=0), encodings) as cache:
             for v in left:
-                with cache.renderer(picks[v]) as r, torch.inference_mode():
+                with cache.renderer(sorted(select_sources(scene, scene.cameras[v], pool, k))) as r, \
+                        torch.inference_mode():
                     rgb = r.render(scene.cameras[v].to(dtype=torch.float32), extras=False)["rgb"].float().clamp(0, 1)
                 scores.append(metrics.psnr(rgb, scene.images[v].float()))
-        chosen.rows.append({"budget": budget, "faces": int(len(drawn[1])), "psnr": round(sum(scores) / len(scores), 3)})
+        return round(sum(scores) / len(scores), 3)
+
+    meshes = {}
+    for budget in [ceiling, *smaller]:
+        meshes[budget] = level_of_detail(mesh, budget)
+        chosen.rows.append({"budget": budget, "faces": int(len(meshes[budget][1])), "sources": setting["sources"],
+                            "psnr": score(meshes[budget], k0)})
     best = chosen.rows[0]["psnr"]
     for row in chosen.rows[1:]:
         if row["psnr"] >= best - tolerance_db:
             chosen.face_budget, chosen.faces = row["budget"], row["faces"]
+    for k in fewer:  # at the chosen budget, against the same ceiling row
+        row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k,
+               "psnr": score(meshes[chosen.face_budget], k)}
+        chosen.rows.append(row)
+        if row["psnr"] >= best - tolerance_db:
+            chosen.sources = k
     chosen.views = left
     chosen.seconds = round(time.perf_counter() - start, 2)
     return chosen

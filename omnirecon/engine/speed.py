@@ -46,7 +46,7 @@ from omnirecon.data import load_scene
 from omnirecon.data.io import write_json
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.engine.lod import choose_face_budget
+from omnirecon.engine.lod import choose_level_of_detail
 from omnirecon.engine.machine import DeviceConfig, ShippedCheckpoint, pick_device
 from omnirecon.engine.scenes import load_at_resolution, photo_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_folder
@@ -103,9 +103,9 @@ class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, Qu
     """Time the path the real-time videos take (``reconstruct``'s, ``demo``'s): the scene kind's blend, fill and sources
     (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking
     each chunk's candidates (`REALTIME_FRAME_GRID`), the network's over the 6 nearest elsewhere) with the occlusion test,
-    at the face budget they draw (:func:`omnirecon.engine.lod.choose_face_budget`: at most
-    :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`, fewer where left-out photos show no loss), instead of the paper's
-    network blend over --views sources without the test on the full mesh."""
+    at the face budget and sources they draw (:func:`omnirecon.engine.lod.choose_level_of_detail`: at most
+    :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, fewer faces and sources where left-out photos show no loss),
+    instead of the paper's network blend over --views sources without the test on the full mesh."""
     face_budget: int | None = None
     """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
     default: with --realtime the budget the videos draw, chosen per mesh on left-out photos, else 0)."""
@@ -217,11 +217,12 @@ def measure(cfg: BenchConfig) -> dict:
                    for i in held_out]
         by = "angle"
     setting = realtime_setting(scene) if args.realtime else None
+    lod = choose_level_of_detail(model, mesh, scene, setting, train) if args.realtime and args.face_budget is None else None
+    setting = lod.setting(setting) if lod else setting  # the sources per frame the videos blend
     count = (setting["sources"] or len(train)) if setting else args.views
     pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], min(count, len(train)), by=by)[0]
     views = [train[i] for i in pick.tolist()]
     sources = Sources.from_scene(scene, views).to(device)
-    lod = choose_face_budget(model, mesh, scene, setting, train) if args.realtime and args.face_budget is None else None
     budget = args.face_budget if args.face_budget is not None else (lod.face_budget if lod else 0)
     start = time.perf_counter()
     drawn = level_of_detail(mesh, budget)  # once, for every renderer below
@@ -288,7 +289,8 @@ def measure(cfg: BenchConfig) -> dict:
                                                  "mesh": str(args.mesh)}),
                   "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
-                  "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds},
+                  "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds,
+                                                   "sources": lod.sources},
                   "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),

@@ -310,7 +310,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
 
     from omnirecon.data.io import write_image  # lazy: demo --help stays fast
     from omnirecon.engine.checkpoint import load_checkpoint
-    from omnirecon.engine.lod import choose_face_budget
+    from omnirecon.engine.lod import choose_level_of_detail
     from omnirecon.engine.views import select_sources
     from omnirecon.mesh.ibr import realtime_setting
     from omnirecon.workflows.mesh import scene_frame_mesh
@@ -318,16 +318,16 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
 
     side = 128 if cfg.quick else 256
     scene, mesh = scene_frame_mesh(path, mesh_file, 128)
-    setting = realtime_setting(scene)  # each frame blends its nearest sources, as finetune scores (--nearest)
     train = scene.splits.get("train") or list(range(len(scene)))
     model, _ = load_checkpoint(ckpt)
+    lod = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), train)  # faces and sources: measured
+    lines.append(lod.line())
+    setting = lod.setting(realtime_setting(scene))  # each frame blends its nearest sources, as finetune scores
     frames = 8 if cfg.quick else 48
     cams = scene_camera_path(scene, "orbit", frames)
     cams = cams.rescaled(side / max(cams.width, cams.height))
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    lod = choose_face_budget(model, mesh, scene, setting, train)  # the faces drawn: measured per mesh
-    lines.append(lod.line())
     video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
                                                   setting=setting, face_budget=lod.face_budget)
     fps = 1.0 / statistics.median(times)
@@ -335,7 +335,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
-                            "faces_drawn": faces, "lod": {"face_budget": lod.face_budget, "rows": lod.rows,
+                            "faces_drawn": faces, "lod": {"face_budget": lod.face_budget, "sources": lod.sources, "rows": lod.rows,
                                                           "views": lod.views, "seconds": lod.seconds}, "away": away}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
                  f"faces drawn); {away['line']}")

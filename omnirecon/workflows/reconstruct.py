@@ -393,17 +393,17 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
     completion's fills are the faces from ``fill_from`` on), the first and the worst frame as pictures; returns
     ``{"scene", "cams", "video", "fps", "kind", "setting", "defects", "worst"}``."""
     from omnirecon.engine.extrapolation import user_path  # lazy: fast --help
-    from omnirecon.engine.lod import choose_face_budget
+    from omnirecon.engine.lod import choose_level_of_detail
     from omnirecon.mesh.ibr import realtime_setting
 
     scene, (model, _), mesh, out = cap.scene(), cap.model(), cap.meshes["scene"], cap.work
     train = scene.splits.get("train") or list(range(len(scene)))
     cams, kind = user_path(scene, train, cfg.frames)
-    setting = realtime_setting(scene, tuned)
+    lod = choose_level_of_detail(model, mesh, scene, realtime_setting(scene, tuned), train)  # measured per mesh
+    lines.append(lod.line())
+    setting = lod.setting(realtime_setting(scene, tuned))  # the sources per frame it chose
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    lod = choose_face_budget(model, mesh, scene, setting, train)  # the faces drawn: measured per mesh
-    lines.append(lod.line())
     video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting,
                                                   face_budget=lod.face_budget)
     defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
@@ -420,8 +420,8 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"{mean['fill']:.1%}, unseen {mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
-            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "rows": lod.rows, "views": lod.views,
-                    "seconds": lod.seconds},
+            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
+                    "views": lod.views, "seconds": lod.seconds},
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}
 

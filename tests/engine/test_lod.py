@@ -8,7 +8,7 @@ import trimesh
 
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
-from omnirecon.engine.lod import choose_face_budget, left_out_views
+from omnirecon.engine.lod import choose_level_of_detail, left_out_views
 from omnirecon.mesh.ibr import realtime_setting
 from omnirecon.models.registry import build_model
 
@@ -40,20 +40,40 @@ def test_the_smallest_budget_within_the_tolerance_is_chosen_and_a_ruinous_one_ne
     setting = realtime_setting(scene)
     full = len(mesh.faces)
     keep = full // 4
-    choice = choose_face_budget(model, mesh, scene, setting, train, budgets=(keep, 4000), tolerance_db=1.0,
-                                ceiling=0)
+    choice = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(keep, 4000), sources=(),
+                                    tolerance_db=1.0, ceiling=0)
     assert [r["budget"] for r in choice.rows] == [0, keep, 4000]
     assert choice.rows[0]["faces"] == full and choice.rows[2]["faces"] <= 4000
     assert choice.rows[2]["psnr"] < choice.rows[0]["psnr"] - 1.0  # the ruinous budget shows in the score
     assert choice.face_budget == keep and choice.faces <= keep, choice.rows
     assert choice.rows[1]["psnr"] >= choice.rows[0]["psnr"] - 1.0
     assert len(choice.views) == 3 and choice.line().startswith(f"level of detail: {choice.faces:,} faces drawn")
-    strict = choose_face_budget(model, mesh, scene, setting, train, budgets=(4000,), tolerance_db=0.0, ceiling=0)
+    strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(4000,), sources=(),
+                                    tolerance_db=0.0, ceiling=0)
     assert strict.face_budget == 0 and strict.faces == full
 
 
 def test_nothing_is_measured_where_nothing_is_smaller(setup):
     scene, mesh, model = setup
-    choice = choose_face_budget(model, mesh, scene, realtime_setting(scene), list(range(len(scene))),
-                                budgets=(10 * len(mesh.faces),), ceiling=0)
+    choice = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), list(range(len(scene))),
+                                    budgets=(10 * len(mesh.faces),), sources=(), ceiling=0)
     assert choice.rows == [] and choice.face_budget == 0 and choice.faces == len(mesh.faces)
+    assert choice.setting(realtime_setting(scene)) == realtime_setting(scene)  # nothing chosen: the setting as it was
+
+
+def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
+    """Fewer sources per frame are measured at the chosen budget against the ceiling row: with a tolerance no loss can
+    reach every count passes and the fewest is chosen; with none, only a count that loses nothing would be; the angle
+    blend's sources are never changed."""
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    assert setting["blend"] == "network" and setting["sources"] == 6
+    loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), tolerance_db=100.0)
+    assert [(r["faces"], r["sources"]) for r in loose.rows] == [(loose.faces, 6), (loose.faces, 4), (loose.faces, 3)]
+    assert loose.sources == 3 and loose.setting(setting)["sources"] == 3 and " 3 sources per frame" in loose.line()
+    strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), tolerance_db=-1.0)
+    assert strict.sources is None and strict.setting(setting) == setting
+    angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
+                                   sources=(4, 3), tolerance_db=100.0)
+    assert angle.rows == [] and angle.sources is None
