@@ -122,11 +122,12 @@ def record_stage(run: Path, stage: dict) -> None:
 
 
 def stage_commands(model: str, run: Path, cpu_budget: float, steps: int, threads: int) -> list[str]:
-    """The ``train_tiny.py`` invocations that produced the run, in order."""
+    """The ``train_tiny.py`` invocations that produced the run, in order (a stage that ran another command, e.g. an arm
+    of ``python -m bench train_background``, records it verbatim as ``command``)."""
     path = run / "stages.json"
     stages = json.loads(path.read_text()) if path.is_file() else \
         [{"cpu_budget": cpu_budget, "steps": steps, "threads": threads, "from_step": 0}]
-    return [f"python -m bench train_tiny --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
+    return [st["command"] if "command" in st else f"python -m bench train_tiny --model {model} --cpu-budget {st['cpu_budget']:g} --steps {st['steps']} "
             f"--threads {st['threads']}" + (f" --stop-at {st['stop_at']}" if st.get("stop_at") else "")
             + (" --num-views-range {} {}".format(*st["num_views_range"]) if st.get("num_views_range") else "")
             + "".join(f" --{o.replace('=', ' ', 1)}" for o in st.get("model_overrides", []))
