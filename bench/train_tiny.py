@@ -145,13 +145,19 @@ def parent_stages(parent: dict | None) -> list[tuple[str, dict]]:
 
 
 def parent_card(run: Path) -> dict | None:
-    """The card of the checkpoint a warm-started run began from (``--init`` of its first stage), or None."""
+    """The card of the checkpoint a warm-started run began from (``--init`` of its first stage), or None. Kept in the
+    run as ``parent_card.json`` when first read: once the run ships into the same folder, the folder's card is the
+    run's own, and reading it as the parent would count the parent's steps twice."""
     path = run / "stages.json"
     stages = json.loads(path.read_text()) if path.is_file() else []
     if not stages or "init" not in stages[0]:
         return None
+    kept = run / "parent_card.json"
+    if kept.is_file():
+        return {"init": stages[0]["init"], **json.loads(kept.read_text())}
     card_file = ROOT / stages[0]["init"] / "card.json"
     card = json.loads(card_file.read_text()) if card_file.is_file() else {}
+    kept.write_text(json.dumps(card, indent=1))
     return {"init": stages[0]["init"], **card}
 
 
@@ -245,7 +251,7 @@ def ship(model: str, run: Path, cpu_budget: float, threads: int, steps: int, des
     card = {
         "model": model, "steps": base_steps + meta["step"], "cpu_seconds": base_cpu + meta["extra"].get("cpu_s", 0.0),
         "wall_seconds": (parent.get("wall_seconds") or 0.0 if parent else 0.0) + meta["extra"].get("elapsed_s", 0.0),
-        "cpu_budget_s": cpu_budget, "threads": threads,
+        "cpu_budget_s": (parent.get("cpu_budget_s") or 0.0 if parent else 0.0) + cpu_budget, "threads": threads,
         "resolution": RESOLUTION, "seed": SEED,
         "data": {"procedural": SYNTH, "real": REAL, "weights": weights(real_weight)},
         **({"warm_start": {"from": parent["init"], "steps": base_steps, "cpu_seconds": base_cpu,

@@ -59,7 +59,7 @@ def test_agreeing_pairs_give_the_similarity():
     a, b, relative = scene(S, Q, U)
     got = join.decide(candidates(a, b, relative, PAIRS), len(PAIRS))
     assert got.accepted and got.consensus["views"] == 4
-    assert join.angle_deg(got.rotation @ Q.T) < 1e-6
+    assert join.angle_deg(got.rotation @ Q.T) < 1e-4  # the angle from the trace: float64 resolves ~1e-6 degrees
     assert abs(got.scale - S) < 1e-6 and np.allclose(got.translation, U, atol=1e-6)
 
 
