@@ -19,9 +19,12 @@ def section(results: Path) -> str | None:
            "| preset | budget (CPU s) | steps reached | CPU s used | wall s | threads | resolution | "
            "train PSNR first -> last log | stages |", "|---|---|---|---|---|---|---|---|---|"]
     for c in cards:
+        parent = c.get("warm_start") or {}  # a warm start: its parent's stages come first
+        first = (parent.get("curve") or {}).get("train") or [[0, c["train_psnr_first"]]]
         out.append(f"| {c['model']} | {c['cpu_budget_s']:.0f} | {c['steps']} | {c['cpu_seconds']:.0f} | "
                    f"{c['wall_seconds']:.0f} | {c['threads']} | {c['resolution']}² | "
-                   f"{c['train_psnr_first']:.2f} -> {c['train_psnr_last']:.2f} | {len(c.get('stages', [1]))} |")
+                   f"{first[0][1]:.2f} -> {c['train_psnr_last']:.2f} | "
+                   f"{len(parent.get('stages') or []) + len(c.get('stages', [1]))} |")
     weights = {c["model"]: c["data"]["weights"] for c in cards}
     same = all(w == weights[cards[0]["model"]] for w in weights.values())
     out += ["", "Data: " + ", ".join(cards[0]["data"]["procedural"] + cards[0]["data"]["real"])
