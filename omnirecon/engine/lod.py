@@ -10,8 +10,10 @@ faces than that and never loses more than ``tolerance_db`` on the photos it was 
 
 The network blend's work per pixel grows with the sources it blends (each one projected, tested for occlusion, its
 features fetched and run through the appearance MLP), so at the chosen budget fewer sources per frame
-(:data:`LOD_SOURCES`) are measured the same way, against the same ceiling row: the fewest within ``tolerance_db`` of it
-are blended. The angle blend ranks each tile's candidates and blends a fixed few already; its sources are left alone.
+(:data:`LOD_SOURCES`) are measured the same way, against the same ceiling row, and the fewest that lose nothing there
+(:data:`LOD_SOURCES_TOLERANCE_DB`) are blended: the left-out photos judge a source count less surely than a face
+budget (their pool is sparser than the path's: BENCHMARKS "Real-time mesh path: level of detail"). The angle blend
+ranks each tile's candidates and blends a fixed few already; its sources are left alone.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ LOD_TOLERANCE_DB = 0.2
 """PSNR (dB) a smaller budget may lose against the ceiling on the left-out photos and still be chosen."""
 LOD_SOURCES = (4, 3)
 """Candidate source counts per frame of the network blend below the setting's (``setting["sources"]``), most first."""
+LOD_SOURCES_TOLERANCE_DB = 0.0
+"""PSNR (dB) fewer sources may lose against the ceiling on the left-out photos and still be chosen: none."""
 LOD_VIEWS = 3
 """Photos left out of the sources and rendered per budget (spread over the capture's order)."""
 
@@ -59,8 +63,9 @@ class LodChoice:
         """One line for a run's output: what is drawn and each measured level's PSNR."""
         scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
-        return (f"level of detail: {self.faces:,} faces drawn{blended} (the least work within {self.tolerance_db:g} dB "
-                f"of the most on {len(self.views)} photos left out of the sources: {scores}; {self.seconds:.1f} s)")
+        return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
+                f"of the most, the fewest sources that lose nothing, on {len(self.views)} photos left out of the "
+                f"sources: {scores}; {self.seconds:.1f} s)")
 
 
 def _sources(row: dict) -> str:
@@ -77,10 +82,11 @@ def left_out_views(train: list[int], count: int) -> list[int]:
 
 def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], budgets=LOD_BUDGETS,
                            sources=LOD_SOURCES, tolerance_db: float = LOD_TOLERANCE_DB, views: int = LOD_VIEWS,
-                           ceiling: int | None = None) -> LodChoice:
+                           ceiling: int | None = None,
+                           sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
-    frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` of the
-    ceiling's at the setting's sources (module docstring).
+    frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
+    sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -134,7 +140,7 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
         row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k,
                "psnr": score(meshes[chosen.face_budget], k)}
         chosen.rows.append(row)
-        if row["psnr"] >= best - tolerance_db:
+        if row["psnr"] >= best - sources_tolerance_db:
             chosen.sources = k
     chosen.views = left
     chosen.seconds = round(time.perf_counter() - start, 2)

@@ -63,17 +63,22 @@ def test_nothing_is_measured_where_nothing_is_smaller(setup):
 
 def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     """Fewer sources per frame are measured at the chosen budget against the ceiling row: with a tolerance no loss can
-    reach every count passes and the fewest is chosen; with none, only a count that loses nothing would be; the angle
-    blend's sources are never changed."""
+    reach every count passes and the fewest is chosen; with a negative one none; by default only a count that loses
+    nothing on the left-out photos; the angle blend's sources are never changed."""
     scene, mesh, model = setup
     train = list(range(len(scene)))
     setting = realtime_setting(scene)
     assert setting["blend"] == "network" and setting["sources"] == 6
-    loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), tolerance_db=100.0)
+    loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
+                                   sources_tolerance_db=100.0)
     assert [(r["faces"], r["sources"]) for r in loose.rows] == [(loose.faces, 6), (loose.faces, 4), (loose.faces, 3)]
     assert loose.sources == 3 and loose.setting(setting)["sources"] == 3 and " 3 sources per frame" in loose.line()
-    strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), tolerance_db=-1.0)
+    strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
+                                    sources_tolerance_db=-1.0)
     assert strict.sources is None and strict.setting(setting) == setting
     angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
-                                   sources=(4, 3), tolerance_db=100.0)
+                                   sources=(4, 3), sources_tolerance_db=100.0)
     assert angle.rows == [] and angle.sources is None
+    default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3))
+    by_rule = [r["sources"] for r in default.rows[1:] if r["psnr"] >= default.rows[0]["psnr"]]  # lose nothing
+    assert default.sources == (by_rule[-1] if by_rule else None), default.rows
