@@ -61,6 +61,8 @@ class LodChoice:
 
     def line(self) -> str:
         """One line for a run's output: what is drawn and each measured level's PSNR."""
+        if not self.rows:
+            return f"level of detail: {self.faces:,} faces drawn (nothing smaller to measure)"
         scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "

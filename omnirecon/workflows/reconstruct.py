@@ -391,7 +391,8 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
     arc and past its ends, or the walk) through the tuned mesh path, blended as ``tuned`` (the finetune record) scored
     (:func:`~omnirecon.mesh.ibr.realtime_setting`); each frame's defect shares (:mod:`omnirecon.mesh.defects`;
     completion's fills are the faces from ``fill_from`` on), the first and the worst frame as pictures; returns
-    ``{"scene", "cams", "video", "fps", "kind", "setting", "defects", "worst"}``."""
+    ``{"scene", "cams", "video", "fps", "lod", "kind", "setting", "defects", "worst"}`` (``lod``: the faces and sources
+    drawn, :func:`~omnirecon.engine.lod.choose_level_of_detail`)."""
     from omnirecon.engine.extrapolation import user_path  # lazy: fast --help
     from omnirecon.engine.lod import choose_level_of_detail
     from omnirecon.mesh.ibr import realtime_setting

@@ -58,6 +58,7 @@ def test_nothing_is_measured_where_nothing_is_smaller(setup):
     choice = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), list(range(len(scene))),
                                     budgets=(10 * len(mesh.faces),), sources=(), ceiling=0)
     assert choice.rows == [] and choice.face_budget == 0 and choice.faces == len(mesh.faces)
+    assert choice.line() == f"level of detail: {len(mesh.faces):,} faces drawn (nothing smaller to measure)"
     assert choice.setting(realtime_setting(scene)) == realtime_setting(scene)  # nothing chosen: the setting as it was
 
 
