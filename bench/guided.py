@@ -2,14 +2,15 @@
 
     python -m bench guided                                  # 504-px long side, every shipped tiny model
     python -m bench guided --side 252 --models ibrnet-tiny --settings '{}' '{"band_samples": 12}'
+    python -m bench guided --threads 2 --out bench/results/guided_2threads.json   # wall seconds on both cores
 
 For each shipped tiny checkpoint and each scene (fern, and one held-out procedural forward-facing scene
 generated at ``--side``), one novel view (the protocol's first target, rendered from its ``--k`` nearest pool
 views) is rendered by the full path (what ``omnirecon render`` runs without ``--guided.on``: the checkpoint's own
 render options) and by the guided path with each ``--settings`` entry (``GuidedOptions`` fields over their
 defaults; the prior is the model's own render at ``1 / prior_scale`` size, included in its time). Reported: process
-CPU seconds of each render on one thread (encode apart), PSNR of each against the ground truth and of the guided
-render against the full one, and the share of pixels guided. Writes ``bench/results/guided.json`` with a
+CPU seconds and wall seconds of the encode and of each render at ``--threads`` torch threads (1 by default), PSNR of
+each against the ground truth and of the guided render against the full one, and the share of pixels guided. Writes ``bench/results/guided.json`` with a
 provenance header and the load average beside every row (``--out``: another ``guided*.json``, e.g. one per
 scene run in parallel; the page shows each).
 """
@@ -67,10 +68,11 @@ def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 def timed(fn):
-    t0 = time.process_time()
+    """(process CPU-s, wall s, ``fn()``) under ``no_grad``."""
+    t0, w0 = time.process_time(), time.perf_counter()
     with torch.no_grad():
         out = fn()
-    return round(time.process_time() - t0, 2), out
+    return round(time.process_time() - t0, 2), round(time.perf_counter() - w0, 2), out
 
 
 def measure(model_name: str, scene_name: str, scene, target: int, sources: list[int], cam, gt, settings: list[dict]
@@ -81,16 +83,18 @@ def measure(model_name: str, scene_name: str, scene, target: int, sources: list[
 
     model, meta = load_checkpoint(ROOT / "checkpoints" / model_name)
     model.eval()
-    enc_s, feats = timed(lambda: model.encode(Sources.from_scene(scene, sources)))
-    full_s, full = timed(lambda: model.render_view(feats, cam)["rgb"])
+    enc_s, enc_wall, feats = timed(lambda: model.encode(Sources.from_scene(scene, sources)))
+    full_s, full_wall, full = timed(lambda: model.render_view(feats, cam)["rgb"])
     base = {"model": model_name, "weights": f"checkpoints/{model_name} step {meta['step']}", "scene": scene_name,
-            "size": [cam.width, cam.height], "target": target, "sources": sources, "encode_cpu_s": enc_s,
-            "full_cpu_s": full_s, "psnr_full": psnr(full, gt)}
+            "size": [cam.width, cam.height], "target": target, "sources": sources, "threads": torch.get_num_threads(),
+            "encode_cpu_s": enc_s, "encode_wall_s": enc_wall, "full_cpu_s": full_s, "full_wall_s": full_wall,
+            "psnr_full": psnr(full, gt)}
     rows = []
     for spec in settings:
         options = dataclasses.replace(GuidedOptions(on=True), **spec)
-        g_s, out = timed(lambda: render_guided(model, feats, cam, options))
+        g_s, g_wall, out = timed(lambda: render_guided(model, feats, cam, options))
         row = {**base, "setting": spec, "options": dataclasses.asdict(options.resolved(model)), "guided_cpu_s": g_s,
+               "guided_wall_s": g_wall,
                "speedup": round(full_s / g_s, 2), "psnr_guided": psnr(out["rgb"], gt),
                "psnr_guided_vs_full": psnr(out["rgb"], full), "guided_share": round(float(out["guided"].float().mean()), 4),
                "loadavg": [round(x, 2) for x in os.getloadavg()]}
@@ -107,15 +111,18 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--k", type=int, default=3, help="source views")
     parser.add_argument("--settings", nargs="+", default=["{}"], help="GuidedOptions overrides, one JSON object each")
     parser.add_argument("--scenes", nargs="+", default=None, help="only these scene names (fern, synth_forward_...)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads of the encode and the renders (wall seconds are recorded beside CPU-s)")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "guided.json",
                         help="results file; the page shows every bench/results/guided*.json")
     args = parser.parse_args(argv)
     from omnirecon.data.io import write_json
     from omnirecon.provenance import provenance
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
     settings = [json.loads(s) for s in args.settings]
-    result = {"provenance": provenance(seed=0, threads=1), "side": args.side, "k": args.k, "settings": settings,
+    result = {"provenance": provenance(seed=0, threads=args.threads), "threads": args.threads, "side": args.side,
+              "k": args.k, "settings": settings,
               "loadavg_start": [round(x, 2) for x in os.getloadavg()], "rows": []}
     for name, path in scenes(args.side):
         if args.scenes and name not in args.scenes:

@@ -1,6 +1,6 @@
 """Level of detail of the real-time mesh path: frame time and held-out PSNR per face budget on the meshes users get.
 
-    python -m bench mesh_lod                                  # fox, fern, the demo scene, lund when posed
+    python -m bench mesh_lod                                  # fox, fern, the demo scene, lund
     python -m bench mesh_lod --scenes fox --mesh fox=/tmp/fox.ply --budgets 0 200000 100000
 
 Per scene: the mesh ``reconstruct`` builds (``omnirecon mesh --ckpt checkpoints/omnirecon-tiny --views all``,
@@ -38,20 +38,31 @@ ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 SCENES = {"fox": "instant_ngp/fox", "fern": "llff/fern", "demo": None, "lund": None}
 LUND = ROOT / "outputs" / "cache" / "extrapolation" / "lund_scene"
-"""The street photos posed as ``python -m bench extrapolation`` poses them (its cache; not posed here: that takes COLMAP)."""
+"""The street photos posed as ``python -m bench extrapolation`` poses them (its cache, when it is there)."""
+LUND_PHOTOS = SHARED / "photos" / "lund"
 BUDGETS = (0, 300_000, 200_000, 100_000, 50_000)
 DEMO_SIDE = 256
 
 
 def scene_path(name: str, work: Path) -> Path | None:
-    """The scene folder of ``name`` (the demo's procedural scene generated into ``work``; lund only when posed)."""
+    """The scene folder of ``name`` (the demo's procedural scene generated into ``work``; lund: the extrapolation
+    bench's posed copy when it is cached, else the photos posed into ``work`` as ``reconstruct`` poses them, i.e.
+    ``omnirecon process`` with its defaults at 2 threads; None without the photos)."""
     if name == "demo":
         from omnirecon.data.synth.generate import SynthOptions, generate_scene
         from omnirecon.workflows.demo import DEMO_SEED
 
         return generate_scene(work / "demo_scene", DEMO_SEED, SynthOptions(rig="object", views=24, resolution=128))
     if name == "lund":
-        return LUND if LUND.is_dir() else None
+        if LUND.is_dir():
+            return LUND
+        posed = work / "lund_scene"
+        if not (posed / "sparse").is_dir() and LUND_PHOTOS.is_dir():
+            from omnirecon.capture.colmap_sfm import SfmOptions
+            from omnirecon.capture.process import process
+
+            process(LUND_PHOTOS, posed, SfmOptions(threads=2), overwrite=True)
+        return posed if (posed / "sparse").is_dir() else None
     return SHARED / SCENES[name]
 
 
@@ -147,7 +158,7 @@ def run_scene(name: str, model, args) -> dict | None:
     work.mkdir(parents=True, exist_ok=True)
     path = scene_path(name, work)
     if path is None:
-        print(f"{name}: no posed scene at {LUND}; left out")
+        print(f"{name}: no photos at {LUND_PHOTOS}; left out")
         return None
     given = dict(m.split("=", 1) for m in args.mesh)
     mesh_file = Path(given[name]) if name in given else build_mesh(path, work / f"{name}.ply", 1)
