@@ -52,11 +52,13 @@ BETTER = 0.1
 background rows to be called better (the bar of the warm-start section)."""
 
 
-def run_dir(arm: str, budget: float) -> Path:
-    return ROOT / "outputs" / "train" / f"background_{arm}_{budget:g}cpu"
+def run_dir(arm: str, budget: float, prefix: str = "background") -> Path:
+    """The run of arm ``arm`` at ``budget`` CPU-s (``prefix``: ``continue<step>`` for a run from the checkpoint
+    shipped at that step, ``--continue-shipped``)."""
+    return ROOT / "outputs" / "train" / f"{prefix}_{arm}_{budget:g}cpu"
 
 
-def train_cmd(arm: str, budget: float) -> list[str]:
+def train_cmd(arm: str, budget: float, prefix: str = "background") -> list[str]:
     real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
     synth = [f"synth:{r}:{SYNTH_SCENES}" for r in SYNTH]
     s = SETTINGS
@@ -68,36 +70,36 @@ def train_cmd(arm: str, budget: float) -> list[str]:
            "--switch-every", str(s["switch_every"]), "--scenes-in-memory", str(s["scenes_in_memory"]),
            "--cpu-budget", str(budget), "--threads", "1", "--seed", str(SEED), "--synth-scenes", str(SYNTH_SCENES),
            "--cache", str(CACHE), "--resolution", "64", "--val-every", "0", "--ckpt-every", "0", "--log-every", "1",
-           "--out", str(run_dir(arm, budget)), "--no-progress"]
-    if (run_dir(arm, budget) / "checkpoints" / "latest").exists():
+           "--out", str(run_dir(arm, budget, prefix)), "--no-progress"]
+    if (run_dir(arm, budget, prefix) / "checkpoints" / "latest").exists():
         cmd.append("--resume")
     return cmd
 
 
-def command(arm: str, budget: float) -> str:
+def command(arm: str, budget: float, prefix: str = "background") -> str:
     """Arm ``arm``'s training command as a user types it from the checkout (no ``--resume``)."""
-    cmd = ["python", *train_cmd(arm, budget)[1:]]
+    cmd = ["python", *train_cmd(arm, budget, prefix)[1:]]
     text = " ".join(c for c in cmd if c != "--resume")
     return text.replace(str(SHARED), "../shared/data").replace(str(ROOT) + "/", "")
 
 
-def train(arm: str, budget: float) -> None:
+def train(arm: str, budget: float, prefix: str = "background") -> None:
     """Train arm ``arm`` to ``budget`` process CPU-s (resuming a cut run, or a copy of the arm's longest shorter
     run); procedural scenes are generated first."""
     from bench.train_levers import prepare
 
-    out = run_dir(arm, budget)
+    out = run_dir(arm, budget, prefix)
     final = out / "checkpoints" / "final"
     if final.is_dir() and json.loads((final / "meta.json").read_text())["extra"]["cpu_s"] >= budget - 1:
         return
-    shorter = sorted((float(d.name.rsplit("_", 1)[1][:-3]), d) for d in out.parent.glob(f"background_{arm}_*cpu")
+    shorter = sorted((float(d.name.rsplit("_", 1)[1][:-3]), d) for d in out.parent.glob(f"{prefix}_{arm}_*cpu")
                      if (d / "checkpoints" / "final").is_dir())
     shorter = [d for b, d in shorter if b < budget]
     if shorter and not out.exists():
         shutil.copytree(shorter[-1], out, symlinks=True)
         shutil.copy(shorter[-1].with_suffix(".log"), out.with_suffix(".log"))
     prepare(64, False)  # before the clock starts
-    cmd = train_cmd(arm, budget)
+    cmd = train_cmd(arm, budget, prefix)
     print(" ".join(cmd), flush=True)
     log = out.with_suffix(".log")
     log.parent.mkdir(parents=True, exist_ok=True)
@@ -200,6 +202,10 @@ def main(argv: list[str] | None = None) -> None:
                    help="score checkpoints again (else a checkpoint already scored, same step and CPU-s, keeps its scores)")
     p.add_argument("--shipped", action="store_true", help="score the parent checkpoint again (else once)")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the scoring")
+    p.add_argument("--continue-shipped", action="store_true",
+                   help="train the control arm --cpu-budget more CPU-s from the checkpoint shipped now (its run: "
+                        "outputs/train/continue<step>_white_<budget>cpu), score it beside that checkpoint and record "
+                        "both under 'continued' (a candidate for the next ship: bench train_tiny --reship)")
     a = p.parse_args(argv)
     import torch
 
@@ -210,6 +216,10 @@ def main(argv: list[str] | None = None) -> None:
     result = json.loads(dest.read_text()) if dest.is_file() else {}
     scenes = validation_scenes()
     roles = {name: role for name, role, _ in scenes}
+    if a.continue_shipped:
+        result.setdefault("continued", {})[f"{a.cpu_budget:g}"] = continued(a.cpu_budget, a.eval_only, scenes, roles)
+        write(dest, result)
+        return
     if a.shipped or "shipped" not in result:
         meta = json.loads((PARENT / "meta.json").read_text())
         s = score(PARENT, scenes)
@@ -248,9 +258,38 @@ def main(argv: list[str] | None = None) -> None:
         "--cpu-budget 1 ", "--cpu-budget <budget> ").replace("--real-background ARM", "--real-background <arm>")
     result.update(roles=roles, settings=SETTINGS, parent=str(PARENT.relative_to(ROOT)), command=template,
                   provenance=provenance(SEED))
+    write(dest, result)
+    print(probe["verdict"])
+    print(f"wrote {dest} (the table: python -m bench page --reuse)")
+
+
+def write(dest: Path, result: dict) -> None:
+    """``result`` to ``dest``, atomically."""
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = dest.with_suffix(".tmp")
     tmp.write_text(json.dumps(result, indent=1))
     tmp.replace(dest)
-    print(probe["verdict"])
-    print(f"wrote {dest} (the table: python -m bench page --reuse)")
+
+
+def continued(budget: float, eval_only: bool, scenes: list, roles: dict) -> dict:
+    """``--continue-shipped``: the control arm's settings for ``budget`` more CPU-s from the checkpoint shipped now,
+    scored beside it on the same validation rows; ``better``: by more than :data:`BETTER` dB on both the mean over
+    every real validation row and on the procedural seeds."""
+    from omnirecon.provenance import provenance
+
+    meta = json.loads((PARENT / "meta.json").read_text())
+    prefix = f"continue{meta['step']}"
+    if not eval_only:
+        train(CONTROL, budget, prefix)
+    final = run_dir(CONTROL, budget, prefix) / "checkpoints" / "final"
+    run_meta = json.loads((final / "meta.json").read_text())
+    before, after = score(PARENT, scenes), score(final, scenes)
+    before["means"], after["means"] = means(before["psnr"], roles), means(after["psnr"], roles)
+    change = {g: round(after["means"][g] - before["means"][g], 3) for g in after["means"]}
+    out = {"parent_step": meta["step"], "parent_cpu_s": round(meta.get("extra", {}).get("cpu_s", 0.0), 1),
+           "steps": run_meta["step"], "cpu_s": round(run_meta["extra"]["cpu_s"], 1), "shipped": before,
+           "continued": after, "change": change,
+           "better": change["validation"] > BETTER and change["procedural"] > BETTER, "bar_db": BETTER,
+           "command": command(CONTROL, budget, prefix), "provenance": provenance(SEED)}
+    print(json.dumps({k: out[k] for k in ("parent_step", "steps", "cpu_s", "change", "better")}), flush=True)
+    return out

@@ -68,4 +68,27 @@ def section(results: Path) -> str | None:
     lines += ["", f"Scoring: about {arm['eval_cpu_s']:.0f} CPU-s per checkpoint. The command of an arm: `{r['command']}`. "
               "A longer probe, `python -m bench train_background --cpu-budget B`, continues every arm from its longest "
               "shorter run and adds a column per arm.", ""]
-    return "\n".join(lines + [prov(p["provenance"]) + f" ({b} CPU-s probe)" for b, p in probes] + [""])
+    lines += continued_lines(r)
+    return "\n".join(lines + [prov(p["provenance"]) + f" ({b} CPU-s probe)" for b, p in probes]
+                     + [prov(c["provenance"]) + f" (continued {b} CPU-s)" for b, c in r.get("continued", {}).items()]
+                     + [""])
+
+
+def continued_lines(r: dict) -> list[str]:
+    """The control arm trained further from the checkpoint shipped at the time (``--continue-shipped``): its
+    validation means beside that checkpoint's, and whether it ships."""
+    out = []
+    for budget, c in sorted(r.get("continued", {}).items(), key=lambda kv: float(kv[0])):
+        before, after, d = c["shipped"]["means"], c["continued"]["means"], c["change"]
+        groups = "; ".join(f"{label.lower()} {before[g]:.2f} -> {after[g]:.2f} ({d[g]:+.2f})"
+                           for g, label in GROUPS.items() if g in d)
+        out += [f"**The control trained further** (`python -m bench train_background --continue-shipped --cpu-budget "
+                f"{budget}`): the checkpoint shipped at step {c['parent_step']} ({c['parent_cpu_s']:.0f} CPU-s) "
+                f"trained {c['cpu_s']:.0f} CPU-s more ({c['steps']} steps) with the control's settings, scored on the "
+                f"same validation rows beside it: {groups}. "
+                + ("Better by more than the bar on every real validation row and the procedural seeds: a candidate "
+                   "to ship (`python -m bench train_tiny --reship`)." if c["better"] else
+                   f"Not better by {c['bar_db']:g} dB on both every real validation row and the procedural seeds: not "
+                   "shipped."), ""]
+    return out
+
