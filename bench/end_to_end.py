@@ -2,6 +2,7 @@
 
     python -m bench end_to_end --demo                           # fresh clone of HEAD: make setup, make demo
     python -m bench end_to_end --reconstruct ../shared/data/llff/fern/images_12
+    python -m bench end_to_end --reconstruct ../shared/data/photos/lund --name "reconstruct (lund)"
     python -m bench end_to_end --collect-demo CLONE/outputs/demo TIME_FILE [--collect-setup TIME_FILE]
     python -m bench end_to_end --collect-reconstruct OUT TIME_FILE   # a run made as below, already finished
     python -m bench end_to_end --threads-ab demo                     # 1 vs 2 torch threads per stage (below)
@@ -171,6 +172,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--demo", action="store_true", help="time make setup + make demo on a fresh clone of HEAD")
     parser.add_argument("--reconstruct", type=Path, default=None, help="a folder of photos to reconstruct")
+    parser.add_argument("--name", default="reconstruct",
+                        help="the key (and the section's label) of the --reconstruct run: one run per name is kept")
     parser.add_argument("--collect-demo", nargs=2, type=Path, metavar=("DEMO_OUT", "TIME_FILE"))
     parser.add_argument("--collect-setup", type=Path, default=None, metavar="TIME_FILE")
     parser.add_argument("--collect-reconstruct", nargs=2, type=Path, metavar=("OUT", "TIME_FILE"))
@@ -204,7 +207,7 @@ def main(argv: list[str] | None = None) -> dict:
         if args.demo:
             runs["demo"] = run_demo(tmp)
         if args.reconstruct:
-            runs["reconstruct"] = run_reconstruct(args.reconstruct, tmp)
+            runs[args.name] = run_reconstruct(args.reconstruct, tmp)
         if args.collect_demo:
             runs["demo"] = collect_demo(*args.collect_demo, args.collect_setup, args.command or "make demo")
         if args.collect_reconstruct:

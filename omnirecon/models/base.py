@@ -100,7 +100,7 @@ class GeneralizableModel(nn.Module):
         if self.capabilities.passes:
             extra.update(fine_pass=fine_pass, surface_samples=surface_samples)
         batch = min(chunk, FAST.render_batch) if FAST.render_batch > 0 else chunk
-        render = (lambda r: self.render_rays(features, r, **extra)) if depths is None else \
+        render = (lambda r, start: self.render_rays(features, r, **extra)) if depths is None else \
             _with_depths(lambda r, z: self.render_rays(features, r, depths=z, **extra), depths)
         with grad_mode(), rendering():
             out = render_batches(render, rays, batch, height, width)
@@ -108,13 +108,11 @@ class GeneralizableModel(nn.Module):
 
 
 def _with_depths(render, depths: Tensor):
-    """``render(rays, z)`` as a function of ``rays`` alone for :func:`~omnirecon.models.fast.render_batches`, which
-    calls it on consecutive slices of the rays (the last one padded with copies of the last ray when compiled):
-    each call gets the rows of ``depths # [N, S]`` of its slice."""
-    start = [0]
-
-    def call(rays: Rays) -> dict[str, Tensor]:
-        idx = torch.arange(start[0], start[0] + len(rays), device=depths.device).clamp_max(len(depths) - 1)
-        start[0] += len(rays)
+    """``render(rays, z)`` as the ``render(rays, start)`` of :func:`~omnirecon.models.fast.render_batches`, which
+    calls it on slices of the rays starting at ``start`` (the last one padded with copies of the last ray when
+    compiled; batches in any order, on several threads): each call gets the rows of ``depths # [N, S]`` of its
+    slice."""
+    def call(rays: Rays, start: int) -> dict[str, Tensor]:
+        idx = torch.arange(start, start + len(rays), device=depths.device).clamp_max(len(depths) - 1)
         return render(rays, depths[idx])
     return call

@@ -48,6 +48,14 @@ class FastPaths:
     preallocate: bool = True
     """``render_view`` writes each batch into preallocated full-image outputs (reference: a list of
     chunks concatenated at the end)."""
+    render_workers: int = 0
+    """With ``preallocate``, ``render_view`` on the CPU renders its batches on this many threads at once, torch's
+    intra-op threads at 1 inside them (the ops release the GIL; each batch is written into its own rows of the
+    outputs, so the image is the serial one's bit for bit). 0: ``torch.get_num_threads()`` workers (the
+    command's ``--threads``); 1 (the reference): one batch at a time, each op on torch's threads. Small batches
+    parallelise poorly inside each op: on 2 cores intra-op threads gave about 1.4x one thread's wall time, and
+    batches side by side come closer to 2x (BENCHMARKS "Surface-guided volumetric rendering", 2-thread rows).
+    Serial on other devices and with ``compile`` (compiled graphs are not called from several threads)."""
     split_linear: bool = True
     """Per-sample MLPs whose first layer reads a concatenation ``[per-sample stats, per-view features]``
     (IBRNet's base and colour MLPs) apply the layer's column blocks to the parts apart: the per-sample
@@ -98,7 +106,8 @@ def from_env(text: str | None) -> FastPaths:
     return fp
 
 
-REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "split_linear": False,
+REFERENCE = {"inference_mode": False, "render_batch": 0, "train_batch": 0, "preallocate": False, "render_workers": 1,
+             "split_linear": False,
              "compile": False, "bf16_render": False,
              "sdpa_attention": False, "inplace_elu": False}
 """Every switch at its reference-twin value."""
@@ -204,31 +213,74 @@ def concat_linear(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
     return out
 
 
-def render_batches(render: Callable[[Rays], dict[str, Tensor]], rays: Rays, batch: int, height: int, width: int
+def render_batches(render: Callable[[Rays, int], dict[str, Tensor]], rays: Rays, batch: int, height: int, width: int
                    ) -> dict[str, Tensor]:
-    """``render`` on consecutive batches of at most ``batch`` of ``rays``, per-ray outputs reshaped to
-    ``[height, width, ...]`` (as :func:`omnirecon.models.reference.render_batches`). With
-    ``FAST.preallocate`` each batch is written into full-image buffers made once (floating outputs in
-    the rays' dtype), and with ``FAST.compile`` the last batch is padded to the full size (compiled
-    graphs keep one shape)."""
+    """``render(part, start)`` on consecutive batches ``part`` of at most ``batch`` of ``rays`` (``start``: the index
+    of its first ray), per-ray outputs reshaped to ``[height, width, ...]`` (as
+    :func:`omnirecon.models.reference.render_batches`). With ``FAST.preallocate`` each batch is written into
+    full-image buffers made once (floating outputs in the rays' dtype), with ``FAST.compile`` the last batch is
+    padded to the full size (compiled graphs keep one shape), and on the CPU the batches after the first run on
+    :func:`render_workers` threads. Called under the caller's grad mode, which each worker enters too."""
     if not FAST.preallocate:
         return _ref.render_batches(render, rays, batch, height, width)
-    n, bufs = len(rays), None
+    n, bufs = len(rays), {}
     float_dtype = rays.origins.dtype
-    for start in range(0, n, batch):
+
+    def one(start: int) -> None:
         m = min(batch, n - start)
         if FAST.compile and m < batch < n:  # pad the last batch: compiled graphs keep one shape
             part = rays[torch.arange(start, start + batch, device=rays.origins.device).clamp_max(n - 1)]
         else:
             part = rays[start:start + m]
-        out = {k: v[:m] if v.dim() >= 1 and v.shape[0] == len(part) else v for k, v in render(part).items()}
-        if bufs is None:  # one buffer per per-ray output, filled in place
-            bufs = {k: torch.empty((n, *v.shape[1:]), device=v.device,
-                                   dtype=float_dtype if v.is_floating_point() else v.dtype)
-                    for k, v in out.items() if v.dim() >= 1 and v.shape[0] == m}
+        out = {k: v[:m] if v.dim() >= 1 and v.shape[0] == len(part) else v for k, v in render(part, start).items()}
+        if not bufs:  # one buffer per per-ray output (the first batch, before any worker starts), filled in place
+            bufs.update({k: torch.empty((n, *v.shape[1:]), device=v.device,
+                                        dtype=float_dtype if v.is_floating_point() else v.dtype)
+                         for k, v in out.items() if v.dim() >= 1 and v.shape[0] == m})
         for k, buf in bufs.items():
             buf[start:start + m] = out[k]
-    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in (bufs or {}).items()}
+
+    starts = list(range(0, n, batch))
+    workers = min(render_workers(rays.origins.device), len(starts) - 1)
+    if starts:
+        one(starts[0])
+    if workers > 1:
+        _parallel(one, starts[1:], workers)
+    else:
+        for start in starts[1:]:
+            one(start)
+    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in bufs.items()}
+
+
+def render_workers(device: torch.device) -> int:
+    """Threads :func:`render_batches` renders batches on (``FastPaths.render_workers``; 1 off the CPU and with
+    ``compile``)."""
+    if torch.device(device).type != "cpu" or FAST.compile or not FAST.preallocate:
+        return 1
+    return FAST.render_workers if FAST.render_workers > 0 else torch.get_num_threads()
+
+
+def _parallel(fn: Callable[[int], None], starts: list[int], workers: int) -> None:
+    """``fn(start)`` for every start on ``workers`` threads, each under the caller's grad mode with one intra-op
+    torch thread (restored after); the first error is raised here."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    inference, grad = torch.is_inference_mode_enabled(), torch.is_grad_enabled()
+    threads = torch.get_num_threads()
+
+    def run(start: int) -> None:
+        torch.set_num_threads(1)
+        mode = torch.inference_mode() if inference else torch.set_grad_enabled(grad)
+        with mode:
+            fn(start)
+
+    torch.set_num_threads(1)
+    try:
+        with ThreadPoolExecutor(workers, thread_name_prefix="render") as pool:
+            for f in [pool.submit(run, s) for s in starts]:
+                f.result()
+    finally:
+        torch.set_num_threads(threads)
 
 
 def render_sub_batches(render: Callable[[Rays], dict[str, Tensor]], rays: Rays, batch: int) -> dict[str, Tensor]:

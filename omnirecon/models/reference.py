@@ -41,14 +41,14 @@ def concat_linear(layer: nn.Linear, parts: list[Tensor]) -> Tensor:
     return layer(torch.cat([p.expand(*shape, -1) for p in parts], -1))
 
 
-def render_batches(render: Callable[[Rays], dict[str, Tensor]], rays: Rays, batch: int, height: int, width: int
+def render_batches(render: Callable[[Rays, int], dict[str, Tensor]], rays: Rays, batch: int, height: int, width: int
                    ) -> dict[str, Tensor]:
-    """``render`` on consecutive batches of at most ``batch`` of ``rays`` (one image's, row-major), the
-    per-ray outputs gathered in lists, concatenated and reshaped to ``[height, width, ...]``; outputs that
-    are not per ray are dropped."""
+    """``render(part, start)`` on consecutive batches ``part`` of at most ``batch`` of ``rays`` (one image's,
+    row-major; ``start``: the index of its first ray), one after another, the per-ray outputs gathered in lists,
+    concatenated and reshaped to ``[height, width, ...]``; outputs that are not per ray are dropped."""
     parts: dict[str, list[Tensor]] = {}
     for start in range(0, len(rays), batch):
-        out = render(rays[start:start + batch])
+        out = render(rays[start:start + batch], start)
         for k, v in out.items():
             if v.dim() >= 1 and v.shape[0] == min(batch, len(rays) - start):
                 parts.setdefault(k, []).append(v)

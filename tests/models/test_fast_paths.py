@@ -44,6 +44,31 @@ def render(model, src, target, chunk=100, **switches):
 
 
 @pytest.mark.parametrize("name", sorted(MODELS))
+def test_render_workers_give_the_serial_image_bit_for_bit(name):
+    """Batches rendered on 2 threads side by side (``render_workers``), with and without per-ray sample depths
+    (surface-guided rendering hands each batch its own rows): every output equal to one batch at a time, torch's
+    thread count restored, and no graph recorded in the workers (inference mode holds in them)."""
+    torch.manual_seed(0)
+    model = MODELS[name]().eval()
+    src, target = scene()
+    rays = target.height * target.width
+    depths = torch.linspace(2.2, 3.8, 5).expand(rays, 5) + torch.rand(rays, 1) * 0.1  # [R, 5], rows differ
+    threads = torch.get_num_threads()
+    outs = {}
+    for workers in (1, 2):
+        with fast.switches(render_batch=16, render_workers=workers), torch.no_grad():
+            feats = model.encode(src)
+            outs[workers] = (model.render_view(feats, target), model.render_view(feats, target, depths=depths))
+        assert torch.get_num_threads() == threads
+    for serial, parallel in zip(outs[1], outs[2]):
+        assert set(serial) == set(parallel)
+        for k in serial:
+            assert torch.equal(serial[k], parallel[k]), k
+            assert not parallel[k].requires_grad, k
+    assert fast.render_workers(torch.device("cpu")) == (torch.get_num_threads() if not fast.FAST.compile else 1)
+
+
+@pytest.mark.parametrize("name", sorted(MODELS))
 def test_render_view_fast_paths_equal_reference(name):
     """inference_mode + small render batches + preallocated outputs: the same image as the reference
     (list of chunks, no_grad) to 1e-5 (batching changes only the summation order of matmuls)."""
