@@ -80,6 +80,7 @@ def block(r: dict) -> str:
                     f"{100 * x['guided_share']:.0f} % | {x['loadavg'][0]:.1f} |" +
                     (f" {x['encode_wall_s']:.1f} | {x['full_wall_s']:.1f} | {x['guided_wall_s']:.1f} |" if wall else ""))
     threads = f", {r['threads']} torch threads" if wall else ""
-    return "\n".join([f"K = {r['k']}, bench side {r['side']} px{threads}:", "", *rows, "",
+    note = f" {r['note']}" if r.get("note") else ""
+    return "\n".join([f"K = {r['k']}, bench side {r['side']} px{threads}:{note}", "", *rows, "",
                       prov(r["provenance"]) + f". Load average at start {r['loadavg_start']}, end "
                       f"{r.get('loadavg_end', '- (run interrupted)')}.", ""])
