@@ -17,8 +17,10 @@ def _end_to_end(r: dict) -> str:
     """BENCHMARKS.md section: per command, CPU seconds per stage at one thread, the goal and what limits."""
     lines = ["## End to end: `make demo` and `reconstruct` (`python -m bench end_to_end`)", "",
              "One thread, stage clocks reading process CPU seconds (what a quiet machine would take at one thread; "
-             "every wall budget, e.g. 60 s of tuning, becomes CPU seconds too); whole-command CPU and wall seconds from "
-             "`/usr/bin/time` with the load average beside them (wall on the shared cores is mostly the scheduler).", ""]
+             "every wall budget, e.g. 60 s of tuning, becomes CPU seconds too; the process stage adds its SfM child's CPU "
+             "seconds, every thread, where the run recorded them); whole-command CPU and wall seconds from "
+             "`/usr/bin/time` (without that child, which a fork server starts) with the load average beside them (wall "
+             "on the shared cores is mostly the scheduler).", ""]
     for name, run in r.items():
         if name == "mesh_sources":
             continue

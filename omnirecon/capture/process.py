@@ -88,6 +88,7 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
                 rotated = staged.rotated
                 job = (staged.folder, staged.names, work, options, False, source, mask_dir, scene, objects, quiet, None)
             seconds = dict(stages.seconds)
+        child_cpu = CHILD_CPU_SECONDS[0]
         stats, info, sfm_seconds, video = sfm_in_child(source, job)
         seconds.update(sfm_seconds)
         summary = {
@@ -97,6 +98,7 @@ def _build(source: Path, scene: Path, options: SfmOptions, fps: float, max_frame
             "options": asdict(options), "masks": None if masks is None else str(masks),
             **({"fps": video["passes"][-1]["fps"], "video_passes": video["passes"]} if is_video else {}),
             "seconds": {**seconds, "total": round(time.perf_counter() - t0, 3)},
+            "sfm_cpu_seconds": round(CHILD_CPU_SECONDS[0] - child_cpu, 2),
         }
         (scene / "process.json").write_text(json.dumps(summary, indent=1))
         if keep_work:
@@ -185,10 +187,15 @@ def _sfm_context():
     return ctx
 
 
+CHILD_CPU_SECONDS = [0.0]
+"""CPU seconds (every thread) of the SfM children this process has run (:func:`sfm_in_child`): a child's CPU is not
+the process's own (``time.process_time``), so the stage clocks add this (``reconstruct``'s ``Laps``)."""
+
+
 def _sfm_child(conn, args: tuple, parent: int) -> None:
     _die_with(parent)
     try:
-        out = ("done", _sfm(args))
+        out = ("done", (_sfm(args), time.process_time()))
     except InputError as e:
         out = ("input", (e.what, e.path, e.fix))
     except BaseException as e:  # noqa: BLE001 - sent to the parent, which raises it
@@ -220,7 +227,9 @@ def sfm_in_child(source: Path, args: tuple) -> tuple[dict, dict, dict, dict | No
             child.join()
         receive.close()
     if kind == "done":
-        return payload
+        result, cpu = payload
+        CHILD_CPU_SECONDS[0] += cpu
+        return result
     if kind == "input":
         raise InputError(*payload)
     if kind == "other":

@@ -180,20 +180,21 @@ def stage_error(cfg: ReconstructConfig, e: InputError, stages: Stages) -> InputE
 
 class Laps:
     """Wall and process CPU seconds and peak resident memory per stage (``seconds``, ``cpu_seconds``,
-    ``peak_rss_mb``; every thread counts in the CPU clock): ``lap(name)`` closes the stage that ran since the
-    previous lap. The memory is the kernel's high-water mark (``VmHWM``), reset at each lap (Linux; elsewhere
+    ``peak_rss_mb``; every thread counts in the CPU clock, and so do the SfM children's, which ``process`` runs in a
+    child process: :data:`~omnirecon.capture.process.CHILD_CPU_SECONDS`): ``lap(name)`` closes the stage that ran
+    since the previous lap. The memory is the kernel's high-water mark (``VmHWM``), reset at each lap (Linux; elsewhere
     ``peak_rss_mb`` stays empty)."""
 
     def __init__(self):
         self.seconds: dict[str, float] = {}
         self.cpu_seconds: dict[str, float] = {}
         self.peak_rss_mb: dict[str, float] = {}
-        self._clock, self._cpu = time.perf_counter(), time.process_time()
+        self._clock, self._cpu = time.perf_counter(), _cpu_seconds()
         _reset_peak_rss()
 
     def __call__(self, name: str) -> dict[str, float]:
         """Close stage ``name``; returns its measurements (``seconds``, ``cpu_seconds``, ``peak_rss_mb``)."""
-        now, cpu = time.perf_counter(), time.process_time()
+        now, cpu = time.perf_counter(), _cpu_seconds()
         self.seconds[name] = round(now - self._clock, 2)
         self.cpu_seconds[name] = round(cpu - self._cpu, 2)
         peak = _peak_rss_mb()
@@ -202,6 +203,13 @@ class Laps:
         self._clock, self._cpu = now, cpu
         return {"seconds": self.seconds[name], "cpu_seconds": self.cpu_seconds[name],
                 **({"peak_rss_mb": self.peak_rss_mb[name]} if name in self.peak_rss_mb else {})}
+
+
+def _cpu_seconds() -> float:
+    """This process's CPU seconds plus its SfM children's."""
+    from omnirecon.capture.process import CHILD_CPU_SECONDS
+
+    return time.process_time() + CHILD_CPU_SECONDS[0]
 
 
 def give_back_memory() -> None:

@@ -64,6 +64,8 @@ def test_process_recovers_poses(capture, processed):
     assert summary["images_registered"] == VIEWS and summary["images_given"] == VIEWS and summary["models"] == 1
     assert summary["points3D"] > 50 and summary["mean_reprojection_error_px"] < 1.0
     assert set(summary["seconds"]) >= {"features", "matching", "mapping", "undistort", "total"}
+    # the SfM child's own CPU seconds (not the process's: the stage clocks add them): at least its mapping's share
+    assert summary["sfm_cpu_seconds"] > 0.2 * summary["seconds"]["mapping"], summary
     scene = load_scene(out)
     assert scene.format == "colmap" and len(scene) == VIEWS
     e = errors_against(scene, ref)
