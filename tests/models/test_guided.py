@@ -101,7 +101,7 @@ def test_eval_guided_option_records_its_settings(run_cli, scene_path, tmp_path):
     rc, _, err = run_cli([*args, "--guided.on", "--out", tmp_path / "on"])
     assert rc == 0, err
     guided = json.loads((tmp_path / "on" / "results.json").read_text())["guided"]
-    assert guided["on"] and guided["band_samples"] == 8 and guided["band"] == 0.03  # Omni-Recon's family values
+    assert guided["on"] and guided["band_samples"] == 8 and guided["band"] == 0.01  # Omni-Recon's family values
     rc, _, err = run_cli([*args, "--guided.band", "2", "--out", tmp_path / "bad"])
     assert rc == 2 and "--guided.band must be in [0, 1]" in err and "Traceback" not in err
     assert not (tmp_path / "bad").exists()
