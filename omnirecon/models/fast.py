@@ -241,7 +241,9 @@ def render_batches(render: Callable[[Rays, int], dict[str, Tensor]], rays: Rays,
             buf[start:start + m] = out[k]
 
     starts = list(range(0, n, batch))
-    workers = min(render_workers(rays.origins.device), len(starts) - 1)
+    workers = render_workers(rays.origins.device)
+    if len(starts) - 1 < PARALLEL_BATCHES * workers:  # a small image: the pool costs more than it saves
+        workers = 1
     if starts:
         one(starts[0])
     if workers > 1:
@@ -250,6 +252,11 @@ def render_batches(render: Callable[[Rays, int], dict[str, Tensor]], rays: Rays,
         for start in starts[1:]:
             one(start)
     return {k: v.reshape(height, width, *v.shape[1:]) for k, v in bufs.items()}
+
+
+PARALLEL_BATCHES = 4
+""":func:`render_batches` renders side by side only with at least this many batches per worker after the first
+(fewer: serially): on a 20x24 view of two batches the pool and the thread-count switches cost more than they save."""
 
 
 def render_workers(device: torch.device) -> int:
