@@ -176,11 +176,14 @@ def run_scene(name: str, model, args) -> dict | None:
     for budget, grid, shader in dict.fromkeys(runs):
         rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader))
         print(name, rows[-1], flush=True)
-    if lod.sources is not None:  # the chosen level of detail as the videos draw it: its budget and fewer sources
-        for shader in args.shader:
-            rows.append({**measure_budget(model, mesh, scene, lod.setting(setting), lod.face_budget, args.grid, side,
-                                          args, shader), "sources": lod.sources})
-            print(name, rows[-1], flush=True)
+    if lod.sources is not None or lod.weight_stride > 1:  # the chosen level as the videos draw it: its budget, fewer
+        chosen = lod.setting(setting)  # sources, the MLP's stride (and the same at every pixel, to compare)
+        for stride in dict.fromkeys((1, lod.weight_stride)):
+            for shader in args.shader:
+                rows.append({**measure_budget(model, mesh, scene, {**chosen, "weight_stride": stride}, lod.face_budget,
+                                              args.grid, side, args, shader),
+                             "sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride})
+                print(name, rows[-1], flush=True)
     full = rows[0]
     for r in rows:
         r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
@@ -189,7 +192,8 @@ def run_scene(name: str, model, args) -> dict | None:
     return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
             "scored_resolution": [scene.width, scene.height],
             "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows,
-            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
+            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources,
+                    "weight_stride": lod.weight_stride, "rows": lod.rows,
                     "views": lod.views,
                     "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
 

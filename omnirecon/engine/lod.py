@@ -14,6 +14,10 @@ features fetched and run through the appearance MLP), so at the chosen budget fe
 (:data:`LOD_SOURCES_TOLERANCE_DB`) are blended: the left-out photos judge a source count less surely than a face
 budget (their pool is sparser than the path's: BENCHMARKS "Real-time mesh path: level of detail"). The angle blend
 ranks each tile's candidates and blends a fixed few already; its sources are left alone.
+
+Last, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
+each axis only (:data:`LOD_STRIDES`, ``MeshRenderOptions.weight_stride``) is measured the same way, at the chosen budget
+and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
 """
 
 from __future__ import annotations
@@ -31,6 +35,10 @@ LOD_SOURCES = (4, 3)
 """Candidate source counts per frame of the network blend below the setting's (``setting["sources"]``), most first."""
 LOD_SOURCES_TOLERANCE_DB = 0.0
 """PSNR (dB) fewer sources may lose against the ceiling on the left-out photos and still be chosen: none."""
+LOD_STRIDES = (2,)
+"""Candidate ``MeshRenderOptions.weight_stride`` of the network blend's GL pass (the MLP at every n-th pixel)."""
+LOD_STRIDE_TOLERANCE_DB = 0.05
+"""PSNR (dB) a weight stride may lose against the same budget and sources at every pixel and still be chosen."""
 LOD_VIEWS = 3
 """Photos left out of the sources and rendered per budget (spread over the capture's order)."""
 
@@ -45,6 +53,8 @@ class LodChoice:
     """Faces the chosen level of detail draws."""
     sources: int | None = None
     """Sources per frame the network blend takes (None: the setting's, unchanged)."""
+    weight_stride: int = 1
+    """``MeshRenderOptions.weight_stride`` of the chosen level (1: the MLP at every pixel)."""
     rows: list[dict] = field(default_factory=list)
     """Per measured level: ``{"budget", "faces", "sources", "psnr"}`` (PSNR in dB, mean over the left-out photos; sources
     0: every photo), the ceiling first."""
@@ -56,8 +66,10 @@ class LodChoice:
     """The PSNR (dB) a smaller budget was allowed to lose."""
 
     def setting(self, setting: dict) -> dict:
-        """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame."""
-        return setting if self.sources is None else {**setting, "sources": self.sources}
+        """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame and weight
+        stride."""
+        out = setting if self.sources is None else {**setting, "sources": self.sources}
+        return out if self.weight_stride == 1 else {**out, "weight_stride": self.weight_stride}
 
     def line(self) -> str:
         """One line for a run's output: what is drawn and each measured level's PSNR."""
@@ -65,13 +77,15 @@ class LodChoice:
             return f"level of detail: {self.faces:,} faces drawn (nothing smaller to measure)"
         scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
+        blended += f", the MLP every {self.weight_stride} px" if self.weight_stride > 1 else ""
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
                 f"of the most, the fewest sources that lose nothing, on {len(self.views)} photos left out of the "
                 f"sources: {scores}; {self.seconds:.1f} s)")
 
 
 def _sources(row: dict) -> str:
-    return f" x {row['sources']} sources" if row.get("sources") else ""
+    stride = f", MLP stride {row['weight_stride']}" if row.get("weight_stride", 1) > 1 else ""
+    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride
 
 
 def left_out_views(train: list[int], count: int) -> list[int]:
@@ -85,10 +99,12 @@ def left_out_views(train: list[int], count: int) -> list[int]:
 def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], budgets=LOD_BUDGETS,
                            sources=LOD_SOURCES, tolerance_db: float = LOD_TOLERANCE_DB, views: int = LOD_VIEWS,
                            ceiling: int | None = None,
-                           sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB) -> LodChoice:
+                           sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB, strides=LOD_STRIDES,
+                           stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
-    sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (module docstring).
+    sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources, then the largest weight stride of
+    ``strides`` within ``stride_tolerance_db`` of the chosen row (module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -102,6 +118,8 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
     from omnirecon.engine.views import select_sources
     from omnirecon.mesh.frames import ViewCache
     from omnirecon.mesh.ibr import REALTIME_FACE_BUDGET, level_of_detail, video_options
+    from omnirecon.render.glblend import GLBlend
+    from omnirecon.render.raster import gl_unavailable_reason
 
     start = time.perf_counter()
     ceiling = REALTIME_FACE_BUDGET if ceiling is None else ceiling
@@ -119,9 +137,10 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     encodings: dict = {}  # each set of sources encoded once, for every budget
 
-    def score(drawn, k: int) -> float:  # mean PSNR of the left-out photos, each from its k nearest of the pool
+    def score(drawn, k: int, stride: int = 1) -> float:  # mean PSNR of the left-out photos, from the k nearest
         scores = []
-        with ViewCache(model, drawn, scene, video_options(setting, bg, face_budget=0), encodings) as cache:
+        opts = video_options({**setting, "weight_stride": stride}, bg, face_budget=0)
+        with ViewCache(model, drawn, scene, opts, encodings) as cache:
             for v in left:
                 with cache.renderer(sorted(select_sources(scene, scene.cameras[v], pool, k))) as r, \
                         torch.inference_mode():
@@ -144,6 +163,17 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
         chosen.rows.append(row)
         if row["psnr"] >= best - sources_tolerance_db:
             chosen.sources = k
+    k1 = chosen.sources or k0
+    if setting["blend"] == "network" and k1 <= GLBlend.STRIDE_SOURCES and gl_unavailable_reason() is None:
+        sources_rows = chosen.rows[len(meshes):]  # the fewer sources' rows (at the chosen budget)
+        base = next(r["psnr"] for r in (sources_rows if chosen.sources else chosen.rows[:len(meshes)])
+                    if r["budget"] == chosen.face_budget and (not chosen.sources or r["sources"] == chosen.sources))
+        for stride in sorted(strides):  # only the GL pass takes a stride (where it shades these sources)
+            row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k1, "weight_stride": stride,
+                   "psnr": score(meshes[chosen.face_budget], k1, stride)}
+            chosen.rows.append(row)
+            if row["psnr"] >= base - stride_tolerance_db:
+                chosen.weight_stride = stride
     chosen.views = left
     chosen.seconds = round(time.perf_counter() - start, 2)
     return chosen

@@ -104,7 +104,8 @@ class BenchConfig(Overwrites, Seeded, ShippedCheckpoint, ImageSize, MeshFile, Qu
     (:func:`omnirecon.mesh.ibr.realtime_setting`: the angle blend over every training view on object captures, ranking
     each chunk's candidates (`REALTIME_FRAME_GRID`), the network's over the 6 nearest elsewhere) with the occlusion test,
     at the face budget and sources they draw (:func:`omnirecon.engine.lod.choose_level_of_detail`: at most
-    :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, fewer faces and sources where left-out photos show no loss),
+    :data:`omnirecon.mesh.ibr.REALTIME_FACE_BUDGET` faces, fewer faces and sources and the network's MLP every 2 px
+    where left-out photos show no loss),
     instead of the paper's network blend over --views sources without the test on the full mesh."""
     face_budget: int | None = None
     """Faces drawn at most (the mesh decimated once before timing, `MeshRenderOptions.face_budget`; 0: the full mesh;
@@ -218,7 +219,7 @@ def measure(cfg: BenchConfig) -> dict:
         by = "angle"
     setting = realtime_setting(scene) if args.realtime else None
     lod = choose_level_of_detail(model, mesh, scene, setting, train) if args.realtime and args.face_budget is None else None
-    setting = lod.setting(setting) if lod else setting  # the sources per frame the videos blend
+    setting = lod.setting(setting) if lod else setting  # the sources per frame and MLP stride the videos blend with
     count = (setting["sources"] or len(train)) if setting else args.views
     pick = nearest_views(scene.cameras[held_out[:1]], scene.cameras[train], min(count, len(train)), by=by)[0]
     views = [train[i] for i in pick.tolist()]
@@ -290,7 +291,7 @@ def measure(cfg: BenchConfig) -> dict:
                   "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
                   "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds,
-                                                   "sources": lod.sources},
+                                                   "sources": lod.sources, "weight_stride": lod.weight_stride},
                   "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),

@@ -110,20 +110,25 @@ def crack_pixels(covered: np.ndarray, radius: int = CRACK_RADIUS) -> np.ndarray:
     gaps the covered pixels enclose. A pixel beside an outline, with a window of that size clear of every covered
     pixel, is not one; the image is padded by its edge pixels, so what runs off the border is no crack either.
     ``# [H, W]`` bool"""
-    from scipy.ndimage import maximum_filter, minimum_filter
+    import cv2
 
     if radius <= 0 or covered.all() or not covered.any():
         return np.zeros_like(covered, dtype=bool)
     padded = np.pad(covered, radius, mode="edge").view(np.uint8)
-    size = 2 * radius + 1  # the closing by a square: its dilation and erosion, each separable (binary_closing's twin)
-    closed = minimum_filter(maximum_filter(padded, size, mode="constant", cval=0), size, mode="constant", cval=0)
+    square = np.ones((2 * radius + 1,) * 2, np.uint8)  # the closing by a square: its dilation, then its erosion
+    closed = cv2.erode(cv2.dilate(padded, square), square)  # (the pad absorbs any border effect: cropped below)
     return closed[radius:-radius, radius:-radius].astype(bool) & ~covered
 
 
 def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: int = 0) -> np.ndarray:
     """``depth # [H, W]`` (z-depth, 0 = no surface) with every empty pixel within ``reach`` times the long side of a
-    covered pixel, and every crack (:func:`crack_pixels` of radius ``cracks``), given the z-depth of the nearest
-    covered pixel (Euclidean distance transform); the others stay 0. ``# [H, W]``"""
+    covered pixel, and every crack (:func:`crack_pixels` of radius ``cracks``), given the z-depth of a nearest
+    covered pixel (Euclidean distance; of several at the same distance, any one); the others stay 0. ``# [H, W]``
+
+    With cracks alone (``reach`` below a pixel), a covered pixel lies within ``cracks`` pixels along each axis of a
+    crack (the closing's dilation found one there), so only the offsets up to ``cracks * sqrt(2)`` px are searched,
+    nearest first, at the cracks only (:func:`_nearest_within`); otherwise one Euclidean distance transform of the
+    image."""
     from scipy.ndimage import distance_transform_edt
 
     empty = depth <= 0
@@ -131,14 +136,41 @@ def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: 
         return depth
     take = crack_pixels(~empty, cracks) if cracks > 0 else np.zeros_like(empty)
     limit = reach * max(depth.shape)
-    if limit < 1:  # an empty pixel is at least 1 px from a covered one: the cracks alone (the transform only if any)
-        if not take.any():
-            return depth
-        iy, ix = distance_transform_edt(empty, return_distances=False, return_indices=True)
-    else:
-        dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
-        take |= empty & (dist <= limit)
-    return np.where(take, depth[iy, ix], depth).astype(depth.dtype, copy=False)
+    if limit < 1:  # an empty pixel is at least 1 px from a covered one: the cracks alone
+        return _nearest_within(depth, ~empty, take, cracks) if take.any() else depth
+    dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
+    take |= empty & (dist <= limit)
+    out = depth.copy()
+    out[take] = depth[iy[take], ix[take]]
+    return out
+
+
+def _nearest_within(depth: np.ndarray, covered: np.ndarray, take: np.ndarray, radius: int) -> np.ndarray:
+    """``depth # [H, W]`` with each pixel of ``take # [H, W]`` bool given the z-depth of a nearest pixel of
+    ``covered # [H, W]`` bool, searched among the offsets at most ``radius * sqrt(2)`` px away in increasing distance
+    (where the nearest lies when one lies within ``radius`` px along each axis, as :func:`crack_pixels` ensures).
+    ``# [H, W]``"""
+    H, W = depth.shape
+    ys, xs = np.nonzero(take)  # [n]
+    value = np.zeros(len(ys), depth.dtype)  # [n]
+    todo = np.arange(len(ys))
+    r = np.arange(-2 * radius, 2 * radius + 1)
+    dy, dx = (a.reshape(-1) for a in np.meshgrid(r, r, indexing="ij"))
+    d2 = dy * dy + dx * dx
+    order = np.argsort(d2, kind="stable")
+    order = order[(d2[order] > 0) & (d2[order] <= 2 * radius * radius)]
+    for oy, ox in zip(dy[order], dx[order]):  # nearest first
+        y, x = ys[todo] + oy, xs[todo] + ox
+        ok = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+        hit = np.zeros(len(todo), bool)
+        hit[ok] = covered[y[ok], x[ok]]
+        value[todo[hit]] = depth[y[hit], x[hit]]
+        todo = todo[~hit]
+        if not len(todo):
+            break
+    out = depth.copy()
+    out[ys, xs] = value
+    return out
 
 
 def nearest_fill(surface: Surface, covered: int, camera: Cameras, reach: float = NEAREST_FILL_REACH,

@@ -146,6 +146,13 @@ class MeshRenderOptions:
     sources per tile of ``2 frame_grid`` px) where it applies (GL backend, ``fused``, float32 sources, no ``consensus``,
     at most ``GLBlend.MAX_SOURCES`` sources), else the torch shader; ``"torch"``: the fused torch shader
     (:mod:`omnirecon.mesh.shader`, the GL pass's reference twin). ``python -m bench mesh_lod`` times both."""
+    weight_stride: int = 1
+    """With the network blend of at most ``GLBlend.STRIDE_SOURCES`` sources, the GL pass (``shader``) runs the
+    appearance MLP at every ``weight_stride``-th pixel of each axis only (a pass of its own), and each pixel blends its
+    sources with those weights, interpolated bilinearly from the texels on its own surface (z-depth within
+    ``GLBlend.WEIGHT_TOL``), over the sources that see it: a level of detail of the shading, chosen per mesh by
+    measurement (:func:`omnirecon.engine.lod.choose_level_of_detail`). 1: the MLP at every pixel (the torch shader
+    always: its reference)."""
     workers: int = 1
     """Threads that shade the fused shader's chunks side by side (one chunk per thread at a time; torch
     ops release the GIL). With more than 1, set torch's intra-op threads to 1 (``torch.set_num_threads``)
@@ -216,7 +223,7 @@ def realtime_options(setting: dict, **kwargs) -> MeshRenderOptions:
     return MeshRenderOptions(blend=setting["blend"], fill=setting["fill"], angle_sources=int(setting["angle_sources"]),
                              source_masks=bool(setting["source_masks"]), cracks=int(setting.get("cracks", CRACK_RADIUS)),
                              soften=float(setting.get("soften", 0.0)),
-                             **kwargs)
+                             weight_stride=int(setting.get("weight_stride", 1)), **kwargs)
 
 
 def video_options(setting: dict, background, workers: int = 1, face_budget: int | None = None) -> MeshRenderOptions:
@@ -478,7 +485,8 @@ class MeshRenderer(SourceShader):
                                features=a.rows[:K * (a.h + 2) * (a.w + 2)].reshape(K, a.h + 2, a.w + 2, a.C).permute(0, 3, 1, 2))
                 self._gl = GLBlend(self.rasterizer.context, self.sources.images, self._proj.reshape(K, 3, 4),
                                    self._centers_t, o.angle_sources if angle else None, self.source_depth_max,
-                                   o.visibility_tol, self.mask_falloff if angle else None, **net)
+                                   o.visibility_tol, self.mask_falloff if angle else None, **net,
+                                   stride=o.weight_stride)
         return self._gl or None
 
     def _gl_frame(self, gl: GLBlend, camera: Cameras) -> Tensor:

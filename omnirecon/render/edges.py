@@ -17,6 +17,7 @@ in the image, so a slanted surface is not an edge however steep), or where the m
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -35,6 +36,8 @@ def depth_edges(depth: Tensor, bend: float = EDGE_BEND) -> Tensor:
     """Pixels of a rendered z-depth image ``depth # [H, W]`` (0: no surface) on a depth edge (module docstring):
     the inverse depth bends by more than ``bend`` (relative) along a row, a column or a diagonal through the pixel,
     or the pixel and one of those neighbours disagree on whether there is a surface. ``# [H, W]`` bool"""
+    if _host(depth):
+        return _depth_edges_cv2(depth, bend)
     H, W = depth.shape
     has = depth > 0  # [H, W]
     inv = torch.where(has, 1 / depth.clamp_min(1e-12), torch.zeros_like(depth))  # [H, W]
@@ -51,16 +54,61 @@ def depth_edges(depth: Tensor, bend: float = EDGE_BEND) -> Tensor:
     return edge
 
 
+def _depth_edges_cv2(depth: Tensor, bend: float) -> Tensor:
+    """:func:`depth_edges` on the CPU through OpenCV, its twin (equal): the second difference of the inverse depth
+    along each of the four directions as one 3x3 filter, cleared where a neighbour lies outside the image, and the
+    coverage outline as a 3x3 dilation unequal to the erosion (the border replicated). ``# [H, W]`` bool"""
+    import cv2
+
+    d = depth.contiguous().numpy()
+    has = d > 0  # [H, W]
+    inv = np.where(has, 1 / np.maximum(d, 1e-12), 0).astype(d.dtype)  # [H, W]
+    limit = bend * inv
+    bent = np.zeros(d.shape, bool)
+    for a, b in (((1, 0), (1, 2)), ((0, 1), (2, 1)), ((0, 0), (2, 2)), ((0, 2), (2, 0))):
+        k = np.zeros((3, 3), d.dtype)
+        k[a], k[b], k[1, 1] = 1, 1, -2
+        second = np.abs(cv2.filter2D(inv, -1, k, borderType=cv2.BORDER_REPLICATE)) > limit  # [H, W]
+        if a[0] != 1:  # a neighbour above and below: none across the top and bottom rows
+            second[[0, -1]] = False
+        if a[1] != 1:  # left and right
+            second[:, [0, -1]] = False
+        bent |= second
+    u8 = has.view(np.uint8)
+    square = np.ones((3, 3), np.uint8)
+    outline = cv2.dilate(u8, square, borderType=cv2.BORDER_REPLICATE) != cv2.erode(u8, square, borderType=cv2.BORDER_REPLICATE)
+    return torch.from_numpy(outline | (has & bent))
+
+
 def gaussian_blur(image: Tensor, sigma: float) -> Tensor:
     """``image # [H, W, C]`` blurred by a Gaussian of ``sigma`` pixels (a 5x5 kernel up to sigma 1, wider beyond;
     the border replicated). ``# [H, W, C]``
 
-    Separable, as weighted sums of shifted views in the image's own layout (``F.conv2d`` with one group per channel
-    took several times as long on the CPU; the same sums up to float rounding)."""
+    Separable. On the CPU without autograd, OpenCV's ``sepFilter2D`` with the same kernel; elsewhere its twin
+    :func:`_shifted_blur` (the same sums up to float rounding)."""
     r = max(2, int(round(3 * sigma)))
-    x = torch.arange(-r, r + 1, dtype=image.dtype, device=image.device)
+    x = torch.arange(-r, r + 1, dtype=torch.float64)
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = (g / g.sum()).tolist()  # [2r + 1]
+    g = g / g.sum()  # [2r + 1]
+    if _host(image):
+        import cv2
+
+        k = g.to(image.dtype).numpy()[:, None]
+        out = cv2.sepFilter2D(image.contiguous().numpy(), -1, k, k, borderType=cv2.BORDER_REPLICATE)
+        return torch.from_numpy(out).reshape(image.shape)
+    return _shifted_blur(image, g.tolist())
+
+
+def _host(t: Tensor) -> bool:
+    """``t`` is a float32/64 CPU tensor outside autograd (OpenCV's fast paths apply)."""
+    return t.device.type == "cpu" and t.dtype in (torch.float32, torch.float64) and not t.requires_grad
+
+
+def _shifted_blur(image: Tensor, g: list[float]) -> Tensor:
+    """:func:`gaussian_blur` with the kernel ``g`` (``2 r + 1`` taps) as weighted sums of shifted views in the image's
+    own layout, any device, differentiable (``F.conv2d`` with one group per channel took several times as long on the
+    CPU). ``# [H, W, C]``"""
+    r = len(g) // 2
     H, W = image.shape[:2]
     rows = (torch.arange(-r, H + r, device=image.device)).clamp(0, H - 1)  # [H + 2r] replicated border
     cols = (torch.arange(-r, W + r, device=image.device)).clamp(0, W - 1)  # [W + 2r]
@@ -84,4 +132,9 @@ def soften_edges(image: Tensor, depth: Tensor, sigma: float, bend: float = EDGE_
     edge = depth_edges(depth.to(image.device), bend)  # [H, W]
     if not bool(edge.any()):
         return image
-    return torch.where(edge[..., None], gaussian_blur(image, sigma), image)
+    blurred = gaussian_blur(image, sigma)
+    if _host(image) and blurred.is_contiguous():  # the image kept off the edges, in place in the fresh blur
+        keep = np.repeat(~edge.numpy()[..., None], image.shape[-1], -1)  # [H, W, C] (a full mask: a faster copy)
+        np.copyto(blurred.numpy(), image.numpy(), where=keep)
+        return blurred
+    return torch.where(edge[..., None], blurred, image)

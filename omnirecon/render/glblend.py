@@ -26,8 +26,17 @@ and the colour is the weighted sum of the sources' colours at the point's projec
 ``grid_sample(align_corners=False, padding_mode="border")``: GL's bilinear filter, clamped to the edge), in float32
 (the folded features in half precision; colours within 1e-4 of the torch shader's, ``tests/mesh/test_ibr_gl.py``).
 
+With ``stride`` > 1 (the network blend of at most :attr:`GLBlend.STRIDE_SOURCES` sources), a first pass runs the
+MLP only at every ``stride``-th pixel of each axis (the frame's own pixels ``(stride i, stride j)``) and writes their
+softmax weights with their z-depth; the colour pass then gives each pixel the bilinear mix of the (up to 4) weight
+texels around it whose z-depth is within :attr:`GLBlend.WEIGHT_TOL` of its own (all 4 where none is), blended over
+the sources that see the pixel (their weights renormalised; where none of them has weight, those sources alike). On
+the pass's own pixels that is the blend at every pixel; elsewhere an interpolation of it: a level of detail, measured
+(``MeshRenderOptions.weight_stride``).
+
 Cost on llvmpipe: its SIMD lanes run both sides of every branch, so a source skipped early saves nothing; the cost
-per pixel follows the sources ranked (hence the tiles' candidates) and the loads from the maps.
+per pixel follows the sources ranked (hence the tiles' candidates) and the loads from the maps, and with the network
+blend most of it is the MLP (hence the stride).
 
 Size: the GLSL (both blends, the fill's far layer, the occlusion test, bilinear sampling), its generated parts (the
 unrolled MLP and ranking) and the host side (uploads, candidate tiles, draw, read-back) are one pass kept together.
@@ -55,6 +64,8 @@ _FRAGMENT = """
 #define ANGLE {ANGLE}
 #define MASKS {MASKS}
 #define VISIBILITY {VISIBILITY}
+#define WEIGHTS {WEIGHTS}
+#define STRIDE {STRIDE}
 #define INF 1.0e30
 // the maps GL filters are textures, the others storage buffers (plain loads: cheaper than texelFetch on llvmpipe)
 uniform sampler2DArray uImages;   // RGBA32F, W x H, layer k: source k's RGB, bilinear
@@ -78,6 +89,8 @@ uniform int uFill;                // 0: the background colour where z <= 0, 1: t
 uniform vec2 uImageSize;
 uniform vec2 uFeatSize;
 uniform float uVisTol;
+uniform sampler2D uWeights;       // WEIGHTS 2: the weights pass's (w_0, w_1, w_2, z) at every STRIDE-th pixel (z < 0: none)
+uniform float uWeightTol;         // WEIGHTS 2: a weight texel counts when its z is within this fraction of the pixel's
 out vec4 fragColor;
 
 {MLP}
@@ -114,21 +127,78 @@ float maskFactor(int k, vec2 uv) {  // omnirecon.mesh.kernel.mask_factor
 }
 
 #if ANGLE == 0
-vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh) {  // softmax over the sources, accumulated online
-  float top = -3.0e38, total = 0.0;
-  vec3 rgb = vec3(0.0);
+float logit(int k, vec3 p, vec3 t, bool layer, out vec2 uv, out bool seen) {  // -1e9 where source k does not see p
+  vec3 uvz = project(k, p);
+  uv = uvz.xy / max(uvz.z, 1e-6);
+  seen = framed(uvz.z, uv) && (layer || unoccluded(k, uv, uvz.z));
+  float l = -1.0e9;
+  if (seen) {
+    vec2 st = (uv / uImageSize * uFeatSize + 1.0) / (uFeatSize + 2.0);  // in the padded map (GL's bilinear, clamped)
+    vec4 z4[C4];
+    for (int j = 0; j < C4; j++) z4[j] = max(texture(uFeatures, vec3(st, float(k * C4 + j))), 0.0);
+    vec3 dk = p - centre(k);
+    l = appearanceLogit(z4, t - dk / max(length(dk), 1e-12));
+  }
+  return l;
+}
+
+#if WEIGHTS == 1
+vec3 blendWeights(vec3 p, vec3 t, bool layer) {  // the softmax over the (at most 3) sources
+  float l[3] = float[3](-3.0e38, -3.0e38, -3.0e38);
+  float top = -3.0e38;
+  for (int k = 0; k < K; k++) {
+    vec2 uv;
+    bool seen;
+    l[k] = logit(k, p, t, layer, uv, seen);
+    top = max(top, l[k]);
+  }
+  vec3 e = vec3(exp(l[0] - top), K > 1 ? exp(l[1] - top) : 0.0, K > 2 ? exp(l[2] - top) : 0.0);
+  return e / (e.x + e.y + e.z);
+}
+#elif WEIGHTS == 2
+vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh, float z) {  // the weights pass's weights, depth-aware bilinear
+  ivec2 px = ivec2(gl_FragCoord.xy);
+  ivec2 lo = px / STRIDE;
+  vec2 f = vec2(px - lo * STRIDE) / float(STRIDE);
+  ivec2 last = textureSize(uWeights, 0) - 1;
+  vec3 near = vec3(0.0), all = vec3(0.0);
+  float nearSum = 0.0;
+  for (int n = 0; n < 4; n++) {
+    ivec2 o = ivec2(n & 1, n >> 1);
+    float b = (o.x == 1 ? f.x : 1.0 - f.x) * (o.y == 1 ? f.y : 1.0 - f.y);
+    vec4 s = texelFetch(uWeights, min(lo + o, last), 0);
+    all += b * s.rgb;
+    float m = abs(s.a - z) <= uWeightTol * z ? b : 0.0;
+    near += m * s.rgb;
+    nearSum += m;
+  }
+  vec3 w = nearSum > 0.0 ? near / nearSum : all;
+  vec3 acc = vec3(0.0), seenRgb = vec3(0.0), plain = vec3(0.0);
+  float total = 0.0, seenCount = 0.0;
   for (int k = 0; k < K; k++) {
     vec3 uvz = project(k, p);
     vec2 uv = uvz.xy / max(uvz.z, 1e-6);
     bool seen = framed(uvz.z, uv) && (layer || unoccluded(k, uv, uvz.z));
-    float l = -1.0e9;
-    if (seen) {
-      vec2 st = (uv / uImageSize * uFeatSize + 1.0) / (uFeatSize + 2.0);  // in the padded map (GL's bilinear, clamped)
-      vec4 z4[C4];
-      for (int j = 0; j < C4; j++) z4[j] = max(texture(uFeatures, vec3(st, float(k * C4 + j))), 0.0);
-      vec3 dk = p - centre(k);
-      l = appearanceLogit(z4, t - dk / max(length(dk), 1e-12));
-    }
+    vec3 c = sampleImage(k, uv);
+    float wk = seen ? (k == 0 ? w.x : k == 1 ? w.y : w.z) : 0.0;
+    acc += wk * c;
+    total += wk;
+    seenRgb += seen ? c : vec3(0.0);
+    seenCount += seen ? 1.0 : 0.0;
+    plain += c;
+  }
+  // no weight on the sources that see p (the texels around saw it from none of them): those sources alike; none sees
+  // p: every source alike, as the softmax over -1e9 gives
+  return total > 0.0 ? acc / total : seenCount > 0.0 ? seenRgb / seenCount : plain / float(K);
+}
+#else
+vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh, float z) {  // softmax over the sources, accumulated online
+  float top = -3.0e38, total = 0.0;
+  vec3 rgb = vec3(0.0);
+  for (int k = 0; k < K; k++) {
+    vec2 uv;
+    bool seen;
+    float l = logit(k, p, t, layer, uv, seen);
     float m = max(top, l);
     float a = exp(top - m), e = exp(l - m);
     total = total * a + e;
@@ -137,6 +207,7 @@ vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh) {  // softmax over the sourc
   }
   return rgb / total;
 }
+#endif
 #else
 {ANGLE_SHADE}  // no source weighs p: every source alike (times the mask factor on the mesh)
   float u2 = 0.0;
@@ -167,14 +238,22 @@ float exitDepth(vec3 o, vec3 d) {  // omnirecon.mesh.fill.exit_depth
 }
 
 void main() {
+#if WEIGHTS == 1
+  ivec2 px = min(ivec2(gl_FragCoord.xy) * STRIDE, textureSize(uZ, 0) - 1);  // the frame pixel this texel stands for
+#else
   ivec2 px = ivec2(gl_FragCoord.xy);  // window row = image row (omnirecon.render.raster)
+#endif
   vec2 zh = texelFetch(uZ, px, 0).rg;
   float z = zh.r;
   bool layer = false;
-  vec3 d = uA * vec3(gl_FragCoord.xy, 1.0);  // the pixel centre's ray at camera z = 1
+  vec3 d = uA * vec3(vec2(px) + 0.5, 1.0);  // the pixel centre's ray at camera z = 1
   if (z <= 0.0) {
     if (uFill == 0) {
+#if WEIGHTS == 1
+      fragColor = vec4(0.0, 0.0, 0.0, -1.0);
+#else
       fragColor = vec4(uBackground, 1.0);
+#endif
       return;
     }
     z = exitDepth(uOrigin, d);
@@ -184,7 +263,11 @@ void main() {
   gTile = (tile.y * uTilesX + tile.x) * (K + 1);
   vec3 p = uOrigin + z * d;
   vec3 t = d / max(length(d), 1e-12);
-  fragColor = vec4(shade(p, t, layer, zh.g > 0.5), 1.0);
+#if WEIGHTS == 1
+  fragColor = vec4(blendWeights(p, t, layer), z);
+#else
+  fragColor = vec4(shade(p, t, layer, zh.g > 0.5, z), 1.0);
+#endif
 }
 """
 
@@ -212,7 +295,7 @@ def angle_source(ka: int) -> str:
     utotal = " + ".join(f"u{j}" for j in range(ka))
     unorm = " ".join(f"w{j} = u{j} / t2;" for j in range(ka))
     colour = " + ".join(f"w{j} * sampleImage(i{j}, v{j})" for j in range(ka))
-    return f"""vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh) {{
+    return f"""vec3 shade(vec3 p, vec3 t, bool layer, bool onMesh, float z) {{
   // the KA + 1 sources that see p with the largest cosines, descending: among the candidates, then (where none of
   // them weighs p) among every source
   for (int pass = 0; pass < 2; pass++) {{
@@ -314,8 +397,13 @@ class GLBlend:
         mlp: The folded appearance MLP (:func:`mlp_source`).
         features: The folded feature maps ``W F_k + b`` with a one-texel border of ``b`` (what zero padding samples
             before the fold). ``# [K, C, h + 2, w + 2]``
+        stride: The network blend's MLP at every ``stride``-th pixel (module docstring; 1: every pixel, also where
+            it does not apply).
     """
 
+    STRIDE_SOURCES = 3
+    """``stride`` applies to the network blend of at most this many sources (their weights and the z-depth: one RGBA
+    texel)."""
     MAX_SOURCES = 512
     """The most sources one pass takes (their cameras are uniforms: llvmpipe holds 4096 ``vec4`` per shader)."""
     PROPOSED = 3
@@ -323,20 +411,23 @@ class GLBlend:
     shader's loop runs over a tile's candidates: fewer proposed, less work per pixel; ``python -m bench mesh_lod``
     times it and scores its held-out PSNR against the reference path)."""
 
+    WEIGHT_TOL = 0.02
+    """``stride`` > 1: a weight texel counts for a pixel when its z-depth is within this fraction of the pixel's (the
+    same surface; across a depth edge the texels of the pixel's side only)."""
+
     def __init__(self, ctx, images: Tensor, proj: Tensor, centers: Tensor, angle_sources: int | None,
                  depth_max: Tensor | None = None, tol: float = 0.01, falloff: Tensor | None = None,
-                 mlp: list[Tensor] | None = None, features: Tensor | None = None):
+                 mlp: list[Tensor] | None = None, features: Tensor | None = None, stride: int = 1):
         self.ctx = ctx
         K, H, W, _ = images.shape
         angle = angle_sources is not None
         C = 4 if angle else features.shape[1]
         KA = max(1, min(angle_sources or K, K)) if angle else 1
+        self.stride = stride if stride > 1 and not angle and K <= self.STRIDE_SOURCES else 1
         defines = dict(K=K, KA=KA, C4=-(-C // 4), ANGLE=int(angle),
                        MASKS=int(angle and falloff is not None), VISIBILITY=int(depth_max is not None),
-                       MLP="" if angle else mlp_source(mlp), ANGLE_SHADE=angle_source(KA) if angle else "")
-        source = _FRAGMENT
-        for key, value in defines.items():
-            source = source.replace("{" + key + "}", str(value))
+                       MLP="" if angle else mlp_source(mlp), ANGLE_SHADE=angle_source(KA) if angle else "",
+                       STRIDE=self.stride)
         self._objects: list = []
         self._cand = None  # the candidate tiles' storage buffer (grown as needed)
         self._frames: dict[tuple[int, int, int], tuple] = {}
@@ -344,10 +435,17 @@ class GLBlend:
         with ctx:
             programs = ctx.extra if isinstance(ctx.extra, dict) else {}  # compiled once per context and source
             ctx.extra = programs
-            if source not in programs:  # released with the context (a video's source sets share them)
-                program = ctx.program(vertex_shader=_VERTEX, fragment_shader=source)
-                programs[source] = (program, ctx.vertex_array(program, []))
-            self.program, self._vao = programs[source]
+            passes = []  # (program, vertex array): the weights pass first when there is one, the colour pass last
+            for weights in ((1, 2) if self.stride > 1 else (0,)):
+                source = _FRAGMENT
+                for key, value in {**defines, "WEIGHTS": weights}.items():
+                    source = source.replace("{" + key + "}", str(value))
+                if source not in programs:  # released with the context (a video's source sets share them)
+                    program = ctx.program(vertex_shader=_VERTEX, fragment_shader=source)
+                    programs[source] = (program, ctx.vertex_array(program, []))
+                passes.append(programs[source])
+            self._passes = passes
+            self.program, self._vao = passes[-1]
             rgba = torch.cat([images.detach().cpu().float(), torch.ones(K, H, W, 1)], -1)  # [K, H, W, 4]
             buffers = {1: depth_max, 2: falloff if angle else None}
             self._images = self._keep(ctx.texture_array((W, H, K), 4, _f32(rgba).tobytes(), dtype="f4"))
@@ -385,12 +483,15 @@ class GLBlend:
         return moderngl.NEAREST
 
     def _write(self, name: str, values: np.ndarray) -> None:
-        if name in self.program:
-            self.program[name].write(values.tobytes())
+        for program, _ in self._passes:
+            if name in program:  # the linker may trim an array's unused tail (the colour pass reads no last centre)
+                uniform = program[name]
+                program[name].write(values.tobytes()[:4 * uniform.dimension * uniform.array_length])  # float32
 
     def _set(self, name: str, value) -> None:
-        if name in self.program:
-            self.program[name].value = value
+        for program, _ in self._passes:
+            if name in program:
+                program[name].value = value
 
     def _frame(self, width: int, height: int, slot: int) -> tuple:
         """The depth texture, framebuffer and host arrays of one frame size and slot (made on first use)."""
@@ -400,7 +501,14 @@ class GLBlend:
             z.filter = (self._nearest(), self._nearest())
             colour = self._keep(self.ctx.texture((width, height), 4, dtype="f4"))
             fbo = self._keep(self.ctx.framebuffer(color_attachments=[colour]))
-            self._frames[key] = (z, fbo, np.empty((height, width, 2), np.float32), np.empty((height, width, 4), np.float32))
+            low = None  # the weights pass's target: (w_0, w_1, w_2, z) at every stride-th pixel
+            if self.stride > 1:
+                texels = (-(-width // self.stride), -(-height // self.stride))
+                weights = self._keep(self.ctx.texture(texels, 4, dtype="f4"))
+                weights.filter = (self._nearest(), self._nearest())
+                low = (weights, self._keep(self.ctx.framebuffer(color_attachments=[weights])), texels)
+            self._frames[key] = (z, fbo, np.empty((height, width, 2), np.float32), np.empty((height, width, 4), np.float32),
+                                 low)
         return self._frames[key]
 
     def shade(self, depth: np.ndarray, on_mesh: np.ndarray, A: Tensor, origin: Tensor, fill: bool,
@@ -413,7 +521,7 @@ class GLBlend:
         """The colour of the frame :meth:`submit` drew (its ``(W, H, slot)``; waits for llvmpipe's threads to shade it):
         ``rgb # [H, W, 3]`` float32, a tensor over a host buffer this object reuses (valid until the second
         :meth:`submit` after it at that size)."""
-        _, fbo, _, host_rgb = self._frame(width, height, slot)
+        _, fbo, _, host_rgb, _ = self._frame(width, height, slot)
         with self.ctx:
             fbo.read_into(host_rgb, components=4, attachment=0, dtype="f4")
         return torch.from_numpy(host_rgb)[..., :3]
@@ -434,7 +542,7 @@ class GLBlend:
         H, W = depth.shape
         self._slot = slot = 1 - self._slot
         with self.ctx:
-            z_tex, fbo, host_z, _ = self._frame(W, H, slot)
+            z_tex, fbo, host_z, _, low = self._frame(W, H, slot)
             host_z[..., 0] = depth
             host_z[..., 1] = on_mesh
             z_tex.write(host_z.tobytes())
@@ -472,6 +580,16 @@ class GLBlend:
                     self._cand = self._keep(self.ctx.buffer(reserve=len(data)))
                 self._cand.write(data)
                 self._cand.bind_to_storage_buffer(4)
+            if low is not None:  # the network's weights at every stride-th pixel, then the colour pass reads them
+                weights, low_fbo, texels = low
+                low_fbo.use()
+                self.ctx.viewport = (0, 0, *texels)
+                self._passes[0][1].render(moderngl.TRIANGLES, vertices=3)
+                weights.use(3)
+                self._set("uWeights", 3)
+                self._set("uWeightTol", self.WEIGHT_TOL)
+                fbo.use()
+                self.ctx.viewport = (0, 0, W, H)
             self._vao.render(moderngl.TRIANGLES, vertices=3)
             _flush()
         return W, H, slot

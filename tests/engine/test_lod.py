@@ -71,7 +71,7 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     setting = realtime_setting(scene)
     assert setting["blend"] == "network" and setting["sources"] == 6
     loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
-                                   sources_tolerance_db=100.0)
+                                   sources_tolerance_db=100.0, strides=())
     assert [(r["faces"], r["sources"]) for r in loose.rows] == [(loose.faces, 6), (loose.faces, 4), (loose.faces, 3)]
     assert loose.sources == 3 and loose.setting(setting)["sources"] == 3 and " 3 sources per frame" in loose.line()
     strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
@@ -80,6 +80,26 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
                                    sources=(4, 3), sources_tolerance_db=100.0)
     assert angle.rows == [] and angle.sources is None
-    default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3))
+    default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), strides=())
     by_rule = [r["sources"] for r in default.rows[1:] if r["psnr"] >= default.rows[0]["psnr"]]  # lose nothing
     assert default.sources == (by_rule[-1] if by_rule else None), default.rows
+
+
+def test_the_weight_stride_is_measured_at_the_chosen_sources_and_kept_within_its_tolerance(setup):
+    """With 3 sources per frame (few enough for the GL pass's weight stride) a stride-2 row is measured at the chosen
+    budget and sources: kept within a tolerance no loss can reach (the setting then carries it), never with a negative
+    one; with 4 sources (too many for it) no stride is measured."""
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(3,),
+                                   sources_tolerance_db=100.0, stride_tolerance_db=100.0)
+    assert [(r["sources"], r.get("weight_stride", 1)) for r in loose.rows] == [(6, 1), (3, 1), (3, 2)]
+    assert loose.weight_stride == 2 and loose.setting(setting)["weight_stride"] == 2
+    assert "the MLP every 2 px" in loose.line()
+    strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(3,),
+                                    sources_tolerance_db=100.0, stride_tolerance_db=-1.0)
+    assert strict.weight_stride == 1 and "weight_stride" not in strict.setting(setting)
+    four = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4,),
+                                  sources_tolerance_db=100.0, stride_tolerance_db=100.0)
+    assert four.sources == 4 and four.weight_stride == 1 and len(four.rows) == 2

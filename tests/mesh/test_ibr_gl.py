@@ -127,3 +127,32 @@ def test_frames_a_frame_ahead_are_the_frames(scene_mesh, blend):
     for a, b in zip(ahead, one, strict=True):
         assert torch.equal(a, b)
     assert not torch.equal(one[0], one[1]) and torch.equal(one[0], one[3])
+
+
+@pytest.mark.parametrize("fill", ["far", "background"])
+def test_gl_pass_with_a_weight_stride_is_exact_on_its_grid_and_close_elsewhere(scene_mesh, fill):
+    """``weight_stride=2`` (the network's MLP at every second pixel of each axis, 3 sources): at the pixels the weights
+    pass shades (even rows and columns) the torch shader's colours within :data:`TOLERANCE`; elsewhere close to the
+    MLP at every pixel; a frame ahead the same images; with 4 sources (too many for the stride) the pass at every
+    pixel."""
+    from omnirecon import metrics
+
+    scene, mesh, model = scene_mesh
+    opts = MeshRenderOptions(background=(0.2, 0.3, 0.4), fill=fill, visibility=True, blend="network",
+                             cull_back_faces=False, soften=0.0, cracks=0, weight_stride=2)
+    cams = [scene.cameras[v].to(dtype=torch.float32) for v in (0, 6)]
+    sources = Sources.from_scene(scene, [1, 5, 9])
+    with MeshRenderer(model, mesh, sources, opts) as gl, \
+            MeshRenderer(model, mesh, sources, replace(opts, shader="torch")) as ref, \
+            MeshRenderer(model, mesh, sources, replace(opts, weight_stride=1)) as every:
+        assert gl._gl_blend().stride == 2 and every._gl_blend().stride == 1
+        for target in cams:
+            a, b, c = (r.render(target, extras=False)["rgb"] for r in (gl, ref, every))
+            grid = (a - b).abs().amax(-1)[::2, ::2]
+            assert grid.max() < TOLERANCE, float(grid.max())
+            assert (a - b).abs().amax(-1).max() > 1e-5  # off the grid the weights are interpolated
+            assert metrics.psnr(a, c) > 35, metrics.psnr(a, c)
+        ahead = list(gl.frames(cams))
+        assert all(torch.equal(x, gl.frame(t)) for x, t in zip(ahead, cams, strict=True))
+    with MeshRenderer(model, mesh, Sources.from_scene(scene, [1, 4, 7, 9]), opts) as four:
+        assert four._gl_blend().stride == 1

@@ -33,3 +33,26 @@ def test_soften_edges_blurs_only_the_edge_pixels():
     assert torch.equal(soften_edges(img, depth, 0.0), img)
     flat = torch.full((10, 14, 3), 0.3)
     assert torch.allclose(gaussian_blur(flat, 1.3), flat)  # weights sum to 1, border replicated
+
+
+def test_the_cpu_fast_paths_equal_their_torch_twins(monkeypatch):
+    """The OpenCV paths of the CPU (depth edges, blur, the in-place softening) against the torch code every other
+    device runs, on random depths with holes and plateaus."""
+    import numpy as np
+
+    import omnirecon.render.edges as E
+
+    rng = np.random.default_rng(0)
+    cases = []
+    for it in range(120):
+        H, W = (int(n) for n in rng.integers(1, 30, 2))
+        d = (rng.random((H, W)) * 2 + 0.5) * (rng.random((H, W)) < rng.random())
+        if it % 3 == 0:  # near-planar steps
+            d = np.where(rng.random((H, W)) < 0.9, 1.0, 1.0 + rng.random((H, W)) * 0.05)
+        cases.append((torch.from_numpy(d).float(), torch.from_numpy(rng.random((H, W, 3))).float()))
+    fast = [(E.depth_edges(d), E.gaussian_blur(img, 0.7), E.soften_edges(img, d, 0.7)) for d, img in cases]
+    monkeypatch.setattr(E, "_host", lambda t: False)
+    for (d, img), (edge, blur, soft) in zip(cases, fast):
+        assert torch.equal(edge, E.depth_edges(d))
+        assert torch.allclose(blur, E.gaussian_blur(img, 0.7), atol=1e-6)
+        assert torch.allclose(soft, E.soften_edges(img, d, 0.7), atol=1e-6)
