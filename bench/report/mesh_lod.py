@@ -64,7 +64,41 @@ def section(results: Path) -> str | None:
                 "each axis only (`MeshRenderOptions.weight_stride`, the weights interpolated on each pixel's own "
                 "surface) is measured at the chosen budget and sources and kept within 0.05 dB of them:",
                 "", *chosen]
-    return "\n".join([*out, "", prov(r["provenance"]), ""])
+    out += ["", prov(r["provenance"])]
+    before = read(results, "mesh_lod_before_stride.json")
+    if before:
+        out += ["", *_before_after(before, r)]
+    return "\n".join([*out, ""])
+
+
+def _chosen_row(scene: dict) -> dict:
+    """The row of what the videos draw (the last row: the chosen level, else the chosen budget's)."""
+    lod = scene["lod"]
+    rows = [x for x in scene["rows"] if x["face_budget"] == lod["face_budget"] and x["frame_grid"] > 0]
+    return rows[-1]
+
+
+def _before_after(before: dict, after: dict) -> list[str]:
+    """The chosen level of each scene measured by the code before the MLP stride and the OpenCV/local fills, the same
+    session and machine, beside this table's."""
+    now = {s["scene"]: s for s in after["scenes"]}
+    lines = [f"The same bench at commit `{before['provenance']['commit'][:12]}` (before the network's MLP every 2 px, "
+             "the crack fill's local search and the OpenCV depth edges and blur), run on the same machine minutes "
+             "after this table (`python -m bench mesh_lod --scenes fox fern lund --out "
+             "bench/results/mesh_lod_before_stride.json` in a checkout of that commit), each scene's chosen level of "
+             "detail. One run of 10 frames each; repeated runs of one setting differed by up to about 15 % here:", "",
+             "| scene | chosen level | FPS before -> after | streamed FPS before -> after | CPU ms before -> after | "
+             "PSNR before -> after |", "|---|---|---|---|---|---|"]
+    for old in before["scenes"]:
+        if old["scene"] not in now:
+            continue
+        a, b = _chosen_row(old), _chosen_row(now[old["scene"]])
+        level = f"{b['faces']:,} faces" + (f", {b['sources']} sources" if b.get("sources") else "") + \
+            (f", MLP every {b['weight_stride']} px" if b.get("weight_stride", 1) > 1 else "")
+        lines.append(f"| {old['scene']} | {level} | {a['fps']:.1f} -> {b['fps']:.1f} | {a['stream_fps']:.1f} -> "
+                     f"{b['stream_fps']:.1f} | {a['frame_cpu_ms']:.0f} -> {b['frame_cpu_ms']:.0f} | "
+                     f"{a['psnr']:.2f} -> {b['psnr']:.2f} |")
+    return [*lines, "", prov(before["provenance"])]
 
 
 def _chosen(scene: dict) -> str:
