@@ -123,14 +123,14 @@ def crack_pixels(covered: np.ndarray, radius: int = CRACK_RADIUS) -> np.ndarray:
 def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: int = 0) -> np.ndarray:
     """``depth # [H, W]`` (z-depth, 0 = no surface) with every empty pixel within ``reach`` times the long side of a
     covered pixel, and every crack (:func:`crack_pixels` of radius ``cracks``), given the z-depth of a nearest
-    covered pixel (Euclidean distance; of several at the same distance, any one); the others stay 0. ``# [H, W]``
+    covered pixel (Euclidean distance; of several at the same distance, any one; beyond the cracks, see below); the
+    others stay 0. ``# [H, W]``
 
     With cracks alone (``reach`` below a pixel), a covered pixel lies within ``cracks`` pixels along each axis of a
     crack (the closing's dilation found one there), so only the offsets up to ``cracks * sqrt(2)`` px are searched,
-    nearest first, at the cracks only (:func:`_nearest_within`); otherwise one Euclidean distance transform of the
-    image."""
-    from scipy.ndimage import distance_transform_edt
-
+    nearest first, at the cracks only (:func:`_nearest_within`). Otherwise OpenCV's exact Euclidean distance transform
+    says which pixels lie within ``reach``, and its labelled transform (a 5x5 mask: several times faster than an exact
+    one with indices) which covered pixel is nearest, up to a few percent of the distance farther."""
     empty = depth <= 0
     if empty.all() or not empty.any():
         return depth
@@ -138,10 +138,16 @@ def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: 
     limit = reach * max(depth.shape)
     if limit < 1:  # an empty pixel is at least 1 px from a covered one: the cracks alone
         return _nearest_within(depth, ~empty, take, cracks) if take.any() else depth
-    dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
+    import cv2
+
+    src = empty.view(np.uint8)  # the transforms measure to the nearest 0: a covered pixel
+    dist = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # [H, W] exact Euclidean
     take |= empty & (dist <= limit)
+    _, label = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)  # [H, W]
+    iy, ix = np.nonzero(~empty)  # covered pixels in row-major order: label k is the k-th of them
+    pick = label[take] - 1
     out = depth.copy()
-    out[take] = depth[iy[take], ix[take]]
+    out[take] = depth[iy[pick], ix[pick]]
     return out
 
 
