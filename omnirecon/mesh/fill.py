@@ -122,15 +122,14 @@ def crack_pixels(covered: np.ndarray, radius: int = CRACK_RADIUS) -> np.ndarray:
 
 def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: int = 0) -> np.ndarray:
     """``depth # [H, W]`` (z-depth, 0 = no surface) with every empty pixel within ``reach`` times the long side of a
-    covered pixel, and every crack (:func:`crack_pixels` of radius ``cracks``), given the z-depth of a nearest
-    covered pixel (Euclidean distance; of several at the same distance, any one; beyond the cracks, see below); the
-    others stay 0. ``# [H, W]``
+    covered pixel, and every crack (:func:`crack_pixels` of radius ``cracks``), given the z-depth of the nearest
+    covered pixel (Euclidean distance; ties below); the others stay 0. ``# [H, W]``
 
     With cracks alone (``reach`` below a pixel), a covered pixel lies within ``cracks`` pixels along each axis of a
     crack (the closing's dilation found one there), so only the offsets up to ``cracks * sqrt(2)`` px are searched,
-    nearest first, at the cracks only (:func:`_nearest_within`). Otherwise OpenCV's exact Euclidean distance transform
-    says which pixels lie within ``reach``, and its labelled transform (a 5x5 mask: several times faster than an exact
-    one with indices) which covered pixel is nearest, up to a few percent of the distance farther."""
+    nearest first, at the cracks only (:func:`_nearest_within`); otherwise one Euclidean distance transform of the
+    image. Of covered pixels at the same distance, both take the one in the smaller column, then the smaller row (as
+    scipy's transform does, and the web viewer's fill)."""
     empty = depth <= 0
     if empty.all() or not empty.any():
         return depth
@@ -138,23 +137,20 @@ def nearest_depth(depth: np.ndarray, reach: float = NEAREST_FILL_REACH, cracks: 
     limit = reach * max(depth.shape)
     if limit < 1:  # an empty pixel is at least 1 px from a covered one: the cracks alone
         return _nearest_within(depth, ~empty, take, cracks) if take.any() else depth
-    import cv2
+    from scipy.ndimage import distance_transform_edt
 
-    src = empty.view(np.uint8)  # the transforms measure to the nearest 0: a covered pixel
-    dist = cv2.distanceTransform(src, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)  # [H, W] exact Euclidean
+    dist, (iy, ix) = distance_transform_edt(empty, return_indices=True)
     take |= empty & (dist <= limit)
-    _, label = cv2.distanceTransformWithLabels(src, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_PIXEL)  # [H, W]
-    iy, ix = np.nonzero(~empty)  # covered pixels in row-major order: label k is the k-th of them
-    pick = label[take] - 1
     out = depth.copy()
-    out[take] = depth[iy[pick], ix[pick]]
+    out[take] = depth[iy[take], ix[take]]
     return out
 
 
 def _nearest_within(depth: np.ndarray, covered: np.ndarray, take: np.ndarray, radius: int) -> np.ndarray:
     """``depth # [H, W]`` with each pixel of ``take # [H, W]`` bool given the z-depth of a nearest pixel of
-    ``covered # [H, W]`` bool, searched among the offsets at most ``radius * sqrt(2)`` px away in increasing distance
-    (where the nearest lies when one lies within ``radius`` px along each axis, as :func:`crack_pixels` ensures).
+    ``covered # [H, W]`` bool, searched among the offsets at most ``radius * sqrt(2)`` px away in increasing distance,
+    ties in :func:`nearest_depth`'s order (the nearest lies there when one lies within ``radius`` px along each axis,
+    as :func:`crack_pixels` ensures).
     ``# [H, W]``"""
     H, W = depth.shape
     ys, xs = np.nonzero(take)  # [n]
@@ -163,7 +159,7 @@ def _nearest_within(depth: np.ndarray, covered: np.ndarray, take: np.ndarray, ra
     r = np.arange(-2 * radius, 2 * radius + 1)
     dy, dx = (a.reshape(-1) for a in np.meshgrid(r, r, indexing="ij"))
     d2 = dy * dy + dx * dx
-    order = np.argsort(d2, kind="stable")
+    order = np.lexsort((dy, dx, d2))  # nearest first; ties: the smaller column, then the smaller row
     order = order[(d2[order] > 0) & (d2[order] <= 2 * radius * radius)]
     for oy, ox in zip(dy[order], dx[order]):  # nearest first
         y, x = ys[todo] + oy, xs[todo] + ox
