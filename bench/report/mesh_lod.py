@@ -84,7 +84,7 @@ def _before_after(before: dict, after: dict) -> list[str]:
     now = {s["scene"]: s for s in after["scenes"]}
     lines = [f"The same bench at commit `{before['provenance']['commit'][:12]}` (before the network's MLP every 2 px, "
              "the crack fill's local search and the OpenCV depth edges and blur), run on the same machine in the same "
-             "session, 15 minutes before this table (`python -m bench mesh_lod --scenes fox fern lund --out "
+             "session, about 45 minutes before this table (`python -m bench mesh_lod --scenes fox fern lund --out "
              "bench/results/mesh_lod_before_stride.json` in a checkout of that commit), each scene's chosen level of "
              "detail. One run of 10 frames each; repeated runs of one setting differed by up to about 25 % in FPS here:", "",
              "| scene | chosen level | FPS before -> after | streamed FPS before -> after | CPU ms before -> after | "
