@@ -16,8 +16,10 @@ pass):
   ``--threads`` shading workers with one torch thread each and as many llvmpipe threads; median wall and process-CPU
   ms of ``--frames`` frames after a warm-up, the calling thread's CPU ms (the frame's serial part), the same frames
   as a stream (``MeshRenderer.frames``: a frame ahead, each frame's GL pass shaded while the next one's depth pass is
-  drawn; what the videos render), the depth pass alone, the decimation's seconds. The machine may be shared:
-  the 1-minute load average is recorded beside every timing;
+  drawn; what the videos render), the depth pass alone, the decimation's seconds; each timing the median of
+  ``--rounds`` rounds, each round timing every row of the scene in turn (so that the machine's drift over minutes
+  falls on every row alike). The machine may be shared: the largest 1-minute load average of a row's rounds is
+  recorded beside it;
 * **quality**: held-out PSNR (whole image, at most ``--max-views`` test views) through the same blend, each view from
   its own nearest sources, and its loss against the reference path's (the demo scene: timed at 256 px, scored at its
   128-px images).
@@ -102,11 +104,16 @@ def streamed(renderer, cams: list, frames: int) -> tuple[float, float]:
             round(1000 * (time.process_time() - start_cpu) / frames, 2))
 
 
+TIMINGS = ("frame_ms", "frame_cpu_ms", "frame_main_cpu_ms", "stream_ms", "stream_cpu_ms", "depth_pass_ms",
+           "depth_pass_cpu_ms")
+"""A row's timings (ms): each the median of its rounds (:func:`run_scene`)."""
+
+
 def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args,
-                   shader: str = "auto") -> dict:
+                   shader: str = "auto", score: bool = True) -> dict:
     """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget``, candidate grid ``grid``
     (``MeshRenderOptions.frame_grid``) and frame shader ``shader`` (``MeshRenderOptions.shader``; module docstring), timed
-    at ``side`` px long side, scored at the scene's."""
+    at ``side`` px long side, scored at the scene's (without ``score``: the timings only)."""
     import torch
 
     from omnirecon import metrics
@@ -134,16 +141,21 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
             depth_wall, depth_cpu, _ = timed(lambda c: r.rasterizer.depth(c), timed_cams, args.frames)
             load = round(max(load, os.getloadavg()[0]), 2)
             used = "gl" if r._gl_blend() is not None else "torch"
-        for j, t in enumerate(test):
+        for j, t in enumerate(test if score else ()):
             with cache.renderer(picks[t]) as r:
                 rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
             psnr.append(metrics.psnr(rgb, scene.images[t].float()))
-    return {"face_budget": budget, "frame_grid": grid, "shader": used, "faces": int(len(faces)), "vertices": int(len(vertices)),
-            "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu, "frame_main_cpu_ms": main,
-            "fps": round(1000 / wall, 2), "stream_ms": stream_wall, "stream_cpu_ms": stream_cpu,
-            "stream_fps": round(1000 / stream_wall, 2),
-            "fps_from_cpu_time": round(1000 / cpu, 2), "depth_pass_ms": depth_wall, "depth_pass_cpu_ms": depth_cpu,
-            "loadavg_1min": load, "psnr": round(float(statistics.mean(psnr)), 3), "psnr_views": len(psnr)}
+    row = {"face_budget": budget, "frame_grid": grid, "shader": used, "faces": int(len(faces)),
+           "vertices": int(len(vertices)), "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu,
+           "frame_main_cpu_ms": main, "stream_ms": stream_wall, "stream_cpu_ms": stream_cpu, "depth_pass_ms": depth_wall,
+           "depth_pass_cpu_ms": depth_cpu, "loadavg_1min": load}
+    return {**row, "psnr": round(float(statistics.mean(psnr)), 3), "psnr_views": len(psnr)} if score else row
+
+
+def _rates(row: dict) -> dict:
+    """``row`` with its frame rates from its timings."""
+    return {**row, "fps": round(1000 / row["frame_ms"], 2), "stream_fps": round(1000 / row["stream_ms"], 2),
+            "fps_from_cpu_time": round(1000 / row["frame_cpu_ms"], 2)}
 
 
 def run_scene(name: str, model, args) -> dict | None:
@@ -170,20 +182,25 @@ def run_scene(name: str, model, args) -> dict | None:
     lod = choose_level_of_detail(model, mesh, scene, setting, scene.splits.get("train") or list(range(len(scene))))
     print(name, lod.line(), flush=True)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
-    rows = []  # the reference path first
     budgets = sorted({*args.budgets, lod.face_budget}, reverse=True)  # the chosen budget always has a row
     runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in budgets if 0 < b < len(mesh.faces) for sh in args.shader]
-    for budget, grid, shader in dict.fromkeys(runs):
-        rows.append(measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader))
-        print(name, rows[-1], flush=True)
+    specs = [(setting, budget, grid, shader, {}) for budget, grid, shader in dict.fromkeys(runs)]  # the reference first
     if lod.sources is not None or lod.weight_stride > 1:  # the chosen level as the videos draw it: its budget, fewer
         chosen = lod.setting(setting)  # sources, the MLP's stride (and the same at every pixel, to compare)
         for stride in dict.fromkeys((1, lod.weight_stride)):
-            for shader in args.shader:
-                rows.append({**measure_budget(model, mesh, scene, {**chosen, "weight_stride": stride}, lod.face_budget,
-                                              args.grid, side, args, shader),
-                             "sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride})
-                print(name, rows[-1], flush=True)
+            specs += [({**chosen, "weight_stride": stride}, lod.face_budget, args.grid, shader,
+                       {"sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride})
+                      for shader in args.shader]
+    rounds: list[list[dict]] = [[] for _ in specs]  # each row's timings, round after round over every row: the
+    for i in range(args.rounds):  # machine's drift over minutes falls on every row alike
+        for spec, kept in zip(specs, rounds, strict=True):
+            kept.append(measure_budget(model, mesh, scene, *spec[:2], spec[2], side, args, spec[3], score=i == 0))
+            print(name, f"round {i + 1}", {**kept[-1], **spec[4]}, flush=True)
+    rows = []
+    for spec, kept in zip(specs, rounds, strict=True):
+        timings = {k: round(statistics.median(r[k] for r in kept), 2) for k in TIMINGS}
+        rows.append(_rates({**kept[0], **timings, **spec[4], "loadavg_1min": max(r["loadavg_1min"] for r in kept),
+                            "rounds_fps": [round(1000 / r["frame_ms"], 2) for r in kept]}))
     full = rows[0]
     for r in rows:
         r["psnr_loss_db"] = round(full["psnr"] - r["psnr"], 3)
@@ -213,6 +230,8 @@ def main(argv: list[str] | None = None) -> dict:
                    "frame shaders, a row each (MeshRenderOptions.shader; the reference row: torch)")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
     p.add_argument("--frames", type=int, default=10, help="timed frames (median)")
+    p.add_argument("--rounds", type=int, default=3, help="timing rounds over every row of a scene (each timing: the "
+                   "median of its rounds)")
     p.add_argument("--max-views", type=int, default=8, help="held-out views scored")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "mesh_lod.json")
     a = p.parse_args(argv)
@@ -229,7 +248,7 @@ def main(argv: list[str] | None = None) -> dict:
         row = run_scene(name, model, a)
         if row is not None:
             old[name] = {**row, "commit": commit, "loadavg_1min_end": round(os.getloadavg()[0], 2)}  # rows of other runs stay
-    result = {"provenance": provenance(seed=0), "threads": a.threads, "frames": a.frames,
+    result = {"provenance": provenance(seed=0), "threads": a.threads, "frames": a.frames, "rounds": a.rounds,
               "realtime_face_budget": REALTIME_FACE_BUDGET, "realtime_frame_grid": REALTIME_FRAME_GRID, "machine_note": "2 CPU cores shared with other jobs: "
               "wall-clock FPS fall with the load average recorded beside each; CPU ms per frame are less affected",
               "scenes": [old[n] for n in SCENES if n in old]}
