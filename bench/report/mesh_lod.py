@@ -86,9 +86,11 @@ def _before_after(before: dict, after: dict) -> list[str]:
     now = {s["scene"]: s for s in after["scenes"]}
     lines = [f"The same bench at commit `{before['provenance']['commit'][:12]}` (before the network's MLP every 2 px, "
              "the crack fill's local search and the OpenCV depth edges and blur), run on the same machine in the same "
-             "session, about 45 minutes before this table (`python -m bench mesh_lod --scenes fox fern lund --out "
-             "bench/results/mesh_lod_before_stride.json` in a checkout of that commit), each scene's chosen level of "
-             "detail. One run of 10 frames each; repeated runs of one setting differed by up to about 25 % in FPS here:", "",
+             "session, about an hour before this table (`python -m bench mesh_lod --scenes fox fern lund --out "
+             "bench/results/mesh_lod_before_stride.json` in a checkout of that commit, one round of 10 frames), each "
+             "scene's chosen level of detail. Runs of one setting minutes apart differed by up to about 30 % in FPS "
+             "here (the reference rows too), so the rows of the table above measured side by side (the chosen level "
+             "at every pixel and with the MLP stride) compare the stride more fairly than this table does:", "",
              "| scene | chosen level | FPS before -> after | streamed FPS before -> after | CPU ms before -> after | "
              "PSNR before -> after |", "|---|---|---|---|---|---|"]
     for old in before["scenes"]:
