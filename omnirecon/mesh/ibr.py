@@ -494,10 +494,12 @@ class MeshRenderer(SourceShader):
         (:meth:`GLBlend.shade`), the blur at depth edges. ``# [H, W, 3]``"""
         return self._gl_finish(gl, *self._gl_submit(gl, camera))
 
-    def _gl_submit(self, gl: GLBlend, camera: Cameras) -> tuple:
+    def _gl_submit(self, gl: GLBlend, camera: Cameras, drawn=None) -> tuple:
         """:meth:`_gl_frame` up to the GL pass, drawn and handed to llvmpipe's threads (:meth:`GLBlend.submit`): the
-        depth pass, the fill, the candidates. Returns what :meth:`_gl_finish` takes."""
-        mesh_z = self.rasterizer.depth(camera).clone()  # [H, W]; 0 = background (off the rasterizer's host buffer)
+        depth pass (or ``drawn()``: its :meth:`MeshRasterizer.depth_ahead`), the fill, the candidates. Returns what
+        :meth:`_gl_finish` takes."""
+        depth_pass = self.rasterizer.depth(camera) if drawn is None else drawn()
+        mesh_z = depth_pass.clone()  # [H, W]; 0 = background (off the rasterizer's host buffer)
         depth = mesh_z.numpy()
         if self.options.fill == "nearest" or self.options.cracks > 0:
             depth = nearest_depth(depth, NEAREST_FILL_REACH if self.options.fill == "nearest" else 0.0, self.options.cracks)
@@ -516,18 +518,19 @@ class MeshRenderer(SourceShader):
     def frames(self, cameras) -> Iterator[Tensor]:
         """:meth:`frame` of each camera of ``cameras`` (an iterable of one-camera batches), the same images bit for bit,
         ``# [H, W, 3]`` each. Through the GL pass a frame ahead: while llvmpipe's threads shade one frame, this thread
-        reads back and blurs the frame before it and draws the next one's depth pass (the passes' front end runs on
-        this thread), so on idle cores a stream of frames takes less wall time than one :meth:`frame` after another."""
+        draws the next one's depth pass (the passes' front end runs on this thread); while they rasterize that, it
+        reads back and blurs the frame before (and the caller takes it), so on idle cores a stream of frames takes
+        less wall time than one :meth:`frame` after another."""
         gl = self._gl_blend()
         pending = None
         for camera in cameras:
             if gl is None:
                 yield self.frame(camera)
                 continue
-            ahead = self._gl_submit(gl, camera)
+            drawn = self.rasterizer.depth_ahead(camera)
             if pending is not None:
                 yield self._gl_finish(gl, *pending)
-            pending = ahead
+            pending = self._gl_submit(gl, camera, drawn)
         if pending is not None:
             yield self._gl_finish(gl, *pending)
 

@@ -48,6 +48,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from omnirecon.render.raster import gl_flush
+
 _VERTEX = """
 #version 330 core
 void main() {  // one full-screen triangle
@@ -356,24 +358,6 @@ def mlp_source(mlp: list[Tensor]) -> str:
     return "\n".join(lines)
 
 
-_GL: list = []
-
-
-def _flush() -> None:
-    """``glFlush`` in the current context (moderngl has none): llvmpipe starts shading what was drawn on its threads
-    now, not at the next read-back or framebuffer change. A no-op where libOpenGL cannot be loaded."""
-    if not _GL:
-        import ctypes
-        import ctypes.util
-
-        try:
-            _GL.append(ctypes.CDLL(ctypes.util.find_library("OpenGL") or "libOpenGL.so.0").glFlush)
-        except (OSError, AttributeError):
-            _GL.append(None)
-    if _GL[0] is not None:
-        _GL[0]()
-
-
 def _f32(t: Tensor) -> np.ndarray:
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
@@ -591,7 +575,7 @@ class GLBlend:
                 fbo.use()
                 self.ctx.viewport = (0, 0, W, H)
             self._vao.render(moderngl.TRIANGLES, vertices=3)
-            _flush()
+            gl_flush()
         return W, H, slot
 
     def candidates(self, depth: np.ndarray, A: Tensor, origin: Tensor, grid: int, far_z=None) -> np.ndarray:

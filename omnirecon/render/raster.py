@@ -193,6 +193,24 @@ def _make_context():
     return moderngl.create_standalone_context(backend="egl")
 
 
+_GL: list = []
+
+
+def gl_flush() -> None:
+    """``glFlush`` in the current context (moderngl has none): llvmpipe starts rasterizing and shading what was drawn
+    on its threads now, not at the next read-back or framebuffer change. A no-op where libOpenGL cannot be loaded."""
+    if not _GL:
+        import ctypes
+        import ctypes.util
+
+        try:
+            _GL.append(ctypes.CDLL(ctypes.util.find_library("OpenGL") or "libOpenGL.so.0").glFlush)
+        except (OSError, AttributeError):
+            _GL.append(None)
+    if _GL[0] is not None:
+        _GL[0]()
+
+
 def gl_unavailable_reason() -> str | None:
     """Why the GL backend cannot run here (``None`` when it can). The probe runs once per process."""
     if not _EGL_ERROR:
@@ -330,7 +348,7 @@ class MeshRasterizer:
         with self._ctx:
             return self._draw_current(K, w2c, width, height, near, far, surface)
 
-    def _draw_current(self, K, w2c, width, height, near, far, surface: bool | str = False):
+    def _draw_current(self, K, w2c, width, height, near, far, surface: bool | str = False, read: bool = True):
         kind = surface if surface in ("depth", "face") else "surface" if surface else "gbuffer"
         auto_near, auto_far = self.depth_range(w2c)
         near = auto_near if near is None else near
@@ -350,8 +368,15 @@ class MeshRasterizer:
             self._programs[kind]["world_to_clip"].write((P @ w2c).T.astype("f4").tobytes())  # column-major
             self._vaos[kind].render(mgl.TRIANGLES)
         if kind in ("depth", "face"):
-            fbo.read_into(host[0], components=1, attachment=0, dtype="f4" if kind == "depth" else "i4")
-            return host[0]
+            dtype = "f4" if kind == "depth" else "i4"
+            def read_back() -> np.ndarray:
+                fbo.read_into(host[0], components=1, attachment=0, dtype=dtype)
+                return host[0]
+
+            if not read:  # handed to llvmpipe's threads now, read back by the caller later (depth_ahead)
+                gl_flush()
+                return read_back
+            return read_back()
         if surface:
             fbo.read_into(host[0], components=4, attachment=0, dtype="f4")
             return host[0]
@@ -465,6 +490,24 @@ class MeshRasterizer:
             return self.rasterize(camera, normals="none", near=near).depth
         K, w2c = _camera_arrays(camera)
         return torch.from_numpy(self._draw(K, w2c, camera.width, camera.height, near, far, surface="depth"))
+
+    def depth_ahead(self, camera: Cameras, near: float | None = None, far: float | None = None):
+        """:meth:`depth` drawn now and read back later: returns a function that returns what :meth:`depth` returns (the
+        same host buffer, valid until this rasterizer's next draw at that size). Meanwhile llvmpipe's threads
+        rasterize it (after whatever this context drew before), and the caller's thread is free. Reference backend:
+        drawn at once."""
+        if not self._use_gl():
+            out = self.depth(camera, near, far)
+            return lambda: out
+        K, w2c = _camera_arrays(camera)
+        with self._ctx:
+            read = self._draw_current(K, w2c, camera.width, camera.height, near, far, surface="depth", read=False)
+
+        def result() -> Tensor:
+            with self._ctx:
+                return torch.from_numpy(read())
+
+        return result
 
     def _rasterize_reference(self, K, w2c, width, height, near):
         from omnirecon.render.zbuffer import (

@@ -158,6 +158,10 @@ def test_depth_pass_equals_the_gbuffer_depth(scene):
         assert d.shape == (cam.height, cam.width) and torch.equal(d > 0, g.mask)
         assert torch.allclose(d, g.depth, rtol=1e-6, atol=0)
         assert torch.equal(ref.depth(cam), ref.rasterize(cam, normals="none").depth)
+        # drawn ahead (read back after another pass in the context) and on the reference backend: the same depths
+        ahead, ahead_ref = gl.depth_ahead(cam), ref.depth_ahead(cam)
+        gl.rasterize(scene.cameras[(i + 1) % 3].rescaled(0.5), normals="none")
+        assert torch.equal(ahead(), d) and torch.equal(ahead_ref(), ref.depth(cam))
     # the face pass (gl_PrimitiveID of the indexed mesh) gives the G-buffer's triangle ids, culled and two-sided
     for cull in (True, False):
         with MeshRasterizer.from_trimesh(mesh, backend="gl", cull_back_faces=cull) as r:
