@@ -480,8 +480,9 @@ def test_view_cache_renders_what_a_renderer_per_view_set_renders(setup, tmp_path
         with MeshRenderer(model, mesh, Sources.from_scene(scene, views), opts) as r:
             alone.append(render_frames(r, cams[k:k + 1], warmup=False)[0][0])
     with ViewCache(model, mesh, scene, opts) as cache:
-        drawn, rasterize = [], cache.rasterizer.depth
+        drawn, rasterize, ahead = [], cache.rasterizer.depth, cache.rasterizer.depth_ahead
         cache.rasterizer.depth = lambda cam, **kw: drawn.append(cam) or rasterize(cam, **kw)
+        cache.rasterizer.depth_ahead = lambda cam, **kw: drawn.append(cam) or ahead(cam, **kw)  # the frames' pass
         for k, views in enumerate(sets):
             with cache.renderer(views) as r:
                 assert r.mask_falloff is not None or blend == "network"
