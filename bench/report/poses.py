@@ -108,7 +108,41 @@ def hybrid(results: Path) -> list[str]:
             "pair while other pairs between them contradict it); learned: the learned model kept whenever it poses "
             "more. SIFT alone on the same views: the table above (a file that holds only hybrid rows compares with it). "
             "Load = 1-minute load average at the scene's start on the shared 2-core machine.",
-            "", *rows, "", prov(r["provenance"]), *join(results), *video(results)]
+            "", *rows, "", prov(r["provenance"]), *pair_table(results), *join(results), *video(results)]
+
+
+def pair_table(results: Path) -> list[str]:
+    """Every pair of a scene's views by SIFT and by each learned detector, against the true poses
+    (learned_pairs_*.json, one file per scene run)."""
+    files = [read(results, f.name) for f in sorted(results.glob("learned_pairs_*.json"))]
+    files = [f for f in files if f and f.get("scenes")]
+    if not files:
+        return []
+    c = files[0]["config"]
+    bins = [f"{lo}-{hi if hi <= 180 else 180}" for lo, hi in c["bins"]]
+    rows = ["| scene | matches | keypoints | " + " | ".join(f"{b} deg: right / wrong" for b in bins)
+            + " | most inliers of a wrong pair | views joined by right pairs | closest true angle to the others (deg) "
+            "| features CPU s / image | matching CPU s / pair | load |", "|" + "---|" * (len(bins) + 8)]
+    for f in files:
+        for x in f["scenes"]:
+            name = {"sift": "SIFT (verified)"}.get(x["method"], x["method"].replace(":", ", at most ") + " + LightGlue")
+            wrong_max = max(b["wrong_inliers_max"] for b in x["bins"])
+            rows.append(f"| {x['scene']} | {name} | {x.get('keypoints_median', '')} | "
+                        + " | ".join(f"{b['right']} / {b['wrong']} (of {b['pairs']})" for b in x["bins"])
+                        + f" | {wrong_max} | {x['largest_right_group']} / {x['views']} | "
+                        f"{x['closest_angle_across_deg'] if x['closest_angle_across_deg'] is not None else ''} | "
+                        f"{x['features_cpu_s_per_image']:.2f} | {x['matching_cpu_s_per_pair']:.2f} | "
+                        f"{x['load_1min_start']} |")
+    return ["", "#### Every pair of the 20 views, against the true poses (`python -m bench learned_pairs`)", "",
+            "The views `bench poses` takes, every pair (190), matched by SIFT as `process` runs it (its verified "
+            "inliers) and by each learned detector with its LightGlue (all matches; keypoints = median per image). "
+            "One estimator for all: the relative pose from the matches with the true pinhole camera (LO-RANSAC, "
+            f"{c['ransac_px']:g} px). Right: {c['min_inliers']}+ inliers and the rotation within {c['right_deg']:g} "
+            f"deg of the true one; wrong: {c['min_inliers']}+ inliers and further off (a pair the mapper would take); "
+            "per bin of the true angle between the two views. Views joined by right pairs: the largest set of views "
+            "that right pairs connect, and the closest true angle between one of them and another view. CPU "
+            "seconds at one thread on the shared machine (load at the scene's start).", "", *rows, "",
+            *[prov(f["provenance"]) for f in files]]
 
 
 def join(results: Path) -> list[str]:

@@ -32,6 +32,7 @@ from typing import Literal
 from PIL import Image
 
 from omnirecon.capture import consistency, learned, retrieval
+from omnirecon.capture.learned import DETECTOR
 from omnirecon.errors import InputError
 from omnirecon.options import CameraModel, Seeded, check_options
 from omnirecon.progress import progress_bar
@@ -100,11 +101,14 @@ class SfmOptions(CameraModel, Seeded):
     more images and agrees with the current one on the images both pose (:data:`omnirecon.capture.consistency.AGREE_DEG`). 0 turns
     retries off; a capture whose images all register is never retried."""
     learned: Literal["auto", "prefer", "off"] = "off"
-    """Retries include learned matches (ALIKED + LightGlue, the optional ``capture-learned`` extra) for the
+    """Retries include learned matches (DISK + LightGlue, the optional ``capture-learned`` extra) for the
     images SIFT left without a pose and a few partners each, not all pairs (:mod:`omnirecon.capture.hybrid`);
     auto: its model (after the pose check) kept under the retry rule (more images, the same poses on the
     ones both have); prefer: kept whenever it poses more images. Off by default: on 20 lego views the kept
     learned model still held views placed the wrong way round (bench poses --methods hybrid)."""
+    learned_features: Literal["aliked", "disk"] = DETECTOR
+    """The learned detector whose keypoints LightGlue matches (:data:`omnirecon.capture.learned.DETECTORS`; ALIKED
+    is the faster)."""
     affine_retry: bool = True
     """Retries include re-extracting features with affine shape and domain-size pooling (wide
     baselines on object captures; features take about 3x longer)."""
@@ -367,9 +371,10 @@ def _learned_attempt(image_dir: Path, names: list[str], work: Path, models: list
     unplaced = [nm for nm in names if nm not in got]
     pairs = learned_pairs(db, names, unplaced, sequential, seed=options.seed)
     out = work / "database_learned.db"
-    info = learned_database(db, out, image_dir, names, pairs, learned.LearnedMatcher(max_size=options.max_image_size),
-                            stages, options.seed)
-    return {"status": "used", "unplaced": len(unplaced), **info, "database": str(out)}
+    matcher = learned.LearnedMatcher(max_size=options.max_image_size, detector=options.learned_features)
+    info = learned_database(db, out, image_dir, names, pairs, matcher, stages, options.seed)
+    return {"status": "used", "detector": options.learned_features, "unplaced": len(unplaced), **info,
+            "database": str(out)}
 
 
 def without_focal_prior(db: Path, out: Path) -> bool:
@@ -467,7 +472,8 @@ def run_sfm(image_dir: Path, names: list[str], work: Path, options: SfmOptions, 
                 if short() else {"status": "not needed"}
             if learned_info.get("database"):
                 db3 = Path(learned_info["database"])
-                cand = attempt(f"learned matches ({learned.LABEL}) for the images SIFT left out", db3, False)
+                cand = attempt(f"learned matches ({learned.label(options.learned_features)}) for the images SIFT "
+                               "left out", db3, False)
                 if cand:  # its flipped views go before it is compared (their reasons kept with it)
                     learned_info["dropped"], _ = _check_poses(db3, cand[0], options, apart)
                     attempts[-1]["registered"] = cand[0].num_reg_images()

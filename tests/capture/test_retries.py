@@ -101,7 +101,7 @@ def test_retry_and_dropped_record(photos, tmp_path, views_with_noise):
 
     if available():  # learned matches for those left out (4 posed partners, matched among themselves, and 2
         # unposed ones each): not all 28 pairs
-        assert "learned matches (ALIKED + LightGlue) for the images SIFT left out" in steps
+        assert "learned matches (DISK + LightGlue) for the images SIFT left out" in steps
         lp = s["learned"]
         assert lp["status"] == "used" and 2 <= lp["unplaced"] <= 3 and lp["pairs"] <= 12 * lp["unplaced"]
         assert lp["pairs"] < 28
