@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench.report.common import missing, prov, read
+from omnirecon.capture.consistency import NEAR_DEG, NEAR_DEPTH
 
 
 def section(results: Path) -> str:
@@ -105,7 +106,9 @@ def hybrid(results: Path) -> list[str]:
             "the database and mapped again; the model is kept only when it poses more views and agrees with SIFT's "
             "on the views both pose. Both methods end with the pose check (views whose pose explains under half of "
             "their verified pairs' matches are dropped, then a group of views joined to the rest through one explained "
-            "pair while other pairs between them contradict it); learned: the learned model kept whenever it poses "
+            "pair while other pairs between them contradict it; pairs the model places close, optical axes within "
+            f"{NEAR_DEG:g} deg and centres within {NEAR_DEPTH:g} of their scene depth, that were matched yet share "
+            "under 15 verified matches count as contradicting); learned: the learned model kept whenever it poses "
             "more. SIFT alone on the same views: the table above (a file that holds only hybrid rows compares with it). "
             "Load = 1-minute load average at the scene's start on the shared 2-core machine.",
             "", *rows, "", prov(r["provenance"]), *pair_table(results), *join(results), *video(results)]
@@ -122,7 +125,7 @@ def pair_table(results: Path) -> list[str]:
     bins = [f"{lo}-{hi if hi <= 180 else 180}" for lo, hi in c["bins"]]
     rows = ["| scene | matches | keypoints | " + " | ".join(f"{b} deg: right / wrong" for b in bins)
             + " | most inliers of a wrong pair | views joined by right pairs | closest true angle to the others (deg) "
-            "| features CPU s / image | matching CPU s / pair | load |", "|" + "---|" * (len(bins) + 8)]
+            "| features CPU s / image | matching CPU s / pair | load |", "|" + "---|" * (len(bins) + 9)]
     for f in files:
         for x in f["scenes"]:
             name = {"sift": "SIFT (verified)"}.get(x["method"], x["method"].replace(":", ", at most ") + " + LightGlue")
@@ -142,7 +145,7 @@ def pair_table(results: Path) -> list[str]:
             "per bin of the true angle between the two views. Views joined by right pairs: the largest set of views "
             "that right pairs connect, and the closest true angle between one of them and another view. CPU "
             "seconds at one thread on the shared machine (load at the scene's start).", "", *rows, "",
-            *[prov(f["provenance"]) for f in files]]
+            *dict.fromkeys(prov(f["provenance"]) for f in files)]  # scenes run side by side share one
 
 
 def join(results: Path) -> list[str]:
