@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.poses import ROOT, SHARED, pick_views
+from bench.poses import ROOT, SHARED, pick_views, start
 
 SCENES = ("blender/lego", "blender/chair")
 BINS = ((0, 30), (30, 45), (45, 60), (60, 90), (90, 181))
@@ -192,15 +192,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "learned_pairs.json")
     args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    import pycolmap
-    import torch
-
+    prov = start(args.threads, args.seed)
     from omnirecon.data.io import write_json
-    from omnirecon.provenance import provenance
 
-    torch.set_num_threads(args.threads)
-    prov = provenance(seed=args.seed, pycolmap=pycolmap.__version__, threads=args.threads)
     rows = []
     with tempfile.TemporaryDirectory(prefix="learned_pairs_") as tmp:
         for k, s in enumerate(args.scenes):

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.poses import ROOT, SHARED, pick_views
+from bench.poses import ROOT, SHARED, pick_views, start
 
 
 def c2w(pose: np.ndarray) -> np.ndarray:
@@ -164,15 +164,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "pose_join.json")
     args = parser.parse_args(argv)
-    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
-    import pycolmap
-    import torch
-
+    prov = start(args.threads, args.seed)
     from omnirecon.data.io import write_json
-    from omnirecon.provenance import provenance
 
-    torch.set_num_threads(args.threads)
-    prov = provenance(seed=args.seed, pycolmap=pycolmap.__version__, colmap_threads=args.threads)
     rows = []
     for s in args.scenes:
         with tempfile.TemporaryDirectory(prefix="pose_join_") as tmp:

@@ -56,6 +56,19 @@ def pick_views(scene, count: int, split: str = "train") -> list[int]:
     return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
 
 
+def start(threads: int, seed: int) -> dict:
+    """Set this process's torch / OpenMP threads and return the run's provenance (with pycolmap's version),
+    taken at the start."""
+    os.environ.setdefault("OMP_NUM_THREADS", str(threads))
+    import pycolmap
+    import torch
+
+    from omnirecon.provenance import provenance
+
+    torch.set_num_threads(threads)
+    return provenance(seed=seed, pycolmap=pycolmap.__version__, colmap_threads=threads)
+
+
 def cpu_now() -> float:
     """CPU seconds of this process and of its children that have ended (``process`` maps in a child process)."""
     t = os.times()
