@@ -25,15 +25,17 @@ model, and a side of two or more views that a bridge (the one explained pair bet
 while another verified pair across contradicts it (one pair for and one against is no evidence).
 The group goes, not the rest (no pose is better than a wrong one).
 
-A flipped group can also be explained by every pair it has: on lego, SIFT's separate model of 5 views was
-joined turned about 180 degrees through front-to-back matches, and no verified pair contradicts it, since
-the views it truly neighbours share no match with it at all. What contradicts it is that silence:
-:func:`silent_pairs` finds the pairs the model places looking at the same part of the scene from nearby
-(optical axes within :data:`NEAR_DEG`, centres closer than :data:`NEAR_DEPTH` of their scene depth) that
-were matched and share fewer than the verified matches a pair needs. Views that close match where the
-photos are right (``python -m bench learned_pairs``: SIFT's inliers of every pair by the true angle between
-the views; a correct model of dtu_scan37 holds pairs 23-24 degrees apart with none). Each counts as a pair the model does not explain, weighted as
-the fewest verified matches a pair needs, so a view's strongly matched pairs outweigh it.
+A flipped group can also be explained by every pair it has: on lego, with ALIKED's learned matches, SIFT's
+separate model of 5 views was joined turned about 180 degrees through front-to-back matches, and no verified
+pair contradicts it, since the views it truly neighbours share no match with it at all. What contradicts it
+is that silence: :func:`silent_pairs` finds the pairs the model places looking at the same part of the scene
+from nearby (optical axes within :data:`NEAR_DEG`, centres closer than :data:`NEAR_DEPTH` of their scene
+depth) that were matched and share fewer than the verified matches a pair needs. Views that close match
+where the photos are right (``python -m bench learned_pairs``: SIFT's inliers of every pair by the true angle
+between the views; a correct model of dtu_scan37 holds pairs 23-24 degrees apart with none), and where both
+views match some other view richly (:data:`RICH`): between images with few features (a 128-px procedural
+capture's best pairs hold 18-42 matches) silence is no evidence. Each counts as a pair the model does not
+explain, weighted as the fewest verified matches a pair needs, so a view's strongly matched pairs outweigh it.
 
 The same rule across models: a retry's model replaces the one SfM has only when it poses more images with the same
 poses on those both hold (:func:`agreement`, :func:`replaces`).
@@ -141,12 +143,16 @@ NEAR_DEG = 20.0
 NEAR_DEPTH = 0.5
 """...and the two camera centres closer than this fraction of the smaller of the two views' median depth of
 their 3-D points."""
+RICH = 4
+"""Silent pairs: each of the two views has a verified pair with at least this many times the matches a pair
+needs (a view that matches nothing richly says nothing by not matching)."""
 
 
 def silent_pairs(db_path: Path, rec, min_matches: int = 15) -> list[PairCheck]:
     """Pairs of views registered in ``rec`` that the model places close (:data:`NEAR_DEG`, :data:`NEAR_DEPTH`)
-    and that the database ``db_path`` matched, with fewer than ``min_matches`` verified matches (see the
-    module's note). Pairs never matched (retrieval or sequential matching left them out) are no evidence."""
+    and that the database ``db_path`` matched, with fewer than ``min_matches`` verified matches, both views
+    matching some view richly (:data:`RICH`; see the module's note). Pairs never matched (retrieval or
+    sequential matching left them out) are no evidence."""
     import pycolmap  # lazy: the optional 'capture' extra
 
     views = {}
@@ -157,10 +163,15 @@ def silent_pairs(db_path: Path, rec, min_matches: int = 15) -> list[PairCheck]:
         xyz = np.asarray([rec.points3D[p.point3D_id].xyz for p in im.points2D if p.has_point3D()]).reshape(-1, 3)
         if len(xyz):
             views[im.name] = (rot[2], centre, float(np.median((xyz - centre) @ rot[2])))  # axis, centre, depth
-    names = sorted(views)
     out = []
     with pycolmap.Database.open(str(db_path)) as db:
         ids = {im.name: im.image_id for im in db.read_all_images()}
+        richest = dict.fromkeys(ids.values(), 0)  # image id -> most verified matches of one of its pairs
+        pair_ids, geometries = db.read_two_view_geometries()
+        for pid, g in zip(pair_ids, geometries):
+            for i in pycolmap.pair_id_to_image_pair(pid) if isinstance(pid, int) else pid:
+                richest[i] = max(richest.get(i, 0), len(g.inlier_matches))
+        names = sorted(n for n in views if richest.get(ids[n], 0) >= RICH * min_matches)
         for k, a in enumerate(names):
             for b in names[k + 1:]:
                 (fa, ca, da), (fb, cb, dbb) = views[a], views[b]
