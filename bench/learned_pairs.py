@@ -17,7 +17,6 @@ most inliers of any pair between it and the rest.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import os
 import shutil
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.poses import ROOT, SHARED, pick_views, start
+from bench.poses import SHARED, pick_views, scene_parser, start
 
 SCENES = ("blender/lego", "blender/chair")
 BINS = ((0, 30), (30, 45), (45, 60), (60, 90), (90, 181))
@@ -182,15 +181,10 @@ def run_scene(path: Path, images: int, methods: list[str], work: Path, threads: 
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="*", default=list(SCENES), help="paths under the shared data folder")
-    parser.add_argument("--images", type=int, default=20, help="views per scene (evenly spaced over the train split)")
+    parser = scene_parser(__doc__, list(SCENES), "learned_pairs.json")
     parser.add_argument("--methods", nargs="+", default=["sift", "aliked", "aliked:1024", "disk"],
                         help="sift, or a learned detector (omnirecon.capture.learned.DETECTORS) with an optional "
                              ":<most keypoints per image>")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "learned_pairs.json")
     args = parser.parse_args(argv)
     prov = start(args.threads, args.seed)
     from omnirecon.data.io import write_json

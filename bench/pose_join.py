@@ -16,7 +16,6 @@ true poses give.
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import tempfile
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.poses import ROOT, SHARED, pick_views, start
+from bench.poses import SHARED, pick_views, scene_parser, start
 
 
 def c2w(pose: np.ndarray) -> np.ndarray:
@@ -154,15 +153,10 @@ def run(path: Path, count: int, work: Path, threads: int, seed: int, partners: i
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scenes", nargs="+", default=["blender/lego", "blender/chair"])
-    parser.add_argument("--images", type=int, default=20)
+    parser = scene_parser(__doc__, ["blender/lego", "blender/chair"], "pose_join.json")
     parser.add_argument("--partners", type=int, default=3,
                         help="views of the kept model each view of another model is matched with (most similar by "
                              "SIFT words); 0 = all of them")
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "pose_join.json")
     args = parser.parse_args(argv)
     prov = start(args.threads, args.seed)
     from omnirecon.data.io import write_json

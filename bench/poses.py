@@ -56,6 +56,18 @@ def pick_views(scene, count: int, split: str = "train") -> list[int]:
     return [pool[i] for i in np.unique(np.linspace(0, len(pool) - 1, count).round().astype(int))]
 
 
+def scene_parser(doc: str, scenes: list[str], out: str) -> argparse.ArgumentParser:
+    """The arguments the pose experiments share: --scenes (default ``scenes``), --images, --threads, --seed and
+    --out (default ``bench/results/<out>``); each experiment adds its own."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--scenes", nargs="*", default=list(scenes), help="paths under the shared data folder")
+    parser.add_argument("--images", type=int, default=20, help="views per scene (evenly spaced over the train split)")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / out)
+    return parser
+
+
 def start(threads: int, seed: int) -> dict:
     """Set this process's torch / OpenMP threads and return the run's provenance (with pycolmap's version),
     taken at the start."""
