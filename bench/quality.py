@@ -65,9 +65,9 @@ def load(model_name: str):
 
 
 def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: str = "cpu", guided: bool = False,
-        ks: tuple[int, ...] | None = None, only: list[str] | None = None) -> dict:
+        ks: tuple[int, ...] | None = None, only: list[str] | None = None, guided_options: dict | None = None) -> dict:
     """Score ``model_name`` under every set of ``SETS[protocol_set]``, each merged into its results file (:func:`save`);
-    returns the last set's file."""
+    returns the last set's file. ``guided_options``: ``GuidedOptions`` fields over the family defaults (``guided``)."""
     from omnirecon.engine.evaluate import evaluate
     from omnirecon.models.guided import GuidedOptions
 
@@ -79,7 +79,8 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: 
         result = evaluate(model, scenes(tiny, protocol_set, only), ks, ROOT / "outputs" / "bench" / f"eval_{name[8:-5]}",
                           model_info=info, synth_count=1 if tiny else 10, protocol_set=pset,
                           max_targets=1 if tiny else None, cache=ROOT / "outputs" / "cache", progress=not tiny,
-                          guided=GuidedOptions(on=True) if guided and model_name != "floor" else None)
+                          guided=GuidedOptions(on=True, **(guided_options or {})) if guided and model_name != "floor"
+                          else None)
         result = save(out_dir / name, result)
     return result
 
@@ -156,10 +157,14 @@ def main(argv: list[str] | None = None) -> None:
                         "side, under their protocols and on the extrapolation split's test views; "
                         "cpu256-extrapolation: only the latter")
     p.add_argument("--guided", action="store_true", help="render the targets surface-guided (--guided.on)")
+    p.add_argument("--guided-options", type=json.loads, default=None,
+                   help='with --guided: GuidedOptions fields over the family defaults, a JSON object, e.g. '
+                        '\'{"prior_scale": 8}\' (recorded with the results; use another --out to keep the defaults\' file)')
     p.add_argument("--ks", type=int, nargs="+", default=None, help="source-view counts (default: 3 and 10)")
     p.add_argument("--scenes", nargs="+", default=None, help="only these real scenes (fern, dtu_scan24, ...)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     for m in a.models:
-        r = run(m, a.out, a.tiny, a.threads, a.protocol_set, a.guided, tuple(a.ks) if a.ks else None, a.scenes)
+        r = run(m, a.out, a.tiny, a.threads, a.protocol_set, a.guided, tuple(a.ks) if a.ks else None, a.scenes,
+                a.guided_options)
         print(m, {proto: {k: round(v.get("psnr", float("nan")), 2) for k, v in ks.items()} for proto, ks in r["means"].items()})

@@ -18,8 +18,10 @@ def section(results: Path) -> str:
         "",
         "One novel view per scene (the protocol's first target, from its K nearest pool views) rendered by the full "
         "path (the checkpoint's own render options: what `omnirecon render` runs) and by `--guided.on` (each ray "
-        "samples a band around the model's own depth at 1/4 size plus guard samples; rays without a trusted prior "
-        "take the full path; the prior's render counts in the guided time; band and guard per model family: "
+        "samples a band around the model's own depth at 1/4 size (or the row's `prior 1/N`) plus guard samples over the whole ray, either evenly "
+        "over the band (`8 + 4, band 0.03`) or on the full path's own sample grid (`grid 3 + 5 of 32`: the 3 grid "
+        "points nearest the prior besides 5 spread over the ray); rays without a trusted prior take the full path; "
+        "the prior's render counts in the guided time; layout, band and guard per model family: "
         "`omnirecon.models.guided.FAMILY_DEFAULTS`, listed per row). CPU seconds: process time of the render (the "
         "encode apart) at the run's torch threads (one unless the run says two), on a 2-core machine that may be "
         "shared with other jobs (1-minute load average in the last column); runs at two threads also give the wall "
@@ -63,6 +65,15 @@ def goal_lines(runs: list[dict]) -> list[str]:
     return out + [""]
 
 
+def layout(o: dict) -> str:
+    """A row's resolved sampling: ``8 + 4, band 0.03`` (band layout; rows from before the layouts have no key) or
+    ``grid 3 + 5 of 32`` (the band's and the guards' samples on the full path's 32-point grid)."""
+    prior = f", prior 1/{o['prior_scale']}" if o.get("prior_scale", 4) != 4 else ""
+    if o.get("layout", "band") == "grid":
+        return f"grid {o['band_samples']} + {o['guard_samples']} of {o['grid_samples']}{prior}"
+    return f"{o['band_samples']} + {o['guard_samples']}, band {o['band']}{prior}"
+
+
 def block(r: dict) -> str:
     """One run's table with its provenance."""
     wall = r.get("threads", 1) > 1
@@ -72,8 +83,7 @@ def block(r: dict) -> str:
             "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if wall else "")]
     for x in r["rows"]:
         o = x["options"]
-        setting = (", ".join(f"{k}={v}" for k, v in x["setting"].items()) or "defaults") + \
-            f" ({o['band_samples']} + {o['guard_samples']}, band {o['band']})"
+        setting = (", ".join(f"{k}={v}" for k, v in x["setting"].items()) or "defaults") + f" ({layout(o)})"
         rows.append(f"| {x['model']} | {x['scene']} | {x['size'][0]}x{x['size'][1]} | {setting} | "
                     f"{x['full_cpu_s']:.1f} | {x['guided_cpu_s']:.1f} | {x['speedup']:.2f}x | {x['psnr_full']:.2f} | "
                     f"{x['psnr_guided']:.2f} | {x['dpsnr']:+.2f} | {x['psnr_guided_vs_full']:.1f} | "
