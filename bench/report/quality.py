@@ -152,7 +152,7 @@ def at_256(results: Path, rows64: dict) -> list[str]:
            "split, the sources come from its training views), K = 3. Whole-image PSNR (dB), over the "
            "object mask in brackets for DTU and Blender; in square brackets the difference to the floor at the same "
            "size. The 64-px column repeats the `cpu` set's K = 3 value above (full sampling). At 256 px the learned "
-           "models render surface-guided (`--guided`, each model family's default band: full sampling made the "
+           "models render surface-guided (`--guided`, each model family's default layout: full sampling made the "
            "whole set too costly on the shared cores; the table after the goals gives the PSNR cost of guided "
            "rendering where both were scored) except in cells marked `full`; the floor samples fully. `–`: not "
            "scored (the goals below are over the rows scored).", "",
@@ -212,7 +212,7 @@ def guided_256(results: Path) -> list[str]:
              and "3" in guided[m][n]]
     if not pairs:
         return []
-    out = ["**Surface-guided at 256 px** (`--guided`, each model family's default band; the PSNR cost of guided "
+    out = ["**Surface-guided at 256 px** (`--guided`, each model family's default layout; the PSNR cost of guided "
            "rendering on the rows scored both ways), K = 3:", "", "| model | scene | full | guided | guided - full |",
            "|---|---|---|---|---|"]
     for m, n in pairs:

@@ -57,7 +57,7 @@ class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, Q
     """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
     package carries: omnirecon/engine/shipped.py)."""
     orbit_guided: bool = False
-    """Render the novel-view orbits surface-guided with each model family's default band even without
+    """Render the novel-view orbits surface-guided with each model family's default layout even without
     ``--guided.on`` (fewer samples per ray at the orbits' size; ``--guided.on`` sets the options instead)."""
 def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
     path = Path(cfg.checkpoints) / name
@@ -153,7 +153,7 @@ def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
     guided = cfg.guided if cfg.guided.on or not cfg.orbit_guided else GuidedOptions(on=True)
     videos = Section("Novel views").text(
         f"An orbit of {frames} frames at a {res}-px long side, each frame rendered from its {cfg.num_views} "
-        "nearest source views, with no per-scene training" + (", surface-guided (a band around the model's own "
+        "nearest source views, with no per-scene training" + (", surface-guided (samples around the model's own "
                                                               "low-resolution depth)." if guided.on else "."))
     for name in RENDER_MODELS:
         ckpt = _checkpoint(cfg, name)
