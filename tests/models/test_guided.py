@@ -11,12 +11,19 @@ from conftest import ROOT
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.checkpoint import load_checkpoint
-from omnirecon.metrics import psnr
 from omnirecon.errors import InputError
-from omnirecon.models.guided import (GuidedOptions, band_depths, from_unit, grid_units, pixel_bands, render_guided,
-                                     to_unit)
-from omnirecon.render.volume import sample_along_rays
+from omnirecon.metrics import psnr
+from omnirecon.models.guided import (
+    GuidedOptions,
+    band_depths,
+    from_unit,
+    grid_units,
+    pixel_bands,
+    render_guided,
+    to_unit,
+)
 from omnirecon.rays import Sources
+from omnirecon.render.volume import sample_along_rays
 
 MODELS = ("gpnr-tiny", "ibrnet-tiny", "omnirecon-tiny")
 
