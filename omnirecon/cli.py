@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import io
+import re
 import sys
 import traceback
 import warnings
@@ -43,11 +44,28 @@ def _load(spec: str):
     return getattr(importlib.import_module(module), name)
 
 
+_ROLE = re.compile(r":(?:data|mod|func|class|meth|attr|obj|exc|ref):`(~?)([^`<]*?)(?:\s*<([^>]*)>)?`")
+"""A Sphinx cross-reference in a docstring: ``:func:`name```, ``:func:`~a.b.name``` (shown as ``name``) or
+``:ref:`text <target>```."""
+
+
+def _plain(text: str) -> str:
+    """Sphinx roles and inline-literal backticks of a docstring as plain text for a terminal: ``:data:`a.B``` -> ``a.B``,
+    ``:func:`~a.b.f``` -> ``f``, a double-backquoted literal -> the literal."""
+    def role(m: re.Match) -> str:
+        name = m.group(2).strip()
+        return name.rsplit(".", 1)[-1] if m.group(1) else name
+
+    return _ROLE.sub(role, text).replace("``", "")
+
+
 def reflow_help(text: str) -> str:
     """A docstring as help text: its lines dedented (``inspect.cleandoc``) and joined into paragraphs; blank lines
-    part paragraphs and a line opening a list item (``- ``, ``* ``) starts a new line."""
+    part paragraphs and a line opening a list item (``- ``, ``* ``) starts a new line; Sphinx roles and literal
+    backquotes read as plain text (:func:`_plain`)."""
     import inspect
 
+    text = _plain(text)
     paragraphs = []
     for para in inspect.cleandoc(text).split("\n\n"):
         lines: list[str] = []

@@ -316,9 +316,17 @@ def test_help_text_reads_as_paragraphs(capsys, monkeypatch):
 
     assert reflow_help("First line\n    goes on.\n\n    - item one\n    - item\n      two") == (
         "First line goes on.\n\n- item one\n- item two")
+    # Sphinx roles and literal backquotes read as plain text
+    assert reflow_help("Relaxed (:data:`omnirecon.capture.RELAXED`), :func:`~omnirecon.models.guided.grid_units`,\n"
+                       "    ``band``; see :ref:`the notes <notes>`.") == (
+        "Relaxed (omnirecon.capture.RELAXED), grid_units, band; see the notes.")
     monkeypatch.setenv("COLUMNS", "400")  # each help entry on one terminal line
     with pytest.raises(SystemExit):
         main(["mesh", "--help"])
     out = capsys.readouterr().out
     chunk = next(line for line in out.splitlines() if "--chunk" in line)
     assert "at most 4096; a one-line note when a given value" in chunk, chunk
+    with pytest.raises(SystemExit):
+        main(["process", "--help"])
+    out = capsys.readouterr().out
+    assert "--retrieval" in out and not any(r in out for r in (":mod:", ":data:", ":func:", "``")), out
