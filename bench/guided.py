@@ -2,7 +2,7 @@
 
     python -m bench guided                                  # 504-px long side, every shipped tiny model
     python -m bench guided --side 252 --models ibrnet-tiny --settings '{}' '{"band_samples": 12}'
-    python -m bench guided --threads 2 --out bench/results/guided_2threads.json   # wall seconds on both cores
+    python -m bench guided --threads 2 --out bench/results/guided_2threads.json --figures  # both cores, pictures
 
 For each shipped tiny checkpoint and each scene (fern, and one held-out procedural forward-facing scene
 generated at ``--side``), one novel view (the protocol's first target, rendered from its ``--k`` nearest pool
@@ -75,8 +75,20 @@ def timed(fn):
     return round(time.process_time() - t0, 2), round(time.perf_counter() - w0, 2), out
 
 
-def measure(model_name: str, scene_name: str, scene, target: int, sources: list[int], cam, gt, settings: list[dict]
-            ) -> list:
+def figure(path: Path, *images: torch.Tensor) -> None:
+    """The images ``# [H, W, 3]`` side by side at half their size (ground truth | full path | guided)."""
+    import torch.nn.functional as F
+
+    from omnirecon.data.io import write_image
+
+    row = torch.cat([im.float().clamp(0, 1) for im in images], 1).permute(2, 0, 1)[None]  # [1, 3, H, n W]
+    write_image(path, F.interpolate(row, scale_factor=0.5, mode="area")[0].permute(1, 2, 0).numpy())
+
+
+def measure(model_name: str, scene_name: str, scene, target: int, sources: list[int], cam, gt, settings: list[dict],
+            figures: Path | None = None) -> list:
+    """Rows of ``model_name`` on one view: the full path once, then each setting (with ``figures``: the first one's
+    ground truth | full | guided picture into that folder)."""
     from omnirecon.engine.checkpoint import load_checkpoint
     from omnirecon.models.guided import GuidedOptions, render_guided
     from omnirecon.rays import Sources
@@ -90,9 +102,11 @@ def measure(model_name: str, scene_name: str, scene, target: int, sources: list[
             "encode_cpu_s": enc_s, "encode_wall_s": enc_wall, "full_cpu_s": full_s, "full_wall_s": full_wall,
             "psnr_full": psnr(full, gt)}
     rows = []
-    for spec in settings:
+    for i, spec in enumerate(settings):
         options = dataclasses.replace(GuidedOptions(on=True), **spec)
         g_s, g_wall, out = timed(lambda: render_guided(model, feats, cam, options))
+        if i == 0 and figures is not None:
+            figure(figures / f"guided_{model_name}_{scene_name}.png", gt, full, out["rgb"])
         row = {**base, "setting": spec, "options": dataclasses.asdict(options.resolved(model)), "guided_cpu_s": g_s,
                "guided_wall_s": g_wall,
                "speedup": round(full_s / g_s, 2), "psnr_guided": psnr(out["rgb"], gt),
@@ -113,6 +127,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--scenes", nargs="+", default=None, help="only these scene names (fern, synth_forward_...)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads of the encode and the renders (wall seconds are recorded beside CPU-s)")
+    parser.add_argument("--figures", action="store_true",
+                        help="write bench/results/figures/guided_<model>_<scene>.png: ground truth | full | the first "
+                             "setting's guided render, at half size")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "guided.json",
                         help="results file; the page shows every bench/results/guided*.json")
     args = parser.parse_args(argv)
@@ -129,7 +146,8 @@ def main(argv: list[str] | None = None) -> dict:
             continue
         scene, target, sources, cam, gt = view(path, args.side, args.k)
         for m in args.models:
-            result["rows"] += measure(m, name, scene, target, sources, cam, gt, settings)
+            result["rows"] += measure(m, name, scene, target, sources, cam, gt, settings,
+                                      HERE / "results" / "figures" if args.figures else None)
             write_json(args.out, result)  # partial results survive an interrupted run
     result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     write_json(args.out, result)

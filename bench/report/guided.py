@@ -33,7 +33,21 @@ def section(results: Path) -> str:
         "",
         *blocks,
         *goal_lines(runs),
+        *figure_lines(results),
     ])
+
+
+def figure_lines(results: Path) -> list[str]:
+    """The pictures ``python -m bench guided --figures`` wrote (ground truth | full path | guided at the defaults)."""
+    found = sorted((results / "figures").glob("guided_*.png"))
+    if not found:
+        return []
+    out = ["Ground truth | full path | surface-guided at the family defaults (`python -m bench guided --figures`: the "
+           "views of the tables above, at half size):", ""]
+    for f in found:
+        label = f.stem.removeprefix("guided_").replace("_", " ", 1)
+        out.append(f"![{label}: ground truth | full | guided](bench/results/figures/{f.name})")
+    return out + [""]
 
 
 GOAL_SIZE, GOAL_WALL_S, GOAL_DB = (504, 378), 10.0, 0.3
@@ -41,27 +55,30 @@ GOAL_SIZE, GOAL_WALL_S, GOAL_DB = (504, 378), 10.0, 0.3
 
 
 def goal_lines(runs: list[dict]) -> list[str]:
-    """Per model, the issue-47 goal against the 2-thread runs' 504x378 rows at the family defaults (the newest run
-    of each model): encode + guided render wall seconds, and guided - full PSNR (dB)."""
-    best: dict[str, dict] = {}
+    """Per model, the issue-47 goal against the 2-thread runs' 504x378 rows at the family defaults: the newest row's
+    options, and every run's row at those same options (wall seconds of the encode + the guided render, and guided -
+    full PSNR in dB; the machine's speed drifts between runs, so each run counts)."""
+    rows: dict[str, list[dict]] = {}
     for r in runs:
         if r.get("threads", 1) != 2:
             continue
         for x in r["rows"]:
             if tuple(x["size"]) == GOAL_SIZE and not x["setting"] and "guided_wall_s" in x:
-                if x["model"] not in best or r["provenance"].get("date", "") >= best[x["model"]]["date"]:
-                    best[x["model"]] = {**x, "date": r["provenance"].get("date", "")}
-    if not best:
+                rows.setdefault(x["model"], []).append({**x, "date": r["provenance"].get("date", "")})
+    if not rows:
         return []
     out = [f"**Goal** (issue 47: a {GOAL_SIZE[0]}x{GOAL_SIZE[1]} view in <= {GOAL_WALL_S:g} s on 2 cores, surface-"
-           f"guided, within {GOAL_DB} dB of the full render), from the 2-thread rows at the family defaults "
-           f"(wall seconds of the encode + the guided render):", ""]
-    for m, x in sorted(best.items()):
-        wall = x["encode_wall_s"] + x["guided_wall_s"]
-        ok = wall <= GOAL_WALL_S and x["dpsnr"] >= -GOAL_DB
-        out.append(f"- {m}: {wall:.1f} s ({x['encode_wall_s']:.1f} + {x['guided_wall_s']:.1f}; full path "
-                   f"{x['full_wall_s']:.1f} s), {x['dpsnr']:+.2f} dB against the full render "
-                   f"({'met' if ok else 'short'}; load {x['loadavg'][0]:.1f})")
+           f"guided, within {GOAL_DB} dB of the full render), from the 2-thread rows at the family defaults (wall "
+           f"seconds of the encode + the guided render; every run at the newest row's options):", ""]
+    for m, xs in sorted(rows.items()):
+        newest = max(xs, key=lambda x: x["date"])
+        same = sorted((x for x in xs if x["options"] == newest["options"]), key=lambda x: x["date"])
+        walls = [x["encode_wall_s"] + x["guided_wall_s"] for x in same]
+        met = sum(w <= GOAL_WALL_S and x["dpsnr"] >= -GOAL_DB for w, x in zip(walls, same))
+        shown = ", ".join(f"{w:.1f} s (full path {x['full_wall_s']:.1f} s, {x['dpsnr']:+.2f} dB, load "
+                          f"{x['loadavg'][0]:.1f})" for w, x in zip(walls, same))
+        verdict = "met" if met == len(same) else "short" if not met else f"met in {met} of {len(same)} runs"
+        out.append(f"- {m} ({layout(newest['options'])}): {shown} ({verdict})")
     return out + [""]
 
 
