@@ -50,8 +50,8 @@ _ROLE = re.compile(r":(?:data|mod|func|class|meth|attr|obj|exc|ref):`(~?)([^`<]*
 
 
 def _plain(text: str) -> str:
-    """Sphinx roles and inline-literal backticks of a docstring as plain text for a terminal: ``:data:`a.B``` -> ``a.B``,
-    ``:func:`~a.b.f``` -> ``f``, a double-backquoted literal -> the literal."""
+    """Sphinx roles and inline-literal backticks of a docstring as plain text for a terminal: ``:data:`a.B```
+    -> ``a.B``, ``:func:`~a.b.f``` -> ``f``, a double-backquoted literal -> the literal."""
     def role(m: re.Match) -> str:
         name = m.group(2).strip()
         return name.rsplit(".", 1)[-1] if m.group(1) else name

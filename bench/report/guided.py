@@ -18,7 +18,8 @@ def section(results: Path) -> str:
         "",
         "One novel view per scene (the protocol's first target, from its K nearest pool views) rendered by the full "
         "path (the checkpoint's own render options: what `omnirecon render` runs) and by `--guided.on` (each ray "
-        "samples a band around the model's own depth at 1/4 size (or the row's `prior 1/N`) plus guard samples over the whole ray, either evenly "
+        "samples a band around the model's own depth at 1/4 size (or the row's `prior 1/N`) plus guard samples "
+        "over the whole ray, either evenly "
         "over the band (`8 + 4, band 0.03`) or on the full path's own sample grid (`grid 3 + 5 of 32`: the 3 grid "
         "points nearest the prior besides 5 spread over the ray); rays without a trusted prior take the full path; "
         "the prior's render counts in the guided time; layout, band and guard per model family: "

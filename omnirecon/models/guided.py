@@ -10,10 +10,11 @@ by default, the model's own render at ``1 / prior_scale`` of the target's size, 
 prior depths of the 2x2 low-resolution cells around its centre (those bilinear upsampling blends), widened by
 ``band`` on each side, so that a pixel on a depth edge gets the whole step between the two surfaces; a pixel
 whose cells spread wider than ``max_spread``, or touches a cell the prior does not trust (no value, opacity below
-``min_opacity``, or, in the band layout, the model's own ``valid`` False), has no prior and is rendered by the full path. Its reference
-twin is the full path itself: :func:`render_guided` with ``GuidedOptions(on=False)`` is ``model.render_view``,
-and the pixels without a prior are ``render_view(pixels=...)``, the same values as the full image's there
-(``tests/models/test_guided.py`` checks both, and holds the guided render to a stated PSNR of the full one).
+``min_opacity``, or, in the band layout, the model's own ``valid`` False), has no prior and is rendered by the full
+path. Its reference twin is the full path itself: :func:`render_guided` with ``GuidedOptions(on=False)`` is
+``model.render_view``, and the pixels without a prior are ``render_view(pixels=...)``, the same values as the full
+image's there (``tests/models/test_guided.py`` checks both, and holds the guided render to a stated PSNR of the full
+one).
 
 Units: band widths and spreads are fractions of the near-far range measured in the parameter the models sample
 uniformly: inverse depth on forward-facing rigs (``Sources.rig == "forward"``), z-depth otherwise (so 0 is the
@@ -95,7 +96,7 @@ class GuidedOptions:
 
             raise InputError(f"--guided.band_samples + --guided.guard_samples ({out.band_samples} + "
                              f"{out.guard_samples}) exceed --guided.grid_samples ({out.grid_samples})", None,
-                             "use fewer samples with --guided.layout grid, e.g. 4 + 9 of 32")
+                             "use fewer samples with --guided.layout grid, e.g. 3 + 9 of 32")
         return out
 
 
@@ -200,7 +201,8 @@ def band_depths(lo: Tensor, hi: Tensor, near: float, far: float, inverse: bool, 
 def grid_units(centre: Tensor, grid: int, band: int, guard: int) -> Tensor:
     """The ``grid`` layout in the sampling parameter, sorted, ``# [R, band + guard]``: of the ``grid`` points
     ``i / (grid - 1)``, the ``guard`` ones nearest ``linspace(0, 1, guard)`` (the whole ray, both ends) and the
-    ``band`` other points nearest each ray's ``centre # [R]``. No point twice (``band + guard <= grid``: :meth:`GuidedOptions.resolved` checks it)."""
+    ``band`` other points nearest each ray's ``centre # [R]``. No point twice (``band + guard <= grid``:
+    :meth:`GuidedOptions.resolved` checks it)."""
     idx = torch.arange(grid, device=centre.device)  # [N]
     base = torch.linspace(0, grid - 1, guard, device=centre.device).round().long().unique() if guard > 1 else \
         idx[:guard]  # [G]

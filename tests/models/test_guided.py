@@ -76,7 +76,7 @@ def test_grid_layout_is_the_full_paths_own_samples():
     twice; the guards span the ray (both ends) and the band's samples are the other grid points nearest the centre;
     more samples than the grid holds is an input error naming the options."""
     assert torch.equal(grid_units(torch.tensor([0.3]), 32, 3, 5) * 31,
-                       torch.tensor([[0.0, 8.0, 9.0, 10.0, 11.0, 16.0, 23.0, 31.0]]))  # guards 0 8 16 23 31; 9.3 -> 9-11
+                       torch.tensor([[0.0, 8.0, 9.0, 10.0, 11.0, 16.0, 23.0, 31.0]]))  # guards 0 8 16 23 31; 9-11
     opts = GuidedOptions(layout="grid", band_samples=4, guard_samples=6, grid_samples=32)
     lo, hi = torch.tensor([0.0, 0.41, 0.9]), torch.tensor([0.05, 0.47, 1.0])
     for inverse in (False, True):
