@@ -20,8 +20,8 @@ def section(results: Path) -> str:
         "path (the checkpoint's own render options: what `omnirecon render` runs) and by `--guided.on` (each ray "
         "samples a band around the model's own depth at 1/4 size (or the row's `prior 1/N`) plus guard samples "
         "over the whole ray, either evenly "
-        "over the band (`8 + 4, band 0.03`) or on the full path's own sample grid (`grid 3 + 5 of 32`: the 3 grid "
-        "points nearest the prior besides 5 spread over the ray); rays without a trusted prior take the full path; "
+        "over the band (`8 + 4, band 0.03`) or on the full path's own sample grid (`grid 3 + 9 of 32`: the 3 grid "
+        "points nearest the prior besides 9 spread over the ray); rays without a trusted prior take the full path; "
         "the prior's render counts in the guided time; layout, band and guard per model family: "
         "`omnirecon.models.guided.FAMILY_DEFAULTS`, listed per row). CPU seconds: process time of the render (the "
         "encode apart) at the run's torch threads (one unless the run says two), on a 2-core machine that may be "
@@ -85,7 +85,7 @@ def goal_lines(runs: list[dict]) -> list[str]:
 
 def layout(o: dict) -> str:
     """A row's resolved sampling: ``8 + 4, band 0.03`` (band layout; rows from before the layouts have no key) or
-    ``grid 3 + 5 of 32`` (the band's and the guards' samples on the full path's 32-point grid)."""
+    ``grid 3 + 9 of 32`` (the band's and the guards' samples on the full path's 32-point grid)."""
     prior = f", prior 1/{o['prior_scale']}" if o.get("prior_scale", 4) != 4 else ""
     if o.get("layout", "band") == "grid":
         return f"grid {o['band_samples']} + {o['guard_samples']} of {o['grid_samples']}{prior}"
