@@ -42,7 +42,7 @@ SCENES = {"fox": "instant_ngp/fox", "fern": "llff/fern", "demo": None, "lund": N
 LUND = ROOT / "outputs" / "cache" / "extrapolation" / "lund_scene"
 """The street photos posed as ``python -m bench extrapolation`` poses them (its cache, when it is there)."""
 LUND_PHOTOS = SHARED / "photos" / "lund"
-BUDGETS = (0, 300_000, 200_000, 100_000, 50_000, 25_000)
+BUDGETS = (0, 300_000, 200_000, 150_000, 100_000, 50_000, 25_000)
 DEMO_SIDE = 256
 
 

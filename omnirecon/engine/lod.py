@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-LOD_BUDGETS = (100_000, 50_000, 25_000)
+LOD_BUDGETS = (150_000, 100_000, 50_000, 25_000)
 """Candidate face budgets below the ceiling (:data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`), largest first."""
 LOD_TOLERANCE_DB = 0.2
 """PSNR (dB) a smaller budget may lose against the ceiling on the left-out photos and still be chosen."""

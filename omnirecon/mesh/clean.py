@@ -153,9 +153,27 @@ def drop_small_components(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Tri
     return keep_faces(mesh, keep)
 
 
+def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same triangles over shared vertices: vertices at exactly the same position become one, and the faces that
+    this leaves with a repeated corner (zero area: they cover no pixel) are dropped. The surface drawn is unchanged;
+    what changes is that neighbouring faces which only touched now share their corners, as completion's pixel fills
+    and backdrop sheets do (:func:`omnirecon.mesh.complete.pixel_grid_surface` gives each pixel its own four corners,
+    equal to its neighbours' where their depths agree), so an edge collapse can merge them instead of keeping every
+    pixel's quad as a border. ``(vertices # [V', 3], faces # [F', 3])``"""
+    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    if not len(faces):
+        return vertices, faces
+    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)  # [V', 3], [V]
+    f = inverse.reshape(-1)[faces]  # [F, 3]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    return unique, f[keep]
+
+
 def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """``mesh`` with at most ``max_faces`` faces (quadric edge collapse, fast-simplification); unchanged
-    when it already fits or ``max_faces`` is 0."""
+    when it already fits or ``max_faces`` is 0. Where fast-simplification stops above the budget (its checks against
+    flipping faces can refuse every collapse left, e.g. on a pixel grid of :func:`weld`-ed fills), MeshLab's quadric
+    edge collapse (pymeshlab), slower, takes the mesh the rest of the way."""
     if max_faces <= 0 or len(mesh.faces) <= max_faces:
         return mesh
     import fast_simplification
@@ -168,6 +186,13 @@ def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
         if len(f) <= max_faces:
             break
         target = 1.0 - (1.0 - target) * max_faces / len(f) * 0.98
+    if len(f) > max_faces:
+        import pymeshlab
+
+        meshes = pymeshlab.MeshSet()
+        meshes.add_mesh(pymeshlab.Mesh(v, f))
+        meshes.meshing_decimation_quadric_edge_collapse(targetfacenum=max_faces)
+        v, f = meshes.current_mesh().vertex_matrix(), meshes.current_mesh().face_matrix()
     out = trimesh.Trimesh(v, f, process=False)
     out.remove_unreferenced_vertices()
     return out

@@ -255,16 +255,19 @@ mesh_lod``: frame time and held-out PSNR against every source ranked at every po
 
 def level_of_detail(mesh, budget: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``(vertices # [V, 3], faces # [F, 3])`` a renderer draws of ``mesh`` (a ``trimesh.Trimesh`` or such a pair):
-    at most ``budget`` faces (quadric edge collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it
-    fits or ``budget`` is 0."""
+    at most ``budget`` faces (its coincident vertices welded, :func:`omnirecon.mesh.clean.weld`, then quadric edge
+    collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it fits or ``budget`` is 0. Welding first
+    lets the collapse merge completion's pixel fills, which otherwise stay one border quad each while the collapse
+    takes its faces from the fused surface (``python -m bench mesh_lod``, BENCHMARKS "Real-time mesh path: level of
+    detail and candidate sources")."""
     vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
     if budget <= 0 or len(faces) <= budget:
         return vertices, faces
     import trimesh
 
-    from omnirecon.mesh.clean import decimate
+    from omnirecon.mesh.clean import decimate, weld
 
-    small = decimate(trimesh.Trimesh(np.asarray(vertices), np.asarray(faces), process=False), budget)
+    small = decimate(trimesh.Trimesh(*weld(vertices, faces), process=False), budget)
     return np.asarray(small.vertices), np.asarray(small.faces)
 
 
