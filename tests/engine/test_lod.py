@@ -85,6 +85,28 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     assert default.sources == (by_rule[-1] if by_rule else None), default.rows
 
 
+def test_fewer_sources_that_lose_at_the_chosen_budget_are_measured_one_budget_up(setup):
+    """Where no fewer-sources count passes at the chosen budget, the counts are measured one budget up (never two), and
+    where one passes there, that budget is drawn with it."""
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    full = len(mesh.faces)
+    budgets = (full // 2, 2000)  # 2,000 faces: far below the others on the left-out photos
+    none = choose_level_of_detail(model, mesh, scene, setting, train, budgets=budgets, sources=(3,), tolerance_db=100.0,
+                                  ceiling=0, sources_tolerance_db=-1.0, strides=())
+    assert none.face_budget == 2000 and none.sources is None, none.rows
+    rows = {(r["budget"], r["sources"]): r["psnr"] for r in none.rows}
+    assert set(rows) == {(0, 6), (full // 2, 6), (2000, 6), (2000, 3), (full // 2, 3)}  # one rung up, not two
+    best = rows[(0, 6)]
+    assert rows[(2000, 3)] < rows[(full // 2, 3)], rows
+    tol = (best - rows[(full // 2, 3)] + best - rows[(2000, 3)]) / 2  # passes one rung up only
+    up = choose_level_of_detail(model, mesh, scene, setting, train, budgets=budgets, sources=(3,), tolerance_db=100.0,
+                                ceiling=0, sources_tolerance_db=tol, strides=())
+    assert up.face_budget == full // 2 and up.sources == 3, up.rows
+    assert up.faces == next(r["faces"] for r in up.rows if r["budget"] == full // 2)
+
+
 def test_the_weight_stride_is_measured_at_the_chosen_sources_and_kept_within_its_tolerance(setup):
     """With 3 sources per frame (few enough for the GL pass's weight stride) a stride-2 row is measured at the chosen
     budget and sources: kept within a tolerance no loss can reach (the setting then carries it), never with a negative
