@@ -25,3 +25,30 @@ def test_section_lists_each_budget_against_the_reference(tmp_path):
             "22.00 | +0.00 |") in text
     assert ("| fox | 225x400 | budget 200000, grid 16, gl shader | 200,000 | 900 | 1.1 | 180 | 26 | 13.7 (72) | 45 | 2.0 | "
             "21.85 | -0.15 | 12.5 | `abc1234` |") in text
+
+
+def test_section_sets_each_scenes_chosen_level_beside_the_run_before_the_weld(tmp_path):
+    """With ``mesh_lod_before_weld.json`` the section adds a table of each scene's chosen level before -> after (the
+    chosen level's last row: its sources and stride), with the commit of the run before."""
+    from bench.report.mesh_lod import section
+    from omnirecon.provenance import provenance
+
+    def run(faces: int, fps: float, psnr: float, commit: str) -> dict:
+        row = {"face_budget": faces, "frame_grid": 16, "faces": faces, "shader": "gl", "decimate_s": 1.0,
+               "frame_ms": 1000 / fps, "fps": fps, "frame_cpu_ms": 60.0, "frame_main_cpu_ms": 20.0, "stream_fps": fps,
+               "stream_cpu_ms": 60.0, "depth_pass_cpu_ms": 10.0, "loadavg_1min": 1.2, "psnr": psnr,
+               "psnr_loss_db": 22.13 - psnr}
+        chosen = {**row, "sources": 3, "weight_stride": 2, "fps": fps + 5}
+        scene = {"scene": "fox", "resolution": [225, 400], "rows": [row, chosen], "commit": commit,
+                 "lod": {"face_budget": faces, "faces": faces, "sources": 3, "weight_stride": 2, "rows": [],
+                         "seconds": 1.0, "tolerance_db": 0.2}}
+        return {"provenance": {**provenance(seed=0), "commit": commit}, "threads": 2, "frames": 10,
+                "realtime_face_budget": 200000, "realtime_frame_grid": 16, "machine_note": "shared", "scenes": [scene]}
+
+    (tmp_path / "mesh_lod.json").write_text(json.dumps(run(50000, 27.3, 22.08, "after000000000")))
+    assert "before -> after" not in section(tmp_path)
+    (tmp_path / "mesh_lod_before_weld.json").write_text(json.dumps(run(100000, 22.3, 21.99, "before00000000")))
+    text = section(tmp_path)
+    assert "The same bench at commit `before000000`" in text
+    assert ("| fox | 100,000 faces, 3 sources, MLP every 2 px -> 50,000 faces, 3 sources, MLP every 2 px | 27.3 -> 32.3 "
+            "| 22.3 -> 27.3 | 60 -> 60 | 21.99 -> 22.08 | -0.14 -> -0.05 |") in text
