@@ -154,16 +154,18 @@ def drop_small_components(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Tri
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same triangles over shared vertices: vertices at exactly the same position become one, and the faces that
+    """The same triangles over shared vertices: vertices at the same position (bit for bit) become one, and the faces that
     this leaves with a repeated corner (zero area: they cover no pixel) are dropped. The surface drawn is unchanged;
     what changes is that neighbouring faces which only touched now share their corners, as completion's pixel fills
     and backdrop sheets do (:func:`omnirecon.mesh.complete.pixel_grid_surface` gives each pixel its own four corners,
     equal to its neighbours' where their depths agree), so an edge collapse can merge them instead of keeping every
     pixel's quad as a border. ``(vertices # [V', 3], faces # [F', 3])``"""
-    vertices, faces = np.asarray(vertices), np.asarray(faces)
+    vertices, faces = np.ascontiguousarray(vertices), np.asarray(faces)
     if not len(faces):
         return vertices, faces
-    unique, inverse = np.unique(vertices, axis=0, return_inverse=True)  # [V', 3], [V]
+    rows = vertices.view(np.dtype((np.void, vertices.dtype.itemsize * 3))).reshape(-1)  # [V]: a row's bytes, one key
+    _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)  # (half the time of axis=0)
+    unique = vertices[first]  # [V', 3]
     f = inverse.reshape(-1)[faces]  # [F, 3]
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
     return unique, f[keep]
