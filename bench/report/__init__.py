@@ -36,6 +36,7 @@ from bench.report import (
     speed,
     synth,
     throughput,
+    train_256,
     train_background,
     train_levers,
     train_views,
@@ -44,7 +45,7 @@ from bench.report import (
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_background, train_views,
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_background, train_256, train_views,
             extrapolation,
             depth_sources,
             realtime_blend, mesh_lod, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_surface,

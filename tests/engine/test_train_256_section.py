@@ -1,0 +1,37 @@
+"""The 256-px warm start's ship rule (`bench/train_256.py`) and its BENCHMARKS section."""
+
+import json
+
+
+def _row(name: str, p256: float, r256: float, p64: float, r64: float) -> dict:
+    return {"name": name, "step": 7000, "cpu_s": 100.0,
+            "256": {"scenes": {"synth:scene_901000": p256, "fox": r256}, "procedural": p256, "real": r256, "cpu_s": 9.0},
+            "64": {"scenes": {"synth:scene_901000": p64, "fox": r64}, "procedural": p64, "real": r64, "cpu_s": 3.0}}
+
+
+def test_the_run_ships_only_when_it_beats_at_256_px_and_keeps_64_px():
+    from bench.train_256 import decide
+
+    shipped = _row("shipped", 25.0, 22.0, 27.0, 26.0)
+    assert decide(shipped, _row("run", 25.2, 22.3, 26.95, 25.95))[0]
+    assert not decide(shipped, _row("run", 25.2, 22.05, 27.0, 26.0))[0]  # real +0.05: within the margin
+    no, why = decide(shipped, _row("run", 25.5, 22.5, 26.5, 26.0))  # 64 px procedural -0.5
+    assert not no and "loses more than 0.1 dB at 64 px" in why and "procedural 64 px -0.50" in why
+
+
+def test_section_shows_both_rows_and_the_decision(tmp_path):
+    from bench.report.train_256 import section
+    from bench.train_256 import decide
+    from omnirecon.provenance import provenance
+
+    assert section(tmp_path) is None
+    shipped, run = _row("shipped ibrnet-tiny", 25.0, 22.0, 27.0, 26.0), _row("ibrnet-tiny + 900 steps", 25.3, 22.4,
+                                                                               27.0, 26.0)
+    ships, why = decide(shipped, run)
+    (tmp_path / "train_256.json").write_text(json.dumps({
+        "provenance": provenance(seed=0), "model": "ibrnet-tiny", "size": 256, "margin_db": 0.1, "command": "x",
+        "rows": [shipped, run], "ships": ships, "decision": why}))
+    text = section(tmp_path)
+    assert "| shipped ibrnet-tiny | 7,000 | 100 | 25.00 | 22.00 | **25.00** | **22.00** | **27.00** | **26.00** |" in text
+    assert "Run minus shipped: procedural 256 px +0.30, real 256 px +0.40, procedural 64 px +0.00" in text
+    assert "Decision: ships: " in text
