@@ -46,7 +46,7 @@ def run_dir(model: str) -> Path:
 
 
 def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int) -> list[str]:
-    """The warm start's ``omnirecon train`` command (``--resume`` continues an interrupted run)."""
+    """The warm start's ``omnirecon train`` command (with ``--resume`` where an interrupted run left a checkpoint)."""
     real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
     card = json.loads((ROOT / "checkpoints" / model / "card.json").read_text())
     encoder = card.get("encoder", {}).get("name", "scratch")
@@ -59,7 +59,7 @@ def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int) -> l
             "--steps", str(steps), "--cpu-budget", str(cpu_budget), "--threads", "1", "--seed", str(SEED),
             "--lr", "1e-4", "--warmup", "20", "--num-views-range", "3", "10", "--val-every", "0",
             "--ckpt-every", "250", "--keep", "2", "--log-every", "10", "--no-progress", "--out", str(run_dir(model)),
-            "--resume"]
+            *(["--resume"] if (run_dir(model) / "checkpoints" / "latest").exists() else [])]
 
 
 def val_scenes(size: int) -> list[str]:
@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--model", default="ibrnet-tiny")
     p.add_argument("--train", action="store_true", help="run (or resume) the warm start, then score")
     p.add_argument("--cpu-budget", type=float, default=3600.0, help="process CPU-seconds of the warm start")
-    p.add_argument("--steps", type=int, default=1500, help="length of the learning-rate schedule")
+    p.add_argument("--steps", type=int, default=950, help="length of the learning-rate schedule")
     p.add_argument("--synth-scenes", type=int, default=4, help="procedural training scenes per rig")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "train_256.json")
     a = p.parse_args(argv)
