@@ -5,6 +5,7 @@
     python -m bench end_to_end --reconstruct ../shared/data/photos/lund --name "reconstruct (lund)"
     python -m bench end_to_end --collect-demo CLONE/outputs/demo TIME_FILE [--collect-setup TIME_FILE]
     python -m bench end_to_end --collect-reconstruct OUT TIME_FILE   # a run made as below, already finished
+    python -m bench end_to_end --demo-here='--resolution 256 --orbit-guided'  # the demo with other options, here
     python -m bench end_to_end --threads-ab demo                     # 1 vs 2 torch threads per stage (below)
     python -m bench end_to_end --threads-ab reconstruct --reconstruct ../shared/data/llff/fern/images_12
 
@@ -34,6 +35,7 @@ import contextlib
 import json
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -132,6 +134,15 @@ def run_demo(tmp: Path) -> dict:
                         "git clone; make setup; OMP_NUM_THREADS=1 PYTHONPATH=<clock> make demo") | {"setup": setup}
 
 
+def run_demo_here(args: list[str], tmp: Path) -> dict:
+    """``omnirecon demo ARGS --threads 1`` in this checkout (no fresh clone, no set-up), timed as :func:`run_demo`."""
+    out = tmp / "demo_here"
+    cmd = [sys.executable, "-m", "omnirecon.cli", "demo", *args, "--threads", "1", "--out", str(out)]
+    timed(cmd, ROOT, clock_env(tmp), tmp / "demo_here.time", tmp / "demo_here.log")
+    return collect_demo(out, tmp / "demo_here.time", None,
+                        f"OMP_NUM_THREADS=1 PYTHONPATH=<clock> omnirecon demo {' '.join(args)} --threads 1")
+
+
 def run_reconstruct(photos: Path, tmp: Path) -> dict:
     src = tmp / "photos"
     shutil.copytree(photos, src)
@@ -176,6 +187,9 @@ def threads_ab(kind: str, photos: Path | None, tmp: Path) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--demo", action="store_true", help="time make setup + make demo on a fresh clone of HEAD")
+    parser.add_argument("--demo-here", default=None, metavar="ARGS",
+                        help="time `omnirecon demo ARGS --threads 1` in this checkout (e.g. --demo-here='--resolution "
+                             "256 --orbit-guided'), stored as 'demo ARGS'")
     parser.add_argument("--reconstruct", type=Path, default=None, help="a folder of photos to reconstruct")
     parser.add_argument("--name", default="reconstruct",
                         help="the key (and the section's label) of the --reconstruct run: one run per name is kept")
@@ -211,6 +225,8 @@ def main(argv: list[str] | None = None) -> dict:
             return result
         if args.demo:
             runs["demo"] = run_demo(tmp)
+        if args.demo_here:
+            runs[f"demo {args.demo_here}"] = run_demo_here(shlex.split(args.demo_here), tmp)
         if args.reconstruct:
             runs[args.name] = run_reconstruct(args.reconstruct, tmp)
         if args.collect_demo:
