@@ -15,7 +15,7 @@ sampling) and at 64 px (``--protocol-set cpu``, the size the checkpoint was chos
 seeds 901000, 901002 and 901004 (one per rig, generated at the set's size) and the held-out views of the real training
 scenes. Whole-image PSNR (dB), the mean per group. The run is shipped only if it beats the shipped checkpoint by more
 than :data:`MARGIN_DB` on both groups at 256 px and loses at most :data:`MARGIN_DB` on either at 64 px; this module
-only reports the decision (``python -m bench train_tiny --reship`` conventions do the copying).
+reports the decision and, with ``--ship``, replaces ``checkpoints/<model>`` where the rule says so (:func:`ship`).
 
 Writes ``bench/results/train_256.json``.
 """
@@ -109,6 +109,47 @@ def decide(shipped: dict, run: dict) -> tuple[bool, str]:
     return False, f"not shipped ({why}): {text}"
 
 
+def ship(model: str, result: dict) -> Path:
+    """Replace ``checkpoints/<model>`` by the run's final state (atomically: written beside it, then renamed), its card
+    the shipped one's with the 256-px stage added (steps and CPU seconds summed, the command, both validation rows)."""
+    import shutil
+
+    dest = ROOT / "checkpoints" / model
+    final = run_dir(model) / "checkpoints" / "final"
+    meta = json.loads((final / "meta.json").read_text())
+    card = json.loads((dest / "card.json").read_text())
+    tmp = dest.with_name(dest.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(dest, tmp)
+    for name in ("model.safetensors", "meta.json"):
+        shutil.copy2(final / name, tmp / name)
+    stage = {"resolution": SIZE, "steps": meta["step"], "cpu_seconds": round(meta["extra"]["cpu_s"], 1),
+             "wall_seconds": round(meta["extra"].get("elapsed_s", 0.0), 1), "command": result["command"],
+             "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
+             "validation": {"rule": result["decision"], "rows": result["rows"]}}
+    card = {**card, "steps": card["steps"] + meta["step"], "cpu_seconds": card["cpu_seconds"] + stage["cpu_seconds"],
+            "wall_seconds": card["wall_seconds"] + stage["wall_seconds"],
+            "cpu_budget_s": card["cpu_budget_s"] + result["cpu_budget"], "stages": [*card["stages"], result["command"]],
+            "continued": stage, "provenance": meta.get("provenance", card.get("provenance", {}))}
+    (tmp / "card.json").write_text(json.dumps(card, indent=1))
+    shipped, run = result["rows"]
+    text = (tmp / "MODEL_CARD.md").read_text().rstrip()
+    (tmp / "MODEL_CARD.md").write_text(text + "\n\n" + "\n".join([
+        f"## Continued at {SIZE} px", "",
+        f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
+        f"{meta['step']} steps more at {SIZE} px in {stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): "
+        f"`{result['command']}`. The card's steps and CPU seconds are the sums; the training curve above is the "
+        f"{card['resolution']}-px run's.", "",
+        f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
+        f"at {SIZE} px {shipped['256']['procedural']:.2f} / {shipped['256']['real']:.2f} -> "
+        f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}, at 64 px {shipped['64']['procedural']:.2f} / "
+        f"{shipped['64']['real']:.2f} -> {run['64']['procedural']:.2f} / {run['64']['real']:.2f}. "
+        f"{result['decision'].capitalize()}.", ""]))
+    shutil.rmtree(dest)
+    tmp.rename(dest)
+    return dest
+
+
 def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--model", default="ibrnet-tiny")
@@ -116,6 +157,7 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--cpu-budget", type=float, default=3600.0, help="process CPU-seconds of the warm start")
     p.add_argument("--steps", type=int, default=950, help="length of the learning-rate schedule")
     p.add_argument("--synth-scenes", type=int, default=4, help="procedural training scenes per rig")
+    p.add_argument("--ship", action="store_true", help="replace checkpoints/<model> by the run where the rule says so")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "train_256.json")
     a = p.parse_args(argv)
     from omnirecon.data.io import write_json
@@ -136,8 +178,12 @@ def main(argv: list[str] | None = None) -> dict:
     ships, why = decide(shipped, run)
     print(why)
     result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "margin_db": MARGIN_DB,
-              "command": " ".join(["nice", "-n", "19", "python", *cmd[2:]]).replace(str(ROOT) + "/", ""),
-              "rows": [shipped, run], "ships": ships, "decision": why}
+              "command": " ".join(["nice", "-n", "19", "python", "-m", *cmd[2:]]).replace(str(ROOT) + "/", "")
+              .replace(str(SHARED.parent.parent) + "/", "../").replace(" --resume", ""),
+              "cpu_budget": a.cpu_budget, "rows": [shipped, run], "ships": ships, "decision": why}
+    if ships and a.ship:
+        print(f"shipped {ship(a.model, result)}")
+        result["shipped"] = True
     write_json(a.out, result)
     return result
 

@@ -22,7 +22,9 @@ def section(results: Path) -> str | None:
         parent = c.get("warm_start") or {}  # a warm start: its parent's stages come first
         first = (parent.get("curve") or {}).get("train") or [[0, c["train_psnr_first"]]]
         out.append(f"| {c['model']} | {c['cpu_budget_s']:.0f} | {c['steps']} | {c['cpu_seconds']:.0f} | "
-                   f"{c['wall_seconds']:.0f} | {c['threads']} | {c['resolution']}² | "
+                   f"{c['wall_seconds']:.0f} | {c['threads']} | {c['resolution']}²"
+                   + (f", then {c['continued']['resolution']}² ({c['continued']['steps']} steps)" if c.get("continued")
+                      else "") + " | "
                    f"{first[0][1]:.2f} -> {c['train_psnr_last']:.2f} | "
                    f"{len(parent.get('stages') or []) + len(c.get('stages', [1]))} |")
     weights = {c["model"]: c["data"]["weights"] for c in cards}
