@@ -35,3 +35,32 @@ def test_section_shows_both_rows_and_the_decision(tmp_path):
     assert "| shipped ibrnet-tiny | 7,000 | 100 | 25.00 | 22.00 | **25.00** | **22.00** | **27.00** | **26.00** |" in text
     assert "Run minus shipped: procedural 256 px +0.30, real 256 px +0.40, procedural 64 px +0.00" in text
     assert "Decision: ships: " in text
+
+
+def test_ship_replaces_the_checkpoint_and_adds_the_stage_to_its_card(tmp_path, monkeypatch):
+    """``--ship`` copies the run's final weights over the shipped ones and sums steps and CPU seconds on the card."""
+    import bench.train_256 as t
+
+    monkeypatch.setattr(t, "ROOT", tmp_path)
+    dest = tmp_path / "checkpoints" / "ibrnet-tiny"
+    dest.mkdir(parents=True)
+    (dest / "model.safetensors").write_bytes(b"old")
+    (dest / "meta.json").write_text(json.dumps({"step": 7000}))
+    (dest / "training_curve.png").write_bytes(b"png")
+    (dest / "card.json").write_text(json.dumps({"steps": 7000, "cpu_seconds": 8202.0, "wall_seconds": 100.0,
+                                                "cpu_budget_s": 8500.0, "stages": ["a"], "resolution": 64}))
+    (dest / "MODEL_CARD.md").write_text("# ibrnet-tiny\n")
+    final = t.run_dir("ibrnet-tiny") / "checkpoints" / "final"
+    final.mkdir(parents=True)
+    (final / "model.safetensors").write_bytes(b"new")
+    (final / "meta.json").write_text(json.dumps({"step": 950, "extra": {"cpu_s": 3500.0, "elapsed_s": 4000.0}}))
+    rows = [_row("shipped", 25.0, 22.0, 27.0, 26.0), _row("run", 25.3, 22.4, 27.0, 26.0)]
+    t.ship("ibrnet-tiny", {"command": "python -m omnirecon.cli train x", "decision": "ships: y", "rows": rows,
+                           "cpu_budget": 3600.0})
+    card = json.loads((dest / "card.json").read_text())
+    assert (dest / "model.safetensors").read_bytes() == b"new" and (dest / "training_curve.png").is_file()
+    assert card["steps"] == 7950 and card["cpu_seconds"] == 11702.0 and card["cpu_budget_s"] == 12100.0
+    assert card["stages"] == ["a", "python -m omnirecon.cli train x"] and card["continued"]["resolution"] == 256
+    text = (dest / "MODEL_CARD.md").read_text()
+    assert "## Continued at 256 px" in text and "25.00 / 22.00 -> 25.30 / 22.40" in text
+    assert not dest.with_name("ibrnet-tiny.tmp").exists()
