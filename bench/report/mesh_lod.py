@@ -77,8 +77,7 @@ def section(results: Path) -> str | None:
 
 WELD = ("The same bench at commit `{commit}` (before the level of detail welded coincident vertices, with the face "
         "budgets 100,000 to 25,000 below the ceiling and fewer sources measured at the chosen budget only), run on the "
-        "same machine in the same session right after this table's rows of fern and lund and about half an hour after "
-        "fox's (`python -m bench mesh_lod --scenes fox fern lund --out bench/results/mesh_lod_before_weld.json` in a "
+        "same machine in the same session within about 20 minutes of this table's rows (`python -m bench mesh_lod --scenes fox fern lund --out bench/results/mesh_lod_before_weld.json` in a "
         "checkout of that commit), each scene's chosen level of detail. Decimated as given, completion's pixel fills "
         "(each pixel's quad with corners of its own) were borders the collapse deleted: on a 48 x 48 fill 13 % of the "
         "pixels stayed covered at 576 faces (`tests/mesh/test_complete.py`), and the fused surface lost the rest. "
