@@ -94,19 +94,23 @@ def score(ckpt: Path, out: Path, size: str) -> dict:
             "load": res.get("provenance", {}).get("loadavg_1min")}
 
 
+def gains(shipped: dict, run: dict) -> dict[str, float]:
+    """The run's PSNR minus the shipped checkpoint's, per group and size (dB)."""
+    return {f"{g} {s} px": round(run[s][g] - shipped[s][g], 3) for s in SETS for g in ("procedural", "real")}
+
+
 def decide(shipped: dict, run: dict) -> tuple[bool, str]:
-    """Whether the run ships (module docstring) and why, from the two rows' scores."""
-    gain = {f"{g} {s} px": round(run[s][g] - shipped[s][g], 3) for s in SETS for g in ("procedural", "real")}
+    """Whether the run ships (module docstring) and why, from the two rows' scores (the gains: :func:`gains`)."""
+    gain = gains(shipped, run)
     better = all(gain[f"{g} 256 px"] > MARGIN_DB for g in ("procedural", "real"))
     kept = all(gain[f"{g} 64 px"] >= -MARGIN_DB for g in ("procedural", "real"))
-    text = ", ".join(f"{k} {v:+.2f}" for k, v in gain.items())
     if better and kept:
-        return True, f"ships: {text}"
+        return True, "ships"
     why = ("beats the shipped checkpoint at 256 px" if better else
            f"does not beat the shipped checkpoint by more than {MARGIN_DB:g} dB on both groups at 256 px")
     if not kept:
         why += f", loses more than {MARGIN_DB:g} dB at 64 px"
-    return False, f"not shipped ({why}): {text}"
+    return False, f"not shipped ({why})"
 
 
 def ship(model: str, result: dict) -> Path:
@@ -172,11 +176,11 @@ def main(argv: list[str] | None = None) -> dict:
     shipped_meta = json.loads((ROOT / "checkpoints" / a.model / "meta.json").read_text())
     shipped = {"name": f"shipped {a.model}", "step": shipped_meta["step"],
                **{s: score(ROOT / "checkpoints" / a.model, work / f"shipped_{a.model}_{s}", s) for s in SETS}}
-    run = {"name": f"{a.model} + {meta['step'] - shipped_meta['step']} steps at {SIZE} px", "step": meta["step"],
+    run = {"name": f"{a.model} + {meta['step']} steps at {SIZE} px", "step": shipped_meta["step"] + meta["step"],
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
            **{s: score(final, work / f"{a.model}_256_ft_step{meta['step']}_{s}", s) for s in SETS}}
     ships, why = decide(shipped, run)
-    print(why)
+    print(why + ": " + ", ".join(f"{k} {v:+.2f}" for k, v in gains(shipped, run).items()))
     result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "margin_db": MARGIN_DB,
               "command": " ".join(["nice", "-n", "19", "python", "-m", *cmd[2:]]).replace(str(ROOT) + "/", "")
               .replace(str(SHARED.parent.parent) + "/", "../").replace(" --resume", ""),

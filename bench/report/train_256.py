@@ -14,19 +14,19 @@ def section(results: Path) -> str | None:
         return None
     shipped, run = r["rows"][:2]
     scenes = sorted(shipped["256"]["scenes"], key=lambda n: (not n.startswith("synth:"), n))
-    head = ["checkpoint", "steps", "CPU-s", *(f"{n} 256 px" for n in scenes), "procedural 256 px", "real 256 px",
+    head = ["checkpoint", "steps", "training CPU-s", *(f"{n} 256 px" for n in scenes), "procedural 256 px", "real 256 px",
             "procedural 64 px", "real 64 px"]
 
     def line(row: dict) -> str:
-        cells = [row["name"], f"{row['step']:,}", f"{row['cpu_s']:,.0f}" if row.get("cpu_s") else "–",
+        cells = [row["name"], f"{row['step']:,}", f"+{row['cpu_s']:,.0f}" if row.get("cpu_s") else "–",
                  *(f"{row['256']['scenes'].get(n, float('nan')):.2f}" for n in scenes),
                  *(f"**{row[s][g]:.2f}**" for s in ("256", "64") for g in ("procedural", "real"))]
         return "| " + " | ".join(cells) + " |"
 
     gains = ", ".join(f"{g} {s} px {run[s][g] - shipped[s][g]:+.2f}" for s in ("256", "64")
                       for g in ("procedural", "real"))
-    cost = [f"{row['name']}: {row[s]['cpu_s']:.0f} CPU-s at {s} px" for row in (shipped, run) for s in ("256", "64")
-            if row[s].get("cpu_s")]
+    cost = [f"{row['name']} " + " / ".join(f"{row[s]['cpu_s']:.0f}" for s in ("256", "64")) + " CPU-s"
+            for row in (shipped, run) if all(row[s].get("cpu_s") for s in ("256", "64"))]
     return "\n".join([
         f"### {r['model']} trained further at {r['size']} px (`python -m bench train_256`, issue 47)", "",
         f"The shipped {r['model']} (trained at 64 px) continued at {r['size']} px: a warm start (`--init`, fresh "
@@ -38,5 +38,5 @@ def section(results: Path) -> str | None:
         f"only if the run beats the shipped checkpoint by more than {r['margin_db']:g} dB on both groups at 256 px "
         f"and loses at most {r['margin_db']:g} dB on either at 64 px.", "",
         "| " + " | ".join(head) + " |", "|" + "---|" * len(head), line(shipped), line(run), "",
-        f"Run minus shipped: {gains}. Decision: {r['decision']}." + (f" Scoring cost: {'; '.join(cost)}." if cost else ""),
+        f"Run minus shipped: {gains}. Decision: {r['decision']}." + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
         "", f"Command of the run: `{r['command']}`.", "", prov(r["provenance"]), ""])
