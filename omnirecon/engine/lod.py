@@ -11,11 +11,11 @@ faces than that and never loses more than ``tolerance_db`` on the photos it was 
 The network blend's work per pixel grows with the sources it blends (each one projected, tested for occlusion, its
 features fetched and run through the appearance MLP), so at the chosen budget fewer sources per frame
 (:data:`LOD_SOURCES`) are measured the same way, against the same ceiling row, and the fewest that lose nothing there
-(:data:`LOD_SOURCES_TOLERANCE_DB`) are blended: the left-out photos judge a source count less surely than a face
-budget (their pool is sparser than the path's: BENCHMARKS "Real-time mesh path: level of detail"). Where none does,
-because the faces the budget took off cost what fewer sources would not, they are measured once more one budget up,
-and where they pass there, that budget is drawn with them: fewer sources save more of a network frame than a rung of
-faces (fern: 150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
+(:data:`LOD_SOURCES_TOLERANCE_DB`) are blended: the left-out photos judge a source count less surely than a face budget
+(their pool is sparser than the path's: BENCHMARKS "Real-time mesh path: level of detail"). Where none does, because the
+faces the budget took off cost what fewer sources would not, they are measured once more one budget up, and where they
+pass there, that budget is drawn with them: fewer sources save more of a network frame than a rung of faces (fern:
+150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
 ranks each tile's candidates and blends a fixed few already; its sources are left alone.
 
 Last, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
@@ -106,8 +106,9 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
                            stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
-    sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources, then the largest weight stride of
-    ``strides`` within ``stride_tolerance_db`` of the chosen row (module docstring).
+    sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (where no count passes at the chosen
+    budget, one budget up, which is then drawn), then the largest weight stride of ``strides`` within
+    ``stride_tolerance_db`` of the chosen row (module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).

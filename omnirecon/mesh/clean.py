@@ -154,12 +154,12 @@ def drop_small_components(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Tri
 
 
 def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The same triangles over shared vertices: vertices at the same position (bit for bit) become one, and the faces that
+    """The same triangles over shared vertices: vertices at the same position (bit for bit) become one, and the faces
     this leaves with a repeated corner (zero area: they cover no pixel) are dropped. The surface drawn is unchanged;
     what changes is that neighbouring faces which only touched now share their corners, as completion's pixel fills
-    and backdrop sheets do (:func:`omnirecon.mesh.complete.pixel_grid_surface` gives each pixel its own four corners,
-    equal to its neighbours' where their depths agree), so an edge collapse can merge them instead of keeping every
-    pixel's quad as a border. ``(vertices # [V', 3], faces # [F', 3])``"""
+    do (:func:`omnirecon.mesh.complete.pixel_grid_surface` gives each pixel its own four corners, equal to its
+    neighbours' where their depths agree), so an edge collapse merges them instead of deleting each pixel's quad as a
+    border of its own. ``(vertices # [V', 3], faces # [F', 3])``"""
     vertices, faces = np.ascontiguousarray(vertices), np.asarray(faces)
     if not len(faces):
         return vertices, faces

@@ -257,9 +257,9 @@ def level_of_detail(mesh, budget: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``(vertices # [V, 3], faces # [F, 3])`` a renderer draws of ``mesh`` (a ``trimesh.Trimesh`` or such a pair):
     at most ``budget`` faces (its coincident vertices welded, :func:`omnirecon.mesh.clean.weld`, then quadric edge
     collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it fits or ``budget`` is 0. Welding first
-    lets the collapse merge completion's pixel fills, which otherwise stay one border quad each while the collapse
-    takes its faces from the fused surface (``python -m bench mesh_lod``, BENCHMARKS "Real-time mesh path: level of
-    detail and candidate sources")."""
+    lets the collapse merge completion's pixel fills into the surfaces they continue; unwelded, each pixel's quad is a
+    border of its own and the collapse deletes them (``python -m bench mesh_lod``, BENCHMARKS "Real-time mesh path:
+    level of detail and candidate sources")."""
     vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
     if budget <= 0 or len(faces) <= budget:
         return vertices, faces
