@@ -80,7 +80,7 @@ WELD = ("The same bench at commit `{commit}` (before the level of detail welded 
         "same machine in the same session within about 20 minutes of this table's rows (`python -m bench mesh_lod --scenes fox fern lund --out bench/results/mesh_lod_before_weld.json` in a "
         "checkout of that commit), each scene's chosen level of detail. Decimated as given, completion's pixel fills "
         "(each pixel's quad with corners of its own) were borders the collapse deleted: on a 48 x 48 fill 13 % of the "
-        "pixels stayed covered at 576 faces (`tests/mesh/test_complete.py`), and the fused surface lost the rest. "
+        "pixels stayed covered at 576 faces (`tests/mesh/test_complete.py`). "
         "Runs of one setting minutes apart differed by up to about 30 % in FPS here, so read the FPS loosely and the "
         "CPU ms and PSNR (held-out, whole image) more firmly:")
 """The before/after paragraph of the weld (``mesh_lod_before_weld.json``: the bench at the commit before it)."""
