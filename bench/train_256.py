@@ -114,8 +114,8 @@ def decide(shipped: dict, run: dict) -> tuple[bool, str]:
 
 
 def ship(model: str, result: dict) -> Path:
-    """Replace ``checkpoints/<model>`` by the run's final state (atomically: written beside it, then renamed), its card
-    the shipped one's with the 256-px stage added (steps and CPU seconds summed, the command, both validation rows)."""
+    """Replace ``checkpoints/<model>`` by the run's final state (written beside it, then swapped in), its card the
+    shipped one's with the 256-px stage added (steps and CPU seconds summed, the command, both validation rows)."""
     import shutil
 
     dest = ROOT / "checkpoints" / model
