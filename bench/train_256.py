@@ -2,12 +2,15 @@
 
     python -m bench train_256 --train --cpu-budget 3600        # the warm start (resumes; 1 thread, niced by the caller)
     python -m bench train_256                                  # score the shipped checkpoint and the run's final state
+    python -m bench train_256 --mix 64 --train --steps 1400    # the same with half the scenes read at 64 px
 
 The shipped checkpoints were trained at 64 px; the 256-px protocol sets score them at 4x that size, where their image
 encoder sees finer detail than it was trained with. This continues ``checkpoints/<model>`` (``--init``: fresh
 optimizer, peak lr 1e-4 after 20 warm-up steps, cosine over ``--steps``) on the shipped data mix read at 256 px
 (procedural rigs at weight 2, ``--synth-scenes`` scenes each, generated at 256 px; the real training scenes at 1), K
-drawn from [3, 10], seed 0, for ``--cpu-budget`` process CPU-seconds.
+drawn from [3, 10], seed 0, for ``--cpu-budget`` process CPU-seconds. With ``--mix R``, half the scenes drawn are read
+at ``R`` px instead (``omnirecon train --mix-resolution R --mix-share 0.5``: one run at both sizes), into its own run
+folder and results file.
 
 Both checkpoints are scored on validation data only (the final held-out scenes, fern, dtu_scan24/37 and the
 evaluation seeds, are not looked at): ``omnirecon eval`` with K = 3 at 256 px (``--protocol-set cpu256``, full
@@ -17,7 +20,7 @@ scenes. Whole-image PSNR (dB), the mean per group. The run is shipped only if it
 than :data:`MARGIN_DB` on both groups at 256 px and loses at most :data:`MARGIN_DB` on either at 64 px; this module
 reports the decision and, with ``--ship``, replaces ``checkpoints/<model>`` where the rule says so (:func:`ship`).
 
-Writes ``bench/results/train_256.json``.
+Writes ``bench/results/train_256.json`` (with ``--mix R``: ``train_256_mix<R>.json``).
 """
 
 from __future__ import annotations
@@ -41,12 +44,13 @@ SETS = {"256": "cpu256", "64": "cpu"}
 """Long side (px) -> the protocol set scoring at that size."""
 
 
-def run_dir(model: str) -> Path:
-    return ROOT / "outputs" / "train" / f"{model}_256_ft"
+def run_dir(model: str, mix: int = 0) -> Path:
+    return ROOT / "outputs" / "train" / (f"{model}_256_mix{mix}" if mix else f"{model}_256_ft")
 
 
-def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int) -> list[str]:
-    """The warm start's ``omnirecon train`` command (with ``--resume`` where an interrupted run left a checkpoint)."""
+def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int, mix: int = 0) -> list[str]:
+    """The warm start's ``omnirecon train`` command (with ``--resume`` where an interrupted run left a checkpoint;
+    ``mix``: half the scenes at that size)."""
     real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
     card = json.loads((ROOT / "checkpoints" / model / "card.json").read_text())
     encoder = card.get("encoder", {}).get("name", "scratch")
@@ -58,8 +62,9 @@ def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int) -> l
             "--cache", str(ROOT / "outputs" / "cache" / f"synth{SIZE}"), "--resolution", str(SIZE),
             "--steps", str(steps), "--cpu-budget", str(cpu_budget), "--threads", "1", "--seed", str(SEED),
             "--lr", "1e-4", "--warmup", "20", "--num-views-range", "3", "10", "--val-every", "0",
-            "--ckpt-every", "250", "--keep", "2", "--log-every", "10", "--no-progress", "--out", str(run_dir(model)),
-            *(["--resume"] if (run_dir(model) / "checkpoints" / "latest").exists() else [])]
+            *(["--mix-resolution", str(mix), "--mix-share", "0.5"] if mix else []),
+            "--ckpt-every", "250", "--keep", "2", "--log-every", "10", "--no-progress", "--out", str(run_dir(model, mix)),
+            *(["--resume"] if (run_dir(model, mix) / "checkpoints" / "latest").exists() else [])]
 
 
 def val_scenes(size: int) -> list[str]:
@@ -113,13 +118,13 @@ def decide(shipped: dict, run: dict) -> tuple[bool, str]:
     return False, f"not shipped ({why})"
 
 
-def ship(model: str, result: dict) -> Path:
+def ship(model: str, result: dict, mix: int = 0) -> Path:
     """Replace ``checkpoints/<model>`` by the run's final state (written beside it, then swapped in), its card the
     shipped one's with the 256-px stage added (steps and CPU seconds summed, the command, both validation rows)."""
     import shutil
 
     dest = ROOT / "checkpoints" / model
-    final = run_dir(model) / "checkpoints" / "final"
+    final = run_dir(model, mix) / "checkpoints" / "final"
     meta = json.loads((final / "meta.json").read_text())
     card = json.loads((dest / "card.json").read_text())
     tmp = dest.with_name(dest.name + ".tmp")
@@ -127,7 +132,7 @@ def ship(model: str, result: dict) -> Path:
     shutil.copytree(dest, tmp)
     for name in ("model.safetensors", "meta.json"):
         shutil.copy2(final / name, tmp / name)
-    stage = {"resolution": SIZE, "steps": meta["step"], "cpu_seconds": round(meta["extra"]["cpu_s"], 1),
+    stage = {"resolution": SIZE, **({"mix_resolution": mix, "mix_share": 0.5} if mix else {}), "steps": meta["step"], "cpu_seconds": round(meta["extra"]["cpu_s"], 1),
              "wall_seconds": round(meta["extra"].get("elapsed_s", 0.0), 1), "command": result["command"],
              "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
              "validation": {"rule": result["decision"], "rows": result["rows"]}}
@@ -139,9 +144,9 @@ def ship(model: str, result: dict) -> Path:
     shipped, run = result["rows"]
     text = (tmp / "MODEL_CARD.md").read_text().rstrip()
     (tmp / "MODEL_CARD.md").write_text(text + "\n\n" + "\n".join([
-        f"## Continued at {SIZE} px", "",
+        f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
         f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
-        f"{meta['step']} steps more at {SIZE} px in {stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): "
+        f"{meta['step']} steps more at {SIZE} px{f' (half the scenes at {mix} px)' if mix else ''} in {stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): "
         f"`{result['command']}`. The card's steps and CPU seconds are the sums; the training curve above is the "
         f"{card['resolution']}-px run's.", "",
         f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
@@ -161,32 +166,36 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--cpu-budget", type=float, default=3600.0, help="process CPU-seconds of the warm start")
     p.add_argument("--steps", type=int, default=950, help="length of the learning-rate schedule")
     p.add_argument("--synth-scenes", type=int, default=4, help="procedural training scenes per rig")
+    p.add_argument("--mix", type=int, default=0, help="read half the scenes at this size (px) instead; 0: none")
     p.add_argument("--ship", action="store_true", help="replace checkpoints/<model> by the run where the rule says so")
-    p.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "train_256.json")
+    p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json (--mix R: "
+                   "train_256_mix<R>.json)")
     a = p.parse_args(argv)
+    a.out = a.out or Path(__file__).parent / "results" / (f"train_256_mix{a.mix}.json" if a.mix else "train_256.json")
     from omnirecon.data.io import write_json
     from omnirecon.provenance import provenance
 
-    cmd = train_cmd(a.model, a.cpu_budget, a.steps, a.synth_scenes)
+    cmd = train_cmd(a.model, a.cpu_budget, a.steps, a.synth_scenes, a.mix)
     if a.train:
         subprocess.run(cmd, check=True)
-    final = run_dir(a.model) / "checkpoints" / "final"
+    final = run_dir(a.model, a.mix) / "checkpoints" / "final"
     meta = json.loads((final / "meta.json").read_text())
     work = ROOT / "outputs" / "train" / "val256"
     shipped_meta = json.loads((ROOT / "checkpoints" / a.model / "meta.json").read_text())
     shipped = {"name": f"shipped {a.model}", "step": shipped_meta["step"],
                **{s: score(ROOT / "checkpoints" / a.model, work / f"shipped_{a.model}_{s}", s) for s in SETS}}
-    run = {"name": f"{a.model} + {meta['step']} steps at {SIZE} px", "step": shipped_meta["step"] + meta["step"],
+    run = {"name": f"{a.model} + {meta['step']} steps at {SIZE} px" + (f", half the scenes at {a.mix} px" if a.mix else ""),
+           "step": shipped_meta["step"] + meta["step"],
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
-           **{s: score(final, work / f"{a.model}_256_ft_step{meta['step']}_{s}", s) for s in SETS}}
+           **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_{s}", s) for s in SETS}}
     ships, why = decide(shipped, run)
     print(why + ": " + ", ".join(f"{k} {v:+.2f}" for k, v in gains(shipped, run).items()))
-    result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "margin_db": MARGIN_DB,
+    result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "mix": a.mix, "margin_db": MARGIN_DB,
               "command": " ".join(["nice", "-n", "19", "python", "-m", *cmd[2:]]).replace(str(ROOT) + "/", "")
               .replace(str(SHARED.parent.parent) + "/", "../").replace(" --resume", ""),
               "cpu_budget": a.cpu_budget, "rows": [shipped, run], "ships": ships, "decision": why}
     if ships and a.ship:
-        print(f"shipped {ship(a.model, result)}")
+        print(f"shipped {ship(a.model, result, a.mix)}")
         result["shipped"] = True
     write_json(a.out, result)
     return result

@@ -83,7 +83,7 @@ PIXELS = Rule(8, 16_384, example="e.g. 128")
 
 RULES: dict[str, Rule] = {
     # sizes (also checked against free memory, see MEMORY)
-    "resolution": PIXELS, "mesh_resolution": PIXELS, "source_resolution": PIXELS,
+    "resolution": PIXELS, "mix_resolution": Rule(0, 16_384, example="e.g. 64 (0: off)"), "mesh_resolution": PIXELS, "source_resolution": PIXELS,
     "render.samples": Rule(2, 4096, example="e.g. 24"),
     "size": PIXELS, "max_image_size": Rule(64, 16_384, example="e.g. 1600"),
     "frames": Rule(1, 1_000_000, example="e.g. 60"), "max_frames": Rule(3, 100_000, example="e.g. 300"),
@@ -112,7 +112,7 @@ RULES: dict[str, Rule] = {
     "lr": Rule(0, 1, above=True, example="e.g. 5e-4"), "min_lr_ratio": FRACTION,
     "encoder_lr_scale": Rule(0, 100, example="e.g. 0.1"), "weight_decay": Rule(0, 10, example="e.g. 0.0"),
     "clip": Rule(0, 1e6, example="e.g. 1.0 (0: off)"), "aux_weight": WEIGHT, "depth_weight": WEIGHT,
-    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION,
+    "mask_weight": WEIGHT, "data_weights": Rule(0, 1e6, example="e.g. 1 1"), "foreground": FRACTION, "objects": FRACTION, "mix_share": FRACTION,
     # camera paths and video
     "arc": Rule(0, 360, above=True, example="e.g. 360"), "rots": Rule(0, 100, above=True, example="e.g. 2"),
     "render.fps": Rule(1, 240, example="e.g. 24"), "fps": Rule(0, 240, above=True, example="e.g. 2"),

@@ -108,8 +108,16 @@ class Trainer:
         self.train_sources = parse_sources(cfg.data, "train", **common)
         self.bank = SceneBank(self.train_sources, list(cfg.data_weights) if cfg.data_weights else None,
                               cfg.resolution, cfg.scenes_in_memory, cfg.max_views, cfg.real_background)
+        self.mix_bank = None
+        """With ``--mix-resolution``: the same sources read at that size (:meth:`bank_at`)."""
+        if cfg.mix_resolution:
+            mixed = parse_sources(cfg.data, "train", **{**common, "resolution": cfg.mix_resolution})
+            self.mix_bank = SceneBank(mixed, list(cfg.data_weights) if cfg.data_weights else None, cfg.mix_resolution,
+                                      cfg.scenes_in_memory, cfg.max_views, cfg.real_background)
         if cfg.stereo_depth:
-            self.bank.annotate = StereoPseudoDepth()
+            for bank in (self.bank, self.mix_bank):
+                if bank is not None:
+                    bank.annotate = StereoPseudoDepth()
         val_specs = cfg.val_scenes
         if val_specs is None:
             rig = next((d.split(":")[1] for d in cfg.data if d.startswith("synth:") and d.count(":") >= 1), None)
@@ -131,6 +139,8 @@ class Trainer:
 
         check_options("train", c)  # every numeric option's range: omnirecon/options.py
         need(self.rays >= 1, f"--rays must be at least 1, got {self.rays}", "use e.g. --rays 256")
+        need(c.mix_resolution == 0 or c.mix_resolution >= 8, f"--mix-resolution must be 0 (off) or at least 8 px, got "
+             f"{c.mix_resolution}", "use e.g. --mix-resolution 64")
         need(self.lr > 0, f"--lr must be positive, got {self.lr}", "use e.g. --lr 5e-4")
         need(self.depth_weight >= 0, "--depth-weight must be >= 0", "use e.g. 0.1 (0 disables)")
         need(self.K >= 1, f"--num-views must be at least 1, got {self.K}", "use e.g. --num-views 5")
@@ -335,6 +345,15 @@ class Trainer:
 
         return signal.signal(signal.SIGTERM, stop)
 
+    def bank_at(self, s: int) -> SceneBank:
+        """The scene bank of step ``s``: with ``--mix-resolution``, per scene (every ``--switch-every`` steps) the
+        second size with odds ``--mix-share``, drawn from the seed of the scene's first step; else the one bank."""
+        c = self.cfg
+        if self.mix_bank is None:
+            return self.bank
+        gen = torch.Generator().manual_seed(step_seed(c.seed, (s - 1) // c.switch_every, self.env.rank, 3))
+        return self.mix_bank if float(torch.rand(1, generator=gen)) < c.mix_share else self.bank
+
     def loop(self, last: int) -> None:
         c, env = self.cfg, self.env
         window = torch.zeros(4, dtype=torch.float64)  # loss, mse, steps, step seconds since the last log line
@@ -345,10 +364,10 @@ class Trainer:
             t_step = time.perf_counter()
             gen = torch.Generator().manual_seed(step_seed(c.seed, s, env.rank))
             torch.manual_seed(step_seed(c.seed, s, env.rank, 1))  # model-internal draws (IBRNet jitter)
-            ref = self.bank.choose(torch.Generator().manual_seed(step_seed(c.seed, (s - 1) // c.switch_every,
-                                                                           env.rank, 2)))
+            bank = self.bank_at(s)
+            ref = bank.choose(torch.Generator().manual_seed(step_seed(c.seed, (s - 1) // c.switch_every, env.rank, 2)))
             K, pool = self.views_at(s)
-            batch = draw_batch(self.bank.get(ref), K, pool, self.rays, gen, c.foreground).to(self.device)
+            batch = draw_batch(bank.get(ref), K, pool, self.rays, gen, c.foreground).to(self.device)
             loss, mse = self.optimise(s, batch)
             window += torch.tensor([loss, mse, 1.0, time.perf_counter() - t_step], dtype=torch.float64)
             self.step = s
@@ -361,7 +380,8 @@ class Trainer:
                 secs = max(secs / env.world, 1e-9)  # ranks run side by side
                 row = {"step": s, "loss": loss_sum / n, "psnr": psnr(mse_sum / n), "lr": self.opt.param_groups[0]["lr"],
                        "rays_per_s": n * self.rays / secs, "steps_per_s": n / env.world / secs,
-                       "time": self.elapsed, "cpu_time": self.cpu_used, "scene": ref.name}
+                       "time": self.elapsed, "cpu_time": self.cpu_used, "scene": ref.name,
+                       **({"resolution": bank.resolution} if self.mix_bank is not None else {})}
                 self.log(row)
                 window.zero_()
             if c.val_every and s % c.val_every == 0 and not end:

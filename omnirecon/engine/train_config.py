@@ -107,6 +107,13 @@ class TrainConfig(OutFolder, Seeded, SceneCache, ImageSize, ViewLimit, Resumes, 
     procedural scenes, photos without alpha and validation are unchanged."""
     switch_every: int = 10
     """Steps spent on one scene before drawing the next."""
+    mix_resolution: int = 0
+    """With a value > 0, a share (``--mix-share``) of the scenes drawn is read at this long side (px) instead of
+    ``--resolution``: a second scene bank over the same sources and weights (procedural scenes generated at that size in
+    ``--cache``), drawn per scene (every ``--switch-every`` steps, from the step's seed), so one run trains at two sizes.
+    Validation stays at ``--resolution``. 0: every step at ``--resolution``."""
+    mix_share: float = 0.5
+    """With ``--mix-resolution``: the share of scenes drawn at that size (0-1)."""
     scenes_in_memory: int = 8
     """Loaded scenes kept in memory (least recently used are dropped)."""
     log_every: int = 10
