@@ -3,6 +3,14 @@
     python -m bench finetune_curves --scene fern=../shared/data/llff/fern --mesh fern=MESH.ply --seconds 300
     python -m bench finetune_curves --scene demo=PATH --mesh demo=MESH.ply --seconds 300
     python -m bench finetune_curves --scene fern=... --mesh fern=MESH.ply --collect   # an interrupted run's curve
+    python -m bench finetune_curves --scene fox=../shared/data/instant_ngp/fox --split extrapolation
+
+Without ``--mesh`` for a scene, its mesh is ``reconstruct``'s mesh stage (``omnirecon mesh --views <the training
+views>``, omnirecon-tiny, 3 sources per depth map, the photos' size or ``--resolution``) made from the split's
+training views alone, into ``outputs/bench/finetune_curves/<name>/mesh.ply`` (reused when there).
+With ``--split extrapolation`` the held-out views are the extrapolation split's test views (``omnirecon finetune
+--split extrapolation``: beyond the training views' arc, or a walk's last stretch); its rows are named
+``<name> (extrapolation)``.
 
 Per scene: ``omnirecon finetune`` with its defaults (each pixel's ``--nearest 6`` sources, the encoder + appearance
 branch at 5e-4, pixels per step, precision, ``--val-choice``; the row records them) and the
@@ -46,18 +54,53 @@ def mesh_record(mesh: Path) -> dict:
             "images_to_mesh_s": m.get("seconds", {}).get("images_to_mesh")}
 
 
+SPLIT_SUFFIX = {"protocol": "", "extrapolation": " (extrapolation)"}
+"""A results row's name: the scene's, with this suffix per ``--split``."""
+
+
+def slug(key: str) -> str:
+    """A file-name form of a results row's name (``fox (extrapolation)`` -> ``fox_extrapolation``)."""
+    return key.replace(" (", "_").replace(")", "").replace(" ", "_")
+
+
 def work_dir(name: str) -> Path:
-    return ROOT / "outputs" / "bench" / "finetune_curves" / name
+    return ROOT / "outputs" / "bench" / "finetune_curves" / slug(name)
+
+
+def split_mesh(key: str, path: Path, split: str, resolution: int | None, threads: int) -> Path:
+    """``reconstruct``'s mesh stage of ``path`` made from the training views of ``split`` alone (module docstring)
+    into the row's work folder, unless already there."""
+    from dataclasses import replace
+
+    from omnirecon.data import detect_format
+    from omnirecon.engine.protocols import protocol_for, targets_and_pool
+    from omnirecon.engine.scenes import load_at_resolution, photo_side
+    from omnirecon.workflows.mesh import MeshConfig, run_mesh
+
+    out = work_dir(key) / "mesh.ply"
+    if out.is_file():
+        return out
+    fmt = detect_format(path)
+    proto = protocol_for(path, fmt)
+    proto = replace(proto, split=split) if split == "extrapolation" else proto
+    side = resolution or photo_side(path, fmt=fmt)
+    scene = load_at_resolution(path, side, proto.background, fmt)
+    targets, pool = targets_and_pool(proto, scene)
+    train = [i for i in pool if i not in set(targets) | set(scene.splits.get("test", []))]  # finetune's training views
+    out.parent.mkdir(parents=True, exist_ok=True)
+    run_mesh(MeshConfig(scene=path, ckpt=ROOT / "checkpoints" / "omnirecon-tiny", views=tuple(map(str, train)),
+                        num_views=3, out=(out,), resolution=side, threads=threads))
+    return out
 
 
 def run_scene(name: str, path: Path, mesh: Path, seconds: float, threads: int, resolution: int | None,
-              save: bool = False) -> None:
+              save: bool = False, split: str = "protocol") -> None:
     from omnirecon.workflows.finetune import FinetuneConfig, run_finetune
 
     times = tuple(t for t in (*TIMES, 300.0) if t <= seconds)
     run_finetune(FinetuneConfig(ckpt=ROOT / "checkpoints" / "omnirecon-tiny", scene=path, mesh=mesh, seconds=seconds,
                                 eval_at=times, clock="cpu", threads=threads, out=work_dir(name), resolution=resolution,
-                                max_held_out=4, save=save))  # finetune's defaults (--nearest 6, encoder + appearance)
+                                max_held_out=4, save=save, split=split))  # finetune's defaults (--nearest 6, encoder + appearance)
 
 
 def scene_row(name: str, mesh: Path, out: Path) -> dict:
@@ -67,13 +110,13 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
     figures = out / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     for f in ("curve.png", "before_after.png"):
-        shutil.copy2(work / f, figures / f"finetune_{name}_{f}")
+        shutil.copy2(work / f, figures / f"finetune_{slug(name)}_{f}")
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
             "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
     return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
             "sources": ft["sources"], "nearest": ft.get("nearest", 0), "val_choice": ft.get("val_choice", "spread"),
             "rays": ft["rays"], "tuned": ft["tuned"], "lr": ft["lr"], "precision": ft["precision"],
-            "held_out": ft["held_out"], "validation_views": ft["validation_views"], "resolution": ft["resolution"],
+            "held_out": ft["held_out"], "split": ft.get("split", "protocol"), "validation_views": ft["validation_views"], "resolution": ft["resolution"],
             "fill": ft["fill"], "curve": [{k: c[k] for k in keep if k in c} for c in ft["curve"]],
             "budget_s": ft["budget_s"], "partial": bool(ft.get("partial")),
             "gain_db": ft["gain_db"], "clock": ft["clock"], "load_average": ft["provenance"].get("loadavg_1min", os.getloadavg()[0]),
@@ -82,8 +125,8 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             **({"visibility": ft["visibility"]} if "visibility" in ft else {}),
             **({"render": ft["render"]} if "render" in ft else {}),
             "validation": ft["validation"],
-            "pictures": {"curve": f"figures/finetune_{name}_curve.png",
-                         "before_after": f"figures/finetune_{name}_before_after.png"}}
+            "pictures": {"curve": f"figures/finetune_{slug(name)}_curve.png",
+                         "before_after": f"figures/finetune_{slug(name)}_before_after.png"}}
 
 
 def main(argv: list[str] | None = None) -> dict:
@@ -92,11 +135,13 @@ def main(argv: list[str] | None = None) -> dict:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--scene", action="append", required=True, help="NAME=PATH (repeatable)")
-    p.add_argument("--mesh", action="append", required=True,
+    p.add_argument("--mesh", action="append", default=[],
                    help="NAME=MESH.ply, in the scene's input frame; keep it where it persists (outputs/bench/...): "
-                        "the JSON names it")
+                        "the JSON names it (default: made from the split's training views, module docstring)")
     p.add_argument("--mesh-note", default="omnirecon mesh --views all (omnirecon-tiny)",
-                   help="how the meshes were made (recorded)")
+                   help="how the given meshes were made (recorded)")
+    p.add_argument("--split", choices=list(SPLIT_SUFFIX), default="protocol",
+                   help="the held-out views: the scene's protocol, or the extrapolation split's test views")
     p.add_argument("--seconds", type=float, default=60.0)
     p.add_argument("--resolution", type=int, default=None)
     p.add_argument("--threads", type=int, default=1)
@@ -109,11 +154,16 @@ def main(argv: list[str] | None = None) -> dict:
     scenes = dict(s.split("=", 1) for s in a.scene)
     meshes = dict(s.split("=", 1) for s in a.mesh)
     file = a.out / "finetune_curves.json"
-    for name, path in scenes.items():
+    for scene_name, path in scenes.items():
+        name = scene_name + SPLIT_SUFFIX[a.split]
+        given = scene_name in meshes
+        mesh = Path(meshes[scene_name]) if given else split_mesh(name, Path(path), a.split, a.resolution, a.threads)
         if not a.collect:
-            run_scene(name, Path(path), Path(meshes[name]), a.seconds, a.threads, a.resolution, a.save)
-        row = scene_row(name, Path(meshes[name]), a.out)
-        row["mesh_note"] = a.mesh_note
+            run_scene(name, Path(path), mesh, a.seconds, a.threads, a.resolution, a.save, a.split)
+        row = scene_row(name, mesh, a.out)
+        row["mesh_note"] = a.mesh_note if given else (
+            "omnirecon mesh --views <the training views> (omnirecon-tiny), made by this bench"
+            + (" from the extrapolation split's training views" if a.split == "extrapolation" else ""))
         print(name, [(c["seconds"], round(c["psnr"], 2), round(c["coverage"], 3)) for c in row["curve"]])
         a.out.mkdir(parents=True, exist_ok=True)
         with open(file.with_suffix(".lock"), "w") as lock:  # scenes run in parallel processes

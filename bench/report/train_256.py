@@ -13,6 +13,7 @@ def section(results: Path) -> str | None:
     if not r or len(r.get("rows", [])) < 2:
         return None
     shipped, run = r["rows"][:2]
+    mixed = [m for f in sorted(results.glob("train_256_mix*.json")) if (m := read(results, f.name)) and len(m.get("rows", [])) >= 2]
     scenes = sorted(shipped["256"]["scenes"], key=lambda n: (not n.startswith("synth:"), n))
     head = ["checkpoint", "steps", "training CPU-s", *(f"{n} 256 px" for n in scenes), "procedural 256 px", "real 256 px",
             "procedural 64 px", "real 64 px"]
@@ -23,10 +24,21 @@ def section(results: Path) -> str | None:
                  *(f"**{row[s][g]:.2f}**" for s in ("256", "64") for g in ("procedural", "real"))]
         return "| " + " | ".join(cells) + " |"
 
-    gains = ", ".join(f"{g} {s} px {run[s][g] - shipped[s][g]:+.2f}" for s in ("256", "64")
-                      for g in ("procedural", "real"))
+    def gains(row: dict) -> str:
+        return ", ".join(f"{g} {s} px {row[s][g] - shipped[s][g]:+.2f}" for s in ("256", "64")
+                         for g in ("procedural", "real"))
+
+    runs = [run, *(m["rows"][1] for m in mixed)]
     cost = [f"{row['name']} " + " / ".join(f"{row[s]['cpu_s']:.0f}" for s in ("256", "64")) + " CPU-s"
-            for row in (shipped, run) if all(row[s].get("cpu_s") for s in ("256", "64"))]
+            for row in (shipped, *runs) if all(row[s].get("cpu_s") for s in ("256", "64"))]
+    mix_text = []
+    for m in mixed:
+        row = m["rows"][1]
+        mix_text += [f"**Half the scenes at {m['mix']} px** (`python -m bench train_256 --mix {m['mix']}`: the same warm "
+                     f"start with `--mix-resolution {m['mix']} --mix-share 0.5`, every scene drawn read at {m['mix']} px "
+                     f"with odds 1/2, so that the run keeps the size the checkpoint was chosen at): run minus shipped: "
+                     f"{gains(row)}. Decision: {m['decision']}.", "", f"Command of the run: `{m['command']}`.", "",
+                     prov(m["provenance"]), ""]
     return "\n".join([
         f"### {r['model']} trained further at {r['size']} px (`python -m bench train_256`, issue 47)", "",
         f"The shipped {r['model']} (trained at 64 px) continued at {r['size']} px: a warm start (`--init`, fresh "
@@ -37,6 +49,7 @@ def section(results: Path) -> str | None:
         "of the real training scenes; fern, dtu_scan24/37 and the evaluation seeds are not looked at. The rule: ship "
         f"only if the run beats the shipped checkpoint by more than {r['margin_db']:g} dB on both groups at 256 px "
         f"and loses at most {r['margin_db']:g} dB on either at 64 px.", "",
-        "| " + " | ".join(head) + " |", "|" + "---|" * len(head), line(shipped), line(run), "",
-        f"Run minus shipped: {gains}. Decision: {r['decision']}." + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
-        "", f"Command of the run: `{r['command']}`.", "", prov(r["provenance"]), ""])
+        "| " + " | ".join(head) + " |", "|" + "---|" * len(head), line(shipped), *map(line, runs), "",
+        f"Run minus shipped ({run['name']}): {gains(run)}. Decision: {r['decision']}."
+        + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
+        "", f"Command of the run: `{r['command']}`.", "", prov(r["provenance"]), "", *mix_text])

@@ -45,7 +45,7 @@ after for the first held-out view) and, with ``--save``, the tuned checkpoint.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -223,6 +223,12 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     ``, 8 held-out``); fern and the procedural scenes hold out fewer. On DTU the 4 extra views are the harder ones
     (views 19 and 6 of scan37 are darker than the photos around them: the blend cannot know a held-out photo's
     exposure), and they cost rasterizing and scoring 4 more views."""
+    split: Literal["protocol", "extrapolation"] = "protocol"
+    """The held-out views: the scene's protocol (its test split; DTU's and LLFF's rules), or ``extrapolation``: the test
+    views of :func:`omnirecon.engine.protocols.extrapolation_split` (beyond the arc of azimuth the training views
+    cover; forward-facing captures and walks: the last stretch of views), every source, tuning and validation view from
+    its training views. A ``--mesh`` given with it must be made from those training views alone (``omnirecon mesh
+    --views`` with them); without ``--mesh`` the mesh is made from them."""
     save: bool = False
     """Also write the tuned checkpoint to <out>/checkpoint."""
     surface_lr: float = 0.05
@@ -284,6 +290,8 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
                          "pass checkpoints/omnirecon-tiny or another omnirecon-* checkpoint")
     fmt = detect_format(cfg.scene)
     proto = protocol_for(Path(cfg.scene), fmt)
+    if cfg.split == "extrapolation":
+        proto = replace(proto, split="extrapolation")
     scene = load_at_resolution(cfg.scene, cfg.resolution or photo_side(cfg.scene, fmt=fmt), proto.background, fmt)
     views, targets, val_views, tune_views = split_views(cfg, scene, proto)
     background = scene.background if scene.background is not None else (
@@ -414,7 +422,7 @@ def returned_scores(tuner: Tuner, scored: tuple[int, dict] | None, state: list[t
 def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path) -> dict:
     """The record written to ``curve.json``."""
     result = {"scene": str(cfg.scene), "checkpoint": str(cfg.ckpt), "preset": s.meta["preset"], "sources": s.views,
-              "held_out": s.targets, "validation_views": s.val_views, "train_views": len(s.train_px),
+              "held_out": s.targets, "split": cfg.split, "validation_views": s.val_views, "train_views": len(s.train_px),
               "faces": len(s.mesh.faces), "clock": cfg.clock, "budget_s": cfg.seconds, "rays": cfg.rays, "lr": cfg.lr,
               "reg": cfg.reg, "fill": s.fill_mode,
               "tuned": [t for t in dict.fromkeys(cfg.tune) if s.blend != "angle" or t in ("exposure", "residual",

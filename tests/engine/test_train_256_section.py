@@ -33,8 +33,19 @@ def test_section_shows_both_rows_and_the_decision(tmp_path):
         "rows": [shipped, run], "ships": ships, "decision": why}))
     text = section(tmp_path)
     assert "| shipped ibrnet-tiny | 7,000 | +100 | 25.00 | 22.00 | **25.00** | **22.00** | **27.00** | **26.00** |" in text
-    assert "Run minus shipped: procedural 256 px +0.30, real 256 px +0.40, procedural 64 px +0.00" in text
+    assert "Run minus shipped (ibrnet-tiny + 900 steps): procedural 256 px +0.30, real 256 px +0.40, procedural 64 px +0.00" in text
     assert "Decision: ships." in text
+    assert "Half the scenes" not in text
+    mixed = _row("ibrnet-tiny + 1400 steps at 256 px, half the scenes at 64 px", 25.2, 22.2, 26.5, 26.0)
+    ships, why = decide(shipped, mixed)
+    (tmp_path / "train_256_mix64.json").write_text(json.dumps({
+        "provenance": provenance(seed=0), "model": "ibrnet-tiny", "size": 256, "mix": 64, "margin_db": 0.1,
+        "command": "y", "rows": [shipped, mixed], "ships": ships, "decision": why}))
+    text = section(tmp_path)
+    assert "| ibrnet-tiny + 1400 steps at 256 px, half the scenes at 64 px | 7,000 | +100 | 25.20 | 22.20 |" in text
+    assert ("**Half the scenes at 64 px** (`python -m bench train_256 --mix 64`" in text
+            and "procedural 64 px -0.50, real 64 px +0.00. Decision: not shipped (beats the shipped checkpoint at 256 "
+                "px, loses more than 0.1 dB at 64 px)." in text)
 
 
 def test_ship_replaces_the_checkpoint_and_adds_the_stage_to_its_card(tmp_path, monkeypatch):

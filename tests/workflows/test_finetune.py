@@ -295,6 +295,25 @@ def test_nearest_sources_without_views_use_every_training_view(setup):
         assert v.visible is not None and not v.visible[:, s.views.index(v.index)].any()
 
 
+def test_extrapolation_split_holds_out_the_views_beyond_the_training_arc(setup):
+    """``--split extrapolation``: the held-out views are the extrapolation split's test views (at most
+    ``--max-held-out``), and every source, tuning and validation view is one of its training views."""
+    from omnirecon.engine.protocols import extrapolation_split
+    from omnirecon.engine.scenes import load_at_resolution
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
+
+    root, path = setup
+    split = extrapolation_split(load_at_resolution(path, 48))
+    assert split.kind == "arc" and split.test
+    s = prepare(FinetuneConfig(ckpt=root / "omni", scene=path, mesh=path / "mesh.ply", resolution=48,
+                               split="extrapolation", max_held_out=8))
+    assert set(s.targets) <= set(split.test) and len(s.targets) == min(8, len(split.test))
+    assert set(s.views) <= set(split.train) and set(s.val_views) <= set(split.train)
+    assert {v.index for v in s.train_px} <= set(split.train)
+    protocol = prepare(FinetuneConfig(ckpt=root / "omni", scene=path, mesh=path / "mesh.ply", resolution=48))
+    assert set(protocol.targets) != set(s.targets)
+
+
 def test_isolated_validation_views_are_the_training_views_farthest_from_the_others():
     """``--val-choice isolated`` picks, one at a time, the training view whose nearest other remaining view is
     farthest: on a ring of views 10 degrees apart, the two that stand alone; ``spread`` picks evenly spaced ones."""
