@@ -42,6 +42,7 @@ import trimesh
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
+from omnirecon.mesh.clean import weld
 
 
 class DepthRenderer:
@@ -93,12 +94,14 @@ def nearest_fill(depth: np.ndarray, known: np.ndarray) -> np.ndarray:
 def pixel_grid_surface(camera: Cameras, depth: np.ndarray, region: np.ndarray, edge: float = 0.03) -> trimesh.Trimesh:
     """Two triangles per pixel of ``region # [H, W]`` at ``depth # [H, W]`` (> 0 on the region).
 
-    Each pixel gets its own four corners on the rays of the image points ``(c + 0.25, r)``,
+    Each pixel gets four corners on the rays of the image points ``(c + 0.25, r)``,
     ``(c + 1.25, r)``, ``(c + 0.25, r + 1)``, ``(c + 1.25, r + 1)``, so its centre ``(c + 0.5, r + 0.5)``
     falls strictly inside the triangle ``(top-left, bottom-left, bottom-right)`` whatever the depths.
     A corner's depth is the mean over the region pixels around it whose depth is within ``edge``
     (relative) of the pixel's own: smooth surfaces join up, and no sheet is stretched across a depth
-    edge (a foreground pixel beside the background keeps its own depth)."""
+    edge (a foreground pixel beside the background keeps its own depth). Where neighbouring pixels' corners
+    agree (bit for bit), they are one vertex (:func:`omnirecon.mesh.clean.weld`; every face kept, in pixel order):
+    a smooth region is one connected sheet, as written files and quadric decimation expect."""
     H, W = region.shape
     d = np.where(region, depth, 0.0).astype(np.float64)
     pad = np.pad(d, 1)  # pixel (r, c) at pad[r + 1, c + 1]
@@ -120,7 +123,8 @@ def pixel_grid_surface(camera: Cameras, depth: np.ndarray, region: np.ndarray, e
     a, b, c, e = base, base + 1, base + 2, base + 3  # top-left, top-right, bottom-left, bottom-right
     # OpenCV camera (x right, y down): (a, c, e) and (a, e, b) wind counter-clockwise seen from the camera
     faces = np.concatenate([np.stack([a, c, e], 1), np.stack([a, e, b], 1)])
-    return trimesh.Trimesh(verts, faces, process=False)
+    verts, welded = weld(verts, faces)  # a pixel's four corners lie on four distinct rays: no face collapses
+    return trimesh.Trimesh(verts, welded, process=False)
 
 
 def occluding(camera: Cameras, depth: np.ndarray, region: np.ndarray, others: Cameras, others_depth: np.ndarray,

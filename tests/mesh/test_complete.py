@@ -257,9 +257,14 @@ def test_a_level_of_detail_keeps_the_pixel_fills_whole(budget):
     u = np.arange(48)[None].repeat(48, 0)
     depth = 2.5 + 0.02 * np.sin(u / 3.0)  # a smooth surface: every corner shared with the pixels around it
     fill = pixel_grid_surface(cam, depth, np.ones((48, 48), dtype=bool))
+    assert len(fill.vertices) == 49 * 49 and len(fill.faces) == 2 * 48 * 48  # welded as made
     v, f = weld(fill.vertices, fill.faces)
-    assert len(fill.vertices) == 4 * 48 * 48 and len(v) == 49 * 49 and len(f) == len(fill.faces)
-    lv, lf = level_of_detail(fill, budget)
+    assert len(v) == len(fill.vertices) and (f == fill.faces).all()
+    corners = trimesh.Trimesh(fill.vertices[fill.faces].reshape(-1, 3), np.arange(6 * 48 * 48).reshape(-1, 3),
+                              process=False)  # the same triangles, each with corners of its own
+    v, f = weld(corners.vertices, corners.faces)
+    assert len(v) == 49 * 49 and len(f) == len(fill.faces)
+    lv, lf = level_of_detail(corners, budget)
     assert len(lf) <= budget
     r = DepthRenderer(trimesh.Trimesh(lv, lf, process=False))
     z = r(cam)
@@ -271,12 +276,12 @@ def test_a_level_of_detail_keeps_the_pixel_fills_whole(budget):
 def test_decimation_meets_the_budget_where_fast_simplification_stops_short():
     """On a welded pixel grid of a slanted surface fast-simplification refuses every collapse below about 1,240 faces;
     :func:`~omnirecon.mesh.clean.decimate` still returns at most the budget."""
-    from omnirecon.mesh.clean import decimate, weld
+    from omnirecon.mesh.clean import decimate
 
     cam = ring_cameras(2, res=48)[0]
     depth = 2.0 + 0.01 * np.arange(48)[None].repeat(48, 0)
     fill = pixel_grid_surface(cam, depth, np.ones((48, 48), dtype=bool))
-    small = decimate(trimesh.Trimesh(*weld(fill.vertices, fill.faces), process=False), 576)
+    small = decimate(fill, 576)  # welded as made
     assert len(small.faces) <= 576
     r = DepthRenderer(small)
     assert (r(cam) > 0).mean() > 0.97
