@@ -386,7 +386,8 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     spaces as underscores): ``confidence`` (:func:`~omnirecon.mesh.confidence.prepare`), then the surface
     (``options.surface``): ``fusion`` / ``poisson``: ``fuse`` -> ``marching cubes`` -> ``clean`` -> ``decimate`` ->
     (``poisson``) -> ``complete`` -> (``budget``) (:data:`~omnirecon.mesh.stages.FUSED`); ``coherent``: ``coherent
-    surface`` (key ``surface``) -> ``hull trim`` -> ``decimate`` -> ``backdrop`` (:data:`~omnirecon.mesh.stages.COHERENT`).
+    surface`` (key ``surface``) -> ``hull trim`` -> ``decimate`` -> ``backdrop`` (:data:`~omnirecon.mesh.stages.COHERENT`);
+    then coincident vertices welded (:func:`~omnirecon.mesh.clean.weld`, every face kept in its place).
 
     Args:
         maps: The depth source's maps (:func:`depth_maps`).
@@ -402,6 +403,9 @@ def mesh_from_depths(maps: DepthMaps, scene, views, options: MeshOptions, masks:
     s = MeshState(maps, scene, list(views), options, masks, device, stages)
     clock = StageClock(on_stage)
     run(COHERENT if options.surface == "coherent" else FUSED, s, clock)
+    # the stages' pieces (fused surface, fills, backdrop, closed holes) share the vertices where they coincide; every
+    # face keeps its index (completion's record counts faces)
+    s.mesh = trimesh.Trimesh(*clean.weld(s.mesh.vertices, s.mesh.faces, keep_faces=True), process=False)
     s.counts["final"] = len(s.mesh.faces)  # what is written: after decimation, hole closing, Poisson and completion
     prep, maps, depth = s.prep, s.maps, s.prep.depth
     info = {"voxel": prep.voxel, "trunc": prep.trunc, "grid": s.surface.get("grid", []), "depth_disagreement": prep.err,

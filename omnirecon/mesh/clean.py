@@ -153,9 +153,10 @@ def drop_small_components(mesh: trimesh.Trimesh, fraction: float) -> trimesh.Tri
     return keep_faces(mesh, keep)
 
 
-def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def weld(vertices: np.ndarray, faces: np.ndarray, keep_faces: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The same triangles over shared vertices: vertices at the same position (bit for bit) become one, and the faces
-    this leaves with a repeated corner (zero area: they cover no pixel) are dropped. The surface drawn is unchanged;
+    this leaves with a repeated corner (zero area: they cover no pixel) are dropped (with ``keep_faces``: kept, so
+    that every face keeps its index). The surface drawn is unchanged;
     what changes is that neighbouring faces which only touched now share their corners, as completion's pixel fills
     do (:func:`omnirecon.mesh.complete.pixel_grid_surface` gives each pixel its own four corners, equal to its
     neighbours' where their depths agree), so an edge collapse merges them instead of deleting each pixel's quad as a
@@ -167,6 +168,8 @@ def weld(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarra
     _, first, inverse = np.unique(rows, return_index=True, return_inverse=True)  # (half the time of axis=0)
     unique = vertices[first]  # [V', 3]
     f = inverse.reshape(-1)[faces]  # [F, 3]
+    if keep_faces:
+        return unique, f
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
     return unique, f[keep]
 

@@ -36,6 +36,8 @@ def test_a_forward_scene_is_meshed_with_full_coverage_of_its_training_views(forw
     assert comp["coverage_before"] < 1.0 and comp["fill_faces"] > 0  # the completion did the work
     faces = made.info["faces"]  # the face budget holds for the written mesh, fills and backdrop included
     assert len(made.mesh.faces) == faces["final"] <= 20_000
+    v = np.asarray(made.mesh.vertices)  # welded: no two vertices at the same place, every one used
+    assert len(np.unique(v, axis=0)) == len(v) and len(np.unique(made.mesh.faces)) == len(v)
     if depth == "stereo":  # fused 20k + fills and backdrop went over: the fused surface got what the fills left
         assert faces["over_budget"] > 20_000 and faces["decimated"] < 20_000 - comp["fill_faces"]
     if depth == "oracle":  # the fill sits on the exact surface where the exact depth exists
