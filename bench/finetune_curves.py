@@ -113,6 +113,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
         shutil.copy2(work / f, figures / f"finetune_{slug(name)}_{f}")
     keep = ("seconds", "steps", "psnr", "psnr_masked", "psnr_covered", "coverage", "coverage_masked", "val_psnr",
             "val_psnr_now", "val_psnr_masked", "val_psnr_masked_now", "returned_from")
+    mesh = mesh.resolve().relative_to(ROOT) if mesh.resolve().is_relative_to(ROOT) else mesh
     return {"scene": ft["scene"], "mesh": str(mesh), "mesh_made": mesh_record(mesh), "faces": ft["faces"],
             "sources": ft["sources"], "nearest": ft.get("nearest", 0), "val_choice": ft.get("val_choice", "spread"),
             "rays": ft["rays"], "tuned": ft["tuned"], "lr": ft["lr"], "precision": ft["precision"],

@@ -38,6 +38,11 @@ class Sources:
         masks = None if self.masks is None else self.masks.to(device)
         return Sources(self.images.to(device), self.cameras.to(device), self.near, self.far, self.rig, bounds, masks)
 
+    def subset(self, keep: Tensor) -> Sources:
+        """The sources ``keep # [k]`` (indices), in that order; near/far, rig and bounds as they are."""
+        return Sources(self.images[keep], self.cameras[keep], self.near, self.far, self.rig, self.bounds,
+                       None if self.masks is None else self.masks[keep])
+
     @staticmethod
     def from_scene(scene, indices) -> Sources:
         """Views ``indices`` of a :class:`~omnirecon.data.scene.Scene` as sources; near/far and bounds span

@@ -522,7 +522,7 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
 
     root, scene = setup
     cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256,
-                         clock="cpu")
+                         clock="cpu", nearest=0)  # every source (with fewer, a step encodes only those it blends)
     runs = []
     for reuse in (True, False):
         s = prepare(cfg)
@@ -545,6 +545,34 @@ def test_scores_between_steps_reuse_the_encoding_and_leave_tuning_unchanged(setu
     assert tuner.pending is not None
     tuner.swap(tuner.state())
     assert tuner.pending is None
+
+
+def test_a_step_encodes_only_the_sources_its_pixels_blend(setup):
+    """Under ``--nearest`` a tuning step's pixels (one view's) blend a few of the sources: the step encodes only those
+    (no reusable pass then), together, and its colours are close to those of a pass over every source (the
+    encoder's batch normalisation keeps no running statistics, so they are not equal)."""
+    from omnirecon.engine.tuning import PixelSampler, Tuner
+    from omnirecon.mesh.pixels import point_colours
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256, nearest=3)
+    s = prepare(cfg)
+    tuner = Tuner(cfg, s, torch.Generator().manual_seed(0))
+    assert not tuner.reuse
+    batch = PixelSampler(cfg, s, torch.Generator().manual_seed(1))()
+    keep = tuner.used_sources(batch)
+    assert keep is not None and 0 < len(keep) <= 3 < len(s.views)
+    assert not batch.visible[:, [k for k in range(len(s.views)) if k not in set(keep.tolist())]].any()
+    s.model.eval()
+    with torch.no_grad():
+        part, whole = (point_colours(s.model, f, batch.points, batch.origins, v) for f, v in
+                       ((tuner.features(keep), batch.visible[:, keep]), (tuner.features(), batch.visible)))
+    assert (part - whole).abs().mean() < 0.01
+    before = [p.detach().clone() for p in tuner.params]
+    s.model.train()
+    tuner.step(batch)
+    assert any(not torch.equal(a, p) for a, p in zip(before, tuner.params))
 
 
 @pytest.mark.parametrize("blend", ["network", "angle"])
