@@ -240,8 +240,8 @@ class Tuner:
         """The sources ``batch``'s pixels blend (``# [k]`` indices) where some source is unused (under ``--nearest``
         a step's pixels, one tuning view's, blend its nearest visible sources): a step without a reusable pass encodes
         only those, together, as the real-time renderer encodes a frame's nearest sources (the encoder's batch
-        normalisation keeps no running statistics: its maps depend a little on the photos encoded together; held-out
-        PSNR on fern changed by about 0.01 dB). ``None``: every source."""
+        normalisation keeps no running statistics: its maps depend a little on the photos encoded together).
+        ``None``: every source."""
         if batch.visible is None or batch.weights is not None:
             return None
         used = batch.visible.any(0)  # [K]
