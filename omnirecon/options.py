@@ -164,7 +164,7 @@ RULES: dict[str, Rule] = {
     "antialias": Rule(1, 8, example="e.g. 2"), "detail": Rule(0, 2, example="e.g. 1"), "blur": Rule(0, 100, example="e.g. 1"),
     "noise": Rule(0, 1, example="e.g. 0.02"), "exposure": Rule(0, 10, example="e.g. 0.3"), "specular": FRACTION,
     "shininess": Rule(0, 10_000, above=True, example="e.g. 32"), "light_variation": FRACTION,
-    "white_balance": FRACTION, "vignetting": FRACTION,
+    "white_balance": FRACTION, "vignetting": FRACTION, "aspect": Rule(0.25, 4, example="e.g. 0.75 (4:3 landscape)"),
     # machine and the rest
     "threads": Rule(1, 1024, example="e.g. 1"), "workers": Rule(1, 1024, example="e.g. 2"),
     "port": Rule(0, 65_535, example="e.g. 8765, or 0 for any free port"), "seed": SEED,
@@ -403,7 +403,7 @@ class ImageSize:
     """A command that renders or generates images at one size of its own (render, train, bench, demo, synth)."""
 
     resolution: int = 128
-    """Long side of the images, in pixels (procedural scenes are square; photos are never upscaled): render, the
+    """Long side of the images, in pixels (procedural scenes are square unless synth's --aspect; photos are never upscaled): render, the
     frames and their sources; train, the procedural scenes generated and the real ones read; bench, the timed
     targets; demo, the novel-view orbits (its embedded scene is generated at this size, at least 128 px); synth, the
     scenes written. The default is the command's own."""

@@ -98,3 +98,23 @@ def test_bad_values_are_one_line_errors():
         replace(BASE, noise=-0.1).check()
     with pytest.raises(InputError, match=r"--vignetting must be in \[0, 1\]"):
         replace(BASE, vignetting=1.5).check()
+    with pytest.raises(InputError, match="--aspect must be"):
+        replace(BASE, aspect=0.0).check()
+
+
+def test_aspect_crops_the_square_scene_and_reads_at_its_size(tmp_path, plain):
+    """A 4:3 scene (``aspect`` 0.75, DTU's) is the square one's middle rows: the same layout, horizontal field of
+    view and pixel centres, so every image equals the square image's crop; the reader sees its size; the square
+    scene's scene.json records no aspect."""
+    from omnirecon.data import load_scene
+
+    wide = generate_scene(tmp_path / "wide", 5, replace(BASE, aspect=0.75))  # 32 x 24
+    square, cropped = load_scene(plain), load_scene(wide)
+    assert (cropped.width, cropped.height) == (32, 24)
+    assert json.loads((wide / "scene.json").read_text())["options"]["aspect"] == 0.75
+    assert "aspect" not in json.loads((plain / "scene.json").read_text())["options"]
+    top = (32 - 24) // 2
+    assert np.abs(cropped.images.numpy() - square.images[:, top:top + 24].numpy()).max() <= 1 / 255
+    assert np.abs(cropped.depths.numpy() - square.depths[:, top:top + 24].numpy()).max() <= 1e-3
+    portrait = generate_scene(tmp_path / "tall", 5, replace(BASE, aspect=2.0))
+    assert (load_scene(portrait).width, load_scene(portrait).height) == (16, 32)

@@ -75,6 +75,9 @@ class SynthOptions(ImageSize):
     """object: 360 degrees around the objects; frontal: DTU-like +-40 degree arc; forward: LLFF-like grid."""
     views: int = 40
     """Views per scene: view i is test when i % 8 == 0, val when i % 8 == 4, else train."""
+    aspect: float = 1.0
+    """Image height over width (1: square; 0.75: 4:3 landscape, DTU's 1600x1200). The long side stays
+    ``resolution`` and the horizontal field of view the layout's, so a landscape aspect crops the top and bottom."""
     ground: bool = True
     """Add a textured ground patch (plus a backdrop wall in forward scenes), label 255."""
     min_objects: int = 2
@@ -113,6 +116,12 @@ class SynthOptions(ImageSize):
             raise InputError(f"need --min-objects <= --max-objects, got {self.min_objects} and "
                              f"{self.max_objects}", None, "fix the object counts")
         check_options("synth", self, memory=False)  # every number's range: omnirecon/options.py
+
+
+def image_size(options: SynthOptions) -> tuple[int, int]:
+    """``(width, height)`` in pixels of a scene's images: the long side ``resolution``, the other from ``aspect``."""
+    res, aspect = options.resolution, options.aspect
+    return (res, max(1, round(res * aspect))) if aspect <= 1 else (max(1, round(res / aspect)), res)
 
 
 def view_split(i: int, views: int) -> str:
@@ -198,13 +207,14 @@ def write_scene(folder: Path, seed: int, options: SynthOptions) -> None:
     layout = make_layout(rng, options.rig, options.views, options.ground,
                          (options.min_objects, options.max_objects), options.detail)
     res = options.resolution
+    width, height = image_size(options)
     mesh = build_mesh(layout, texture_size=int(np.clip(2 ** math.ceil(math.log2(res)), 64, 512)))
-    K = rigs.intrinsics(layout.fov, res, res)
+    K = rigs.intrinsics(layout.fov, width, height)
     background = np.asarray(layout.background, dtype=np.float32)
     light = scene_light(layout.light, options, seed)
     views = []
     for i, c2w in enumerate(layout.c2w):
-        view = render_view(mesh, K, np.linalg.inv(c2w), res, res, light, background, options.antialias)
+        view = render_view(mesh, K, np.linalg.inv(c2w), width, height, light, background, options.antialias)
         view["rgb"] = camera_effects(view["rgb"], options, seed, i)
         views.append(view)
 
@@ -232,7 +242,7 @@ def write_scene(folder: Path, seed: int, options: SynthOptions) -> None:
         })
     header = {
         "camera_angle_x": layout.fov,
-        "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": res, "h": res,
+        "fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": width, "h": height,
         "near": near, "far": far,
         "aabb": [mesh.vertices.min(0).tolist(), mesh.vertices.max(0).tolist()],
         "rig": "forward" if layout.rig == "forward" else "object",

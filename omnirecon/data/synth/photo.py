@@ -28,9 +28,10 @@ _LIGHT_STREAM, _VIEW_STREAM = 0x11617, 0x5EA1
 
 
 def options_record(options) -> dict:
-    """``SynthOptions`` as recorded in ``scene.json``: realism fields only where they differ from the default."""
+    """``SynthOptions`` as recorded in ``scene.json``: realism fields and the aspect only where they differ from the
+    default (the files of a scene without them stay those written before they existed)."""
     record = dataclasses.asdict(options)
-    for name, default in REALISM.items():
+    for name, default in {**REALISM, "aspect": 1.0}.items():
         if record.get(name) == default:
             record.pop(name, None)
     return record
