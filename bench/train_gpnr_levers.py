@@ -33,7 +33,7 @@ import sys
 from pathlib import Path
 
 from bench.train_background import PARENT, SETTINGS, means, score, validation_scenes, write
-from bench.train_levers import SYNTH, SYNTH_SCENES, VAL_SCENES, synth_refs
+from bench.train_levers import SYNTH, VAL_SCENES, synth_refs
 from bench.train_tiny import CACHE, REAL, SEED, SHARED
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -38,6 +38,7 @@ from bench.report import (
     throughput,
     train_256,
     train_background,
+    train_gpnr_levers,
     train_levers,
     train_views,
     training,
@@ -45,7 +46,8 @@ from bench.report import (
 )
 
 # The page, in order.
-SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_background, train_256, train_views,
+SECTIONS = (synth, throughput, ablation, poses, reliability, encoder_lever, train_levers, train_background, train_gpnr_levers,
+            train_256, train_views,
             extrapolation,
             depth_sources,
             realtime_blend, mesh_lod, viewer_parity, mesh_resolution, finetune_curves, finetune_levers, finetune_surface,

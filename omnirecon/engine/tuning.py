@@ -11,7 +11,7 @@ residual colour, the surface's offsets and their re-rasterization), its sampler 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -261,6 +261,20 @@ class Tuner:
             self.pending_cost = self.read() - start
         return OmniReconFeatures(self.pending.sources, self.pending.maps.detach(), self.pending.volume, self.pending.box)
 
+    def view_scoring(self, view: ViewPixels) -> tuple[OmniReconFeatures, ViewPixels]:
+        """The current state's features for scoring ``view`` (no graph), and the view with its visibility over them:
+        where its pixels blend only some sources (under ``--nearest``: the view's nearest), those sources' features
+        only, encoded together, as the real-time renderer encodes a frame's nearest sources and a step the sources
+        its pixels blend (:meth:`used_sources`); else :meth:`scoring_features` of every source."""
+        keep = None
+        if self.frozen is None and not self.reuse and view.visible is not None and view.weights is None:
+            used = view.visible.any(0)  # [K]
+            keep = used.nonzero()[:, 0] if bool(used.any()) and not bool(used.all()) else None
+        if keep is None:
+            return self.scoring_features(), view
+        with torch.no_grad():
+            return self.features(keep), replace(view, visible=view.visible[:, keep])
+
     def step(self, batch: Batch) -> float:
         """One Adam step on the MSE of ``batch``'s pixels (plus the pull toward the start). Returns the seconds of a
         reused encoder pass (:meth:`scoring_features`), which the budget is charged."""
@@ -307,9 +321,8 @@ class Tuner:
             return {"psnr": float("nan")}
         model = self.s.model
         model.eval()
-        feats = self.scoring_features()
-        se = torch.cat([(render_pixels(model, feats, v, i, residual=self.residual, surface=self.surface).clamp(0, 1)
-                         - v.target[i]).square().mean(-1)
+        se = torch.cat([(render_pixels(model, *self.view_scoring(v), i, residual=self.residual,
+                                       surface=self.surface).clamp(0, 1) - v.target[i]).square().mean(-1)
                         for v, i in zip(self.s.val_px, val_idx)])
         model.train()
         out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
@@ -320,7 +333,7 @@ class Tuner:
     @torch.no_grad()
     def test_scores(self) -> dict:
         self.s.model.eval()
-        r = score_held_out(self.s.model, self.scoring_features(), self.s.scene, self.s.held_px, self.s.background,
+        r = score_held_out(self.s.model, self.view_scoring, self.s.scene, self.s.held_px, self.s.background,
                            self.residual, self.soften, self.surface)
         self.s.model.train()
         return r

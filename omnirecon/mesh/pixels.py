@@ -311,10 +311,13 @@ def score_held_out(model, feats, scene, held_px: list[ViewPixels], background, r
                    soften: float = 0.0, surface=None) -> dict:
     """PSNR of the held-out views: whole image, over the masks (scenes with masks) and over the pixels the mesh
     covers; ``coverage``; the ``renders`` (with ``soften``, blurred by that many pixels at the mesh's depth edges:
-    ``--soften``; with ``surface``, at the points its offsets move)."""
-    renders = [soften_edges(full_image(scene, v, render_pixels(model, feats, v, residual=residual, surface=surface),
-                                       background),
-                            mesh_depth(scene, v), soften) for v in held_px]
+    ``--soften``; with ``surface``, at the points its offsets move). ``feats``: the sources' features, or a function
+    of a view giving the ``(features, view)`` it renders with (each view its own sources)."""
+    def render(v: ViewPixels) -> torch.Tensor:
+        return render_pixels(model, *(feats(v) if callable(feats) else (feats, v)), residual=residual, surface=surface)
+
+    renders = [soften_edges(full_image(scene, v, render(v), background), mesh_depth(scene, v), soften)
+               for v in held_px]
     gts = [scene.images[v.index].float() for v in held_px]
     cover = [coverage_mask(scene, v) for v in held_px]
     r = {"psnr": float(np.mean([metrics.psnr(x, y) for x, y in zip(renders, gts)])),

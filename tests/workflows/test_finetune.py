@@ -575,6 +575,33 @@ def test_a_step_encodes_only_the_sources_its_pixels_blend(setup):
     assert any(not torch.equal(a, p) for a, p in zip(before, tuner.params))
 
 
+def test_a_score_encodes_each_view_with_only_the_sources_it_blends(setup, monkeypatch):
+    """Validation and held-out scores under ``--nearest``: each view's pixels blend its nearest sources, so each view
+    is scored from those sources' features alone (encoded together, as the real-time renderer encodes a frame's), never
+    from a pass over every source; the scores stay close to those of such a pass."""
+    from omnirecon.engine.tuning import Tuner
+    from omnirecon.mesh.pixels import render_pixels
+    from omnirecon.workflows.finetune import FinetuneConfig, prepare
+
+    root, scene = setup
+    cfg = FinetuneConfig(ckpt=root / "omni", scene=scene, mesh=scene / "mesh.ply", resolution=48, rays=256, nearest=3)
+    s = prepare(cfg)
+    tuner = Tuner(cfg, s, torch.Generator().manual_seed(0))
+    encoded = []
+    features = tuner.features
+    monkeypatch.setattr(tuner, "features", lambda keep=None: encoded.append(keep) or features(keep))
+    idx = [torch.arange(len(v.points)) for v in s.val_px]
+    val = tuner.validate(idx)["psnr"]
+    r = tuner.test_scores()
+    assert len(encoded) == len(s.val_px) + len(s.held_px) and all(
+        k is not None and 0 < len(k) <= 3 < len(s.views) for k in encoded)
+    s.model.eval()
+    with torch.no_grad():  # every source encoded together: close, not equal (batch normalisation without statistics)
+        whole = features()
+        se = torch.cat([(render_pixels(s.model, whole, v).clamp(0, 1) - v.target).square().mean(-1) for v in s.val_px])
+    assert abs(val - float(-10 * torch.log10(se.mean()))) < 0.3
+    assert r["psnr"] > 0 and len(r["per_view"]) == len(s.held_px)
+
 @pytest.mark.parametrize("blend", ["network", "angle"])
 def test_residual_colour_grid_tunes_under_either_blend(setup, blend):
     """``--tune residual``: a 3-D colour offset added to the blend, zero at start (the start's colours unchanged);
