@@ -176,13 +176,20 @@ def rgba_steps(run: Path) -> int:
     return sum(1 for r in rows if "scene" in r and r["scene"] in RGBA)
 
 
+def means_minus_control(arms: dict, control: str) -> dict | None:
+    """Each arm's group means minus the control's (``{arm: {group: dB}}``, the control left out); None without it."""
+    if control not in arms:
+        return None
+    base = arms[control]["means"]
+    return {a: {g: r["means"][g] - base[g] for g in r["means"]} for a, r in arms.items() if a != control}
+
+
 def verdict(probe: dict) -> str:
     """Which arms of one probe beat the control on validation (by :data:`BETTER` on both the mean over every real
     validation row and the mean over the black-background rows), with their change on the rows as read."""
-    arms, control = probe["arms"], probe["arms"].get(CONTROL)
-    if control is None:
+    d = means_minus_control(probe["arms"], CONTROL)
+    if d is None:
         return "no control run yet"
-    d = {a: {g: r["means"][g] - control["means"][g] for g in r["means"]} for a, r in arms.items() if a != CONTROL}
     better = [a for a in d if d[a]["validation"] > BETTER and d[a]["black"] > BETTER]
     said = "; ".join(f"{a}: {d[a]['validation']:+.2f} on every real validation row, {d[a]['black']:+.2f} on black, "
                      f"{d[a]['real']:+.2f} as read, {d[a]['procedural']:+.2f} procedural" for a in d)

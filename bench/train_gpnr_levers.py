@@ -32,7 +32,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from bench.train_background import PARENT, SETTINGS, means, score, validation_scenes, write
+from bench.train_background import PARENT, SETTINGS, means, means_minus_control, score, validation_scenes, write
 from bench.train_levers import SYNTH, VAL_SCENES, synth_refs
 from bench.train_tiny import CACHE, REAL, SEED, SHARED
 
@@ -133,10 +133,9 @@ def group_means(psnr: dict, roles: dict) -> dict:
 
 
 def verdict(arms: dict) -> str:
-    control = arms.get(CONTROL)
-    if control is None:
+    d = means_minus_control(arms, CONTROL)
+    if d is None:
         return "no control run yet"
-    d = {a: {g: r["means"][g] - control["means"][g] for g in r["means"]} for a, r in arms.items() if a != CONTROL}
     better = [a for a in d if d[a]["validation"] > BETTER and d[a]["all procedural"] > BETTER]
     said = "; ".join(f"{a}: {d[a]['validation']:+.2f} on every real validation row ({d[a]['black']:+.2f} on black), "
                      f"{d[a]['all procedural']:+.2f} procedural ({d[a]['procedural 4:3']:+.2f} at 4:3)" for a in d)

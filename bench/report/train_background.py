@@ -19,6 +19,21 @@ def cell(r: dict, control: dict | None, value, key) -> str:
     return f"{value:.2f} ({value - control[key]:+.2f})"
 
 
+def psnr_rows(r: dict, shipped: dict | None, cols: list, groups: dict) -> list[str]:
+    """The table rows of an arms-against-a-control probe: each validation scene, then each group's mean (bold); a
+    column for the shipped checkpoint, then one per ``(budget, arm, results, control results)`` of ``cols``."""
+    lines = []
+    for name in r["roles"]:
+        row = [name] + ([cell(shipped["psnr"], None, shipped["psnr"].get(name), name)] if shipped else [])
+        row += [cell(v["psnr"], c and c["psnr"], v["psnr"].get(name), name) for _, _, v, c in cols]
+        lines.append("| " + " | ".join(row) + " |")
+    for g, label in groups.items():
+        row = [f"**{label}**"] + ([cell(shipped["means"], None, shipped["means"].get(g), g)] if shipped else [])
+        row += [cell(v["means"], c and c["means"], v["means"].get(g), g) for _, _, v, c in cols]
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
+
+
 def section(results: Path) -> str | None:
     """Real objects on black or random backgrounds; None before a run."""
     r = read(results, "train_background.json")
@@ -47,14 +62,7 @@ def section(results: Path) -> str | None:
              "scenes, lego and chair with a black background (the same objects the arms train on, on other views), "
              "the procedural validation seeds; fern, dtu_scan24/37 and the evaluation seeds are not looked at.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name in r["roles"]:
-        row = [name] + ([cell(shipped["psnr"], None, shipped["psnr"].get(name), name)] if shipped else [])
-        row += [cell(v["psnr"], c and c["psnr"], v["psnr"].get(name), name) for _, _, v, c in cols]
-        lines.append("| " + " | ".join(row) + " |")
-    for g, label in GROUPS.items():
-        row = [f"**{label}**"] + ([cell(shipped["means"], None, shipped["means"].get(g), g)] if shipped else [])
-        row += [cell(v["means"], c and c["means"], v["means"].get(g), g) for _, _, v, c in cols]
-        lines.append("| " + " | ".join(row) + " |")
+    lines += psnr_rows(r, shipped, cols, GROUPS)
     row = ["steps (on lego or chair)"] + (["-"] if shipped else []) + [f"{v['steps']} ({v['rgba_steps']})"
                                                                       for _, _, v, _ in cols]
     lines.append("| " + " | ".join(row) + " |")

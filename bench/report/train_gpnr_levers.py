@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from bench.report.common import prov, read
-from bench.report.train_background import cell
+from bench.report.train_background import psnr_rows
 
 GROUPS = {"real": "mean: real scenes, held-out views", "black": "mean: lego and chair on black",
           "validation": "mean: every real validation row", "procedural": "mean: procedural validation seeds",
@@ -40,14 +40,7 @@ def section(results: Path) -> str | None:
              "the control of the same budget), plus the procedural validation seeds rendered at 4:3. Validation only: "
              "fern, dtu_scan24/37 and the evaluation seeds are not looked at.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for name in r["roles"]:
-        row = [name] + ([cell(shipped["psnr"], None, shipped["psnr"].get(name), name)] if shipped else [])
-        row += [cell(v["psnr"], c and c["psnr"], v["psnr"].get(name), name) for _, _, v, c in cols]
-        lines.append("| " + " | ".join(row) + " |")
-    for g, label in GROUPS.items():
-        row = [f"**{label}**"] + ([cell(shipped["means"], None, shipped["means"].get(g), g)] if shipped else [])
-        row += [cell(v["means"], c and c["means"], v["means"].get(g), g) for _, _, v, c in cols]
-        lines.append("| " + " | ".join(row) + " |")
+    lines += psnr_rows(r, shipped, cols, GROUPS)
     lines.append("| " + " | ".join(["steps"] + (["-"] if shipped else []) + [str(v["steps"]) for _, _, v, _ in cols])
                  + " |")
     lines += [""] + [f"{budget} CPU-s per arm: {probe['verdict']}." for budget, probe in probes]
