@@ -125,7 +125,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
                                                   if "scored_by" in ft else {}),
             **({"visibility": ft["visibility"]} if "visibility" in ft else {}),
             **({"render": ft["render"]} if "render" in ft else {}),
-            "validation": ft["validation"],
+            "validation": ft["validation"], **({"cpu_seconds": ft["cpu_seconds"]} if "cpu_seconds" in ft else {}),
             "pictures": {"curve": f"figures/finetune_{slug(name)}_curve.png",
                          "before_after": f"figures/finetune_{slug(name)}_before_after.png"}}
 

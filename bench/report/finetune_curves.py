@@ -10,6 +10,15 @@ TIMES = (0.0, 10.0, 30.0, 60.0, 300.0)
 
 
 
+def _cpu(row: dict) -> str:
+    """The run's process CPU-s in all and their parts (rows that recorded them): the budget is the steps' alone."""
+    c = row.get("cpu_seconds")
+    if not c:
+        return ""
+    return (f"; process {c['process']:.0f} CPU-s in all (preparing {c['prepare']:.0f}, the steps {c['budget']:.0f}, "
+            f"validation and held-out scores {c['outside_budget']:.0f})")
+
+
 def _tuned(row: dict) -> str:
     """What a curve's steps tuned (and their learning rate), or that nothing was tuned."""
     if not row["tuned"]:
@@ -129,6 +138,7 @@ def section(results: Path) -> str:
                                                             if "psnr_masked" in first else "image")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
+                     + _cpu(row)
                      + ("; **run stopped before its budget: the curve so far**" if row.get("partial") else "")
                      + ("" if row.get("visibility") else "; **scored before the visibility test** (every source "
                         "blended at every point; `finetune` now blends only the sources that see it, which raises the "
