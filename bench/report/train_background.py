@@ -19,6 +19,19 @@ def cell(r: dict, control: dict | None, value, key) -> str:
     return f"{value:.2f} ({value - control[key]:+.2f})"
 
 
+def probe_columns(results: Path, name: str, control: str, control_first: bool = False):
+    """``(results, probes by budget, columns)`` of an arms-against-a-control results file, None before a run; a
+    column per ``(budget, arm, its results, the control's results)``, with ``control_first`` the control's first."""
+    r = read(results, name)
+    if r is None or not r.get("probes"):
+        return None
+    probes = sorted(r["probes"].items(), key=lambda kv: float(kv[0]))
+    order = (lambda kv: kv[0] != control) if control_first else (lambda kv: 0)
+    cols = [(budget, arm, v, probe["arms"].get(control)) for budget, probe in probes
+            for arm, v in sorted(probe["arms"].items(), key=order)]
+    return r, probes, cols
+
+
 def psnr_rows(r: dict, shipped: dict | None, cols: list, groups: dict) -> list[str]:
     """The table rows of an arms-against-a-control probe: each validation scene, then each group's mean (bold); a
     column for the shipped checkpoint, then one per ``(budget, arm, results, control results)`` of ``cols``."""
@@ -36,12 +49,11 @@ def psnr_rows(r: dict, shipped: dict | None, cols: list, groups: dict) -> list[s
 
 def section(results: Path) -> str | None:
     """Real objects on black or random backgrounds; None before a run."""
-    r = read(results, "train_background.json")
-    if r is None or not r.get("probes"):
+    got = probe_columns(results, "train_background.json", "white")
+    if got is None:
         return None
+    r, probes, cols = got
     s, shipped = r["settings"], r.get("shipped")
-    probes = sorted(r["probes"].items(), key=lambda kv: float(kv[0]))
-    cols = [(budget, arm, v, probe["arms"].get("white")) for budget, probe in probes for arm, v in probe["arms"].items()]
     head = (["scene"] + ([f"shipped gpnr-tiny (step {shipped['step']})"] if shipped else [])
             + [f"{arm}{' (control)' if arm == 'white' else ''}, {budget} CPU-s" for budget, arm, _, _ in cols])
     lines = ["### Real training objects on black or random backgrounds (`python -m bench train_background`)", "",

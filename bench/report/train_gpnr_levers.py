@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from bench.report.common import prov, read
-from bench.report.train_background import psnr_rows
+from bench.report.common import prov
+from bench.report.train_background import probe_columns, psnr_rows
 
 GROUPS = {"real": "mean: real scenes, held-out views", "black": "mean: lego and chair on black",
           "validation": "mean: every real validation row", "procedural": "mean: procedural validation seeds",
@@ -15,13 +15,11 @@ GROUPS = {"real": "mean: real scenes, held-out views", "black": "mean: lego and 
 
 def section(results: Path) -> str | None:
     """The levers' arms against their control, per budget; None before a run."""
-    r = read(results, "train_gpnr_levers.json")
-    if r is None or not r.get("probes"):
+    got = probe_columns(results, "train_gpnr_levers.json", "control", control_first=True)
+    if got is None:
         return None
+    r, probes, cols = got
     s, shipped = r["settings"], r.get("shipped")
-    probes = sorted(r["probes"].items(), key=lambda kv: float(kv[0]))
-    cols = [(budget, arm, v, probe["arms"].get("control")) for budget, probe in probes
-            for arm, v in sorted(probe["arms"].items(), key=lambda kv: kv[0] != "control")]
     head = (["scene"] + ([f"shipped gpnr-tiny (step {shipped['step']})"] if shipped else [])
             + [f"{arm}, {budget} CPU-s" for budget, arm, _, _ in cols])
     lines = ["### DTU's aspect and a wider source pool (`python -m bench train_gpnr_levers`)", "",
