@@ -24,6 +24,10 @@ pass):
   its own nearest sources, and its loss against the reference path's (the demo scene: timed at 256 px, scored at its
   128-px images).
 
+Then the level :func:`omnirecon.engine.lod.choose_level_of_detail` chooses (its sources per frame and weight stride),
+and, where it draws only the faces the photos see, that level so (``photographed``: the faces the training views see,
+:func:`omnirecon.mesh.ibr.photographed_faces`).
+
 ``checkpoints/omnirecon-tiny`` untuned (the frame time does not depend on the weights). Writes
 ``bench/results/mesh_lod.json``.
 """
@@ -110,10 +114,11 @@ TIMINGS = ("frame_ms", "frame_cpu_ms", "frame_main_cpu_ms", "stream_ms", "stream
 
 
 def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args,
-                   shader: str = "auto", score: bool = True) -> dict:
+                   shader: str = "auto", score: bool = True, photographed: bool = False) -> dict:
     """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget``, candidate grid ``grid``
     (``MeshRenderOptions.frame_grid``) and frame shader ``shader`` (``MeshRenderOptions.shader``; module docstring), timed
-    at ``side`` px long side, scored at the scene's (without ``score``: the timings only)."""
+    at ``side`` px long side, scored at the scene's (without ``score``: the timings only); with ``photographed``, only
+    the faces the training views see are drawn (:func:`omnirecon.mesh.ibr.level_of_detail` with ``photos``)."""
     import torch
 
     from omnirecon import metrics
@@ -121,12 +126,12 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
     from omnirecon.mesh.frames import ViewCache
     from omnirecon.mesh.ibr import level_of_detail, realtime_options
 
+    train = scene.splits.get("train") or list(range(len(scene)))
     start = time.perf_counter()
-    vertices, faces = level_of_detail(mesh, budget)
+    vertices, faces = level_of_detail(mesh, budget, scene.cameras[train] if photographed else None)
     decimate_s = time.perf_counter() - start
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid, shader=shader)
-    train = scene.splits.get("train") or list(range(len(scene)))
     test = (scene.splits.get("test") or [0])[:args.max_views]
     cams = [scene.cameras[i].to(dtype=torch.float32) for i in test]
     timed_cams = [c.rescaled(side / max(c.width, c.height)) for c in cams]  # the demo: its 256-px frames
@@ -191,10 +196,16 @@ def run_scene(name: str, model, args) -> dict | None:
             specs += [({**chosen, "weight_stride": stride}, lod.face_budget, args.grid, shader,
                        {"sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride})
                       for shader in args.shader]
+    if lod.photographed:  # and drawing only the faces the photos (the training views) see
+        chosen = lod.setting(setting)
+        specs += [(chosen, lod.face_budget, args.grid, shader,
+                   {"sources": chosen["sources"] if lod.sources is not None else None,
+                    "weight_stride": lod.weight_stride, "photographed": True}) for shader in args.shader]
     rounds: list[list[dict]] = [[] for _ in specs]  # each row's timings, round after round over every row: the
     for i in range(args.rounds):  # machine's drift over minutes falls on every row alike
         for spec, kept in zip(specs, rounds, strict=True):
-            kept.append(measure_budget(model, mesh, scene, *spec[:2], spec[2], side, args, spec[3], score=i == 0))
+            kept.append(measure_budget(model, mesh, scene, *spec[:2], spec[2], side, args, spec[3], score=i == 0,
+                                       photographed=spec[4].get("photographed", False)))
             print(name, f"round {i + 1}", {**kept[-1], **spec[4]}, flush=True)
     rows = []
     for spec, kept in zip(specs, rounds, strict=True):
@@ -210,7 +221,7 @@ def run_scene(name: str, model, args) -> dict | None:
             "scored_resolution": [scene.width, scene.height],
             "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources,
-                    "weight_stride": lod.weight_stride, "rows": lod.rows,
+                    "weight_stride": lod.weight_stride, "photographed": lod.photographed, "rows": lod.rows,
                     "views": lod.views,
                     "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
 

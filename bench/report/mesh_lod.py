@@ -21,6 +21,7 @@ def _line(scene: dict, row: dict) -> str:
     what += f", {row['shader']} shader" if "shader" in row else ""
     what += f", {row['sources']} sources per frame" if row.get("sources") else ""
     what += f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else ""
+    what += ", only the faces the photos see" if row.get("photographed") else ""
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
             f"{row['frame_cpu_ms']:.0f} | {_main(row)} | {_stream(row)} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
@@ -66,18 +67,23 @@ def section(results: Path) -> str | None:
                 "the held-out views (26.21 against 26.75, 3 views; measured 2026-12-02, the run before this table's). "
                 "Last, where the GL pass blends at most 3 sources with the network, its MLP at every second pixel of "
                 "each axis only (`MeshRenderOptions.weight_stride`, the weights interpolated on each pixel's own "
-                "surface) is measured at the chosen budget and sources and kept within 0.05 dB of them:",
+                "surface) is measured at the chosen budget and sources and kept within 0.05 dB of them. Then, where "
+                "the sources (the photos not left out) leave at least 10 % of the chosen level's faces unseen "
+                "(`photographed_faces`: no face at any of 4 x 4 samples per pixel of any source), the chosen level "
+                "drawing only the faces they see is measured against it and kept within 0.05 dB (rows `, "
+                "photographed only`; the table's rows `only the faces the photos see`: the training views decide):",
                 "", *chosen]
     out += ["", prov(r["provenance"])]
-    before = read(results, "mesh_lod_before_weld.json")
-    if before:
-        out += ["", *_before_after(before, r, WELD)]
+    before, weld = read(results, "mesh_lod_before_weld.json"), read(results, "mesh_lod_weld.json")
+    if before and weld:
+        out += ["", *_before_after(before, weld, WELD)]
     return "\n".join([*out, ""])
 
 
 WELD = ("The same bench at commit `{commit}` (before the level of detail welded coincident vertices, with the face "
-        "budgets 100,000 to 25,000 below the ceiling and fewer sources measured at the chosen budget only), run on the "
-        "same machine in the same session within about 20 minutes of this table's rows (`python -m bench mesh_lod --scenes fox fern lund --out bench/results/mesh_lod_before_weld.json` in a "
+        "budgets 100,000 to 25,000 below the ceiling and fewer sources measured at the chosen budget only), beside the "
+        "run at commit `{after}` (`bench/results/mesh_lod_weld.json`: after the weld, before the choice drew only the "
+        "faces the photos see), run on the same machine in the same session within about 20 minutes of each other (`python -m bench mesh_lod --scenes fox fern lund --out bench/results/mesh_lod_before_weld.json` in a "
         "checkout of that commit), each scene's chosen level of detail. Decimated as given, completion's pixel fills "
         "(each pixel's quad with corners of its own) were borders the collapse deleted: on a 48 x 48 fill 13 % of the "
         "pixels stayed covered at 576 faces (`tests/mesh/test_complete.py`). "
@@ -95,14 +101,15 @@ def _chosen_row(scene: dict) -> dict:
 
 def _level(row: dict) -> str:
     return f"{row['faces']:,} faces" + (f", {row['sources']} sources" if row.get("sources") else "") + \
-        (f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else "")
+        (f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else "") + \
+        (", photographed only" if row.get("photographed") else "")
 
 
 def _before_after(before: dict, after: dict, text: str) -> list[str]:
     """Each scene's chosen level measured by the code before a change (``text``, its commit filled in), the same
     session and machine, beside this table's."""
     now = {s["scene"]: s for s in after["scenes"]}
-    lines = [text.format(commit=before["provenance"]["commit"][:12]), "",
+    lines = [text.format(commit=before["provenance"]["commit"][:12], after=after["provenance"]["commit"][:12]), "",
              "| scene | chosen level before -> after | FPS before -> after | streamed FPS before -> after | "
              "CPU ms before -> after | PSNR before -> after | dB vs the full mesh before -> after |",
              "|---|---|---|---|---|---|---|"]
@@ -123,9 +130,11 @@ def _chosen(scene: dict) -> str:
         "nothing smaller to measure"
     drawn = f"{lod['faces']:,} faces" + (f", {lod['sources']} sources per frame" if lod.get("sources") else "")
     drawn += f", the MLP every {lod['weight_stride']} px" if lod.get("weight_stride", 1) > 1 else ""
+    drawn += ", only the faces the photos see" if lod.get("photographed") else ""
     return f"- {scene['scene']}: **{drawn}** (within {lod['tolerance_db']:g} dB; {scores}; {lod['seconds']:.1f} s)"
 
 
 def _sources(row: dict) -> str:
     stride = f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else ""
-    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride
+    seen = ", photographed only" if row.get("photographed") else ""
+    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen

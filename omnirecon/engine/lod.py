@@ -18,9 +18,14 @@ pass there, that budget is drawn with them: fewer sources save more of a network
 150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
 ranks each tile's candidates and blends a fixed few already; its sources are left alone.
 
-Last, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
+Then, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
 each axis only (:data:`LOD_STRIDES`, ``MeshRenderOptions.weight_stride``) is measured the same way, at the chosen budget
 and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
+
+Last, the chosen level drawn with only the faces the photos see (:func:`~omnirecon.mesh.ibr.photographed_faces`, seen
+by the sources alone: a face only a left-out photo sees is left out, as a face no photo sees is from a novel view) is
+measured against the chosen row (:data:`LOD_CULL_TOLERANCE_DB`), where it leaves out at least
+:data:`LOD_CULL_MIN_SHARE` of the faces: the depth pass shades every fragment of the frame's faces, hidden or not.
 """
 
 from __future__ import annotations
@@ -42,6 +47,10 @@ LOD_STRIDES = (2,)
 """Candidate ``MeshRenderOptions.weight_stride`` of the network blend's GL pass (the MLP at every n-th pixel)."""
 LOD_STRIDE_TOLERANCE_DB = 0.05
 """PSNR (dB) a weight stride may lose against the same budget and sources at every pixel and still be chosen."""
+LOD_CULL_TOLERANCE_DB = 0.05
+"""PSNR (dB) drawing only the photographed faces may lose against the chosen row and still be chosen."""
+LOD_CULL_MIN_SHARE = 0.1
+"""The share of the chosen level's faces the photos must leave unseen for that cull to be measured."""
 LOD_VIEWS = 3
 """Photos left out of the sources and rendered per budget (spread over the capture's order)."""
 
@@ -58,9 +67,11 @@ class LodChoice:
     """Sources per frame the network blend takes (None: the setting's, unchanged)."""
     weight_stride: int = 1
     """``MeshRenderOptions.weight_stride`` of the chosen level (1: the MLP at every pixel)."""
+    photographed: bool = False
+    """Only the faces the photos see are drawn (:func:`~omnirecon.mesh.ibr.level_of_detail` with ``photos``)."""
     rows: list[dict] = field(default_factory=list)
     """Per measured level: ``{"budget", "faces", "sources", "psnr"}`` (PSNR in dB, mean over the left-out photos; sources
-    0: every photo), the ceiling first."""
+    0: every photo; ``"photographed": True`` on the row of only the photographed faces), the ceiling first."""
     views: list[int] = field(default_factory=list)
     """The left-out photos (scene view indices)."""
     seconds: float = 0.0
@@ -74,6 +85,14 @@ class LodChoice:
         out = setting if self.sources is None else {**setting, "sources": self.sources}
         return out if self.weight_stride == 1 else {**out, "weight_stride": self.weight_stride}
 
+    def drawn(self, mesh, photos):
+        """The ``(vertices, faces)`` the path draws of ``mesh`` at this level, ``photos`` (the scene's photos,
+        :class:`~omnirecon.cameras.Cameras`) deciding which faces are seen (:func:`~omnirecon.mesh.ibr.level_of_detail`);
+        draw it with ``MeshRenderOptions.face_budget`` 0."""
+        from omnirecon.mesh.ibr import level_of_detail
+
+        return level_of_detail(mesh, self.face_budget, photos if self.photographed else None)
+
     def line(self) -> str:
         """One line for a run's output: what is drawn and each measured level's PSNR."""
         if not self.rows:
@@ -81,6 +100,7 @@ class LodChoice:
         scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
         blended += f", the MLP every {self.weight_stride} px" if self.weight_stride > 1 else ""
+        blended += ", only the faces the photos see" if self.photographed else ""
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
                 f"of the most, the fewest sources that lose nothing, on {len(self.views)} photos left out of the "
                 f"sources: {scores}; {self.seconds:.1f} s)")
@@ -88,7 +108,8 @@ class LodChoice:
 
 def _sources(row: dict) -> str:
     stride = f", MLP stride {row['weight_stride']}" if row.get("weight_stride", 1) > 1 else ""
-    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride
+    seen = ", photographed only" if row.get("photographed") else ""
+    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen
 
 
 def left_out_views(train: list[int], count: int) -> list[int]:
@@ -103,12 +124,14 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
                            sources=LOD_SOURCES, tolerance_db: float = LOD_TOLERANCE_DB, views: int = LOD_VIEWS,
                            ceiling: int | None = None,
                            sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB, strides=LOD_STRIDES,
-                           stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB) -> LodChoice:
+                           stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB,
+                           cull_tolerance_db: float | None = LOD_CULL_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
     sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (where no count passes at the chosen
     budget, one budget up, which is then drawn), then the largest weight stride of ``strides`` within
-    ``stride_tolerance_db`` of the chosen row (module docstring).
+    ``stride_tolerance_db`` of the chosen row, then only the faces the sources see within ``cull_tolerance_db`` of that
+    row (``None``: not measured; module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -184,6 +207,18 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             chosen.rows.append(row)
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
+    if cull_tolerance_db is not None:
+        counts = {chosen.sources} if chosen.sources is not None else {setting["sources"], k1}
+        base = next(r["psnr"] for r in reversed(chosen.rows) if r["budget"] == chosen.face_budget
+                    and r["sources"] in counts and r.get("weight_stride", 1) == chosen.weight_stride)  # the chosen row
+        seen = level_of_detail(meshes[chosen.face_budget], 0, scene.cameras[pool])  # seen by the sources alone
+        if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
+            row = {"budget": chosen.face_budget, "faces": int(len(seen[1])), "sources": k1,
+                   "weight_stride": chosen.weight_stride, "photographed": True,
+                   "psnr": score(seen, k1, chosen.weight_stride)}
+            chosen.rows.append(row)
+            if row["psnr"] >= base - cull_tolerance_db:
+                chosen.photographed, chosen.faces = True, row["faces"]
     chosen.views = left
     chosen.seconds = round(time.perf_counter() - start, 2)
     return chosen

@@ -226,7 +226,7 @@ def measure(cfg: BenchConfig) -> dict:
     sources = Sources.from_scene(scene, views).to(device)
     budget = args.face_budget if args.face_budget is not None else (lod.face_budget if lod else 0)
     start = time.perf_counter()
-    drawn = level_of_detail(mesh, budget)  # once, for every renderer below
+    drawn = lod.drawn(mesh, scene.cameras[train]) if lod else level_of_detail(mesh, budget)  # once, for every renderer
     decimate_s = time.perf_counter() - start
     background = scene.background or (1, 1, 1)
 
@@ -291,7 +291,8 @@ def measure(cfg: BenchConfig) -> dict:
                   "frame": "normalised (training frame)", "faces": len(mesh.faces), "vertices": len(mesh.vertices),
                   "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
                   "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds,
-                                                   "sources": lod.sources, "weight_stride": lod.weight_stride},
+                                                   "sources": lod.sources, "weight_stride": lod.weight_stride,
+                                                   "photographed": lod.photographed},
                   "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),

@@ -38,8 +38,9 @@ rasterizer's GL context (:class:`omnirecon.render.glblend.GLBlend`: the same ble
 this torch shader (``tests/mesh/test_ibr_gl.py``).
 
 **Level of detail and candidate sources** (the real-time videos, ``omnirecon bench --realtime``):
-``MeshRenderOptions.face_budget`` (:func:`level_of_detail`) and ``frame_grid`` (:meth:`MeshRenderer._frame_sources`);
-both off is the reference path they are measured against (``python -m bench mesh_lod``).
+``MeshRenderOptions.face_budget`` (:func:`level_of_detail`, which can also leave out the faces no photo sees:
+:func:`photographed_faces`) and ``frame_grid`` (:meth:`MeshRenderer._frame_sources`); all off is the reference path they
+are measured against (``python -m bench mesh_lod``).
 
 Size: the renderer's options, its frame and reference paths, the shared per-view cache and the real-time
 settings per scene are one real-time path, timed and tested together (the blend is in :mod:`omnirecon.mesh.kernel`
@@ -253,22 +254,77 @@ REALTIME_FRAME_GRID = 16
 mesh_lod``: frame time and held-out PSNR against every source ranked at every point)."""
 
 
-def level_of_detail(mesh, budget: int) -> tuple[np.ndarray, np.ndarray]:
+SEEN_SUPERSAMPLE = 4
+""":func:`photographed_faces` looks for each face at this many samples per pixel along each axis of the photos: a face
+smaller than a pixel on a surface a photo sees is seen at some sample (at 1, the procedural demo scene's 128-px mesh lost
+its small faces and held-out PSNR with them; at 2 less of both, at 4 least: BENCHMARKS "Real-time mesh path: level of
+detail and candidate sources")."""
+SEEN_MIN_SAMPLES = 4.0
+""":func:`photographed_faces` judges a face only where some photo frames it over at least this many samples (its
+projected area in samples of the :data:`SEEN_SUPERSAMPLE` grid): a smaller face may fall between the samples however it
+lies, and is drawn."""
+SEEN_MAX_SIDE = 4096
+""":func:`photographed_faces` rasterizes a photo at most this many pixels on its long side (fewer samples per pixel on
+larger photos)."""
+
+
+def photographed_faces(vertices, faces, cameras: Cameras, supersample: int = SEEN_SUPERSAMPLE,
+                       backend: Backend = "auto") -> np.ndarray:
+    """The faces a renderer of the photos ``cameras`` needs: those some photo sees (the nearest face at some of
+    ``supersample`` x ``supersample`` samples of a pixel, back faces culled as the mesh path draws), and those no photo
+    shows large enough to judge (under :data:`SEEN_MIN_SAMPLES` samples in every photo that has it in front, within its
+    image). The others lie behind the surfaces every photo sees (completion's fills of one view hidden from all,
+    coplanar copies losing the depth test) or face away from every photo. ``vertices # [V, 3]``, ``faces # [F, 3]``;
+    ``# [F]`` bool"""
+    vertices, faces = np.asarray(vertices, np.float64), np.asarray(faces)
+    seen = np.zeros(len(faces), bool)
+    largest = np.zeros(len(faces))  # [F] the most samples a photo spreads each face over
+    if not len(faces):
+        return seen
+    with MeshRasterizer(vertices, faces, backend=backend) as rasterizer:
+        for i in range(len(cameras)):
+            cam = cameras[i]
+            scale = max(1, min(supersample, SEEN_MAX_SIDE // max(cam.width, cam.height)))
+            ids = rasterizer.face_ids(cam.rescaled(scale) if scale > 1 else cam)  # [H s, W s], -1: background
+            seen[ids[ids >= 0]] = True
+            c64 = cam.to(device="cpu", dtype=torch.float64)
+            K, w2c = c64.K[0].numpy(), c64.w2c[0].numpy()
+            p = vertices @ w2c[:3, :3].T + w2c[:3, 3]  # [V, 3] camera frame
+            uv = ((p @ K.T)[:, :2] / np.maximum(p[:, 2:], 1e-9))[faces]  # [F, 3, 2] pixels
+            e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+            area = 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) * scale ** 2  # [F] in samples
+            c = uv.mean(1)
+            framed = (p[faces, 2].min(1) > 0) & (c[:, 0] >= 0) & (c[:, 1] >= 0) & (c[:, 0] < cam.width) & \
+                (c[:, 1] < cam.height)
+            largest = np.maximum(largest, np.where(framed, area, 0.0))
+    return seen | (largest < SEEN_MIN_SAMPLES)
+
+
+def level_of_detail(mesh, budget: int, photos: Cameras | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ``(vertices # [V, 3], faces # [F, 3])`` a renderer draws of ``mesh`` (a ``trimesh.Trimesh`` or such a pair):
     at most ``budget`` faces (its coincident vertices welded, :func:`omnirecon.mesh.clean.weld`, then quadric edge
     collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it fits or ``budget`` is 0. Welding first
     lets the collapse merge completion's pixel fills into the surfaces they continue; unwelded, each pixel's quad is a
     border of its own and the collapse deletes them (``python -m bench mesh_lod``, BENCHMARKS "Real-time mesh path:
-    level of detail and candidate sources")."""
+    level of detail and candidate sources").
+
+    With ``photos``, only the faces those cameras see (:func:`photographed_faces`) are drawn: the depth pass shades every
+    fragment of every face in the frame, hidden or not, and on completed meshes most of those fragments were on faces no
+    photo sees (BENCHMARKS "Real-time mesh path: level of detail and candidate sources"). Where a frame sees past the photographed surface, the
+    renderer's fill shades the pixel instead (:class:`MeshRenderOptions` ``fill``, ``cracks``). The faces are the mesh's,
+    never moved; its vertices are all kept."""
     vertices, faces = (mesh.vertices, mesh.faces) if hasattr(mesh, "faces") else mesh
-    if budget <= 0 or len(faces) <= budget:
+    if 0 < budget < len(faces):
+        import trimesh
+
+        from omnirecon.mesh.clean import decimate, weld
+
+        small = decimate(trimesh.Trimesh(*weld(vertices, faces), process=False), budget)
+        vertices, faces = np.asarray(small.vertices), np.asarray(small.faces)
+    if photos is None:
         return vertices, faces
-    import trimesh
-
-    from omnirecon.mesh.clean import decimate, weld
-
-    small = decimate(trimesh.Trimesh(*weld(vertices, faces), process=False), budget)
-    return np.asarray(small.vertices), np.asarray(small.faces)
+    faces = np.asarray(faces)
+    return vertices, faces[photographed_faces(np.asarray(vertices), faces, photos)]
 
 
 class MeshRenderer(SourceShader):

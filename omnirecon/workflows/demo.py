@@ -328,15 +328,17 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     cams = cams.rescaled(side / max(cams.width, cams.height))
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
-                                                  setting=setting, face_budget=lod.face_budget)
+    drawn = lod.drawn(mesh, scene.cameras[train])  # the measured level, decimated once
+    video, images, times, faces = mesh_path_video(model, drawn, scene, cams, picks, out / "mesh_path" / "orbit.mp4",
+                                                  setting=setting, face_budget=0)
     fps = 1.0 / statistics.median(times)
     write_image(out / "mesh_path" / "frame_0000.png", images[0])
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
                             "faces_drawn": faces, "lod": {"face_budget": lod.face_budget, "sources": lod.sources, "rows": lod.rows,
-                                                          "views": lod.views, "seconds": lod.seconds}, "away": away}
+                                                          "photographed": lod.photographed, "views": lod.views,
+                                                          "seconds": lod.seconds}, "away": away}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
                  f"faces drawn); {away['line']}")
     return mesh_path_page(video, fps, cams, away, out)

@@ -413,8 +413,9 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
     setting = lod.setting(realtime_setting(scene, tuned))  # the sources per frame it chose
     picks = [sorted(select_sources(scene, cams[i], train, min(setting["sources"] or len(train), len(train)))) for i in
              range(len(cams))]
-    video, images, times, faces = mesh_path_video(model, mesh, scene, cams, picks, out / "path.mp4", setting=setting,
-                                                  face_budget=lod.face_budget)
+    drawn = lod.drawn(mesh, scene.cameras[train])  # the measured level, decimated once
+    video, images, times, faces = mesh_path_video(model, drawn, scene, cams, picks, out / "path.mp4", setting=setting,
+                                                  face_budget=0)
     defects, worst = path_defects(mesh, scene, train, cams, images, fill_from, out)
     fps = 1.0 / statistics.median(times)
     center = closest_point_to_axes(scene.cameras) if scene_kind(scene).object else scene.bounds.double().mean(0)
@@ -430,6 +431,7 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
+                    "photographed": lod.photographed,
                     "views": lod.views, "seconds": lod.seconds},
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import trimesh
@@ -9,7 +10,7 @@ import trimesh
 from omnirecon.data import load_scene
 from omnirecon.data.synth.generate import SynthOptions, generate_scene
 from omnirecon.engine.lod import choose_level_of_detail, left_out_views
-from omnirecon.mesh.ibr import realtime_setting
+from omnirecon.mesh.ibr import level_of_detail, realtime_setting
 from omnirecon.models.registry import build_model
 
 pytestmark = pytest.mark.usefixtures("gl")  # skips without EGL, fails under CI=true (conftest)
@@ -41,7 +42,7 @@ def test_the_smallest_budget_within_the_tolerance_is_chosen_and_a_ruinous_one_ne
     full = len(mesh.faces)
     keep = full // 4
     choice = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(keep, 4000), sources=(),
-                                    tolerance_db=1.0, ceiling=0)
+                                    tolerance_db=1.0, ceiling=0, cull_tolerance_db=None)  # the cull: its own test
     assert [r["budget"] for r in choice.rows] == [0, keep, 4000]
     assert choice.rows[0]["faces"] == full and choice.rows[2]["faces"] <= 4000
     assert choice.rows[2]["psnr"] < choice.rows[0]["psnr"] - 1.0  # the ruinous budget shows in the score
@@ -71,7 +72,7 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     setting = realtime_setting(scene)
     assert setting["blend"] == "network" and setting["sources"] == 6
     loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
-                                   sources_tolerance_db=100.0, strides=())
+                                   sources_tolerance_db=100.0, strides=(), cull_tolerance_db=None)
     assert [(r["faces"], r["sources"]) for r in loose.rows] == [(loose.faces, 6), (loose.faces, 4), (loose.faces, 3)]
     assert loose.sources == 3 and loose.setting(setting)["sources"] == 3 and " 3 sources per frame" in loose.line()
     strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
@@ -80,7 +81,8 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
                                    sources=(4, 3), sources_tolerance_db=100.0)
     assert angle.rows == [] and angle.sources is None
-    default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), strides=())
+    default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), strides=(),
+                                     cull_tolerance_db=None)
     by_rule = [r["sources"] for r in default.rows[1:] if r["psnr"] >= default.rows[0]["psnr"]]  # lose nothing
     assert default.sources == (by_rule[-1] if by_rule else None), default.rows
 
@@ -115,7 +117,7 @@ def test_the_weight_stride_is_measured_at_the_chosen_sources_and_kept_within_its
     train = list(range(len(scene)))
     setting = realtime_setting(scene)
     loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(3,),
-                                   sources_tolerance_db=100.0, stride_tolerance_db=100.0)
+                                   sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None)
     assert [(r["sources"], r.get("weight_stride", 1)) for r in loose.rows] == [(6, 1), (3, 1), (3, 2)]
     assert loose.weight_stride == 2 and loose.setting(setting)["weight_stride"] == 2
     assert "the MLP every 2 px" in loose.line()
@@ -123,5 +125,34 @@ def test_the_weight_stride_is_measured_at_the_chosen_sources_and_kept_within_its
                                     sources_tolerance_db=100.0, stride_tolerance_db=-1.0)
     assert strict.weight_stride == 1 and "weight_stride" not in strict.setting(setting)
     four = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4,),
-                                  sources_tolerance_db=100.0, stride_tolerance_db=100.0)
+                                  sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None)
     assert four.sources == 4 and four.weight_stride == 1 and len(four.rows) == 2
+
+
+def test_only_the_faces_the_sources_see_are_drawn_where_they_lose_nothing(setup):
+    """Every face drawn twice (the copy loses every depth test to the original, as completion's coplanar copies do):
+    the chosen level is measured once more drawing only the faces the sources see, which leaves the copies out and
+    renders the left-out photo as before but for the few faces only it sees, so it is drawn at the default tolerance;
+    with a negative tolerance it is measured and not drawn; with none it is not measured."""
+    scene, _, model = setup
+    mesh = trimesh.Trimesh(*level_of_detail(trimesh.load(scene.mesh_path, process=False, force="mesh"), 3000),
+                           process=False)  # faces large enough to judge at 64 px
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    twice = trimesh.Trimesh(mesh.vertices, np.concatenate([mesh.faces, mesh.faces]), process=False)
+    F = len(twice.faces)
+    kw = dict(budgets=(F - 8,), sources=(), tolerance_db=-1.0, ceiling=0, strides=(), views=1)  # the ceiling is drawn
+    choice = choose_level_of_detail(model, twice, scene, setting, train, **kw)
+    assert [r.get("photographed", False) for r in choice.rows] == [False, False, True], choice.rows
+    plain, seen = choice.rows[0], choice.rows[-1]
+    assert seen["faces"] < 0.6 * F, choice.rows  # at most a few copies too small to judge are kept
+    assert plain["psnr"] - 0.05 <= seen["psnr"] <= plain["psnr"], choice.rows
+    assert choice.photographed and choice.face_budget == 0 and choice.faces == seen["faces"]
+    assert "only the faces the photos see" in choice.line()
+    drawn = choice.drawn(twice, scene.cameras[train])
+    assert len(drawn[1]) < 0.6 * F  # every photo deciding: the copies left out again
+    strict = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=-1.0)
+    assert strict.rows[-1].get("photographed") and not strict.photographed and strict.faces == F
+    assert len(strict.drawn(twice, scene.cameras[train])[1]) == F
+    off = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=None)
+    assert not any(r.get("photographed") for r in off.rows) and not off.photographed

@@ -28,8 +28,9 @@ def test_section_lists_each_budget_against_the_reference(tmp_path):
 
 
 def test_section_sets_each_scenes_chosen_level_beside_the_run_before_the_weld(tmp_path):
-    """With ``mesh_lod_before_weld.json`` the section adds a table of each scene's chosen level before -> after (the
-    chosen level's last row: its sources and stride), with the commit of the run before."""
+    """With ``mesh_lod_before_weld.json`` and ``mesh_lod_weld.json`` (the runs before and after the weld) the section
+    adds a table of each scene's chosen level before -> after (the chosen level's last row: its sources and stride),
+    with the commits of both runs."""
     from bench.report.mesh_lod import section
     from omnirecon.provenance import provenance
 
@@ -45,10 +46,11 @@ def test_section_sets_each_scenes_chosen_level_beside_the_run_before_the_weld(tm
         return {"provenance": {**provenance(seed=0), "commit": commit}, "threads": 2, "frames": 10,
                 "realtime_face_budget": 200000, "realtime_frame_grid": 16, "machine_note": "shared", "scenes": [scene]}
 
-    (tmp_path / "mesh_lod.json").write_text(json.dumps(run(50000, 27.3, 22.08, "after000000000")))
+    (tmp_path / "mesh_lod.json").write_text(json.dumps(run(25000, 40.0, 22.0, "now00000000000")))
+    (tmp_path / "mesh_lod_weld.json").write_text(json.dumps(run(50000, 27.3, 22.08, "after000000000")))
     assert "before -> after" not in section(tmp_path)
     (tmp_path / "mesh_lod_before_weld.json").write_text(json.dumps(run(100000, 22.3, 21.99, "before00000000")))
     text = section(tmp_path)
-    assert "The same bench at commit `before000000`" in text
+    assert "The same bench at commit `before000000`" in text and "beside the run at commit `after0000000`" in text
     assert ("| fox | 100,000 faces, 3 sources, MLP every 2 px -> 50,000 faces, 3 sources, MLP every 2 px | 27.3 -> 32.3 "
             "| 22.3 -> 27.3 | 60 -> 60 | 21.99 -> 22.08 | -0.14 -> -0.05 |") in text

@@ -369,12 +369,15 @@ def test_fps_benchmark_times_a_capture_and_its_mesh(tmp_path, run_cli):
     assert len(r["scene"]["source_view_ids"]) == 6 and r["scene"]["lod"] is None  # a given budget: nothing chosen
     code, _, err = run_cli([*bench, "--realtime", "--out", out])
     assert code == 0, err[-2000:]
-    r = json.loads(out.read_text())  # what the videos draw: under 50,000 faces the whole mesh; sources as measured
-    lod = r["scene"]["lod"]
-    assert r["scene"]["faces_drawn"] == r["scene"]["faces"]
-    assert [row["sources"] for row in lod["rows"] if row.get("weight_stride", 1) == 1] == [6, 4, 3]
+    r = json.loads(out.read_text())  # what the videos draw: under 50,000 faces the whole mesh (or the faces the photos
+    lod = r["scene"]["lod"]  # see, where the choice measured that); sources as measured
+    seen = [row for row in lod["rows"] if row.get("photographed")]
+    assert len(seen) <= 1 and lod["photographed"] == (r["scene"]["faces_drawn"] < r["scene"]["faces"])
+    assert not lod["photographed"] or seen[0]["faces"] <= r["scene"]["faces_drawn"]  # every photo sees more than the sources
+    plain = [row for row in lod["rows"] if not row.get("photographed")]
+    assert [row["sources"] for row in plain if row.get("weight_stride", 1) == 1] == [6, 4, 3]
     assert len(r["scene"]["source_view_ids"]) == (lod["sources"] or 6)
-    strides = [row for row in lod["rows"] if row.get("weight_stride", 1) > 1]  # measured where 3 sources are drawn
+    strides = [row for row in plain if row.get("weight_stride", 1) > 1]  # measured where 3 sources are drawn
     assert len(strides) == ((lod["sources"] or 6) <= 3) and lod["weight_stride"] in (1, 2)
     code, _, err = run_cli(["bench", "--quick", "--scene", scene_dir])
     assert code == 2 and len(err.strip().splitlines()) == 1 and "--mesh" in err
@@ -609,6 +612,37 @@ def test_level_of_detail_honours_the_budget_and_renders_close_to_the_full_mesh(s
     v, f = level_of_detail(dense, 0)
     assert v is dense.vertices and f is dense.faces
     assert len(level_of_detail((dense.vertices, dense.faces), budget)[1]) <= budget
+
+
+def test_only_the_photographed_faces_are_drawn_and_the_photos_see_the_same_depths():
+    """``level_of_detail(..., photos)`` drops the faces no photo sees: a plane hidden behind a nearer one from every
+    photo, and a face turned away from them; it keeps a sliver in front that falls between two rows of pixel centres
+    (seen at some of the 4 x 4 samples per pixel; judged at the centres alone, it is dropped), and the photos' depth
+    maps stay the same, pixel for pixel."""
+    from omnirecon.mesh.ibr import level_of_detail, photographed_faces
+
+    def square(z: float, r: float, base: int):  # two triangles facing a camera on the -z side, corners at +-r
+        return [[-r, -r, z], [-r, r, z], [r, -r, z], [r, r, z]], [[base, base + 1, base + 2], [base + 2, base + 1, base + 3]]
+
+    f = 40.0
+    u0, v0, z_tiny = 5.0, 10.55, 2.99  # rows of pixel centres at 10.5 and 11.5: the sliver covers none of them
+    tiny = [[(u - 16) * z_tiny / f, (v - 16) * z_tiny / f, z_tiny] for u, v in ((u0, v0), (u0, v0 + 0.4), (u0 + 22, v0))]
+    front, front_f = square(3.0, 2.0, 0)
+    hidden, hidden_f = square(5.0, 1.0, 4)
+    vertices = np.array(front + hidden + tiny + [[0, 0, 2.5], [0.2, 0, 2.5], [0, 0.2, 2.5]], dtype=np.float64)
+    faces = np.array(front_f + hidden_f + [[8, 9, 10], [11, 12, 13]])  # the last: normal +z, turned away
+    c2w = torch.eye(4, dtype=torch.float64)[None].repeat(2, 1, 1)
+    c2w[1, 0, 3] = 0.05  # a second photo beside the first: the hidden plane stays behind the front one
+    ft = torch.tensor([f, f], dtype=torch.float64)
+    photos = Cameras(ft, ft, ft * 0 + 16, ft * 0 + 16, c2w, 32, 32)
+    seen = photographed_faces(vertices, faces, photos)
+    assert seen.tolist() == [True, True, False, False, True, False]
+    assert photographed_faces(vertices, faces, photos, supersample=1).tolist() == [True, True, False, False, False, False]
+    v, kept = level_of_detail((vertices, faces), 0, photos)
+    assert v is vertices and np.array_equal(kept, faces[seen])
+    with MeshRasterizer(vertices, faces) as a, MeshRasterizer(v, kept) as b:
+        for i in range(len(photos)):
+            assert torch.equal(a.depth(photos[i]).clone(), b.depth(photos[i]).clone())
 
 
 def replace_budget(opts: MeshRenderOptions, budget: int) -> MeshRenderOptions:
