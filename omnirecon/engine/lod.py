@@ -24,8 +24,9 @@ and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
 
 Last, the chosen level drawn with only the faces the photos see (:func:`~omnirecon.mesh.ibr.photographed_faces`, seen
 by the sources alone: a face only a left-out photo sees is left out, as a face no photo sees is from a novel view) is
-measured against the chosen row (:data:`LOD_CULL_TOLERANCE_DB`), where it leaves out at least
-:data:`LOD_CULL_MIN_SHARE` of the faces: the depth pass shades every fragment of the frame's faces, hidden or not.
+measured where it leaves out at least :data:`LOD_CULL_MIN_SHARE` of the faces (the depth pass shades every fragment of
+the frame's faces, hidden or not), and drawn where it is within ``tolerance_db`` of the ceiling row: one more level of
+detail of the surface, held to the same bound as the face budgets.
 """
 
 from __future__ import annotations
@@ -47,8 +48,6 @@ LOD_STRIDES = (2,)
 """Candidate ``MeshRenderOptions.weight_stride`` of the network blend's GL pass (the MLP at every n-th pixel)."""
 LOD_STRIDE_TOLERANCE_DB = 0.05
 """PSNR (dB) a weight stride may lose against the same budget and sources at every pixel and still be chosen."""
-LOD_CULL_TOLERANCE_DB = 0.05
-"""PSNR (dB) drawing only the photographed faces may lose against the chosen row and still be chosen."""
 LOD_CULL_MIN_SHARE = 0.1
 """The share of the chosen level's faces the photos must leave unseen for that cull to be measured."""
 LOD_VIEWS = 3
@@ -125,13 +124,13 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
                            ceiling: int | None = None,
                            sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB, strides=LOD_STRIDES,
                            stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB,
-                           cull_tolerance_db: float | None = LOD_CULL_TOLERANCE_DB) -> LodChoice:
+                           cull_tolerance_db: float | None = LOD_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
     sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (where no count passes at the chosen
     budget, one budget up, which is then drawn), then the largest weight stride of ``strides`` within
-    ``stride_tolerance_db`` of the chosen row, then only the faces the sources see within ``cull_tolerance_db`` of that
-    row (``None``: not measured; module docstring).
+    ``stride_tolerance_db`` of the chosen row, then only the faces the sources see within ``cull_tolerance_db`` of the
+    ceiling row (``None``: not measured; module docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -208,16 +207,13 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
     if cull_tolerance_db is not None:
-        counts = {chosen.sources} if chosen.sources is not None else {setting["sources"], k1}
-        base = next(r["psnr"] for r in reversed(chosen.rows) if r["budget"] == chosen.face_budget
-                    and r["sources"] in counts and r.get("weight_stride", 1) == chosen.weight_stride)  # the chosen row
         seen = level_of_detail(meshes[chosen.face_budget], 0, scene.cameras[pool])  # seen by the sources alone
         if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
             row = {"budget": chosen.face_budget, "faces": int(len(seen[1])), "sources": k1,
                    "weight_stride": chosen.weight_stride, "photographed": True,
                    "psnr": score(seen, k1, chosen.weight_stride)}
             chosen.rows.append(row)
-            if row["psnr"] >= base - cull_tolerance_db:
+            if row["psnr"] >= best - cull_tolerance_db:  # against the ceiling, as the face budgets
                 chosen.photographed, chosen.faces = True, row["faces"]
     chosen.views = left
     chosen.seconds = round(time.perf_counter() - start, 2)

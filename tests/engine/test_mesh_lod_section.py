@@ -52,5 +52,6 @@ def test_section_sets_each_scenes_chosen_level_beside_the_run_before_the_weld(tm
     (tmp_path / "mesh_lod_before_weld.json").write_text(json.dumps(run(100000, 22.3, 21.99, "before00000000")))
     text = section(tmp_path)
     assert "The same bench at commit `before000000`" in text and "beside the run at commit `after0000000`" in text
+    assert "- fox: 45.0 FPS, streamed 40.0 FPS, -0.13 dB against the full mesh (met)" in text  # the goal, last row
     assert ("| fox | 100,000 faces, 3 sources, MLP every 2 px -> 50,000 faces, 3 sources, MLP every 2 px | 27.3 -> 32.3 "
             "| 22.3 -> 27.3 | 60 -> 60 | 21.99 -> 22.08 | -0.14 -> -0.05 |") in text
