@@ -55,3 +55,33 @@ def test_section_sets_each_scenes_chosen_level_beside_the_run_before_the_weld(tm
     assert "- fox: 45.0 FPS, streamed 40.0 FPS, -0.13 dB against the full mesh (met)" in text  # the goal, last row
     assert ("| fox | 100,000 faces, 3 sources, MLP every 2 px -> 50,000 faces, 3 sources, MLP every 2 px | 27.3 -> 32.3 "
             "| 22.3 -> 27.3 | 60 -> 60 | 21.99 -> 22.08 | -0.14 -> -0.05 |") in text
+
+
+def test_section_sets_the_photographed_faces_beside_the_same_level_with_all_its_faces(tmp_path):
+    """A scene whose chosen level draws only the faces the photos see: its row says so, and a table sets it beside the
+    row of the same budget, grid, sources and stride with all its faces (not beside another budget's row)."""
+    from bench.report.mesh_lod import section
+    from omnirecon.provenance import provenance
+
+    def row(budget: int, faces: int, fps: float, psnr: float, **extra) -> dict:
+        return {"face_budget": budget, "frame_grid": 16, "faces": faces, "shader": "gl", "decimate_s": 1.0,
+                "frame_ms": 1000 / fps, "fps": fps, "frame_cpu_ms": 1000 / fps * 1.5, "frame_main_cpu_ms": 9.0,
+                "stream_fps": fps, "stream_cpu_ms": 60.0, "depth_pass_cpu_ms": faces / 1000, "loadavg_1min": 1.5,
+                "psnr": psnr, "psnr_loss_db": 14.48 - psnr, **extra}
+
+    rows = [row(0, 191977, 10.0, 14.48), row(25000, 25000, 20.0, 14.60),
+            row(25000, 25000, 26.0, 14.93, sources=3, weight_stride=2),
+            row(25000, 8275, 32.0, 14.91, sources=3, weight_stride=2, photographed=True)]
+    scene = {"scene": "lund", "resolution": [512, 383], "rows": rows, "commit": "abc1234",
+             "lod": {"face_budget": 25000, "faces": 7982, "sources": 3, "weight_stride": 2, "photographed": True,
+                     "rows": [{"budget": 25000, "faces": 7982, "sources": 3, "weight_stride": 2, "photographed": True,
+                               "psnr": 17.02}], "seconds": 1.0, "tolerance_db": 0.2}}
+    (tmp_path / "mesh_lod.json").write_text(json.dumps({
+        "provenance": provenance(seed=0), "threads": 2, "frames": 10, "realtime_face_budget": 200000,
+        "realtime_frame_grid": 16, "machine_note": "shared", "scenes": [scene]}))
+    text = section(tmp_path)
+    assert "| lund | 512x383 | budget 25000, grid 16, gl shader, 3 sources per frame, MLP every 2 px, only the faces the photos see | 8,275 |" in text
+    assert "| lund | 25,000 -> 8,275 | 26.0 -> 32.0 | 26.0 -> 32.0 | 58 -> 47 | 25 -> 8 | 14.93 -> 14.91 |" in text
+    assert "7,982 faces x 3 sources, MLP every 2 px, photographed only 17.02" in text
+    assert "**7,982 faces, 3 sources per frame, the MLP every 2 px, only the faces the photos see**" in text
+    assert "- lund: 32.0 FPS, streamed 32.0 FPS, +0.43 dB against the full mesh (met)" in text
