@@ -22,7 +22,7 @@ def _end_to_end(r: dict) -> str:
              "`/usr/bin/time` (without that child, which a fork server starts) with the load average beside them (wall "
              "on the shared cores is mostly the scheduler).", ""]
     for name, run in r.items():
-        if name == "mesh_sources":
+        if name in ("mesh_sources", "threads"):
             continue
         v, w = run["verdict"], run["whole"]
         lines += [f"**{name}** (`{run['command']}`): stages {v['stages_total_cpu_s']} CPU s against the goal of "
@@ -53,4 +53,25 @@ def _end_to_end(r: dict) -> str:
             lines.append(f"| {label} | {st.get('images_to_mesh')} | {st.get('render')} | {st.get('fuse')} | "
                          f"{st.get('clean')} | {(m['whole'] or {}).get('cpu_s', '–')} |")
         lines.append("")
+    for kind, ab in (r.get("threads") or {}).items():
+        lines += _threads(kind, ab)
     return "\n".join(lines)
+
+
+def _threads(kind: str, ab: dict) -> list[str]:
+    """The command at 1 and 2 torch threads back to back (``--threads-ab``): wall and CPU seconds per stage, real
+    clocks, and the goal read on the 2-thread wall time."""
+    from bench.end_to_end import GOALS  # the bench's goals, in seconds (read here on the 2-thread wall clock)
+
+    one, two = ab["runs"]["1"], ab["runs"]["2"]
+    goal = GOALS.get(kind)
+    verdict = (f"; the goal of {goal:.0f} s on 2 cores: {'met' if two['whole']['wall_s'] <= goal else 'short'}"
+               if goal else "")
+    lines = [f"**{kind} at 1 and 2 threads** (`python -m bench end_to_end --threads-ab {kind}`: "
+             f"`{one['command']}`, then the same at 2 threads, back to back, real clocks): whole command "
+             f"{one['whole']['wall_s']} s wall at 1 thread (load {one['load']}), {two['whole']['wall_s']} s wall at 2 "
+             f"threads (load {two['load']}){verdict}. Per stage, wall and process CPU seconds:", "",
+             "| stage | wall 1 thread | wall 2 threads | CPU 1 thread | CPU 2 threads |", "|---|---|---|---|---|"]
+    lines += [f"| {k} | {s['wall_1']:.1f} | {s['wall_2']:.1f} | {s['cpu_1']:.1f} | {s['cpu_2']:.1f} |"
+              for k, s in ab["per_stage"].items()]
+    return [*lines, "", prov(ab["provenance"]), ""]
