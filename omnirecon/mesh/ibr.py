@@ -256,9 +256,8 @@ mesh_lod``: frame time and held-out PSNR against every source ranked at every po
 
 SEEN_SUPERSAMPLE = 4
 """:func:`photographed_faces` looks for each face at this many samples per pixel along each axis of the photos: a face
-smaller than a pixel on a surface a photo sees is seen at some sample (at 1, the procedural demo scene's 128-px mesh lost
-its small faces and held-out PSNR with them; at 2 less of both, at 4 least: BENCHMARKS "Real-time mesh path: level of
-detail and candidate sources")."""
+smaller than a pixel on a surface a photo sees falls between the pixel centres, but seldom between all of these samples
+(and one smaller than :data:`SEEN_MIN_SAMPLES` of them is drawn anyway)."""
 SEEN_MIN_SAMPLES = 4.0
 """:func:`photographed_faces` judges a face only where some photo frames it over at least this many samples (its
 projected area in samples of the :data:`SEEN_SUPERSAMPLE` grid): a smaller face may fall between the samples however it
