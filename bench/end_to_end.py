@@ -181,7 +181,7 @@ def threads_ab(kind: str, photos: Path | None, tmp: Path) -> dict:
                      "cpu_2": runs[2]["cpu_s"][k], "wall_ratio": round(w / max(runs[2]["wall_s"][k], 1e-9), 2),
                      "faster_with_2": w > runs[2]["wall_s"][k]}
                  for k, w in runs[1]["wall_s"].items() if k in runs[2]["wall_s"]}
-    return {"runs": runs, "per_stage": per_stage, "provenance": provenance(seed=0, threads=[1, 2])}
+    return {"runs": runs, "per_stage": per_stage, "goal_s": GOALS[kind], "provenance": provenance(seed=0, threads=[1, 2])}
 
 
 def main(argv: list[str] | None = None) -> dict:
