@@ -166,7 +166,7 @@ RULES: dict[str, Rule] = {
     "shininess": Rule(0, 10_000, above=True, example="e.g. 32"), "light_variation": FRACTION,
     "white_balance": FRACTION, "vignetting": FRACTION, "aspect": Rule(0.25, 4, example="e.g. 0.75 (4:3 landscape)"),
     # machine and the rest
-    "threads": Rule(1, 1024, example="e.g. 1"), "workers": Rule(1, 1024, example="e.g. 2"),
+    "threads": Rule(1, 1024, example="e.g. 1"), "feature_threads": Rule(1, 1024, example="e.g. 2"), "workers": Rule(1, 1024, example="e.g. 2"),
     "port": Rule(0, 65_535, example="e.g. 8765, or 0 for any free port"), "seed": SEED,
 }
 

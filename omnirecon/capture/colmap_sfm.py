@@ -10,7 +10,8 @@ the images most like it (a walk's loop closures), or each photo with its next 2 
 ones most like it, then bridge pairs while the verified matches leave groups apart (``retrieval``, more
 than 20 photos). The pairs are
 matched in chunks so that progress and its ETA advance while COLMAP works. One thread by default
-(``threads``), a fixed seed: the same input gives the same model. When too few images register,
+(``threads``; the features, the same at any count: ``feature_threads``), a fixed seed: the same input gives the same
+model. When too few images register,
 the mapping is retried without the EXIF focal length, with affine-adapted features and with relaxed
 settings (:class:`SfmOptions`). The
 kept model's poses are checked against their verified pairs and a contradicted view is dropped
@@ -122,7 +123,11 @@ class SfmOptions(CameraModel, Seeded):
     matches of its image pairs (median over its pairs, weighted by matches), e.g. one placed the wrong way
     round (:mod:`omnirecon.capture.consistency`); 0 turns the check off."""
     threads: int = 1
-    """CPU threads for COLMAP (1 gives reproducible models)."""
+    """CPU threads for COLMAP (1 gives reproducible models: with more, pairs are verified side by side and two runs may
+    keep slightly different matches, and poses)."""
+    feature_threads: int | None = None
+    """CPU threads for the SIFT features alone (each image on its own: the same features at any count); ``None``:
+    ``threads``."""
 
     def check(self) -> None:
         if self.camera_model not in CAMERA_MODELS:
@@ -264,7 +269,7 @@ def _extract(db: Path, image_dir: Path, names: list[str], options: SfmOptions, s
 
     n = len(names)
     extract = pycolmap.FeatureExtractionOptions()
-    extract.num_threads = options.threads
+    extract.num_threads = options.feature_threads or options.threads
     extract.max_image_size = options.max_image_size
     extract.sift.max_num_features = options.max_features
     extract.sift.peak_threshold = options.peak_threshold

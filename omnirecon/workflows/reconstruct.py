@@ -343,7 +343,8 @@ def process_stage(cfg: ReconstructConfig, out: Path, lines: list[str]) -> tuple[
         from omnirecon.capture.colmap_sfm import SfmOptions  # lazy: pycolmap is the optional `capture` extra
         from omnirecon.capture.process import process, summary_lines  # lazy: as above
 
-        processed = process(Path(cfg.path), out / "scene", SfmOptions(camera_model=cfg.camera_model), fps=cfg.fps,
+        sfm = SfmOptions(camera_model=cfg.camera_model, feature_threads=cfg.threads or torch.get_num_threads())
+        processed = process(Path(cfg.path), out / "scene", sfm, fps=cfg.fps,  # the rest of COLMAP on 1: reproducible
                             masks=cfg.masks, claimed=True)  # out: the work folder run_reconstruct claimed
         lines += summary_lines(processed)
         return out / "scene", processed

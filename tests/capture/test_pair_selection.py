@@ -91,3 +91,23 @@ def test_without_focal_prior(tmp_path):
             continue
         with pycolmap.Database.open(str(out)) as d:
             assert not any(c.has_prior_focal_length for c in d.read_all_cameras())
+
+
+def test_the_features_are_the_same_at_any_number_of_threads(tmp_path):
+    """``SfmOptions.feature_threads`` (what ``reconstruct --threads`` gives COLMAP's SIFT): each image is extracted on its
+    own, so 2 threads write the same keypoints and descriptors as 1."""
+    from omnirecon.capture.colmap_sfm import SfmOptions, Stages, _extract
+
+    photos = procedural_photos(tmp_path, 128, views=4)
+    names = sorted(p.name for p in photos.iterdir())
+    found = []
+    for threads in (1, 2):
+        db = tmp_path / f"t{threads}.db"
+        with Stages(quiet=True) as stages:
+            _extract(db, photos, names, SfmOptions(feature_threads=threads), stages, None, affine=False)
+        with pycolmap.Database.open(db) as d:
+            found.append({im.name: (d.read_keypoints(im.image_id), np.asarray(d.read_descriptors(im.image_id).data))
+                          for im in d.read_all_images()})
+    assert set(found[0]) == set(names) and all(len(found[0][n][0]) > 0 for n in names)
+    for n in names:
+        assert np.array_equal(found[0][n][0], found[1][n][0]) and np.array_equal(found[0][n][1], found[1][n][1]), n
