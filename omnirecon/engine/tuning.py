@@ -154,13 +154,22 @@ def scored_by(proto, scene) -> str:
     return "objects" if proto.masked and scene.masks is not None else "image"
 
 
-def validation_gain(val: dict, start: dict, scored: str, guard: float) -> tuple[float, bool]:
+def validation_gain(val: dict, start: dict, scored: str, guard: float, each_view: bool = False) -> tuple[float, bool]:
     """A state's validation gain over the start on what the scene is scored by (``psnr_masked`` for
     ``scored == "objects"`` when measured, else ``psnr``), and whether every other score dropped by at most
-    ``guard`` dB."""
+    ``guard`` dB; with ``each_view``, also each validation view's own score (``per_view``: on what the scene is
+    scored by) by at most ``guard`` dB."""
     key = "psnr_masked" if scored == "objects" and "psnr_masked" in val else "psnr"
     gain = val[key] - start[key]
-    return gain, all(val[k] - start[k] >= -guard for k in val if k != key)
+    guarded = all(val[k] - start[k] >= -guard for k in val if k not in (key, "per_view"))
+    if each_view and "per_view" in val and "per_view" in start:
+        guarded = guarded and all(v - s >= -guard for v, s in zip(val["per_view"], start["per_view"]))
+    return gain, guarded
+
+
+def psnr_of(se: torch.Tensor) -> float:
+    """PSNR in dB of the mean of per-pixel squared errors ``se`` (colours in [0, 1]). ``se``: ``# [P]``"""
+    return float(-10 * torch.log10(se.mean().clamp_min(1e-10)))
 
 
 class Tuner:
@@ -321,13 +330,18 @@ class Tuner:
             return {"psnr": float("nan")}
         model = self.s.model
         model.eval()
-        se = torch.cat([(render_pixels(model, *self.view_scoring(v), i, residual=self.residual,
-                                       surface=self.surface).clamp(0, 1) - v.target[i]).square().mean(-1)
-                        for v, i in zip(self.s.val_px, val_idx)])
+        views = [(render_pixels(model, *self.view_scoring(v), i, residual=self.residual,
+                                surface=self.surface).clamp(0, 1) - v.target[i]).square().mean(-1)
+                 for v, i in zip(self.s.val_px, val_idx)]  # per view: [P_v]
         model.train()
-        out = {"psnr": float(-10 * torch.log10(se.mean().clamp_min(1e-10)))}
-        if val_obj is not None and bool(torch.cat(val_obj).any()):
-            out["psnr_masked"] = float(-10 * torch.log10(se[torch.cat(val_obj)].mean().clamp_min(1e-10)))
+        se = torch.cat(views)  # [P]
+        out = {"psnr": psnr_of(se)}
+        objects = val_obj is not None and bool(torch.cat(val_obj).any())
+        if objects:
+            out["psnr_masked"] = psnr_of(se[torch.cat(val_obj)])
+        # each view's own score on what the scene is scored by (a view without object pixels: its whole image)
+        out["per_view"] = [psnr_of(e[o] if self.s.scored_by == "objects" and objects and bool(o.any()) else e)
+                           for e, o in zip(views, val_obj if objects else [None] * len(views))]
         return out
 
     @torch.no_grad()

@@ -28,7 +28,8 @@ start is a candidate) is what is returned, saved and scored. A state's validatio
 scene is scored by (:func:`~omnirecon.engine.tuning.scored_by`: the object pixels on scenes whose protocol scores
 the masks, e.g. DTU;
 else the whole image); it must reach ``--val-margin`` dB to replace the start, and the other score (whole image
-or objects, on scenes with masks) may not drop by more than ``--val-guard`` dB. The held-out test views (the protocol's
+or objects, on scenes with masks) may not drop by more than ``--val-guard`` dB, nor may any one validation view's own
+score (``--val-each-view``). The held-out test views (the protocol's
 targets) are never tuned on nor used to choose.
 
 The budget is ``--seconds`` of optimisation (``--clock wall``: wall time; ``cpu``: this process's
@@ -172,6 +173,10 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     val_guard: float = 0.0
     """On scenes with masks, the score the scene is not scored by (the whole image on DTU, the objects on the
     demo) may drop by at most this many dB on validation for a state to be returned (0: never worse on either)."""
+    val_each_view: bool = True
+    """A tuned state is returned only when each validation view on its own (on what the scene is scored by) drops
+    by at most --val-guard dB, besides the views' pooled gain of --val-margin: a state that raises one view and
+    lowers another changes what a user sees from some viewpoint for the worse (False: the pooled score alone)."""
     val_every: float = 2.0
     """Seconds of optimisation between validation scores (also scored at every --eval-at)."""
     cracks: int = CRACK_RADIUS
@@ -346,7 +351,8 @@ def settle_exposure(cfg: FinetuneConfig, s: Setup, tuner: Tuner, val_idx, val_ob
     tuner.set_gains(torch.ones_like(gains))
     start_val, before = tuner.validate(val_idx, val_obj), tuner.test_scores()
     tuner.set_gains(gains)
-    gain, guarded = validation_gain(tuner.validate(val_idx, val_obj), start_val, s.scored_by, cfg.val_guard)
+    gain, guarded = validation_gain(tuner.validate(val_idx, val_obj), start_val, s.scored_by, cfg.val_guard,
+                                    cfg.val_each_view)
     if not (gain >= cfg.val_margin and guarded):
         tuner.set_gains(torch.ones_like(gains))
     return start_val, before
@@ -381,7 +387,8 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
             val = validate_once(tuner, validation, step, val_idx, val_obj)
             start_val = start_val or val
             # a state's gain: on what the scene is scored by, the other score guarded (validation_gain)
-            gain, guarded = validation_gain(val, start_val, s.scored_by, cfg.val_guard) if s.val_px else (0.0, True)
+            gain, guarded = (validation_gain(val, start_val, s.scored_by, cfg.val_guard, cfg.val_each_view)
+                             if s.val_px else (0.0, True))
             validation.append({"seconds": t_check, "steps": step, **val, "gain": gain, "guard_ok": guarded})
             if not s.val_px or step == 0 or (gain > best_gain and gain >= cfg.val_margin and guarded):
                 best_state, best_val, best_gain, best_at = tuner.state(), val, gain, (t_check, step)  # no validation: the latest
@@ -401,7 +408,7 @@ def tune(cfg: FinetuneConfig, s: Setup, tuner: Tuner, g: torch.Generator, val_id
 def validate_once(tuner: Tuner, validation: list[dict], step: int, val_idx, val_obj) -> dict:
     """The current state's validation scores; the last check's when no step was taken since (the same state)."""
     if validation and validation[-1]["steps"] == step:
-        return {k: validation[-1][k] for k in ("psnr", "psnr_masked") if k in validation[-1]}
+        return {k: validation[-1][k] for k in ("psnr", "psnr_masked", "per_view") if k in validation[-1]}
     return tuner.validate(val_idx, val_obj)
 
 
@@ -430,7 +437,7 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
-              "val_guard": cfg.val_guard, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
+              "val_guard": cfg.val_guard, "val_each_view": cfg.val_each_view, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
               "visibility": cfg.visibility, "blend": s.blend,
               **({"angle_sources": s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
                   "angle_scores": s.angle_scores} if s.blend == "angle" else {}),

@@ -80,9 +80,13 @@ def test_tuning_a_wrong_mesh_returns_a_state_no_worse_than_the_start(setup, caps
     assert not set(r["validation_views"]) & set(r["held_out"])  # never held out; under --nearest they are sources
     assert r["val_choice"] == "isolated" and set(r["validation_views"]) <= set(r["sources"])  # (never their own)
     # the returned state: the largest gain on what the scene is scored by (a procedural scene: the whole image)
-    # among those reaching the margin with the objects no worse (the guard), else the start
+    # among those reaching the margin with the objects and each validation view no worse (the guard), else the start
     assert r["scored_by"] == "image" and r["val_guard"] == 0
     assert r["visibility"] is True  # the default: each point blends only the sources that see it (recorded)
+    assert r["val_each_view"] is True and all(len(v["per_view"]) == len(r["validation_views"]) for v in val)
+    for v in val:  # the guard: neither score nor any one validation view lower than at the start
+        worse = [a - b for a, b in zip(v["per_view"], val[0]["per_view"]) if a < b]
+        assert v["guard_ok"] == (not worse and v["psnr_masked"] >= val[0]["psnr_masked"]), (v, val[0])
     best = max((v for v in val if v["gain"] >= r["val_margin"] and v["guard_ok"]), key=lambda v: v["gain"], default=val[0])
     assert all(v["gain"] == v["psnr"] - val[0]["psnr"] for v in val)
     assert "psnr_masked" in val[0]  # a scene with masks: the objects are validated apart
@@ -181,7 +185,8 @@ def test_bf16_appearance_only_with_object_pixels_runs_and_never_ends_below_the_s
 def test_validation_scores_what_the_scene_is_scored_by():
     """DTU's protocol scores the object masks: a state is chosen by its object gain, the whole image only
     guarded (the dtu_scan24 case: objects +0.4 dB, whole image +0.08 dB, below the 0.1 dB margin); scenes
-    scored by the whole image are chosen by it, the objects guarded."""
+    scored by the whole image are chosen by it, the objects guarded; with ``each_view`` each validation view's own
+    score is guarded too."""
     from types import SimpleNamespace
 
     from omnirecon.engine.protocols import PROTOCOLS
@@ -199,6 +204,13 @@ def test_validation_scores_what_the_scene_is_scored_by():
     assert validation_gain(worse_image, start, "objects", 0.0)[1] is False  # -0.13 dB on the whole image
     assert validation_gain(worse_image, start, "objects", 0.2)[1] is True  # within a stated 0.2 dB guard
     assert validation_gain({"psnr": 14.0}, {"psnr": 13.0}, "objects", 0.0) == (1.0, True)  # no object pixels
+    # each view on its own: a pooled gain that lowers one view is refused (within the guard it is taken)
+    one_lower = {"psnr": 14.0, "per_view": [15.0, 11.9]}
+    before = {"psnr": 13.0, "per_view": [13.0, 12.0]}
+    assert validation_gain(one_lower, before, "image", 0.0) == (1.0, True)  # the pooled score alone
+    assert validation_gain(one_lower, before, "image", 0.0, each_view=True) == (1.0, False)
+    assert validation_gain(one_lower, before, "image", 0.2, each_view=True) == (1.0, True)
+    assert validation_gain({"psnr": 14.0, "per_view": [13.5, 12.5]}, before, "image", 0.0, each_view=True)[1] is True
 
 
 def test_visibility_masks_the_sources_that_see_something_else(setup):
