@@ -138,6 +138,7 @@ RULES: dict[str, Rule] = {
     "reg": WEIGHT, "consensus": Rule(0, 10, example="e.g. 0.1 (0: off)"), "soften": Rule(0, 10, example="e.g. 0.7 (px; 0: off)"), "finetune.val_views": Rule(0, 10_000, example="e.g. 2, or 0 for none"),
     "step_views": Rule(0, 1_000_000, example="e.g. 1, or 0 for every tuning view"),
     "skip_nearest": Rule(0, 1_000_000, example="e.g. 1, or 0 for the nearest sources"),
+    "val_skip": Rule(0, 1_000_000, example="e.g. 2, or 0 for the nearest sources"),
     "cracks": Rule(0, 16, example="e.g. 2 (0: off)"),
     "residual_res": Rule(1, 256, example="e.g. 16"), "residual_lr": Rule(0, 1, above=True, example="e.g. 1e-2"),
     "surface_lr": Rule(0, 10, above=True, example="e.g. 0.05"),

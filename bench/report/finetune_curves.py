@@ -136,6 +136,8 @@ def section(results: Path) -> str:
                      + (f", {row['objects']:.0%} of each step's pixels on the objects" if "psnr_masked" in first else "")
                      + "); validation scored by " + row.get("scored_by", "the smaller of whole image and objects"
                                                             if "psnr_masked" in first else "image")
+                     + ("; each validation view no worse than at the start (`--val-each-view`)"
+                        if row.get("val_each_view") else "; the validation views' pooled score only")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + _cpu(row)
@@ -158,7 +160,9 @@ def section(results: Path) -> str:
         "and, on scenes with masks, over the objects. A state's validation gain is on what the scene is scored by "
         "(DTU: the objects; other scenes: the whole image), with the other score guarded (`--val-guard`: never "
         "lower than the start by more than that many dB, 0 by default); rows measured before that rule (each "
-        "row's `scored_by` is absent) used the smaller of the whole-image and object gains. Validation: the returned state's score on the validation views (training views never tuned on, "
+        "row's `scored_by` is absent) used the smaller of the whole-image and object gains; since issue 43's lund "
+        "extrapolation row (tuning raised the pooled validation score and lowered the views beyond the walk) each "
+        "validation view on its own is guarded too (`--val-each-view`; each row's notes say which rule it ran). Validation: the returned state's score on the validation views (training views never tuned on, "
         "never blending their own photo). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
         "",
         *rows,

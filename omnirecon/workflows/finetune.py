@@ -197,6 +197,12 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
     finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene and fern returned the start with 1 and 2,
     so 0 stays the default."""
+    val_skip: int = 2
+    """Validation views blend their --nearest sources after skipping this many nearest (the network blend; fewer
+    skipped when too few sources are left): a view a user looks at lies farther from the photos than a training view
+    from its neighbours. Blending its nearest (0), lund's walk gained on validation while the views beyond its end
+    lost; from farther sources validation returned the start there and kept the gains of the demo scene and lego
+    (`python -m bench finetune_curves`; BENCHMARKS "Fine-tuning curves of the mesh path")."""
     angle_sources: tuple[int, ...] = (3, 4, 6, 8)
     """With the angle blend: sources blended per point. Empty: --nearest; several: the one whose blend scores best on
     the validation views (on what the scene is scored by; nothing is tuned, so this is the angle blend's only
@@ -324,7 +330,8 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
                 continue  # their weights are set once, with the chosen count
             angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest, cfg.source_masks)
         else:
-            restrict_to_nearest(px, scene, views, cfg.nearest, cfg.skip_nearest if px is train_px else 0)
+            skip = cfg.skip_nearest if px is train_px else cfg.val_skip if px is val_px else 0
+            restrict_to_nearest(px, scene, views, cfg.nearest, skip)
     if not any(v.covered for v in (val_px + held_px if idle else train_px)):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
     return Setup(model, meta, scene, views, targets, val_views, Sources.from_scene(scene, views), background, mesh,
@@ -437,7 +444,8 @@ def make_record(cfg: FinetuneConfig, s: Setup, tuner: Tuner, t: Tuned, out: Path
               "tuned_parameters": sum(p.numel() for p in tuner.params), "resolution": [s.scene.width, s.scene.height],
               "coverage": t.after["coverage"], "curve": t.curve, "validation": t.validation,
               "precision": cfg.precision, "objects": cfg.objects, "val_margin": cfg.val_margin,
-              "val_guard": cfg.val_guard, "val_each_view": cfg.val_each_view, "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
+              "val_guard": cfg.val_guard, "val_each_view": cfg.val_each_view, "val_skip": cfg.val_skip,
+              "val_choice": cfg.val_choice, "nearest": cfg.nearest, "scored_by": s.scored_by,
               "visibility": cfg.visibility, "blend": s.blend,
               **({"angle_sources": s.angle_k or (cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest),
                   "angle_scores": s.angle_scores} if s.blend == "angle" else {}),

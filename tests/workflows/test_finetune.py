@@ -302,9 +302,24 @@ def test_nearest_sources_without_views_use_every_training_view(setup):
     assert len(fixed) == 3 and not set(fixed) & set(fixed_val)  # --nearest 0: 3 fixed sources, validation apart
     default, *_ = split_views(FinetuneConfig(ckpt=root / "omni", scene=path), scene, proto)
     assert FinetuneConfig.nearest == 6 and default == views  # the default blends each view's 6 nearest
-    s = prepare(replace(cfg, resolution=48, mesh=path / "mesh.ply"))
+    s = prepare(replace(cfg, resolution=48, mesh=path / "mesh.ply", val_skip=0))
     for v in s.val_px:  # a validation view is scored from its neighbours' photos, never its own
         assert v.visible is not None and not v.visible[:, s.views.index(v.index)].any()
+    # --val-skip 2 (the default): each validation view blends the 3 sources after its 2 nearest (tuning and held-out
+    # views do not skip); --val-skip 0: its 3 nearest
+    from omnirecon.engine.views import select_sources
+
+    assert FinetuneConfig.val_skip == 2
+    far = prepare(replace(cfg, resolution=48, mesh=path / "mesh.ply"))
+    for v, near in zip(far.val_px, s.val_px):
+        others = [i for i in far.views if i != v.index]
+        order = select_sources(scene, scene.cameras[v.index], others, 5)
+        blended = {far.views[k] for k in torch.nonzero(v.visible.any(0)).flatten().tolist()}
+        assert blended and blended <= set(order[2:]) and not blended & set(order[:2]), (blended, order)
+        nearest = {s.views[k] for k in torch.nonzero(near.visible.any(0)).flatten().tolist()}
+        assert nearest and nearest <= set(order[:3]), (nearest, order)
+    for a, b in zip(far.train_px + far.held_px, s.train_px + s.held_px):
+        assert torch.equal(a.visible, b.visible)
 
 
 def test_extrapolation_split_holds_out_the_views_beyond_the_training_arc(setup):
