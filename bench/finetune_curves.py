@@ -124,7 +124,7 @@ def scene_row(name: str, mesh: Path, out: Path) -> dict:
             "objects": ft.get("objects", 0.0), **({"scored_by": ft["scored_by"], "val_guard": ft["val_guard"]}
                                                   if "scored_by" in ft else {}),
             **({"visibility": ft["visibility"]} if "visibility" in ft else {}),
-            **({"val_each_view": ft["val_each_view"]} if "val_each_view" in ft else {}),
+            **{k: ft[k] for k in ("val_each_view", "val_skip") if k in ft},
             **({"render": ft["render"]} if "render" in ft else {}),
             "validation": ft["validation"], **({"cpu_seconds": ft["cpu_seconds"]} if "cpu_seconds" in ft else {}),
             "pictures": {"curve": f"figures/finetune_{slug(name)}_curve.png",

@@ -138,6 +138,8 @@ def section(results: Path) -> str:
                                                             if "psnr_masked" in first else "image")
                      + ("; each validation view no worse than at the start (`--val-each-view`)"
                         if row.get("val_each_view") else "; the validation views' pooled score only")
+                     + (f", each blending its sources after its {row['val_skip']} nearest (`--val-skip`)"
+                        if row.get("val_skip") else ", each blending its nearest sources")
                      + "; returned state from "
                      f"{last['returned_from']['seconds']:g} s; load {row['load_average']:.0f}"
                      + _cpu(row)
@@ -162,7 +164,8 @@ def section(results: Path) -> str:
         "lower than the start by more than that many dB, 0 by default); rows measured before that rule (each "
         "row's `scored_by` is absent) used the smaller of the whole-image and object gains; since issue 43's lund "
         "extrapolation row (tuning raised the pooled validation score and lowered the views beyond the walk) each "
-        "validation view on its own is guarded too (`--val-each-view`; each row's notes say which rule it ran). Validation: the returned state's score on the validation views (training views never tuned on, "
+        "validation view on its own is guarded too (`--val-each-view`) and blends its sources after skipping its 2 "
+        "nearest (`--val-skip`): a view beyond the photos lies farther from them; each row's notes say which rules it ran. Validation: the returned state's score on the validation views (training views never tuned on, "
         "never blending their own photo). Pixels no surface covers get the far fill (procedural scenes: their background colour).",
         "",
         *rows,
