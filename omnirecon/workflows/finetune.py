@@ -322,7 +322,7 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
                                                  faces="surface" in cfg.tune)  # sources' depth once
     train_px = [v for v in train_px if len(v.points)]
     chosen_later = for_run and blend == "angle" and len(cfg.angle_sources) > 1 and bool(val_px)
-    for px in (train_px, held_px, val_px):
+    for px, skip in ((train_px, cfg.skip_nearest), (held_px, 0), (val_px, cfg.val_skip)):  # the nearest they skip
         if blend == "angle":
             for v in px:
                 v.consensus = cfg.consensus
@@ -330,7 +330,6 @@ def prepare(cfg: FinetuneConfig, mesh=None, for_run: bool = False) -> Setup:
                 continue  # their weights are set once, with the chosen count
             angle_blend(px, scene, views, cfg.angle_sources[0] if cfg.angle_sources else cfg.nearest, cfg.source_masks)
         else:
-            skip = cfg.skip_nearest if px is train_px else cfg.val_skip if px is val_px else 0
             restrict_to_nearest(px, scene, views, cfg.nearest, skip)
     if not any(v.covered for v in (val_px + held_px if idle else train_px)):
         raise InputError("the mesh covers no pixel of the training views", cfg.scene, "check the mesh and the poses")
