@@ -31,6 +31,9 @@ from omnirecon.options import CameraPath, ImageSize, OutPath, QuickRun, SourceVi
 DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
 and not among the first scenes of ``synth:eval``)."""
+ORBIT_SECONDS = 2.0
+"""Length of each novel-view orbit's video in seconds (its frame rate: ``--frames`` over this), as long as the
+mesh path's orbit of 48 frames at 24 FPS."""
 RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
 """Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
 (gpnr-tiny: 24 samples in bf16; omnirecon-tiny: the coarse pass; each several times faster than the full render
@@ -45,7 +48,7 @@ them."""
 
 
 @dataclass
-@command_defaults(out=Path("outputs/demo"), frames=12, resolution=80)
+@command_defaults(out=Path("outputs/demo"), frames=6, resolution=256)
 class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, QuickRun, ThreadsConfig):
     """Run the whole pipeline on one scene with the shipped checkpoints and write an HTML report:
     novel-view videos (GPNR, Omni-Recon), held-out view scores against the non-learned floor, and a
@@ -56,9 +59,10 @@ class DemoConfig(GuidedRendering, OutPath, SourceViews, ImageSize, CameraPath, Q
     checkpoints: Path = shipped_folder()
     """Folder of the checkpoints the demo runs, one sub-folder per preset (default: the shipped ones, which the
     package carries: omnirecon/engine/shipped.py)."""
-    orbit_guided: bool = False
+    orbit_guided: bool = True
     """Render the novel-view orbits surface-guided with each model family's default layout even without
-    ``--guided.on`` (fewer samples per ray at the orbits' size; ``--guided.on`` sets the options instead)."""
+    ``--guided.on`` (fewer samples per ray at the orbits' size; ``--guided.on`` sets the options instead;
+    ``--no-orbit-guided``: every ray on the model's full path)."""
 def _checkpoint(cfg: DemoConfig, name: str) -> Path | None:
     path = Path(cfg.checkpoints) / name
     return path if (path / "model.safetensors").is_file() else None
@@ -161,7 +165,8 @@ def orbits_section(cfg: DemoConfig, path: Path, out: Path, numbers: dict, lines:
             videos.text(f"{name}: no shipped checkpoint in {cfg.checkpoints}; skipped.", "note")
             continue
         render = RenderConfig(scene=path, ckpt=ckpt, path="orbit", frames=frames, resolution=res,
-                              num_views=cfg.num_views, out=out / f"orbit_{name}", guided=guided)
+                              num_views=cfg.num_views, out=out / f"orbit_{name}", guided=guided,
+                              fps=max(1, round(frames / ORBIT_SECONDS)))
         folder, video = timed(numbers, f"orbit_{name}", run_render, render)
         videos.figure(video, out, f"{name}: {frames} frames, {numbers['seconds'][f'orbit_{name}']:.0f} s", 320)
         lines.append(f"orbit {name}: {video}")
