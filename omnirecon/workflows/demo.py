@@ -32,8 +32,8 @@ DEMO_SEED = 900_999
 """Seed of the embedded demo scene: the last of the reserved evaluation seeds (never trained on,
 and not among the first scenes of ``synth:eval``)."""
 ORBIT_SECONDS = 2.0
-"""Length of each novel-view orbit's video in seconds (its frame rate: ``--frames`` over this), as long as the
-mesh path's orbit of 48 frames at 24 FPS."""
+"""Length of each novel-view orbit's video in seconds (its frame rate: ``--frames`` over this), about as long as the
+mesh path's orbit video."""
 RENDER_MODELS = ("gpnr-tiny", "omnirecon-tiny")
 """Shipped checkpoints whose novel-view orbit the demo renders, each with its checkpoint's render options
 (gpnr-tiny: 24 samples in bf16; omnirecon-tiny: the coarse pass; each several times faster than the full render
