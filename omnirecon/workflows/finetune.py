@@ -192,9 +192,9 @@ class FinetuneConfig(OutFolder, Seeded, SourceViews, CheckpointInput, SceneInput
     sources beat 3 fixed ones on every scene tried, 6 slightly beat 4 on fern and the demo scene, and DTU's wide rig
     does slightly better at 4 (`python -m bench depth_sources`; BENCHMARKS "Depth sources")."""
     skip_nearest: int = 0
-    """Tuning views blend their --nearest sources after skipping this many nearest (validation and held-out views
-    never skip): a held-out view lies farther from its sources than a training view from its neighbours, so tuning
-    on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
+    """Tuning views blend their --nearest sources after skipping this many nearest (held-out views never skip;
+    validation views skip --val-skip): a held-out view lies farther from its sources than a training view from its
+    neighbours, so tuning on blends from farther sources was tried as a tuning objective that generalises (`python -m bench
     finetune_levers`, rows skip1 / skip2 / skip1_latest): the demo scene and fern returned the start with 1 and 2,
     so 0 stays the default."""
     val_skip: int = 2
