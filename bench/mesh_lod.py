@@ -26,7 +26,9 @@ pass):
 
 Then the level :func:`omnirecon.engine.lod.choose_level_of_detail` chooses (its sources per frame and weight stride),
 and, where it draws only the faces the photos see, that level so (``photographed``: the faces the training views see,
-:func:`omnirecon.mesh.ibr.photographed_faces`).
+:func:`omnirecon.mesh.ibr.photographed_faces`). With the angle blend and ``--proposed N ...``, that level again with
+``N`` candidate sources proposed per grid point beyond the point's own (``GLBlend.PROPOSED``; every row records the
+count it ran with as ``candidates_proposed``), a row each.
 
 ``checkpoints/omnirecon-tiny`` untuned (the frame time does not depend on the weights). Writes
 ``bench/results/mesh_lod.json``.
@@ -114,12 +116,24 @@ TIMINGS = ("frame_ms", "frame_cpu_ms", "frame_main_cpu_ms", "stream_ms", "stream
 
 
 def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args,
-                   shader: str = "auto", score: bool = True, photographed: bool = False) -> dict:
+                   shader: str = "auto", score: bool = True, photographed: bool = False,
+                   proposed: int | None = None) -> dict:
     """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget``, candidate grid ``grid``
     (``MeshRenderOptions.frame_grid``) and frame shader ``shader`` (``MeshRenderOptions.shader``; module docstring), timed
     at ``side`` px long side, scored at the scene's (without ``score``: the timings only); with ``photographed``, only
-    the faces the training views see are drawn (:func:`omnirecon.mesh.ibr.level_of_detail` with ``photos``)."""
+    the faces the training views see are drawn (:func:`omnirecon.mesh.ibr.level_of_detail` with ``photos``); with
+    ``proposed``, the angle blend's candidate tiles take that many sources per grid point beyond its own
+    (``GLBlend.PROPOSED``, restored after)."""
     import torch
+
+    from omnirecon.render.glblend import GLBlend
+
+    if proposed is not None:
+        shipped, GLBlend.PROPOSED = GLBlend.PROPOSED, proposed
+        try:
+            return measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader, score, photographed)
+        finally:
+            GLBlend.PROPOSED = shipped
 
     from omnirecon import metrics
     from omnirecon.engine.views import select_sources
@@ -150,7 +164,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
             with cache.renderer(picks[t]) as r:
                 rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
             psnr.append(metrics.psnr(rgb, scene.images[t].float()))
-    row = {"face_budget": budget, "frame_grid": grid, "shader": used, "faces": int(len(faces)),
+    row = {"face_budget": budget, "frame_grid": grid, "shader": used, "candidates_proposed": GLBlend.PROPOSED, "faces": int(len(faces)),
            "vertices": int(len(vertices)), "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu,
            "frame_main_cpu_ms": main, "stream_ms": stream_wall, "stream_cpu_ms": stream_cpu, "depth_pass_ms": depth_wall,
            "depth_pass_cpu_ms": depth_cpu, "loadavg_1min": load}
@@ -201,11 +215,16 @@ def run_scene(name: str, model, args) -> dict | None:
         specs += [(chosen, lod.face_budget, args.grid, shader,
                    {"sources": chosen["sources"] if lod.sources is not None else None,
                     "weight_stride": lod.weight_stride, "photographed": True}) for shader in args.shader]
+    if setting["blend"] == "angle":  # the chosen level with each count of candidates proposed per grid point
+        specs += [(lod.setting(setting), lod.face_budget, args.grid, shader,
+                   {"proposed": n, **({"photographed": True} if lod.photographed else {})})
+                  for n in args.proposed for shader in args.shader]
     rounds: list[list[dict]] = [[] for _ in specs]  # each row's timings, round after round over every row: the
     for i in range(args.rounds):  # machine's drift over minutes falls on every row alike
         for spec, kept in zip(specs, rounds, strict=True):
             kept.append(measure_budget(model, mesh, scene, *spec[:2], spec[2], side, args, spec[3], score=i == 0,
-                                       photographed=spec[4].get("photographed", False)))
+                                       photographed=spec[4].get("photographed", False),
+                                       proposed=spec[4].get("proposed")))
             print(name, f"round {i + 1}", {**kept[-1], **spec[4]}, flush=True)
     rows = []
     for spec, kept in zip(specs, rounds, strict=True):
@@ -239,6 +258,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
     p.add_argument("--shader", nargs="+", default=["auto"], choices=["auto", "torch"], help="the budget rows' "
                    "frame shaders, a row each (MeshRenderOptions.shader; the reference row: torch)")
+    p.add_argument("--proposed", nargs="*", type=int, default=[], help="angle blend: rows at the chosen level with "
+                   "this many candidate sources proposed per grid point beyond its own (GLBlend.PROPOSED), a row each")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
     p.add_argument("--frames", type=int, default=10, help="timed frames (median)")
     p.add_argument("--rounds", type=int, default=3, help="timing rounds over every row of a scene (each timing: the "

@@ -22,6 +22,8 @@ def _line(scene: dict, row: dict) -> str:
     what += f", {row['sources']} sources per frame" if row.get("sources") else ""
     what += f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else ""
     what += ", only the faces the photos see" if row.get("photographed") else ""
+    what += f", {row['proposed']} candidates proposed per grid point" if "proposed" in row and \
+        row.get("frame_grid") and scene["setting"]["blend"] == "angle" else ""
     w, h = scene["resolution"]
     return (f"| {scene['scene']} | {w}x{h} | {what} | {row['faces']:,} | {row['frame_ms']:.0f} | {row['fps']:.1f} | "
             f"{row['frame_cpu_ms']:.0f} | {_main(row)} | {_stream(row)} | {row['depth_pass_cpu_ms']:.0f} | {row['decimate_s']:.1f} | {row['psnr']:.2f} | "
