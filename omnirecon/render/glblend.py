@@ -390,12 +390,10 @@ class GLBlend:
     texel)."""
     MAX_SOURCES = 512
     """The most sources one pass takes (their cameras are uniforms: llvmpipe holds 4096 ``vec4`` per shader)."""
-    PROPOSED = 2
+    PROPOSED = 3
     """:meth:`candidates`: each grid point proposes the ``KA + PROPOSED`` sources nearest by angle that frame it (the
     shader's loop runs over a tile's candidates: fewer proposed, less work per pixel; ``python -m bench mesh_lod``
-    times it and scores its held-out PSNR against the reference path). Chosen on fox's mesh at 50,000 faces, 0 to 3
-    measured in one run (BENCHMARKS "Real-time mesh path: level of detail and candidate sources"): each one fewer
-    took CPU time off the frame; below 2 the held-out PSNR fell, at 2 it held."""
+    times it and scores its held-out PSNR against the reference path, ``--proposed`` at other counts)."""
 
     WEIGHT_TOL = 0.02
     """``stride`` > 1: a weight texel counts for a pixel when its z-depth is within this fraction of the pixel's (the
