@@ -2,12 +2,15 @@
 
     python -m bench viewer_parity                          # dtu_scan37, fern and synth_900997
     python -m bench viewer_parity --scenes dtu_scan37 --views 2 --out /tmp/vp
+    python -m bench viewer_parity --folders lund=outputs/lund   # an `omnirecon reconstruct --out outputs/lund`
 
 Per scene, the mesh and the ``finetune`` record (``curve.json``) a ``python -m bench depth_sources`` row wrote (as
 ``python -m bench realtime_blend``; :data:`ROWS`: ``--rows "dtu_scan37:stereo+fill, nearest 6, all views, angle blend,
 nearest fill, angle auto, 8 held-out" "fern:stereo+fill, nearest 6" "synth_900997:stereo+model, nearest 6"``), and the real-time setting of that record
 (:func:`omnirecon.mesh.ibr.realtime_setting`, with today's crack fill, ``--cracks``, where the record is older than it,
-and without ``--soften``'s blur at depth edges, which the viewer does not draw):
+and without ``--soften``'s blur at depth edges, which the viewer does not draw); or (``--folders NAME=DIR``) a folder
+laid out as ``reconstruct`` writes it (``mesh.ply``, ``finetune/curve.json``), drawn and exported with the checkpoint
+its finetune stage saved (``finetune/checkpoint``, the weights the user's viewer bundle holds) where it is there:
 
 * the bundle ``omnirecon export`` writes for it (:func:`omnirecon.workflows.export.run_export` with the scene, the
   checkpoint, the mesh and, where export takes one, the finetune record), served by ``omnirecon view``'s server and
@@ -31,6 +34,7 @@ import argparse
 import io
 import json
 import os
+import sys
 import time
 import urllib.parse
 from pathlib import Path
@@ -234,7 +238,7 @@ def toggles_of(setting: dict) -> tuple[tuple[str, str], ...]:
 
 
 def export_bundle(scene_path: Path, resolution: int, mesh_file: Path, record_folder: Path, setting: dict,
-                  out: Path) -> dict:
+                  out: Path, ckpt: Path) -> dict:
     """``omnirecon export`` of the mesh as a user runs it after ``finetune`` (the record's folder where export takes
     it; else the setting's blend and angle sources, which export took before)."""
     from dataclasses import fields
@@ -244,7 +248,7 @@ def export_bundle(scene_path: Path, resolution: int, mesh_file: Path, record_fol
     names = {f.name for f in fields(ExportConfig)}
     extra = {"finetune": record_folder} if "finetune" in names else {"blend": setting["blend"],
                                                                      "angle_sources": setting["angle_sources"]}
-    cfg = ExportConfig(scene=scene_path, ckpt=ROOT / "checkpoints" / "omnirecon-tiny", mesh=mesh_file, out=out,
+    cfg = ExportConfig(scene=scene_path, ckpt=ckpt, mesh=mesh_file, out=out,
                        resolution=resolution, threads=1, **extra)
     return run_export(cfg)
 
@@ -267,6 +271,12 @@ def figure(rows: list[list[np.ndarray]], path: Path) -> None:
     write_image(path, np.concatenate(lines[:-1], 0))
 
 
+def tuned_checkpoint(folder: Path) -> Path | None:
+    """The checkpoint ``finetune --save`` left in ``folder/finetune`` (``reconstruct`` saves one), or None."""
+    ckpt = folder / "finetune" / "checkpoint"
+    return ckpt if (ckpt / "meta.json").is_file() else None
+
+
 def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, frames_dir: Path, results: Path,
               bench_frames: int, timeout: float, gaps: bool = False) -> dict:
     from omnirecon.engine.checkpoint import load_checkpoint
@@ -283,7 +293,8 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
     render["soften"] = 0.0  # the viewer does not blur depth edges (finetune --soften): compare like with like
     setting = realtime_setting(scene, {**record, "render": render})
     mesh = read_mesh(folder / "mesh.ply", scene.to_input)
-    model, _ = load_checkpoint(ROOT / "checkpoints" / "omnirecon-tiny")
+    ckpt = tuned_checkpoint(folder) or ROOT / "checkpoints" / "omnirecon-tiny"
+    model, _ = load_checkpoint(ckpt)
     targets, pool = record["held_out"][:views], record["sources"]
     if gaps:
         from omnirecon.engine.views import default_views
@@ -299,7 +310,7 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
         record_folder = folder / "finetune"
     start = time.process_time()
     exported = export_bundle(Path(record["scene"]), side, folder / "mesh.ply", record_folder, setting,
-                             frames_dir / "export")
+                             frames_dir / "export", ckpt)
     export_s = time.process_time() - start
     bundle = Path(exported["out"]) / "viewer"
     meta = json.loads((bundle / "bundle.json").read_text())
@@ -327,7 +338,8 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
            "bundle": {k: meta.get(k) for k in ("version", "blend", "fill", "visibility")} | {
                "sources": meta["sources"]["count"], "faces": meta["faces"],
                "megabytes": round(sum(f.stat().st_size for f in bundle.rglob("*") if f.is_file()) / 1e6, 1)},
-           "viewer": info, "export_cpu_s": export_s,
+           "viewer": info, "export_cpu_s": export_s, "tuned": tuned_checkpoint(folder) is not None,
+           "checkpoint": str(ckpt.relative_to(ROOT)) if ckpt.is_relative_to(ROOT) else str(ckpt),
            "browser": mean("browser"), "python": mean("python"), "parity": mean("parity"),
            "max_diff": max(v["max_diff"] for v in per_view), "mean_diff": mean("mean_diff"), "over_8": mean("over_8"),
            "browser_ms_per_frame": speed["ms_per_frame"], "browser_cpu_ms_per_frame": speed["cpu_ms_per_frame"],
@@ -355,6 +367,10 @@ def main(argv: list[str] | None = None) -> dict:
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     row_arguments(p, ROWS)
+    p.add_argument("--folders", nargs="*", default=[], metavar="NAME=DIR",
+                   help="also (without --scenes: only) these folders, each with mesh.ply and finetune/curve.json (an "
+                        "`omnirecon reconstruct --out DIR`; its tuned finetune/checkpoint draws and exports where it is "
+                        "there), a row each named NAME")
     p.add_argument("--cracks", type=int, default=CRACK_RADIUS,
                    help="crack radius where the finetune record predates the crack fill (0: as it scored)")
     p.add_argument("--views", type=int, default=None, help="only the first N held-out views")
@@ -367,14 +383,21 @@ def main(argv: list[str] | None = None) -> dict:
                         "(written to viewer_parity_gaps.json)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
+    a.scenes_given = "--scenes" in (sys.argv[1:] if argv is None else argv)
     torch.set_num_threads(1)
     out_file = a.out / ("viewer_parity_gaps.json" if a.gaps else "viewer_parity.json")
     old = json.loads(out_file.read_text()) if out_file.is_file() else {}
-    result = {"provenance": provenance(seed=0), "rows": [r for r in old.get("rows", []) if r["scene"] not in a.scenes]}
-    for name in a.scenes:
-        row = run_scene(name, a.meshes / f"{name}_{ROWS[name]}", a.cracks, a.views, a.frames / name, a.out,
-                        a.bench_frames, a.timeout, a.gaps)
+    folders = dict(f.split("=", 1) for f in a.folders)
+    scenes = [n for n in a.scenes if n not in folders] if a.scenes_given or not folders else []
+    jobs = [(n, a.meshes / f"{n}_{ROWS[n]}") for n in scenes] + [(n, Path(d).resolve()) for n, d in folders.items()]
+    here = provenance(seed=0)
+    kept = [{"commit": old["provenance"]["commit"], **r} for r in old.get("rows", [])
+            if r["scene"] not in dict(jobs)]  # each row keeps the commit it ran at
+    result = {"provenance": here, "rows": kept}
+    for name, folder in jobs:
+        row = run_scene(name, folder, a.cracks, a.views, a.frames / name, a.out, a.bench_frames, a.timeout, a.gaps)
         row["load_average"] = list(os.getloadavg())
+        row["commit"] = here["commit"]
         result["rows"].append(row)
         if a.gaps:
             write_json(out_file, result)

@@ -24,11 +24,12 @@ def _line(row: dict) -> str:
     key = _key(row)
     b = row["bundle"]
     return (f"| {row['scene']} ({len(row['held_out'])} views, {row['resolution'][0]}x{row['resolution'][1]}) | "
-            f"{_setting(row['setting'], b['sources'])} | v{b['version']}, {b['sources']} sources, {b['megabytes']:g} MB | "
+            f"{_setting(row['setting'], b['sources'])} | v{b['version']}, {b['sources']} sources, {b['megabytes']:g} MB"
+            f"{', tuned weights' if row.get('tuned') else ''} | "
             f"{row['python' + key]:.2f} | {row['browser' + key]:.2f} | {row['parity']:.2f} | {row['max_diff']} / "
             f"{row['mean_diff']:.2f} | {row['browser_ms_per_frame']:.0f} / {row.get('browser_cpu_ms_per_frame', float('nan')):.0f} | "
             f"{row['python_cpu_ms_per_frame']:.0f} | "
-            f"{row['load_average'][0]:.1f} |")
+            f"{row['load_average'][0]:.1f} | `{row.get('commit', '–')[:12]}` |")
 
 
 def _off(row: dict) -> str:
@@ -55,9 +56,11 @@ def section(results: Path) -> str | None:
            "`MeshRenderer`'s frames (whole image) and the largest / mean absolute difference between them in 8-bit "
            "levels; the browser's wall / CPU milliseconds per frame (SwiftShader on the CPU, all of Chromium's processes) "
            "beside `MeshRenderer`'s CPU milliseconds (1 thread). Pictures: `bench/results/figures/viewer_parity_<scene>.png` (photo | "
-           "MeshRenderer | browser | 4x difference).", "",
+           "MeshRenderer | browser | 4x difference). Rows from an `omnirecon reconstruct` output (`--folders`) draw "
+           "and export its mesh with the checkpoint its finetune stage saved (*tuned weights*), as the user's "
+           "`export/viewer` holds it; the others the shipped omnirecon-tiny. Each row names the commit it ran at.", "",
            "| scene | setting | bundle | MeshRenderer dB | browser dB | browser vs MeshRenderer dB | max / mean diff | "
-           "browser ms / CPU ms | MeshRenderer CPU ms | load |", "|" + "---|" * 10]
+           "browser ms / CPU ms | MeshRenderer CPU ms | load | commit |", "|" + "---|" * 11]
     out += [_line(row) for row in r["rows"]]
     if any(row.get("browser_off") for row in r["rows"]):
         out += ["", "The browser's PSNR with the parts of the setting turned off in the viewer, one after the other:", "",
