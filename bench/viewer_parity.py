@@ -286,7 +286,10 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
 
     record = json.loads((folder / "finetune" / "curve.json").read_text())
     side = max(record["resolution"])
-    scene = load_at_resolution(record["scene"], side, "white")
+    scene_path = Path(record["scene"])
+    if not scene_path.is_absolute() and (folder / scene_path).is_dir():  # reconstruct's record: relative to its folder
+        scene_path = folder / scene_path
+    scene = load_at_resolution(scene_path, side, "white")
     render = dict(record.get("render") or {})
     if cracks is not None and "cracks" not in render:
         render["cracks"] = cracks  # a record from before the crack fill: today's default
@@ -309,7 +312,7 @@ def run_scene(name: str, folder: Path, cracks: int | None, views: int | None, fr
     else:
         record_folder = folder / "finetune"
     start = time.process_time()
-    exported = export_bundle(Path(record["scene"]), side, folder / "mesh.ply", record_folder, setting,
+    exported = export_bundle(scene_path, side, folder / "mesh.ply", record_folder, setting,
                              frames_dir / "export", ckpt)
     export_s = time.process_time() - start
     bundle = Path(exported["out"]) / "viewer"
