@@ -107,9 +107,11 @@ WELD = ("The same bench at commit `{commit}` (before the level of detail welded 
 
 
 def _chosen_row(scene: dict) -> dict:
-    """The row of what the videos draw (the last row: the chosen level, else the chosen budget's)."""
+    """The row of what the videos draw (the last row: the chosen level, else the chosen budget's; not the rows of
+    other candidate counts, ``--proposed``)."""
     lod = scene["lod"]
-    rows = [x for x in scene["rows"] if x["face_budget"] == lod["face_budget"] and x["frame_grid"] > 0]
+    rows = [x for x in scene["rows"] if x["face_budget"] == lod["face_budget"] and x["frame_grid"] > 0
+            and "proposed" not in x]
     return rows[-1]
 
 

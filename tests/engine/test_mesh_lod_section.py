@@ -85,3 +85,27 @@ def test_section_sets_the_photographed_faces_beside_the_same_level_with_all_its_
     assert "7,982 faces x 3 sources, MLP every 2 px, photographed only 17.02" in text
     assert "**7,982 faces, 3 sources per frame, the MLP every 2 px, only the faces the photos see**" in text
     assert "- lund: 32.0 FPS, streamed 32.0 FPS, +0.43 dB against the full mesh (met)" in text
+
+
+def test_rows_of_other_candidate_counts_are_labelled_and_not_what_the_videos_draw(tmp_path):
+    """``--proposed`` rows (the chosen level with other counts of candidates per grid point) carry their count in the
+    table; the goal line still reads the chosen level's own row, which comes before them."""
+    from bench.report.mesh_lod import section
+    from omnirecon.provenance import provenance
+
+    row = {"face_budget": 50000, "frame_grid": 16, "faces": 50000, "shader": "gl", "decimate_s": 1.0, "frame_ms": 40.0,
+           "fps": 25.0, "frame_cpu_ms": 60.0, "frame_main_cpu_ms": 20.0, "stream_fps": 26.0, "stream_cpu_ms": 60.0,
+           "depth_pass_cpu_ms": 10.0, "loadavg_1min": 1.2, "psnr": 22.08, "psnr_loss_db": 0.05, "candidates_proposed": 3}
+    other = {**row, "fps": 35.0, "stream_fps": 36.0, "psnr": 21.9, "psnr_loss_db": 0.23, "proposed": 0,
+             "candidates_proposed": 0}
+    scene = {"scene": "fox", "resolution": [225, 400], "rows": [row, other], "commit": "abc1234",
+             "setting": {"blend": "angle"},
+             "lod": {"face_budget": 50000, "faces": 50000, "sources": None, "weight_stride": 1, "rows": [],
+                     "seconds": 1.0, "tolerance_db": 0.2}}
+    result = {"provenance": provenance(seed=0), "threads": 2, "frames": 10, "realtime_face_budget": 200000,
+              "realtime_frame_grid": 16, "machine_note": "shared", "scenes": [scene]}
+    (tmp_path / "mesh_lod.json").write_text(json.dumps(result))
+    text = section(tmp_path)
+    assert "| fox | 225x400 | budget 50000, grid 16, gl shader, 0 candidates proposed per grid point | 50,000 |" in text
+    assert "| fox | 225x400 | budget 50000, grid 16, gl shader | 50,000 |" in text
+    assert "- fox: 25.0 FPS, streamed 26.0 FPS, -0.05 dB against the full mesh (short)" in text
