@@ -12,7 +12,8 @@ pass):
 
 * **speed**: ``MeshRenderer.render(extras=False)`` (the frame path) of the held-out views at the photos' size (the
   demo scene at the demo's 256 px), blended as the real-time videos blend (:func:`omnirecon.mesh.ibr.realtime_setting`
-  of the scene, the occlusion test on; the angle blend over every training view, the network's over the 6 nearest),
+  of the scene, the occlusion test on; the angle blend over every training view, the network's over the 6 nearest;
+  with ``--record NAME=curve.json``, the blend that finetune record scored, as ``reconstruct`` draws it),
   ``--threads`` shading workers with one torch thread each and as many llvmpipe threads; median wall and process-CPU
   ms of ``--frames`` frames after a warm-up, the calling thread's CPU ms (the frame's serial part), the same frames
   as a stream (``MeshRenderer.frames``: a frame ahead, each frame's GL pass shaded while the next one's depth pass is
@@ -37,6 +38,7 @@ count it ran with as ``candidates_proposed``), a row each.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import time
@@ -197,7 +199,9 @@ def run_scene(name: str, model, args) -> dict | None:
     side = DEMO_SIDE if name == "demo" else photo_side(path)
     scene = load_at_resolution(path, side)
     mesh = read_mesh(mesh_file, scene.to_input)
-    setting = realtime_setting(scene)
+    records = dict(m.split("=", 1) for m in args.record)
+    record = json.loads(Path(records[name]).read_text()) if name in records else None
+    setting = realtime_setting(scene, record)  # finetune's blend where a record is given, as reconstruct draws
     lod = choose_level_of_detail(model, mesh, scene, setting, scene.splits.get("train") or list(range(len(scene))))
     print(name, lod.line(), flush=True)
     torch.set_num_threads(1)  # the shading workers parallelise (MeshRenderOptions.workers)
@@ -238,7 +242,7 @@ def run_scene(name: str, model, args) -> dict | None:
     timed_size = [round(scene.width * side / max(scene.width, scene.height)), round(scene.height * side / max(scene.width, scene.height))]
     return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
             "scored_resolution": [scene.width, scene.height],
-            "setting": setting, "faces_full": int(len(mesh.faces)), "rows": rows,
+            "setting": setting, "record": records.get(name), "faces_full": int(len(mesh.faces)), "rows": rows,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources,
                     "weight_stride": lod.weight_stride, "photographed": lod.photographed, "rows": lod.rows,
                     "views": lod.views,
@@ -258,6 +262,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--grid", type=int, default=None, help="frame_grid of the budget rows (default REALTIME_FRAME_GRID)")
     p.add_argument("--shader", nargs="+", default=["auto"], choices=["auto", "torch"], help="the budget rows' "
                    "frame shaders, a row each (MeshRenderOptions.shader; the reference row: torch)")
+    p.add_argument("--record", nargs="*", default=[], metavar="NAME=CURVE_JSON",
+                   help="a scene's finetune record (curve.json of `omnirecon finetune --mesh` on that mesh): its "
+                        "blend is timed and scored, as reconstruct draws it (default: the scene kind's defaults)")
     p.add_argument("--proposed", nargs="*", type=int, default=[], help="angle blend: rows at the chosen level with "
                    "this many candidate sources proposed per grid point beyond its own (GLBlend.PROPOSED), a row each")
     p.add_argument("--threads", type=int, default=2, help="shading workers and llvmpipe threads")
@@ -273,8 +280,6 @@ def main(argv: list[str] | None = None) -> dict:
     commit = provenance(seed=0)["commit"]
     old = {}
     if a.out.is_file():
-        import json
-
         old = {s["scene"]: s for s in json.loads(a.out.read_text()).get("scenes", [])}
     for name in a.scenes:
         row = run_scene(name, model, a)

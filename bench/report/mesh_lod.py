@@ -131,8 +131,13 @@ def _goal(scene: dict) -> str:
     fps = max(row["fps"], row.get("stream_fps", 0.0))  # frame by frame or streamed, as the videos render
     ok = fps >= 30 and row["psnr_loss_db"] <= 0.2
     streamed = f", streamed {row['stream_fps']:.1f} FPS" if "stream_fps" in row else ""
+    blend = ""
+    if scene.get("record"):  # measured with a finetune record's blend, as reconstruct draws it
+        st = scene["setting"]
+        per = f"{st['angle_sources']} sources per point" if st["blend"] == "angle" else f"{st['sources']} sources per frame"
+        blend = f"; finetune's record: {st['blend']} blend, {per}"
     return (f"- {scene['scene']}: {row['fps']:.1f} FPS{streamed}, {0.0 - row['psnr_loss_db']:+.2f} dB against the full "
-            f"mesh ({'met' if ok else 'short'})")
+            f"mesh ({'met' if ok else 'short'}{blend})")
 
 
 def _level(row: dict) -> str:

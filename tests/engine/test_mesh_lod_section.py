@@ -109,3 +109,7 @@ def test_rows_of_other_candidate_counts_are_labelled_and_not_what_the_videos_dra
     assert "| fox | 225x400 | budget 50000, grid 16, gl shader, 0 candidates proposed per grid point | 50,000 |" in text
     assert "| fox | 225x400 | budget 50000, grid 16, gl shader | 50,000 |" in text
     assert "- fox: 25.0 FPS, streamed 26.0 FPS, -0.05 dB against the full mesh (short)" in text
+    scene["record"], scene["setting"] = "fox/finetune/curve.json", {"blend": "angle", "angle_sources": 8}
+    (tmp_path / "mesh_lod.json").write_text(json.dumps(result))
+    assert ("- fox: 25.0 FPS, streamed 26.0 FPS, -0.05 dB against the full mesh (short; finetune's record: angle "
+            "blend, 8 sources per point)") in section(tmp_path)
