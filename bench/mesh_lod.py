@@ -119,13 +119,13 @@ TIMINGS = ("frame_ms", "frame_cpu_ms", "frame_main_cpu_ms", "stream_ms", "stream
 
 def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, side: int, args,
                    shader: str = "auto", score: bool = True, photographed: bool = False,
-                   proposed: int | None = None) -> dict:
+                   proposed: int | None = None, decimator: str = "fast") -> dict:
     """Speed and held-out PSNR of the real-time path on ``mesh`` at face budget ``budget``, candidate grid ``grid``
     (``MeshRenderOptions.frame_grid``) and frame shader ``shader`` (``MeshRenderOptions.shader``; module docstring), timed
     at ``side`` px long side, scored at the scene's (without ``score``: the timings only); with ``photographed``, only
     the faces the training views see are drawn (:func:`omnirecon.mesh.ibr.level_of_detail` with ``photos``); with
     ``proposed``, the angle blend's candidate tiles take that many sources per grid point beyond its own
-    (``GLBlend.PROPOSED``, restored after)."""
+    (``GLBlend.PROPOSED``, restored after); ``decimator``: the quadric edge collapse (``level_of_detail``)."""
     import torch
 
     from omnirecon.render.glblend import GLBlend
@@ -133,7 +133,8 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
     if proposed is not None:
         shipped, GLBlend.PROPOSED = GLBlend.PROPOSED, proposed
         try:
-            return measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader, score, photographed)
+            return measure_budget(model, mesh, scene, setting, budget, grid, side, args, shader, score, photographed,
+                                  decimator=decimator)
         finally:
             GLBlend.PROPOSED = shipped
 
@@ -144,7 +145,7 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
 
     train = scene.splits.get("train") or list(range(len(scene)))
     start = time.perf_counter()
-    vertices, faces = level_of_detail(mesh, budget, scene.cameras[train] if photographed else None)
+    vertices, faces = level_of_detail(mesh, budget, scene.cameras[train] if photographed else None, decimator)
     decimate_s = time.perf_counter() - start
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     opts = realtime_options(setting, background=bg, visibility=True, workers=args.threads, frame_grid=grid, shader=shader)
@@ -166,7 +167,8 @@ def measure_budget(model, mesh, scene, setting: dict, budget: int, grid: int, si
             with cache.renderer(picks[t]) as r:
                 rgb = r.render(cams[j], extras=False)["rgb"].float().clamp(0, 1)
             psnr.append(metrics.psnr(rgb, scene.images[t].float()))
-    row = {"face_budget": budget, "frame_grid": grid, "shader": used, "candidates_proposed": GLBlend.PROPOSED, "faces": int(len(faces)),
+    row = {"face_budget": budget, "frame_grid": grid, "shader": used, "candidates_proposed": GLBlend.PROPOSED,
+           "decimator": decimator, "faces": int(len(faces)),
            "vertices": int(len(vertices)), "decimate_s": round(decimate_s, 2), "frame_ms": wall, "frame_cpu_ms": cpu,
            "frame_main_cpu_ms": main, "stream_ms": stream_wall, "stream_cpu_ms": stream_cpu, "depth_pass_ms": depth_wall,
            "depth_pass_cpu_ms": depth_cpu, "loadavg_1min": load}
@@ -208,27 +210,28 @@ def run_scene(name: str, model, args) -> dict | None:
     budgets = sorted({*args.budgets, lod.face_budget}, reverse=True)  # the chosen budget always has a row
     runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in budgets if 0 < b < len(mesh.faces) for sh in args.shader]
     specs = [(setting, budget, grid, shader, {}) for budget, grid, shader in dict.fromkeys(runs)]  # the reference first
-    if lod.sources is not None or lod.weight_stride > 1:  # the chosen level as the videos draw it: its budget, fewer
-        chosen = lod.setting(setting)  # sources, the MLP's stride (and the same at every pixel, to compare)
+    dec = {"decimator": lod.decimator} if lod.decimator != "fast" else {}  # the chosen level's own collapse
+    if lod.sources is not None or lod.weight_stride > 1 or dec:  # the chosen level as the videos draw it: its budget,
+        chosen = lod.setting(setting)  # fewer sources, the MLP's stride (and the same at every pixel, to compare)
         for stride in dict.fromkeys((1, lod.weight_stride)):
             specs += [({**chosen, "weight_stride": stride}, lod.face_budget, args.grid, shader,
-                       {"sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride})
-                      for shader in args.shader]
+                       {"sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride,
+                        **dec}) for shader in args.shader]
     if lod.photographed:  # and drawing only the faces the photos (the training views) see
         chosen = lod.setting(setting)
         specs += [(chosen, lod.face_budget, args.grid, shader,
                    {"sources": chosen["sources"] if lod.sources is not None else None,
-                    "weight_stride": lod.weight_stride, "photographed": True}) for shader in args.shader]
+                    "weight_stride": lod.weight_stride, "photographed": True, **dec}) for shader in args.shader]
     if setting["blend"] == "angle":  # the chosen level with each count of candidates proposed per grid point
         specs += [(lod.setting(setting), lod.face_budget, args.grid, shader,
-                   {"proposed": n, **({"photographed": True} if lod.photographed else {})})
+                   {"proposed": n, **({"photographed": True} if lod.photographed else {}), **dec})
                   for n in args.proposed for shader in args.shader]
     rounds: list[list[dict]] = [[] for _ in specs]  # each row's timings, round after round over every row: the
     for i in range(args.rounds):  # machine's drift over minutes falls on every row alike
         for spec, kept in zip(specs, rounds, strict=True):
             kept.append(measure_budget(model, mesh, scene, *spec[:2], spec[2], side, args, spec[3], score=i == 0,
                                        photographed=spec[4].get("photographed", False),
-                                       proposed=spec[4].get("proposed")))
+                                       proposed=spec[4].get("proposed"), decimator=spec[4].get("decimator", "fast")))
             print(name, f"round {i + 1}", {**kept[-1], **spec[4]}, flush=True)
     rows = []
     for spec, kept in zip(specs, rounds, strict=True):
@@ -245,6 +248,7 @@ def run_scene(name: str, model, args) -> dict | None:
             "setting": setting, "record": records.get(name), "faces_full": int(len(mesh.faces)), "rows": rows,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources,
                     "weight_stride": lod.weight_stride, "photographed": lod.photographed, "rows": lod.rows,
+                    "decimator": lod.decimator,
                     "views": lod.views,
                     "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
 

@@ -22,6 +22,7 @@ def _line(scene: dict, row: dict) -> str:
     what += f", {row['sources']} sources per frame" if row.get("sources") else ""
     what += f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else ""
     what += ", only the faces the photos see" if row.get("photographed") else ""
+    what += ", MeshLab's collapse" if row.get("decimator") == "meshlab" else ""
     what += f", {row['proposed']} candidates proposed per grid point" if "proposed" in row and \
         row.get("frame_grid") and scene["setting"]["blend"] == "angle" else ""
     w, h = scene["resolution"]
@@ -120,7 +121,8 @@ def _culled(scene: dict) -> str:
     b = next(x for x in scene["rows"] if x.get("photographed"))
     a = next(x for x in reversed(scene["rows"]) if not x.get("photographed") and x["face_budget"] == b["face_budget"]
              and x["frame_grid"] == b["frame_grid"] and x.get("sources") == b.get("sources")
-             and x.get("weight_stride", 1) == b.get("weight_stride", 1))
+             and x.get("weight_stride", 1) == b.get("weight_stride", 1)
+             and x.get("decimator", "fast") == b.get("decimator", "fast"))
     cols = [f"{a['faces']:,} -> {b['faces']:,}"] + [f"{a[k]:{f}} -> {b[k]:{f}}" for k, f in (
         ("fps", ".1f"), ("stream_fps", ".1f"), ("frame_cpu_ms", ".0f"), ("depth_pass_cpu_ms", ".0f"), ("psnr", ".2f"))]
     return f"| {scene['scene']} | " + " | ".join(cols) + " |"
@@ -143,7 +145,8 @@ def _goal(scene: dict) -> str:
 def _level(row: dict) -> str:
     return f"{row['faces']:,} faces" + (f", {row['sources']} sources" if row.get("sources") else "") + \
         (f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else "") + \
-        (", photographed only" if row.get("photographed") else "")
+        (", photographed only" if row.get("photographed") else "") + \
+        (", MeshLab's collapse" if row.get("decimator") == "meshlab" else "")
 
 
 def _before_after(before: dict, after: dict, text: str) -> list[str]:
@@ -172,10 +175,12 @@ def _chosen(scene: dict) -> str:
     drawn = f"{lod['faces']:,} faces" + (f", {lod['sources']} sources per frame" if lod.get("sources") else "")
     drawn += f", the MLP every {lod['weight_stride']} px" if lod.get("weight_stride", 1) > 1 else ""
     drawn += ", only the faces the photos see" if lod.get("photographed") else ""
+    drawn += ", MeshLab's collapse" if lod.get("decimator") == "meshlab" else ""
     return f"- {scene['scene']}: **{drawn}** (within {lod['tolerance_db']:g} dB; {scores}; {lod['seconds']:.1f} s)"
 
 
 def _sources(row: dict) -> str:
     stride = f", MLP every {row['weight_stride']} px" if row.get("weight_stride", 1) > 1 else ""
     seen = ", photographed only" if row.get("photographed") else ""
-    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen
+    method = ", MeshLab" if row.get("decimator") == "meshlab" else ""
+    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen + method

@@ -18,6 +18,12 @@ pass there, that budget is drawn with them: fewer sources save more of a network
 150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
 ranks each tile's candidates and blends a fixed few already; its sources are left alone.
 
+Then MeshLab's quadric edge collapse (:data:`LOD_DECIMATORS`) is measured at the chosen budget and below, with the
+chosen sources: its checks on the faces' shape and normals keep more of some meshes at the same count and lose more of
+others (BENCHMARKS "Real-time mesh path: level of detail and candidate sources": fern against fox), so the smallest of
+its levels that is no worse than the chosen one and within ``tolerance_db`` of the ceiling row is drawn instead, and
+the steps below start from it.
+
 Then, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
 each axis only (:data:`LOD_STRIDES`, ``MeshRenderOptions.weight_stride``) is measured the same way, at the chosen budget
 and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
@@ -48,6 +54,9 @@ LOD_STRIDES = (2,)
 """Candidate ``MeshRenderOptions.weight_stride`` of the network blend's GL pass (the MLP at every n-th pixel)."""
 LOD_STRIDE_TOLERANCE_DB = 0.05
 """PSNR (dB) a weight stride may lose against the same budget and sources at every pixel and still be chosen."""
+LOD_DECIMATORS = ("meshlab",)
+"""Quadric edge collapses measured besides fast-simplification's (:data:`omnirecon.mesh.clean.DECIMATORS`), at the
+chosen budget and below, with the chosen sources."""
 LOD_CULL_MIN_SHARE = 0.1
 """The share of the chosen level's faces the photos must leave unseen for that cull to be measured."""
 LOD_VIEWS = 3
@@ -66,6 +75,8 @@ class LodChoice:
     """Sources per frame the network blend takes (None: the setting's, unchanged)."""
     weight_stride: int = 1
     """``MeshRenderOptions.weight_stride`` of the chosen level (1: the MLP at every pixel)."""
+    decimator: str = "fast"
+    """The quadric edge collapse of the chosen level (:data:`omnirecon.mesh.clean.DECIMATORS`)."""
     photographed: bool = False
     """Only the faces the photos see are drawn (:func:`~omnirecon.mesh.ibr.level_of_detail` with ``photos``)."""
     rows: list[dict] = field(default_factory=list)
@@ -90,7 +101,7 @@ class LodChoice:
         draw it with ``MeshRenderOptions.face_budget`` 0."""
         from omnirecon.mesh.ibr import level_of_detail
 
-        return level_of_detail(mesh, self.face_budget, photos if self.photographed else None)
+        return level_of_detail(mesh, self.face_budget, photos if self.photographed else None, self.decimator)
 
     def line(self) -> str:
         """One line for a run's output: what is drawn and each measured level's PSNR."""
@@ -100,6 +111,7 @@ class LodChoice:
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
         blended += f", the MLP every {self.weight_stride} px" if self.weight_stride > 1 else ""
         blended += ", only the faces the photos see" if self.photographed else ""
+        blended += ", MeshLab's collapse" if self.decimator == "meshlab" else ""
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
                 f"of the most, the fewest sources that lose nothing, on {len(self.views)} photos left out of the "
                 f"sources: {scores}; {self.seconds:.1f} s)")
@@ -108,7 +120,8 @@ class LodChoice:
 def _sources(row: dict) -> str:
     stride = f", MLP stride {row['weight_stride']}" if row.get("weight_stride", 1) > 1 else ""
     seen = ", photographed only" if row.get("photographed") else ""
-    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen
+    method = ", MeshLab" if row.get("decimator") == "meshlab" else ""
+    return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen + method
 
 
 def left_out_views(train: list[int], count: int) -> list[int]:
@@ -124,11 +137,14 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
                            ceiling: int | None = None,
                            sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB, strides=LOD_STRIDES,
                            stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB,
-                           cull_tolerance_db: float | None = LOD_TOLERANCE_DB) -> LodChoice:
+                           cull_tolerance_db: float | None = LOD_TOLERANCE_DB,
+                           decimators=LOD_DECIMATORS) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
     sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (where no count passes at the chosen
-    budget, one budget up, which is then drawn), then the largest weight stride of ``strides`` within
+    budget, one budget up, which is then drawn), then each other collapse of ``decimators`` at that budget and below
+    (the smallest level no worse than the chosen one and within ``tolerance_db`` of the ceiling row), then the largest
+    weight stride of ``strides`` within
     ``stride_tolerance_db`` of the chosen row, then only the faces the sources see within ``cull_tolerance_db`` of the
     ceiling row (``None``: not measured; module docstring).
 
@@ -196,21 +212,33 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             chosen.face_budget, chosen.faces = budget, int(len(meshes[budget][1]))
             break
     k1 = chosen.sources or k0
+    sources_rows = chosen.rows[len(meshes):]  # the fewer sources' rows (at the chosen budget)
+    base = next(r["psnr"] for r in (sources_rows if chosen.sources else chosen.rows[:len(meshes)])
+                if r["budget"] == chosen.face_budget and (not chosen.sources or r["sources"] == chosen.sources))
+    drawn = meshes[chosen.face_budget]
+    fast = base  # the other collapses must not lose against the fast one's chosen row
+    for method in decimators:  # at the chosen budget, then down while each level passes
+        for budget in [b for b in order if 0 < b <= chosen.face_budget and b < n_faces]:
+            other = level_of_detail(mesh, budget, decimator=method)
+            row = {"budget": budget, "faces": int(len(other[1])), "sources": k1, "decimator": method,
+                   "psnr": score(other, k1)}
+            chosen.rows.append(row)
+            if row["psnr"] < max(fast, best - tolerance_db):
+                break
+            chosen.face_budget, chosen.faces, chosen.decimator = budget, row["faces"], method
+            drawn, base = other, row["psnr"]
     if setting["blend"] == "network" and k1 <= GLBlend.STRIDE_SOURCES and gl_unavailable_reason() is None:
-        sources_rows = chosen.rows[len(meshes):]  # the fewer sources' rows (at the chosen budget)
-        base = next(r["psnr"] for r in (sources_rows if chosen.sources else chosen.rows[:len(meshes)])
-                    if r["budget"] == chosen.face_budget and (not chosen.sources or r["sources"] == chosen.sources))
         for stride in sorted(strides):  # only the GL pass takes a stride (where it shades these sources)
             row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k1, "weight_stride": stride,
-                   "psnr": score(meshes[chosen.face_budget], k1, stride)}
+                   "psnr": score(drawn, k1, stride)}
             chosen.rows.append(row)
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
     if cull_tolerance_db is not None:
-        seen = level_of_detail(meshes[chosen.face_budget], 0, scene.cameras[pool])  # seen by the sources alone
+        seen = level_of_detail(drawn, 0, scene.cameras[pool])  # seen by the sources alone
         if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
             row = {"budget": chosen.face_budget, "faces": int(len(seen[1])), "sources": k1,
-                   "weight_stride": chosen.weight_stride, "photographed": True,
+                   "weight_stride": chosen.weight_stride, "photographed": True, "decimator": chosen.decimator,
                    "psnr": score(seen, k1, chosen.weight_stride)}
             chosen.rows.append(row)
             if row["psnr"] >= best - cull_tolerance_db:  # against the ceiling, as the face budgets

@@ -292,7 +292,7 @@ def measure(cfg: BenchConfig) -> dict:
                   "faces_drawn": len(drawn[1]), "face_budget": budget, "decimate_s": round(decimate_s, 2),
                   "lod": None if lod is None else {"rows": lod.rows, "views": lod.views, "seconds": lod.seconds,
                                                    "sources": lod.sources, "weight_stride": lod.weight_stride,
-                                                   "photographed": lod.photographed},
+                                                   "photographed": lod.photographed, "decimator": lod.decimator},
                   "blend": setting or "network (the paper's), no occlusion test",
                   "source_view_ids": views, "target_view_ids": held_out, "coverage": round(coverage, 4)},
         "mesh": {"resolution": [width, height], "fps": round(mesh_fps, 3),

@@ -174,23 +174,33 @@ def weld(vertices: np.ndarray, faces: np.ndarray, keep_faces: bool = False) -> t
     return unique, f[keep]
 
 
-def decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
-    """``mesh`` with at most ``max_faces`` faces (quadric edge collapse, fast-simplification); unchanged
+DECIMATORS = ("fast", "meshlab")
+"""The quadric edge collapses :func:`decimate` runs: ``fast``, fast-simplification's; ``meshlab``, MeshLab's (pymeshlab,
+several times slower; its checks on the faces' shape and normals keep more of some meshes at the same count, lose more
+of others: :func:`omnirecon.engine.lod.choose_level_of_detail` measures it per mesh)."""
+
+
+def decimate(mesh: trimesh.Trimesh, max_faces: int, method: str = "fast") -> trimesh.Trimesh:
+    """``mesh`` with at most ``max_faces`` faces (quadric edge collapse, ``method`` of :data:`DECIMATORS`); unchanged
     when it already fits or ``max_faces`` is 0. Where fast-simplification stops above the budget (its checks against
     flipping faces can refuse every collapse left, e.g. on a pixel grid of :func:`weld`-ed fills), MeshLab's quadric
     edge collapse (pymeshlab), slower, takes the mesh the rest of the way."""
     if max_faces <= 0 or len(mesh.faces) <= max_faces:
         return mesh
-    import fast_simplification
-
+    if method not in DECIMATORS:
+        raise ValueError(f"unknown decimator {method!r}; use one of {DECIMATORS}")
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
-    target = 1.0 - max_faces / len(faces)
-    for _ in range(4):  # the library stops near the target; tighten until the budget holds
-        v, f = fast_simplification.simplify(verts, faces, target_reduction=min(target, 0.999))
-        if len(f) <= max_faces:
-            break
-        target = 1.0 - (1.0 - target) * max_faces / len(f) * 0.98
+    v, f = verts, faces
+    if method == "fast":
+        import fast_simplification
+
+        target = 1.0 - max_faces / len(faces)
+        for _ in range(4):  # the library stops near the target; tighten until the budget holds
+            v, f = fast_simplification.simplify(verts, faces, target_reduction=min(target, 0.999))
+            if len(f) <= max_faces:
+                break
+            target = 1.0 - (1.0 - target) * max_faces / len(f) * 0.98
     if len(f) > max_faces:
         import pymeshlab
 

@@ -299,13 +299,14 @@ def photographed_faces(vertices, faces, cameras: Cameras, supersample: int = SEE
     return seen | (largest < SEEN_MIN_SAMPLES)
 
 
-def level_of_detail(mesh, budget: int, photos: Cameras | None = None) -> tuple[np.ndarray, np.ndarray]:
+def level_of_detail(mesh, budget: int, photos: Cameras | None = None,
+                    decimator: str = "fast") -> tuple[np.ndarray, np.ndarray]:
     """The ``(vertices # [V, 3], faces # [F, 3])`` a renderer draws of ``mesh`` (a ``trimesh.Trimesh`` or such a pair):
     at most ``budget`` faces (its coincident vertices welded, :func:`omnirecon.mesh.clean.weld`, then quadric edge
-    collapse, :func:`omnirecon.mesh.clean.decimate`), the mesh itself when it fits or ``budget`` is 0. Welding first
-    lets the collapse merge completion's pixel fills into the surfaces they continue; unwelded, each pixel's quad is a
-    border of its own and the collapse deletes them (``python -m bench mesh_lod``, BENCHMARKS "Real-time mesh path:
-    level of detail and candidate sources").
+    collapse, :func:`omnirecon.mesh.clean.decimate` with ``decimator``), the mesh itself when it fits or ``budget`` is
+    0. Welding first lets the collapse merge completion's pixel fills into the surfaces they continue; unwelded, each
+    pixel's quad is a border of its own and the collapse deletes them (``python -m bench mesh_lod``, BENCHMARKS
+    "Real-time mesh path: level of detail and candidate sources").
 
     With ``photos``, only the faces those cameras see (:func:`photographed_faces`) are drawn: the depth pass shades every
     fragment of every face in the frame, hidden or not, and on completed meshes most of those fragments were on faces no
@@ -318,7 +319,7 @@ def level_of_detail(mesh, budget: int, photos: Cameras | None = None) -> tuple[n
 
         from omnirecon.mesh.clean import decimate, weld
 
-        small = decimate(trimesh.Trimesh(*weld(vertices, faces), process=False), budget)
+        small = decimate(trimesh.Trimesh(*weld(vertices, faces), process=False), budget, decimator)
         vertices, faces = np.asarray(small.vertices), np.asarray(small.faces)
     if photos is None:
         return vertices, faces

@@ -432,7 +432,7 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
-                    "photographed": lod.photographed,
+                    "photographed": lod.photographed, "decimator": lod.decimator,
                     "views": lod.views, "seconds": lod.seconds},
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}

@@ -42,7 +42,8 @@ def test_the_smallest_budget_within_the_tolerance_is_chosen_and_a_ruinous_one_ne
     full = len(mesh.faces)
     keep = full // 4
     choice = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(keep, 4000), sources=(),
-                                    tolerance_db=1.0, ceiling=0, cull_tolerance_db=None)  # the cull: its own test
+                                    tolerance_db=1.0, ceiling=0, cull_tolerance_db=None,
+                                    decimators=())  # the cull and the other collapses: their own tests
     assert [r["budget"] for r in choice.rows] == [0, keep, 4000]
     assert choice.rows[0]["faces"] == full and choice.rows[2]["faces"] <= 4000
     assert choice.rows[2]["psnr"] < choice.rows[0]["psnr"] - 1.0  # the ruinous budget shows in the score
@@ -50,14 +51,14 @@ def test_the_smallest_budget_within_the_tolerance_is_chosen_and_a_ruinous_one_ne
     assert choice.rows[1]["psnr"] >= choice.rows[0]["psnr"] - 1.0
     assert len(choice.views) == 3 and choice.line().startswith(f"level of detail: {choice.faces:,} faces drawn")
     strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(4000,), sources=(),
-                                    tolerance_db=0.0, ceiling=0)
+                                    tolerance_db=0.0, ceiling=0, decimators=())
     assert strict.face_budget == 0 and strict.faces == full
 
 
 def test_nothing_is_measured_where_nothing_is_smaller(setup):
     scene, mesh, model = setup
     choice = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), list(range(len(scene))),
-                                    budgets=(10 * len(mesh.faces),), sources=(), ceiling=0)
+                                    budgets=(10 * len(mesh.faces),), sources=(), ceiling=0, decimators=())
     assert choice.rows == [] and choice.face_budget == 0 and choice.faces == len(mesh.faces)
     assert choice.line() == f"level of detail: {len(mesh.faces):,} faces drawn (nothing smaller to measure)"
     assert choice.setting(realtime_setting(scene)) == realtime_setting(scene)  # nothing chosen: the setting as it was
@@ -72,17 +73,17 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
     setting = realtime_setting(scene)
     assert setting["blend"] == "network" and setting["sources"] == 6
     loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
-                                   sources_tolerance_db=100.0, strides=(), cull_tolerance_db=None)
+                                   sources_tolerance_db=100.0, strides=(), cull_tolerance_db=None, decimators=())
     assert [(r["faces"], r["sources"]) for r in loose.rows] == [(loose.faces, 6), (loose.faces, 4), (loose.faces, 3)]
     assert loose.sources == 3 and loose.setting(setting)["sources"] == 3 and " 3 sources per frame" in loose.line()
     strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3),
-                                    sources_tolerance_db=-1.0)
+                                    sources_tolerance_db=-1.0, decimators=())
     assert strict.sources is None and strict.setting(setting) == setting
     angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
-                                   sources=(4, 3), sources_tolerance_db=100.0)
+                                   sources=(4, 3), sources_tolerance_db=100.0, decimators=())
     assert angle.rows == [] and angle.sources is None
     default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), strides=(),
-                                     cull_tolerance_db=None)
+                                     cull_tolerance_db=None, decimators=())
     by_rule = [r["sources"] for r in default.rows[1:] if r["psnr"] >= default.rows[0]["psnr"]]  # lose nothing
     assert default.sources == (by_rule[-1] if by_rule else None), default.rows
 
@@ -96,7 +97,7 @@ def test_fewer_sources_that_lose_at_the_chosen_budget_are_measured_one_budget_up
     full = len(mesh.faces)
     budgets = (full // 2, 4000)  # 4,000 faces: far below the others on the left-out photos
     none = choose_level_of_detail(model, mesh, scene, setting, train, budgets=budgets, sources=(3,), tolerance_db=100.0,
-                                  ceiling=0, sources_tolerance_db=-1.0, strides=(), views=1)
+                                  ceiling=0, sources_tolerance_db=-1.0, strides=(), views=1, decimators=())
     assert none.face_budget == 4000 and none.sources is None, none.rows
     rows = {(r["budget"], r["sources"]): r["psnr"] for r in none.rows}
     assert set(rows) == {(0, 6), (full // 2, 6), (4000, 6), (4000, 3), (full // 2, 3)}  # one rung up, not two
@@ -104,7 +105,7 @@ def test_fewer_sources_that_lose_at_the_chosen_budget_are_measured_one_budget_up
     assert rows[(4000, 3)] < rows[(full // 2, 3)], rows
     tol = (best - rows[(full // 2, 3)] + best - rows[(4000, 3)]) / 2  # passes one rung up only
     up = choose_level_of_detail(model, mesh, scene, setting, train, budgets=budgets, sources=(3,), tolerance_db=100.0,
-                                ceiling=0, sources_tolerance_db=tol, strides=(), views=1)
+                                ceiling=0, sources_tolerance_db=tol, strides=(), views=1, decimators=())
     assert up.face_budget == full // 2 and up.sources == 3, up.rows
     assert up.faces == next(r["faces"] for r in up.rows if r["budget"] == full // 2)
 
@@ -117,15 +118,15 @@ def test_the_weight_stride_is_measured_at_the_chosen_sources_and_kept_within_its
     train = list(range(len(scene)))
     setting = realtime_setting(scene)
     loose = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(3,),
-                                   sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None)
+                                   sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None, decimators=())
     assert [(r["sources"], r.get("weight_stride", 1)) for r in loose.rows] == [(6, 1), (3, 1), (3, 2)]
     assert loose.weight_stride == 2 and loose.setting(setting)["weight_stride"] == 2
     assert "the MLP every 2 px" in loose.line()
     strict = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(3,),
-                                    sources_tolerance_db=100.0, stride_tolerance_db=-1.0)
+                                    sources_tolerance_db=100.0, stride_tolerance_db=-1.0, decimators=())
     assert strict.weight_stride == 1 and "weight_stride" not in strict.setting(setting)
     four = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4,),
-                                  sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None)
+                                  sources_tolerance_db=100.0, stride_tolerance_db=100.0, cull_tolerance_db=None, decimators=())
     assert four.sources == 4 and four.weight_stride == 1 and len(four.rows) == 2
 
 
@@ -142,7 +143,7 @@ def test_only_the_faces_the_sources_see_are_drawn_where_they_lose_nothing(setup)
     twice = trimesh.Trimesh(mesh.vertices, np.concatenate([mesh.faces, mesh.faces]), process=False)
     F = len(twice.faces)
     kw = dict(budgets=(F - 8,), sources=(), tolerance_db=-1.0, ceiling=0, strides=(), views=1)  # the ceiling is drawn
-    choice = choose_level_of_detail(model, twice, scene, setting, train, **kw)
+    choice = choose_level_of_detail(model, twice, scene, setting, train, **kw, decimators=())
     assert [r.get("photographed", False) for r in choice.rows] == [False, False, True], choice.rows
     plain, seen = choice.rows[0], choice.rows[-1]
     assert seen["faces"] < 0.6 * F, choice.rows  # at most a few copies too small to judge are kept
@@ -151,8 +152,43 @@ def test_only_the_faces_the_sources_see_are_drawn_where_they_lose_nothing(setup)
     assert "only the faces the photos see" in choice.line()
     drawn = choice.drawn(twice, scene.cameras[train])
     assert len(drawn[1]) < 0.6 * F  # every photo deciding: the copies left out again
-    strict = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=-1.0)
+    strict = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=-1.0, decimators=())
     assert strict.rows[-1].get("photographed") and not strict.photographed and strict.faces == F
     assert len(strict.drawn(twice, scene.cameras[train])[1]) == F
-    off = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=None)
+    off = choose_level_of_detail(model, twice, scene, setting, train, **kw, cull_tolerance_db=None, decimators=())
     assert not any(r.get("photographed") for r in off.rows) and not off.photographed
+
+
+def test_meshlabs_collapse_is_drawn_where_it_loses_nothing_against_the_chosen_level(setup):
+    """MeshLab's collapse is measured at the chosen budget and below, with the chosen sources: a level is drawn only
+    when it scores no worse than the chosen (fast-simplification) level and within the tolerance of the ceiling, the
+    measuring stops at the first that fails, and the path draws that collapse (``LodChoice.drawn``); with a tolerance
+    nothing can meet, it is measured at the chosen budget only and the fast level stays."""
+    from omnirecon.mesh.clean import DECIMATORS
+
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    setting = realtime_setting(scene)
+    keep = len(mesh.faces) // 4
+    choice = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(keep, keep // 4), sources=(),
+                                    tolerance_db=1.0, ceiling=0, cull_tolerance_db=None, decimators=("meshlab",))
+    fast = [r for r in choice.rows if "decimator" not in r]
+    other = [r for r in choice.rows if r.get("decimator") == "meshlab"]
+    chosen_fast = max((r for r in fast[1:] if r["psnr"] >= fast[0]["psnr"] - 1.0), key=lambda r: -r["budget"],
+                      default=fast[0])
+    assert other and other[0]["budget"] == chosen_fast["budget"]  # from the chosen budget down
+    passed = [r["psnr"] >= max(chosen_fast["psnr"], fast[0]["psnr"] - 1.0) for r in other]
+    assert all(passed[:-1])  # the measuring stops at the first level that fails
+    if any(passed):
+        last = other[len([p for p in passed if p]) - 1]
+        assert choice.decimator == "meshlab" and choice.face_budget == last["budget"]
+        drawn = choice.drawn(mesh, scene.cameras[train])
+        assert len(drawn[1]) == last["faces"] == len(level_of_detail(mesh, last["budget"], decimator="meshlab")[1])
+        assert "MeshLab's collapse" in choice.line()
+    else:
+        assert choice.decimator == "fast" and choice.face_budget == chosen_fast["budget"]
+    never = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(keep // 4,), sources=(),
+                                   tolerance_db=-100.0, ceiling=keep, cull_tolerance_db=None, decimators=("meshlab",))
+    assert never.decimator == "fast" and never.face_budget == keep
+    assert [r["budget"] for r in never.rows if r.get("decimator")] == [keep]
+    assert set(DECIMATORS) == {"fast", "meshlab"}
