@@ -26,6 +26,10 @@ around the first held-out camera at the scene's resolution, SwiftShader on the C
 browser's processes over those frames, less bent by other jobs on the machine) and ``MeshRenderer``'s CPU
 milliseconds per frame (1 thread). Pictures (photo | MeshRenderer | browser | 4x difference, one row per held-out view, at most
 4) go to ``bench/results/figures/viewer_parity_<scene>.png``, every frame to ``--frames``.
+
+Size: the two renderers of one frame (the bundle in the browser, ``MeshRenderer``), the inputs they share (a
+depth_sources row or a reconstruct folder, the record's setting, the export) and the gap ladder between them are one
+measurement.
 """
 
 from __future__ import annotations
