@@ -88,6 +88,9 @@ class LodChoice:
     """Wall seconds of the choice (decimation and renders)."""
     tolerance_db: float = LOD_TOLERANCE_DB
     """The PSNR (dB) a smaller budget was allowed to lose."""
+    level: tuple | None = field(default=None, repr=False, compare=False)
+    """``(id(mesh), (vertices, faces))``: the chosen level as the choice decimated it (before the cull), so that
+    :meth:`drawn` of the same mesh does not decimate it again (MeshLab's collapse takes seconds)."""
 
     def setting(self, setting: dict) -> dict:
         """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame and weight
@@ -101,6 +104,8 @@ class LodChoice:
         draw it with ``MeshRenderOptions.face_budget`` 0."""
         from omnirecon.mesh.ibr import level_of_detail
 
+        if self.level is not None and self.level[0] == id(mesh):  # decimated already, by the choice
+            return level_of_detail(self.level[1], 0, photos if self.photographed else None)
         return level_of_detail(mesh, self.face_budget, photos if self.photographed else None, self.decimator)
 
     def line(self) -> str:
@@ -234,6 +239,7 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             chosen.rows.append(row)
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
+    chosen.level = (id(mesh), drawn)
     if cull_tolerance_db is not None:
         seen = level_of_detail(drawn, 0, scene.cameras[pool])  # seen by the sources alone
         if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
