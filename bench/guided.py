@@ -89,15 +89,16 @@ def measure(model_name: str, scene_name: str, scene, target: int, sources: list[
             figures: Path | None = None) -> list:
     """Rows of ``model_name`` on one view: the full path once, then each setting (with ``figures``: the first one's
     ground truth | full | guided picture into that folder)."""
-    from omnirecon.engine.checkpoint import load_checkpoint
+    from omnirecon.engine.checkpoint import folder_for_size, load_checkpoint
     from omnirecon.models.guided import GuidedOptions, render_guided
     from omnirecon.rays import Sources
 
-    model, meta = load_checkpoint(ROOT / "checkpoints" / model_name)
+    folder = folder_for_size(ROOT / "checkpoints" / model_name, max(cam.width, cam.height))  # as `render` picks
+    model, meta = load_checkpoint(folder)
     model.eval()
     enc_s, enc_wall, feats = timed(lambda: model.encode(Sources.from_scene(scene, sources)))
     full_s, full_wall, full = timed(lambda: model.render_view(feats, cam)["rgb"])
-    base = {"model": model_name, "weights": f"checkpoints/{model_name} step {meta['step']}", "scene": scene_name,
+    base = {"model": model_name, "weights": f"{folder.relative_to(ROOT)} step {meta['step']}", "scene": scene_name,
             "size": [cam.width, cam.height], "target": target, "sources": sources, "threads": torch.get_num_threads(),
             "encode_cpu_s": enc_s, "encode_wall_s": enc_wall, "full_cpu_s": full_s, "full_wall_s": full_wall,
             "psnr_full": psnr(full, gt)}

@@ -51,14 +51,15 @@ def result_name(protocol_set: str, model_name: str, guided: bool = False) -> str
     return f"quality_{protocol_set}{'_guided' if guided else ''}_{model_name}.json"
 
 
-def load(model_name: str):
-    """The model and its provenance record (``floor``: the plane-sweep floor)."""
-    from omnirecon.engine.checkpoint import fingerprint, load_checkpoint
+def load(model_name: str, long_side: int | None = None):
+    """The model and its provenance record (``floor``: the plane-sweep floor); ``long_side``: the weights of the
+    checkpoint trained nearest that size (px; ``omnirecon.engine.checkpoint.folder_for_size``)."""
+    from omnirecon.engine.checkpoint import fingerprint, folder_for_size, load_checkpoint
     from omnirecon.models.registry import build_model
 
     if model_name == "floor":
         return build_model("floor"), {"name": "floor", "preset": "floor"}
-    ckpt = ROOT / "checkpoints" / model_name
+    ckpt = folder_for_size(ROOT / "checkpoints" / model_name, long_side)
     model, meta = load_checkpoint(ckpt)
     return model, {"name": model_name, "preset": meta["preset"], "checkpoint": str(ckpt.relative_to(ROOT)),
                    "step": meta["step"], "cpu_seconds": meta["extra"].get("cpu_s"), "sha256": fingerprint(ckpt)["sha256"]}
@@ -69,10 +70,11 @@ def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: 
     """Score ``model_name`` under every set of ``SETS[protocol_set]``, each merged into its results file (:func:`save`);
     returns the last set's file. ``guided_options``: ``GuidedOptions`` fields over the family defaults (``guided``)."""
     from omnirecon.engine.evaluate import evaluate
+    from omnirecon.engine.protocols import set_long_side
     from omnirecon.models.guided import GuidedOptions
 
     torch.set_num_threads(threads)
-    model, info = load(model_name)
+    model, info = load(model_name, set_long_side(SETS[protocol_set][0]))
     ks = ks or ((3,) if tiny else (3, 10))
     for pset in SETS[protocol_set]:
         name = result_name(pset, model_name, guided)

@@ -8,19 +8,25 @@ The shipped checkpoints were trained at 64 px; the 256-px protocol sets score th
 encoder sees finer detail than it was trained with. This continues ``checkpoints/<model>`` (``--init``: fresh
 optimizer, peak lr 1e-4 after 20 warm-up steps, cosine over ``--steps``) on the shipped data mix read at 256 px
 (procedural rigs at weight 2, ``--synth-scenes`` scenes each, generated at 256 px; the real training scenes at 1), K
-drawn from [3, 10], seed 0, for ``--cpu-budget`` process CPU-seconds. With ``--mix R``, half the scenes drawn are read
-at ``R`` px instead (``omnirecon train --mix-resolution R --mix-share 0.5``: one run at both sizes), into its own run
-folder and results file.
+as the checkpoint was trained (ibrnet-tiny, gpnr-tiny: drawn from [3, 10]; omnirecon-tiny: its preset's 4), seed 0,
+for ``--cpu-budget`` process CPU-seconds. With ``--mix R``, half the scenes drawn are read at ``R`` px instead
+(``omnirecon train --mix-resolution R --mix-share 0.5``: one run at both sizes), into its own run folder and results
+file.
 
 Both checkpoints are scored on validation data only (the final held-out scenes, fern, dtu_scan24/37 and the
 evaluation seeds, are not looked at): ``omnirecon eval`` with K = 3 at 256 px (``--protocol-set cpu256``, full
 sampling) and at 64 px (``--protocol-set cpu``, the size the checkpoint was chosen at), on the procedural validation
 seeds 901000, 901002 and 901004 (one per rig, generated at the set's size) and the held-out views of the real training
-scenes. Whole-image PSNR (dB), the mean per group. The run is shipped only if it beats the shipped checkpoint by more
-than :data:`MARGIN_DB` on both groups at 256 px and loses at most :data:`MARGIN_DB` on either at 64 px; this module
-reports the decision and, with ``--ship``, replaces ``checkpoints/<model>`` where the rule says so (:func:`ship`).
+scenes. Whole-image PSNR (dB), the mean per group. The rule (:func:`decide`): a run that beats the shipped weights by
+more than :data:`MARGIN_DB` on both groups at 256 px and loses at most :data:`MARGIN_DB` on either at 64 px replaces
+them; one that beats them at 256 px but loses at 64 px ships as the checkpoint's 256-px weights
+(``checkpoints/<model>/sizes/256/``: ``eval``, ``render`` and the demo load the weights trained nearest the size they
+render at, so the 64-px weights stay where they score best); otherwise nothing ships. This module reports the decision
+and, with ``--ship``, carries it out (:func:`ship`). The shipped row is always the checkpoint's own weights
+(``sizes/`` apart: :func:`own_weights`), so a rerun after shipping compares the same two states.
 
-Writes ``bench/results/train_256.json`` (with ``--mix R``: ``train_256_mix<R>.json``).
+Writes ``bench/results/train_256.json`` for ibrnet-tiny, ``train_256_<model>.json`` for the others (with ``--mix R``:
+``train_256_mix<R>.json``).
 """
 
 from __future__ import annotations
@@ -54,6 +60,8 @@ def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int, mix:
     real = [str(SHARED / r) for r in REAL if (SHARED / r).is_dir()]
     card = json.loads((ROOT / "checkpoints" / model / "card.json").read_text())
     encoder = card.get("encoder", {}).get("name", "scratch")
+    views = json.loads((ROOT / "checkpoints" / model / "meta.json").read_text())["train_config"].get("num_views_range")
+    views = ["--num-views-range", *map(str, views)] if views else []  # as the checkpoint was trained: K drawn, or fixed
     return [sys.executable, "-m", "omnirecon.cli", "train", "--model", model,
             *(["--model-overrides", f"encoder={encoder}"] if encoder != "scratch" else []),
             "--init", str(ROOT / "checkpoints" / model),
@@ -61,7 +69,7 @@ def train_cmd(model: str, cpu_budget: float, steps: int, synth_scenes: int, mix:
             "--data-weights", *map(str, WEIGHTS[:3 + len(real)]), "--synth-scenes", str(synth_scenes),
             "--cache", str(ROOT / "outputs" / "cache" / f"synth{SIZE}"), "--resolution", str(SIZE),
             "--steps", str(steps), "--cpu-budget", str(cpu_budget), "--threads", "1", "--seed", str(SEED),
-            "--lr", "1e-4", "--warmup", "20", "--num-views-range", "3", "10", "--val-every", "0",
+            "--lr", "1e-4", "--warmup", "20", *views, "--val-every", "0",
             *(["--mix-resolution", str(mix), "--mix-share", "0.5"] if mix else []),
             "--ckpt-every", "250", "--keep", "2", "--log-every", "10", "--no-progress", "--out", str(run_dir(model, mix)),
             *(["--resume"] if (run_dir(model, mix) / "checkpoints" / "latest").exists() else [])]
@@ -104,56 +112,113 @@ def gains(shipped: dict, run: dict) -> dict[str, float]:
     return {f"{g} {s} px": round(run[s][g] - shipped[s][g], 3) for s in SETS for g in ("procedural", "real")}
 
 
-def decide(shipped: dict, run: dict) -> tuple[bool, str]:
-    """Whether the run ships (module docstring) and why, from the two rows' scores (the gains: :func:`gains`)."""
+def decide(shipped: dict, run: dict) -> tuple[str | None, str]:
+    """Where the run ships (module docstring): ``("replace", why)``, ``("sizes", why)`` or ``(None, why)``, from the
+    two rows' scores (the gains: :func:`gains`)."""
     gain = gains(shipped, run)
     better = all(gain[f"{g} 256 px"] > MARGIN_DB for g in ("procedural", "real"))
     kept = all(gain[f"{g} 64 px"] >= -MARGIN_DB for g in ("procedural", "real"))
     if better and kept:
-        return True, "ships"
-    why = ("beats the shipped checkpoint at 256 px" if better else
-           f"does not beat the shipped checkpoint by more than {MARGIN_DB:g} dB on both groups at 256 px")
-    if not kept:
-        why += f", loses more than {MARGIN_DB:g} dB at 64 px"
-    return False, f"not shipped ({why})"
+        return "replace", "ships (replaces the checkpoint's weights)"
+    if better:
+        return "sizes", (f"ships as the checkpoint's {SIZE}-px weights (beats the shipped checkpoint at {SIZE} px, "
+                         f"loses more than {MARGIN_DB:g} dB at 64 px, where the checkpoint's own weights stay)")
+    return None, f"not shipped (does not beat the shipped checkpoint by more than {MARGIN_DB:g} dB on both groups at {SIZE} px)"
 
 
-def ship(model: str, result: dict, mix: int = 0) -> Path:
-    """Replace ``checkpoints/<model>`` by the run's final state (written beside it, then swapped in), its card the
-    shipped one's with the 256-px stage added (steps and CPU seconds summed, the command, both validation rows)."""
+def own_weights(model: str) -> Path:
+    """A copy of ``checkpoints/<model>``'s own weights and meta.json without its ``sizes/`` (the shipped row: the state
+    the run continued), refreshed when the weights change."""
+    import shutil
+
+    src, dest = ROOT / "checkpoints" / model, ROOT / "outputs" / "train" / "init" / f"{model}_own"
+    if not (dest / "model.safetensors").is_file() or \
+            (dest / "model.safetensors").read_bytes() != (src / "model.safetensors").read_bytes():
+        shutil.rmtree(dest, ignore_errors=True)
+        dest.mkdir(parents=True)
+        for name in ("model.safetensors", "meta.json"):
+            shutil.copy2(src / name, dest / name)
+    return dest
+
+
+def final_state(model: str, mix: int = 0) -> Path:
+    """The run's final state as it is scored and shipped: its weights with the shipped checkpoint's render options
+    (the :data:`~omnirecon.models.registry.RENDER_OPTIONS` keys of its model config, e.g. ibrnet-tiny's 16 + 16
+    samples), so both rows render alike; a warm start's own meta.json keeps the preset's (the training samples).
+    Written beside the run's ``checkpoints/`` as ``final_render/``, refreshed when the weights change."""
+    import shutil
+
+    from omnirecon.models.registry import RENDER_OPTIONS
+
+    final = run_dir(model, mix) / "checkpoints" / "final"
+    dest = run_dir(model, mix) / "final_render"
+    shipped = json.loads((ROOT / "checkpoints" / model / "meta.json").read_text()).get("model_config", {})
+    meta = json.loads((final / "meta.json").read_text())
+    meta["model_config"] = {**meta.get("model_config", {}), **{k: v for k, v in shipped.items() if k in RENDER_OPTIONS}}
+    if not (dest / "model.safetensors").is_file() or \
+            (dest / "model.safetensors").read_bytes() != (final / "model.safetensors").read_bytes():
+        shutil.rmtree(dest, ignore_errors=True)
+        dest.mkdir(parents=True)
+        shutil.copy2(final / "model.safetensors", dest / "model.safetensors")
+    (dest / "meta.json").write_text(json.dumps(meta, indent=1))
+    return dest
+
+
+def _card_stage(meta: dict, card: dict, result: dict, mix: int) -> dict:
+    return {"resolution": SIZE, **({"mix_resolution": mix, "mix_share": 0.5} if mix else {}), "steps": meta["step"],
+            "cpu_seconds": round(meta["extra"]["cpu_s"], 1), "wall_seconds": round(meta["extra"].get("elapsed_s", 0.0), 1),
+            "command": result["command"], "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
+            "validation": {"rule": result["decision"], "rows": result["rows"]}}
+
+
+def _card_text(stage: dict, meta: dict, card: dict, result: dict, mix: int, where: str) -> str:
+    shipped, run = result["rows"]
+    what = ("The card's steps and CPU seconds are the sums; the training curve above is the "
+            f"{card['resolution']}-px run's." if where == "replace" else
+            f"These weights are in `sizes/{SIZE}/` beside the checkpoint's own: `eval`, `render` and the demo load the "
+            f"weights trained nearest the size they render at ({SIZE} px from a 129-px long side up); the card's steps "
+            "and CPU seconds are the own weights'.")
+    return "\n".join([
+        f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
+        f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
+        f"{meta['step']} steps more at {SIZE} px{f' (half the scenes at {mix} px)' if mix else ''} in "
+        f"{stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): `{result['command']}`. {what}", "",
+        f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
+        f"at {SIZE} px {shipped['256']['procedural']:.2f} / {shipped['256']['real']:.2f} -> "
+        f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}, at 64 px {shipped['64']['procedural']:.2f} / "
+        f"{shipped['64']['real']:.2f} -> {run['64']['procedural']:.2f} / {run['64']['real']:.2f}. "
+        f"{result['decision'][0].upper() + result['decision'][1:]}.", ""])
+
+
+def ship(model: str, result: dict, mix: int = 0, where: str = "replace") -> Path:
+    """Carry out :func:`decide`'s ``where`` (written beside ``checkpoints/<model>``, then swapped in): ``replace``:
+    the run's final weights replace the checkpoint's own, its card the shipped one's with the 256-px stage added
+    (steps and CPU seconds summed); ``sizes``: they go to ``sizes/256/`` (with the stage on the card under
+    ``sizes``). Both add the stage's command and validation rows to MODEL_CARD.md."""
     import shutil
 
     dest = ROOT / "checkpoints" / model
-    final = run_dir(model, mix) / "checkpoints" / "final"
+    final = final_state(model, mix)
     meta = json.loads((final / "meta.json").read_text())
     card = json.loads((dest / "card.json").read_text())
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(dest, tmp)
+    weights = tmp if where == "replace" else tmp / "sizes" / str(SIZE)
+    weights.mkdir(parents=True, exist_ok=True)
     for name in ("model.safetensors", "meta.json"):
-        shutil.copy2(final / name, tmp / name)
-    stage = {"resolution": SIZE, **({"mix_resolution": mix, "mix_share": 0.5} if mix else {}), "steps": meta["step"], "cpu_seconds": round(meta["extra"]["cpu_s"], 1),
-             "wall_seconds": round(meta["extra"].get("elapsed_s", 0.0), 1), "command": result["command"],
-             "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
-             "validation": {"rule": result["decision"], "rows": result["rows"]}}
-    card = {**card, "steps": card["steps"] + meta["step"], "cpu_seconds": card["cpu_seconds"] + stage["cpu_seconds"],
-            "wall_seconds": card["wall_seconds"] + stage["wall_seconds"],
-            "cpu_budget_s": card["cpu_budget_s"] + result["cpu_budget"], "stages": [*card["stages"], result["command"]],
-            "continued": stage, "provenance": meta.get("provenance", card.get("provenance", {}))}
+        shutil.copy2(final / name, weights / name)
+    stage = _card_stage(meta, card, result, mix)
+    text = _card_text(stage, meta, card, result, mix, where)
+    if where == "replace":
+        card = {**card, "steps": card["steps"] + meta["step"], "cpu_seconds": card["cpu_seconds"] + stage["cpu_seconds"],
+                "wall_seconds": card["wall_seconds"] + stage["wall_seconds"],
+                "cpu_budget_s": card["cpu_budget_s"] + result["cpu_budget"], "stages": [*card["stages"], result["command"]],
+                "continued": stage, "provenance": meta.get("provenance", card.get("provenance", {}))}
+    else:
+        card = {**card, "sizes": {**card.get("sizes", {}), str(SIZE): stage}}
     (tmp / "card.json").write_text(json.dumps(card, indent=1))
-    shipped, run = result["rows"]
-    text = (tmp / "MODEL_CARD.md").read_text().rstrip()
-    (tmp / "MODEL_CARD.md").write_text(text + "\n\n" + "\n".join([
-        f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
-        f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
-        f"{meta['step']} steps more at {SIZE} px{f' (half the scenes at {mix} px)' if mix else ''} in {stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): "
-        f"`{result['command']}`. The card's steps and CPU seconds are the sums; the training curve above is the "
-        f"{card['resolution']}-px run's.", "",
-        f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
-        f"at {SIZE} px {shipped['256']['procedural']:.2f} / {shipped['256']['real']:.2f} -> "
-        f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}, at 64 px {shipped['64']['procedural']:.2f} / "
-        f"{shipped['64']['real']:.2f} -> {run['64']['procedural']:.2f} / {run['64']['real']:.2f}. "
-        f"{result['decision'].capitalize()}.", ""]))
+    (tmp / "MODEL_CARD.md").write_text((tmp / "MODEL_CARD.md").read_text().rstrip() + "\n\n" + text)
     shutil.rmtree(dest)
     tmp.rename(dest)
     return dest
@@ -168,34 +233,35 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--synth-scenes", type=int, default=4, help="procedural training scenes per rig")
     p.add_argument("--mix", type=int, default=0, help="read half the scenes at this size (px) instead; 0: none")
     p.add_argument("--ship", action="store_true", help="replace checkpoints/<model> by the run where the rule says so")
-    p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json (--mix R: "
-                   "train_256_mix<R>.json)")
+    p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json for ibrnet-tiny, "
+                   "train_256_<model>.json for the others (--mix R: train_256_mix<R>.json)")
     a = p.parse_args(argv)
-    a.out = a.out or Path(__file__).parent / "results" / (f"train_256_mix{a.mix}.json" if a.mix else "train_256.json")
+    own = "" if a.model == "ibrnet-tiny" else f"_{a.model}"  # ibrnet-tiny's file kept its first name
+    a.out = a.out or Path(__file__).parent / "results" / (f"train_256_mix{a.mix}.json" if a.mix else f"train_256{own}.json")
     from omnirecon.data.io import write_json
     from omnirecon.provenance import provenance
 
     cmd = train_cmd(a.model, a.cpu_budget, a.steps, a.synth_scenes, a.mix)
     if a.train:
         subprocess.run(cmd, check=True)
-    final = run_dir(a.model, a.mix) / "checkpoints" / "final"
+    final = final_state(a.model, a.mix)
     meta = json.loads((final / "meta.json").read_text())
     work = ROOT / "outputs" / "train" / "val256"
     shipped_meta = json.loads((ROOT / "checkpoints" / a.model / "meta.json").read_text())
     shipped = {"name": f"shipped {a.model}", "step": shipped_meta["step"],
-               **{s: score(ROOT / "checkpoints" / a.model, work / f"shipped_{a.model}_{s}", s) for s in SETS}}
+               **{s: score(own_weights(a.model), work / f"shipped_{a.model}_{s}", s) for s in SETS}}
     run = {"name": f"{a.model} + {meta['step']} steps at {SIZE} px" + (f", half the scenes at {a.mix} px" if a.mix else ""),
            "step": shipped_meta["step"] + meta["step"],
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
-           **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_{s}", s) for s in SETS}}
-    ships, why = decide(shipped, run)
+           **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_render_{s}", s) for s in SETS}}
+    where, why = decide(shipped, run)
     print(why + ": " + ", ".join(f"{k} {v:+.2f}" for k, v in gains(shipped, run).items()))
     result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "mix": a.mix, "margin_db": MARGIN_DB,
               "command": " ".join(["nice", "-n", "19", "python", "-m", *cmd[2:]]).replace(str(ROOT) + "/", "")
               .replace(str(SHARED.parent.parent) + "/", "../").replace(" --resume", ""),
-              "cpu_budget": a.cpu_budget, "rows": [shipped, run], "ships": ships, "decision": why}
-    if ships and a.ship:
-        print(f"shipped {ship(a.model, result, a.mix)}")
+              "cpu_budget": a.cpu_budget, "rows": [shipped, run], "ships": where, "decision": why}
+    if where and a.ship:
+        print(f"shipped {ship(a.model, result, a.mix, where)}")
         result["shipped"] = True
     write_json(a.out, result)
     return result

@@ -64,6 +64,8 @@ def test_the_installed_wheel_reconstructs_outside_the_checkout(tmp_path):
     for model in ("omnirecon-tiny", "gpnr-tiny", "ibrnet-tiny"):
         assert {f"omnirecon/_checkpoints/{model}/{f}" for f in ("meta.json", "model.safetensors")} <= names, model
     assert not any("/runs/" in n for n in names)  # training runs stay in the checkout
+    for sized in (ROOT / "checkpoints").glob("*-tiny/sizes/*/model.safetensors"):  # weights at other image sizes
+        assert f"omnirecon/_checkpoints/{sized.relative_to(ROOT / 'checkpoints')}" in names, sized
     site = tmp_path / "site"
     _pip("install", "--target", str(site), str(wheel), cwd=tmp_path)
     work = tmp_path / "work"  # outside the checkout: nothing relative to the cwd resolves into it

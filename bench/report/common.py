@@ -58,19 +58,22 @@ def scene_rows(r: dict) -> dict[str, dict[str, dict]]:
 
 _SHIPPED: dict = {}
 
-def shipped_fingerprint(model: str, ignore: tuple[str, ...] = ()) -> dict | None:
-    """The fingerprint of ``checkpoints/<model>`` as it ships now, without the config keys ``ignore``
-    (None when absent)."""
-    from omnirecon.engine.checkpoint import fingerprint
+def shipped_fingerprint(model: str, ignore: tuple[str, ...] = (), long_side: int | None = None) -> dict | None:
+    """The fingerprint of ``checkpoints/<model>`` as it ships now, without the config keys ``ignore`` (None when
+    absent); ``long_side``: of the weights it loads for a render of that size (px; its ``sizes/``)."""
+    from omnirecon.engine.checkpoint import fingerprint, folder_for_size
 
-    key = (model, tuple(ignore))
+    key = (model, tuple(ignore), long_side)
     if key not in _SHIPPED:
         folder = ROOT / "checkpoints" / model
+        if (folder / "model.safetensors").is_file():
+            folder = folder_for_size(folder, long_side)
         _SHIPPED[key] = fingerprint(folder, ignore) if (folder / "model.safetensors").is_file() else None
     return _SHIPPED[key]
 
 
-def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str, ...] = ()) -> list[str]:
+def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str, ...] = (),
+               long_side: int | None = None) -> list[str]:
     """A warning line when stored results were not measured with the checkpoint that ships now.
 
     ``ignore``: config keys the section's numbers do not depend on (e.g. :data:`VOLUMETRIC_ONLY` for the
@@ -79,20 +82,21 @@ def stale_note(model: str, recorded: dict | None, script: str, ignore: tuple[str
     before the keys existed, when their full ``sha256`` does (the config then had none of them). Results recorded
     without fewer keys (their ``ignored_keys`` a subset of ``ignore``) are current when their ``sha256_ignoring``
     equals the shipped fingerprint without ``ignore`` (the other keys did not exist then) or without their own."""
-    now = shipped_fingerprint(model)
+    now = shipped_fingerprint(model, long_side=long_side)
     recorded = recorded or {}
     if now is None or (recorded.get("sha256") and recorded["sha256"] == now["sha256"]):
         return []
     if ignore:
-        part = shipped_fingerprint(model, ignore)["sha256"]
+        part = shipped_fingerprint(model, ignore, long_side)["sha256"]
         keys = tuple(sorted(recorded.get("ignored_keys") or []))  # recorded without these; the section reads none
         fits = bool(keys) and set(keys) <= set(ignore) and recorded.get("sha256_ignoring") in (
-            part, shipped_fingerprint(model, keys)["sha256"])  # ignore's other keys: absent then, or unchanged
+            part, shipped_fingerprint(model, keys, long_side)["sha256"])  # ignore's other keys: absent then, or unchanged
         if recorded.get("sha256") == part or fits:
             return []
     used = (f"step {recorded['step']}" if recorded.get("step") is not None else "an unrecorded checkpoint") + (
         f", fingerprint {recorded['sha256']}" if recorded.get("sha256") else "")
-    return [f"> **Stale:** the {model} numbers here were measured with {used}; `checkpoints/{model}` is now step "
+    where = Path(now["path"]).relative_to(ROOT) if Path(now["path"]).is_relative_to(ROOT) else now["path"]
+    return [f"> **Stale:** the {model} numbers here were measured with {used}; `{where}` is now step "
             f"{now['step']} (fingerprint {now['sha256']}"
             + (f"; {part} without the config keys {', '.join(ignore)} these numbers do not depend on" if ignore else "")
             + f"). Rerun `python -m bench {script}`.", ""]

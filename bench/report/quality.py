@@ -165,8 +165,29 @@ def at_256(results: Path, rows64: dict) -> list[str]:
             only_full = m != "floor" and r256 is not None and n not in guided.get(m, {})
             cells += [_cell(r64, f64), _cell(r256, f256) + (" `full`" if only_full else "")]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
-    return out + [""] + goals_256(rows, names) + guided_256(results) + cost_256(results) + provenance_256(
-        full, guided)
+    return out + [""] + weights_256(results) + goals_256(rows, names) + guided_256(results) + cost_256(results) + \
+        provenance_256(full, guided)
+
+
+def weights_256(results: Path) -> list[str]:
+    """Which weights each model scored the 256-px rows with (a checkpoint's ``sizes/256/`` or its own), and a stale
+    note where they are not the ones it loads at 256 px now."""
+    used, notes = {}, []
+    for m in QUALITY_MODELS:
+        for tag in ("", "_guided"):
+            for pset in ("cpu256", "cpu256-extrapolation"):
+                f = results / f"quality_{pset}{tag}_{m}.json"
+                if m == "floor" or not f.is_file():
+                    continue
+                rec = json.loads(f.read_text())["model"]
+                used.setdefault(m, set()).add(f"`{rec.get('checkpoint')}` (step {rec.get('step')})")
+                notes += [n for n in stale_note(m, rec, "quality --protocol-set cpu256 --ks 3", long_side=256) if n]
+    if not used:
+        return []
+    return ["Weights at 256 px (`eval`, `render` and this bench load each checkpoint's weights trained nearest the "
+            "size they render at: `sizes/256/` where it has them, else its own, trained at 64 px): "
+            + "; ".join(f"{m} {', '.join(sorted(w))}" for m, w in used.items()) + ".", "",
+            *dict.fromkeys(notes), *([""] if notes else [])]
 
 
 GOAL_DB = 1.5

@@ -8,12 +8,15 @@ leaves the previous checkpoint or the new one)::
     optimizer.safetensors    optimizer tensors (training checkpoints only)
     meta.json                {"preset", "model_config", "step", "train_config", "optimizer": {param_groups,
                               state keys}, "extra": {...}, "provenance": {...}}
+    sizes/<px>/              optional: the same model trained further at a <px> long side, a checkpoint folder of
+                             its own (model.safetensors + meta.json); :func:`folder_for_size` picks between them
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import shutil
 from pathlib import Path
@@ -67,10 +70,53 @@ def read_meta(folder: Path) -> dict:
     return checked_meta(checkpoint_folder(folder))
 
 
-def load_checkpoint(folder: Path, device: str | torch.device = "cpu"):
-    """Rebuild the model from ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`). Returns
-    ``(model, meta)``."""
+SIZES_FOLDER = "sizes"
+"""Sub-folder of a checkpoint holding its weights trained at other image sizes, one checkpoint folder per long side
+(``sizes/256/``): a model's image encoder and aggregator see finer detail per pixel at a larger size, and weights
+trained at the size they render at score higher there (BENCHMARKS "ibrnet-tiny trained further at 256 px")."""
+
+
+def trained_long_side(meta: dict) -> int | None:
+    """The long side (px) a checkpoint's weights were last trained at (``train_config.resolution``; None: not
+    recorded)."""
+    size = (meta.get("train_config") or {}).get("resolution")
+    return size if isinstance(size, int) and not isinstance(size, bool) and size > 0 else None
+
+
+def sized_folders(folder: Path) -> dict[int, Path]:
+    """The weights of checkpoint ``folder`` by the long side (px) they were trained at: the folder's own (when its
+    meta.json records its training size) and each ``sizes/<px>/`` sub-folder holding a meta.json."""
+    folder = Path(folder)
+    out = {int(p.name): p for p in sorted((folder / SIZES_FOLDER).glob("*"))
+           if p.name.isdigit() and (p / "meta.json").is_file()}
+    own = trained_long_side(read_meta(folder))
+    if own is not None:
+        out[own] = folder  # the folder's own weights win a clash with a sub-folder of the same size
+    return out
+
+
+def folder_for_size(folder: Path, long_side: int | None) -> Path:
+    """The checkpoint folder of ``folder``'s weights (:func:`sized_folders`) trained at the size nearest
+    ``long_side`` px, as a ratio (128 lies as near 64 as 256); a tie, ``long_side=None`` or a folder without
+    ``sizes/`` gives the folder's own weights."""
     folder = checkpoint_folder(folder)
+    if long_side is None or not (Path(folder) / SIZES_FOLDER).is_dir():
+        return folder
+    sizes = sized_folders(folder)
+    if not sizes:
+        return folder
+    own = trained_long_side(read_meta(folder))
+    distance = {px: abs(math.log(long_side / px)) for px in sizes}
+    best = min(distance.values())
+    near = [px for px, d in distance.items() if d - best < 1e-9]
+    return folder if own in near else sizes[min(near)]
+
+
+def load_checkpoint(folder: Path, device: str | torch.device = "cpu", long_side: int | None = None):
+    """Rebuild the model from ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`); with ``long_side``
+    (px, the size the caller renders at), from the weights trained nearest that size (:func:`folder_for_size`).
+    Returns ``(model, meta)``; ``meta`` is that of the weights loaded (a ``sizes/<px>/`` folder's own)."""
+    folder = folder_for_size(folder, long_side)
     return held("checkpoint", (str(Path(folder).resolve()), str(device)), lambda: _load_checkpoint(folder, device))
 
 

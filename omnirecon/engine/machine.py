@@ -12,7 +12,7 @@ from typing import Literal
 import torch
 
 from omnirecon.chunk import pick_chunk
-from omnirecon.engine.checkpoint import load_checkpoint
+from omnirecon.engine.checkpoint import folder_for_size, load_checkpoint, trained_long_side
 from omnirecon.engine.shipped import checkpoint_folder, shipped_checkpoint
 from omnirecon.errors import InputError
 from omnirecon.models.guided import GuidedOptions
@@ -20,8 +20,10 @@ from omnirecon.models.registry import build_model
 from omnirecon.options import check_value
 
 
-def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
-    """The model of ``--ckpt`` or ``--model floor`` (exactly one). Returns ``(model, info)``."""
+def load_model(ckpt: Path | None, model: str | None, device: str = "cpu", long_side: int | None = None):
+    """The model of ``--ckpt`` or ``--model floor`` (exactly one); with ``long_side`` (px, the size the command
+    renders at), the checkpoint's weights trained nearest that size (``checkpoint.folder_for_size``). Returns
+    ``(model, info)``; ``info["checkpoint"]`` is the folder whose weights were loaded."""
 
     if (ckpt is None) == (model is None):
         raise InputError("give exactly one of --ckpt or --model", None,
@@ -34,8 +36,10 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu"):
     ckpt = checkpoint_folder(ckpt)
     if not ckpt.exists():
         raise InputError("checkpoint folder not found", ckpt, "pass e.g. --ckpt omnirecon-tiny (a shipped checkpoint)")
-    net, meta = load_checkpoint(ckpt, device)
-    info = {"name": meta["preset"], "preset": meta["preset"], "checkpoint": str(ckpt), "step": meta.get("step")}
+    chosen = folder_for_size(ckpt, long_side)
+    net, meta = load_checkpoint(chosen, device)
+    info = {"name": meta["preset"], "preset": meta["preset"], "checkpoint": str(chosen), "step": meta.get("step"),
+            **({"trained_long_side": trained_long_side(meta)} if chosen != ckpt else {})}
     return net.eval(), info
 
 

@@ -79,6 +79,12 @@ at a 256-px long side (near the size users look at) with :data:`CPU256_TARGETS` 
 ``cpu256`` with the extrapolation split's test views as targets and its training views as the pool (no fixed
 sources). Numbers are labelled with the set's name and are not comparable across sets."""
 
+def set_long_side(protocol_set: str) -> int:
+    """The long side (px) the protocols of ``protocol_set`` score at (the largest where they differ): the size a
+    checkpoint's weights are chosen for (``omnirecon.engine.checkpoint.folder_for_size``)."""
+    return max(p.long_side for p in PROTOCOL_SETS[protocol_set].values())
+
+
 FORMAT_PROTOCOL = {"blender": "blender", "ngp": "ngp", "llff": "llff", "dtu_neus": "dtu", "dtu_mvsnet": "dtu",
                    "colmap": "colmap"}
 """Reader name -> protocol (a Blender-layout folder written by ``omnirecon synth`` uses ``synth``)."""

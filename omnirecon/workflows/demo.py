@@ -178,11 +178,12 @@ def score_model(cfg: DemoConfig, path: Path, out: Path, name: str) -> tuple[dict
     or no such setting)."""
     from omnirecon.engine.evaluate import evaluate  # lazy: demo --help stays fast
     from omnirecon.engine.machine import load_model  # lazy: demo --help stays fast
+    from omnirecon.engine.protocols import set_long_side
 
     ckpt = _checkpoint(cfg, name) if name != "floor" else None
     if name != "floor" and ckpt is None:
         return None
-    net, info = load_model(ckpt, "floor" if name == "floor" else None)
+    net, info = load_model(ckpt, "floor" if name == "floor" else None, long_side=set_long_side("cpu"))
     r = evaluate(net, [path], (cfg.num_views,), out / f"eval_{name}", model_info=info, protocol_set="cpu",
                  max_targets=1 if cfg.quick else None, progress=True, guided=cfg.guided)
     scene_r = r["scenes"][0]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from omnirecon import metrics
+from omnirecon.engine.checkpoint import SIZES_FOLDER
 from omnirecon.engine.shipped import shipped_folder
 from omnirecon.viewer.bundle import find_three, three_unavailable_reason
 
@@ -149,7 +150,9 @@ def check_data() -> list[Check]:
     shared = ROOT.parent / "shared" / "data"
     rows.append(Check("shared evaluation scenes", "ok" if shared.is_dir() else "missing", str(shared),
                       "" if shared.is_dir() else "tests that need real scenes skip; benchmarks score procedural scenes only"))
-    ckpts = sorted(p.name for p in shipped_folder().glob("*") if (p / "model.safetensors").is_file())
+    ckpts = sorted(p.name + "".join(f" (+{q.name} px)" for q in sorted((p / SIZES_FOLDER).glob("*"))
+                                    if (q / "model.safetensors").is_file())
+                   for p in shipped_folder().glob("*") if (p / "model.safetensors").is_file())
     rows.append(Check("shipped checkpoints", "ok" if ckpts else "missing", ", ".join(ckpts) or "none",
                       "" if ckpts else "train one with python -m bench train_tiny"))
     return rows

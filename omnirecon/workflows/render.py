@@ -131,9 +131,9 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     cfg.check()
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
-    net, info = load_model(cfg.ckpt, cfg.model, device)
-    options = render_levers(net, info, cfg)
     scene = load_at_resolution(cfg.scene, cfg.resolution)
+    net, info = load_model(cfg.ckpt, cfg.model, device, long_side=max(scene.width, scene.height))
+    options = render_levers(net, info, cfg)
     if cfg.num_views > len(scene):
         raise InputError(f"--num-views {cfg.num_views} but the scene has {len(scene)} views", cfg.scene,
                          f"use --num-views {len(scene)} or fewer")

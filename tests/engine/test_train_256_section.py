@@ -9,14 +9,14 @@ def _row(name: str, p256: float, r256: float, p64: float, r64: float) -> dict:
             "64": {"scenes": {"synth:scene_901000": p64, "fox": r64}, "procedural": p64, "real": r64, "cpu_s": 3.0}}
 
 
-def test_the_run_ships_only_when_it_beats_at_256_px_and_keeps_64_px():
+def test_the_run_replaces_the_weights_only_when_it_beats_at_256_px_and_keeps_64_px_else_ships_as_256_px_weights():
     from bench.train_256 import decide
 
     shipped = _row("shipped", 25.0, 22.0, 27.0, 26.0)
-    assert decide(shipped, _row("run", 25.2, 22.3, 26.95, 25.95))[0]
-    assert not decide(shipped, _row("run", 25.2, 22.05, 27.0, 26.0))[0]  # real +0.05: within the margin
-    no, why = decide(shipped, _row("run", 25.5, 22.5, 26.5, 26.0))  # 64 px procedural -0.5
-    assert not no and why == "not shipped (beats the shipped checkpoint at 256 px, loses more than 0.1 dB at 64 px)"
+    assert decide(shipped, _row("run", 25.2, 22.3, 26.95, 25.95))[0] == "replace"
+    assert decide(shipped, _row("run", 25.2, 22.05, 27.0, 26.0))[0] is None  # real +0.05: within the margin
+    where, why = decide(shipped, _row("run", 25.5, 22.5, 26.5, 26.0))  # 64 px procedural -0.5
+    assert where == "sizes" and why.startswith("ships as the checkpoint's 256-px weights (beats the shipped")
 
 
 def test_section_shows_both_rows_and_the_decision(tmp_path):
@@ -34,7 +34,7 @@ def test_section_shows_both_rows_and_the_decision(tmp_path):
     text = section(tmp_path)
     assert "| shipped ibrnet-tiny | 7,000 | +100 | 25.00 | 22.00 | **25.00** | **22.00** | **27.00** | **26.00** |" in text
     assert "Run minus shipped (ibrnet-tiny + 900 steps): procedural 256 px +0.30, real 256 px +0.40, procedural 64 px +0.00" in text
-    assert "Decision: ships." in text
+    assert "Decision: ships (replaces the checkpoint's weights)." in text
     assert "Half the scenes" not in text
     mixed = _row("ibrnet-tiny + 1400 steps at 256 px, half the scenes at 64 px", 25.2, 22.2, 26.5, 26.0)
     ships, why = decide(shipped, mixed)
@@ -44,8 +44,9 @@ def test_section_shows_both_rows_and_the_decision(tmp_path):
     text = section(tmp_path)
     assert "| ibrnet-tiny + 1400 steps at 256 px, half the scenes at 64 px | 7,000 | +100 | 25.20 | 22.20 |" in text
     assert ("**Half the scenes at 64 px** (`python -m bench train_256 --mix 64`" in text
-            and "procedural 64 px -0.50, real 64 px +0.00. Decision: not shipped (beats the shipped checkpoint at 256 "
-                "px, loses more than 0.1 dB at 64 px)." in text)
+            and "procedural 64 px -0.50, real 64 px +0.00. Decision: ships as the checkpoint's 256-px weights (beats "
+                "the shipped checkpoint at 256 px, loses more than 0.1 dB at 64 px, where the checkpoint's own weights "
+                "stay)." in text)
 
 
 def test_ship_replaces_the_checkpoint_and_adds_the_stage_to_its_card(tmp_path, monkeypatch):
@@ -75,3 +76,46 @@ def test_ship_replaces_the_checkpoint_and_adds_the_stage_to_its_card(tmp_path, m
     text = (dest / "MODEL_CARD.md").read_text()
     assert "## Continued at 256 px" in text and "25.00 / 22.00 -> 25.30 / 22.40" in text
     assert not dest.with_name("ibrnet-tiny.tmp").exists()
+
+
+def test_ship_as_256_px_weights_keeps_the_own_weights_and_load_picks_by_size(tmp_path, monkeypatch):
+    """``sizes``: the run's weights go to ``sizes/256/`` beside the untouched own weights, the card records the stage
+    under ``sizes``, and loading for a 256-px render picks them while a 64-px one keeps the own weights."""
+    import torch
+
+    import bench.train_256 as t
+    from omnirecon.engine.checkpoint import folder_for_size, load_checkpoint, save_checkpoint
+    from omnirecon.models.registry import build_model
+
+    monkeypatch.setattr(t, "ROOT", tmp_path)
+    dest = tmp_path / "checkpoints" / "ibrnet-tiny"
+    torch.manual_seed(0)
+    render = {"render_coarse_samples": 16, "render_fine_samples": 16}  # the shipped render options
+    save_checkpoint(dest, build_model("ibrnet-tiny", render), "ibrnet-tiny", step=7000, train_config={"resolution": 64})
+    (dest / "card.json").write_text(json.dumps({"steps": 7000, "cpu_seconds": 8202.0, "resolution": 64}))
+    (dest / "MODEL_CARD.md").write_text("# ibrnet-tiny\n")
+    final = t.run_dir("ibrnet-tiny") / "checkpoints" / "final"
+    torch.manual_seed(1)
+    save_checkpoint(final, build_model("ibrnet-tiny"), "ibrnet-tiny", step=950, train_config={"resolution": 256},
+                    extra={"cpu_s": 3500.0})
+    own = (dest / "model.safetensors").read_bytes()
+    rows = [_row("shipped", 25.0, 22.0, 27.0, 26.0), _row("run", 25.5, 22.5, 26.5, 26.0)]
+    where, why = t.decide(*rows)
+    t.ship("ibrnet-tiny", {"command": "python -m omnirecon.cli train x", "decision": why, "rows": rows,
+                           "cpu_budget": 3600.0}, where=where)
+    assert (dest / "model.safetensors").read_bytes() == own
+    assert (dest / "sizes" / "256" / "model.safetensors").read_bytes() == (final / "model.safetensors").read_bytes()
+    assert json.loads((final / "meta.json").read_text())["model_config"].get("render_coarse_samples") is None
+    card = json.loads((dest / "card.json").read_text())
+    assert card["steps"] == 7000 and card["sizes"]["256"]["steps"] == 950
+    assert "These weights are in `sizes/256/`" in (dest / "MODEL_CARD.md").read_text()
+    assert folder_for_size(dest, 64) == dest and folder_for_size(dest, 128) == dest  # a tie keeps the own weights
+    assert folder_for_size(dest, 129) == dest / "sizes" / "256" and folder_for_size(dest, 504) == dest / "sizes" / "256"
+    assert folder_for_size(dest, None) == dest
+    big, meta = load_checkpoint(dest, long_side=336)
+    assert big.cfg.render_coarse_samples == 16 and big.cfg.render_fine_samples == 16  # renders as the own weights
+    small, _ = load_checkpoint(dest, long_side=64)
+    assert meta["step"] == 950
+    differ = [k for k, v in big.state_dict().items() if not torch.equal(v, small.state_dict()[k])]
+    assert differ  # the two sizes load different weights
+    assert t.own_weights("ibrnet-tiny") != dest and not (t.own_weights("ibrnet-tiny") / "sizes").exists()

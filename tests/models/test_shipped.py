@@ -37,6 +37,27 @@ def test_shipped_checkpoint_renders(name):
     torch.testing.assert_close(out64["rgb"], out["rgb"], atol=1e-5, rtol=0)
 
 
+SIZED = sorted(str(p.relative_to(ROOT / "checkpoints")) for p in (ROOT / "checkpoints").glob("*/sizes/*")
+               if (p / "meta.json").is_file()) if (ROOT / "checkpoints").is_dir() else []
+
+
+@pytest.mark.parametrize("sized", SIZED)
+def test_shipped_weights_at_another_size_are_the_same_model_trained_at_that_size(sized):
+    """``checkpoints/<name>/sizes/<px>/``: the same preset and model config as the checkpoint's own weights, trained
+    at ``<px>`` px (its meta.json says so), recorded on the card, and loaded for a render of that size."""
+    from omnirecon.engine.checkpoint import folder_for_size, read_meta, trained_long_side
+
+    name, _, px = sized.split("/")
+    own, meta = read_meta(ROOT / "checkpoints" / name), read_meta(ROOT / "checkpoints" / sized)
+    assert meta["preset"] == own["preset"] and meta["model_config"] == own["model_config"]
+    assert trained_long_side(meta) == int(px) != trained_long_side(own)
+    card = json.loads((ROOT / "checkpoints" / name / "card.json").read_text())
+    assert card["sizes"][px]["steps"] == meta["step"]
+    assert folder_for_size(ROOT / "checkpoints" / name, int(px)) == ROOT / "checkpoints" / sized
+    assert folder_for_size(ROOT / "checkpoints" / name, trained_long_side(own)) == ROOT / "checkpoints" / name
+    load_checkpoint(ROOT / "checkpoints" / name, long_side=int(px))
+
+
 def test_omnirecon_tiny_forward_box_on_fern(shared_data):
     """Fern (LLFF: its content box starts ~0.3 in front of the cameras): with the content box alone the shipped
     omnirecon-tiny put an opaque layer near the near plane (target 8 from the ``cpu`` protocol's K = 3 sources:
