@@ -355,6 +355,7 @@ def mesh_path_page(video: Path, fps: float, cams, away: dict, out: Path):
     import torch
 
     from omnirecon.engine.report import Section
+    from omnirecon.mesh.defects import MAX_ANGLE
 
     return (Section("Real-time mesh path")
             .text(f"The Omni-Recon mesh rendered with the appearance branch, one surface point per pixel, source "
@@ -362,7 +363,7 @@ def mesh_path_page(video: Path, fps: float, cams, away: dict, out: Path):
                   f"{torch.get_num_threads()} torch threads, this machine). `omnirecon bench` compares it with the "
                   f"volumetric path. Against the generator's exact images at the orbit's poses: {away['psnr']:.2f} dB; "
                   f"{away['defect_any']:.1%} of the frames' pixels lie on faces no photo supports (fills, faces no "
-                  "training view sees, fragments).")
+                  f"training view sees within {MAX_ANGLE:g} degrees of their normal, fragments).")
             .figure(video, out, f"mesh-path orbit, {len(cams)} frames", 320)
             .figure(out / "mesh_path" / "worst_frame.png", out, f"worst frame ({away['worst_frame']}): exact | mesh "
                     "path | unsupported faces (fills red, unseen blue, fragments yellow)", 480))

@@ -55,6 +55,7 @@ from omnirecon.engine.shipped import checkpoint_folder
 from omnirecon.engine.views import select_sources
 from omnirecon.errors import InputError
 from omnirecon.mesh.confidence import NoDepth
+from omnirecon.mesh.defects import MAX_ANGLE
 from omnirecon.options import (
     CameraModel,
     CameraPath,
@@ -428,7 +429,8 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"(median frame at {cams.width}x{cams.height}, {torch.get_num_threads()} threads, {faces:,} of "
                  f"{len(mesh.faces):,} faces drawn; source features encoded once per source set)")
     lines.append(f"away from the photos: {mean['any']:.1%} of the path's pixels on faces no photo supports (fills "
-                 f"{mean['fill']:.1%}, unseen {mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
+                 f"{mean['fill']:.1%}, seen by no photo within {MAX_ANGLE:g} degrees of their normal "
+                 f"{mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
             "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
