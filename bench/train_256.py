@@ -206,8 +206,15 @@ def ship(model: str, result: dict, mix: int = 0, where: str = "replace") -> Path
     shutil.copytree(dest, tmp)
     weights = tmp if where == "replace" else tmp / "sizes" / str(SIZE)
     weights.mkdir(parents=True, exist_ok=True)
-    for name in ("model.safetensors", "meta.json"):
-        shutil.copy2(final / name, weights / name)
+    shutil.copy2(final / "meta.json", weights / "meta.json")
+    if where == "replace":
+        shutil.copy2(final / "model.safetensors", weights / "model.safetensors")
+    else:  # only the tensors the run changed (a frozen encoder stays in the own weights): checkpoint_weights
+        from safetensors.torch import save_file
+
+        from omnirecon.engine.checkpoint import checkpoint_weights, size_delta
+
+        save_file(size_delta(checkpoint_weights(dest), checkpoint_weights(final)), str(weights / "model.safetensors"))
     stage = _card_stage(meta, card, result, mix)
     text = _card_text(stage, meta, card, result, mix, where)
     if where == "replace":

@@ -8,8 +8,9 @@ leaves the previous checkpoint or the new one)::
     optimizer.safetensors    optimizer tensors (training checkpoints only)
     meta.json                {"preset", "model_config", "step", "train_config", "optimizer": {param_groups,
                               state keys}, "extra": {...}, "provenance": {...}}
-    sizes/<px>/              optional: the same model trained further at a <px> long side, a checkpoint folder of
-                             its own (model.safetensors + meta.json); :func:`folder_for_size` picks between them
+    sizes/<px>/              optional: the same model trained further at a <px> long side (model.safetensors: the
+                             tensors that differ from the own weights, :func:`checkpoint_weights`; meta.json);
+                             :func:`folder_for_size` picks between them
 """
 
 from __future__ import annotations
@@ -112,6 +113,24 @@ def folder_for_size(folder: Path, long_side: int | None) -> Path:
     return folder if own in near else sizes[min(near)]
 
 
+def checkpoint_weights(folder: Path, device: str | torch.device = "cpu") -> dict:
+    """The state dict of checkpoint ``folder``: its ``model.safetensors``; for a ``sizes/<px>/`` folder, which holds
+    only the tensors that differ from the checkpoint's own (a frozen image encoder is shared), those over the own
+    weights. Missing, unreadable or non-finite weights: InputError naming the file."""
+    from omnirecon.engine.checkpoint_check import read_weights
+
+    folder = Path(folder)
+    state = read_weights(folder / "model.safetensors", str(device))
+    if folder.parent.name == SIZES_FOLDER and (folder.parent.parent / "model.safetensors").is_file():
+        state = {**read_weights(folder.parent.parent / "model.safetensors", str(device)), **state}
+    return state
+
+
+def size_delta(own: dict, sized: dict) -> dict:
+    """The tensors of state dict ``sized`` that differ from ``own``'s: what a ``sizes/<px>/`` folder stores."""
+    return {k: v for k, v in sized.items() if k not in own or own[k].shape != v.shape or not torch.equal(own[k], v)}
+
+
 def load_checkpoint(folder: Path, device: str | torch.device = "cpu", long_side: int | None = None):
     """Rebuild the model from ``folder`` (a path, or a shipped name: :func:`checkpoint_folder`); with ``long_side``
     (px, the size the caller renders at), from the weights trained nearest that size (:func:`folder_for_size`).
@@ -121,11 +140,11 @@ def load_checkpoint(folder: Path, device: str | torch.device = "cpu", long_side:
 
 
 def _load_checkpoint(folder: Path, device: str | torch.device):
-    from omnirecon.engine.checkpoint_check import build_checked, read_weights
+    from omnirecon.engine.checkpoint_check import build_checked
 
     meta = read_meta(folder)
     model = build_checked(meta, folder)
-    state = read_weights(folder / "model.safetensors", device)  # missing / unreadable / NaN: InputError
+    state = checkpoint_weights(folder, device)
     try:
         missing, unexpected = model.load_state_dict(state, strict=False)
     except RuntimeError as e:  # shape mismatch

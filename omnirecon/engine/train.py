@@ -40,7 +40,14 @@ from torch import Tensor
 
 from omnirecon.data.bank import SceneBank, draw_batch, parse_sources, val_views
 from omnirecon.data.io import write_json
-from omnirecon.engine.checkpoint import load_optimizer_state, param_digest, point_latest, read_meta, save_checkpoint
+from omnirecon.engine.checkpoint import (
+    checkpoint_weights,
+    load_optimizer_state,
+    param_digest,
+    point_latest,
+    read_meta,
+    save_checkpoint,
+)
 from omnirecon.engine.distributed import DistEnv
 from omnirecon.engine.losses import LossModule, psnr
 from omnirecon.engine.pseudo_depth import StereoPseudoDepth
@@ -246,8 +253,6 @@ class Trainer:
 
     def warm_start(self, ckpt: Path) -> None:
         """Load the weights of checkpoint folder ``ckpt`` (same preset and model config) into the fresh model."""
-        from omnirecon.engine.checkpoint_check import read_weights
-
         ckpt = checkpoint_folder(ckpt)  # a path, or a shipped name such as ibrnet-tiny
         if not (ckpt / "model.safetensors").is_file() or not (ckpt / "meta.json").is_file():
             raise InputError("--init needs a checkpoint folder with model.safetensors and meta.json", ckpt,
@@ -257,7 +262,7 @@ class Trainer:
             raise InputError(f"--init checkpoint is a {meta.get('preset')} model, not {self.cfg.model}", ckpt,
                              f"pass --model {meta.get('preset')} or a {self.cfg.model} checkpoint")
         try:
-            self.model.load_state_dict(read_weights(ckpt / "model.safetensors", str(self.device)))
+            self.model.load_state_dict(checkpoint_weights(ckpt, str(self.device)))
         except RuntimeError as e:
             raise InputError(f"--init weights do not fit the model ({str(e).splitlines()[0]})", ckpt,
                              "pass the same --model-overrides as the checkpoint's run (see its meta.json)") from e
