@@ -112,12 +112,25 @@ def gains(shipped: dict, run: dict) -> dict[str, float]:
     return {f"{g} {s} px": round(run[s][g] - shipped[s][g], 3) for s in SETS for g in ("procedural", "real")}
 
 
-def decide(shipped: dict, run: dict) -> tuple[str | None, str]:
+def decide(shipped: dict, run: dict, full: list[dict] = ()) -> tuple[str | None, str]:
     """Where the run ships (module docstring): ``("replace", why)``, ``("sizes", why)`` or ``(None, why)``, from the
-    two rows' scores (the gains: :func:`gains`)."""
+    two rows' scores (the gains: :func:`gains`); with ``full`` (the 256-px rows rendered with every render option at
+    its full-render value), ``("sizes:<row name>", why)`` when one of those beats both the shipped checkpoint and the
+    run by more than :data:`MARGIN_DB` on both groups at 256 px (the best by the mean of the two)."""
     gain = gains(shipped, run)
     better = all(gain[f"{g} 256 px"] > MARGIN_DB for g in ("procedural", "real"))
     kept = all(gain[f"{g} 64 px"] >= -MARGIN_DB for g in ("procedural", "real"))
+
+    def beats(row: dict, base: dict) -> bool:
+        return all(row["256"][g] - base["256"][g] > MARGIN_DB for g in ("procedural", "real"))
+
+    wins = [row for row in full if beats(row, shipped) and (not better or beats(row, run))]
+    if wins:
+        best = max(wins, key=lambda row: row["256"]["procedural"] + row["256"]["real"])
+        return f"sizes:{best['name']}", (f"ships {best['name']} as the checkpoint's {SIZE}-px weights (beats the "
+                                          f"shipped checkpoint{' and the run' if better else ''} by more than "
+                                          f"{MARGIN_DB:g} dB on both groups at {SIZE} px; the checkpoint's own "
+                                          "weights and render options stay at 64 px)")
     if better and kept:
         return "replace", "ships (replaces the checkpoint's weights)"
     if better:
@@ -138,6 +151,26 @@ def own_weights(model: str) -> Path:
         dest.mkdir(parents=True)
         for name in ("model.safetensors", "meta.json"):
             shutil.copy2(src / name, dest / name)
+    return dest
+
+
+def full_render(folder: Path, dest: Path) -> Path:
+    """A copy of checkpoint ``folder`` (its weights file and meta.json) at ``dest`` with every render option at its
+    full-render value (:data:`~omnirecon.models.registry.RENDER_OPTIONS`: the samples the weights were trained with),
+    refreshed when the weights change."""
+    import shutil
+
+    from omnirecon.models.registry import RENDER_OPTIONS
+
+    meta = json.loads((folder / "meta.json").read_text())
+    config = meta.get("model_config", {})
+    meta["model_config"] = {**config, **{k: v for k, v in RENDER_OPTIONS.items() if k in config}}
+    if not (dest / "model.safetensors").is_file() or \
+            (dest / "model.safetensors").read_bytes() != (folder / "model.safetensors").read_bytes():
+        shutil.rmtree(dest, ignore_errors=True)
+        dest.mkdir(parents=True)
+        shutil.copy2(folder / "model.safetensors", dest / "model.safetensors")
+    (dest / "meta.json").write_text(json.dumps(meta, indent=1))
     return dest
 
 
@@ -172,7 +205,8 @@ def _card_stage(meta: dict, card: dict, result: dict, mix: int) -> dict:
 
 
 def _card_text(stage: dict, meta: dict, card: dict, result: dict, mix: int, where: str) -> str:
-    shipped, run = result["rows"]
+    shipped, run = result["rows"][:2]
+    run = next((r for r in result["rows"] if where.startswith("sizes:") and r["name"] == where[6:]), run)
     what = ("The card's steps and CPU seconds are the sums; the training curve above is the "
             f"{card['resolution']}-px run's." if where == "replace" else
             f"These weights are in `sizes/{SIZE}/` beside the checkpoint's own: `eval`, `render` and the demo load the "
@@ -185,12 +219,13 @@ def _card_text(stage: dict, meta: dict, card: dict, result: dict, mix: int, wher
         f"{stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): `{result['command']}`. {what}", "",
         f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
         f"at {SIZE} px {shipped['256']['procedural']:.2f} / {shipped['256']['real']:.2f} -> "
-        f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}, at 64 px {shipped['64']['procedural']:.2f} / "
-        f"{shipped['64']['real']:.2f} -> {run['64']['procedural']:.2f} / {run['64']['real']:.2f}. "
+        f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}"
+        + (f", at 64 px {shipped['64']['procedural']:.2f} / {shipped['64']['real']:.2f} -> {run['64']['procedural']:.2f}"
+           f" / {run['64']['real']:.2f}" if "64" in run else f" ({run['name']}; at 64 px the own weights stay)") + ". "
         f"{result['decision'][0].upper() + result['decision'][1:]}.", ""])
 
 
-def ship(model: str, result: dict, mix: int = 0, where: str = "replace") -> Path:
+def ship(model: str, result: dict, mix: int = 0, where: str = "replace", state: Path | None = None) -> Path:
     """Carry out :func:`decide`'s ``where`` (written beside ``checkpoints/<model>``, then swapped in): ``replace``:
     the run's final weights replace the checkpoint's own, its card the shipped one's with the 256-px stage added
     (steps and CPU seconds summed); ``sizes``: they go to ``sizes/256/`` (with the stage on the card under
@@ -198,12 +233,13 @@ def ship(model: str, result: dict, mix: int = 0, where: str = "replace") -> Path
     import shutil
 
     dest = ROOT / "checkpoints" / model
-    final = final_state(model, mix)
+    final = state or final_state(model, mix)  # the weights and render options to ship (default: the run's)
     meta = json.loads((final / "meta.json").read_text())
     card = json.loads((dest / "card.json").read_text())
     tmp = dest.with_name(dest.name + ".tmp")
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(dest, tmp)
+    full_where, where = where, where.split(":")[0]
     weights = tmp if where == "replace" else tmp / "sizes" / str(SIZE)
     weights.mkdir(parents=True, exist_ok=True)
     shutil.copy2(final / "meta.json", weights / "meta.json")
@@ -216,7 +252,7 @@ def ship(model: str, result: dict, mix: int = 0, where: str = "replace") -> Path
 
         save_file(size_delta(checkpoint_weights(dest), checkpoint_weights(final)), str(weights / "model.safetensors"))
     stage = _card_stage(meta, card, result, mix)
-    text = _card_text(stage, meta, card, result, mix, where)
+    text = _card_text(stage, meta, card, result, mix, full_where)
     if where == "replace":
         card = {**card, "steps": card["steps"] + meta["step"], "cpu_seconds": card["cpu_seconds"] + stage["cpu_seconds"],
                 "wall_seconds": card["wall_seconds"] + stage["wall_seconds"],
@@ -240,6 +276,8 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--synth-scenes", type=int, default=4, help="procedural training scenes per rig")
     p.add_argument("--mix", type=int, default=0, help="read half the scenes at this size (px) instead; 0: none")
     p.add_argument("--ship", action="store_true", help="replace checkpoints/<model> by the run where the rule says so")
+    p.add_argument("--full-render", action="store_true", help="also score both states at 256 px with every render "
+                   "option at its full-render value (the trained sample counts), candidates for the 256-px weights")
     p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json for ibrnet-tiny, "
                    "train_256_<model>.json for the others (--mix R: train_256_mix<R>.json)")
     a = p.parse_args(argv)
@@ -261,14 +299,24 @@ def main(argv: list[str] | None = None) -> dict:
            "step": shipped_meta["step"] + meta["step"],
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
            **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_render_{s}", s) for s in SETS}}
-    where, why = decide(shipped, run)
+    full = []
+    if a.full_render:  # the same two states at 256 px with the render options at their full-render values
+        states = {f"shipped {a.model}, full render": full_render(own_weights(a.model), work.parent / "init" / f"{a.model}_own_full"),
+                  f"{run['name']}, full render": full_render(run_dir(a.model, a.mix) / "checkpoints" / "final",
+                                                             run_dir(a.model, a.mix) / "final_full")}
+        full = [{"name": name, "step": (shipped if name.startswith("shipped") else run)["step"],
+                 "checkpoint": str(folder.relative_to(ROOT)), "render": "full",
+                 "256": score(folder, work / f"{folder.parent.name}_{folder.name}_256", "256")}
+                for name, folder in states.items()]
+    where, why = decide(shipped, run, full)
     print(why + ": " + ", ".join(f"{k} {v:+.2f}" for k, v in gains(shipped, run).items()))
     result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "mix": a.mix, "margin_db": MARGIN_DB,
               "command": " ".join(["nice", "-n", "19", "python", "-m", *cmd[2:]]).replace(str(ROOT) + "/", "")
               .replace(str(SHARED.parent.parent) + "/", "../").replace(" --resume", ""),
-              "cpu_budget": a.cpu_budget, "rows": [shipped, run], "ships": where, "decision": why}
+              "cpu_budget": a.cpu_budget, "rows": [shipped, run, *full], "ships": where, "decision": why}
     if where and a.ship:
-        print(f"shipped {ship(a.model, result, a.mix, where)}")
+        state = ROOT / next(r["checkpoint"] for r in full if r["name"] == where[6:]) if where.startswith("sizes:") else None
+        print(f"shipped {ship(a.model, result, a.mix, where, state)}")
         result["shipped"] = True
     write_json(a.out, result)
     return result
