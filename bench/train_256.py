@@ -209,9 +209,10 @@ def _card_text(stage: dict, meta: dict, card: dict, result: dict, mix: int, wher
     run = next((r for r in result["rows"] if where.startswith("sizes:") and r["name"] == where[6:]), run)
     what = ("The card's steps and CPU seconds are the sums; the training curve above is the "
             f"{card['resolution']}-px run's." if where == "replace" else
-            f"These weights are in `sizes/{SIZE}/` beside the checkpoint's own: `eval`, `render` and the demo load the "
-            f"weights trained nearest the size they render at ({SIZE} px from a 129-px long side up); the card's steps "
-            "and CPU seconds are the own weights'.")
+            f"These weights are in `sizes/{SIZE}/` beside the checkpoint's own (only the tensors that differ, with "
+            f"their render options in its meta.json{': every one at its full-render value' if run.get('render') == 'full' else ''}): "
+            f"`eval`, `render` and the demo load the weights trained nearest the size they render at ({SIZE} px from a "
+            "129-px long side up); the card's steps and CPU seconds are the own weights'.")
     return "\n".join([
         f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
         f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
@@ -251,6 +252,7 @@ def ship(model: str, result: dict, mix: int = 0, where: str = "replace", state: 
         from omnirecon.engine.checkpoint import checkpoint_weights, size_delta
 
         save_file(size_delta(checkpoint_weights(dest), checkpoint_weights(final)), str(weights / "model.safetensors"))
+        (weights / "model.safetensors").chmod(0o644)  # readable as the own weights are, in a checkout and a wheel
     stage = _card_stage(meta, card, result, mix)
     text = _card_text(stage, meta, card, result, mix, full_where)
     if where == "replace":

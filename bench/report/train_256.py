@@ -30,16 +30,17 @@ def _model_section(results: Path, name: str) -> str | None:
     def line(row: dict) -> str:
         cells = [row["name"], f"{row['step']:,}", f"+{row['cpu_s']:,.0f}" if row.get("cpu_s") else "–",
                  *(f"{row['256']['scenes'].get(n, float('nan')):.2f}" for n in scenes),
-                 *(f"**{row[s][g]:.2f}**" for s in ("256", "64") for g in ("procedural", "real"))]
+                 *(f"**{row[s][g]:.2f}**" if s in row else "–" for s in ("256", "64") for g in ("procedural", "real"))]
         return "| " + " | ".join(cells) + " |"
 
     def gains(row: dict) -> str:
         return ", ".join(f"{g} {s} px {row[s][g] - shipped[s][g]:+.2f}" for s in ("256", "64")
                          for g in ("procedural", "real"))
 
-    runs = [run, *(m["rows"][1] for m in mixed)]
+    full = r["rows"][2:]  # --full-render: the same states at 256 px with the trained sample counts
+    runs = [run, *full, *(m["rows"][1] for m in mixed)]
     cost = [f"{row['name']} " + " / ".join(f"{row[s]['cpu_s']:.0f}" for s in ("256", "64")) + " CPU-s"
-            for row in (shipped, *runs) if all(row[s].get("cpu_s") for s in ("256", "64"))]
+            for row in (shipped, *runs) if all(row.get(s, {}).get("cpu_s") for s in ("256", "64"))]
     mix_text = []
     for m in mixed:
         row = m["rows"][1]
@@ -65,7 +66,12 @@ def _model_section(results: Path, name: str) -> str | None:
         + ("" if isinstance(r.get("ships"), str) or r.get("ships") is None else
            " (this run was decided when a run could only replace the weights)") + ".", "",
         "| " + " | ".join(head) + " |", "|" + "---|" * len(head), line(shipped), *map(line, runs), "",
-        f"Run minus shipped ({run['name']}): {gains(run)}. Decision: {r['decision']}."
+        f"Run minus shipped ({run['name']}): {gains(run)}."
+        + "".join(f" {row['name']} minus shipped at 256 px: " + ", ".join(
+            f"{g} {row['256'][g] - shipped['256'][g]:+.2f}" for g in ("procedural", "real")) + "." for row in full)
+        + (" Rows `full render`: every render option at its full-render value (the trained sample counts; the "
+           "other rows render with the checkpoint's own options, e.g. ibrnet-tiny's 16 + 16 samples), at 256 px only."
+           if full else "") + f" Decision: {r['decision']}."
         + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
         "", f"Command of the run: `{r['command']}`.", "", prov(r["provenance"]), "", *mix_text])
 

@@ -125,3 +125,27 @@ def test_ship_as_256_px_weights_keeps_the_own_weights_and_load_picks_by_size(tmp
     differ = [k for k, v in big.state_dict().items() if not torch.equal(v, small.state_dict()[k])]
     assert differ  # the two sizes load different weights
     assert t.own_weights("ibrnet-tiny") != dest and not (t.own_weights("ibrnet-tiny") / "sizes").exists()
+
+
+def test_a_full_render_row_that_beats_both_at_256_px_ships_as_the_256_px_weights(tmp_path):
+    """``--full-render``: a state rendered with the trained sample counts wins the 256-px weights when it beats the
+    shipped checkpoint (and a winning run) by more than the margin on both groups; the section lists it without
+    64-px cells."""
+    from bench.report.train_256 import section
+    from bench.train_256 import decide
+    from omnirecon.provenance import provenance
+
+    shipped, run = _row("shipped ibrnet-tiny", 25.0, 22.0, 27.0, 26.0), _row("run", 25.3, 22.2, 26.5, 25.5)
+    full = {"name": "run, full render", "step": 7950, "render": "full",
+            "256": {"scenes": {"synth:scene_901000": 25.9, "fox": 22.8}, "procedural": 25.9, "real": 22.8}}
+    where, why = decide(shipped, run, [full])
+    assert where == "sizes:run, full render" and "beats the shipped checkpoint and the run" in why
+    weak = {**full, "256": {**full["256"], "real": 22.25}}  # +0.05 over the run: within the margin
+    assert decide(shipped, run, [weak])[0] == "sizes"
+    (tmp_path / "train_256.json").write_text(json.dumps({
+        "provenance": provenance(seed=0), "model": "ibrnet-tiny", "size": 256, "margin_db": 0.1,
+        "command": "x --num-views-range 3 10", "rows": [shipped, run, full], "ships": where, "decision": why}))
+    text = section(tmp_path)
+    assert "| run, full render | 7,950 | – | 25.90 | 22.80 | **25.90** | **22.80** | – | – |" in text
+    assert "run, full render minus shipped at 256 px: procedural +0.90, real +0.80." in text
+    assert "K drawn from [3, 10]" in text
