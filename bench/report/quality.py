@@ -141,7 +141,7 @@ def provenance_256(full: dict, guided: dict) -> list[str]:
 def at_256(results: Path, rows64: dict) -> list[str]:
     """The ``cpu256`` block: 64 px and 256 px side by side with the floor, the goals, guided vs full."""
     full, guided = _rows_256(results, ""), _rows_256(results, "_guided")
-    rows = {m: {**full.get(m, {}), **guided.get(m, {})} for m in QUALITY_MODELS if m in full or m in guided}
+    rows = {m: {**guided.get(m, {}), **full.get(m, {})} for m in QUALITY_MODELS if m in full or m in guided}
     if not rows:
         return []
     models = list(rows)
@@ -151,19 +151,20 @@ def at_256(results: Path, rows64: dict) -> list[str]:
            "`cpu256-extrapolation` (rows `(extrapolation)`: the targets are the test views of the extrapolation "
            "split, the sources come from its training views), K = 3. Whole-image PSNR (dB), over the "
            "object mask in brackets for DTU and Blender; in square brackets the difference to the floor at the same "
-           "size. The 64-px column repeats the `cpu` set's K = 3 value above (full sampling). At 256 px the learned "
-           "models render surface-guided (`--guided`, each model family's default layout: full sampling made the "
-           "whole set too costly on the shared cores; the table after the goals gives the PSNR cost of guided "
-           "rendering where both were scored) except in cells marked `full`; the floor samples fully. `–`: not "
-           "scored (the goals below are over the rows scored).", "",
+           "size. The 64-px column repeats the `cpu` set's K = 3 value above (full sampling). At 256 px every cell is "
+           "full sampling (what `omnirecon render` and `eval` do by default) where it was scored so; cells marked "
+           "`guided` were rendered surface-guided only (`--guided`, each model family's default layout: full "
+           "sampling of the whole set was too costly on the shared cores; the table after the goals gives the PSNR "
+           "cost of guided rendering where both were scored). `–`: not scored (the goals below are over the rows "
+           "scored).", "",
            "| scene | " + " | ".join(f"{m} 64 px | {m} 256 px" for m in models) + " |", "|---|" + "---|" * 2 * len(models)]
     for n in names:
         cells = []
         for m in models:
             r64, f64 = rows64.get(m, {}).get(n, {}).get("3"), rows64.get("floor", {}).get(n, {}).get("3")
             r256, f256 = rows[m].get(n, {}).get("3"), rows.get("floor", {}).get(n, {}).get("3")
-            only_full = m != "floor" and r256 is not None and n not in guided.get(m, {})
-            cells += [_cell(r64, f64), _cell(r256, f256) + (" `full`" if only_full else "")]
+            only_guided = m != "floor" and r256 is not None and n not in full.get(m, {})
+            cells += [_cell(r64, f64), _cell(r256, f256) + (" `guided`" if only_guided else "")]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
     return out + [""] + weights_256(results) + goals_256(rows, names) + guided_256(results) + cost_256(results) + \
         provenance_256(full, guided)
