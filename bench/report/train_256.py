@@ -62,7 +62,10 @@ def _model_section(results: Path, name: str) -> str | None:
         f"that beats the shipped weights by more than {r['margin_db']:g} dB on both groups at 256 px and loses at most "
         f"{r['margin_db']:g} dB on either at 64 px replaces them; one that beats them at 256 px but loses at 64 px "
         "ships as the checkpoint's 256-px weights (`checkpoints/<model>/sizes/256/`: `eval`, `render` and the demo "
-        "load the weights trained nearest the size they render at, so the 64-px rows keep the own weights)"
+        "load the weights trained nearest the size they render at, so the 64-px rows keep the own weights); with "
+        "`--full-render` (rows `full render`), a state rendered with its trained sample counts that beats the shipped "
+        "checkpoint, and a winning run, by more than that on both groups at 256 px ships as the 256-px weights with "
+        "those render options"
         + ("" if isinstance(r.get("ships"), str) or r.get("ships") is None else
            " (this run was decided when a run could only replace the weights)") + ".", "",
         "| " + " | ".join(head) + " |", "|" + "---|" * len(head), line(shipped), *map(line, runs), "",
