@@ -166,7 +166,8 @@ def at_256(results: Path, rows64: dict) -> list[str]:
             only_guided = m != "floor" and r256 is not None and n not in full.get(m, {})
             cells += [_cell(r64, f64), _cell(r256, f256) + (" `guided`" if only_guided else "")]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
-    return out + [""] + weights_256(results) + goals_256(rows, names) + guided_256(results) + cost_256(results) + \
+    return out + [""] + weights_256(results) + goals_256(rows, names) + guided_256(results) + \
+        guided_256(results, "_guided_sized") + cost_256(results) + \
         provenance_256(full, guided)
 
 
@@ -182,7 +183,8 @@ def weights_256(results: Path) -> list[str]:
                     continue
                 rec = json.loads(f.read_text())["model"]
                 used.setdefault(m, set()).add(f"`{rec.get('checkpoint')}` (step {rec.get('step')})")
-                notes += [n for n in stale_note(m, rec, "quality --protocol-set cpu256 --ks 3", long_side=256) if n]
+                notes += [n for n in stale_note(m, rec, "quality --protocol-set cpu256 --ks 3",
+                                                long_side=None if tag else 256) if n]  # guided: the own weights
     if not used:
         return []
     return ["Weights at 256 px (`eval`, `render` and this bench load each checkpoint's weights trained nearest the "
@@ -227,15 +229,24 @@ def goals_256(rows: dict, names: list[str]) -> list[str]:
     return out + [""]
 
 
-def guided_256(results: Path) -> list[str]:
-    """Full against surface-guided sampling (``--guided``) on the rows scored both ways, K = 3."""
-    full, guided = _rows_256(results, ""), _rows_256(results, "_guided")
+def guided_256(results: Path, tag: str = "_guided") -> list[str]:
+    """Full against surface-guided sampling (``--guided``; ``tag="_guided_sized"``: with the weights of the set's
+    size, ``--guided --sized``) on the rows scored both ways with the same weights, K = 3."""
+    full, guided = _rows_256(results, ""), _rows_256(results, tag)
+
+    def weights(m: str, n: str, tag: str) -> str | None:  # the fingerprint of the weights a row was scored with
+        f = results / f"quality_{'cpu256-extrapolation' if n.endswith('(extrapolation)') else 'cpu256'}{tag}_{m}.json"
+        return json.loads(f.read_text())["model"].get("sha256") if f.is_file() else None
+
     pairs = [(m, n) for m in guided for n in guided[m] if n != "_prov" and "3" in full.get(m, {}).get(n, {})
-             and "3" in guided[m][n]]
+             and "3" in guided[m][n] and weights(m, n, "") == weights(m, n, tag)]
     if not pairs:
         return []
     out = ["**Surface-guided at 256 px** (`--guided`, each model family's default layout; the PSNR cost of guided "
-           "rendering on the rows scored both ways), K = 3:", "", "| model | scene | full | guided | guided - full |",
+           "rendering on the rows scored both ways with the same weights: guided renders load a checkpoint's own "
+           "weights, not its `sizes/256/`), K = 3:" if tag == "_guided" else
+           "**Surface-guided with the 256-px weights** (`python -m bench quality --protocol-set cpu256 --ks 3 --guided "
+           "--sized`: why a guided render keeps a checkpoint's own weights), K = 3:", "", "| model | scene | full | guided | guided - full |",
            "|---|---|---|---|---|"]
     for m, n in pairs:
         a, g = full[m][n]["3"]["psnr"], guided[m][n]["3"]["psnr"]

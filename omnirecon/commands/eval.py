@@ -7,7 +7,15 @@ from pathlib import Path
 from typing import Literal
 
 from omnirecon.engine.evaluate import evaluate
-from omnirecon.engine.machine import GuidedRendering, MachineConfig, ModelChoice, load_model, pick_device, set_threads
+from omnirecon.engine.machine import (
+    GuidedRendering,
+    MachineConfig,
+    ModelChoice,
+    load_model,
+    pick_device,
+    set_threads,
+    weights_side,
+)
 from omnirecon.engine.protocols import SYNTH_PREFIX, set_long_side
 from omnirecon.options import OutFolder, SceneCache, SynthCount, command_defaults
 from omnirecon.outputs import claim
@@ -55,7 +63,8 @@ class EvalCommand(GuidedRendering, SceneCache, SynthCount, OutFolder, ModelChoic
         with claim(out, "eval", inputs=(self.ckpt, *self.scenes), mode="replace") as c:
             set_threads(self.threads)
             device = pick_device(self.device)
-            net, info = load_model(self.ckpt, self.model, device, long_side=set_long_side(self.protocol_set))
+            net, info = load_model(self.ckpt, self.model, device,
+                                   long_side=weights_side(set_long_side(self.protocol_set), self.guided))
             result = evaluate(net, list(self.scenes), self.num_views, c.work, model_info=info, chunk=self.chunk,
                               device=device, max_targets=self.max_targets, synth_count=self.synth_count,
                               cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,

@@ -23,7 +23,15 @@ import torch
 from omnirecon import trajectory
 from omnirecon.cameras import Cameras, closest_point_to_axes
 from omnirecon.data.io import atomic_path, write_image, write_json
-from omnirecon.engine.machine import GuidedRendering, MachineConfig, ModelChoice, load_model, pick_device, set_threads
+from omnirecon.engine.machine import (
+    GuidedRendering,
+    MachineConfig,
+    ModelChoice,
+    load_model,
+    pick_device,
+    set_threads,
+    weights_side,
+)
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
 from omnirecon.errors import InputError
@@ -132,7 +140,8 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     scene = load_at_resolution(cfg.scene, cfg.resolution)
-    net, info = load_model(cfg.ckpt, cfg.model, device, long_side=max(scene.width, scene.height))
+    side = weights_side(max(scene.width, scene.height), cfg.guided)  # the weights trained nearest the render's size
+    net, info = load_model(cfg.ckpt, cfg.model, device, long_side=side)
     options = render_levers(net, info, cfg)
     if cfg.num_views > len(scene):
         raise InputError(f"--num-views {cfg.num_views} but the scene has {len(scene)} views", cfg.scene,
