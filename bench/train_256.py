@@ -154,17 +154,14 @@ def own_weights(model: str) -> Path:
     return dest
 
 
-def full_render(folder: Path, dest: Path) -> Path:
-    """A copy of checkpoint ``folder`` (its weights file and meta.json) at ``dest`` with every render option at its
-    full-render value (:data:`~omnirecon.models.registry.RENDER_OPTIONS`: the samples the weights were trained with),
-    refreshed when the weights change."""
+def with_render(folder: Path, dest: Path, render: dict) -> Path:
+    """A copy of checkpoint ``folder`` (its weights file and meta.json) at ``dest`` with the render options ``render``
+    (:data:`~omnirecon.models.registry.RENDER_OPTIONS` keys) over its model config, refreshed when the weights
+    change."""
     import shutil
 
-    from omnirecon.models.registry import RENDER_OPTIONS
-
     meta = json.loads((folder / "meta.json").read_text())
-    config = meta.get("model_config", {})
-    meta["model_config"] = {**config, **{k: v for k, v in RENDER_OPTIONS.items() if k in config}}
+    meta["model_config"] = {**meta.get("model_config", {}), **render}
     if not (dest / "model.safetensors").is_file() or \
             (dest / "model.safetensors").read_bytes() != (folder / "model.safetensors").read_bytes():
         shutil.rmtree(dest, ignore_errors=True)
@@ -174,27 +171,25 @@ def full_render(folder: Path, dest: Path) -> Path:
     return dest
 
 
+def full_render(folder: Path, dest: Path) -> Path:
+    """:func:`with_render` with every render option of ``folder``'s config at its full-render value
+    (:data:`~omnirecon.models.registry.RENDER_OPTIONS`: the samples the weights were trained with)."""
+    from omnirecon.models.registry import RENDER_OPTIONS
+
+    config = json.loads((folder / "meta.json").read_text()).get("model_config", {})
+    return with_render(folder, dest, {k: v for k, v in RENDER_OPTIONS.items() if k in config})
+
+
 def final_state(model: str, mix: int = 0) -> Path:
     """The run's final state as it is scored and shipped: its weights with the shipped checkpoint's render options
     (the :data:`~omnirecon.models.registry.RENDER_OPTIONS` keys of its model config, e.g. ibrnet-tiny's 16 + 16
     samples), so both rows render alike; a warm start's own meta.json keeps the preset's (the training samples).
-    Written beside the run's ``checkpoints/`` as ``final_render/``, refreshed when the weights change."""
-    import shutil
-
+    Written beside the run's ``checkpoints/`` as ``final_render/`` (:func:`with_render`)."""
     from omnirecon.models.registry import RENDER_OPTIONS
 
-    final = run_dir(model, mix) / "checkpoints" / "final"
-    dest = run_dir(model, mix) / "final_render"
     shipped = json.loads((ROOT / "checkpoints" / model / "meta.json").read_text()).get("model_config", {})
-    meta = json.loads((final / "meta.json").read_text())
-    meta["model_config"] = {**meta.get("model_config", {}), **{k: v for k, v in shipped.items() if k in RENDER_OPTIONS}}
-    if not (dest / "model.safetensors").is_file() or \
-            (dest / "model.safetensors").read_bytes() != (final / "model.safetensors").read_bytes():
-        shutil.rmtree(dest, ignore_errors=True)
-        dest.mkdir(parents=True)
-        shutil.copy2(final / "model.safetensors", dest / "model.safetensors")
-    (dest / "meta.json").write_text(json.dumps(meta, indent=1))
-    return dest
+    return with_render(run_dir(model, mix) / "checkpoints" / "final", run_dir(model, mix) / "final_render",
+                       {k: v for k, v in shipped.items() if k in RENDER_OPTIONS})
 
 
 def _card_stage(meta: dict, card: dict, result: dict, mix: int) -> dict:
