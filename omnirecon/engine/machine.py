@@ -47,7 +47,7 @@ def weights_side(long_side: int | None, guided: GuidedOptions | None = None) -> 
     """The long side (px) to choose a checkpoint's weights by (:func:`load_model`): ``long_side`` for renders on the
     full path; None (the checkpoint's own weights) for surface-guided ones, whose per-family layouts
     (``omnirecon.models.guided.FAMILY_DEFAULTS``) were chosen with the own weights and lost much more with ibrnet-tiny's
-    256-px weights (BENCHMARKS "Novel-view quality", the 256-px table's guided rows)."""
+    256-px weights (BENCHMARKS "Novel-view quality", "Surface-guided with the 256-px weights")."""
     return None if guided is not None and guided.on else long_side
 
 

@@ -79,6 +79,7 @@ at a 256-px long side (near the size users look at) with :data:`CPU256_TARGETS` 
 ``cpu256`` with the extrapolation split's test views as targets and its training views as the pool (no fixed
 sources). Numbers are labelled with the set's name and are not comparable across sets."""
 
+
 def set_long_side(protocol_set: str) -> int:
     """The long side (px) the protocols of ``protocol_set`` score at (the largest where they differ): the size a
     checkpoint's weights are chosen for (``omnirecon.engine.checkpoint.folder_for_size``)."""
