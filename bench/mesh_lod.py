@@ -25,7 +25,8 @@ pass):
   its own nearest sources, and its loss against the reference path's (the demo scene: timed at 256 px, scored at its
   128-px images).
 
-Then the level :func:`omnirecon.engine.lod.choose_level_of_detail` chooses (its sources per frame and weight stride),
+Then the level :func:`omnirecon.engine.lod.choose_level_of_detail` chooses (its sources per frame and weight stride,
+or the angle blend's sources per point),
 and, where it draws only the faces the photos see, that level so (``photographed``: the faces the training views see,
 :func:`omnirecon.mesh.ibr.photographed_faces`). With the angle blend and ``--proposed N ...``, that level again with
 ``N`` candidate sources proposed per grid point beyond the point's own (``GLBlend.PROPOSED``; every row records the
@@ -211,20 +212,22 @@ def run_scene(name: str, model, args) -> dict | None:
     runs = [(0, 0, "torch")] + [(b, args.grid, sh) for b in budgets if 0 < b < len(mesh.faces) for sh in args.shader]
     specs = [(setting, budget, grid, shader, {}) for budget, grid, shader in dict.fromkeys(runs)]  # the reference first
     dec = {"decimator": lod.decimator} if lod.decimator != "fast" else {}  # the chosen level's own collapse
-    if lod.sources is not None or lod.weight_stride > 1 or dec:  # the chosen level as the videos draw it: its budget,
-        chosen = lod.setting(setting)  # fewer sources, the MLP's stride (and the same at every pixel, to compare)
-        for stride in dict.fromkeys((1, lod.weight_stride)):
+    per_point = {"angle_sources": lod.angle_sources} if lod.angle_sources is not None else {}
+    if lod.sources is not None or lod.weight_stride > 1 or dec or per_point:  # the chosen level as the videos draw
+        chosen = lod.setting(setting)  # it: its budget, fewer sources (per frame, per point), the MLP's stride (and the
+        for stride in dict.fromkeys((1, lod.weight_stride)):  # same at every pixel, to compare)
             specs += [({**chosen, "weight_stride": stride}, lod.face_budget, args.grid, shader,
                        {"sources": chosen["sources"] if lod.sources is not None else None, "weight_stride": stride,
-                        **dec}) for shader in args.shader]
+                        **dec, **per_point}) for shader in args.shader]
     if lod.photographed:  # and drawing only the faces the photos (the training views) see
         chosen = lod.setting(setting)
         specs += [(chosen, lod.face_budget, args.grid, shader,
                    {"sources": chosen["sources"] if lod.sources is not None else None,
-                    "weight_stride": lod.weight_stride, "photographed": True, **dec}) for shader in args.shader]
+                    "weight_stride": lod.weight_stride, "photographed": True, **dec, **per_point})
+                  for shader in args.shader]
     if setting["blend"] == "angle":  # the chosen level with each count of candidates proposed per grid point
         specs += [(lod.setting(setting), lod.face_budget, args.grid, shader,
-                   {"proposed": n, **({"photographed": True} if lod.photographed else {}), **dec})
+                   {"proposed": n, **({"photographed": True} if lod.photographed else {}), **dec, **per_point})
                   for n in args.proposed for shader in args.shader]
     rounds: list[list[dict]] = [[] for _ in specs]  # each row's timings, round after round over every row: the
     for i in range(args.rounds):  # machine's drift over minutes falls on every row alike
@@ -246,11 +249,7 @@ def run_scene(name: str, model, args) -> dict | None:
     return {"scene": name, "path": str(path), "mesh": str(mesh_file), "resolution": timed_size,
             "scored_resolution": [scene.width, scene.height],
             "setting": setting, "record": records.get(name), "faces_full": int(len(mesh.faces)), "rows": rows,
-            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources,
-                    "weight_stride": lod.weight_stride, "photographed": lod.photographed, "rows": lod.rows,
-                    "decimator": lod.decimator,
-                    "views": lod.views,
-                    "seconds": lod.seconds, "tolerance_db": lod.tolerance_db}}
+            "lod": lod.record()}
 
 
 def main(argv: list[str] | None = None) -> dict:

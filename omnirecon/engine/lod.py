@@ -16,7 +16,7 @@ features fetched and run through the appearance MLP), so at the chosen budget fe
 faces the budget took off cost what fewer sources would not, they are measured once more one budget up, and where they
 pass there, that budget is drawn with them: fewer sources save more of a network frame than a rung of faces (fern:
 150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
-ranks each tile's candidates and blends a fixed few already; its sources are left alone.
+ranks each tile's candidates and blends a fixed few already; its sources per frame are left alone.
 
 Then MeshLab's quadric edge collapse (:data:`LOD_DECIMATORS`) is measured at the chosen budget and below, with the
 chosen sources: its checks on the faces' shape and normals keep more of some meshes at the same count and lose more of
@@ -27,6 +27,12 @@ the steps below start from it.
 Then, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
 each axis only (:data:`LOD_STRIDES`, ``MeshRenderOptions.weight_stride``) is measured the same way, at the chosen budget
 and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
+
+Then, with the angle blend, fewer sources blended per point (:data:`LOD_ANGLE_SOURCES`, below the setting's
+``angle_sources``, which ``finetune`` chose as the best on its validation views) are measured the same way, at the
+chosen level, against that row (:data:`LOD_ANGLE_TOLERANCE_DB`) and within ``tolerance_db`` of the ceiling row: on
+llvmpipe each pixel's work follows the sources it ranks (each tile's candidates: those nearest by angle at its grid
+points, ``angle_sources`` + :attr:`~omnirecon.render.glblend.GLBlend.PROPOSED` each) and blends.
 
 Last, the chosen level drawn with only the faces the photos see (:func:`~omnirecon.mesh.ibr.photographed_faces`, seen
 by the sources alone: a face only a left-out photo sees is left out, as a face no photo sees is from a novel view) is
@@ -54,6 +60,11 @@ LOD_STRIDES = (2,)
 """Candidate ``MeshRenderOptions.weight_stride`` of the network blend's GL pass (the MLP at every n-th pixel)."""
 LOD_STRIDE_TOLERANCE_DB = 0.05
 """PSNR (dB) a weight stride may lose against the same budget and sources at every pixel and still be chosen."""
+LOD_ANGLE_SOURCES = (6, 4)
+"""Candidate sources blended per point by the angle blend below the setting's (``setting["angle_sources"]``), most
+first."""
+LOD_ANGLE_TOLERANCE_DB = 0.05
+"""PSNR (dB) fewer sources per point may lose against the chosen level at the setting's count and still be chosen."""
 LOD_DECIMATORS = ("meshlab",)
 """Quadric edge collapses measured besides fast-simplification's (:data:`omnirecon.mesh.clean.DECIMATORS`), at the
 chosen budget and below, with the chosen sources."""
@@ -75,6 +86,8 @@ class LodChoice:
     """Sources per frame the network blend takes (None: the setting's, unchanged)."""
     weight_stride: int = 1
     """``MeshRenderOptions.weight_stride`` of the chosen level (1: the MLP at every pixel)."""
+    angle_sources: int | None = None
+    """Sources the angle blend blends per point (None: the setting's, unchanged)."""
     decimator: str = "fast"
     """The quadric edge collapse of the chosen level (:data:`omnirecon.mesh.clean.DECIMATORS`)."""
     photographed: bool = False
@@ -93,10 +106,18 @@ class LodChoice:
     :meth:`drawn` of the same mesh does not decimate it again (MeshLab's collapse takes seconds)."""
 
     def setting(self, setting: dict) -> dict:
-        """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame and weight
-        stride."""
+        """``setting`` (:func:`~omnirecon.mesh.ibr.realtime_setting`) with the chosen sources per frame, weight
+        stride and sources per point."""
         out = setting if self.sources is None else {**setting, "sources": self.sources}
+        out = out if self.angle_sources is None else {**out, "angle_sources": self.angle_sources}
         return out if self.weight_stride == 1 else {**out, "weight_stride": self.weight_stride}
+
+    def record(self) -> dict:
+        """What was chosen and measured, for a run's records (``results.json``, ``metrics.json``)."""
+        return {"face_budget": self.face_budget, "faces": self.faces, "sources": self.sources,
+                "weight_stride": self.weight_stride, "angle_sources": self.angle_sources,
+                "photographed": self.photographed, "decimator": self.decimator, "rows": self.rows, "views": self.views,
+                "seconds": self.seconds, "tolerance_db": self.tolerance_db}
 
     def drawn(self, mesh, photos):
         """The ``(vertices, faces)`` the path draws of ``mesh`` at this level, ``photos`` (the scene's photos,
@@ -115,6 +136,7 @@ class LodChoice:
         scores = ", ".join(f"{r['faces']:,} faces{_sources(r)} {r['psnr']:.2f} dB" for r in self.rows)
         blended = f", {self.sources} sources per frame" if self.sources is not None else ""
         blended += f", the MLP every {self.weight_stride} px" if self.weight_stride > 1 else ""
+        blended += f", {self.angle_sources} sources per point" if self.angle_sources is not None else ""
         blended += ", only the faces the photos see" if self.photographed else ""
         blended += ", MeshLab's collapse" if self.decimator == "meshlab" else ""
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
@@ -124,6 +146,7 @@ class LodChoice:
 
 def _sources(row: dict) -> str:
     stride = f", MLP stride {row['weight_stride']}" if row.get("weight_stride", 1) > 1 else ""
+    stride += f", {row['angle_sources']} per point" if row.get("angle_sources") else ""
     seen = ", photographed only" if row.get("photographed") else ""
     method = ", MeshLab" if row.get("decimator") == "meshlab" else ""
     return (f" x {row['sources']} sources" if row.get("sources") else "") + stride + seen + method
@@ -143,15 +166,18 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
                            sources_tolerance_db: float = LOD_SOURCES_TOLERANCE_DB, strides=LOD_STRIDES,
                            stride_tolerance_db: float = LOD_STRIDE_TOLERANCE_DB,
                            cull_tolerance_db: float | None = LOD_TOLERANCE_DB,
-                           decimators=LOD_DECIMATORS) -> LodChoice:
+                           decimators=LOD_DECIMATORS, angle_sources=LOD_ANGLE_SOURCES,
+                           angle_tolerance_db: float = LOD_ANGLE_TOLERANCE_DB) -> LodChoice:
     """The smallest face budget of ``budgets`` (and the ceiling), then for the network blend the fewest sources per
     frame of ``sources``, whose mean PSNR on ``views`` left-out photos of ``train`` is within ``tolerance_db`` (fewer
     sources: ``sources_tolerance_db``) of the ceiling's at the setting's sources (where no count passes at the chosen
     budget, one budget up, which is then drawn), then each other collapse of ``decimators`` at that budget and below
     (the smallest level no worse than the chosen one and within ``tolerance_db`` of the ceiling row), then the largest
     weight stride of ``strides`` within
-    ``stride_tolerance_db`` of the chosen row, then only the faces the sources see within ``cull_tolerance_db`` of the
-    ceiling row (``None``: not measured; module docstring).
+    ``stride_tolerance_db`` of the chosen row, then for the angle blend the fewest sources per point of
+    ``angle_sources`` within ``angle_tolerance_db`` of the chosen row (and ``tolerance_db`` of the ceiling row), then
+    only the faces the sources see within ``cull_tolerance_db`` of the ceiling row (``None``: not measured; module
+    docstring).
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -178,15 +204,18 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
     k0 = min(setting["sources"] or len(pool), len(pool))
     smaller = [b for b in budgets if 0 < b < top]
     fewer = [k for k in sources if k < k0] if setting["blend"] == "network" and setting["sources"] else []
-    if not left or not (smaller or fewer):
+    ka0 = min(setting.get("angle_sources") or k0, k0)  # sources per point the angle blend ranks (0: every source)
+    per_point = [k for k in angle_sources if k < ka0] if setting["blend"] == "angle" else []
+    if not left or not (smaller or fewer or per_point):
         chosen.seconds = round(time.perf_counter() - start, 2)
         return chosen  # nothing to measure against, or nothing smaller to try
     bg = tuple(scene.background) if scene.background is not None else (1.0, 1.0, 1.0)
     encodings: dict = {}  # each set of sources encoded once, for every budget
 
-    def score(drawn, k: int, stride: int = 1) -> float:  # mean PSNR of the left-out photos, from the k nearest
-        scores = []
-        opts = video_options({**setting, "weight_stride": stride}, bg, face_budget=0)
+    def score(drawn, k: int, stride: int = 1, ka: int | None = None) -> float:  # mean PSNR of the left-out photos,
+        scores = []  # from the k nearest (ka: the angle blend's sources per point)
+        opts = video_options({**setting, "weight_stride": stride, **({"angle_sources": ka} if ka else {})}, bg,
+                             face_budget=0)
         with ViewCache(model, drawn, scene, opts, encodings) as cache:
             for v in left:
                 with cache.renderer(sorted(select_sources(scene, scene.cameras[v], pool, k))) as r, \
@@ -239,13 +268,20 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             chosen.rows.append(row)
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
+    for ka in sorted(per_point, reverse=True):  # the angle blend's sources per point, against the chosen row
+        row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k1, "angle_sources": ka,
+               "decimator": chosen.decimator, "psnr": score(drawn, k1, ka=ka)}
+        chosen.rows.append(row)
+        if row["psnr"] >= max(base - angle_tolerance_db, best - tolerance_db):
+            chosen.angle_sources = ka
     chosen.level = (id(mesh), drawn)
     if cull_tolerance_db is not None:
         seen = level_of_detail(drawn, 0, scene.cameras[pool])  # seen by the sources alone
         if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
             row = {"budget": chosen.face_budget, "faces": int(len(seen[1])), "sources": k1,
                    "weight_stride": chosen.weight_stride, "photographed": True, "decimator": chosen.decimator,
-                   "psnr": score(seen, k1, chosen.weight_stride)}
+                   **({"angle_sources": chosen.angle_sources} if chosen.angle_sources else {}),
+                   "psnr": score(seen, k1, chosen.weight_stride, chosen.angle_sources)}
             chosen.rows.append(row)
             if row["psnr"] >= best - cull_tolerance_db:  # against the ceiling, as the face budgets
                 chosen.photographed, chosen.faces = True, row["faces"]

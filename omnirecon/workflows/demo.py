@@ -342,9 +342,7 @@ def mesh_path_section(cfg: DemoConfig, path: Path, ckpt: Path, mesh_file: Path, 
     away = away_from_photos(model, mesh, scene, path, train, cams, out)
     numbers["mesh_path"] = {"fps": fps, "resolution": [cams.width, cams.height], "frames": len(cams),
                             "threads": torch.get_num_threads(), "source_views": setting["sources"], "blend": setting,
-                            "faces_drawn": faces, "lod": {"face_budget": lod.face_budget, "sources": lod.sources, "rows": lod.rows,
-                                                          "photographed": lod.photographed, "decimator": lod.decimator, "views": lod.views,
-                                                          "seconds": lod.seconds}, "away": away}
+                            "faces_drawn": faces, "lod": lod.record(), "away": away}
     lines.append(f"mesh path: {fps:.1f} FPS at {cams.width}x{cams.height} ({torch.get_num_threads()} threads, {faces:,} "
                  f"faces drawn); {away['line']}")
     return mesh_path_page(video, fps, cams, away, out)

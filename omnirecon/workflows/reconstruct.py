@@ -433,9 +433,7 @@ def path_stage(cfg: ReconstructConfig, cap: Capture, lines: list[str], tuned: di
                  f"{mean['unseen']:.1%}, fragments {mean['small']:.1%}); worst frame {worst} "
                  f"{defects[worst]['any']:.1%} (path_worst_frame.png)")
     return {"scene": scene, "cams": cams, "video": video, "fps": fps, "faces_drawn": faces, "kind": kind, "nearest_photo_degrees": reach,
-            "lod": {"face_budget": lod.face_budget, "faces": lod.faces, "sources": lod.sources, "rows": lod.rows,
-                    "photographed": lod.photographed, "decimator": lod.decimator,
-                    "views": lod.views, "seconds": lod.seconds},
+            "lod": lod.record(),
             "setting": setting, "defects": {"mean": mean, "worst_frame": worst, "per_frame": [d["any"] for d in defects]},
             "worst": worst}
 

@@ -80,12 +80,31 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
                                     sources_tolerance_db=-1.0, decimators=())
     assert strict.sources is None and strict.setting(setting) == setting
     angle = choose_level_of_detail(model, mesh, scene, {**setting, "blend": "angle", "sources": 0}, train, budgets=(),
-                                   sources=(4, 3), sources_tolerance_db=100.0, decimators=())
+                                   sources=(4, 3), sources_tolerance_db=100.0, decimators=(), angle_sources=())
     assert angle.rows == [] and angle.sources is None
     default = choose_level_of_detail(model, mesh, scene, setting, train, budgets=(), sources=(4, 3), strides=(),
                                      cull_tolerance_db=None, decimators=())
     by_rule = [r["sources"] for r in default.rows[1:] if r["psnr"] >= default.rows[0]["psnr"]]  # lose nothing
     assert default.sources == (by_rule[-1] if by_rule else None), default.rows
+
+
+def test_the_angle_blend_takes_the_fewest_sources_per_point_within_the_tolerance(setup):
+    """The angle blend's sources per point below the setting's are measured at the chosen level: with tolerances no
+    loss can reach the fewest is blended (the setting then carries it, its sources per frame unchanged); with a
+    negative one none; counts at or above the setting's are not measured; the network blend measures none."""
+    scene, mesh, model = setup
+    train = list(range(len(scene)))
+    angle = {**realtime_setting(scene), "blend": "angle", "sources": 0, "angle_sources": 6}
+    kw = dict(budgets=(), sources=(), strides=(), cull_tolerance_db=None, decimators=(), angle_sources=(8, 6, 4, 2))
+    loose = choose_level_of_detail(model, mesh, scene, angle, train, tolerance_db=100.0, angle_tolerance_db=100.0, **kw)
+    assert [r.get("angle_sources") for r in loose.rows] == [None, 4, 2], loose.rows
+    assert loose.angle_sources == 2 and loose.setting(angle) == {**angle, "angle_sources": 2}
+    assert " 2 sources per point" in loose.line() and loose.record()["angle_sources"] == 2
+    strict = choose_level_of_detail(model, mesh, scene, angle, train, angle_tolerance_db=-1.0, **kw)
+    assert len(strict.rows) == 3 and strict.angle_sources is None and strict.setting(angle) == angle
+    network = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), train, tolerance_db=100.0,
+                                     angle_tolerance_db=100.0, **kw)
+    assert network.rows == [] and network.angle_sources is None
 
 
 def test_fewer_sources_that_lose_at_the_chosen_budget_are_measured_one_budget_up(setup):
