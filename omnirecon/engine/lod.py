@@ -16,7 +16,13 @@ features fetched and run through the appearance MLP), so at the chosen budget fe
 faces the budget took off cost what fewer sources would not, they are measured once more one budget up, and where they
 pass there, that budget is drawn with them: fewer sources save more of a network frame than a rung of faces (fern:
 150,000 faces and 6 sources drew slower frames than 200,000 faces and 3 sources with the MLP's stride). The angle blend
-ranks each tile's candidates and blends a fixed few already; its sources per frame are left alone.
+ranks each tile's candidates and blends a fixed few already; its sources per frame are left alone, and fewer sources
+blended per point (:data:`LOD_ANGLE_SOURCES`, below the setting's ``angle_sources``, the count ``finetune`` scored best
+on its validation views) are measured in their place, the same way (at the chosen budget, then one rung up), within
+:data:`LOD_ANGLE_TOLERANCE_DB` of the ceiling row: on llvmpipe each pixel's work follows the sources it ranks (each
+tile's candidates: those nearest by angle at its grid points, ``angle_sources`` +
+:attr:`~omnirecon.render.glblend.GLBlend.PROPOSED` each) and blends, and fewer of them saved more of a frame than a
+rung of faces (fox).
 
 Then MeshLab's quadric edge collapse (:data:`LOD_DECIMATORS`) is measured at the chosen budget and below, with the
 chosen sources: its checks on the faces' shape and normals keep more of some meshes at the same count and lose more of
@@ -27,12 +33,6 @@ the steps below start from it.
 Then, where the GL pass shades the network blend of few enough sources, the appearance MLP at every second pixel of
 each axis only (:data:`LOD_STRIDES`, ``MeshRenderOptions.weight_stride``) is measured the same way, at the chosen budget
 and sources, against that row (:data:`LOD_STRIDE_TOLERANCE_DB`).
-
-Then, with the angle blend, fewer sources blended per point (:data:`LOD_ANGLE_SOURCES`, below the setting's
-``angle_sources``, which ``finetune`` chose as the best on its validation views) are measured the same way, at the
-chosen level, against that row (:data:`LOD_ANGLE_TOLERANCE_DB`) and within ``tolerance_db`` of the ceiling row: on
-llvmpipe each pixel's work follows the sources it ranks (each tile's candidates: those nearest by angle at its grid
-points, ``angle_sources`` + :attr:`~omnirecon.render.glblend.GLBlend.PROPOSED` each) and blends.
 
 Last, the chosen level drawn with only the faces the photos see (:func:`~omnirecon.mesh.ibr.photographed_faces`, seen
 by the sources alone: a face only a left-out photo sees is left out, as a face no photo sees is from a novel view) is
@@ -63,8 +63,10 @@ LOD_STRIDE_TOLERANCE_DB = 0.05
 LOD_ANGLE_SOURCES = (6, 4)
 """Candidate sources blended per point by the angle blend below the setting's (``setting["angle_sources"]``), most
 first."""
-LOD_ANGLE_TOLERANCE_DB = 0.05
-"""PSNR (dB) fewer sources per point may lose against the chosen level at the setting's count and still be chosen."""
+LOD_ANGLE_TOLERANCE_DB = LOD_TOLERANCE_DB
+"""PSNR (dB) fewer sources per point may lose against the ceiling row and still be chosen: as many as the faces (the
+left-out photos judged them more harshly than the held-out views: BENCHMARKS "Real-time mesh path: level of
+detail")."""
 LOD_DECIMATORS = ("meshlab",)
 """Quadric edge collapses measured besides fast-simplification's (:data:`omnirecon.mesh.clean.DECIMATORS`), at the
 chosen budget and below, with the chosen sources."""
@@ -174,10 +176,10 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
     budget, one budget up, which is then drawn), then each other collapse of ``decimators`` at that budget and below
     (the smallest level no worse than the chosen one and within ``tolerance_db`` of the ceiling row), then the largest
     weight stride of ``strides`` within
-    ``stride_tolerance_db`` of the chosen row, then for the angle blend the fewest sources per point of
-    ``angle_sources`` within ``angle_tolerance_db`` of the chosen row (and ``tolerance_db`` of the ceiling row), then
+    ``stride_tolerance_db`` of the chosen row, then
     only the faces the sources see within ``cull_tolerance_db`` of the ceiling row (``None``: not measured; module
-    docstring).
+    docstring). For the angle blend, the fewest sources per point of ``angle_sources`` within ``angle_tolerance_db``
+    of the ceiling row take the place of the fewer sources per frame.
 
     Args:
         model: The model whose appearance the mesh path blends with (as :class:`~omnirecon.mesh.ibr.MeshRenderer`).
@@ -235,53 +237,49 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
             chosen.face_budget, chosen.faces = row["budget"], row["faces"]
     order = [ceiling, *smaller]
     at = order.index(chosen.face_budget)
-    for budget in order[max(at - 1, 0):at + 1][::-1] if fewer else ():  # the chosen budget, then one rung up
-        for k in fewer:  # against the same ceiling row
-            row = {"budget": budget, "faces": int(len(meshes[budget][1])), "sources": k,
-                   "psnr": score(meshes[budget], k)}
+    network = setting["blend"] == "network"
+    key, counts = ("sources", fewer) if network else ("angle_sources", sorted(per_point, reverse=True))
+    allowed = sources_tolerance_db if network else angle_tolerance_db
+    for budget in order[max(at - 1, 0):at + 1][::-1] if counts else ():  # the chosen budget, then one rung up
+        for k in counts:  # against the same ceiling row
+            row = {"budget": budget, "faces": int(len(meshes[budget][1])),
+                   **({"sources": k} if network else {"sources": setting["sources"], "angle_sources": k}),
+                   "psnr": score(meshes[budget], k, ka=None) if network else score(meshes[budget], k0, ka=k)}
             chosen.rows.append(row)
-            if row["psnr"] >= best - sources_tolerance_db:
-                chosen.sources = k
-        if chosen.sources is not None:  # the rung that lost faces may lose what fewer sources gain back: one rung up
-            chosen.face_budget, chosen.faces = budget, int(len(meshes[budget][1]))
+            if row["psnr"] >= best - allowed:
+                setattr(chosen, key, k)
+        if getattr(chosen, key) is not None:  # the rung that lost faces may lose what fewer sources gain back: one
+            chosen.face_budget, chosen.faces = budget, int(len(meshes[budget][1]))  # rung up
             break
-    k1 = chosen.sources or k0
-    sources_rows = chosen.rows[len(meshes):]  # the fewer sources' rows (at the chosen budget)
-    base = next(r["psnr"] for r in (sources_rows if chosen.sources else chosen.rows[:len(meshes)])
-                if r["budget"] == chosen.face_budget and (not chosen.sources or r["sources"] == chosen.sources))
+    k1, ka1, picked = chosen.sources or k0, chosen.angle_sources, getattr(chosen, key)
+    base = next(r["psnr"] for r in (chosen.rows[len(meshes):] if picked else chosen.rows[:len(meshes)])
+                if r["budget"] == chosen.face_budget and (not picked or r.get(key) == picked))
     drawn = meshes[chosen.face_budget]
     fast = base  # the other collapses must not lose against the fast one's chosen row
     for method in decimators:  # at the chosen budget, then down while each level passes
         for budget in [b for b in order if 0 < b <= chosen.face_budget and b < n_faces]:
             other = level_of_detail(mesh, budget, decimator=method)
             row = {"budget": budget, "faces": int(len(other[1])), "sources": k1, "decimator": method,
-                   "psnr": score(other, k1)}
+                   **({"angle_sources": ka1} if ka1 else {}), "psnr": score(other, k1, ka=ka1)}
             chosen.rows.append(row)
             if row["psnr"] < max(fast, best - tolerance_db):
                 break
             chosen.face_budget, chosen.faces, chosen.decimator = budget, row["faces"], method
             drawn, base = other, row["psnr"]
-    if setting["blend"] == "network" and k1 <= GLBlend.STRIDE_SOURCES and gl_unavailable_reason() is None:
+    if network and k1 <= GLBlend.STRIDE_SOURCES and gl_unavailable_reason() is None:
         for stride in sorted(strides):  # only the GL pass takes a stride (where it shades these sources)
             row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k1, "weight_stride": stride,
                    "psnr": score(drawn, k1, stride)}
             chosen.rows.append(row)
             if row["psnr"] >= base - stride_tolerance_db:
                 chosen.weight_stride = stride
-    for ka in sorted(per_point, reverse=True):  # the angle blend's sources per point, against the chosen row
-        row = {"budget": chosen.face_budget, "faces": chosen.faces, "sources": k1, "angle_sources": ka,
-               "decimator": chosen.decimator, "psnr": score(drawn, k1, ka=ka)}
-        chosen.rows.append(row)
-        if row["psnr"] >= max(base - angle_tolerance_db, best - tolerance_db):
-            chosen.angle_sources = ka
     chosen.level = (id(mesh), drawn)
     if cull_tolerance_db is not None:
         seen = level_of_detail(drawn, 0, scene.cameras[pool])  # seen by the sources alone
         if len(seen[1]) <= (1 - LOD_CULL_MIN_SHARE) * chosen.faces:
             row = {"budget": chosen.face_budget, "faces": int(len(seen[1])), "sources": k1,
                    "weight_stride": chosen.weight_stride, "photographed": True, "decimator": chosen.decimator,
-                   **({"angle_sources": chosen.angle_sources} if chosen.angle_sources else {}),
-                   "psnr": score(seen, k1, chosen.weight_stride, chosen.angle_sources)}
+                   **({"angle_sources": ka1} if ka1 else {}), "psnr": score(seen, k1, chosen.weight_stride, ka1)}
             chosen.rows.append(row)
             if row["psnr"] >= best - cull_tolerance_db:  # against the ceiling, as the face budgets
                 chosen.photographed, chosen.faces = True, row["faces"]

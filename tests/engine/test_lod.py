@@ -89,9 +89,10 @@ def test_the_network_blend_takes_the_fewest_sources_within_the_tolerance(setup):
 
 
 def test_the_angle_blend_takes_the_fewest_sources_per_point_within_the_tolerance(setup):
-    """The angle blend's sources per point below the setting's are measured at the chosen level: with tolerances no
-    loss can reach the fewest is blended (the setting then carries it, its sources per frame unchanged); with a
-    negative one none; counts at or above the setting's are not measured; the network blend measures none."""
+    """The angle blend's sources per point below the setting's are measured at the chosen budget against the ceiling
+    row: with tolerances no loss can reach the fewest is blended (the setting then carries it, its sources per frame
+    unchanged); with a negative one none; counts at or above the setting's are not measured; the network blend
+    measures none; where none passes at the chosen budget, they are measured one budget up and drawn there."""
     scene, mesh, model = setup
     train = list(range(len(scene)))
     angle = {**realtime_setting(scene), "blend": "angle", "sources": 0, "angle_sources": 6}
@@ -105,6 +106,17 @@ def test_the_angle_blend_takes_the_fewest_sources_per_point_within_the_tolerance
     network = choose_level_of_detail(model, mesh, scene, realtime_setting(scene), train, tolerance_db=100.0,
                                      angle_tolerance_db=100.0, **kw)
     assert network.rows == [] and network.angle_sources is None
+    full = len(mesh.faces)  # as the network's sources per frame: where none passes at the chosen budget, one rung up
+    kw = {**kw, "budgets": (full // 2, 4000), "angle_sources": (2,), "tolerance_db": 100.0, "ceiling": 0, "views": 1}
+    none = choose_level_of_detail(model, mesh, scene, angle, train, angle_tolerance_db=-1.0, **kw)
+    rows = {(r["budget"], r.get("angle_sources")): r["psnr"] for r in none.rows}
+    assert set(rows) == {(0, None), (full // 2, None), (4000, None), (4000, 2), (full // 2, 2)}, none.rows
+    assert none.face_budget == 4000 and none.angle_sources is None
+    best = rows[(0, None)]
+    assert rows[(4000, 2)] < rows[(full // 2, 2)], rows
+    up = choose_level_of_detail(model, mesh, scene, angle, train, **kw,
+                                angle_tolerance_db=(best - rows[(full // 2, 2)] + best - rows[(4000, 2)]) / 2)
+    assert up.face_budget == full // 2 and up.angle_sources == 2, up.rows
 
 
 def test_fewer_sources_that_lose_at_the_chosen_budget_are_measured_one_budget_up(setup):
