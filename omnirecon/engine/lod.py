@@ -141,9 +141,11 @@ class LodChoice:
         blended += f", {self.angle_sources} sources per point" if self.angle_sources is not None else ""
         blended += ", only the faces the photos see" if self.photographed else ""
         blended += ", MeshLab's collapse" if self.decimator == "meshlab" else ""
+        fewer = ("the fewest sources per point within the same" if any(r.get("angle_sources") for r in self.rows) else
+                 "the fewest sources that lose nothing")
         return (f"level of detail: {self.faces:,} faces drawn{blended} (the fewest faces within {self.tolerance_db:g} dB "
-                f"of the most, the fewest sources that lose nothing, on {len(self.views)} photos left out of the "
-                f"sources: {scores}; {self.seconds:.1f} s)")
+                f"of the most, {fewer}, on {len(self.views)} photos left out of the sources: {scores}; "
+                f"{self.seconds:.1f} s)")
 
 
 def _sources(row: dict) -> str:
