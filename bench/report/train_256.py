@@ -75,6 +75,8 @@ def _model_section(results: Path, name: str) -> str | None:
         + (" Rows `full render`: every render option at its full-render value (the trained sample counts; the "
            "other rows render with the checkpoint's own options, e.g. ibrnet-tiny's 16 + 16 samples), at 256 px only."
            if full else "") + f" Decision: {r['decision']}."
+        + (" Not carried out: the bench ran without `--ship` (the checkpoint is unchanged; the run's README in "
+           "`checkpoints/runs/` says why)." if r.get("ships") and not r.get("shipped") else "")
         + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
         "", f"Command of the run: `{r['command']}`.", "", prov(r["provenance"]), "", *mix_text])
 
