@@ -64,9 +64,8 @@ LOD_ANGLE_SOURCES = (6, 4)
 """Candidate sources blended per point by the angle blend below the setting's (``setting["angle_sources"]``), most
 first."""
 LOD_ANGLE_TOLERANCE_DB = LOD_TOLERANCE_DB
-"""PSNR (dB) fewer sources per point may lose against the ceiling row and still be chosen: as many as the faces (the
-left-out photos judged them more harshly than the held-out views: BENCHMARKS "Real-time mesh path: level of
-detail")."""
+"""PSNR (dB) fewer sources per point may lose against the ceiling row and still be chosen: as many as the faces (unlike the
+network's sources per frame, no frame's source set is cut to the nearest of the left-out photos' sparser pool)."""
 LOD_DECIMATORS = ("meshlab",)
 """Quadric edge collapses measured besides fast-simplification's (:data:`omnirecon.mesh.clean.DECIMATORS`), at the
 chosen budget and below, with the chosen sources."""
@@ -190,6 +189,7 @@ def choose_level_of_detail(model, mesh, scene, setting: dict, train: list[int], 
         train: The photos; ``views`` of them are left out of the sources and rendered from the rest (as the path
             picks a frame's sources: ``setting["sources"]`` nearest, or all).
         ceiling: The largest budget (default :data:`~omnirecon.mesh.ibr.REALTIME_FACE_BUDGET`; 0: the full mesh).
+        angle_sources: Candidate sources per point of the angle blend (those below ``setting["angle_sources"]``).
     """
     from omnirecon import metrics
     from omnirecon.engine.views import select_sources
