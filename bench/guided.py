@@ -110,12 +110,13 @@ def measure(model_name: str, scene_name: str, scene, target: int, sources: list[
     for i, spec in enumerate(settings):
         options = dataclasses.replace(GuidedOptions(on=True), **spec)
         g_s, g_wall, out = timed(lambda: render_guided(model, feats, cam, options))
-        if i == 0 and figures is not None:
-            figure(figures / f"guided_{model_name}_{scene_name}.png", gt, full, out["rgb"])
+        if figures is not None:  # the first setting's under the old name, the others numbered
+            figure(figures / f"guided_{model_name}_{scene_name}{f'_{i}' if i else ''}.png", gt, full, out["rgb"])
         row = {**base, "setting": spec, "options": dataclasses.asdict(options.resolved(model)), "guided_cpu_s": g_s,
                "guided_wall_s": g_wall,
                "speedup": round(full_s / g_s, 2), "psnr_guided": psnr(out["rgb"], gt),
                "psnr_guided_vs_full": psnr(out["rgb"], full), "guided_share": round(float(out["guided"].float().mean()), 4),
+               "upsampled_share": round(float(out["upsampled"].float().mean()), 4) if "upsampled" in out else 0.0,
                "loadavg": [round(x, 2) for x in os.getloadavg()]}
         row["dpsnr"] = round(row["psnr_guided"] - row["psnr_full"], 3)
         print(json.dumps(row), flush=True)
@@ -133,8 +134,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads of the encode and the renders (wall seconds are recorded beside CPU-s)")
     parser.add_argument("--figures", action="store_true",
-                        help="write bench/results/figures/guided_<model>_<scene>.png: ground truth | full | the first "
-                             "setting's guided render, at half size")
+                        help="write bench/results/figures/guided_<model>_<scene>[_<i>].png: ground truth | full | "
+                             "setting i's guided render (no suffix: the first setting), at half size")
     parser.add_argument("--out", type=Path, default=HERE / "results" / "guided.json",
                         help="results file; the page shows every bench/results/guided*.json")
     args = parser.parse_args(argv)

@@ -49,6 +49,13 @@ class Capabilities:
     """``render_rays(features, rays, depths=z)`` renders one pass (a two-pass model's final one) at the caller's
     sample z-depths ``z # [R, S]`` (increasing) instead of its own sampling: surface-guided rendering
     (:mod:`omnirecon.models.guided`)."""
+    colour_weights: bool = False
+    """``render_rays(features, rays, colour_weights=True)`` adds ``colour_weights # [R, S, K]`` and
+    ``colour_depths # [R, S]`` where its ``rgb`` is a blend of the source colours: ``rgb = sum_{s, k}
+    colour_weights[s, k] * c_k(x_s)``, ``c_k`` source ``k``'s image sampled bilinearly (border padding) where the
+    point at z-depth ``colour_depths[s]`` on the ray lands, ``K`` every given source (zero weight for one the model
+    left out). A model whose ``rgb`` is not such a blend (GPNR's feature head) leaves both keys out. Upsampled
+    guided rendering (:func:`omnirecon.models.guided.render_upsampled`) reads them."""
 
 
 class GeneralizableModel(nn.Module):
@@ -72,7 +79,7 @@ class GeneralizableModel(nn.Module):
 
     def render_view(self, features, camera: Cameras, chunk: int = 4096, signals: Tensor | None = None,
                     fine_pass: bool | None = None, surface_samples: int = 0, pixels: Tensor | None = None,
-                    depths: Tensor | None = None) -> dict[str, Tensor]:
+                    depths: Tensor | None = None, colour_weights: bool = False) -> dict[str, Tensor]:
         """Render one full image in chunks of ``chunk`` rays; outputs reshaped to ``[H, W, ...]``.
         ``pixels # [M]`` (flat row-major indices): render only those pixels, outputs ``[M, ...]``
         (every model renders each ray on its own: the same values as the full image's at those pixels).
@@ -83,7 +90,8 @@ class GeneralizableModel(nn.Module):
         (``capabilities.passes``, where they are documented); a one-pass model renders its only pass
         whatever they say. ``depths # [N, S]`` (one row per rendered ray: per pixel, or per entry of ``pixels``;
         models with ``capabilities.guided``): every ray samples at its row's z-depths instead of the model's own
-        (:mod:`omnirecon.models.guided`). ``camera`` may be in any float dtype and on any device (a
+        (:mod:`omnirecon.models.guided`). ``colour_weights`` (models with ``capabilities.colour_weights``): add the
+        outputs :attr:`Capabilities.colour_weights` names. ``camera`` may be in any float dtype and on any device (a
         :class:`~omnirecon.data.scene.Scene`'s cameras are float64): it is moved to the sources' dtype
         and device first.
 
@@ -97,6 +105,8 @@ class GeneralizableModel(nn.Module):
         if pixels is not None:
             rays, height, width = rays[pixels.to(rays.origins.device)], 1, len(pixels)
         extra = {} if signals is None else {"signals": signals}
+        if colour_weights:
+            extra["colour_weights"] = True
         if self.capabilities.passes:
             extra.update(fine_pass=fine_pass, surface_samples=surface_samples)
         batch = min(chunk, FAST.render_batch) if FAST.render_batch > 0 else chunk

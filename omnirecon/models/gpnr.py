@@ -144,7 +144,7 @@ def _run(block: nn.Module, x: Tensor, pad: Tensor | None, bf16: bool = False) ->
 
 
 class GPNR(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, guided=True)
+    capabilities = Capabilities(depth=True, signals=True, guided=True, colour_weights=True)
 
     def __init__(self, cfg: GPNRConfig):
         super().__init__()
@@ -190,11 +190,13 @@ class GPNR(GeneralizableModel):
 
     # ------------------------------------------------------------------ render
     def render_rays(self, features: GPNRFeatures, rays: Rays, signals: Tensor | None = None,
-                    depths: Tensor | None = None) -> dict[str, Tensor]:
+                    depths: Tensor | None = None, colour_weights: bool = False) -> dict[str, Tensor]:
         """Render rays. ``signals # [K, H, W, C]`` (optional, per-source-view 2-D maps): also return
         ``signal # [R, C] = sum_k beta_k sum_m alpha_km s_km``, the maps sampled exactly as the colours
         and blended with the weights of ``rgb_aux`` (predict-then-blend). ``depths # [R, M]``: the points' z-depths
-        per ray instead of the linear ones (surface-guided rendering, :mod:`omnirecon.models.guided`)."""
+        per ray instead of the linear ones (surface-guided rendering, :mod:`omnirecon.models.guided`). ``colour_weights``:
+        with ``cfg.output == "colors"``, add ``colour_weights # [R, M, K]`` (``beta_k alpha_km``) and ``colour_depths
+        # [R, M]`` (:class:`~omnirecon.models.base.Capabilities`)."""
         cfg = self.cfg
         src = features.sources
         cams = src.cameras
@@ -280,6 +282,9 @@ class GPNR(GeneralizableModel):
         if signals is not None:  # predict-then-blend with the colour weights: beta over views, alpha along rays
             sig = gather(signals.permute(0, 3, 1, 2).to(dtype), proj, "border").transpose(1, 2)  # [R, K, M, C]
             out["signal"] = (beta[..., None] * (alpha[..., None] * sig).sum(2)).sum(1)
+        if colour_weights and cfg.output == "colors":  # rgb is the blend of the source colours
+            out["colour_weights"] = (beta[..., None] * alpha).transpose(1, 2)  # [R, M, K]
+            out["colour_depths"] = z.expand(R, M) if z.dim() == 1 else z  # [R, M]
         return out
 
 

@@ -37,6 +37,8 @@ import torch
 from torch import Tensor
 
 from omnirecon.cameras import Cameras
+from omnirecon.models.projector import gather, project
+from omnirecon.rays import Rays
 
 
 @dataclass
@@ -77,6 +79,19 @@ class GuidedOptions:
     """Models that report opacity (``acc``: IBRNet, Omni-Recon): prior pixels below it are not trusted, and a
     guided ray below it (its band found no surface) is rendered again by the full path. Models without ``acc``
     (GPNR) trust every ``valid`` prior pixel."""
+    upsample: int | None = None
+    """Blend at full size from a smaller render: the model renders the view guided at ``1 / upsample`` of its width
+    and height (``upsample ** 2`` times fewer rays); each pixel then blends the source colours at its own ray's
+    points with the colour weights and sample depths of the small render's pixel it lies in
+    (:func:`render_upsampled`), and a pixel whose 2x2 small cells' depths spread wider than ``edge_spread`` is
+    rendered by the model at full size (guided, the small render's depth its prior). 1: off. Models without
+    ``capabilities.colour_weights``, or whose ``rgb`` is not a blend of the source colours, render at full size.
+    None: the model family's value in :data:`FAMILY_DEFAULTS`."""
+    edge_spread: float = 0.2
+    """With ``upsample``: a pixel whose 2x2 small-render cells (their depth divided by their opacity) spread wider
+    than this fraction of the near-far range (sampling parameter) is rendered at full size. Smaller values render
+    more pixels at full size: on the sweep scenes 0.05 and 0.1 came no closer to the full render than 0.2 (GPNR's
+    depth on fern spreads widely between neighbours, and 0.05 rendered most of it at full size)."""
 
     def check(self) -> None:
         """InputError naming the first option out of its range (its rules: ``guided.*`` in ``omnirecon.options``)."""
@@ -102,26 +117,30 @@ class GuidedOptions:
 
 FAMILY_DEFAULTS: dict[str, dict] = {
     "GPNR": {"layout": "band", "band_samples": 8, "guard_samples": 4, "band": 0.03, "grid_samples": 32,
-             "prior_scale": 4},
-    "IBRNet": {"layout": "band", "band_samples": 16, "guard_samples": 8, "band": 0.06, "grid_samples": 32,
-               "prior_scale": 4},
+             "prior_scale": 4, "upsample": 2},
+    "IBRNet": {"layout": "band", "band_samples": 24, "guard_samples": 8, "band": 0.06, "grid_samples": 32,
+               "prior_scale": 4, "upsample": 2},
     "OmniRecon": {"layout": "grid", "band_samples": 3, "guard_samples": 9, "band": 0.01, "grid_samples": 32,
-                  "prior_scale": 8},
+                  "prior_scale": 8, "upsample": 2},
     "other": {"layout": "band", "band_samples": 16, "guard_samples": 8, "band": 0.03, "grid_samples": 32,
-              "prior_scale": 4},
+              "prior_scale": 4, "upsample": 1},
 }
-"""Layout, band, guard and prior size per model class, chosen on the shipped tiny checkpoints: candidates from the
-sweep rows of ``python -m bench guided`` (fern at 336x252 and the procedural forward scene at 504x378; BENCHMARKS
-"Surface-guided volumetric rendering"), then held to the 256-px protocol rows (``python -m bench quality
---protocol-set cpu256 --guided``, 5 real scenes, their protocol and extrapolation targets) against the full path's.
-IBRNet's ray transformer needs its 16 + 8 samples in a band (fewer lost far more than the band saves, and its grid
-layout far more still); a band of 0.06 instead of 0.03 came closer to the full render on both sweep scenes and raised
-most of the protocol rows. GPNR with 6 + 2 in 0.06 (less CPU), or on its grid, lowered the procedural scene or the
-protocol rows, so it keeps these values. Omni-Recon's geometry transformer attends along the ray: in a narrow band it
-drew another surface than its full path on the procedural scene, and with 5 or 6 guard samples of its grid it tore a
-256-px fox view into ghosts; with 9 guards and 3 band samples it stays closest to its full path on the
-protocol rows for less CPU than the band layout, and a prior at 1/8 size costs a quarter of one at 1/4 and moves the
-rows by less than their spread. Off by default: a render option with its cost measured, not a bit-exact fast path."""
+"""Layout, band, guard, prior size and upsampling per model class, chosen on the shipped tiny checkpoints:
+candidates from the sweep rows of ``python -m bench guided`` (fern at 336x252 and the procedural forward scene at
+504x378; BENCHMARKS "Surface-guided volumetric rendering"), then held to the 256-px protocol rows (``python -m bench
+quality --protocol-set cpu256 --guided``, 5 real scenes, their protocol and extrapolation targets) against the full
+path's. IBRNet's ray transformer needs many samples in a band (fewer lost far more than the band saves, and its
+grid layout far more still); a band of 0.06 instead of 0.03 came closer to the full render on both sweep scenes and
+raised most of the protocol rows; with the view rendered at half size, 24 band samples instead of 16 cost little and
+came closer to the full render than 16 or 32. GPNR with 6 + 2 in 0.06 (less CPU), or on its grid, lowered the
+procedural scene or the protocol rows, so it keeps these values. Omni-Recon's geometry transformer attends along
+the ray: in a narrow band it drew another surface than its full path on the procedural scene, and with 5 or 6 guard
+samples of its grid it tore a 256-px fox view into ghosts; with 9 guards and 3 band samples it stays closest to its
+full path on the protocol rows for less CPU than the band layout, and a prior at 1/8 size costs a quarter of one at
+1/4 and moves the rows by less than their spread. ``upsample`` 2 (the network at a quarter of the rays, the photos
+blended at full size) cost the three models no PSNR against their guided renders at full size on the sweep scenes
+at a third of their time or less; 3 saved little more. Off by default: a render option with its cost measured, not a
+bit-exact fast path."""
 
 
 def full_path_samples(model) -> int | None:
@@ -218,39 +237,116 @@ def render_guided(model, features, camera: Cameras, options: GuidedOptions, chun
     per-pixel outputs ``# [H, W, ...]`` that the guided and the full path share, plus ``guided # [H, W]`` (the
     pixel was rendered in a band). ``prior # [h, w]``: a z-depth map of the view (NaN: no prior; any size); None:
     the model's own render at ``1 / options.prior_scale`` size. Off (or a model without ``capabilities.guided``):
-    ``render_view`` itself, with ``guided`` all False."""
+    ``render_view`` itself, with ``guided`` all False. With ``options.upsample > 1``: :func:`render_upsampled`."""
     if not options.on or not model.capabilities.guided:
         out = model.render_view(features, camera, chunk, **render_kw)
         return {**out, "guided": torch.zeros(camera.height, camera.width, dtype=torch.bool)}
+    options = options.resolved(model)
+    if options.upsample > 1 and model.capabilities.colour_weights and "signals" not in render_kw:
+        return render_upsampled(model, features, camera, options, chunk, prior, **render_kw)
+    if prior is None:
+        prior = own_prior(model, features, camera, options, chunk, **render_kw)
+    H, W = camera.height, camera.width
+    return _scatter(_render_pixels(model, features, camera, options, prior, torch.arange(H * W), chunk, render_kw),
+                    H, W)
+
+
+def own_prior(model, features, camera: Cameras, options: GuidedOptions, chunk: int = 4096, **render_kw) -> Tensor:
+    """The model's own z-depth prior of ``camera``'s view: its full-path render at ``1 / options.prior_scale`` size
+    (:func:`prior_from_outputs`; resolved ``options``). ``# [h, w]``"""
+    small = camera.rescaled(1.0 / options.prior_scale)
+    # the grid layout's guard samples span the whole ray, so a pixel few sources see (not ``valid``) is guided too
+    return prior_from_outputs(model.render_view(features, small, chunk, **render_kw), options.min_opacity,
+                              use_valid=options.layout != "grid")
+
+
+def _render_pixels(model, features, camera: Cameras, options: GuidedOptions, prior: Tensor, pixels: Tensor,
+                   chunk: int, render_kw: dict) -> dict[bool, tuple[Tensor, dict[str, Tensor]]]:
+    """The ``pixels # [M]`` (flat indices) of ``camera``'s view, guided by ``prior`` where it gives them a band and
+    by the full path elsewhere (and where the band found no surface): ``{guided: (pixels, outputs)}`` for
+    :func:`_scatter` (resolved ``options``)."""
     src = features.sources
     inverse = src.rig == "forward"
-    options = options.resolved(model)
-    if prior is None:
-        small = camera.rescaled(1.0 / options.prior_scale)
-        # the grid layout's guard samples span the whole ray, so a pixel few sources see (not ``valid``) is guided too
-        prior = prior_from_outputs(model.render_view(features, small, chunk, **render_kw), options.min_opacity,
-                                   use_valid=options.layout != "grid")
     H, W = camera.height, camera.width
     lo, hi = pixel_bands(prior.cpu(), H, W, src.near, src.far, inverse, options)
-    has = ~torch.isnan(lo).flatten()  # [H W]
+    lo, hi = lo.flatten()[pixels], hi.flatten()[pixels]
+    has = ~torch.isnan(lo)  # [M]
     parts = {}
-    pixels = has.nonzero()[:, 0]
+    if has.any():
+        z = band_depths(lo[has], hi[has], src.near, src.far, inverse, options)
+        out = model.render_view(features, camera, chunk, pixels=pixels[has], depths=z.to(src.images), **render_kw)
+        missed = out["acc"].cpu() < options.min_opacity if "acc" in out else torch.zeros(len(z), dtype=torch.bool)
+        parts[True] = (pixels[has][~missed], {k: v[~missed.to(v.device)] for k, v in out.items()})
+        has[has.clone()] = ~missed  # the band found no surface: the full path there
+    if (~has).any():
+        parts[False] = (pixels[~has], model.render_view(features, camera, chunk, pixels=pixels[~has], **render_kw))
+    return parts
+
+
+def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, chunk: int = 4096,
+                     prior: Tensor | None = None, **render_kw) -> dict[str, Tensor]:
+    """Surface-guided rendering at ``1 / options.upsample`` size, blended at full size (resolved ``options``; the
+    model has ``capabilities.colour_weights``). The small view is rendered by :func:`render_guided` (``prior``, if
+    given, guides it); each full-size pixel takes the small render's outputs at the cell it lies in, and its
+    ``rgb`` blends the source colours at its own ray's points with that cell's ``colour_weights`` at its
+    ``colour_depths`` (:func:`blend_sources`): the network's weights at the small size, the photos' detail at the
+    full one. Pixels whose 2x2 cells spread wider than ``options.edge_spread`` in depth (edges, where a cell's
+    weights belong to another surface) are rendered at full size, guided by the small render's depth. Outputs as
+    :func:`render_guided`'s plus ``upsampled # [H, W]`` (the pixel was blended from the small render). A model whose
+    ``rgb`` is not a blend (no ``colour_weights`` returned) is rendered guided at full size."""
+    flat = dataclasses.replace(options, upsample=1)
+    small = camera.rescaled(1.0 / options.upsample)
+    low = render_guided(model, features, small, flat, chunk, prior, colour_weights=True, **render_kw)
+    if "colour_weights" not in low:
+        return render_guided(model, features, camera, flat, chunk, prior, **render_kw)
+    src = features.sources
+    inverse = src.rig == "forward"
+    H, W, h, w = camera.height, camera.width, small.height, small.width
+    y = ((torch.arange(H) + 0.5) * h / H).floor().long().clamp(0, h - 1)
+    x = ((torch.arange(W) + 0.5) * w / W).floor().long().clamp(0, w - 1)
+    cell = (y[:, None] * w + x[None]).flatten()  # [H W] the small pixel each pixel lies in
+    spread = dataclasses.replace(flat, band=0.0, max_spread=options.edge_spread)
+    edge = torch.isnan(pixel_bands(prior_from_outputs(low, 0.0, use_valid=False).cpu(), H, W, src.near, src.far,
+                                   inverse, spread)[0]).flatten()  # [H W]
+    weights, depths = low.pop("colour_weights"), low.pop("colour_depths")
+    out = {k: v.reshape(h * w, *v.shape[2:])[cell.to(v.device)] for k, v in low.items()
+           if v.dim() <= 3}  # [H W, ...] each: per-pixel outputs (not per-sample ones)
+    rays = Rays.from_image(camera.to(device=src.images.device, dtype=src.images.dtype))
+    cells = cell.to(weights.device)
+    out["rgb"] = out["rgb"].clone()
+    for i in range(0, H * W, chunk):
+        part = slice(i, min(i + chunk, H * W))
+        out["rgb"][part] = blend_sources(src, rays[part], depths.reshape(h * w, -1)[cells[part]],
+                                         weights.reshape(h * w, *weights.shape[2:])[cells[part]])
+    out["upsampled"] = ~edge
+    pixels = edge.nonzero()[:, 0]
     if len(pixels):
-        z = band_depths(lo.flatten()[pixels], hi.flatten()[pixels], src.near, src.far, inverse, options)
-        out = model.render_view(features, camera, chunk, pixels=pixels, depths=z.to(src.images), **render_kw)
-        missed = out["acc"].cpu() < options.min_opacity if "acc" in out else torch.zeros(len(pixels), dtype=torch.bool)
-        has[pixels[missed]] = False  # the band found no surface: the full path there
-        parts[True] = (pixels[~missed], {k: v[~missed.to(v.device)] for k, v in out.items()})
-    pixels = (~has).nonzero()[:, 0]
-    if len(pixels):
-        parts[False] = (pixels, model.render_view(features, camera, chunk, pixels=pixels, **render_kw))
-    return _scatter(parts, H, W)
+        trusted = prior_from_outputs(low, options.min_opacity, use_valid=options.layout != "grid")
+        full = _scatter(_render_pixels(model, features, camera, flat, trusted, pixels, chunk, render_kw), H, W)
+        for k in out:
+            if k in full:
+                v = full[k].reshape(H * W, *full[k].shape[2:])
+                out[k][pixels.to(v.device)] = v[pixels.to(v.device)].to(out[k].dtype)
+    return {k: v.reshape(H, W, *v.shape[1:]) for k, v in out.items()}
+
+
+def blend_sources(sources, rays: Rays, depths: Tensor, weights: Tensor) -> Tensor:
+    """``sum_{s, k} weights[r, s, k] * c_k(x_rs)``: the source images ``c_k`` sampled bilinearly (border padding)
+    where the points ``x_rs`` of ``rays # [R]`` at z-depths ``depths # [R, S]`` land, blended with ``weights # [R,
+    S, K]`` (a model's ``colour_weights``). ``# [R, 3]``"""
+    proj = project(sources.cameras, rays.points(depths.to(rays.origins.dtype)), sources.images.dtype)
+    colours = gather(sources.images.permute(0, 3, 1, 2), proj, "border")  # [R, S, K, 3]
+    return (weights.to(colours.dtype)[..., None] * colours).sum((1, 2))
 
 
 def _scatter(parts: dict[bool, tuple[Tensor, dict[str, Tensor]]], height: int, width: int) -> dict[str, Tensor]:
     """Per-pixel outputs of the guided and full parts (``{guided: (pixels # [M], outputs # [M, ...])}``) into
-    full images ``# [H, W, ...]``; only the keys every part has with the same per-ray shape (not e.g. GPNR's
-    per-sample ``alpha``, whose sample count differs)."""
+    full images ``# [H, W, ...]`` (zero at pixels no part has); only the keys every part has with the same per-ray
+    shape (not e.g. GPNR's per-sample ``alpha``, whose sample count differs), besides ``colour_weights`` and
+    ``colour_depths``, padded to the most samples (zero weight; the last depth repeated)."""
+    parts = {g: (px, _pad_colour(o, max((p["colour_depths"].shape[1] for _, p in parts.values()
+                                        if "colour_depths" in p), default=0)))
+             for g, (px, o) in parts.items()}
     keys = {k for k in set.intersection(*(set(o) for _, o in parts.values()))
             if len({o[k].shape[1:] for _, o in parts.values()}) == 1}
     out = {}
@@ -265,3 +361,14 @@ def _scatter(parts: dict[bool, tuple[Tensor, dict[str, Tensor]]], height: int, w
         guided[parts[True][0]] = True
     out["guided"] = guided.reshape(height, width)
     return out
+
+
+def _pad_colour(out: dict[str, Tensor], samples: int) -> dict[str, Tensor]:
+    """``out`` with ``colour_weights # [M, S, K]`` and ``colour_depths # [M, S]`` padded to ``samples`` (zero
+    weights, the last depth repeated), so that parts rendered with different sample counts scatter together."""
+    if "colour_depths" not in out or out["colour_depths"].shape[1] >= samples:
+        return out
+    z, wt = out["colour_depths"], out["colour_weights"]
+    n = samples - z.shape[1]
+    return {**out, "colour_depths": torch.cat([z, z[:, -1:].expand(-1, n)], 1),
+            "colour_weights": torch.cat([wt, wt.new_zeros(wt.shape[0], n, wt.shape[2])], 1)}

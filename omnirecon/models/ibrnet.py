@@ -244,7 +244,8 @@ class IBRNetFeatures:
 
 
 class IBRNet(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True, passes=True, guided=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, passes=True, guided=True,
+                                colour_weights=True)
 
     def __init__(self, cfg: IBRNetConfig):
         super().__init__()
@@ -276,9 +277,10 @@ class IBRNet(GeneralizableModel):
         return rgb_feat, ray_diff, mask, sig
 
     def _pass(self, net: Aggregator, feats, rays, z, half, signals: Tensor | None = None,
-              stands_for: Tensor | None = None, positions: Tensor | None = None):
+              stands_for: Tensor | None = None, positions: Tensor | None = None, weights_out: bool = False):
         """One pass at depths ``z``; ``stands_for # [R, S]``: trained samples per rendered one (index code and
-        density; None: one each, the trained sampling)."""
+        density; None: one each, the trained sampling). ``weights_out``: add ``colour_weights`` and ``colour_depths``
+        (:class:`~omnirecon.models.base.Capabilities`)."""
         rgb_feat, ray_diff, mask, sig = self._gather(feats, rays, z, half, signals)
         with net_autocast(z.device):
             extra = () if stands_for is None and positions is None else (stands_for, positions)
@@ -291,11 +293,13 @@ class IBRNet(GeneralizableModel):
                "valid": enough, "acc": w.sum(-1)}
         if sig is not None:  # predict-then-blend: the colour blend weights, then the volume weights
             out["signal"] = composite(w, (blend[..., None] * sig).sum(-2))
+        if weights_out:
+            out["colour_weights"], out["colour_depths"] = w[..., None] * blend, z  # [R, S, V], [R, S]
         return out
 
     def render_rays(self, features: IBRNetFeatures, rays: Rays, jitter: bool = False,
                     signals: Tensor | None = None, fine_pass: bool | None = None, surface_samples: int = 0,
-                    depths: Tensor | None = None) -> dict[str, Tensor]:
+                    depths: Tensor | None = None, colour_weights: bool = False) -> dict[str, Tensor]:
         """Coarse then fine pass. ``signals # [V, H, W, C]`` (optional, per-source-view 2-D maps): also
         return ``signal # [R, C]``, the maps blended with the final pass's colour blend weights and
         composited with its volume weights, exactly as ``rgb`` (predict-then-blend; not normalised by
@@ -303,10 +307,11 @@ class IBRNet(GeneralizableModel):
         output outside training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: the fine pass).
         ``depths # [R, S]``: one pass at these sample z-depths with the fine network (the coarse one when
         ``fine_pass`` is False), their density as trained and their index code at :func:`trained_positions`
-        (surface-guided rendering, :mod:`omnirecon.models.guided`)."""
+        (surface-guided rendering, :mod:`omnirecon.models.guided`). ``colour_weights``: add the final pass's
+        ``colour_weights`` and ``colour_depths`` (:class:`~omnirecon.models.base.Capabilities`)."""
         cfg = self.cfg
         if depths is not None:
-            return self._guided(features, rays, depths, signals, fine_pass is False)
+            return self._guided(features, rays, depths, signals, fine_pass is False, colour_weights)
         nc, nf = cfg.coarse_samples, cfg.fine_samples
         if is_rendering() and not jitter:  # the checkpoint's render counts (fewer samples standing for the trained)
             nc, nf = cfg.render_coarse_samples or nc, cfg.render_fine_samples or nf
@@ -314,8 +319,9 @@ class IBRNet(GeneralizableModel):
         fine_net = self.fine if fine_pass is not False or jitter else None  # False: depth maps from the coarse pass
         fewer = (nc, nf) != (cfg.coarse_samples, cfg.fine_samples)  # rendered samples stand for the trained ones
         coarse = self._pass(self.coarse, features, rays, z, 0, signals if fine_net is None else None,
-                            torch.full_like(z, cfg.coarse_samples / nc) if fewer else None)
-        out = {f"{k}_coarse": v for k, v in coarse.items()}
+                            torch.full_like(z, cfg.coarse_samples / nc) if fewer else None,
+                            weights_out=colour_weights and fine_net is None)
+        out = {f"{k}_coarse": v for k, v in coarse.items() if not k.startswith("colour_")}
         if fine_net is None:
             return {**out, **{k: v for k, v in coarse.items() if k not in ("weights", "z")}}
         stands_for = None
@@ -324,16 +330,16 @@ class IBRNet(GeneralizableModel):
             stands_for = torch.where(from_coarse, cfg.coarse_samples / nc, cfg.fine_samples / nf).to(z.dtype)
         else:
             z_fine = fine_depths(z, coarse["weights"], nf, jitter, surface_samples)
-        fine = self._pass(self.fine, features, rays, z_fine, 1, signals, stands_for)
+        fine = self._pass(self.fine, features, rays, z_fine, 1, signals, stands_for, weights_out=colour_weights)
         out.update({k: v for k, v in fine.items() if k not in ("weights", "z")})
         out["valid"] = fine["valid"] & coarse["valid"]
         return out
 
     def _guided(self, features: IBRNetFeatures, rays: Rays, z: Tensor, signals: Tensor | None,
-                coarse: bool) -> dict[str, Tensor]:
+                coarse: bool, weights_out: bool = False) -> dict[str, Tensor]:
         """One pass at the caller's z-depths ``z # [R, S]`` (the fine network unless ``coarse`` or there is none)."""
         net, half = (self.coarse, 0) if coarse or self.fine is None else (self.fine, 1)
         out = self._pass(net, features, rays, z, half, signals, positions=trained_positions(
-            z, features.sources, self.cfg.coarse_samples, 0 if coarse else self.cfg.fine_samples))
+            z, features.sources, self.cfg.coarse_samples, 0 if coarse else self.cfg.fine_samples), weights_out=weights_out)
         return {**{f"{k}_coarse": v for k, v in out.items() if k in ("rgb", "depth")},
                 **{k: v for k, v in out.items() if k not in ("weights", "z")}}

@@ -400,7 +400,8 @@ def nearest_sources(sources: Sources, camera: Cameras, n: int) -> Tensor:
 
 
 class OmniRecon(GeneralizableModel):
-    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True, guided=True)
+    capabilities = Capabilities(depth=True, signals=True, jitter=True, appearance=True, passes=True, guided=True,
+                                colour_weights=True)
 
     def __init__(self, cfg: OmniReconConfig):
         super().__init__()
@@ -445,7 +446,8 @@ class OmniRecon(GeneralizableModel):
     def render_view(self, features: OmniReconFeatures, camera: Cameras, chunk: int = 4096,
                     signals: Tensor | None = None, **kw) -> dict[str, Tensor]:
         """:meth:`GeneralizableModel.render_view`, from the ``cfg.render_views`` sources nearest ``camera`` when
-        there are more (outside training; ``blend`` keeps one channel per given source, zero for the dropped)."""
+        there are more (outside training; ``blend`` and ``colour_weights`` keep one channel per given source, zero for the
+        dropped)."""
         src, n = features.sources, self.cfg.render_views
         if not n or self.training or len(src.cameras) <= n:
             return super().render_view(features, camera, chunk, signals, **kw)
@@ -453,9 +455,12 @@ class OmniRecon(GeneralizableModel):
         with grad_mode():
             sub = self.encode(Sources(src.images[keep], src.cameras[keep], src.near, src.far, src.rig, src.bounds))
         out = super().render_view(sub, camera, chunk, None if signals is None else signals[keep], **kw)
-        blend = out["blend"].new_zeros(*out["blend"].shape[:-1], len(src.cameras))  # [..., K]
-        blend[..., keep] = out["blend"]
-        return {**out, "blend": blend}
+        wide = {}
+        for key in ("blend", "colour_weights"):  # one channel per given source, zero for the dropped
+            if key in out:
+                wide[key] = out[key].new_zeros(*out[key].shape[:-1], len(src.cameras))  # [..., K]
+                wide[key][..., keep] = out[key]
+        return {**out, **wide}
 
     # ------------------------------------------------------------------ per-sample inputs
     def gather(self, features: OmniReconFeatures, points: Tensor, origins: Tensor) -> PointSamples:
@@ -505,10 +510,11 @@ class OmniRecon(GeneralizableModel):
         return gather(signals.permute(0, 3, 1, 2).to(points.dtype), project(features.sources.cameras, points), "border")
 
     def _pass(self, features: OmniReconFeatures, rays: Rays, z: Tensor,
-              signals: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
+              signals: Tensor | None = None, weights_out: bool = False) -> tuple[dict[str, Tensor], Tensor]:
         """One pass at sample z-depths ``z # [R, S]``: outputs and the per-sample ``omega # [R, S, K]``.
         With ``signals # [K, H, W, C]`` the outputs add ``signal # [R, C]``: the maps blended with ``omega``
-        and composited with ``w``, exactly as ``rgb`` (predict-then-blend)."""
+        and composited with ``w``, exactly as ``rgb`` (predict-then-blend). ``weights_out``: they add ``colour_weights``
+        and ``colour_depths`` (:class:`~omnirecon.models.base.Capabilities`)."""
         t = rays.distances(z)  # [R, S]
         points = rays.points(z)  # [R, S, 3]
         samples = self.gather(features, points, rays.origins)
@@ -533,11 +539,14 @@ class OmniRecon(GeneralizableModel):
                "blend": (w[..., None] * omega).sum(1), "acc": w.sum(-1), "valid": valid}
         if signals is not None:
             out["signal"] = composite(w_col, (omega[..., None] * self.sample_signals(features, points, signals)).sum(-2))
+        if weights_out:
+            out["colour_weights"], out["colour_depths"] = w_col[..., None] * omega, z  # [R, S, K], [R, S]
         return out, omega
 
     def render_rays(self, features: OmniReconFeatures, rays: Rays, jitter: bool = False,
                     return_samples: bool = False, signals: Tensor | None = None, fine_pass: bool | None = None,
-                    surface_samples: int = 0, depths: Tensor | None = None) -> dict[str, Tensor]:
+                    surface_samples: int = 0, depths: Tensor | None = None,
+                    colour_weights: bool = False) -> dict[str, Tensor]:
         """Coarse pass, then the fine pass on the coarse + importance samples (see the module docstring for
         the outputs). ``depths # [R, S]``: one pass at these sample z-depths instead (surface-guided rendering,
         :mod:`omnirecon.models.guided`; ``rgb_coarse`` and ``depth_coarse`` are that pass's). ``jitter``:
@@ -545,18 +554,19 @@ class OmniRecon(GeneralizableModel):
         ``signals # [K, H, W, C]`` (per-source-view 2-D maps, optional) adds ``signal # [R, C]`` from the
         final pass: predict-then-blend with the RGB weights (not normalised by ``acc``; see
         :mod:`omnirecon.lift.blend`). ``fine_pass`` and ``surface_samples`` change the output outside
-        training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: ``cfg.render_fine_pass``)."""
+        training (:class:`~omnirecon.models.base.Capabilities` ``passes``; None: ``cfg.render_fine_pass``).
+        ``colour_weights``: add the final pass's ``colour_weights`` and ``colour_depths`` (``Capabilities``)."""
         cfg = self.cfg
         z = coarse_depths(features.sources, rays, cfg.coarse_samples, jitter) if depths is None else depths  # [R, S]
         fine_pass = cfg.render_fine_pass if fine_pass is None else fine_pass
         # fine_pass=False: coarse depth maps; depths: the caller's samples, one pass
         coarse_only = depths is not None or cfg.fine_samples == 0 or not (fine_pass or jitter)
-        coarse, omega = self._pass(features, rays, z, signals if coarse_only else None)
+        coarse, omega = self._pass(features, rays, z, signals if coarse_only else None, colour_weights and coarse_only)
         if coarse_only:
             out = dict(coarse)
         else:
             z_fine = fine_depths(z, coarse["weights"], cfg.fine_samples, jitter, surface_samples)
-            out, omega = self._pass(features, rays, z_fine, signals)
+            out, omega = self._pass(features, rays, z_fine, signals, colour_weights)
             out["valid"] = out["valid"] & coarse["valid"]
         out["rgb_coarse"], out["depth_coarse"] = coarse["rgb"], coarse["depth"]
         if return_samples:
