@@ -23,7 +23,10 @@ def section(results: Path) -> str:
         "over the band (`8 + 4, band 0.03`) or on the full path's own sample grid (`grid 3 + 9 of 32`: the 3 grid "
         "points nearest the prior besides 9 spread over the ray); rays without a trusted prior take the full path; "
         "the prior's render counts in the guided time; layout, band and guard per model family: "
-        "`omnirecon.models.guided.FAMILY_DEFAULTS`, listed per row). CPU seconds: process time of the render (the "
+        "`omnirecon.models.guided.FAMILY_DEFAULTS`, listed per row; `at 1/2 size`: `--guided.upsample 2`, the view "
+        "rendered so at half its width and height, each full-size pixel then blending the source photos at its own "
+        "ray's points with the colour weights of the small pixel it lies in, and pixels on depth edges rendered at "
+        "full size: *upsampled* is their share of pixels blended from the small render). CPU seconds: process time of the render (the "
         "encode apart) at the run's torch threads (one unless the run says two), on a 2-core machine that may be "
         "shared with other jobs (1-minute load average in the last column); runs at two threads also give the wall "
         "seconds of the encode and of each render. PSNR in dB against the ground truth; 'guided vs full': PSNR of the guided render against the full "
@@ -87,6 +90,9 @@ def layout(o: dict) -> str:
     """A row's resolved sampling: ``8 + 4, band 0.03`` (band layout; rows from before the layouts have no key) or
     ``grid 3 + 9 of 32`` (the band's and the guards' samples on the full path's 32-point grid)."""
     prior = f", prior 1/{o['prior_scale']}" if o.get("prior_scale", 4) != 4 else ""
+    if o.get("upsample", 1) > 1:
+        prior += f", at 1/{o['upsample']} size" + (f", edges {o['edge_spread']}" if o.get("edge_spread", 0.2) != 0.2
+                                                  else "")
     if o.get("layout", "band") == "grid":
         return f"grid {o['band_samples']} + {o['guard_samples']} of {o['grid_samples']}{prior}"
     return f"{o['band_samples']} + {o['guard_samples']}, band {o['band']}{prior}"
@@ -95,17 +101,20 @@ def layout(o: dict) -> str:
 def block(r: dict) -> str:
     """One run's table with its provenance."""
     wall = r.get("threads", 1) > 1
+    up = any(x.get("upsampled_share") for x in r["rows"])
     rows = ["| model | scene | size | setting | full CPU s | guided CPU s | speed-up | PSNR full | PSNR guided | "
-            "guided - full | guided vs full | pixels guided | load (1 min) |" +
+            "guided - full | guided vs full | pixels guided |" + (" upsampled |" if up else "") + " load (1 min) |" +
             (" encode wall s | full wall s | guided wall s |" if wall else ""),
-            "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|---:|---:|" if wall else "")]
+            "|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if up else "") +
+            ("---:|---:|---:|" if wall else "")]
     for x in r["rows"]:
         o = x["options"]
         setting = (", ".join(f"{k}={v}" for k, v in x["setting"].items()) or "defaults") + f" ({layout(o)})"
         rows.append(f"| {x['model']} | {x['scene']} | {x['size'][0]}x{x['size'][1]} | {setting} | "
                     f"{x['full_cpu_s']:.1f} | {x['guided_cpu_s']:.1f} | {x['speedup']:.2f}x | {x['psnr_full']:.2f} | "
                     f"{x['psnr_guided']:.2f} | {x['dpsnr']:+.2f} | {x['psnr_guided_vs_full']:.1f} | "
-                    f"{100 * x['guided_share']:.0f} % | {x['loadavg'][0]:.1f} |" +
+                    f"{100 * x['guided_share']:.0f} % |" + (f" {100 * x.get('upsampled_share', 0):.0f} % |" if up else "") +
+                    f" {x['loadavg'][0]:.1f} |" +
                     (f" {x['encode_wall_s']:.1f} | {x['full_wall_s']:.1f} | {x['guided_wall_s']:.1f} |" if wall else ""))
     threads = f", {r['threads']} torch threads" if wall else ""
     note = f" {r['note']}" if r.get("note") else ""

@@ -142,7 +142,7 @@ class VGG16Trunk(nn.Module):
             if i > 0:
                 x = F.max_pool2d(x, 2, 2, ceil_mode=True)  # Keras "same" pooling
             for conv in convs:
-                x = F.relu(conv(x))
+                x = F.relu(conv(x), inplace=True)  # on the convolution's own new output: no second full-size map
             outs.append(x)
         return outs
 
