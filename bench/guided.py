@@ -90,14 +90,11 @@ def measure(model_name: str, scene_name: str, scene, target: int, sources: list[
     """Rows of ``model_name`` on one view: the full path once, then each setting (with ``figures``: the first one's
     ground truth | full | guided picture into that folder)."""
     from omnirecon.engine.checkpoint import folder_for_size, load_checkpoint
-    from omnirecon.engine.machine import weights_side
     from omnirecon.models.guided import GuidedOptions, render_guided
     from omnirecon.rays import Sources
 
-    # the weights `render --guided.on` loads (a guided render keeps a checkpoint's own: weights_side), for both rows:
-    # the guided cost measured on one set of weights
-    side = weights_side(max(cam.width, cam.height), GuidedOptions(on=True))
-    folder = folder_for_size(ROOT / "checkpoints" / model_name, side)
+    # the weights `render` loads at this size (trained nearest it), for both rows: the guided cost on one set of weights
+    folder = folder_for_size(ROOT / "checkpoints" / model_name, max(cam.width, cam.height))
     model, meta = load_checkpoint(folder)
     model.eval()
     enc_s, enc_wall, feats = timed(lambda: model.encode(Sources.from_scene(scene, sources)))

@@ -44,12 +44,11 @@ def scenes(tiny: bool, protocol_set: str = "cpu", only: list[str] | None = None)
     return real if protocol_set != "cpu" else ["synth:eval", *real]
 
 
-def result_name(protocol_set: str, model_name: str, guided: bool = False, sized: bool = False) -> str:
-    """``quality_<model>.json`` for the ``cpu`` set, ``quality_<set>[_guided[_sized]]_<model>.json`` otherwise
-    (``sized``: guided with the weights of the set's size, :func:`run`)."""
+def result_name(protocol_set: str, model_name: str, guided: bool = False) -> str:
+    """``quality_<model>.json`` for the ``cpu`` set, ``quality_<set>[_guided]_<model>.json`` otherwise."""
     if protocol_set == "cpu" and not guided:
         return f"quality_{model_name}.json"
-    return f"quality_{protocol_set}{'_guided' if guided else ''}{'_sized' if guided and sized else ''}_{model_name}.json"
+    return f"quality_{protocol_set}{'_guided' if guided else ''}_{model_name}.json"
 
 
 def load(model_name: str, long_side: int | None = None):
@@ -67,22 +66,19 @@ def load(model_name: str, long_side: int | None = None):
 
 
 def run(model_name: str, out_dir: Path, tiny: bool, threads: int, protocol_set: str = "cpu", guided: bool = False,
-        ks: tuple[int, ...] | None = None, only: list[str] | None = None, guided_options: dict | None = None,
-        sized: bool = False) -> dict:
+        ks: tuple[int, ...] | None = None, only: list[str] | None = None, guided_options: dict | None = None) -> dict:
     """Score ``model_name`` under every set of ``SETS[protocol_set]``, each merged into its results file (:func:`save`);
     returns the last set's file. ``guided_options``: ``GuidedOptions`` fields over the family defaults (``guided``).
-    The weights: those ``eval`` loads (``omnirecon.engine.machine.weights_side``: a guided render the checkpoint's
-    own); ``sized``: guided with the weights trained nearest the set's size, as the full path loads them."""
+    The weights: those ``eval`` loads (trained nearest the set's size, full path or guided)."""
     from omnirecon.engine.evaluate import evaluate
-    from omnirecon.engine.machine import weights_side
     from omnirecon.engine.protocols import set_long_side
     from omnirecon.models.guided import GuidedOptions
 
     torch.set_num_threads(threads)
-    model, info = load(model_name, weights_side(set_long_side(SETS[protocol_set][0]), GuidedOptions(on=guided and not sized)))
+    model, info = load(model_name, set_long_side(SETS[protocol_set][0]))
     ks = ks or ((3,) if tiny else (3, 10))
     for pset in SETS[protocol_set]:
-        name = result_name(pset, model_name, guided, sized)
+        name = result_name(pset, model_name, guided)
         result = evaluate(model, scenes(tiny, protocol_set, only), ks, ROOT / "outputs" / "bench" / f"eval_{name[8:-5]}",
                           model_info=info, synth_count=1 if tiny else 10, protocol_set=pset,
                           max_targets=1 if tiny else None, cache=ROOT / "outputs" / "cache", progress=not tiny,
@@ -167,13 +163,11 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--guided-options", type=json.loads, default=None,
                    help='with --guided: GuidedOptions fields over the family defaults, a JSON object, e.g. '
                         '\'{"prior_scale": 8}\' (recorded with the results; use another --out to keep the defaults\' file)')
-    p.add_argument("--sized", action="store_true", help="with --guided: the weights the full path loads at the set's "
-                   "size (a checkpoint's sizes/256/) instead of its own, into quality_<set>_guided_sized_<model>.json")
     p.add_argument("--ks", type=int, nargs="+", default=None, help="source-view counts (default: 3 and 10)")
     p.add_argument("--scenes", nargs="+", default=None, help="only these real scenes (fern, dtu_scan24, ...)")
     p.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     a = p.parse_args(argv)
     for m in a.models:
         r = run(m, a.out, a.tiny, a.threads, a.protocol_set, a.guided, tuple(a.ks) if a.ks else None, a.scenes,
-                a.guided_options, a.sized)
+                a.guided_options)
         print(m, {proto: {k: round(v.get("psnr", float("nan")), 2) for k, v in ks.items()} for proto, ks in r["means"].items()})

@@ -167,7 +167,7 @@ def at_256(results: Path, rows64: dict) -> list[str]:
             cells += [_cell(r64, f64), _cell(r256, f256) + (" `guided`" if only_guided else "")]
         out.append(f"| {n} | " + " | ".join(cells) + " |")
     return out + [""] + weights_256(results) + goals_256(rows, names) + guided_256(results) + \
-        guided_256(results, "_guided_sized") + cost_256(results) + \
+        cost_256(results) + \
         provenance_256(full, guided)
 
 
@@ -230,8 +230,7 @@ def goals_256(rows: dict, names: list[str]) -> list[str]:
 
 
 def guided_256(results: Path, tag: str = "_guided") -> list[str]:
-    """Full against surface-guided sampling (``--guided``; ``tag="_guided_sized"``: with the weights of the set's
-    size, ``--guided --sized``) on the rows scored both ways with the same weights, K = 3."""
+    """Full against surface-guided sampling (``--guided``) on the rows scored both ways with the same weights, K = 3."""
     full, guided = _rows_256(results, ""), _rows_256(results, tag)
 
     def weights(m: str, n: str, tag: str) -> str | None:  # the fingerprint of the weights a row was scored with
@@ -243,10 +242,8 @@ def guided_256(results: Path, tag: str = "_guided") -> list[str]:
     if not pairs:
         return []
     out = ["**Surface-guided at 256 px** (`--guided`, each model family's default layout; the PSNR cost of guided "
-           "rendering on the rows scored both ways with the same weights: guided renders load a checkpoint's own "
-           "weights, not its `sizes/256/`), K = 3:" if tag == "_guided" else
-           "**Surface-guided with the 256-px weights** (`python -m bench quality --protocol-set cpu256 --ks 3 --guided "
-           "--sized`: why a guided render keeps a checkpoint's own weights), K = 3:", "", "| model | scene | full | guided | guided - full |",
+           "rendering on the rows scored both ways with the same weights: both load the weights trained nearest the "
+           "size, a checkpoint's `sizes/256/` where it has them), K = 3:", "", "| model | scene | full | guided | guided - full |",
            "|---|---|---|---|---|"]
     for m, n in pairs:
         a, g = full[m][n]["3"]["psnr"], guided[m][n]["3"]["psnr"]

@@ -14,7 +14,6 @@ from omnirecon.engine.machine import (
     load_model,
     pick_device,
     set_threads,
-    weights_side,
 )
 from omnirecon.engine.protocols import SYNTH_PREFIX, set_long_side
 from omnirecon.options import OutFolder, SceneCache, SynthCount, command_defaults
@@ -64,7 +63,7 @@ class EvalCommand(GuidedRendering, SceneCache, SynthCount, OutFolder, ModelChoic
             set_threads(self.threads)
             device = pick_device(self.device)
             net, info = load_model(self.ckpt, self.model, device,
-                                   long_side=weights_side(set_long_side(self.protocol_set), self.guided))
+                                   long_side=set_long_side(self.protocol_set))
             result = evaluate(net, list(self.scenes), self.num_views, c.work, model_info=info, chunk=self.chunk,
                               device=device, max_targets=self.max_targets, synth_count=self.synth_count,
                               cache=self.cache, save_images=self.save_images, protocol_set=self.protocol_set,

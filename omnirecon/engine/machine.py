@@ -43,14 +43,6 @@ def load_model(ckpt: Path | None, model: str | None, device: str = "cpu", long_s
     return net.eval(), info
 
 
-def weights_side(long_side: int | None, guided: GuidedOptions | None = None) -> int | None:
-    """The long side (px) to choose a checkpoint's weights by (:func:`load_model`): ``long_side`` for renders on the
-    full path; None (the checkpoint's own weights) for surface-guided ones, whose per-family layouts
-    (``omnirecon.models.guided.FAMILY_DEFAULTS``) were chosen with the own weights and lost much more with ibrnet-tiny's
-    256-px weights (BENCHMARKS "Novel-view quality", "Surface-guided with the 256-px weights")."""
-    return None if guided is not None and guided.on else long_side
-
-
 def set_threads(threads: int | None) -> None:
     """Set torch's CPU thread count (``None`` keeps it)."""
     if threads is not None:

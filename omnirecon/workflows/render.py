@@ -30,7 +30,6 @@ from omnirecon.engine.machine import (
     load_model,
     pick_device,
     set_threads,
-    weights_side,
 )
 from omnirecon.engine.scenes import load_at_resolution
 from omnirecon.engine.views import select_sources, view_metric
@@ -140,8 +139,8 @@ def run_render(cfg: RenderConfig) -> tuple[Path, Path | None]:
     set_threads(cfg.threads)
     device = pick_device(cfg.device)
     scene = load_at_resolution(cfg.scene, cfg.resolution)
-    side = weights_side(max(scene.width, scene.height), cfg.guided)  # the weights trained nearest the render's size
-    net, info = load_model(cfg.ckpt, cfg.model, device, long_side=side)
+    # the weights trained nearest the render's size, full path or surface-guided
+    net, info = load_model(cfg.ckpt, cfg.model, device, long_side=max(scene.width, scene.height))
     options = render_levers(net, info, cfg)
     if cfg.num_views > len(scene):
         raise InputError(f"--num-views {cfg.num_views} but the scene has {len(scene)} views", cfg.scene,

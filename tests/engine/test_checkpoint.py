@@ -43,13 +43,3 @@ def test_load_model_takes_the_weights_trained_nearest_the_render_size(tmp_path):
         net, info = load_model(tmp_path / "ck", None, long_side=side)
         assert info["step"] == step, side
     assert info["checkpoint"] == str(tmp_path / "ck" / "sizes" / "256") and info["trained_long_side"] == 256
-
-
-def test_a_guided_render_chooses_the_own_weights():
-    """``weights_side``: the full path picks weights by the render's size, a surface-guided render keeps the
-    checkpoint's own (its family layouts were chosen with them)."""
-    from omnirecon.engine.machine import weights_side
-    from omnirecon.models.guided import GuidedOptions
-
-    assert weights_side(256) == 256 and weights_side(256, GuidedOptions()) == 256
-    assert weights_side(256, GuidedOptions(on=True)) is None
