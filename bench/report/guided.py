@@ -59,8 +59,8 @@ GOAL_SIZE, GOAL_WALL_S, GOAL_DB = (504, 378), 10.0, 0.3
 
 
 def goal_lines(runs: list[dict]) -> list[str]:
-    """Per model, the issue-47 goal against the 2-thread runs' 504x378 rows at the family defaults: the newest row's
-    options, and every run's row at those same options (wall seconds of the encode + the guided render, and guided -
+    """Per model (and per weights where its rows used several), the issue-47 goal against the 2-thread runs' 504x378
+    rows at the family defaults: the newest row's options, and every run's row at those same options (wall seconds of the encode + the guided render, and guided -
     full PSNR in dB; the machine's speed drifts between runs, so each run counts)."""
     rows: dict[str, list[dict]] = {}
     for r in runs:
@@ -68,13 +68,13 @@ def goal_lines(runs: list[dict]) -> list[str]:
             continue
         for x in r["rows"]:
             if tuple(x["size"]) == GOAL_SIZE and not x["setting"] and "guided_wall_s" in x:
-                rows.setdefault(x["model"], []).append({**x, "date": r["provenance"].get("date", "")})
+                rows.setdefault((x["model"], x.get("weights", "")), []).append({**x, "date": r["provenance"].get("date", "")})
     if not rows:
         return []
     out = [f"**Goal** (issue 47: a {GOAL_SIZE[0]}x{GOAL_SIZE[1]} view in <= {GOAL_WALL_S:g} s on 2 cores, surface-"
            f"guided, within {GOAL_DB} dB of the full render), from the 2-thread rows at the family defaults (wall "
            f"seconds of the encode + the guided render; every run at the newest row's options):", ""]
-    for m, xs in sorted(rows.items()):
+    for (m, weights), xs in sorted(rows.items()):
         newest = max(xs, key=lambda x: x["date"])
         same = sorted((x for x in xs if x["options"] == newest["options"]), key=lambda x: x["date"])
         walls = [x["encode_wall_s"] + x["guided_wall_s"] for x in same]
@@ -82,7 +82,8 @@ def goal_lines(runs: list[dict]) -> list[str]:
         shown = ", ".join(f"{w:.1f} s (full path {x['full_wall_s']:.1f} s, {x['dpsnr']:+.2f} dB, load "
                           f"{x['loadavg'][0]:.1f})" for w, x in zip(walls, same))
         verdict = "met" if met == len(same) else "short" if not met else f"met in {met} of {len(same)} runs"
-        out.append(f"- {m} ({layout(newest['options'])}): {shown} ({verdict})")
+        own = f"{weights.split(' step')[0]}, " if sum(k[0] == m for k in rows) > 1 else ""
+        out.append(f"- {m} ({own}{layout(newest['options'])}): {shown} ({verdict})")
     return out + [""]
 
 
