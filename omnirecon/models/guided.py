@@ -87,6 +87,11 @@ class GuidedOptions:
     rendered by the model at full size (guided, the small render's depth its prior). 1: off. Models without
     ``capabilities.colour_weights``, or whose ``rgb`` is not a blend of the source colours, render at full size.
     None: the model family's value in :data:`FAMILY_DEFAULTS`."""
+    small_path: Literal["guided", "full"] | None = None
+    """With ``upsample``: how the small view is rendered: guided (its own prior at ``1 / prior_scale`` of the small
+    size) or on the model's full path (every sample the checkpoint renders with, at ``1 / upsample ** 2`` of the
+    rays: for weights whose full path takes many samples that a band does not replace). None: the model family's
+    value in :data:`FAMILY_DEFAULTS`."""
     edge_spread: float = 0.2
     """With ``upsample``: a pixel whose 2x2 small-render cells (their depth divided by their opacity) spread wider
     than this fraction of the near-far range (sampling parameter) is rendered at full size. Smaller values render
@@ -117,13 +122,13 @@ class GuidedOptions:
 
 FAMILY_DEFAULTS: dict[str, dict] = {
     "GPNR": {"layout": "band", "band_samples": 8, "guard_samples": 4, "band": 0.03, "grid_samples": 32,
-             "prior_scale": 4, "upsample": 2},
+             "prior_scale": 4, "upsample": 2, "small_path": "guided"},
     "IBRNet": {"layout": "band", "band_samples": 24, "guard_samples": 8, "band": 0.06, "grid_samples": 32,
-               "prior_scale": 4, "upsample": 2},
+               "prior_scale": 4, "upsample": 3, "small_path": "full"},
     "OmniRecon": {"layout": "grid", "band_samples": 3, "guard_samples": 9, "band": 0.01, "grid_samples": 32,
-                  "prior_scale": 8, "upsample": 2},
+                  "prior_scale": 8, "upsample": 2, "small_path": "guided"},
     "other": {"layout": "band", "band_samples": 16, "guard_samples": 8, "band": 0.03, "grid_samples": 32,
-              "prior_scale": 4, "upsample": 1},
+              "prior_scale": 4, "upsample": 1, "small_path": "guided"},
 }
 """Layout, band, guard, prior size and upsampling per model class, chosen on the shipped tiny checkpoints:
 candidates from the sweep rows of ``python -m bench guided`` (fern at 336x252 and the procedural forward scene at
@@ -138,8 +143,11 @@ the ray: in a narrow band it drew another surface than its full path on the proc
 samples of its grid it tore a 256-px fox view into ghosts; with 9 guards and 3 band samples it stays closest to its
 full path on the protocol rows for less CPU than the band layout, and a prior at 1/8 size costs a quarter of one at
 1/4 and moves the rows by less than their spread. ``upsample`` 2 (the network at a quarter of the rays, the photos
-blended at full size) cost the three models no PSNR against their guided renders at full size on the sweep scenes
-at a third of their time or less; 3 saved little more. Off by default: a render option with its cost measured, not a
+blended at full size) cost GPNR and Omni-Recon no PSNR against their guided renders at full size on the sweep scenes
+at a third of their time or less; 3 saved little more. ibrnet-tiny renders at 256 px and above with its 256-px
+weights, whose full path takes 32 + 16 samples: every band layout tried (up to 32 + 16) drew the procedural scene
+far below that full path, while its full path at a third of the size, blended at full size, stayed close to it on
+both sweep scenes (``small_path`` ``full``, ``upsample`` 3; at half the size it took longer than the goal). Off by default: a render option with its cost measured, not a
 bit-exact fast path."""
 
 
@@ -296,7 +304,11 @@ def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, c
     ``rgb`` is not a blend (no ``colour_weights`` returned) is rendered guided at full size."""
     flat = dataclasses.replace(options, upsample=1)
     small = camera.rescaled(1.0 / options.upsample)
-    low = render_guided(model, features, small, flat, chunk, prior, colour_weights=True, **render_kw)
+    if options.small_path == "full":
+        low = {**model.render_view(features, small, chunk, colour_weights=True, **render_kw),
+               "guided": torch.zeros(small.height, small.width, dtype=torch.bool)}
+    else:
+        low = render_guided(model, features, small, flat, chunk, prior, colour_weights=True, **render_kw)
     if "colour_weights" not in low:
         return render_guided(model, features, camera, flat, chunk, prior, **render_kw)
     src = features.sources
