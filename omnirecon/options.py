@@ -160,6 +160,7 @@ RULES: dict[str, Rule] = {
     "guided.grid_samples": Rule(2, 1024, example="e.g. 32"),
     "guided.max_spread": FRACTION, "guided.min_opacity": FRACTION,
     "guided.upsample": Rule(1, 16, example="e.g. 2"), "guided.edge_spread": FRACTION,
+    "guided.colour_samples": Rule(1, 1024, example="e.g. 8"),
     "pet.options.steps": Rule(0, 1_000_000_000, example="e.g. 40"), "options.rank": Rule(1, 1024, example="e.g. 4"),
     "options.alpha": Rule(0, 1e6, above=True, example="e.g. 4"), "options.min_weight": FRACTION,
     # procedural scenes

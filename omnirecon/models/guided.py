@@ -92,6 +92,10 @@ class GuidedOptions:
     size) or on the model's full path (every sample the checkpoint renders with, at ``1 / upsample ** 2`` of the
     rays: for weights whose full path takes many samples that a band does not replace). None: the model family's
     value in :data:`FAMILY_DEFAULTS`."""
+    colour_samples: int | None = None
+    """With ``upsample``: each small cell keeps this many of its samples, those with the most colour weight (its
+    total weight kept), and each full-size pixel blends the colours of its 4 nearest cells' samples bilinearly. None:
+    the model family's value in :data:`FAMILY_DEFAULTS`."""
     edge_spread: float = 0.2
     """With ``upsample``: a pixel whose 2x2 small-render cells (their depth divided by their opacity) spread wider
     than this fraction of the near-far range (sampling parameter) is rendered at full size. Smaller values render
@@ -122,13 +126,13 @@ class GuidedOptions:
 
 FAMILY_DEFAULTS: dict[str, dict] = {
     "GPNR": {"layout": "band", "band_samples": 8, "guard_samples": 4, "band": 0.03, "grid_samples": 32,
-             "prior_scale": 4, "upsample": 2, "small_path": "guided"},
+             "prior_scale": 4, "upsample": 2, "small_path": "guided", "colour_samples": 8},
     "IBRNet": {"layout": "band", "band_samples": 24, "guard_samples": 8, "band": 0.06, "grid_samples": 32,
-               "prior_scale": 4, "upsample": 3, "small_path": "full"},
+               "prior_scale": 4, "upsample": 3, "small_path": "full", "colour_samples": 16},
     "OmniRecon": {"layout": "grid", "band_samples": 3, "guard_samples": 9, "band": 0.01, "grid_samples": 32,
-                  "prior_scale": 8, "upsample": 2, "small_path": "guided"},
+                  "prior_scale": 8, "upsample": 2, "small_path": "guided", "colour_samples": 8},
     "other": {"layout": "band", "band_samples": 16, "guard_samples": 8, "band": 0.03, "grid_samples": 32,
-              "prior_scale": 4, "upsample": 1, "small_path": "guided"},
+              "prior_scale": 4, "upsample": 1, "small_path": "guided", "colour_samples": 8},
 }
 """Layout, band, guard, prior size and upsampling per model class, chosen on the shipped tiny checkpoints:
 candidates from the sweep rows of ``python -m bench guided`` (fern at 336x252 and the procedural forward scene at
@@ -147,7 +151,10 @@ blended at full size) cost GPNR and Omni-Recon no PSNR against their guided rend
 at a third of their time or less; 3 saved little more. ibrnet-tiny renders at 256 px and above with its 256-px
 weights, whose full path takes 32 + 16 samples: every band layout tried (up to 32 + 16) drew the procedural scene
 far below that full path, while its full path at a third of the size, blended at full size, stayed close to it on
-both sweep scenes (``small_path`` ``full``, ``upsample`` 3; at half the size it took longer than the goal). Off by default: a render option with its cost measured, not a
+both sweep scenes (``small_path`` ``full``, ``upsample`` 3; at half the size it took longer than the goal).
+Mixing the 4 nearest cells bilinearly instead of taking the one a pixel lies in came closer to the full render on
+every sweep row; of each cell's samples, the 8 strongest lost nothing against all of them for GPNR and Omni-Recon
+(12 samples each) at less CPU, while IBRNet's 48 spread their weight wider and need more. Off by default: a render option with its cost measured, not a
 bit-exact fast path."""
 
 
@@ -296,9 +303,10 @@ def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, c
     """Surface-guided rendering at ``1 / options.upsample`` size, blended at full size (resolved ``options``; the
     model has ``capabilities.colour_weights``). The small view is rendered by :func:`render_guided` (``prior``, if
     given, guides it); each full-size pixel takes the small render's outputs at the cell it lies in, and its
-    ``rgb`` blends the source colours at its own ray's points with that cell's ``colour_weights`` at its
-    ``colour_depths`` (:func:`blend_sources`): the network's weights at the small size, the photos' detail at the
-    full one. Pixels whose 2x2 cells spread wider than ``options.edge_spread`` in depth (edges, where a cell's
+    ``rgb`` is the bilinear mix, over the 4 cells nearest it (:func:`bilinear_cells`), of the source colours at its
+    own ray's points blended with each cell's ``colour_weights`` at its ``colour_depths`` (the
+    ``options.colour_samples`` strongest: :func:`strongest_samples`; :func:`blend_sources`): the network's weights
+    at the small size, the photos' detail at the full one. Pixels whose 2x2 cells spread wider than ``options.edge_spread`` in depth (edges, where a cell's
     weights belong to another surface) are rendered at full size, guided by the small render's depth. Outputs as
     :func:`render_guided`'s plus ``upsampled # [H, W]`` (the pixel was blended from the small render). A model whose
     ``rgb`` is not a blend (no ``colour_weights`` returned) is rendered guided at full size."""
@@ -320,16 +328,21 @@ def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, c
     spread = dataclasses.replace(flat, band=0.0, max_spread=options.edge_spread)
     edge = torch.isnan(pixel_bands(prior_from_outputs(low, 0.0, use_valid=False).cpu(), H, W, src.near, src.far,
                                    inverse, spread)[0]).flatten()  # [H W]
-    weights, depths = low.pop("colour_weights"), low.pop("colour_depths")
+    weights = low.pop("colour_weights")
+    depths, weights = strongest_samples(low.pop("colour_depths").reshape(h * w, -1),
+                                        weights.reshape(h * w, *weights.shape[2:]), options.colour_samples)
     out = {k: v.reshape(h * w, *v.shape[2:])[cell.to(v.device)] for k, v in low.items()
            if v.dim() <= 3}  # [H W, ...] each: per-pixel outputs (not per-sample ones)
     rays = Rays.from_image(camera.to(device=src.images.device, dtype=src.images.dtype))
-    cells = cell.to(weights.device)
-    out["rgb"] = out["rgb"].clone()
+    corners, share = bilinear_cells(H, W, h, w)  # [4, H W], [4, H W]
+    corners, share = corners.to(weights.device), share.to(weights.device)
+    out["rgb"] = torch.zeros_like(out["rgb"])
     for i in range(0, H * W, chunk):
         part = slice(i, min(i + chunk, H * W))
-        out["rgb"][part] = blend_sources(src, rays[part], depths.reshape(h * w, -1)[cells[part]],
-                                         weights.reshape(h * w, *weights.shape[2:])[cells[part]])
+        for c in range(4):  # the colours blended with each of the 4 cells' weights, bilinearly
+            at = corners[c, part]
+            out["rgb"][part] += share[c, part, None] * blend_sources(src, rays[part], depths[at], weights[at]).to(
+                out["rgb"].dtype)
     out["upsampled"] = ~edge
     pixels = edge.nonzero()[:, 0]
     if len(pixels):
@@ -340,6 +353,34 @@ def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, c
                 v = full[k].reshape(H * W, *full[k].shape[2:])
                 out[k][pixels.to(v.device)] = v[pixels.to(v.device)].to(out[k].dtype)
     return {k: v.reshape(H, W, *v.shape[1:]) for k, v in out.items()}
+
+
+def bilinear_cells(height: int, width: int, h: int, w: int) -> tuple[Tensor, Tensor]:
+    """For each pixel of a ``height x width`` image, the 4 cells of an ``h x w`` one that bilinear upsampling blends
+    (flat indices, ``# [4, height width]``) and their shares (``# [4, height width]``, summing to 1; pixel centres
+    aligned, borders clamped)."""
+    def axis(n: int, m: int) -> tuple[Tensor, Tensor, Tensor]:
+        u = ((torch.arange(n) + 0.5) * m / n - 0.5).clamp(0, m - 1)  # [n] in cell units
+        lo = u.floor().long()
+        return lo, (lo + 1).clamp_max(m - 1), u - lo
+    y0, y1, fy = axis(height, h)
+    x0, x1, fx = axis(width, w)
+    cells = torch.stack([(a[:, None] * w + b[None]).flatten() for a in (y0, y1) for b in (x0, x1)])
+    share = torch.stack([(p[:, None] * q[None]).flatten() for p in (1 - fy, fy) for q in (1 - fx, fx)])
+    return cells, share
+
+
+def strongest_samples(depths: Tensor, weights: Tensor, count: int) -> tuple[Tensor, Tensor]:
+    """Per row, the ``count`` samples of ``depths # [N, S]`` and ``weights # [N, S, K]`` with the most weight
+    (summed over ``K``), the kept weights scaled so that each row's total stays the same; all of them when ``S <=
+    count``. ``# [N, min(S, count)]``, ``# [N, min(S, count), K]``"""
+    if depths.shape[1] <= count:
+        return depths, weights
+    mass = weights.sum(-1)  # [N, S]
+    keep = mass.topk(count, -1).indices.sort(-1).values  # [N, count]
+    kept = weights.gather(1, keep[..., None].expand(-1, -1, weights.shape[2]))  # [N, count, K]
+    scale = mass.sum(-1) / kept.sum((1, 2)).clamp_min(1e-12)  # [N]
+    return depths.gather(1, keep), kept * scale[:, None, None]
 
 
 def blend_sources(sources, rays: Rays, depths: Tensor, weights: Tensor) -> Tensor:

@@ -18,11 +18,13 @@ from omnirecon.metrics import psnr
 from omnirecon.models.guided import (
     GuidedOptions,
     band_depths,
+    bilinear_cells,
     blend_sources,
     from_unit,
     grid_units,
     pixel_bands,
     render_guided,
+    strongest_samples,
     to_unit,
 )
 from omnirecon.rays import Rays, Sources
@@ -213,3 +215,18 @@ def test_upsampled_from_the_full_path(scene):
         up = render_guided(model, features, cam, GuidedOptions(on=True, upsample=3, small_path="full"))
     score = psnr(up["rgb"].clamp(0, 1), full)
     assert score >= 44.0 and not up["guided"][up["upsampled"]].any(), f"{score:.2f} dB to the full render"
+
+
+def test_bilinear_cells_and_strongest_samples():
+    """A 4-px row over a 2-cell one: the outer pixels take their own cell, the inner ones 3/4 of theirs and 1/4 of
+    the other; shares sum to 1. The strongest samples keep a row's total weight, in depth order."""
+    cells, share = bilinear_cells(1, 4, 1, 2)
+    mix = torch.zeros(4, 2).index_put_((torch.arange(4).repeat(4), cells.flatten()), share.flatten(), accumulate=True)
+    torch.testing.assert_close(mix, torch.tensor([[1.0, 0.0], [0.75, 0.25], [0.25, 0.75], [0.0, 1.0]]))
+    depths = torch.tensor([[1.0, 2.0, 3.0, 4.0]])
+    weights = torch.tensor([[[0.1, 0.0], [0.0, 0.4], [0.3, 0.1], [0.1, 0.0]]])  # [1, 4, 2]: masses .1 .4 .4 .1
+    z, w = strongest_samples(depths, weights, 2)
+    assert torch.equal(z, torch.tensor([[2.0, 3.0]]))
+    torch.testing.assert_close(w.sum(), weights.sum())
+    torch.testing.assert_close(w[0, :, 1], torch.tensor([0.4, 0.1]) * 1.0 / 0.8)
+    assert strongest_samples(depths, weights, 8)[0] is depths
