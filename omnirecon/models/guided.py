@@ -25,6 +25,14 @@ the caller's sample depths): GPNR attends along its ray over the given points in
 IBRNet and Omni-Recon render their final pass (IBRNet's fine network unless ``fine_pass=False``) on them, with
 no coarse pass. Guided rendering changes the output: it is a render option with its PSNR cost measured by
 ``python -m bench guided``, not a fast path with a bit-exact twin.
+
+Upsampled rendering (``GuidedOptions.upsample``, :func:`render_upsampled`; ``Capabilities.colour_weights``): the
+view is rendered (guided, or on the full path) at ``1 / upsample`` size, and each full-size pixel blends the
+source photos at its own ray's points with the colour weights of its 4 nearest small cells, mixed bilinearly;
+depth edges are rendered at full size.
+
+Size: the options with their per-family defaults (a third of the module), the band and grid layouts, and the
+upsampled path that reuses them are one sampling decision, kept together.
 """
 
 from __future__ import annotations
