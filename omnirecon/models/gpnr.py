@@ -194,8 +194,8 @@ class GPNR(GeneralizableModel):
         """Render rays. ``signals # [K, H, W, C]`` (optional, per-source-view 2-D maps): also return
         ``signal # [R, C] = sum_k beta_k sum_m alpha_km s_km``, the maps sampled exactly as the colours
         and blended with the weights of ``rgb_aux`` (predict-then-blend). ``depths # [R, M]``: the points' z-depths
-        per ray instead of the linear ones (surface-guided rendering, :mod:`omnirecon.models.guided`). ``colour_weights``:
-        with ``cfg.output == "colors"``, add ``colour_weights # [R, M, K]`` (``beta_k alpha_km``) and ``colour_depths
+        per ray instead of the linear ones (surface-guided rendering, :mod:`omnirecon.models.guided`).
+        ``colour_weights``: with ``cfg.output == "colors"``, add ``colour_weights # [R, M, K]`` (``beta_k alpha_km``) and ``colour_depths
         # [R, M]`` (:class:`~omnirecon.models.base.Capabilities`)."""
         cfg = self.cfg
         src = features.sources

@@ -88,9 +88,9 @@ class GuidedOptions:
     guided ray below it (its band found no surface) is rendered again by the full path. Models without ``acc``
     (GPNR) trust every ``valid`` prior pixel."""
     upsample: int | None = None
-    """Blend at full size from a smaller render: the model renders the view guided at ``1 / upsample`` of its width
-    and height (``upsample ** 2`` times fewer rays); each pixel then blends the source colours at its own ray's
-    points with the colour weights and sample depths of the small render's pixel it lies in
+    """Blend at full size from a smaller render: the model renders the view at ``1 / upsample`` of its width and
+    height (``upsample ** 2`` times fewer rays; ``small_path``); each pixel then blends the source colours at its own
+    ray's points with the colour weights and sample depths of its 4 nearest small pixels, mixed bilinearly
     (:func:`render_upsampled`), and a pixel whose 2x2 small cells' depths spread wider than ``edge_spread`` is
     rendered by the model at full size (guided, the small render's depth its prior). 1: off. Models without
     ``capabilities.colour_weights``, or whose ``rgb`` is not a blend of the source colours, render at full size.
@@ -162,8 +162,8 @@ far below that full path, while its full path at a third of the size, blended at
 both sweep scenes (``small_path`` ``full``, ``upsample`` 3; at half the size it took longer than the goal).
 Mixing the 4 nearest cells bilinearly instead of taking the one a pixel lies in came closer to the full render on
 every sweep row; of each cell's samples, the 8 strongest lost nothing against all of them for GPNR and Omni-Recon
-(12 samples each) at less CPU, while IBRNet's 48 spread their weight wider and need more. Off by default: a render option with its cost measured, not a
-bit-exact fast path."""
+(12 samples each) at less CPU, while IBRNet's 48 spread their weight wider and need more. Off by default: a render
+option with its cost measured, not a bit-exact fast path."""
 
 
 def full_path_samples(model) -> int | None:
@@ -310,12 +310,13 @@ def render_upsampled(model, features, camera: Cameras, options: GuidedOptions, c
                      prior: Tensor | None = None, **render_kw) -> dict[str, Tensor]:
     """Surface-guided rendering at ``1 / options.upsample`` size, blended at full size (resolved ``options``; the
     model has ``capabilities.colour_weights``). The small view is rendered by :func:`render_guided` (``prior``, if
-    given, guides it); each full-size pixel takes the small render's outputs at the cell it lies in, and its
-    ``rgb`` is the bilinear mix, over the 4 cells nearest it (:func:`bilinear_cells`), of the source colours at its
-    own ray's points blended with each cell's ``colour_weights`` at its ``colour_depths`` (the
-    ``options.colour_samples`` strongest: :func:`strongest_samples`; :func:`blend_sources`): the network's weights
-    at the small size, the photos' detail at the full one. Pixels whose 2x2 cells spread wider than ``options.edge_spread`` in depth (edges, where a cell's
-    weights belong to another surface) are rendered at full size, guided by the small render's depth. Outputs as
+    given, guides it) or, with ``options.small_path == "full"``, by the model's full path. Each full-size pixel takes
+    the small render's outputs at the cell it lies in; its ``rgb`` is the bilinear mix, over the 4 cells nearest it
+    (:func:`bilinear_cells`), of the source colours at its own ray's points blended with each cell's
+    ``colour_weights`` at its ``colour_depths`` (the ``options.colour_samples`` strongest: :func:`strongest_samples`;
+    :func:`blend_sources`): the network's weights at the small size, the photos' detail at the full one. Pixels
+    whose 2x2 cells spread wider than ``options.edge_spread`` in depth (edges, where a cell's weights belong to
+    another surface) are rendered at full size, guided by the small render's depth. Outputs as
     :func:`render_guided`'s plus ``upsampled # [H, W]`` (the pixel was blended from the small render). A model whose
     ``rgb`` is not a blend (no ``colour_weights`` returned) is rendered guided at full size."""
     flat = dataclasses.replace(options, upsample=1)

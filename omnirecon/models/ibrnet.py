@@ -340,6 +340,7 @@ class IBRNet(GeneralizableModel):
         """One pass at the caller's z-depths ``z # [R, S]`` (the fine network unless ``coarse`` or there is none)."""
         net, half = (self.coarse, 0) if coarse or self.fine is None else (self.fine, 1)
         out = self._pass(net, features, rays, z, half, signals, positions=trained_positions(
-            z, features.sources, self.cfg.coarse_samples, 0 if coarse else self.cfg.fine_samples), weights_out=weights_out)
+            z, features.sources, self.cfg.coarse_samples, 0 if coarse else self.cfg.fine_samples),
+            weights_out=weights_out)
         return {**{f"{k}_coarse": v for k, v in out.items() if k in ("rgb", "depth")},
                 **{k: v for k, v in out.items() if k not in ("weights", "z")}}

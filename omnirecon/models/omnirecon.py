@@ -446,8 +446,8 @@ class OmniRecon(GeneralizableModel):
     def render_view(self, features: OmniReconFeatures, camera: Cameras, chunk: int = 4096,
                     signals: Tensor | None = None, **kw) -> dict[str, Tensor]:
         """:meth:`GeneralizableModel.render_view`, from the ``cfg.render_views`` sources nearest ``camera`` when
-        there are more (outside training; ``blend`` and ``colour_weights`` keep one channel per given source, zero for the
-        dropped)."""
+        there are more (outside training; ``blend`` and ``colour_weights`` keep one channel per given source, zero
+        for the dropped)."""
         src, n = features.sources, self.cfg.render_views
         if not n or self.training or len(src.cameras) <= n:
             return super().render_view(features, camera, chunk, signals, **kw)
