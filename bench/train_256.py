@@ -26,7 +26,7 @@ and, with ``--ship``, carries it out (:func:`ship`). The shipped row is always t
 (``sizes/`` apart: :func:`own_weights`), so a rerun after shipping compares the same two states.
 
 Writes ``bench/results/train_256.json`` for ibrnet-tiny, ``train_256_<model>.json`` for the others (with ``--mix R``:
-``train_256_mix<R>.json``).
+``train_256_mix<R>.json``, for the others ``train_256_mix<R>_<model>.json``).
 """
 
 from __future__ import annotations
@@ -276,10 +276,10 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--full-render", action="store_true", help="also score both states at 256 px with every render "
                    "option at its full-render value (the trained sample counts), candidates for the 256-px weights")
     p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json for ibrnet-tiny, "
-                   "train_256_<model>.json for the others (--mix R: train_256_mix<R>.json)")
+                   "train_256_<model>.json for the others (--mix R: train_256_mix<R>.json, train_256_mix<R>_<model>.json)")
     a = p.parse_args(argv)
     own = "" if a.model == "ibrnet-tiny" else f"_{a.model}"  # ibrnet-tiny's file kept its first name
-    a.out = a.out or Path(__file__).parent / "results" / (f"train_256_mix{a.mix}.json" if a.mix else f"train_256{own}.json")
+    a.out = a.out or Path(__file__).parent / "results" / (f"train_256_mix{a.mix}{own}.json" if a.mix else f"train_256{own}.json")
     from omnirecon.data.io import write_json
     from omnirecon.provenance import provenance
 
