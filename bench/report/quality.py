@@ -183,8 +183,8 @@ def weights_256(results: Path) -> list[str]:
                     continue
                 rec = json.loads(f.read_text())["model"]
                 used.setdefault(m, set()).add(f"`{rec.get('checkpoint')}` (step {rec.get('step')})")
-                notes += [n for n in stale_note(m, rec, "quality --protocol-set cpu256 --ks 3",
-                                                long_side=None if tag else 256) if n]  # guided: the own weights
+                notes += [n for n in stale_note(m, rec, "quality --protocol-set cpu256 --ks 3", long_side=256)
+                          if n]  # guided or not, a 256-px render loads the weights trained nearest 256 px
     if not used:
         return []
     return ["Weights at 256 px (`eval`, `render` and this bench load each checkpoint's weights trained nearest the "
