@@ -21,7 +21,10 @@ scenes. Whole-image PSNR (dB), the mean per group. The rule (:func:`decide`): a 
 more than :data:`MARGIN_DB` on both groups at 256 px and loses at most :data:`MARGIN_DB` on either at 64 px replaces
 them; one that beats them at 256 px but loses at 64 px ships as the checkpoint's 256-px weights
 (``checkpoints/<model>/sizes/256/``: ``eval``, ``render`` and the demo load the weights trained nearest the size they
-render at, so the 64-px weights stay where they score best); otherwise nothing ships. This module reports the decision
+render at, so the 64-px weights stay where they score best); otherwise nothing ships. ``--full-render`` and
+``--samples N`` add candidates for the 256-px weights: both states rendered at 256 px with every render option at its
+full-render value, or with N samples per ray and the shipped checkpoint's other render options (more depth steps
+across the 4x wider disparity range in pixels). This module reports the decision
 and, with ``--ship``, carries it out (:func:`ship`). The shipped row is always the checkpoint's own weights
 (``sizes/`` apart: :func:`own_weights`), so a rerun after shipping compares the same two states.
 
@@ -115,8 +118,9 @@ def gains(shipped: dict, run: dict) -> dict[str, float]:
 def decide(shipped: dict, run: dict, full: list[dict] = ()) -> tuple[str | None, str]:
     """Where the run ships (module docstring): ``("replace", why)``, ``("sizes", why)`` or ``(None, why)``, from the
     two rows' scores (the gains: :func:`gains`); with ``full`` (the 256-px rows rendered with every render option at
-    its full-render value), ``("sizes:<row name>", why)`` when one of those beats both the shipped checkpoint and the
-    run by more than :data:`MARGIN_DB` on both groups at 256 px (the best by the mean of the two)."""
+    its full-render value, or with N samples per ray: ``--samples``), ``("sizes:<row name>", why)`` when one of those
+    beats both the shipped checkpoint and the run by more than :data:`MARGIN_DB` on both groups at 256 px (the best by
+    the mean of the two)."""
     gain = gains(shipped, run)
     better = all(gain[f"{g} 256 px"] > MARGIN_DB for g in ("procedural", "real"))
     kept = all(gain[f"{g} 64 px"] >= -MARGIN_DB for g in ("procedural", "real"))
@@ -169,6 +173,17 @@ def with_render(folder: Path, dest: Path, render: dict) -> Path:
         shutil.copy2(folder / "model.safetensors", dest / "model.safetensors")
     (dest / "meta.json").write_text(json.dumps(meta, indent=1))
     return dest
+
+
+def samples_render(model: str, n: int) -> dict:
+    """Render options of ``n`` samples per ray, every other render option as the shipped checkpoint has it (models
+    whose config samples a ray once, ``render_samples``: gpnr-tiny)."""
+    from omnirecon.models.registry import RENDER_OPTIONS
+
+    config = json.loads((ROOT / "checkpoints" / model / "meta.json").read_text()).get("model_config", {})
+    if "render_samples" not in config:
+        raise SystemExit(f"--samples: {model} has no render_samples option (use --full-render)")
+    return {**{k: v for k, v in config.items() if k in RENDER_OPTIONS}, "render_samples": n}
 
 
 def full_render(folder: Path, dest: Path) -> Path:
@@ -275,6 +290,9 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--ship", action="store_true", help="replace checkpoints/<model> by the run where the rule says so")
     p.add_argument("--full-render", action="store_true", help="also score both states at 256 px with every render "
                    "option at its full-render value (the trained sample counts), candidates for the 256-px weights")
+    p.add_argument("--samples", type=int, nargs="*", default=[], help="also score both states at 256 px with this "
+                   "many samples per ray, the other render options as shipped (models with render_samples), "
+                   "candidates for the 256-px weights as the --full-render rows")
     p.add_argument("--out", type=Path, default=None, help="default: bench/results/train_256.json for ibrnet-tiny, "
                    "train_256_<model>.json for the others (--mix R: train_256_mix<R>.json, train_256_mix<R>_<model>.json)")
     a = p.parse_args(argv)
@@ -297,14 +315,20 @@ def main(argv: list[str] | None = None) -> dict:
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
            **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_render_{s}", s) for s in SETS}}
     full = []
+    states = {}
     if a.full_render:  # the same two states at 256 px with the render options at their full-render values
         states = {f"shipped {a.model}, full render": full_render(own_weights(a.model), work.parent / "init" / f"{a.model}_own_full"),
                   f"{run['name']}, full render": full_render(run_dir(a.model, a.mix) / "checkpoints" / "final",
                                                              run_dir(a.model, a.mix) / "final_full")}
-        full = [{"name": name, "step": (shipped if name.startswith("shipped") else run)["step"],
-                 "checkpoint": str(folder.relative_to(ROOT)), "render": "full",
-                 "256": score(folder, work / f"{folder.parent.name}_{folder.name}_256", "256")}
-                for name, folder in states.items()]
+    for n in a.samples:  # the same two states with n samples per ray, the other render options as shipped
+        states[f"shipped {a.model}, {n} samples"] = with_render(own_weights(a.model), work.parent / "init" / f"{a.model}_own_s{n}",
+                                                                samples_render(a.model, n))
+        states[f"{run['name']}, {n} samples"] = with_render(run_dir(a.model, a.mix) / "checkpoints" / "final",
+                                                            run_dir(a.model, a.mix) / f"final_s{n}", samples_render(a.model, n))
+    full = [{"name": name, "step": (shipped if name.startswith("shipped") else run)["step"],
+             "checkpoint": str(folder.relative_to(ROOT)), "render": "full" if name.endswith("full render") else "samples",
+             "256": score(folder, work / f"{folder.parent.name}_{folder.name}_256", "256")}
+            for name, folder in states.items()]
     where, why = decide(shipped, run, full)
     print(why + ": " + ", ".join(f"{k} {v:+.2f}" for k, v in gains(shipped, run).items()))
     result = {"provenance": provenance(seed=SEED), "model": a.model, "size": SIZE, "mix": a.mix, "margin_db": MARGIN_DB,

@@ -63,7 +63,8 @@ def _model_section(results: Path, name: str) -> str | None:
         f"{r['margin_db']:g} dB on either at 64 px replaces them; one that beats them at 256 px but loses at 64 px "
         "ships as the checkpoint's 256-px weights (`checkpoints/<model>/sizes/256/`: `eval`, `render` and the demo "
         "load the weights trained nearest the size they render at, so the 64-px rows keep the own weights); with "
-        "`--full-render` (rows `full render`), a state rendered with its trained sample counts that beats the shipped "
+        "`--full-render` (rows `full render`) or `--samples N` (rows `N samples`), a state rendered with its trained "
+        "sample counts or with N samples per ray that beats the shipped "
         "checkpoint, and a winning run, by more than that on both groups at 256 px ships as the 256-px weights with "
         "those render options"
         + ("" if isinstance(r.get("ships"), str) or r.get("ships") is None else
@@ -74,7 +75,10 @@ def _model_section(results: Path, name: str) -> str | None:
             f"{g} {row['256'][g] - shipped['256'][g]:+.2f}" for g in ("procedural", "real")) + "." for row in full)
         + (" Rows `full render`: every render option at its full-render value (the trained sample counts; the "
            "other rows render with the checkpoint's own options, e.g. ibrnet-tiny's 16 + 16 samples), at 256 px only."
-           if full else "") + f" Decision: {r['decision']}."
+           if any(row.get("render") == "full" for row in full) else "")
+        + (" Rows `N samples`: N samples per ray, the other render options as shipped, at 256 px only "
+           "(`--samples N`)." if any(row.get("render") == "samples" for row in full) else "")
+        + f" Decision: {r['decision']}."
         + (" Not carried out: the bench ran without `--ship` (the checkpoint is unchanged; the run's README in "
            "`checkpoints/runs/` says why)." if r.get("ships") and not r.get("shipped") else "")
         + (f" Scoring cost at 256 / 64 px (1 thread, beside other work): {'; '.join(cost)}." if cost else ""),
