@@ -207,7 +207,14 @@ def final_state(model: str, mix: int = 0) -> Path:
                        {k: v for k, v in shipped.items() if k in RENDER_OPTIONS})
 
 
-def _card_stage(meta: dict, card: dict, result: dict, mix: int) -> dict:
+def _card_stage(meta: dict, card: dict, result: dict, mix: int, own: bool = False) -> dict:
+    """The card's record of a shipped 256-px stage; ``own``: the checkpoint's own weights with other render options
+    (no training: no steps, no command)."""
+    if own:
+        return {"resolution": SIZE, "steps": 0, "cpu_seconds": 0.0, "wall_seconds": 0.0,
+                "render": {k: v for k, v in meta.get("model_config", {}).items() if k.startswith("render_")},
+                "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
+                "validation": {"rule": result["decision"], "rows": result["rows"]}}
     return {"resolution": SIZE, **({"mix_resolution": mix, "mix_share": 0.5} if mix else {}), "steps": meta["step"],
             "cpu_seconds": round(meta["extra"]["cpu_s"], 1), "wall_seconds": round(meta["extra"].get("elapsed_s", 0.0), 1),
             "command": result["command"], "from": {"steps": card["steps"], "cpu_seconds": card["cpu_seconds"]},
@@ -223,11 +230,20 @@ def _card_text(stage: dict, meta: dict, card: dict, result: dict, mix: int, wher
             f"their render options in its meta.json{': every one at its full-render value' if run.get('render') == 'full' else ''}): "
             f"`eval`, `render` and the demo load the weights trained nearest the size they render at ({SIZE} px from a "
             "129-px long side up); the card's steps and CPU seconds are the own weights'.")
+    if "render" in stage:  # the own weights with other render options: nothing trained
+        options = ", ".join(f"`{k}={json.dumps(v)}`" for k, v in stage["render"].items())
+        head = (f"## Rendered at {SIZE} px with other options", "",
+                f"The checkpoint above (step {stage['from']['steps']}), its weights unchanged, renders from a 129-px long "
+                f"side up with {options} (`sizes/{SIZE}/meta.json`; its `model.safetensors` holds no tensor, the own "
+                f"weights serve): `eval`, `render` and the demo load these options at that size "
+                "(`python -m bench train_256 --samples N`; nothing was trained).")
+    else:
+        head = (f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
+                f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
+                f"{meta['step']} steps more at {SIZE} px{f' (half the scenes at {mix} px)' if mix else ''} in "
+                f"{stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): `{result['command']}`. {what}")
     return "\n".join([
-        f"## Continued at {SIZE} px" + (f" and {mix} px" if mix else ""), "",
-        f"The checkpoint above (step {stage['from']['steps']}, {stage['from']['cpu_seconds']:.0f} CPU-s) trained "
-        f"{meta['step']} steps more at {SIZE} px{f' (half the scenes at {mix} px)' if mix else ''} in "
-        f"{stage['cpu_seconds']:.0f} CPU-s (`python -m bench train_256`): `{result['command']}`. {what}", "",
+        *head, "",
         f"Validation (K = 3, whole-image PSNR, dB; procedural seeds / held-out views of the real training scenes): "
         f"at {SIZE} px {shipped['256']['procedural']:.2f} / {shipped['256']['real']:.2f} -> "
         f"{run['256']['procedural']:.2f} / {run['256']['real']:.2f}"
@@ -263,7 +279,7 @@ def ship(model: str, result: dict, mix: int = 0, where: str = "replace", state: 
 
         save_file(size_delta(checkpoint_weights(dest), checkpoint_weights(final)), str(weights / "model.safetensors"))
         (weights / "model.safetensors").chmod(0o644)  # readable as the own weights are, in a checkout and a wheel
-    stage = _card_stage(meta, card, result, mix)
+    stage = _card_stage(meta, card, result, mix, own=full_where.startswith(f"sizes:shipped {model}"))
     text = _card_text(stage, meta, card, result, mix, full_where)
     if where == "replace":
         card = {**card, "steps": card["steps"] + meta["step"], "cpu_seconds": card["cpu_seconds"] + stage["cpu_seconds"],
