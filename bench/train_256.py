@@ -330,7 +330,6 @@ def main(argv: list[str] | None = None) -> dict:
            "step": shipped_meta["step"] + meta["step"],
            "cpu_s": round(meta["extra"]["cpu_s"], 1), "checkpoint": str(final.relative_to(ROOT)),
            **{s: score(final, work / f"{run_dir(a.model, a.mix).name}_step{meta['step']}_render_{s}", s) for s in SETS}}
-    full = []
     states = {}
     if a.full_render:  # the same two states at 256 px with the render options at their full-render values
         states = {f"shipped {a.model}, full render": full_render(own_weights(a.model), work.parent / "init" / f"{a.model}_own_full"),

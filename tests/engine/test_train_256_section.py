@@ -149,3 +149,43 @@ def test_a_full_render_row_that_beats_both_at_256_px_ships_as_the_256_px_weights
     assert "| run, full render | 7,950 | – | 25.90 | 22.80 | **25.90** | **22.80** | – | – |" in text
     assert "run, full render minus shipped at 256 px: procedural +0.90, real +0.80." in text
     assert "K drawn from [3, 10]" in text
+
+
+def test_own_weights_with_more_samples_ship_as_render_options_alone(tmp_path, monkeypatch):
+    """``--samples N``: the shipped weights rendered with N samples per ray win the 256-px slot; ``sizes/256/`` then
+    holds no tensor, a 256-px load gets the own weights with N samples, and the card says nothing was trained."""
+    import torch
+
+    import bench.train_256 as t
+    from omnirecon.engine.checkpoint import checkpoint_weights, load_checkpoint, save_checkpoint
+    from omnirecon.engine.checkpoint_check import read_weights
+    from omnirecon.models.registry import build_model
+
+    monkeypatch.setattr(t, "ROOT", tmp_path)
+    dest = tmp_path / "checkpoints" / "gpnr-tiny"
+    torch.manual_seed(0)
+    save_checkpoint(dest, build_model("gpnr-tiny", {"render_samples": 24, "render_bf16": True}), "gpnr-tiny",
+                    step=9695, train_config={"resolution": 64})
+    (dest / "card.json").write_text(json.dumps({"steps": 9695, "cpu_seconds": 14632.0, "resolution": 64}))
+    (dest / "MODEL_CARD.md").write_text("# gpnr-tiny\n")
+    assert t.samples_render("gpnr-tiny", 48) == {"render_samples": 48, "render_bf16": True}
+    state = t.with_render(t.own_weights("gpnr-tiny"), tmp_path / "s48", t.samples_render("gpnr-tiny", 48))
+    shipped, run = _row("shipped gpnr-tiny", 25.0, 22.0, 27.0, 26.0), _row("run", 24.7, 22.3, 26.9, 25.3)
+    more = {"name": "shipped gpnr-tiny, 48 samples", "step": 9695, "render": "samples",
+            "256": {"scenes": {"synth:scene_901000": 25.3, "fox": 22.3}, "procedural": 25.3, "real": 22.3}}
+    where, why = t.decide(shipped, run, [more])
+    assert where == "sizes:shipped gpnr-tiny, 48 samples"
+    t.ship("gpnr-tiny", {"command": "x", "decision": why, "rows": [shipped, run, more], "cpu_budget": 1.0},
+           where=where, state=state)
+    assert read_weights(dest / "sizes" / "256" / "model.safetensors") == {}
+    big, meta = load_checkpoint(dest, long_side=336)
+    small, _ = load_checkpoint(dest, long_side=64)
+    assert big.cfg.render_samples == 48 and small.cfg.render_samples == 24 and meta["step"] == 9695
+    assert all(torch.equal(v, small.state_dict()[k]) for k, v in big.state_dict().items())
+    assert checkpoint_weights(dest / "sizes" / "256").keys() == checkpoint_weights(dest).keys()
+    card = json.loads((dest / "card.json").read_text())
+    assert card["steps"] == 9695 and card["sizes"]["256"]["steps"] == 0
+    assert card["sizes"]["256"]["render"] == {"render_samples": 48, "render_bf16": True}
+    text = (dest / "MODEL_CARD.md").read_text()
+    assert "## Rendered at 256 px with other options" in text and "`render_samples=48`" in text
+    assert "25.00 / 22.00 -> 25.30 / 22.30" in text
